@@ -1,0 +1,116 @@
+"""msgpack encoding and checked decoding of protocol messages.
+
+`decode` never raises anything but `ProtocolError`: every malformed, oversized or hostile byte
+string becomes a coded error naming the field path, which the receiver can send back as `error`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+from pydantic import TypeAdapter, ValidationError
+
+from protocol.errors import ErrorCode, ProtocolError
+from protocol.limits import DEFAULT_LIMITS, Limits
+from protocol.messages import MESSAGE_TYPES, PROTOCOL_VERSION, AnyMessage, Error, Message
+
+_ADAPTER: TypeAdapter[AnyMessage] = TypeAdapter(AnyMessage)
+_MAX_DEPTH_CONTAINERS = 100_000
+
+
+def encode(message: Message) -> bytes:
+    """Serialize a message; None fields are omitted (their default applies on decode)."""
+    raw: bytes = msgpack.packb(
+        message.model_dump(mode="python", exclude_none=True), use_bin_type=True
+    )
+    return raw
+
+
+def unpack(raw: bytes, limits: Limits = DEFAULT_LIMITS) -> Any:
+    """msgpack-decode with every length bounded by the message-size limit."""
+    if not isinstance(raw, bytes | bytearray | memoryview):
+        raise ProtocolError(ErrorCode.INVALID_MESSAGE, "message must be binary msgpack")
+    if len(raw) > limits.max_message_bytes:
+        raise ProtocolError(
+            ErrorCode.TOO_LARGE,
+            f"message of {len(raw)} bytes exceeds the limit of {limits.max_message_bytes}",
+        )
+    n = max(len(raw), 1)
+    try:
+        return msgpack.unpackb(
+            raw,
+            raw=False,
+            strict_map_key=True,
+            use_list=True,
+            max_bin_len=n,
+            max_str_len=n,
+            max_array_len=min(n, _MAX_DEPTH_CONTAINERS),
+            max_map_len=min(n, _MAX_DEPTH_CONTAINERS),
+            max_ext_len=0,
+        )
+    except Exception as exc:  # msgpack raises many types for corrupt input
+        raise ProtocolError(
+            ErrorCode.INVALID_MESSAGE, f"not valid msgpack: {type(exc).__name__}"
+        ) from None
+
+
+def _path(loc: tuple[int | str, ...], kind: str) -> str:
+    # pydantic puts the union tag first in the location; drop it, keep the fields
+    parts = [str(p) for p in loc]
+    if parts and parts[0] == kind:
+        parts = parts[1:]
+    parts = [p for p in parts if not p.startswith("function-")]
+    return ".".join([kind, *parts])
+
+
+_CODE_BY_PYDANTIC_TYPE = {
+    "too_large": ErrorCode.TOO_LARGE,
+    "union_tag_invalid": ErrorCode.UNKNOWN_TYPE,
+}
+
+
+def validate(obj: Any, limits: Limits = DEFAULT_LIMITS) -> Message:
+    """Turn an unpacked object into a message, or raise a `ProtocolError`."""
+    if not isinstance(obj, dict):
+        raise ProtocolError(ErrorCode.INVALID_MESSAGE, "message must be a map", path="")
+    seq = obj.get("seq")
+    ref = seq if isinstance(seq, int) and not isinstance(seq, bool) and 0 <= seq < 2**53 else None
+    kind = obj.get("type")
+    if not isinstance(kind, str):
+        raise ProtocolError(ErrorCode.INVALID_MESSAGE, "missing string field 'type'", "type", ref)
+    if kind not in MESSAGE_TYPES:
+        raise ProtocolError(
+            ErrorCode.UNKNOWN_TYPE, f"unknown message type {kind[:64]!r}", "type", ref
+        )
+    if kind == "hello":
+        version = obj.get("protocol_version", PROTOCOL_VERSION)
+        if not isinstance(version, str) or version.split(".")[0] != PROTOCOL_VERSION.split(".")[0]:
+            raise ProtocolError(
+                ErrorCode.VERSION_MISMATCH,
+                f"protocol version {str(version)[:32]!r} is not compatible with {PROTOCOL_VERSION}",
+                "hello.protocol_version",
+                ref,
+            )
+    try:
+        message: Message = _ADAPTER.validate_python(obj, context={"limits": limits})
+    except ValidationError as exc:
+        err = exc.errors(include_url=False)[0]
+        code = _CODE_BY_PYDANTIC_TYPE.get(err["type"], ErrorCode.INVALID_MESSAGE)
+        path = _path(tuple(err["loc"]), kind)
+        raise ProtocolError(code, f"{path}: {err['msg']}", path, ref) from None
+    except Exception as exc:  # a validator bug must not take the connection down
+        raise ProtocolError(
+            ErrorCode.INVALID_MESSAGE, f"{kind}: rejected ({type(exc).__name__})", kind, ref
+        ) from None
+    return message
+
+
+def decode(raw: bytes, limits: Limits = DEFAULT_LIMITS) -> Message:
+    """Bytes -> message; raises only `ProtocolError`."""
+    return validate(unpack(raw, limits), limits)
+
+
+def error_message(err: ProtocolError) -> Error:
+    """The `error` message that reports `err` to the peer."""
+    return Error(code=err.code, message=err.message[:4096], path=err.path, ref=err.ref)

@@ -1,0 +1,21 @@
+"""Size limits a peer enforces; the server announces them in `welcome`."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class Limits(BaseModel):
+    """What one connection may send. Decoding checks these before allocating anything."""
+
+    model_config = ConfigDict(frozen=True, extra="ignore")
+
+    max_message_bytes: int = Field(default=64 * 1024 * 1024, gt=0)
+    max_atoms: int = Field(default=4_000_000, gt=0)
+    max_image_side: int = Field(default=4096, gt=0)
+    max_image_pixels: int = Field(default=3840 * 2160, gt=0)
+    max_steer_per_s: float = Field(default=120.0, gt=0)
+    max_forces: int = Field(default=4096, ge=0)
+
+
+DEFAULT_LIMITS = Limits()

@@ -1,0 +1,467 @@
+"""Every message of every connection, as pydantic models in one union tagged by `type`.
+
+Directions: S = simulation adapter, V = viewer/steerer (browser or script), * = server.
+Units: angstrom, ps, K, kJ/mol, kJ/mol/A. Optional fields default to None and are omitted
+on the wire, which is what lets old peers ignore what new peers add.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Self
+
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
+
+from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
+from protocol.errors import ErrorCode
+from protocol.limits import Limits
+
+PROTOCOL_VERSION = "1.0"
+"""major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Unit = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+RGB = tuple[Unit, Unit, Unit]
+Seq = Annotated[int, Field(ge=0, lt=2**53)]
+Name = Annotated[str, Field(max_length=64)]
+
+Role = Literal["simulation", "steerer", "viewer"]
+
+
+class Model(BaseModel):
+    """Base of every wire model: unknown fields are ignored (forward compatibility)."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True, use_enum_values=True)
+
+
+class Message(Model):
+    """Base of every top-level message: optional `seq`, echoed by replies as `ref`."""
+
+    seq: Seq | None = None
+
+
+# ---------------------------------------------------------------- handshake (any -> *, * -> any)
+
+
+class Hello(Message):
+    """First message on every connection."""
+
+    type: Literal["hello"] = "hello"
+    role: Role
+    protocol_version: str = PROTOCOL_VERSION
+    token: Annotated[str, Field(max_length=256)] | None = None
+    client: Annotated[str, Field(max_length=128)] = "unknown"
+    session: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] | None = None
+
+
+class Welcome(Message):
+    """The server's answer to `hello`: what was granted and the limits that apply."""
+
+    type: Literal["welcome"] = "welcome"
+    session_id: str
+    client_id: str
+    role: Role
+    protocol_version: str = PROTOCOL_VERSION
+    server: str = "scalesteer"
+    limits: Limits = Limits()
+
+
+# ---------------------------------------------------------------- simulation -> server
+
+
+class Topology(Message):
+    """S->*: who the atoms are; sent once per connection, before frames."""
+
+    type: Literal["topology"] = "topology"
+    n_atoms: Annotated[int, Field(ge=0)]
+    elements: list[Annotated[str, Field(max_length=3)]]
+    names: list[Annotated[str, Field(max_length=8)]]
+    residue_ids: AtomInts
+    residue_names: list[Annotated[str, Field(max_length=8)]]
+    chain_ids: list[Annotated[str, Field(max_length=4)]]
+    bonds: Bonds
+    radii: AtomFloats | None = None
+    charges: AtomFloats | None = None
+    bfactors: AtomFloats | None = None
+    title: Annotated[str, Field(max_length=256)] = ""
+    engine: Annotated[str, Field(max_length=64)] = ""
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        n = self.n_atoms
+        for name in ("elements", "names", "residue_names", "chain_ids"):
+            got = len(getattr(self, name))
+            if got != n:
+                raise ValueError(f"{name} has {got} entries, n_atoms is {n}")
+        for name in ("residue_ids", "radii", "charges", "bfactors"):
+            arr = getattr(self, name)
+            if arr is not None and arr.shape[0] != n:
+                raise ValueError(f"{name} has {arr.shape[0]} entries, n_atoms is {n}")
+        if self.bonds.count:
+            b = self.bonds.to_numpy()
+            if int(b.min()) < 0 or int(b.max()) >= n:
+                raise ValueError(f"bond index out of range [0, {n})")
+        return self
+
+
+class Frame(Message):
+    """S->*: one configuration. `observables` holds named scalars (temperature_K, ...)."""
+
+    type: Literal["frame"] = "frame"
+    step: Annotated[int, Field(ge=0)]
+    time_ps: FiniteFloat
+    positions: Positions
+    box: Box | None = None
+    velocities: Positions | None = None
+    observables: dict[Name, FiniteFloat] = Field(default_factory=dict, max_length=64)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        if self.box is not None and self.box.shape != (3, 3):
+            raise ValueError(f"box must be (3, 3), got {list(self.box.shape)}")
+        if self.velocities is not None and self.velocities.shape != self.positions.shape:
+            raise ValueError("velocities and positions differ in shape")
+        return self
+
+
+class ParamsAck(Message):
+    """S->* and *->V: a steering message (`ref` = its seq) took effect at `step`, or failed."""
+
+    type: Literal["params_ack"] = "params_ack"
+    ref: Seq
+    ok: bool = True
+    step: Annotated[int, Field(ge=0)] | None = None
+    time_ps: FiniteFloat | None = None
+    detail: Annotated[str, Field(max_length=1024)] = ""
+    applied: dict[Name, Any] = Field(default_factory=dict, max_length=64)
+
+
+# ---------------------------------------------------------------- steering (V -> *, * -> S)
+
+EngineParam = bool | int | FiniteFloat | Annotated[str, Field(max_length=256)]
+
+
+class SimParams(Message):
+    """V->* and *->S: change simulation parameters; only the fields present change."""
+
+    type: Literal["sim_params"] = "sim_params"
+    temperature_K: Annotated[float, Field(gt=0, le=10_000, allow_inf_nan=False)] | None = None
+    timestep_fs: Annotated[float, Field(gt=0, le=20, allow_inf_nan=False)] | None = None
+    friction_per_ps: Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)] | None = None
+    frame_interval: Annotated[int, Field(ge=1, le=1_000_000)] | None = None
+    engine: dict[Name, EngineParam] = Field(default_factory=dict, max_length=32)
+
+
+ControlAction = Literal["pause", "resume", "reset", "step", "seek", "speed", "loop", "stop"]
+
+
+class Control(Message):
+    """V->* and *->S: run control. `step` advances `n_steps` while paused; `seek`, `speed` and
+    `loop` steer trajectory replay."""
+
+    type: Literal["control"] = "control"
+    action: ControlAction
+    n_steps: Annotated[int, Field(ge=1, le=1_000_000)] = 1
+    frame: Annotated[int, Field(ge=0)] | None = None
+    speed: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] | None = None
+    loop: bool | None = None
+
+    @model_validator(mode="after")
+    def _arguments(self) -> Self:
+        need = {"seek": "frame", "speed": "speed", "loop": "loop"}.get(self.action)
+        if need is not None and getattr(self, need) is None:
+            raise ValueError(f"action {self.action!r} needs field {need!r}")
+        return self
+
+
+class Forces(Message):
+    """*->S (or a script's V->*): external forces on atoms, kJ/mol/A; empty clears all."""
+
+    type: Literal["forces"] = "forces"
+    indices: AtomInts
+    forces: Positions
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        if self.indices.shape[0] != self.forces.shape[0]:
+            raise ValueError("indices and forces differ in length")
+        if self.indices.count and int(self.indices.to_numpy().min()) < 0:
+            raise ValueError("negative atom index")
+        return self
+
+
+class Pull(Message):
+    """V->*: pull one atom with a spring toward `target` (angstrom), or apply `force`
+    directly; `release` clears it."""
+
+    type: Literal["pull"] = "pull"
+    atom: Annotated[int, Field(ge=0)]
+    target: Vec3 | None = None
+    force: Vec3 | None = None
+    spring_k: Annotated[float, Field(gt=0, le=10_000, allow_inf_nan=False)] = 10.0
+    max_force: Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)] = 1000.0
+    release: bool = False
+
+    @model_validator(mode="after")
+    def _one_of(self) -> Self:
+        if not self.release and (self.target is None) == (self.force is None):
+            raise ValueError("give exactly one of target or force, or release")
+        return self
+
+
+# ---------------------------------------------------------------- view and rendering (V <-> *)
+
+
+class Camera(Model):
+    """Orbit camera: looks at `target` from `distance` along the orientation's +z axis.
+
+    `orientation` is a unit quaternion (w, x, y, z) rotating camera space into world space.
+    """
+
+    target: Vec3 = (0.0, 0.0, 0.0)
+    distance: PositiveFloat = 50.0
+    orientation: tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat] = (1.0, 0.0, 0.0, 0.0)
+    projection: Literal["perspective", "orthographic"] = "perspective"
+    fov_deg: Annotated[float, Field(gt=1, lt=170, allow_inf_nan=False)] = 40.0
+    ortho_height: PositiveFloat = 40.0
+
+    @model_validator(mode="after")
+    def _unit_quaternion(self) -> Self:
+        n = sum(q * q for q in self.orientation) ** 0.5
+        if not 0.5 < n < 2.0:
+            raise ValueError(f"orientation must be a unit quaternion, norm is {n:.3g}")
+        return self
+
+
+class View(Message):
+    """V->*: this viewer's camera and canvas size; `interacting` lowers quality while moving."""
+
+    type: Literal["view"] = "view"
+    camera: Camera = Camera()
+    width: Annotated[int, Field(ge=1)] = 640
+    height: Annotated[int, Field(ge=1)] = 480
+    device_pixel_ratio: Annotated[float, Field(gt=0, le=8, allow_inf_nan=False)] = 1.0
+    interacting: bool = False
+
+
+class TFPoint(Model):
+    """Transfer-function control point: density `x` (in iso-level units) -> colour, opacity."""
+
+    x: NonNegFloat
+    color: RGB = (1.0, 1.0, 1.0)
+    alpha: Unit = 0.0
+
+
+class Lighting(Model):
+    ambient: Unit = 0.25
+    diffuse: Unit = 0.7
+    specular: Unit = 0.35
+    shininess: Annotated[float, Field(ge=1, le=512, allow_inf_nan=False)] = 32.0
+    key_light: bool = True
+    ambient_occlusion: bool = False
+    depth_cue: Unit = 0.0
+
+
+ColorBy = Literal["element", "residue", "chain", "uniform", "bfactor", "charge"]
+TFPreset = Literal["cloud", "shells", "iso-like"]
+
+
+class RenderParams(Model):
+    """How the density is built and shown; shared by every viewer of a session."""
+
+    mode: Literal["iso", "volume"] = "iso"
+    sigma_A: Annotated[float, Field(ge=0.05, le=50, allow_inf_nan=False)] = 1.5
+    radius_mode: Literal["uniform", "vdw"] = "uniform"
+    iso_level: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.5
+    cutoff_sigmas: Annotated[float, Field(ge=1, le=6, allow_inf_nan=False)] = 3.0
+    step_sigmas: Annotated[float, Field(ge=0.02, le=2, allow_inf_nan=False)] = 0.25
+    transfer_function: list[TFPoint] = Field(default_factory=list, max_length=64)
+    tf_preset: TFPreset = "cloud"
+    color_by: ColorBy = "element"
+    uniform_color: RGB = (0.85, 0.85, 0.9)
+    lighting: Lighting = Lighting()
+    background: RGB = (0.08, 0.09, 0.11)
+    quality: Annotated[float, Field(ge=0.1, le=2, allow_inf_nan=False)] = 1.0
+    jpeg_quality: Annotated[int, Field(ge=10, le=100)] = 85
+
+
+def _partial(model: type[Model], name: str) -> type[Model]:
+    fields: dict[str, Any] = {
+        k: (f.annotation | None, None)  # type: ignore[operator]
+        for k, f in model.model_fields.items()
+    }
+    return create_model(name, __base__=Model, __doc__=f"A partial {model.__name__}.", **fields)
+
+
+if TYPE_CHECKING:
+    RenderParamsPatch = RenderParams
+else:
+    RenderParamsPatch = _partial(RenderParams, "RenderParamsPatch")
+
+
+class SetRenderParams(Message):
+    """V->*: change render parameters; only the fields present in `params` change."""
+
+    type: Literal["render_params"] = "render_params"
+    params: RenderParamsPatch
+
+    def changes(self) -> dict[str, Any]:
+        return self.params.model_dump(exclude_none=True)
+
+
+class Pick(Message):
+    """V->*: which atom is under pixel (x, y) of this viewer's last image?"""
+
+    type: Literal["pick"] = "pick"
+    x: Annotated[int, Field(ge=0)]
+    y: Annotated[int, Field(ge=0)]
+
+
+class Picked(Message):
+    """*->V: the answer to `pick` (`ref`); `atom` is None over the background."""
+
+    type: Literal["picked"] = "picked"
+    ref: Seq | None = None
+    atom: Annotated[int, Field(ge=0)] | None = None
+    element: str = ""
+    name: str = ""
+    residue_id: int = 0
+    residue_name: str = ""
+    chain: str = ""
+    position: Vec3 | None = None
+    depth: FiniteFloat | None = None
+
+
+class Image(Message):
+    """*->V: one encoded image. `ref` is the seq of the viewer message it answers, if any."""
+
+    type: Literal["image"] = "image"
+    ref: Seq | None = None
+    frame_id: Annotated[int, Field(ge=0)]
+    step: Annotated[int, Field(ge=0)] | None = None
+    format: Literal["jpeg", "png"]
+    data: bytes
+    width: Annotated[int, Field(ge=1)]
+    height: Annotated[int, Field(ge=1)]
+    still: bool = True
+    render_ms: NonNegFloat = 0.0
+    encode_ms: NonNegFloat = 0.0
+    server_time: FiniteFloat = 0.0
+    histogram: Floats | None = None
+
+
+class ClientInfo(Model):
+    client_id: str
+    role: Role
+    client: str = ""
+
+
+class SimStatus(Model):
+    state: Literal["waiting", "running", "paused", "disconnected"] = "waiting"
+    step: int = 0
+    time_ps: FiniteFloat = 0.0
+    steps_per_s: NonNegFloat = 0.0
+    n_atoms: int = 0
+    engine: str = ""
+    observables: dict[Name, FiniteFloat] = Field(default_factory=dict)
+
+
+class State(Message):
+    """*->V: changed parts of the shared session state; absent fields did not change."""
+
+    type: Literal["state"] = "state"
+    render_params: RenderParams | None = None
+    sim_params: SimParams | None = None
+    sim: SimStatus | None = None
+    clients: list[ClientInfo] | None = None
+    pulling: list[Pull] | None = None
+
+
+class Stats(Message):
+    """*->V: render and delivery statistics, about once a second."""
+
+    type: Literal["stats"] = "stats"
+    render_fps: NonNegFloat = 0.0
+    render_ms: NonNegFloat = 0.0
+    encode_ms: NonNegFloat = 0.0
+    grid_ms: NonNegFloat = 0.0
+    upload_ms: NonNegFloat = 0.0
+    frames_sent: int = 0
+    frames_dropped: int = 0
+    sim_frames: int = 0
+    device: str = ""
+
+
+class Ping(Message):
+    """Either way: echo request for latency and liveness."""
+
+    type: Literal["ping"] = "ping"
+    client_time: FiniteFloat = 0.0
+
+
+class Pong(Message):
+    type: Literal["pong"] = "pong"
+    ref: Seq | None = None
+    client_time: FiniteFloat = 0.0
+    server_time: FiniteFloat = 0.0
+
+
+class Error(Message):
+    """Either way: a rejected message. `path` names the field, `ref` echoes its seq."""
+
+    type: Literal["error"] = "error"
+    code: ErrorCode
+    message: Annotated[str, Field(max_length=4096)]
+    path: str | None = None
+    ref: Seq | None = None
+
+
+AnyMessage = Annotated[
+    Hello
+    | Welcome
+    | Topology
+    | Frame
+    | ParamsAck
+    | SimParams
+    | Control
+    | Forces
+    | Pull
+    | View
+    | SetRenderParams
+    | Pick
+    | Picked
+    | Image
+    | State
+    | Stats
+    | Ping
+    | Pong
+    | Error,
+    Field(discriminator="type"),
+]
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    m.model_fields["type"].default: m
+    for m in (
+        Hello,
+        Welcome,
+        Topology,
+        Frame,
+        ParamsAck,
+        SimParams,
+        Control,
+        Forces,
+        Pull,
+        View,
+        SetRenderParams,
+        Pick,
+        Picked,
+        Image,
+        State,
+        Stats,
+        Ping,
+        Pong,
+        Error,
+    )
+}

@@ -1,0 +1,160 @@
+"""Malformed input is rejected with the right code and field path, never an exception."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+
+import protocol as p
+from tests.protocol.samples import samples
+
+
+def raw_of(kind: str) -> dict[str, Any]:
+    obj = p.unpack(p.encode(samples()[kind]))
+    assert isinstance(obj, dict)
+    return obj
+
+
+def reject(obj: Any, limits: p.Limits = p.DEFAULT_LIMITS) -> p.ProtocolError:
+    raw = obj if isinstance(obj, bytes) else msgpack.packb(obj, use_bin_type=True)
+    with pytest.raises(p.ProtocolError) as info:
+        p.decode(raw, limits)
+    return info.value
+
+
+def test_truncated_msgpack() -> None:
+    raw = p.encode(samples()["frame"])
+    for cut in (1, len(raw) // 2, len(raw) - 1):
+        err = reject(raw[:cut])
+        assert err.code == p.ErrorCode.INVALID_MESSAGE
+
+
+def test_not_a_map() -> None:
+    assert reject([1, 2, 3]).code == p.ErrorCode.INVALID_MESSAGE
+
+
+def test_wrong_types_name_the_field() -> None:
+    obj = raw_of("frame")
+    obj["step"] = "ten"
+    err = reject(obj)
+    assert (err.code, err.path, err.ref) == (p.ErrorCode.INVALID_MESSAGE, "frame.step", 4)
+    obj = raw_of("view")
+    obj["camera"]["distance"] = [1]
+    assert reject(obj).path == "view.camera.distance"
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_positions(bad: float) -> None:
+    obj = raw_of("frame")
+    pos = np.frombuffer(obj["positions"]["data"], "<f4").copy()
+    pos[4] = bad
+    obj["positions"]["data"] = pos.tobytes()
+    err = reject(obj)
+    assert err.code == p.ErrorCode.INVALID_MESSAGE
+    assert err.path == "frame.positions"
+    assert "NaN" in err.message
+
+
+def test_non_finite_scalars() -> None:
+    obj = raw_of("frame")
+    obj["time_ps"] = float("nan")
+    assert reject(obj).path == "frame.time_ps"
+    obj = raw_of("pull")
+    obj["target"] = [0.0, float("inf"), 0.0]
+    assert reject(obj).path.startswith("pull.target")
+
+
+def test_shape_byte_length_mismatch() -> None:
+    obj = raw_of("frame")
+    obj["positions"]["shape"] = [4, 3]
+    err = reject(obj)
+    assert err.code == p.ErrorCode.INVALID_MESSAGE and err.path == "frame.positions"
+    assert "bytes" in err.message
+
+
+def test_wrong_dtype_and_rank() -> None:
+    obj = raw_of("frame")
+    obj["positions"]["dtype"] = "<f8"
+    obj["positions"]["shape"] = [3, 3]
+    obj["positions"]["data"] = np.zeros(9, "<f8").tobytes()
+    assert "dtype" in reject(obj).message
+    obj = raw_of("frame")
+    obj["positions"]["shape"] = [9]
+    assert "shape" in reject(obj).message
+    obj = raw_of("frame")
+    obj["positions"]["dtype"] = ">f4"
+    assert "not allowed" in reject(obj).message
+
+
+def test_declared_trillion_atoms_rejected_before_allocation() -> None:
+    obj = raw_of("frame")
+    obj["positions"]["shape"] = [10**12, 3]
+    err = reject(obj)
+    assert err.code == p.ErrorCode.TOO_LARGE and err.path == "frame.positions"
+
+
+def test_atom_limit_from_connection_limits() -> None:
+    small = p.Limits(max_atoms=2)
+    err = reject(raw_of("frame"), small)
+    assert err.code == p.ErrorCode.TOO_LARGE
+
+
+def test_message_size_limit() -> None:
+    raw = p.encode(samples()["frame"])
+    err = reject(raw, p.Limits(max_message_bytes=len(raw) - 1))
+    assert err.code == p.ErrorCode.TOO_LARGE
+
+
+def test_unknown_type() -> None:
+    err = reject({"type": "launch_missiles", "seq": 3})
+    assert (err.code, err.path, err.ref) == (p.ErrorCode.UNKNOWN_TYPE, "type", 3)
+    assert reject({"seq": 1}).code == p.ErrorCode.INVALID_MESSAGE
+
+
+def test_missing_required_field() -> None:
+    obj = raw_of("topology")
+    del obj["bonds"]
+    err = reject(obj)
+    assert err.path == "topology.bonds" and "required" in err.message.lower()
+
+
+def test_wrong_version() -> None:
+    obj = raw_of("hello")
+    obj["protocol_version"] = "2.0"
+    err = reject(obj)
+    assert err.code == p.ErrorCode.VERSION_MISMATCH and err.ref == 1
+    obj["protocol_version"] = 1
+    assert reject(obj).code == p.ErrorCode.VERSION_MISMATCH
+    obj["protocol_version"] = "1.7"
+    assert isinstance(p.decode(msgpack.packb(obj)), p.Hello)
+
+
+def test_cross_field_consistency() -> None:
+    obj = raw_of("topology")
+    obj["names"] = ["X"]
+    assert "names has 1 entries" in reject(obj).message
+    obj = raw_of("topology")
+    obj["bonds"]["data"] = np.array([[0, 7], [0, 2]], "<i4").tobytes()
+    assert "bond index" in reject(obj).message
+    obj = raw_of("forces")
+    obj["indices"]["data"] = np.array([-1], "<i4").tobytes()
+    assert reject(obj).path == "forces"
+    assert "needs field 'frame'" in reject({"type": "control", "action": "seek"}).message
+    assert "exactly one" in reject({"type": "pull", "atom": 1}).message
+
+
+def test_unknown_fields_are_ignored_for_forward_compatibility() -> None:
+    obj = raw_of("ping")
+    obj["added_in_1_1"] = {"x": 1}
+    assert p.decode(msgpack.packb(obj)) == samples()["ping"]
+
+
+def test_error_message_echoes_ref() -> None:
+    err = reject({"type": "frame", "seq": 41})
+    reply = p.error_message(err)
+    back = p.decode(p.encode(reply))
+    assert isinstance(back, p.Error)
+    assert back.ref == 41 and back.code == "invalid_message" and back.path == "frame.step"
