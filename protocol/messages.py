@@ -39,6 +39,7 @@ class Model(BaseModel):
 class Message(Model):
     """Base of every top-level message: optional `seq`, echoed by replies as `ref`."""
 
+    type: str
     seq: Seq | None = None
 
 
@@ -377,6 +378,8 @@ class State(Message):
     sim: SimStatus | None = None
     clients: list[ClientInfo] | None = None
     pulling: list[Pull] | None = None
+    camera: Camera | None = None
+    """The session's default camera (framing the molecule), for viewers without their own."""
 
 
 class Stats(Message):
