@@ -1,0 +1,113 @@
+"""One connected WebSocket peer and its outgoing queues.
+
+Control messages (state, acks, errors) are queued in order; images go through a slot of depth
+one where the newest replaces an unsent older one, so a slow client only loses its own frames
+and never holds anyone else up.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from starlette.websockets import WebSocket
+
+import protocol as p
+from server.auth import RateLimiter
+
+log = logging.getLogger("scalesteer.clients")
+
+MAX_QUEUED_CONTROL = 1024
+
+
+class ClientState(enum.Enum):
+    CONNECTED = "connected"
+    CLOSING = "closing"
+    CLOSED = "closed"
+
+
+@dataclass(eq=False)
+class Client:
+    """A peer of a session: simulation, steerer or viewer."""
+
+    client_id: str
+    role: p.Role
+    name: str
+    ws: WebSocket
+    steer_limiter: RateLimiter
+    any_limiter: RateLimiter
+    view: p.View | None = None
+    view_ref: int | None = None
+    interacting_until: float = 0.0
+    needs_image: bool = True
+    frames_sent: int = 0
+    frames_dropped: int = 0
+    state: ClientState = ClientState.CONNECTED
+    _control: deque[bytes] = field(default_factory=deque)
+    _image: bytes | None = None
+    _wake: asyncio.Event = field(default_factory=asyncio.Event)
+    recent_errors: deque[float] = field(default_factory=lambda: deque(maxlen=64))
+
+    def info(self) -> p.ClientInfo:
+        return p.ClientInfo(client_id=self.client_id, role=self.role, client=self.name)
+
+    def send(self, message: p.Message) -> None:
+        """Queue a control message; a peer that lets 1024 pile up is disconnected."""
+        if self.state is not ClientState.CONNECTED:
+            return
+        if len(self._control) >= MAX_QUEUED_CONTROL:
+            log.warning("client %s is not reading; disconnecting", self.client_id)
+            self.state = ClientState.CLOSING
+            self._wake.set()
+            return
+        self._control.append(p.encode(message))
+        self._wake.set()
+
+    def offer_image(self, message: p.Image) -> bool:
+        """Put an image in the slot; returns True when it replaced one never sent."""
+        if self.state is not ClientState.CONNECTED:
+            return False
+        dropped = self._image is not None
+        if dropped:
+            self.frames_dropped += 1
+        self._image = p.encode(message)
+        self._wake.set()
+        return dropped
+
+    def note_error(self) -> int:
+        """Record a protocol error; returns how many happened in the last 10 s."""
+        now = time.monotonic()
+        self.recent_errors.append(now)
+        return sum(1 for t in self.recent_errors if now - t < 10.0)
+
+    async def run_sender(self, on_image_sent: Callable[[], None] | None = None) -> None:
+        """Drain the queues until the client closes; control first, then the latest image."""
+        try:
+            while self.state is ClientState.CONNECTED:
+                await self._wake.wait()
+                self._wake.clear()
+                while self._control and self.state is ClientState.CONNECTED:
+                    await self.ws.send_bytes(self._control.popleft())
+                if self._image is not None and self.state is ClientState.CONNECTED:
+                    data, self._image = self._image, None
+                    await self.ws.send_bytes(data)
+                    self.frames_sent += 1
+                    if on_image_sent is not None:
+                        on_image_sent()
+        except Exception:  # the socket went away; the receive loop cleans up
+            pass
+        finally:
+            if self.state is ClientState.CLOSING:
+                with contextlib.suppress(Exception):
+                    await self.ws.close(code=1008, reason="client too slow")
+            self.state = ClientState.CLOSED
+
+    def close(self) -> None:
+        self.state = ClientState.CLOSED
+        self._wake.set()

@@ -1,0 +1,58 @@
+"""Server configuration: one frozen object built by `scalesteer serve` or by tests."""
+
+from __future__ import annotations
+
+import ipaddress
+import secrets
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from protocol import DEFAULT_LIMITS, Limits, RenderParams
+
+VIEWER_LIMITS = Limits(max_message_bytes=256 * 1024)
+"""Browsers and scripts send only small control messages."""
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True)
+class ServerSettings:
+    """What the server needs to know at start; see `scalesteer serve --help`."""
+
+    host: str = "127.0.0.1"
+    port: int = 8000
+    device: str = "auto"
+    token: str | None = field(default_factory=lambda: secrets.token_urlsafe(18))
+    viewer_token: str | None = field(default_factory=lambda: secrets.token_urlsafe(18))
+    open_on_loopback: bool = False
+    data_dir: Path | None = None
+    state_dir: Path = Path(".scalesteer")
+    allowed_origins: tuple[str, ...] = ()
+    limits: Limits = DEFAULT_LIMITS
+    viewer_limits: Limits = VIEWER_LIMITS
+    max_upload_bytes: int = 512 * 1024 * 1024
+    max_sessions: int = 64
+    interactive_idle_s: float = 0.15
+    interactive_scale: float = 0.5
+    interactive_jpeg_quality: int = 60
+    default_size: tuple[int, int] = (640, 480)
+    render_defaults: RenderParams = field(default_factory=RenderParams)
+    stats_interval_s: float = 1.0
+    state_interval_s: float = 0.1
+    hello_timeout_s: float = 10.0
+    client_dir: Path = Path(__file__).resolve().parents[1] / "client_web"
+
+    def __post_init__(self) -> None:
+        if self.open_on_loopback and not is_loopback(self.host):
+            raise ValueError("--no-token-on-loopback-only needs a loopback --host")
+        if self.token is None and not self.open_on_loopback:
+            raise ValueError("a token is required unless the server is open on loopback only")
+        if self.data_dir is not None and not self.data_dir.is_dir():
+            raise ValueError(f"--data-dir {self.data_dir} is not a directory")

@@ -1,0 +1,230 @@
+"""The WebSocket endpoints: `/ws/sim` for simulation adapters, `/ws/view` for browsers and scripts.
+
+Each connection: Origin check, `hello` within a timeout, token -> role, then a receive loop that
+decodes with the connection's limits, checks what the role may send and how fast, and dispatches
+to the session. Every rejection is a coded `error`; only abuse closes the connection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import time
+from typing import TYPE_CHECKING, Literal
+
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+import protocol as p
+from server.auth import STEERING_TYPES, RateLimiter, grant, may_send, origin_allowed
+from server.clients import Client, ClientState
+
+if TYPE_CHECKING:
+    from server.app import AppState
+
+log = logging.getLogger("scalesteer.ws")
+
+Endpoint = Literal["sim", "view"]
+_client_ids = itertools.count(1)
+MAX_ERRORS_PER_10S = 50
+
+
+class RefusedError(Exception):
+    """Ends a connection: the error to send and the close code."""
+
+    def __init__(self, error: p.ProtocolError, close_code: int) -> None:
+        super().__init__(error.message)
+        self.error = error
+        self.close_code = close_code
+
+
+async def _receive(ws: WebSocket, limits: p.Limits) -> bytes | None:
+    """The next binary message, None when the peer left; oversized frames refuse the peer."""
+    event = await ws.receive()
+    if event["type"] == "websocket.disconnect":
+        return None
+    data = event.get("bytes")
+    if data is None:
+        raise p.ProtocolError(p.ErrorCode.INVALID_MESSAGE, "send binary msgpack frames, not text")
+    if len(data) > limits.max_message_bytes:
+        raise RefusedError(
+            p.ProtocolError(
+                p.ErrorCode.TOO_LARGE,
+                f"message of {len(data)} bytes exceeds the limit of {limits.max_message_bytes}",
+            ),
+            1009,
+        )
+    return bytes(data)
+
+
+async def _send_now(ws: WebSocket, message: p.Message) -> None:
+    with contextlib.suppress(Exception):
+        await ws.send_bytes(p.encode(message))
+
+
+async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
+    settings = state.settings
+    if not origin_allowed(settings, ws.headers.get("origin"), ws.headers.get("host")):
+        state.metrics.errors.labels("forbidden").inc()
+        await ws.close(code=1008, reason="origin not allowed")
+        return
+    await ws.accept()
+    client: Client | None = None
+    session = None
+    sender: asyncio.Task[None] | None = None
+    try:
+        hello = await _handshake(ws, state, endpoint)
+        role = grant(settings, hello.token, hello.role)
+        if role is None:
+            raise RefusedError(
+                p.ProtocolError(
+                    p.ErrorCode.UNAUTHORIZED, "missing or wrong token", "hello.token", hello.seq
+                ),
+                1008,
+            )
+        try:
+            session = await state.sessions.get_or_create(hello.session or "default")
+        except p.ProtocolError as err:
+            raise RefusedError(err.with_ref(hello.seq), 1008) from None
+        limits = settings.limits if role != "viewer" else settings.viewer_limits
+        client = Client(
+            client_id=f"c{next(_client_ids)}",
+            role=role,
+            name=hello.client,
+            ws=ws,
+            steer_limiter=RateLimiter(limits.max_steer_per_s, limits.max_steer_per_s),
+            any_limiter=RateLimiter(20 * limits.max_steer_per_s, 20 * limits.max_steer_per_s),
+        )
+        client.send(
+            p.Welcome(session_id=session.id, client_id=client.client_id, role=role, limits=limits)
+        )
+        sender = asyncio.create_task(
+            client.run_sender(state.metrics.images_sent.inc), name=f"send-{client.client_id}"
+        )
+        session.attach(client)
+        log.info("%s %s joined session %s as %s", endpoint, client.client_id, session.id, role)
+        await _receive_loop(ws, state, session, client, limits)
+    except RefusedError as refused:
+        state.metrics.errors.labels(refused.error.code.value).inc()
+        if client is not None:
+            client.close()
+        await _send_now(ws, p.error_message(refused.error))
+        with contextlib.suppress(Exception):
+            await ws.close(code=refused.close_code, reason=refused.error.code.value)
+    except (WebSocketDisconnect, asyncio.CancelledError):
+        pass
+    except Exception:
+        log.exception("connection failed")
+    finally:
+        if client is not None:
+            if session is not None:
+                session.detach(client)
+            client.close()
+        if sender is not None:
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await sender
+
+
+async def _handshake(ws: WebSocket, state: AppState, endpoint: Endpoint) -> p.Hello:
+    settings = state.settings
+    try:
+        raw = await asyncio.wait_for(_receive(ws, settings.viewer_limits), settings.hello_timeout_s)
+    except TimeoutError:
+        raise RefusedError(
+            p.ProtocolError(p.ErrorCode.NOT_READY, "no hello within the timeout"), 1008
+        ) from None
+    except p.ProtocolError as err:
+        raise RefusedError(err, 1008) from None
+    if raw is None:
+        raise WebSocketDisconnect(1000)
+    try:
+        message = p.decode(raw, settings.viewer_limits)
+    except p.ProtocolError as err:
+        raise RefusedError(err, 1008) from None
+    if not isinstance(message, p.Hello):
+        raise RefusedError(
+            p.ProtocolError(
+                p.ErrorCode.NOT_READY,
+                f"the first message must be hello, got {message.type}",
+                "type",
+                message.seq,
+            ),
+            1008,
+        )
+    wanted = {"sim": ("simulation",), "view": ("steerer", "viewer")}[endpoint]
+    if message.role not in wanted:
+        raise RefusedError(
+            p.ProtocolError(
+                p.ErrorCode.FORBIDDEN,
+                f"role {message.role!r} does not belong on /ws/{endpoint}",
+                "hello.role",
+                message.seq,
+            ),
+            1008,
+        )
+    return message
+
+
+async def _receive_loop(
+    ws: WebSocket, state: AppState, session: object, client: Client, limits: p.Limits
+) -> None:
+    from server.session import Session
+
+    assert isinstance(session, Session)
+    while client.state is ClientState.CONNECTED:
+        try:
+            raw = await _receive(ws, limits)
+            if raw is None:
+                return
+            message = p.decode(raw, limits)
+            await _dispatch(session, client, message)
+        except p.ProtocolError as err:
+            state.metrics.errors.labels(err.code.value).inc()
+            client.send(p.error_message(err))
+            if client.note_error() > MAX_ERRORS_PER_10S:
+                raise RefusedError(
+                    p.ProtocolError(p.ErrorCode.RATE_LIMITED, "too many invalid messages"), 1008
+                ) from None
+
+
+async def _dispatch(session: object, client: Client, message: p.Message) -> None:
+    from server.session import Session
+
+    assert isinstance(session, Session)
+    kind = message.type
+    if not may_send(client.role, kind):
+        why = (
+            "a viewer cannot steer"
+            if client.role == "viewer"
+            else f"role {client.role} may not send {kind}"
+        )
+        raise p.ProtocolError(p.ErrorCode.FORBIDDEN, why, "type", message.seq)
+    limiter = client.steer_limiter if kind in STEERING_TYPES else client.any_limiter
+    if not limiter.allow():
+        raise p.ProtocolError(
+            p.ErrorCode.RATE_LIMITED, f"too many {kind} messages; slow down", "type", message.seq
+        )
+    match message:
+        case p.Topology():
+            session.on_topology(message)
+        case p.Frame():
+            session.on_frame(message)
+        case p.ParamsAck():
+            session.on_ack(message)
+        case p.View():
+            session.set_view(client, message)
+        case p.Pick():
+            client.send(await session.pick(client, message))
+        case p.Ping():
+            client.send(
+                p.Pong(ref=message.seq, client_time=message.client_time, server_time=time.time())
+            )
+        case p.Pong() | p.Error():
+            if isinstance(message, p.Error):
+                log.info(
+                    "client %s reported %s: %s", client.client_id, message.code, message.message
+                )
+        case _:
+            session.steer(client, message)

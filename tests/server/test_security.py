@@ -1,0 +1,166 @@
+"""Tokens, roles, Origins, limits and hostile input on both WebSocket endpoints."""
+
+from __future__ import annotations
+
+import random
+import time
+
+import msgpack
+import numpy as np
+import pytest
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+import protocol as p
+from tests.conftest import LiveServer
+from tests.protocol.samples import samples
+from tests.protocol.test_fuzz import _mutations
+from tests.server.peers import Peer, frame, molecule
+
+
+def closed_with(peer: Peer) -> tuple[p.Error | None, int | None]:
+    """Read until the server closes; returns the last error and the close code."""
+    error = None
+    try:
+        while True:
+            msg = peer.recv(20)
+            if isinstance(msg, p.Error):
+                error = msg
+    except ConnectionClosed as exc:
+        return error, exc.rcvd.code if exc.rcvd else None
+
+
+def test_no_or_wrong_token_is_unauthorized(live_server: LiveServer) -> None:
+    for token in (None, "wrong"):
+        peer = Peer(live_server.view_url, "steerer", token, hello=False)
+        peer.send(p.Hello(role="steerer", token=token))
+        error, code = closed_with(peer)
+        assert error is not None and error.code == "unauthorized" and code == 1008
+
+
+def test_viewer_token_cannot_steer_or_claim_steerer(live_server: LiveServer) -> None:
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token)
+    for msg in (
+        p.SetRenderParams(params={"sigma_A": 2.0}),
+        p.SimParams(temperature_K=400.0),
+        p.Control(action="pause"),
+        p.Pull(atom=0, target=(0.0, 0.0, 0.0)),
+    ):
+        seq = viewer.send(msg)
+        err = viewer.expect(p.Error)
+        assert (err.code, err.ref) == ("forbidden", seq)
+    viewer.send(p.Ping(client_time=1.0))
+    assert viewer.expect(p.Pong).client_time == 1.0  # still connected
+    claim = Peer(live_server.view_url, "steerer", live_server.viewer_token, hello=False)
+    claim.send(p.Hello(role="steerer", token=live_server.viewer_token))
+    error, _ = closed_with(claim)
+    assert error is not None and error.code == "unauthorized"
+
+
+def test_roles_belong_on_their_endpoint(live_server: LiveServer) -> None:
+    peer = Peer(live_server.view_url, "simulation", live_server.token, hello=False)
+    peer.send(p.Hello(role="simulation", token=live_server.token))
+    error, _ = closed_with(peer)
+    assert error is not None and error.code == "forbidden"
+
+
+def test_foreign_origin_is_refused(live_server: LiveServer) -> None:
+    with pytest.raises(InvalidStatus) as info:
+        Peer(live_server.view_url, "viewer", live_server.viewer_token, origin="http://evil.example")
+    assert info.value.response.status_code == 403
+    ok = Peer(live_server.view_url, "viewer", live_server.viewer_token, origin=live_server.url)
+    assert ok.welcome is not None
+    ok.close()
+
+
+def test_oversized_message_is_too_large_and_closes_1009(live_server: LiveServer) -> None:
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token)
+    viewer.send_raw(b"\x00" * (live_server.settings.viewer_limits.max_message_bytes + 10))
+    error, code = closed_with(viewer)
+    assert error is not None and error.code == "too_large" and code == 1009
+
+
+def test_steering_flood_is_rate_limited(live_server: LiveServer) -> None:
+    steerer = Peer(live_server.view_url, "steerer", live_server.token)
+    limit = live_server.settings.limits.max_steer_per_s
+    for i in range(int(limit * 2) + 20):
+        try:
+            steerer.send(p.SetRenderParams(params={"iso_level": 0.3 + (i % 5) * 0.1}))
+        except ConnectionClosed:  # a sustained flood is cut off
+            break
+    codes = [m.code for m in steerer.drain(3.0) if isinstance(m, p.Error)]
+    assert "rate_limited" in codes
+    # a sustained flood ends the connection; a polite client is unaffected meanwhile
+    other = Peer(live_server.view_url, "steerer", live_server.token)
+    other.send(p.SetRenderParams(params={"sigma_A": 2.0}))
+    assert not [m for m in other.drain(1.0) if isinstance(m, p.Error)]
+
+
+def test_message_before_hello_and_bad_version(live_server: LiveServer) -> None:
+    peer = Peer(live_server.view_url, "viewer", None, hello=False)
+    peer.send(p.View())
+    error, code = closed_with(peer)
+    assert error is not None and error.code == "not_ready" and code == 1008
+    peer = Peer(live_server.view_url, "viewer", None, hello=False)
+    peer.send_raw(
+        msgpack.packb({"type": "hello", "role": "viewer", "protocol_version": "9.0", "seq": 1})
+    )
+    error, _ = closed_with(peer)
+    assert error is not None and error.code == "version_mismatch" and error.ref == 1
+
+
+def test_frames_are_checked_against_the_topology(live_server: LiveServer) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token)
+    topo, pos = molecule(10)
+    seq = sim.send(frame(pos, 0))
+    err = sim.expect(p.Error)
+    assert (err.code, err.ref) == ("not_ready", seq)
+    sim.send(topo)
+    seq = sim.send(frame(np.zeros((7, 3), np.float32), 1))
+    err = sim.expect(p.Error)
+    assert (
+        err.code == "invalid_message" and err.path == "frame.positions" and "7 atoms" in err.message
+    )
+    raw = p.unpack(p.encode(frame(pos, 2)))
+    raw["positions"]["data"] = np.full((10, 3), np.nan, "<f4").tobytes()
+    sim.send_raw(msgpack.packb(raw))
+    err = sim.expect(p.Error)
+    assert err.code == "invalid_message" and err.path == "frame.positions"
+    sim.close()
+
+
+def test_hostile_input_on_both_endpoints_leaves_other_sessions_serving(
+    live_server: LiveServer,
+) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "calm")
+    topo, pos = molecule(16)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    watcher = Peer(live_server.view_url, "viewer", live_server.viewer_token, "calm")
+    watcher.expect(p.Image, 60)
+    rng = random.Random(5)
+    corpus = [p.encode(m) for m in samples().values()]
+    codes: dict[str, int] = {}
+    for url, role in ((live_server.ws_url, "simulation"), (live_server.view_url, "steerer")):
+        hostile = Peer(url, role, live_server.token, "stormy")  # type: ignore[arg-type]
+        sent = 0
+        for i in range(300):
+            raw = _mutations(rng, corpus[i % len(corpus)])
+            try:
+                hostile.send_raw(raw)
+            except ConnectionClosed:
+                hostile = Peer(url, role, live_server.token, "stormy")  # type: ignore[arg-type]
+                continue
+            sent += 1
+            if i % 40 == 0:
+                for msg in hostile.drain(0.2):
+                    if isinstance(msg, p.Error):
+                        codes[msg.code] = codes.get(msg.code, 0) + 1
+                step = 100 + i
+                sim.send(frame(pos + np.float32(0.01 * (i % 9)), step))
+                watcher.expect(p.Image, 60, where=lambda m, s=step: m.step == s)
+            time.sleep(0.002)
+        assert sent > 250
+        hostile.close()
+    assert codes.get("invalid_message", 0) > 0
+    sim.close()
+    watcher.close()
