@@ -1,0 +1,797 @@
+// The dashboard: wires the connection, the live view, the panels and the plots together.
+// Pure logic lives in the other modules; this one holds the session state and the DOM wiring.
+
+import { DEFAULT_CAMERA, lookAlong, normalizeCamera, project, setProjection, unprojectToPlane } from "./camera.js";
+import { ConnState, Connection, viewUrl } from "./connection.js";
+import { $, downloadBlob, el, setText, throttle } from "./dom.js";
+import { integer, milliseconds, nanoseconds, position, sig } from "./format.js";
+import { LatencyTracker, RateMeter, clockSample } from "./latency.js";
+import { Notices } from "./notices.js";
+import { RENDER_DEFAULTS, SIGMA_SLIDER, clamp, diffRender, mergeRender } from "./params.js";
+import { Plots } from "./plots.js";
+import { RenderPanel } from "./renderpanel.js";
+import { requestScreenshot, screenshotName } from "./screenshot.js";
+import { Shortcuts } from "./shortcuts.js";
+import { SimPanel } from "./simpanel.js";
+import { AckTracker } from "./steering.js";
+import { TransferEditor } from "./tfeditor.js";
+import { histogramRange, normalizePoints, presetPoints } from "./transfer.js";
+import { decodeHash, encodeHash, readQuery } from "./urlstate.js";
+import { Viewport } from "./viewport.js";
+
+const RENDER_SEND_MS = 50;
+const PULL_SEND_MS = 50;
+const HASH_WRITE_MS = 300;
+const VIEWER_REASON =
+  "Read-only: this page joined with the viewer link, so steering is disabled. Open the steering link (with the server token) to change the rendering or the simulation.";
+
+class Dashboard {
+  constructor() {
+    const query = readQuery(window.location.search);
+    const fromHash = decodeHash(window.location.hash);
+    this.token = query.token;
+    this.sessionName = query.session;
+    this.role = query.role;
+    this.render = mergeRender(RENDER_DEFAULTS, {});
+    this.hashRender = fromHash.render; // a shared link's render params, applied once as steerer
+    this.camera = fromHash.camera;
+    this.cameraCustom = Boolean(fromHash.camera);
+    this.sessionCamera = null;
+    this.simParams = {};
+    this.sim = null;
+    this.nAtoms = 0;
+    this.clients = [];
+    this.pulling = [];
+    this.welcome = null;
+    this.stats = null;
+    this.rtt = null;
+    this.link = "never"; // the connection: "never" up yet, "up", or "lost" since it was up
+    this.pendingRender = {};
+    this.pull = null;
+    this.lastImage = null;
+    this.viewFrame = null;
+    this.screenshotBusy = false;
+
+    this.flushRenderSoon = throttle(() => this.flushRender(), RENDER_SEND_MS);
+    this.sendPullSoon = throttle(() => this.sendPull(), PULL_SEND_MS);
+    this.writeHashSoon = throttle(() => this.writeHash(), HASH_WRITE_MS);
+    this.sendViewSoon = throttle(() => this.sendView(false), 120);
+    this.notices = new Notices($("notices"));
+    if (fromHash.invalid.length) {
+      this.notices.notify({
+        level: "warning",
+        code: "link",
+        message: `ignored unreadable link fields: ${fromHash.invalid.join(", ")}`,
+      });
+    }
+    this.latency = new LatencyTracker();
+    this.shownRate = new RateMeter(2000);
+    this.acks = new AckTracker();
+    this.plots = new Plots({ windowS: Number($("plot-window").value) });
+    this.renderPanel = new RenderPanel({ onChange: (patch, final) => this.steerRender(patch, final) });
+    this.tfEditor = new TransferEditor({
+      svgRoot: $("tf-editor"),
+      colorInput: $("tf-color"),
+      selectedLabel: $("tf-selected"),
+      addButton: $("tf-add"),
+      removeButton: $("tf-remove"),
+      onChange: (points, final) => this.steerRender({ transfer_function: points }, final),
+    });
+    this.simPanel = new SimPanel({
+      onControl: (action, extra, label) => this.control(action, extra, label),
+      onParam: (key, value) => this.simParam(key, value),
+      onInvalid: (text) => this.notices.notify({ level: "warning", code: "input", message: text }),
+    });
+    this.viewport = new Viewport({
+      container: $("viewport"),
+      canvas: $("view"),
+      overlay: $("overlay"),
+      placeholder: $("view-placeholder"),
+      getCamera: () => this.camera,
+      canPull: () => this.role === "steerer",
+      pullWithoutModifier: () => $("pull-mode").checked,
+      onResize: (size) => this.resized(size),
+      onCamera: (cam, interacting) => this.setCamera(cam, interacting),
+      onClick: (x, y) => this.pick(x, y),
+      onPullStart: (x, y) => this.pullStart(x, y),
+      onPullMove: (x, y) => this.pullMove(x, y),
+      onPullEnd: () => this.pullEnd(),
+      onDrawn: (msg, t) => this.drawn(msg, t),
+      onDecodeError: (err, msg) =>
+        this.notices.notify({
+          level: "error",
+          code: "image",
+          message: `frame ${msg.frame_id} could not be decoded: ${err.message}`,
+        }),
+    });
+
+    this.connection = new Connection({
+      url: viewUrl(window.location),
+      token: this.token,
+      role: this.role,
+      session: this.sessionName,
+      client: "dashboard",
+      onMessage: (m) => this.receive(m),
+      onStatus: (s) => this.connectionStatus(s),
+      onProtocolError: (e) =>
+        this.notices.notify({
+          level: "error",
+          code: e.code,
+          message: `unreadable message from the server: ${e.message}`,
+          path: e.path,
+        }),
+    });
+    this.bindButtons();
+    this.shortcuts = new Shortcuts({ dialog: $("help-dialog"), table: $("shortcut-table"), bindings: this.bindings() });
+    setText($("session-label"), `session ${this.sessionName}`);
+    this.applyRole(this.role, false);
+    this.tfEditor.setPoints(presetPoints(this.render.tf_preset));
+    this.connection.start();
+    setInterval(() => this.tick(), 1000);
+  }
+
+  // ------------------------------------------------------------------ messages
+
+  receive(m) {
+    switch (m.type) {
+      case "welcome":
+        return this.welcomed(m);
+      case "state":
+        return this.state(m);
+      case "image":
+        if (m.histogram)
+          this.tfEditor.setHistogram(m.histogram.values, histogramRange(this.render.mode, this.transferPoints()));
+        return this.viewport.show(m);
+      case "stats":
+        this.stats = m;
+        this.plots.pushStats(m, this.shownRate.rate(performance.now()));
+        return this.showSession();
+      case "params_ack": {
+        const r = this.acks.ack(m);
+        if (r) this.simPanel.showAck(r.key, r.status, r.key === "control" ? r.status.label : "");
+        return undefined;
+      }
+      case "error": {
+        const r = this.acks.error(m);
+        if (r) this.simPanel.showAck(r.key, r.status, r.key === "control" ? r.status.label : "");
+        this.notices.serverError(m);
+        return undefined;
+      }
+      case "pong": {
+        const s = clockSample(m.client_time, m.server_time, Date.now() / 1000);
+        this.rtt = s.rtt * 1000;
+        return this.showSession();
+      }
+      default:
+        return undefined; // picked is answered through request(); other types are not for us
+    }
+  }
+
+  welcomed(m) {
+    this.welcome = m;
+    this.viewport.resetFrames();
+    this.viewport.setLimits(m.limits);
+    this.latency.reset();
+    this.applyRole(m.role, true);
+    if (this.camera) this.sendView(false);
+    this.showSession();
+  }
+
+  state(m) {
+    if (m.render_params) {
+      this.render = mergeRender(RENDER_DEFAULTS, m.render_params);
+      if (this.hashRender) this.applyLinkRender();
+      this.renderPanel.update(this.render);
+      this.showTransferFunction();
+      this.writeHashSoon();
+    }
+    if (m.sim_params) {
+      this.simParams = m.sim_params;
+      this.simPanel.updateParams(m.sim_params);
+    }
+    if (m.sim) {
+      if (m.sim.n_atoms && this.nAtoms && m.sim.n_atoms !== this.nAtoms) this.cameraCustom = false; // a new molecule
+      if (m.sim.n_atoms) this.nAtoms = m.sim.n_atoms;
+      this.sim = m.sim;
+      this.simPanel.updateStatus(m.sim);
+      if (!this.lastImage) {
+        setText(
+          $("view-placeholder"),
+          m.sim.state === "running" || m.sim.state === "paused"
+            ? "Waiting for the first image…"
+            : `No simulation in session “${this.sessionName}” yet: start an adapter to see it here.`,
+        );
+      }
+      this.plots.pushSim(m.sim, this.simParams?.temperature_K);
+      this.showSimSummary();
+    }
+    if (m.clients) {
+      this.clients = m.clients;
+      this.showClients();
+    }
+    if (m.pulling) {
+      this.pulling = m.pulling;
+      this.showPulling();
+    }
+    if (m.camera) {
+      this.sessionCamera = normalizeCamera(m.camera);
+      if (!this.camera || !this.cameraCustom) {
+        this.camera = this.sessionCamera;
+        this.afterCameraChange();
+        this.sendView(false);
+      }
+    }
+  }
+
+  /** A shared link named render params: make the session use them (steerers only). */
+  applyLinkRender() {
+    const wanted = this.hashRender;
+    this.hashRender = null;
+    const patch = diffRender(this.render, wanted);
+    if (!Object.keys(patch).length) return;
+    if (this.role !== "steerer") {
+      this.notices.notify({
+        level: "info",
+        code: "link",
+        message: "this link's render settings need the steering token; showing the session's settings",
+      });
+      return;
+    }
+    this.render = mergeRender(this.render, patch);
+    Object.assign(this.pendingRender, patch);
+    this.flushRender();
+  }
+
+  // ------------------------------------------------------------------ connection and roles
+
+  connectionStatus(s) {
+    const badge = $("conn-badge");
+    badge.dataset.state = s.state;
+    const text = {
+      [ConnState.CONNECTING]: "connecting…",
+      [ConnState.HANDSHAKE]: "joining…",
+      [ConnState.READY]: "connected",
+      [ConnState.RECONNECTING]: "reconnecting…",
+      [ConnState.CLOSED]: `disconnected${s.reason ? `: ${s.reason}` : ""}`,
+    }[s.state];
+    setText($("conn-text"), text);
+    if (s.state === ConnState.READY) {
+      if (this.link === "lost") this.notices.notify({ level: "info", code: "connection", message: "reconnected" });
+      if (s.fellBack) this.notices.notify({ level: "warning", code: "read-only", message: s.reason });
+      this.link = "up";
+    } else if (this.link === "up" && (s.state === ConnState.RECONNECTING || s.state === ConnState.CLOSED)) {
+      this.link = "lost";
+      this.connectionLost(s.reason);
+    } else if (s.state === ConnState.CLOSED && s.reason && s.reason !== "closed") {
+      this.notices.notify({ level: "error", code: "connection", message: s.reason });
+    }
+    this.showSession();
+  }
+
+  connectionLost(reason) {
+    this.notices.notify({
+      level: "warning",
+      code: "connection",
+      message: `connection to the server lost (${reason}); reconnecting`,
+    });
+    for (const { key, status } of this.acks.abandon()) {
+      this.simPanel.showAck(key, status, key === "control" ? status.label : "");
+    }
+    if (this.pull) this.pullEnd(true);
+  }
+
+  applyRole(role, granted) {
+    this.role = role;
+    const steering = role === "steerer";
+    for (const fieldset of document.querySelectorAll("fieldset.steer")) fieldset.disabled = !steering;
+    for (const reason of document.querySelectorAll("p.reason")) {
+      reason.hidden = steering;
+      setText(reason, steering ? "" : VIEWER_REASON);
+    }
+    this.tfEditor.setEnabled(steering);
+    this.renderPanel.setDisabled(!steering);
+    this.simPanel.setDisabled(!steering);
+    $("pull-release-all").disabled = !steering;
+    const badge = $("role-badge");
+    badge.dataset.role = role;
+    setText(badge, granted ? (steering ? "steerer" : "viewer (read-only)") : `${role}…`);
+  }
+
+  // ------------------------------------------------------------------ steering
+
+  steerRender(patch, final) {
+    if (this.role !== "steerer") return;
+    this.render = mergeRender(this.render, patch);
+    Object.assign(this.pendingRender, patch);
+    if (patch.transfer_function !== undefined || patch.tf_preset !== undefined) this.showTransferFunction();
+    this.writeHashSoon();
+    if (final) {
+      this.flushRenderSoon.cancel();
+      this.flushRender();
+    } else {
+      this.flushRenderSoon();
+    }
+  }
+
+  flushRender() {
+    const params = this.pendingRender;
+    this.pendingRender = {};
+    if (!Object.keys(params).length || this.role !== "steerer") return;
+    const seq = this.connection.send({ type: "render_params", params });
+    if (seq !== null) this.latency.sent(seq, "render_params", performance.now());
+  }
+
+  /** The transfer function in effect: the session's points, or its preset's when it has none. */
+  transferPoints() {
+    const explicit = normalizePoints(this.render.transfer_function);
+    return explicit.length ? explicit : presetPoints(this.render.tf_preset);
+  }
+
+  showTransferFunction() {
+    this.tfEditor.setPoints(this.transferPoints());
+    const preset = $("tf-preset");
+    if (document.activeElement !== preset) preset.value = this.render.tf_preset;
+  }
+
+  simParam(key, value) {
+    const seq = this.connection.send({ type: "sim_params", [key]: value });
+    if (seq === null) {
+      this.simPanel.showAck(key, { state: "failed", text: "not connected" });
+      return;
+    }
+    this.simPanel.showAck(key, this.acks.sent(seq, key, key));
+  }
+
+  control(action, extra, label) {
+    const seq = this.connection.send({ type: "control", action, ...extra });
+    if (seq === null) {
+      this.simPanel.showAck("control", { state: "failed", text: "not connected" }, label);
+      return;
+    }
+    this.simPanel.showAck("control", this.acks.sent(seq, "control", label), label);
+  }
+
+  // ------------------------------------------------------------------ camera and view
+
+  resized(size) {
+    setText($("hud-size"), `${size.viewW}×${size.viewH}`);
+    this.sendViewSoon();
+  }
+
+  setCamera(cam, interacting) {
+    if (!cam) return;
+    this.camera = normalizeCamera(cam);
+    this.cameraCustom = true;
+    this.afterCameraChange();
+    if (interacting) {
+      if (this.viewFrame === null) {
+        this.viewFrame = requestAnimationFrame(() => {
+          this.viewFrame = null;
+          this.sendView(true);
+        });
+      }
+    } else {
+      if (this.viewFrame !== null) cancelAnimationFrame(this.viewFrame);
+      this.viewFrame = null;
+      this.sendView(false);
+    }
+  }
+
+  afterCameraChange() {
+    this.viewport.drawOverlay();
+    const ortho = this.camera?.projection === "orthographic";
+    $("btn-projection").setAttribute("aria-pressed", String(ortho));
+    this.writeHashSoon();
+    if (this.pull?.state === "active") this.sendPullSoon();
+  }
+
+  sendView(interacting) {
+    if (!this.camera || !this.connection.ready) return;
+    const { viewW, viewH, dpr } = this.viewport.size;
+    const seq = this.connection.send({
+      type: "view",
+      camera: this.camera,
+      width: viewW,
+      height: viewH,
+      device_pixel_ratio: clamp(dpr, 0.1, 8),
+      interacting,
+    });
+    if (seq !== null) this.latency.sent(seq, "view", performance.now());
+  }
+
+  resetView() {
+    const cam = this.sessionCamera ?? normalizeCamera(DEFAULT_CAMERA);
+    const projection = this.camera?.projection ?? cam.projection;
+    this.setCamera(setProjection(cam, projection), false);
+    this.cameraCustom = false;
+  }
+
+  toggleProjection() {
+    if (!this.camera) return;
+    const next = this.camera.projection === "orthographic" ? "perspective" : "orthographic";
+    this.setCamera(setProjection(this.camera, next), false);
+  }
+
+  writeHash() {
+    const hash = encodeHash({ render: this.render, camera: this.camera });
+    const url = `${window.location.pathname}${window.location.search}#${hash}`;
+    if (window.location.hash !== `#${hash}`) window.history.replaceState(null, "", url);
+  }
+
+  // ------------------------------------------------------------------ images
+
+  drawn(msg, t) {
+    this.lastImage = msg;
+    this.shownRate.tick(t);
+    const lat = this.latency.shown(msg.ref, t);
+    if (lat) {
+      this.plots.pushLatency(lat.latency);
+      setText($("hud-latency"), `latency ${milliseconds(lat.latency)}`);
+    }
+    const vp = $("viewport");
+    vp.dataset.frame = String(msg.frame_id);
+    vp.dataset.still = String(msg.still !== false);
+    vp.dataset.ref = String(msg.ref ?? "");
+    vp.dataset.imageSize = `${msg.width}x${msg.height}`;
+    setText($("hud-step"), `step ${integer(msg.step)}`);
+    setText($("hud-fps"), `${sig(this.shownRate.rate(t), 3)} fps`);
+    this.viewport.drawOverlay();
+  }
+
+  // ------------------------------------------------------------------ picking and pulling
+
+  async pick(x, y) {
+    if (!this.connection.ready) return;
+    let reply;
+    try {
+      ({ reply } = await this.connection.request({ type: "pick", x, y }));
+    } catch (err) {
+      this.notices.notify({ level: "warning", code: "pick", message: err.message });
+      return;
+    }
+    if (reply.type === "picked") this.showPicked(reply);
+  }
+
+  showPicked(p) {
+    const details = $("pick-details");
+    details.dataset.atom = p.atom ?? "";
+    if (p.atom === null || p.atom === undefined) {
+      setText($("pick-atom"), "background (no atom here)");
+      for (const id of ["pick-element", "pick-name", "pick-residue", "pick-chain", "pick-position"])
+        setText($(id), "–");
+      this.viewport.setMarker(null);
+      return;
+    }
+    setText($("pick-atom"), `index ${p.atom}`);
+    setText($("pick-element"), p.element || "–");
+    setText($("pick-name"), p.name || "–");
+    setText($("pick-residue"), `${p.residue_name || "?"} ${p.residue_id ?? ""}`.trim());
+    setText($("pick-chain"), p.chain || "–");
+    setText($("pick-position"), position(p.position));
+    this.viewport.setMarker(p.position ?? null);
+  }
+
+  clearSelection() {
+    this.showPicked({ atom: null });
+    setText($("pick-atom"), "click an atom");
+  }
+
+  async pullStart(x, y) {
+    if (this.role !== "steerer") return;
+    const pull = { state: "picking", pointer: [x, y], atom: null, position: null };
+    this.pull = pull;
+    let reply;
+    try {
+      ({ reply } = await this.connection.request({ type: "pick", x, y }));
+    } catch (err) {
+      this.notices.notify({ level: "warning", code: "pull", message: err.message });
+      if (this.pull === pull) this.pull = null;
+      return;
+    }
+    if (this.pull !== pull || reply.type !== "picked") return; // released meanwhile, or refused
+    if (reply.atom === null || reply.atom === undefined || !reply.position) {
+      this.notices.notify({ level: "info", code: "pull", message: "no atom under the pointer to pull" });
+      this.pull = null;
+      return;
+    }
+    this.showPicked(reply);
+    Object.assign(pull, { state: "active", atom: reply.atom, position: reply.position });
+    setText($("pull-atom"), `${reply.atom} (${reply.element} ${reply.name})`);
+    $("pull-hint").hidden = false;
+    this.viewport.setPullLine({ from: pull.position, to: pull.pointer });
+    this.sendPull();
+  }
+
+  pullMove(x, y) {
+    if (!this.pull) return;
+    this.pull.pointer = [x, y];
+    if (this.pull.state !== "active") return;
+    this.viewport.setPullLine({ from: this.pull.position, to: this.pull.pointer });
+    this.sendPullSoon();
+  }
+
+  sendPull() {
+    const pull = this.pull;
+    if (!pull || pull.state !== "active" || !this.camera) return;
+    const { viewW, viewH } = this.viewport.size;
+    const target = unprojectToPlane(
+      this.camera,
+      pull.pointer[0] + 0.5,
+      pull.pointer[1] + 0.5,
+      viewW,
+      viewH,
+      pull.position,
+    );
+    if (!target) return;
+    this.connection.send({
+      type: "pull",
+      atom: pull.atom,
+      target,
+      spring_k: clamp(Number($("pull-k").value) || 10, 0.01, 10000),
+      max_force: clamp(Number($("pull-max").value) || 1000, 0.01, 100000),
+    });
+  }
+
+  pullEnd(silent = false) {
+    const pull = this.pull;
+    this.pull = null;
+    this.sendPullSoon.cancel();
+    $("pull-hint").hidden = true;
+    this.viewport.setPullLine(null);
+    if (pull?.state === "active" && !silent) this.connection.send({ type: "pull", atom: pull.atom, release: true });
+  }
+
+  releaseAll() {
+    for (const p of this.pulling) this.connection.send({ type: "pull", atom: p.atom, release: true });
+  }
+
+  // ------------------------------------------------------------------ panels
+
+  showSimSummary() {
+    const s = this.sim;
+    if (!s) return;
+    const parts = [s.state];
+    if (s.state !== "waiting") parts.push(`step ${integer(s.step)}`, nanoseconds(s.time_ps));
+    if (s.state === "running") parts.push(`${integer(s.steps_per_s)} steps/s`);
+    setText($("sim-summary"), `simulation ${parts.join(" · ")}`);
+  }
+
+  showClients() {
+    const me = this.welcome?.client_id;
+    $("clients").replaceChildren(
+      ...this.clients.map((c) =>
+        el("li", { "data-role": c.role, "data-client": c.client_id }, [
+          el("span", {
+            className: c.client_id === me ? "you" : "",
+            text: `${c.client || "client"}${c.client_id === me ? " (you)" : ""}`,
+          }),
+          el("span", { className: "meta", text: c.client_id }),
+          el("span", { className: "role", text: c.role }),
+        ]),
+      ),
+    );
+  }
+
+  showPulling() {
+    const list = this.pulling.map((p) => `atom ${p.atom}${p.target ? ` → ${position(p.target)}` : ""}`);
+    setText($("pulling-list"), list.length ? `pulling: ${list.join("; ")}` : "no active pulls");
+  }
+
+  showSession() {
+    const s = this.connection?.status();
+    if (!s) return;
+    let conn = s.state;
+    if (s.state === ConnState.RECONNECTING && s.retryAt) {
+      const secs = Math.max(0, Math.ceil((s.retryAt - Date.now()) / 1000));
+      conn = `reconnecting in ${secs} s (attempt ${s.attempt})`;
+      setText($("conn-text"), `reconnecting in ${secs} s`);
+    }
+    if (s.reason && s.state !== ConnState.READY) conn += `: ${s.reason}`;
+    setText($("session-conn"), conn);
+    setText($("session-id"), this.welcome?.session_id ?? this.sessionName);
+    setText($("session-you"), this.welcome ? `${this.welcome.client_id}, ${this.role}` : "–");
+    setText(
+      $("session-server"),
+      this.stats?.device
+        ? `${this.welcome?.server ?? "scalesteer"} on ${this.stats.device}`
+        : (this.welcome?.server ?? "–"),
+    );
+    setText($("session-rtt"), this.rtt === null ? "–" : milliseconds(this.rtt));
+    const st = this.stats;
+    setText(
+      $("session-frames"),
+      st
+        ? `${integer(st.frames_sent)} sent, ${integer(st.frames_dropped)} dropped by the server, ${integer(this.viewport.skipped)} skipped here`
+        : "–",
+    );
+  }
+
+  tick() {
+    this.showSession();
+    const t = performance.now();
+    setText($("hud-fps"), `${sig(this.shownRate.rate(t), 3)} fps`);
+  }
+
+  // ------------------------------------------------------------------ buttons and shortcuts
+
+  async screenshot() {
+    if (this.screenshotBusy) return;
+    const button = $("btn-screenshot");
+    this.screenshotBusy = true;
+    button.disabled = true;
+    const [width, height] = this.viewport.fullSize();
+    try {
+      const blob = await requestScreenshot({
+        token: this.token,
+        session: this.welcome?.session_id ?? this.sessionName,
+        width,
+        height,
+        params: this.render,
+        camera: this.camera,
+      });
+      downloadBlob(blob, screenshotName(this.sessionName, this.sim?.step));
+      this.notices.notify({ level: "info", code: "screenshot", message: `saved a ${width}×${height} PNG` });
+    } catch (err) {
+      this.notices.notify({ level: "error", code: "screenshot", message: err.message });
+    } finally {
+      this.screenshotBusy = false;
+      button.disabled = false;
+    }
+  }
+
+  async copyLink() {
+    this.writeHash();
+    const url = window.location.href;
+    const what = this.role === "steerer" ? "steer" : "view";
+    try {
+      await navigator.clipboard.writeText(url);
+      this.notices.notify({
+        level: "info",
+        code: "link",
+        message: `link copied; it carries your token, so whoever opens it can ${what}`,
+      });
+    } catch {
+      this.notices.notify({ level: "info", code: "link", message: `copy this link: ${url}` });
+    }
+  }
+
+  exportCsv() {
+    const blob = new Blob([this.plots.csv()], { type: "text/csv" });
+    downloadBlob(blob, `scalesteer-${this.sessionName}-plots.csv`);
+  }
+
+  nudgeSigma(factor) {
+    const sigma = clamp(Number((this.render.sigma_A * factor).toPrecision(3)), SIGMA_SLIDER.min, SIGMA_SLIDER.max);
+    this.renderPanel.update({ ...this.render, sigma_A: sigma });
+    this.steerRender({ sigma_A: sigma }, true);
+  }
+
+  nudgeIso(delta) {
+    const iso = clamp(Number((this.render.iso_level + delta).toFixed(3)), 0.01, 100);
+    this.renderPanel.update({ ...this.render, iso_level: iso });
+    this.steerRender({ iso_level: iso }, true);
+  }
+
+  bindButtons() {
+    $("btn-reset-view").addEventListener("click", () => this.resetView());
+    $("btn-projection").addEventListener("click", () => this.toggleProjection());
+    $("btn-screenshot").addEventListener("click", () => this.screenshot());
+    $("btn-copy-link").addEventListener("click", () => this.copyLink());
+    $("btn-help").addEventListener("click", () => this.shortcuts.open());
+    $("btn-export-csv").addEventListener("click", () => this.exportCsv());
+    $("btn-clear-plots").addEventListener("click", () => this.plots.clear());
+    $("btn-reconnect").addEventListener("click", () => this.connection.reconnectNow());
+    $("plot-window").addEventListener("change", (e) => this.plots.setWindow(Number(e.target.value)));
+    $("resolution").addEventListener("change", (e) => this.viewport.setResolution(Number(e.target.value)));
+    $("pull-release-all").addEventListener("click", () => this.releaseAll());
+    $("tf-preset").addEventListener("change", (e) =>
+      this.steerRender({ tf_preset: e.target.value, transfer_function: [] }, true),
+    );
+    $("tf-reset").addEventListener("click", () =>
+      this.steerRender({ tf_preset: $("tf-preset").value, transfer_function: [] }, true),
+    );
+  }
+
+  bindings() {
+    const steer = () => this.role === "steerer";
+    return [
+      { keys: ["?"], label: "?", description: "Show or hide this help", run: () => this.shortcuts.toggle() },
+      {
+        keys: ["r", "R"],
+        label: "R",
+        description: "Reset the view to the session's default camera",
+        run: () => this.resetView(),
+      },
+      {
+        keys: ["o", "O"],
+        label: "O",
+        description: "Toggle orthographic / perspective projection",
+        run: () => this.toggleProjection(),
+      },
+      {
+        keys: ["x"],
+        label: "X / Y / Z",
+        description: "View from +x, +y, +z (with Shift: from −x, −y, −z)",
+        run: () => this.look("x"),
+      },
+      { keys: ["X"], hidden: true, run: () => this.look("-x") },
+      { keys: ["y"], hidden: true, run: () => this.look("y") },
+      { keys: ["Y"], hidden: true, run: () => this.look("-y") },
+      { keys: ["z"], hidden: true, run: () => this.look("z") },
+      { keys: ["Z"], hidden: true, run: () => this.look("-z") },
+      {
+        keys: ["["],
+        label: "[ / ]",
+        description: "Smaller / larger scale σ",
+        run: () => this.nudgeSigma(1 / 1.15),
+        when: steer,
+      },
+      { keys: ["]"], hidden: true, run: () => this.nudgeSigma(1.15), when: steer },
+      {
+        keys: [","],
+        label: ", / .",
+        description: "Lower / raise the iso level",
+        run: () => this.nudgeIso(-0.05),
+        when: steer,
+      },
+      { keys: ["."], hidden: true, run: () => this.nudgeIso(0.05), when: steer },
+      {
+        keys: ["m", "M"],
+        label: "M",
+        description: "Switch isosurface / volume mode",
+        run: () => {
+          const mode = this.render.mode === "iso" ? "volume" : "iso";
+          this.renderPanel.update({ ...this.render, mode });
+          this.steerRender({ mode }, true);
+        },
+        when: steer,
+      },
+      {
+        keys: [" "],
+        label: "Space",
+        description: "Pause or resume the simulation",
+        run: () => this.simPanel.togglePlay(),
+        when: steer,
+      },
+      {
+        keys: ["n", "N"],
+        label: "N",
+        description: "Advance the simulation by the step count",
+        run: () => this.simPanel.step(),
+        when: steer,
+      },
+      {
+        keys: ["S"],
+        label: "Shift+S",
+        description: "Download a full-resolution screenshot",
+        run: () => this.screenshot(),
+      },
+      { keys: ["l", "L"], label: "L", description: "Copy a link to this view", run: () => this.copyLink() },
+      { keys: ["e", "E"], label: "E", description: "Export the plots as CSV", run: () => this.exportCsv() },
+      {
+        keys: ["v", "V"],
+        label: "V",
+        description: "Focus the live view (then arrows rotate, Shift+arrows pan, +/− zoom, Enter picks the centre)",
+        run: () => $("view").focus(),
+      },
+      { keys: ["Escape"], label: "Esc", description: "Clear the selected atom", run: () => this.clearSelection() },
+    ];
+  }
+
+  look(axis) {
+    if (this.camera) this.setCamera(lookAlong(this.camera, axis), false);
+  }
+
+  // ------------------------------------------------------------------ automation
+
+  /** CSS-pixel position of a world point in the view (for scripts and the devtools console). */
+  projectToPage(point) {
+    if (!this.camera) return null;
+    const { viewW, viewH, cssW, cssH } = this.viewport.size;
+    const [px, py, depth] = project(this.camera, point, viewW, viewH);
+    const rect = $("view").getBoundingClientRect();
+    return { x: rect.left + (px / viewW) * cssW, y: rect.top + (py / viewH) * cssH, depth };
+  }
+}
+
+window.scalesteer = new Dashboard();

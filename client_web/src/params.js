@@ -1,0 +1,108 @@
+// Render and simulation parameters as the protocol defines them (protocol/messages.py):
+// defaults, ranges, and merging of partial updates.
+
+export const LIGHTING_DEFAULTS = Object.freeze({
+  ambient: 0.25,
+  diffuse: 0.7,
+  specular: 0.35,
+  shininess: 32.0,
+  key_light: true,
+  ambient_occlusion: false,
+  depth_cue: 0.0,
+});
+
+export const RENDER_DEFAULTS = Object.freeze({
+  mode: "iso",
+  sigma_A: 1.5,
+  radius_mode: "uniform",
+  iso_level: 0.5,
+  cutoff_sigmas: 3.0,
+  step_sigmas: 0.25,
+  transfer_function: Object.freeze([]),
+  tf_preset: "cloud",
+  color_by: "element",
+  uniform_color: Object.freeze([0.85, 0.85, 0.9]),
+  lighting: LIGHTING_DEFAULTS,
+  background: Object.freeze([0.08, 0.09, 0.11]),
+  quality: 1.0,
+  jpeg_quality: 85,
+});
+
+export const ENUMS = Object.freeze({
+  mode: ["iso", "volume"],
+  radius_mode: ["uniform", "vdw"],
+  tf_preset: ["cloud", "shells", "iso-like"],
+  color_by: ["element", "residue", "chain", "uniform", "bfactor", "charge"],
+  projection: ["perspective", "orthographic"],
+});
+
+/** Numeric ranges [min, max] (inclusive where the protocol allows; open ends nudged in). */
+export const RANGES = Object.freeze({
+  sigma_A: [0.05, 50],
+  iso_level: [0.001, 100],
+  cutoff_sigmas: [1, 6],
+  step_sigmas: [0.02, 2],
+  quality: [0.1, 2],
+  jpeg_quality: [10, 100],
+  "lighting.ambient": [0, 1],
+  "lighting.diffuse": [0, 1],
+  "lighting.specular": [0, 1],
+  "lighting.shininess": [1, 512],
+  "lighting.depth_cue": [0, 1],
+  temperature_K: [0.01, 10000],
+  timestep_fs: [0.01, 20],
+  friction_per_ps: [0, 1000],
+  frame_interval: [1, 1000000],
+});
+
+/** The sigma slider's range: a log scale over the scales a chemist looks at. */
+export const SIGMA_SLIDER = Object.freeze({ min: 0.3, max: 12 });
+
+export function clamp(x, lo, hi) {
+  return Math.min(hi, Math.max(lo, x));
+}
+
+/** Clamp a value to the protocol's range for `key`; non-finite values give null. */
+export function clampParam(key, value) {
+  const v = Number(value);
+  if (!Number.isFinite(v)) return null;
+  const range = RANGES[key];
+  const out = range ? clamp(v, range[0], range[1]) : v;
+  return key === "jpeg_quality" || key === "frame_interval" ? Math.round(out) : out;
+}
+
+/** Slider position t in [0, 1] -> sigma (log scale) and back. */
+export function sigmaFromSlider(t, { min, max } = SIGMA_SLIDER) {
+  return min * (max / min) ** clamp(t, 0, 1);
+}
+export function sliderFromSigma(sigma, { min, max } = SIGMA_SLIDER) {
+  return clamp(Math.log(sigma / min) / Math.log(max / min), 0, 1);
+}
+
+function cloneDeep(value) {
+  return value === undefined ? undefined : JSON.parse(JSON.stringify(value));
+}
+
+/** A full RenderParams from the defaults plus `patch` (lighting merges field by field). */
+export function mergeRender(base, patch) {
+  const out = cloneDeep(base ?? RENDER_DEFAULTS);
+  for (const [key, value] of Object.entries(patch ?? {})) {
+    if (value === undefined || value === null || !(key in RENDER_DEFAULTS)) continue;
+    if (key === "lighting") out.lighting = { ...out.lighting, ...cloneDeep(value) };
+    else out[key] = cloneDeep(value);
+  }
+  return out;
+}
+
+function equalValue(a, b) {
+  return JSON.stringify(a) === JSON.stringify(b);
+}
+
+/** The fields of `params` that differ from `base` (for `lighting`, the whole object). */
+export function diffRender(base, params) {
+  const out = {};
+  for (const key of Object.keys(RENDER_DEFAULTS)) {
+    if (params[key] !== undefined && !equalValue(base[key], params[key])) out[key] = cloneDeep(params[key]);
+  }
+  return out;
+}

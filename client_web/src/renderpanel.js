@@ -1,0 +1,178 @@
+// The scale and rendering panel: every control maps to one render parameter; changes go out as
+// partial `render_params` updates and the session's state comes back to set the controls.
+
+import { $, isBusy, markEdited } from "./dom.js";
+import { RENDER_DEFAULTS, SIGMA_SLIDER, clamp, clampParam, sigmaFromSlider, sliderFromSigma } from "./params.js";
+import { hexToRgb, rgbToHex } from "./transfer.js";
+import { sig } from "./format.js";
+
+const SLIDER_STEPS = 1000;
+
+export class RenderPanel {
+  /** onChange(patch, final): final is false while a slider is being dragged. */
+  constructor({ onChange }) {
+    this.onChange = onChange;
+    this.render = JSON.parse(JSON.stringify(RENDER_DEFAULTS));
+    this.sigmaSlider = $("sigma-slider");
+    this.sigmaNumber = $("sigma-number");
+    this.isoSlider = $("iso-slider");
+    this.isoNumber = $("iso-number");
+    this.modeRadios = [...document.querySelectorAll('input[name="mode"]')];
+    this.radiusMode = $("radius-mode");
+    this.colorBy = $("color-by");
+    this.uniformColor = $("uniform-color");
+    this.background = $("background");
+    this.lightInputs = [...document.querySelectorAll("[data-light]")];
+    this.scalars = [
+      ["quality", $("quality"), (v) => `${Math.round(v * 100)}%`],
+      ["jpeg_quality", $("jpeg-quality"), (v) => String(Math.round(v))],
+      ["step_sigmas", $("step-sigmas"), (v) => sig(v, 2)],
+      ["cutoff_sigmas", $("cutoff-sigmas"), (v) => sig(v, 2)],
+    ];
+    this.bind();
+    this.update(this.render);
+  }
+
+  emit(patch, final, source) {
+    if (source) markEdited(source);
+    Object.assign(this.render, patch);
+    this.onChange(patch, final);
+  }
+
+  bind() {
+    const sigmaFromRange = () => sigmaFromSlider(Number(this.sigmaSlider.value) / SLIDER_STEPS);
+    for (const type of ["input", "change"]) {
+      this.sigmaSlider.addEventListener(type, () => {
+        const sigma = Number(sigmaFromRange().toPrecision(3));
+        this.sigmaNumber.value = String(sigma);
+        this.sigmaSlider.setAttribute("aria-valuetext", `${sigma} Å`);
+        this.emit({ sigma_A: sigma }, type === "change", this.sigmaSlider);
+      });
+      this.isoSlider.addEventListener(type, () => {
+        const iso = Number(this.isoSlider.value);
+        this.isoNumber.value = String(iso);
+        this.emit({ iso_level: iso }, type === "change", this.isoSlider);
+      });
+    }
+    this.sigmaNumber.addEventListener("change", () => {
+      const v = Number(this.sigmaNumber.value);
+      if (!Number.isFinite(v) || v <= 0) return this.update(this.render);
+      const sigma = clamp(v, SIGMA_SLIDER.min, SIGMA_SLIDER.max);
+      this.sigmaNumber.value = String(sigma);
+      this.sigmaSlider.value = String(Math.round(sliderFromSigma(sigma) * SLIDER_STEPS));
+      this.emit({ sigma_A: sigma }, true, this.sigmaNumber);
+    });
+    this.isoNumber.addEventListener("change", () => {
+      const iso = clampParam("iso_level", this.isoNumber.value);
+      if (iso === null) return this.update(this.render);
+      this.isoNumber.value = String(iso);
+      this.isoSlider.value = String(iso);
+      this.emit({ iso_level: iso }, true, this.isoNumber);
+    });
+    for (const radio of this.modeRadios) {
+      radio.addEventListener("change", () => {
+        if (radio.checked) this.emit({ mode: radio.value }, true, radio);
+      });
+    }
+    this.radiusMode.addEventListener("change", () =>
+      this.emit({ radius_mode: this.radiusMode.value }, true, this.radiusMode),
+    );
+    this.colorBy.addEventListener("change", () => {
+      this.emit({ color_by: this.colorBy.value }, true, this.colorBy);
+      this.syncEnabled();
+    });
+    this.uniformColor.addEventListener("input", () => {
+      const rgb = hexToRgb(this.uniformColor.value);
+      if (rgb) this.emit({ uniform_color: rgb }, false, this.uniformColor);
+    });
+    this.uniformColor.addEventListener("change", () => {
+      const rgb = hexToRgb(this.uniformColor.value);
+      if (rgb) this.emit({ uniform_color: rgb }, true, this.uniformColor);
+    });
+    const setBackground = (hex, final, source) => {
+      const rgb = hexToRgb(hex);
+      if (rgb) this.emit({ background: rgb }, final, source);
+    };
+    this.background.addEventListener("input", () => setBackground(this.background.value, false, this.background));
+    this.background.addEventListener("change", () => setBackground(this.background.value, true, this.background));
+    for (const swatch of document.querySelectorAll("[data-bg]")) {
+      swatch.addEventListener("click", () => {
+        this.background.value = swatch.dataset.bg;
+        setBackground(swatch.dataset.bg, true, null);
+      });
+    }
+    for (const input of this.lightInputs) {
+      const key = input.dataset.light;
+      const handler = (final) => {
+        const value = input.type === "checkbox" ? input.checked : clampParam(`lighting.${key}`, input.value);
+        if (value === null) return;
+        this.showOutput(input);
+        this.emit({ lighting: { ...this.render.lighting, [key]: value } }, final, input);
+      };
+      if (input.type === "checkbox") input.addEventListener("change", () => handler(true));
+      else {
+        input.addEventListener("input", () => handler(false));
+        input.addEventListener("change", () => handler(true));
+      }
+    }
+    for (const [key, input] of this.scalars) {
+      const handler = (final) => {
+        const value = clampParam(key, input.value);
+        if (value === null) return;
+        this.showOutput(input);
+        this.emit({ [key]: value }, final, input);
+      };
+      input.addEventListener("input", () => handler(false));
+      input.addEventListener("change", () => handler(true));
+    }
+  }
+
+  showOutput(input) {
+    const out = document.querySelector(`output[for="${input.id}"]`);
+    if (!out) return;
+    const scalar = this.scalars.find(([, node]) => node === input);
+    out.value = scalar ? scalar[2](Number(input.value)) : sig(Number(input.value), 3);
+  }
+
+  syncEnabled() {
+    this.uniformColor.disabled = this.disabled || this.colorBy.value !== "uniform";
+  }
+
+  setDisabled(disabled) {
+    this.disabled = disabled;
+    this.syncEnabled();
+  }
+
+  /** Set every control from the session's render parameters (skipping one being edited). */
+  update(render) {
+    this.render = JSON.parse(JSON.stringify(render));
+    const set = (node, value) => {
+      if (!isBusy(node)) node.value = String(value);
+    };
+    if (!isBusy(this.sigmaSlider) && !isBusy(this.sigmaNumber)) {
+      this.sigmaSlider.value = String(Math.round(sliderFromSigma(render.sigma_A) * SLIDER_STEPS));
+      this.sigmaSlider.setAttribute("aria-valuetext", `${sig(render.sigma_A, 3)} Å`);
+      this.sigmaNumber.value = String(sig(render.sigma_A, 3));
+    }
+    if (!isBusy(this.isoSlider) && !isBusy(this.isoNumber)) {
+      this.isoSlider.value = String(render.iso_level);
+      this.isoNumber.value = String(sig(render.iso_level, 3));
+    }
+    for (const radio of this.modeRadios) radio.checked = radio.value === render.mode;
+    set(this.radiusMode, render.radius_mode);
+    set(this.colorBy, render.color_by);
+    set(this.uniformColor, rgbToHex(render.uniform_color));
+    set(this.background, rgbToHex(render.background));
+    for (const input of this.lightInputs) {
+      const value = render.lighting[input.dataset.light];
+      if (input.type === "checkbox") input.checked = Boolean(value);
+      else set(input, value);
+      this.showOutput(input);
+    }
+    for (const [key, input] of this.scalars) {
+      set(input, render[key]);
+      this.showOutput(input);
+    }
+    this.syncEnabled();
+  }
+}

@@ -1,0 +1,113 @@
+// The simulation panel: status, run control and parameters. Each change shows "pending" until
+// the server acknowledges the step at which the simulation applied it.
+
+import { $, el, isBusy, setText } from "./dom.js";
+import { integer, nanoseconds, observableLabel, sig } from "./format.js";
+import { clampParam } from "./params.js";
+
+export const SIM_FIELDS = ["temperature_K", "timestep_fs", "friction_per_ps", "frame_interval"];
+
+export class SimPanel {
+  constructor({ onControl, onParam, onInvalid }) {
+    Object.assign(this, { onControl, onParam, onInvalid });
+    this.sim = { state: "waiting", step: 0, time_ps: 0, steps_per_s: 0, n_atoms: 0, engine: "", observables: {} };
+    this.play = $("sim-play");
+    this.stepBtn = $("sim-step-btn");
+    this.nSteps = $("sim-nsteps");
+    this.reset = $("sim-reset");
+    this.inputs = new Map(SIM_FIELDS.map((key) => [key, document.querySelector(`[data-param="${key}"]`)]));
+    this.disabled = false;
+    this.bind();
+    this.updateStatus(this.sim);
+  }
+
+  bind() {
+    this.play.addEventListener("click", () => this.togglePlay());
+    this.stepBtn.addEventListener("click", () => this.step());
+    this.reset.addEventListener("click", () => {
+      if (window.confirm("Reset the simulation to its initial state?")) this.onControl("reset", {}, "reset");
+    });
+    for (const [key, input] of this.inputs) {
+      input.addEventListener("change", () => {
+        if (input.value.trim() === "") return;
+        const value = clampParam(key, input.value);
+        if (value === null || Number(input.value) !== value) {
+          this.onInvalid(`${key}: ${input.value} is outside the allowed range; sent ${value}`);
+          if (value === null) return;
+          input.value = String(value);
+        }
+        this.onParam(key, value);
+      });
+    }
+  }
+
+  togglePlay() {
+    if (this.sim.state === "paused") this.onControl("resume", {}, "resume");
+    else this.onControl("pause", {}, "pause");
+  }
+
+  step() {
+    const raw = Math.round(Number(this.nSteps.value));
+    const n = Number.isFinite(raw) ? Math.min(1_000_000, Math.max(1, raw)) : 1;
+    this.nSteps.value = String(n);
+    this.onControl("step", { n_steps: n }, `step ${n}`);
+  }
+
+  setDisabled(disabled) {
+    this.disabled = disabled;
+    this.syncButtons();
+  }
+
+  syncButtons() {
+    const connected = this.sim.state === "running" || this.sim.state === "paused";
+    this.play.disabled = this.disabled || !connected;
+    this.stepBtn.disabled = this.disabled || !connected;
+    this.reset.disabled = this.disabled || !connected;
+    setText(this.play, this.sim.state === "paused" ? "Resume" : "Pause");
+    this.play.setAttribute("aria-pressed", String(this.sim.state === "paused"));
+  }
+
+  updateStatus(sim) {
+    this.sim = { ...this.sim, ...sim };
+    const s = this.sim;
+    const pill = $("sim-state");
+    pill.dataset.state = s.state;
+    setText(pill, s.state);
+    setText($("sim-step"), integer(s.step));
+    setText($("sim-time"), nanoseconds(s.time_ps));
+    setText($("sim-rate"), s.state === "running" ? `${integer(s.steps_per_s)} steps/s` : "–");
+    setText($("sim-engine"), s.engine || "–");
+    setText($("sim-atoms"), s.n_atoms ? integer(s.n_atoms) : "–");
+    this.renderObservables(s.observables ?? {});
+    this.syncButtons();
+  }
+
+  renderObservables(observables) {
+    const dl = $("sim-observables");
+    const keys = Object.keys(observables).sort();
+    if (dl.dataset.keys !== keys.join(",")) {
+      dl.dataset.keys = keys.join(",");
+      dl.replaceChildren(
+        ...keys.flatMap((k) => [el("dt", { text: observableLabel(k) }), el("dd", { "data-observable": k })]),
+      );
+    }
+    for (const k of keys) setText(dl.querySelector(`[data-observable="${k}"]`), sig(observables[k], 6));
+  }
+
+  /** The session's current simulation parameters (unset ones show the engine default). */
+  updateParams(params) {
+    for (const [key, input] of this.inputs) {
+      const v = params?.[key];
+      if (isBusy(input)) continue;
+      input.value = v === undefined || v === null ? "" : String(v);
+    }
+  }
+
+  /** Show a status {state, text} for a parameter key or "control". */
+  showAck(key, status, label = "") {
+    const node = document.getElementById(`ack-${key}`);
+    if (!node) return;
+    node.dataset.state = status.state;
+    setText(node, label ? `${label}: ${status.text}` : status.text);
+  }
+}
