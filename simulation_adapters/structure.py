@@ -26,6 +26,7 @@ STRUCTURE_FORMATS = (
     "xyz",
     "psf",
     "data",
+    "pdbx",
     "pqr",
     "mol2",
     "crd",
@@ -46,7 +47,8 @@ class Structure:
 
     @property
     def n_frames(self) -> int:
-        return len(self.universe.trajectory)
+        """Frames of coordinates; 0 for a topology read without any."""
+        return len(self.universe.trajectory) if _has(self.universe, "trajectory") else 0
 
     def positions(self, index: int = 0) -> npt.NDArray[np.float32]:
         """Positions (angstrom) of frame `index`."""
@@ -72,17 +74,48 @@ def _fmt(path: str) -> str:
     return name.rsplit(".", 1)[-1] if "." in name else ""
 
 
+# LAMMPS data files do not say how their Atoms lines are laid out except in an optional comment
+# ("Atoms # full"); MDAnalysis needs the column names.
+LAMMPS_ATOM_STYLES = {
+    "atomic": "id type x y z",
+    "charge": "id type charge x y z",
+    "bond": "id resid type x y z",
+    "angle": "id resid type x y z",
+    "molecular": "id resid type x y z",
+    "full": "id resid type charge x y z",
+}
+
+
+def lammps_atom_style(path: str) -> str | None:
+    """The MDAnalysis `atom_style` for a LAMMPS data file, from its "Atoms # style" comment."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                head, _, comment = line.partition("#")
+                if head.strip() == "Atoms":
+                    return LAMMPS_ATOM_STYLES.get(comment.strip().split(" ")[0].lower())
+    except OSError:
+        return None
+    return None
+
+
 def load(
     topology: str,
     trajectories: Sequence[str] = (),
     *,
     guess_bonds: bool = True,
     max_atoms: int | None = None,
+    atom_style: str | None = None,
+    require_coordinates: bool = True,
 ) -> Structure:
-    """Open a structure (PDB, mmCIF, GRO, XYZ, PSF, ...) with optional trajectory files.
+    """Open a structure (PDB, mmCIF, GRO, XYZ, PSF, LAMMPS data, ...) with optional
+    trajectory files.
 
     Raises `StructureError` with a readable reason for missing, unreadable or inconsistent
     files (for instance a trajectory whose atom count differs from the topology's).
+    `atom_style` overrides the column layout of a LAMMPS data file. With
+    `require_coordinates=False` a topology without coordinates (a bare PSF) is accepted: the IMD
+    bridge gets its coordinates from the engine.
     """
     try:
         import MDAnalysis as mda
@@ -105,37 +138,82 @@ def load(
                 f"unsupported trajectory format {_fmt(t)!r} ({os.path.basename(t)}); "
                 f"use one of {', '.join(TRAJECTORY_FORMATS)}"
             )
+    kwargs: dict[str, Any] = {}
+    if fmt == "pdbx":
+        kwargs["topology_format"] = "MMCIF"
+    if fmt == "data":
+        style = atom_style or lammps_atom_style(topology)
+        if style is not None:
+            kwargs["atom_style"] = style
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            u = mda.Universe(topology, *trajectories) if trajectories else mda.Universe(topology)
+            u = mda.Universe(topology, *trajectories, **kwargs)
     except Exception as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         names = ", ".join(os.path.basename(f) for f in (topology, *trajectories))
-        raise StructureError(f"cannot read {names}: {msg[:300]}") from None
+        hint = ""
+        if fmt == "data" and "atom_style" in str(exc):
+            hint = " (add an 'Atoms # full' style comment to the data file)"
+        raise StructureError(f"cannot read {names}: {msg[:300]}{hint}") from None
     n = int(u.atoms.n_atoms)
     if n == 0:
         raise StructureError(f"{os.path.basename(topology)} contains no atoms")
+    has_coordinates = _has(u, "trajectory")
+    if not has_coordinates and require_coordinates:
+        raise StructureError(
+            f"{os.path.basename(topology)} has no coordinates; add a coordinate or "
+            "trajectory file (for example a PDB, DCD or XTC)"
+        )
     if max_atoms is not None and n > max_atoms:
         raise StructureError(
             f"{os.path.basename(topology)} has {n} atoms, the limit is {max_atoms}"
         )
-    return Structure(
-        topology=topology_of(u, guess_bonds=guess_bonds, title=os.path.basename(topology)),
-        universe=u,
-    )
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            topo = topology_of(
+                u, guess_bonds=guess_bonds and has_coordinates, title=os.path.basename(topology)
+            )
+    except (ValueError, TypeError) as exc:
+        raise StructureError(f"cannot use {os.path.basename(topology)}: {exc}") from None
+    return Structure(topology=topo, universe=u)
+
+
+def _strings(atoms: Any, attr: str, default: str, width: int) -> list[str]:
+    values = getattr(atoms, attr, None) if _has(atoms, attr) else None
+    if values is None:
+        return [default] * int(atoms.n_atoms)
+    return [str(v).strip()[:width] or default for v in values]
+
+
+def _has(atoms: Any, attr: str) -> bool:
+    try:
+        getattr(atoms, attr)
+    except Exception:  # MDAnalysis raises NoDataError (an AttributeError/ValueError) per attr
+        return False
+    return True
 
 
 def _elements(u: Any) -> list[str]:
     atoms = u.atoms
-    if hasattr(atoms, "elements"):
+    if _has(atoms, "elements"):
         raw = [str(e).strip().capitalize() for e in atoms.elements]
         if all(raw):
             return raw
-    from MDAnalysis.guesser.default_guesser import DefaultGuesser
+    if _has(atoms, "names"):
+        from MDAnalysis.guesser.default_guesser import DefaultGuesser
 
-    guessed = DefaultGuesser(None).guess_types(atoms.names)
-    return [str(e).strip().capitalize() or "X" for e in guessed]
+        guessed = DefaultGuesser(None).guess_types(atoms.names)
+        return [str(e).strip().capitalize() or "X" for e in guessed]
+    if _has(atoms, "masses"):
+        return [_element_of_mass(float(m)) for m in atoms.masses]
+    return ["X"] * int(atoms.n_atoms)
+
+
+def _element_of_mass(mass: float) -> str:
+    best = min(_MASSES, key=lambda e: abs(_MASSES[e] - mass))
+    return best if abs(_MASSES[best] - mass) < 0.05 * max(mass, 1.0) else "X"
 
 
 def topology_of(u: Any, *, guess_bonds: bool = True, title: str = "") -> Topology:
@@ -144,37 +222,76 @@ def topology_of(u: Any, *, guess_bonds: bool = True, title: str = "") -> Topolog
     n = int(atoms.n_atoms)
     elements = [e[:3] for e in _elements(u)]
     bonds = np.zeros((0, 2), dtype=np.int32)
-    if hasattr(u, "bonds") and len(u.bonds):
+    if _has(u, "bonds") and len(u.bonds):
         bonds = np.asarray(u.bonds.indices, dtype=np.int32).reshape(-1, 2)
-    elif guess_bonds and n <= 500_000:
+    # a PDB's CONECT records cover only hetero groups and disulfides: guess the rest too
+    if guess_bonds and len(bonds) < n // 2 and n <= 500_000:
         from MDAnalysis.topology.guessers import guess_bonds as guess
 
         # the guesser looks radii up by atom type; map each type to its element's radius
-        radii = {str(t): _VDW_GUESS.get(e, 1.5) for t, e in zip(atoms.types, elements, strict=True)}
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            pairs = guess(atoms, atoms.positions, box=None, vdwradii=radii)
+        types = atoms.types if _has(atoms, "types") else np.array(elements)
+        radii = {str(t): _VDW_GUESS.get(e, 1.5) for t, e in zip(types, elements, strict=True)}
+        pairs = guess(atoms, atoms.positions, box=None, vdwradii=radii)
         if len(pairs):
-            bonds = np.asarray(sorted(pairs), dtype=np.int32).reshape(-1, 2)
-    chain = getattr(atoms, "chainIDs", None)
-    chains = (
-        [str(c)[:4] for c in chain] if chain is not None else [str(s)[:4] for s in atoms.segids]
+            guessed = np.asarray(sorted(pairs), dtype=np.int32).reshape(-1, 2)
+            both = np.sort(np.concatenate([bonds, guessed]), axis=1)
+            bonds = np.unique(both, axis=0).astype(np.int32)
+    if _has(atoms, "chainIDs"):
+        chains = _strings(atoms, "chainIDs", "A", 4)
+    else:
+        chains = _strings(atoms, "segids", "A", 4)
+    names = (
+        _strings(atoms, "names", "X", 8)
+        if _has(atoms, "names")
+        else [f"{e}{i + 1}"[:8] for i, e in enumerate(elements)]
     )
-    charges = WireArray.from_numpy(atoms.charges, "<f4") if hasattr(atoms, "charges") else None
-    bfac = getattr(atoms, "tempfactors", None)
+    resids = atoms.resids if _has(atoms, "resids") else np.ones(n, dtype=np.int32)
+    charges = atoms.charges if _has(atoms, "charges") else None
+    bfac = atoms.tempfactors if _has(atoms, "tempfactors") else None
     return Topology(
         n_atoms=n,
         elements=elements,
-        names=[str(x)[:8] for x in atoms.names],
-        residue_ids=WireArray.from_numpy(atoms.resids, "<i4"),
-        residue_names=[str(x)[:8] for x in atoms.resnames],
+        names=names,
+        residue_ids=WireArray.from_numpy(resids, "<i4"),
+        residue_names=_strings(atoms, "resnames", "UNK", 8),
         chain_ids=chains,
         bonds=WireArray.from_numpy(bonds, "<i4"),
-        charges=charges,
+        charges=WireArray.from_numpy(charges, "<f4") if charges is not None else None,
         bfactors=WireArray.from_numpy(bfac, "<f4") if bfac is not None else None,
         title=title[:256],
     )
 
+
+# standard atomic masses (g/mol), to name elements of files that only give masses
+_MASSES = {
+    "H": 1.008,
+    "He": 4.0026,
+    "Li": 6.94,
+    "C": 12.011,
+    "N": 14.007,
+    "O": 15.999,
+    "F": 18.998,
+    "Ne": 20.180,
+    "Na": 22.990,
+    "Mg": 24.305,
+    "Al": 26.982,
+    "Si": 28.085,
+    "P": 30.974,
+    "S": 32.06,
+    "Cl": 35.45,
+    "Ar": 39.948,
+    "K": 39.098,
+    "Ca": 40.078,
+    "Fe": 55.845,
+    "Cu": 63.546,
+    "Zn": 65.38,
+    "Br": 79.904,
+    "Kr": 83.798,
+    "Ag": 107.87,
+    "I": 126.90,
+    "Xe": 131.29,
+    "Au": 196.97,
+}
 
 # van der Waals radii (angstrom) used only to guess bonds from distances.
 _VDW_GUESS = {

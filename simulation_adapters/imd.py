@@ -1,0 +1,458 @@
+"""`scalesteer imd`: bridge an MD engine serving IMD (GROMACS, NAMD, LAMMPS) to scalesteer.
+
+    gmx mdrun -imdport 8888 -imdwait -imdpull ...   (IMD v2, or v3 where the build has it)
+    namd3 sim.namd                                  (IMDon yes, IMDport 8888, IMDversion 3)
+    lmp -in in.lmp                                  (fix 1 all imd 8888 version 3 unwrap on)
+    scalesteer imd --connect localhost:8888 --topology system.pdb --url ws://127.0.0.1:8000/ws/sim
+
+The engine streams coordinates (and time, energies, box); the bridge forwards them as frames
+(latest wins, so the engine never waits on the render server) and sends the dashboard's steering
+back: pulling forces (MDCOMM), pause/resume, the transmission rate (TRATE), and KILL only when
+started with `--allow-kill`. IMD carries no atom names, so the topology comes from a file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import logging
+import math
+import os
+import sys
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from protocol import Control, ErrorCode, Forces, Frame, Message, SimParams, WireArray
+from simulation_adapters.connection import ConnectionState, SimulationConnection
+from simulation_adapters.imd_session import (
+    EngineFrame,
+    IMDDisconnectedError,
+    IMDError,
+    IMDSession,
+)
+from simulation_adapters.structure import Structure, StructureError, load
+
+log = logging.getLogger("scalesteer.imd")
+
+KCAL = 4.184  # kJ per kcal
+EV = 96.48533212  # kJ/mol per eV
+
+
+@dataclass(frozen=True)
+class EngineUnits:
+    """How an engine's IMD numbers relate to scalesteer's (angstrom, ps, kJ/mol)."""
+
+    name: str
+    length_A: float = 1.0  # engine length unit in angstrom
+    time_ps: float = 1.0  # engine time unit in ps
+    energy_kJmol: float = 1.0  # engine energy unit in kJ/mol
+    force_unit: str = "kJ/mol/A"
+
+    def force_factor(self) -> float:
+        """Factor turning kJ/mol/A into the engine's force unit."""
+        return self.length_A / self.energy_kJmol
+
+
+UNITS: dict[str, EngineUnits] = {
+    # IMD v3 fixes its units: angstrom, ps, kJ/mol, kJ/mol/A
+    "imdv3": EngineUnits("imdv3"),
+    # IMD v2 (NAMD, VMD convention): angstrom, kcal/mol, forces in kcal/mol/A, no time
+    "imdv2": EngineUnits("imdv2", energy_kJmol=KCAL, force_unit="kcal/mol/A"),
+    # GROMACS' IMD v2 reports energies in kJ/mol but takes forces in kcal/mol/A like VMD
+    "gromacs-v2": EngineUnits("gromacs-v2", force_unit="kcal/mol/A"),
+    # LAMMPS' fix imd sends and applies its native units
+    "lammps-real": EngineUnits(
+        "lammps-real", time_ps=1e-3, energy_kJmol=KCAL, force_unit="kcal/mol/A"
+    ),
+    "lammps-metal": EngineUnits("lammps-metal", energy_kJmol=EV, force_unit="eV/A"),
+}
+
+
+def units_for(name: str, version: int) -> EngineUnits:
+    """The units preset `name`, or for "auto" the protocol's own convention."""
+    if name == "auto":
+        return UNITS["imdv3" if version >= 3 else "imdv2"]
+    return UNITS[name]
+
+
+class BridgeError(Exception):
+    """The bridge stopped because of the engine (cut connection, NaN, wrong atom count)."""
+
+
+class IMDBridge:
+    """Connects one IMD engine to one scalesteer session.
+
+    `run()` blocks until the engine ends the session (returns) or fails (raises BridgeError);
+    `start()` runs it on a background thread, `close()` stops either and joins every thread.
+    """
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        topology: str | Structure,
+        url: str,
+        token: str | None = None,
+        session: str = "default",
+        *,
+        allow_kill: bool = False,
+        units: str = "auto",
+        lossless: bool = False,
+        max_force: float = 1000.0,
+        connect_timeout: float = 30.0,
+        handshake_timeout: float = 30.0,
+    ) -> None:
+        if units != "auto" and units not in UNITS:
+            raise ValueError(f"unknown units {units!r}; one of auto, {', '.join(UNITS)}")
+        if isinstance(topology, str):
+            self.structure = load(topology, require_coordinates=False)
+        else:
+            self.structure = topology
+        self.n_atoms = self.structure.topology.n_atoms
+        self.host, self.port = host, int(port)
+        self.allow_kill = allow_kill
+        self.units_name = units
+        self.units = UNITS["imdv3"]
+        self.max_force = float(max_force)
+        self.connect_timeout = connect_timeout
+        self.handshake_timeout = handshake_timeout
+        self.connection = SimulationConnection(
+            url,
+            token=token,
+            session=session,
+            client="imd-bridge",
+            lossless=lossless,
+            on_steer=self._on_steer,
+        )
+        self.imd: IMDSession | None = None
+        self.error: Exception | None = None
+        self.frames_forwarded = 0
+        self.last_step: int | None = None
+        self.last_time_ps: float | None = None
+        self._active_forces: dict[int, np.ndarray] = {}
+        self._cond = threading.Condition()
+        self._wakeups = 0
+        self._stopping = False
+        self._cancel = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._steer_thread: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def run(self) -> None:
+        """Bridge until the engine ends the session; raises BridgeError if it fails."""
+        try:
+            self._run()
+        finally:
+            self._shutdown()
+
+    def start(self) -> IMDBridge:
+        """Run the bridge on a background thread; see `wait` and `close`."""
+
+        def target() -> None:
+            try:
+                self.run()
+            except Exception as exc:  # kept for wait()
+                self.error = exc
+
+        self._thread = threading.Thread(target=target, name="scalesteer-imd-bridge")
+        self._thread.start()
+        return self
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait for a started bridge to finish; True if it did."""
+        if self._thread is None:
+            return True
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop bridging: disconnect from the engine (it keeps running) and the server."""
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        self._cancel.set()
+        imd = self.imd
+        if imd is not None:
+            imd.close()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self._shutdown()
+
+    def __enter__(self) -> IMDBridge:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ the bridge
+
+    def _run(self) -> None:
+        self.connection.start()
+        self.connection.send_topology(self.structure.topology)
+        imd = IMDSession.connect(
+            self.host,
+            self.port,
+            self.n_atoms,
+            connect_timeout=self.connect_timeout,
+            handshake_timeout=self.handshake_timeout,
+            cancel=self._cancel,
+        )
+        with self._cond:
+            if self._stopping:
+                imd.close()
+                return
+            self.imd = imd
+        self.units = units_for(self.units_name, imd.version)
+        self._steer_thread = threading.Thread(
+            target=self._steer_loop, name="scalesteer-imd-steering", daemon=True
+        )
+        self._steer_thread.start()
+        while True:
+            try:
+                raw = imd.read_frame()
+            except IMDDisconnectedError as exc:
+                if self._stopping or not exc.mid_frame:
+                    log.info("scalesteer imd: %s", exc)
+                    return
+                self.connection.send_error(ErrorCode.INTERNAL, f"IMD engine: {exc}")
+                raise BridgeError(str(exc)) from None
+            except IMDError as exc:
+                self.connection.send_error(ErrorCode.INVALID_MESSAGE, f"IMD engine: {exc}")
+                raise BridgeError(str(exc)) from None
+            if self.connection.state is ConnectionState.FAILED:
+                raise BridgeError(f"render server: {self.connection.error}")
+            frame = self._frame(raw)
+            self.connection.send_frame(frame)
+            self.frames_forwarded += 1
+
+    def _frame(self, raw: EngineFrame) -> Frame:
+        u = self.units
+        step = raw.step if raw.step is not None and raw.step >= 0 else self.frames_forwarded
+        pos = raw.positions * np.float32(u.length_A) if u.length_A != 1.0 else raw.positions
+        if not np.isfinite(pos).all():
+            text = f"the engine sent non-finite coordinates at step {step}"
+            self.connection.send_error(ErrorCode.INVALID_MESSAGE, text, "frame.positions")
+            raise BridgeError(text)
+        time_ps = raw.time * u.time_ps if raw.time is not None else 0.0
+        box = None
+        if raw.box is not None and np.isfinite(raw.box).all() and np.any(raw.box):
+            box = WireArray.from_numpy(raw.box * u.length_A, "<f4")
+        self.last_step, self.last_time_ps = int(step), float(time_ps)
+        return Frame(
+            step=int(step),
+            time_ps=float(time_ps) if math.isfinite(time_ps) else 0.0,
+            positions=WireArray.from_numpy(pos, "<f4"),
+            box=box,
+            observables=self._observables(raw.energies),
+        )
+
+    def _observables(self, energies: dict[str, float] | None) -> dict[str, float]:
+        if not energies:
+            return {}
+        e = self.units.energy_kJmol
+        values = {
+            "temperature_K": energies["temperature"],
+            "potential_kJmol": energies["potential_energy"] * e,
+            "kinetic_kJmol": (energies["total_energy"] - energies["potential_energy"]) * e,
+        }
+        return {k: float(v) for k, v in values.items() if math.isfinite(v)}
+
+    def _shutdown(self) -> None:
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        if self.imd is not None:
+            self.imd.close()
+        if self._steer_thread is not None and self._steer_thread is not threading.current_thread():
+            self._steer_thread.join(10)
+        if self.connection.state is not ConnectionState.CLOSED:
+            self.connection.close()
+
+    # ------------------------------------------------------------------ steering
+
+    def _on_steer(self, _msg: Message) -> None:  # connection I/O thread
+        with self._cond:
+            self._wakeups += 1
+            self._cond.notify_all()
+
+    def _woken(self, seen: int) -> bool:
+        return self._stopping or self._wakeups != seen
+
+    def _steer_loop(self) -> None:
+        seen = -1
+        while True:
+            with self._cond:
+                self._cond.wait_for(functools.partial(self._woken, seen))
+                if self._stopping:
+                    return
+                seen = self._wakeups
+            for msg in self.connection.poll_steering():
+                self._apply(msg)
+
+    def _apply(self, msg: Message) -> None:
+        imd = self.imd
+        assert imd is not None
+        try:
+            if isinstance(msg, Forces):
+                ok, applied, detail = self._apply_forces(imd, msg)
+            elif isinstance(msg, Control):
+                ok, applied, detail = self._apply_control(imd, msg)
+            elif isinstance(msg, SimParams):
+                ok, applied, detail = self._apply_params(imd, msg)
+            else:
+                return
+        except IMDError as exc:
+            ok, applied, detail = False, {}, f"engine unreachable: {exc}"
+        except ValueError as exc:
+            ok, applied, detail = False, {}, str(exc)
+        if isinstance(msg, Control):
+            applied = {"action": msg.action, **applied}  # the server tracks pause by it
+        self.connection.ack(
+            msg.seq, self.last_step, self.last_time_ps, ok=ok, applied=applied, detail=detail
+        )
+
+    def _apply_forces(self, imd: IMDSession, msg: Forces) -> tuple[bool, dict[str, Any], str]:
+        idx = msg.indices.to_numpy().astype(np.int64)
+        vec = msg.forces.to_numpy().astype(np.float64)
+        if idx.size and int(idx.max()) >= self.n_atoms:
+            raise ValueError(f"atom index out of range [0, {self.n_atoms})")
+        norms = np.linalg.norm(vec, axis=1)
+        over = norms > self.max_force
+        if over.any():
+            vec[over] *= (self.max_force / norms[over])[:, None]
+        wanted = {int(i): v for i, v in zip(idx, vec, strict=True) if np.any(v != 0)}
+        # released atoms get an explicit zero: NAMD forgets a force only when told zero
+        send = sorted(set(wanted) | set(self._active_forces))
+        if not send:
+            return True, {"atoms": 0}, ""
+        factor = self.units.force_factor()
+        forces = np.array([wanted.get(i, np.zeros(3)) for i in send]) * factor
+        imd.send_forces(np.array(send, dtype=np.int32), forces)
+        self._active_forces = wanted
+        applied = {"atoms": len(wanted), "capped": int(over.sum()), "unit": self.units.force_unit}
+        return True, applied, ""
+
+    def _apply_control(self, imd: IMDSession, msg: Control) -> tuple[bool, dict[str, Any], str]:
+        if msg.action == "pause":
+            changed = imd.pause()
+            return True, {"paused": True}, "" if changed else "already paused"
+        if msg.action == "resume":
+            changed = imd.resume()
+            return True, {"paused": False}, "" if changed else "not paused"
+        if msg.action == "stop":
+            if not self.allow_kill:
+                return False, {}, "KILL is not allowed; start the bridge with --allow-kill"
+            imd.kill()
+            return True, {"killed": True}, ""
+        return False, {}, f"IMD has no {msg.action!r}"
+
+    def _apply_params(self, imd: IMDSession, msg: SimParams) -> tuple[bool, dict[str, Any], str]:
+        applied: dict[str, Any] = {}
+        problems = []
+        if msg.frame_interval is not None:
+            imd.set_rate(msg.frame_interval)
+            applied["frame_interval"] = msg.frame_interval
+        for name in ("temperature_K", "timestep_fs", "friction_per_ps"):
+            if getattr(msg, name) is not None:
+                problems.append(f"IMD cannot change {name}")
+        if msg.engine:
+            problems.append(f"engine parameters not supported: {', '.join(sorted(msg.engine))}")
+        return not problems, applied, "; ".join(problems)
+
+
+# ---------------------------------------------------------------------- command line
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """'host:port' (or 'imd://host:port', or just 'port') -> (host, port)."""
+    value = text.removeprefix("imd://")
+    host, _, port = value.rpartition(":")
+    if not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"expected HOST:PORT, got {text!r}")
+    return host.strip("[]") or "localhost", int(port)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="scalesteer imd",
+        description="Bridge an MD engine serving IMD (GROMACS, NAMD, LAMMPS) to scalesteer.",
+    )
+    ap.add_argument("--connect", required=True, metavar="HOST:PORT", help="the engine's IMD port")
+    ap.add_argument(
+        "--topology",
+        required=True,
+        help="structure of the atoms the engine sends (PDB, GRO, PSF, LAMMPS data, mmCIF)",
+    )
+    ap.add_argument("--url", default="ws://127.0.0.1:8000/ws/sim", help="render server /ws/sim")
+    ap.add_argument("--token", default=os.environ.get("SCALESTEER_TOKEN"), help="access token")
+    ap.add_argument("--session", default="default", help="session name on the server")
+    ap.add_argument("--allow-kill", action="store_true", help="let the dashboard stop the engine")
+    ap.add_argument(
+        "--units",
+        default="auto",
+        choices=["auto", *UNITS],
+        help="the engine's IMD units (auto: IMD v3 -> imdv3, v2 -> imdv2)",
+    )
+    ap.add_argument("--lossless", action="store_true", help="never drop frames (engine may wait)")
+    ap.add_argument("--max-force", type=float, default=1000.0, help="cap per atom, kJ/mol/A")
+    ap.add_argument("--connect-timeout", type=float, default=30.0, help="seconds to keep trying")
+    ap.add_argument("-v", "--verbose", action="store_true")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = build_parser()
+    try:
+        args = ap.parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s"
+    )
+    if not args.verbose:  # MDAnalysis notes optional packages it lacks at import
+        logging.getLogger("MDAnalysis").setLevel(logging.ERROR)
+    try:
+        host, port = parse_address(args.connect)
+        if not args.max_force > 0:
+            raise ValueError("--max-force must be positive")
+        bridge = IMDBridge(
+            host,
+            port,
+            args.topology,
+            args.url,
+            args.token,
+            args.session,
+            allow_kill=args.allow_kill,
+            units=args.units,
+            lossless=args.lossless,
+            max_force=args.max_force,
+            connect_timeout=args.connect_timeout,
+        )
+    except (StructureError, ValueError) as exc:
+        print(f"scalesteer imd: error: {exc}", file=sys.stderr)
+        return 2
+    print(
+        f"scalesteer imd: {bridge.n_atoms} atoms from {os.path.basename(args.topology)}; "
+        f"engine {host}:{port} -> {args.url}",
+        file=sys.stderr,
+    )
+    try:
+        bridge.run()
+    except (BridgeError, IMDError) as exc:
+        print(f"scalesteer imd: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        bridge.close()
+        return 130
+    if bridge.connection.error:
+        print(f"scalesteer imd: server: {bridge.connection.error}", file=sys.stderr)
+    print(f"scalesteer imd: engine finished; {bridge.frames_forwarded} frames", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,400 @@
+"""The OpenMM plug-in: a reporter that streams frames to scalesteer and applies steering.
+
+    simulation.reporters.append(SteeringReporter("ws://127.0.0.1:8000/ws/sim", token="..."))
+    run_steered(simulation, 100_000)       # or simulation.step(...)
+
+Following OpenMM's reporter protocol, `describeNextReport` says *when* (every `interval` steps)
+and `report` does the work on the MD thread: it applies the steering that arrived since the last
+report (temperature, friction, time step, pause/resume, reset, pulling), then hands the frame to
+the connection's background thread, which never makes the MD wait. A pause holds the MD thread
+inside `report` on a condition variable (no busy-waiting) until resume, `step N`, stop or close.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import threading
+from typing import Any
+
+import numpy as np
+import openmm
+import openmm.app as app
+import openmm.unit as unit
+
+from protocol import Control, ErrorCode, Forces, Frame, Message, SimParams, WireArray
+from simulation_adapters.connection import ConnectionState, SimulationConnection
+from simulation_adapters.openmm_pull import PullForce
+from simulation_adapters.openmm_topology import (
+    R_KJ_PER_MOL_K,
+    box_angstrom,
+    degrees_of_freedom,
+    positions_angstrom,
+    topology_message,
+)
+
+log = logging.getLogger("scalesteer.openmm")
+
+_THERMOSTATS = (openmm.AndersenThermostat,)
+_BAROSTAT_NAMES = (
+    "MonteCarloBarostat",
+    "MonteCarloAnisotropicBarostat",
+    "MonteCarloMembraneBarostat",
+    "MonteCarloFlexibleBarostat",
+)
+
+
+class SteeringReporter:
+    """Streams positions (angstrom), step, time, temperature and energies to a scalesteer
+    server every `interval` steps, and applies the server's steering on the MD thread.
+
+    `max_force` caps each pulled atom's force (kJ/mol/A). `lossless=True` makes the MD wait for
+    the server instead of dropping frames. When the connection is lost while paused, the
+    simulation resumes unless `resume_on_disconnect=False` (nobody is left to resume it).
+    Positions are sent unwrapped so that an atom being pulled never jumps across the box;
+    `wrap=True` sends them wrapped into the periodic box (molecules kept whole) instead.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        token: str | None = None,
+        interval: int = 100,
+        session: str = "default",
+        *,
+        lossless: bool = False,
+        max_force: float = 1000.0,
+        force_group: int | None = None,
+        client: str | None = None,
+        title: str = "",
+        resume_on_disconnect: bool = True,
+        wrap: bool = False,
+    ) -> None:
+        if int(interval) < 1:
+            raise ValueError("interval must be at least 1 step")
+        self.interval = int(interval)
+        self.max_force = float(max_force)
+        self.force_group = force_group
+        self.title = title
+        self.resume_on_disconnect = resume_on_disconnect
+        self.wrap = wrap
+        self.paused = False
+        self.stop_requested = False
+        self.frames_reported = 0
+        self.pull: PullForce | None = None
+        self._simulation: app.Simulation | None = None
+        self._initial_state: openmm.State | None = None
+        self._dof = 1
+        self._periodic = False
+        self._cond = threading.Condition()
+        self._wakeups = 0
+        self._budget = 0  # steps allowed while paused (`step N`)
+        self._driven = False  # inside run_steered
+        self._closed = False
+        self._warned_nonfinite = False
+        self.connection = SimulationConnection(
+            url,
+            token=token,
+            session=session,
+            client=client or f"openmm-{openmm.__version__}",
+            lossless=lossless,
+            on_steer=self._on_steer,
+            on_state=self._on_state,
+        )
+        self.connection.start()
+
+    # ------------------------------------------------------------------ OpenMM reporter protocol
+
+    def describeNextReport(self, simulation: app.Simulation) -> dict[str, Any]:  # noqa: N802
+        """When the next report is due, and what it needs from the state (OpenMM 8.2+ form)."""
+        self.attach(simulation)
+        return {
+            "steps": self.steps_to_next_report(simulation),
+            "periodic": self.wrap,
+            "include": ["positions", "energy"],
+        }
+
+    def report(self, simulation: app.Simulation, state: openmm.State) -> None:
+        """Apply pending steering, send this frame, and hold here while paused."""
+        with self._cond:
+            if self.paused:
+                self._budget = 0  # the steps granted by `step N` are done
+        if self._apply(simulation, self.connection.poll_steering()):
+            state = simulation.context.getState(getPositions=True, getEnergy=True)
+        self._send_frame(simulation, state)
+        self._hold(simulation)
+
+    # ------------------------------------------------------------------ public helpers
+
+    def attach(self, simulation: app.Simulation) -> None:
+        """Install the pull force, remember the initial state and send the topology.
+
+        Called by the first `describeNextReport`; call it yourself to do this before the run.
+        """
+        if self._simulation is simulation:
+            return
+        if self._simulation is not None:
+            raise ValueError("a SteeringReporter serves one simulation")
+        self._simulation = simulation
+        self.pull = PullForce(simulation, self.max_force, self.force_group)
+        self._dof = degrees_of_freedom(simulation.system)
+        self._periodic = bool(simulation.system.usesPeriodicBoundaryConditions())
+        self._initial_state = simulation.context.getState(getPositions=True, getVelocities=True)
+        self.connection.send_topology(
+            topology_message(simulation.topology, simulation.system, self.title)
+        )
+
+    def steps_to_next_report(self, simulation: app.Simulation) -> int:
+        with self._cond:
+            if self.paused and self._budget > 0:
+                return self._budget
+        return self.interval - int(simulation.currentStep) % self.interval
+
+    def service(self, simulation: app.Simulation) -> None:
+        """Apply pending steering now and hold while paused (between `step` calls)."""
+        self.attach(simulation)
+        if self._apply(simulation, self.connection.poll_steering()):
+            state = simulation.context.getState(getPositions=True, getEnergy=True)
+            self._send_frame(simulation, state)
+        self._hold(simulation)
+
+    def resume(self) -> None:
+        """Resume a paused simulation from Python (any thread)."""
+        with self._cond:
+            self.paused = False
+            self._wakeups += 1
+            self._cond.notify_all()
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Disconnect (releasing a paused MD thread) and join the connection thread."""
+        with self._cond:
+            self._closed = True
+            self.paused = False
+            self._cond.notify_all()
+        self.connection.close(timeout)
+
+    def __enter__(self) -> SteeringReporter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ frames
+
+    def _send_frame(self, simulation: app.Simulation, state: openmm.State) -> None:
+        pos = positions_angstrom(state)
+        if not np.isfinite(pos).all():
+            if not self._warned_nonfinite:
+                self._warned_nonfinite = True
+                text = f"OpenMM produced non-finite positions at step {simulation.currentStep}"
+                log.error("scalesteer: %s; frames are not sent", text)
+                self.connection.send_error(ErrorCode.INVALID_MESSAGE, text, "frame.positions")
+            return
+        observables = self._observables(simulation, state)
+        box = box_angstrom(state) if self._periodic else None
+        frame = Frame(
+            step=max(0, simulation.currentStep),
+            time_ps=state.getTime().value_in_unit(unit.picosecond),
+            positions=WireArray.from_numpy(pos, "<f4"),
+            box=WireArray.from_numpy(box, "<f4") if box is not None else None,
+            observables=observables,
+        )
+        self.connection.send_frame(frame)
+        self.frames_reported += 1
+
+    def _observables(self, simulation: app.Simulation, state: openmm.State) -> dict[str, float]:
+        kinetic = state.getKineticEnergy().value_in_unit(unit.kilojoule_per_mole)
+        if self.pull is not None and self.pull.active:
+            # the pull's linear potential is not physics: report the energy without it
+            groups = simulation.context.getIntegrator().getIntegrationForceGroups()
+            mask = self.pull.energy_groups(groups)
+            state = simulation.context.getState(getEnergy=True, groups=mask)
+        potential = state.getPotentialEnergy().value_in_unit(unit.kilojoule_per_mole)
+        values = {
+            "temperature_K": 2.0 * kinetic / (self._dof * R_KJ_PER_MOL_K),
+            "potential_kJmol": potential,
+            "kinetic_kJmol": kinetic,
+        }
+        return {k: float(v) for k, v in values.items() if math.isfinite(v)}
+
+    # ------------------------------------------------------------------ steering
+
+    def _on_steer(self, _msg: Message) -> None:  # I/O thread
+        with self._cond:
+            self._wakeups += 1
+            self._cond.notify_all()
+
+    def _on_state(self, state: ConnectionState) -> None:  # I/O thread
+        lost = state in (ConnectionState.BACKOFF, ConnectionState.FAILED, ConnectionState.CLOSED)
+        with self._cond:
+            if lost and self.paused and self.resume_on_disconnect:
+                log.warning("scalesteer: connection lost while paused; resuming the simulation")
+                self.paused = False
+            self._wakeups += 1
+            self._cond.notify_all()
+
+    def _woken(self, seen: int) -> bool:
+        return self._wakeups != seen or self._closed
+
+    def _hold(self, simulation: app.Simulation) -> None:
+        """Block while paused, applying steering as it arrives; no busy-waiting."""
+        while True:
+            with self._cond:
+                seen = self._wakeups
+                if (
+                    not self.paused
+                    or self._budget > 0
+                    or self._closed
+                    or (self.stop_requested and self._driven)
+                ):
+                    return
+            messages = self.connection.poll_steering()
+            if messages:
+                if self._apply(simulation, messages):
+                    state = simulation.context.getState(getPositions=True, getEnergy=True)
+                    self._send_frame(simulation, state)
+                continue
+            with self._cond:
+                self._cond.wait_for(functools.partial(self._woken, seen))
+
+    def _apply(self, simulation: app.Simulation, messages: list[Message]) -> bool:
+        """Apply steering messages in order and ack each; True if positions changed."""
+        moved = False
+        for msg in messages:
+            step = simulation.currentStep
+            time_ps = simulation.context.getTime().value_in_unit(unit.picosecond)
+            try:
+                if isinstance(msg, SimParams):
+                    ok, applied, detail = self._apply_params(simulation, msg)
+                elif isinstance(msg, Control):
+                    ok, applied, detail = self._apply_control(simulation, msg)
+                    moved = moved or (ok and msg.action == "reset")
+                elif isinstance(msg, Forces):
+                    ok, applied, detail = self._apply_forces(simulation, msg)
+                else:
+                    continue
+            except (openmm.OpenMMException, ValueError) as exc:
+                ok, applied, detail = False, {}, str(exc)
+            if isinstance(msg, Control):
+                applied = {"action": msg.action, **applied}  # the server tracks pause by it
+            log.debug("scalesteer: %s at step %d: ok=%s %s", msg.type, step, ok, detail)
+            self.connection.ack(msg.seq, step, time_ps, ok=ok, applied=applied, detail=detail)
+        return moved
+
+    def _apply_params(
+        self, simulation: app.Simulation, msg: SimParams
+    ) -> tuple[bool, dict[str, Any], str]:
+        integrator = simulation.context.getIntegrator()
+        context = simulation.context
+        applied: dict[str, Any] = {}
+        problems: list[str] = []
+        kind = type(integrator).__name__
+        if msg.temperature_K is not None:
+            t = msg.temperature_K
+            done = False
+            if hasattr(integrator, "setTemperature"):
+                integrator.setTemperature(t * unit.kelvin)
+                done = True
+            for force in simulation.system.getForces():
+                if type(force).__name__ in _BAROSTAT_NAMES or isinstance(force, _THERMOSTATS):
+                    force.setDefaultTemperature(t * unit.kelvin)
+                    context.setParameter(type(force).Temperature(), t)
+                    done = True
+            if done:
+                applied["temperature_K"] = t
+            else:
+                problems.append(f"{kind} has no temperature (and there is no thermostat)")
+        if msg.friction_per_ps is not None:
+            g = msg.friction_per_ps
+            if hasattr(integrator, "setFriction"):
+                integrator.setFriction(g / unit.picosecond)
+                applied["friction_per_ps"] = g
+            elif hasattr(integrator, "setCollisionFrequency"):
+                integrator.setCollisionFrequency(g / unit.picosecond)
+                applied["friction_per_ps"] = g
+            else:
+                problems.append(f"{kind} has no friction")
+        if msg.timestep_fs is not None:
+            if hasattr(integrator, "setStepSize"):
+                integrator.setStepSize(msg.timestep_fs * unit.femtoseconds)
+                applied["timestep_fs"] = msg.timestep_fs
+            else:
+                problems.append(f"{kind} has no fixed time step")
+        if msg.frame_interval is not None:
+            self.interval = int(msg.frame_interval)
+            applied["frame_interval"] = self.interval
+        if msg.engine:
+            problems.append(f"engine parameters not supported: {', '.join(sorted(msg.engine))}")
+        return not problems, applied, "; ".join(problems)
+
+    def _apply_control(
+        self, simulation: app.Simulation, msg: Control
+    ) -> tuple[bool, dict[str, Any], str]:
+        action = msg.action
+        with self._cond:
+            if action == "pause":
+                self.paused, self._budget = True, 0
+                return True, {"paused": True}, ""
+            if action == "resume":
+                self.paused, self._budget = False, 0
+                return True, {"paused": False}, ""
+            if action == "step":
+                if not self.paused:
+                    return False, {}, "step applies only while paused"
+                self._budget += msg.n_steps
+                return True, {"steps": msg.n_steps}, ""
+            if action == "stop":
+                if not self._driven:
+                    return False, {}, "stop needs the run to be driven by run_steered()"
+                self.stop_requested, self.paused = True, False
+                return True, {"stopped": True}, ""
+        if action == "reset":
+            self._reset(simulation)
+            return True, {"reset": True}, "positions and velocities restored; clock kept"
+        return False, {}, f"{action!r} applies to trajectory replay, not to OpenMM"
+
+    def _reset(self, simulation: app.Simulation) -> None:
+        assert self._initial_state is not None
+        context = simulation.context
+        t, step = context.getTime(), context.getStepCount()
+        context.setState(self._initial_state)
+        context.setTime(t)  # step and time stay monotonic for the session log
+        context.setStepCount(step)
+
+    def _apply_forces(
+        self, simulation: app.Simulation, msg: Forces
+    ) -> tuple[bool, dict[str, Any], str]:
+        assert self.pull is not None
+        result = self.pull.apply(simulation.context, msg.indices.to_numpy(), msg.forces.to_numpy())
+        detail = ""
+        if result.capped:
+            detail = f"{result.capped} force(s) capped at {self.max_force} kJ/mol/A"
+        return True, {"atoms": result.atoms, "capped": result.capped}, detail
+
+
+def run_steered(
+    simulation: app.Simulation, steps: int, reporter: SteeringReporter | None = None
+) -> int:
+    """Advance `steps` MD steps, honouring pause (waiting without spinning), `step N` while
+    paused, and stop; returns the steps actually taken (fewer only after a stop)."""
+    if reporter is None:
+        reporter = next((r for r in simulation.reporters if isinstance(r, SteeringReporter)), None)
+    if reporter is None:
+        simulation.step(steps)
+        return steps
+    if reporter not in simulation.reporters:
+        raise ValueError("add the reporter to simulation.reporters first")
+    done = 0
+    reporter._driven = True
+    try:
+        if reporter.stop_requested:
+            return 0
+        reporter.service(simulation)
+        while done < steps and not reporter.stop_requested:
+            chunk = min(steps - done, reporter.steps_to_next_report(simulation))
+            simulation.step(chunk)
+            done += chunk
+    finally:
+        reporter._driven = False
+    return done

