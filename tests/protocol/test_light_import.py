@@ -18,6 +18,7 @@ class Block(importlib.abc.MetaPathFinder):
         return None
 sys.meta_path.insert(0, Block())
 import protocol, simulation_adapters
+from simulation_adapters.connection import SimulationConnection
 import numpy as np
 pos = protocol.WireArray.from_numpy(np.zeros((2, 3)), "<f4")
 f = protocol.Frame(step=0, time_ps=0.0, positions=pos)
