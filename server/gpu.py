@@ -80,7 +80,8 @@ class GpuQueue:
             scene.topology_id = topology_id
             scene.positions_id = -1
         if scene.positions_id != positions_id:
-            scene.renderer.set_positions(positions)
+            # frames were checked finite when decoded; skip the host-side scan
+            scene.renderer.set_positions(positions, check_finite=False)
             scene.positions_id = positions_id
         return scene.renderer
 

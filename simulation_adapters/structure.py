@@ -52,14 +52,22 @@ class Structure:
 
     def positions(self, index: int = 0) -> npt.NDArray[np.float32]:
         """Positions (angstrom) of frame `index`."""
-        ts = self.universe.trajectory[index]
-        return np.ascontiguousarray(ts.positions, dtype=np.float32)
+        with warnings.catch_warnings():  # readers warn about placeholder boxes on every frame
+            warnings.simplefilter("ignore")
+            ts = self.universe.trajectory[index]
+            return np.ascontiguousarray(ts.positions, dtype=np.float32)
 
     def frames(
         self, start: int = 0, stop: int | None = None, stride: int = 1
     ) -> Iterator[tuple[int, float, npt.NDArray[np.float32]]]:
         """(frame index, time in ps, positions) for a slice of the trajectory."""
-        for ts in self.universe.trajectory[start:stop:stride]:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            frames = list(range(self.n_frames))[start:stop:stride]
+        for index in frames:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ts = self.universe.trajectory[index]
             yield (
                 int(ts.frame),
                 float(ts.time),

@@ -1,0 +1,946 @@
+"""Render benchmark: frame rate of the density ray caster from 496 to 10,000,000 atoms, with
+the baselines measured in the same run.
+
+Every timed frame uploads new positions (a small random displacement of the system, written
+into the renderer's page-locked buffer beforehand), rebuilds the grid on the device and casts
+all rays; the frame time is the host wall clock of `set_positions` + `render` (which
+synchronises). Systems are built from the adenylate kinase structure 4AKE (3,341 atoms with
+hydrogens, benchmarks/data/adk_4ake.npz): a compact subset for the thesis sizes, randomly
+rotated and jittered copies on a lattice for larger systems.
+
+Baselines (iso mode, same step and camera):
+  naive      the same density, no empty-space skipping (every lattice sample evaluated)
+  hashgrid   wp.HashGrid rebuilt per frame, fixed-step march, the same refinement and lighting
+  resample   QuickSurf/Krone: splat the density onto a voxel grid per frame, march it with
+             trilinear filtering (several voxel sizes); image error against a fine-step
+             reference shows what each resolution buys
+
+The run starts by timing a few register caps of the marching kernels (occupancy against
+spills) at 100k and 1M atoms and uses the fastest for everything after it (recorded in the
+JSON as `max_registers`).
+
+    python benchmarks/render_bench.py --out benchmarks/results/render_h100.json
+    python benchmarks/render_bench.py --quick --device cpu      # smoke test, tiny sizes
+    python benchmarks/render_bench.py --table benchmarks/results/render_h100.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, no_type_check
+
+import numpy as np
+import warp
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from protocol import Camera, RenderParams, Topology, WireArray
+from server.render import Renderer
+from server.render import device as render_device
+from server.render.camera import fit_camera
+from server.render.density import GaussianField, gaussian_value
+from server.render.raycast import (
+    CameraData,
+    Shading,
+    camera_data,
+    camera_ray,
+    clip_box,
+    facing,
+    key_light_direction,
+    launch_size,
+    lit,
+    pack_rgba,
+    pixel_of,
+)
+
+wp: Any = warp  # host API calls are dynamic
+
+DATA = Path(__file__).parent / "data" / "adk_4ake.npz"
+THESIS = {496: "villin", 1049: "dna", 2500: "1VIS", 5684: "1TII", 10_000: "1AF6"}
+FULL_SIZES = [496, 1049, 2500, 5684, 10_000, 100_000, 1_000_000, 10_000_000]
+FULL_RES = [(500, 500), (1920, 1080)]
+REFINE = 5
+
+# ----------------------------------------------------------------------------- systems
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+def build_system(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) float32 positions and (n,) element symbols of a protein-like system."""
+    base = np.load(DATA)
+    pos0 = base["positions"].astype(np.float64)
+    el0 = base["elements"]
+    pos0 = pos0 - pos0.mean(axis=0)
+    if n <= len(pos0):
+        idx = np.sort(np.argsort(np.linalg.norm(pos0, axis=1), kind="stable")[:n])
+        return pos0[idx].astype(np.float32), el0[idx]
+    rng = np.random.default_rng(seed)
+    tiles = math.ceil(n / len(pos0))
+    m = math.ceil(tiles ** (1 / 3))
+    spacing = 0.85 * float(np.ptp(pos0, axis=0).max())  # neighbours just touch
+    grid = np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    grid = grid - (m - 1) / 2
+    cells = grid[np.argsort(np.linalg.norm(grid, axis=1), kind="stable")[:tiles]] * spacing
+    out = np.empty((tiles * len(pos0), 3), dtype=np.float32)
+    for t, c in enumerate(cells):
+        block = pos0 @ random_rotation(rng).T + c + rng.normal(size=3) * 1.0
+        block += rng.normal(size=block.shape) * 0.3
+        out[t * len(pos0) : (t + 1) * len(pos0)] = block
+    return out[:n], np.tile(el0, tiles)[:n]
+
+
+def topology_of(elements: np.ndarray) -> Topology:
+    n = len(elements)
+    els = [str(e) for e in elements]
+    return Topology.model_construct(
+        n_atoms=n,
+        elements=els,
+        names=els,
+        residue_ids=WireArray.from_numpy(np.zeros(n, np.int32), "<i4"),
+        residue_names=["ALA"] * n,
+        chain_ids=["A"] * n,
+        bonds=WireArray.from_numpy(np.zeros((0, 2), np.int32), "<i4"),
+        radii=None,
+        charges=None,
+        bfactors=None,
+    )
+
+
+def jittered_frames(pos: np.ndarray, count: int, seed: int = 1) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [
+        (pos + rng.normal(scale=0.05, size=pos.shape).astype(np.float32)).astype(np.float32)
+        for _ in range(count)
+    ]
+
+
+# ----------------------------------------------------------------------------- baselines
+
+
+@wp.func
+@no_type_check
+def hash_density(
+    grid: wp.uint64, pts: wp.array[wp.vec3], p: wp.vec3, r: float, inv2s2: float
+) -> wp.vec4:
+    q = wp.hash_grid_query(grid, p, r)
+    idx = wp.int32(0)
+    s = wp.float32(0.0)
+    g = wp.vec3(0.0, 0.0, 0.0)
+    r2 = r * r
+    while wp.hash_grid_query_next(q, idx):
+        dv = pts[idx] - p
+        d2 = wp.dot(dv, dv)
+        if d2 < r2:
+            t = wp.exp(-d2 * inv2s2)
+            s += t
+            g += dv * (2.0 * inv2s2 * t)
+    return wp.vec4(g[0], g[1], g[2], s)
+
+
+@wp.kernel(enable_backward=False)
+@no_type_check
+def hash_march_kernel(
+    grid: wp.uint64,
+    pts: wp.array[wp.vec3],
+    r: float,
+    inv2s2: float,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    cam: CameraData,
+    iso: float,
+    dt: float,
+    sh: Shading,
+    rgba: wp.array[wp.uint32],
+    depth: wp.array[float],
+):
+    x, y, ok = pixel_of(cam, wp.tid())
+    if ok == 0:
+        return
+    pix = y * cam.width + x
+    o, d = camera_ray(cam, x, y)
+    t0, t1 = clip_box(o, d, lo, hi)
+    hit = wp.float32(wp.inf)
+    if t0 < t1:
+        k = int(wp.ceil(t0 / dt))
+        while float(k) * dt < t1:
+            t = float(k) * dt
+            if hash_density(grid, pts, o + d * t, r, inv2s2)[3] >= iso:
+                a = t - dt
+                b = t
+                for _i in range(REFINE):
+                    mid = 0.5 * (a + b)
+                    if hash_density(grid, pts, o + d * mid, r, inv2s2)[3] >= iso:
+                        b = mid
+                    else:
+                        a = mid
+                hit = 0.5 * (a + b)
+                break
+            k += 1
+    if hit == wp.inf:
+        rgba[pix] = pack_rgba(sh.background)
+        depth[pix] = wp.inf
+    else:
+        vg = hash_density(grid, pts, o + d * hit, r, inv2s2)
+        n = facing(wp.vec3(vg[0], vg[1], vg[2]), d)
+        rgba[pix] = pack_rgba(lit(sh, sh.uniform_color, n, -d, 1.0))
+        depth[pix] = hit
+
+
+@wp.kernel(enable_backward=False)
+@no_type_check
+def splat_kernel(f: GaussianField, origin: wp.vec3, h: float, vol: wp.array3d[float]):
+    i, j, k = wp.tid()
+    vol[i, j, k] = gaussian_value(f, origin + wp.vec3(float(i), float(j), float(k)) * h)
+
+
+@wp.func
+@no_type_check
+def trilinear(vol: wp.array3d[float], origin: wp.vec3, inv_h: float, p: wp.vec3) -> float:
+    q = (p - origin) * inv_h
+    nx = vol.shape[0]
+    ny = vol.shape[1]
+    nz = vol.shape[2]
+    i = wp.clamp(int(wp.floor(q[0])), 0, nx - 2)
+    j = wp.clamp(int(wp.floor(q[1])), 0, ny - 2)
+    k = wp.clamp(int(wp.floor(q[2])), 0, nz - 2)
+    fx = wp.clamp(q[0] - float(i), 0.0, 1.0)
+    fy = wp.clamp(q[1] - float(j), 0.0, 1.0)
+    fz = wp.clamp(q[2] - float(k), 0.0, 1.0)
+    c00 = vol[i, j, k] * (1.0 - fx) + vol[i + 1, j, k] * fx
+    c10 = vol[i, j + 1, k] * (1.0 - fx) + vol[i + 1, j + 1, k] * fx
+    c01 = vol[i, j, k + 1] * (1.0 - fx) + vol[i + 1, j, k + 1] * fx
+    c11 = vol[i, j + 1, k + 1] * (1.0 - fx) + vol[i + 1, j + 1, k + 1] * fx
+    c0 = c00 * (1.0 - fy) + c10 * fy
+    c1 = c01 * (1.0 - fy) + c11 * fy
+    return c0 * (1.0 - fz) + c1 * fz
+
+
+@wp.kernel(enable_backward=False)
+@no_type_check
+def grid_march_kernel(
+    vol: wp.array3d[float],
+    origin: wp.vec3,
+    h: float,
+    cam: CameraData,
+    iso: float,
+    dt: float,
+    sh: Shading,
+    rgba: wp.array[wp.uint32],
+    depth: wp.array[float],
+):
+    x, y, ok = pixel_of(cam, wp.tid())
+    if ok == 0:
+        return
+    pix = y * cam.width + x
+    inv_h = 1.0 / h
+    hi = origin + wp.vec3(
+        float(vol.shape[0] - 1) * h, float(vol.shape[1] - 1) * h, float(vol.shape[2] - 1) * h
+    )
+    o, d = camera_ray(cam, x, y)
+    t0, t1 = clip_box(o, d, origin, hi)
+    hit = wp.float32(wp.inf)
+    if t0 < t1:
+        k = int(wp.ceil(t0 / dt))
+        while float(k) * dt < t1:
+            t = float(k) * dt
+            if trilinear(vol, origin, inv_h, o + d * t) >= iso:
+                a = t - dt
+                b = t
+                for _i in range(REFINE):
+                    mid = 0.5 * (a + b)
+                    if trilinear(vol, origin, inv_h, o + d * mid) >= iso:
+                        b = mid
+                    else:
+                        a = mid
+                hit = 0.5 * (a + b)
+                break
+            k += 1
+    if hit == wp.inf:
+        rgba[pix] = pack_rgba(sh.background)
+        depth[pix] = wp.inf
+    else:
+        p = o + d * hit
+        e = 0.5 * h
+        gx = trilinear(vol, origin, inv_h, p + wp.vec3(e, 0.0, 0.0)) - trilinear(
+            vol, origin, inv_h, p - wp.vec3(e, 0.0, 0.0)
+        )
+        gy = trilinear(vol, origin, inv_h, p + wp.vec3(0.0, e, 0.0)) - trilinear(
+            vol, origin, inv_h, p - wp.vec3(0.0, e, 0.0)
+        )
+        gz = trilinear(vol, origin, inv_h, p + wp.vec3(0.0, 0.0, e)) - trilinear(
+            vol, origin, inv_h, p - wp.vec3(0.0, 0.0, e)
+        )
+        n = facing(wp.vec3(gx, gy, gz), d)
+        rgba[pix] = pack_rgba(lit(sh, sh.uniform_color, n, -d, 1.0))
+        depth[pix] = hit
+
+
+# ----------------------------------------------------------------------------- timing
+
+
+def summarize(walls: list[float], stages: list[dict[str, float]]) -> dict[str, Any]:
+    w = np.asarray(walls)
+    out: dict[str, Any] = {
+        "frames": len(walls),
+        "median_ms": float(np.median(w)) if len(w) else None,
+        "p10_ms": float(np.percentile(w, 10)) if len(w) else None,
+        "p90_ms": float(np.percentile(w, 90)) if len(w) else None,
+    }
+    out["fps"] = 1000.0 / out["median_ms"] if out["median_ms"] else None
+    if stages:
+        out["stages_ms"] = {k: float(np.median([s[k] for s in stages])) for k in stages[0]}
+    return out
+
+
+class Clock:
+    """Wall-clock budget of the whole run; sections stop early rather than overrun."""
+
+    def __init__(self, budget_s: float) -> None:
+        self.end = time.perf_counter() + budget_s
+
+    def left(self) -> float:
+        return self.end - time.perf_counter()
+
+
+def time_frames(
+    step: Callable[[int], dict[str, float] | None],
+    frames: int,
+    warmup: int,
+    clock: Clock,
+    max_s: float,
+) -> dict[str, Any]:
+    walls: list[float] = []
+    stages: list[dict[str, float]] = []
+    stop = time.perf_counter() + min(max_s, max(clock.left(), 0.0))
+    for i in range(warmup + frames):
+        t0 = time.perf_counter()
+        st = step(i)
+        wall = (time.perf_counter() - t0) * 1e3
+        if i >= warmup:
+            walls.append(wall)
+            if st is not None:
+                stages.append(st)
+        if time.perf_counter() > stop and len(walls) >= 3:
+            break
+    return summarize(walls, stages)
+
+
+def image_error(a: np.ndarray, b: np.ndarray, da: np.ndarray, db: np.ndarray) -> dict[str, float]:
+    """Mean |RGB difference| / 255, the share of pixels off by more than 16/255, disagreement
+    on hit vs background, and the median depth difference where both hit."""
+    diff = np.abs(a[..., :3].astype(np.int32) - b[..., :3].astype(np.int32)).max(axis=-1)
+    ha, hb = np.isfinite(da), np.isfinite(db)
+    both = ha & hb
+    return {
+        "mean_abs_rgb": float(diff.mean() / 255.0),
+        "pixels_off": float((diff > 16).mean()),
+        "coverage_mismatch": float((ha != hb).mean()),
+        "median_depth_err": float(np.median(np.abs(da[both] - db[both]))) if both.any() else 0.0,
+    }
+
+
+# ----------------------------------------------------------------------------- sections
+
+
+class Bench:
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.device = render_device.resolve(args.device)
+        self.clock = Clock(args.budget_s)
+        dev = wp.get_device(self.device)
+        self.gpu = str(dev.name) if dev.is_cuda else platform.processor() or "cpu"
+        self.results: dict[str, Any] = {
+            "benchmark": "render",
+            "gpu": self.gpu,
+            "device": self.device,
+            "warp": wp.config.version,
+            "python": platform.python_version(),
+            "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "quick": bool(args.quick),
+            "params": RenderParams().model_dump(mode="json"),
+            "frames": [],
+            "grid_build": [],
+            "baselines": [],
+            "ablation": [],
+            "registers": [],
+            "max_registers": args.max_registers,
+            "notes": [],
+        }
+        self.systems: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def save(self) -> None:
+        out = Path(self.args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(self.results, indent=1))
+
+    def system(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        if n not in self.systems:
+            self.systems = {n: build_system(n)}
+        return self.systems[n]
+
+    def renderer(self, n: int, **kw: Any) -> tuple[Renderer, list[np.ndarray]]:
+        pos, el = self.system(n)
+        kw.setdefault("max_registers", self.results["max_registers"])
+        r = Renderer(self.device, max_atoms=max(n, 1), **kw)
+        r.set_topology(topology_of(el))
+        frames = jittered_frames(pos, 3)
+        return r, frames
+
+    def frame_step(
+        self,
+        r: Renderer,
+        frames: list[np.ndarray],
+        params: RenderParams,
+        cam: Camera,
+        w: int,
+        h: int,
+    ) -> Callable[[int], dict[str, float]]:
+        buf = r.host_positions()
+
+        def step(i: int) -> dict[str, float]:
+            np.copyto(buf, frames[i % len(frames)])
+            t0 = time.perf_counter()
+            # as in the server, where the protocol decoder has already checked finiteness
+            r.set_positions(buf, check_finite=False)
+            r.render(params, cam, w, h)
+            st = dict(r.timings)
+            st["wall"] = (time.perf_counter() - t0) * 1e3
+            return st
+
+        return step
+
+    def timed(self, step: Callable[[int], dict[str, float]], frames: int) -> dict[str, Any]:
+        """Times frames; the wall time excludes writing the next positions into the buffer."""
+        walls: list[float] = []
+        stages: list[dict[str, float]] = []
+        stop = time.perf_counter() + min(self.args.max_config_s, max(self.clock.left(), 0.0))
+        for i in range(self.args.warmup + frames):
+            st = step(i)
+            if i >= self.args.warmup:
+                walls.append(st.pop("wall"))
+                stages.append(st)
+            if time.perf_counter() > stop and len(walls) >= 3:
+                break
+        return summarize(walls, stages)
+
+    def log(self, text: str) -> None:
+        print(f"[{self.args.budget_s - self.clock.left():7.1f}s] {text}", flush=True)
+
+    # ---- main table
+    def main_table(self, sizes: list[int], res: list[tuple[int, int]], grid: bool) -> None:
+        for n in sizes:
+            if self.clock.left() < 20:
+                self.results["notes"].append(f"main table stopped before N={n}: time budget")
+                break
+            t0 = time.perf_counter()
+            r, frames = self.renderer(n)
+            setup_s = time.perf_counter() - t0
+            mem = r.memory_bytes()
+            for w, h in res:
+                cam = fit_camera(frames[0], w, h)
+                for mode in ("iso", "volume"):
+                    params = RenderParams(mode=mode)  # type: ignore[arg-type]
+                    s = self.timed(self.frame_step(r, frames, params, cam, w, h), self.args.frames)
+                    beyond = mem["per_atom"] + mem["grid"] + mem["other"]
+                    entry = {
+                        "n_atoms": n,
+                        "system": THESIS.get(n, "tiled 4AKE"),
+                        "width": w,
+                        "height": h,
+                        "mode": mode,
+                        **s,
+                        "coverage": float(np.isfinite(r.read_depth()).mean()),
+                        "bytes_per_atom": beyond / n,
+                        "memory_bytes": mem,
+                        "setup_s": setup_s,
+                    }
+                    self.results["frames"].append(entry)
+                    self.save()
+                    self.log(
+                        f"N={n:>9,} {w}x{h} {mode:6s} {s['median_ms']:8.3f} ms "
+                        f"{s['fps']:8.1f} fps  stages {fmt_stages(s.get('stages_ms', {}))}"
+                    )
+                    if self.args.images and n == self.args.image_n and w == 1920:
+                        from PIL import Image
+
+                        img = Image.fromarray(r.read_rgba()[..., :3]).resize((960, 540))
+                        img.save(Path(self.args.images) / f"render_{mode}_{n}.jpg", quality=85)
+            if grid and self.clock.left() > 15:
+                self.grid_build(n, r, frames)
+
+    # ---- grid build: dense grid vs wp.HashGrid
+    def grid_build(self, n: int, r: Renderer, frames: list[np.ndarray]) -> None:
+        """Dense grid rebuild vs wp.HashGrid.build on the same positions."""
+        params = RenderParams()
+        r.set_positions(frames[0])
+        reach = params.cutoff_sigmas * params.sigma_A
+        dev = self.device
+        pts = wp.array(frames[0], dtype=wp.vec3, device=dev)
+        hg = wp.HashGrid(128, 128, 128, device=dev)
+
+        buf = r.host_positions()
+        np.copyto(buf, frames[0])
+
+        def dense(i: int) -> None:
+            r.set_positions(buf, check_finite=False)  # a new frame: the grid is rebuilt
+            r.prepare(params)
+
+        def hashgrid(i: int) -> None:
+            hg.build(pts, reach)
+
+        out: dict[str, Any] = {"n_atoms": n}
+        for name, fn in (("dense", dense), ("hashgrid", hashgrid)):
+            ts = []
+            for i in range(self.args.grid_reps + 2):
+                wp.synchronize_device(dev)
+                t0 = time.perf_counter()
+                fn(i)
+                wp.synchronize_device(dev)
+                if i >= 2:
+                    ts.append((time.perf_counter() - t0) * 1e3)
+            out[f"{name}_ms"] = float(np.median(ts))
+        out["note"] = (
+            "dense = positions upload + cell sort + cell starts + sorted atoms + cell and brick"
+            " bounds (host copy into the pinned buffer excluded); HashGrid = build only"
+        )
+        self.results["grid_build"].append(out)
+        self.save()
+        self.log(
+            f"grid N={n:>9,} dense {out['dense_ms']:.3f} ms, HashGrid {out['hashgrid_ms']:.3f}"
+        )
+
+    # ---- baselines
+    def baselines(self, sizes: list[int], w: int, h: int, voxels: list[float]) -> None:
+        for n in sizes:
+            if self.clock.left() < 30:
+                self.results["notes"].append(f"baselines stopped before N={n}: time budget")
+                break
+            self._baselines_for(n, w, h, voxels)
+
+    def _baselines_for(self, n: int, w: int, h: int, voxels: list[float]) -> None:
+        dev = self.device
+        r, frames = self.renderer(n)
+        cam = fit_camera(frames[0], w, h)
+        iso = RenderParams()
+        uni = iso.model_copy(update={"color_by": "uniform"})
+        fine = uni.model_copy(update={"step_sigmas": 0.05})
+        nf = self.args.baseline_frames
+        entry: dict[str, Any] = {"n_atoms": n, "width": w, "height": h}
+
+        # reference: our renderer with a 5x finer step
+        r.set_positions(frames[0])
+        r.render(fine, cam, w, h)
+        ref_rgb, ref_depth = r.read_rgba(), r.read_depth()
+
+        def ours_image(params: RenderParams) -> tuple[np.ndarray, np.ndarray]:
+            r.set_positions(frames[0])
+            r.render(params, cam, w, h)
+            return r.read_rgba(), r.read_depth()
+
+        s = self.timed(self.frame_step(r, frames, iso, cam, w, h), nf)
+        entry["ours"] = s
+        s_uni = self.timed(self.frame_step(r, frames, uni, cam, w, h), nf)
+        img, dep = ours_image(uni)
+        s_uni["error_vs_fine"] = image_error(img, ref_rgb, dep, ref_depth)
+        entry["ours_uniform"] = s_uni
+        ours_img_color = ours_image(iso)
+        self.log(f"baselines N={n:,}: ours {s['median_ms']:.2f} ms")
+
+        # (a) naive: no empty-space skipping
+        if self.clock.left() > 20:
+            rn = Renderer(
+                dev,
+                max_atoms=n,
+                empty_space_skipping=False,
+                max_registers=self.results["max_registers"],
+            )
+            rn.set_topology(topology_of(self.system(n)[1]))
+            sn = self.timed(self.frame_step(rn, frames, iso, cam, w, h), nf)
+            rn.set_positions(frames[0])
+            rn.render(iso, cam, w, h)
+            sn["diff_vs_ours"] = image_error(
+                rn.read_rgba(), ours_img_color[0], rn.read_depth(), ours_img_color[1]
+            )
+            sn["speedup_of_ours"] = sn["median_ms"] / s["median_ms"]
+            entry["naive"] = sn
+            self.log(f"  naive {sn['median_ms']:.2f} ms ({sn['speedup_of_ours']:.1f}x)")
+            del rn
+
+        sh = self._shading(uni, cam, w, h)
+        cam_d = camera_data(_frame(cam, w, h))
+        threads = launch_size(w, h)
+        rgba = wp.zeros(w * h, dtype=wp.uint32, device=dev)
+        depth = wp.zeros(w * h, dtype=float, device=dev)
+        pos, _ = self.system(n)
+        reach = uni.cutoff_sigmas * uni.sigma_A
+        lo = pos.min(axis=0) - reach - 1.0
+        hi = pos.max(axis=0) + reach + 1.0
+        dt = uni.step_sigmas * uni.sigma_A
+        buf = r.host_positions()
+
+        def read() -> tuple[np.ndarray, np.ndarray]:
+            a = rgba.numpy().view(np.uint8).reshape(h, w, 4).copy()
+            return a, depth.numpy().reshape(h, w).copy()
+
+        # (a2) wp.HashGrid march
+        if self.clock.left() > 20:
+            pts = wp.zeros(n, dtype=wp.vec3, device=dev)
+            hg = wp.HashGrid(128, 128, 128, device=dev)
+            staging = wp.zeros(n, dtype=wp.vec3, device="cpu", pinned=wp.get_device(dev).is_cuda)
+            sbuf = staging.numpy().view(np.float32).reshape(-1, 3)
+
+            def hash_step(i: int) -> dict[str, float]:
+                np.copyto(sbuf, frames[i % 3])
+                t0 = time.perf_counter()
+                wp.copy(pts, staging)
+                hg.build(pts, reach)
+                wp.launch(
+                    hash_march_kernel,
+                    threads,
+                    (
+                        hg.id,
+                        pts,
+                        reach,
+                        0.5 / uni.sigma_A**2,
+                        wp.vec3(*lo),
+                        wp.vec3(*hi),
+                        cam_d,
+                        uni.iso_level,
+                        dt,
+                        sh,
+                        rgba,
+                        depth,
+                    ),
+                    device=dev,
+                )
+                wp.synchronize_device(dev)
+                return {"wall": (time.perf_counter() - t0) * 1e3}
+
+            sh_ = self.timed(hash_step, nf)
+            np.copyto(sbuf, frames[0])
+            hash_step(0)
+            a, d = read()
+            sh_["error_vs_fine"] = image_error(a, ref_rgb, d, ref_depth)
+            sh_["speedup_of_ours"] = sh_["median_ms"] / s_uni["median_ms"]
+            entry["hashgrid"] = sh_
+            self.log(f"  hashgrid {sh_['median_ms']:.2f} ms ({sh_['speedup_of_ours']:.1f}x)")
+
+        # (b) QuickSurf-style: splat onto a voxel grid, march it with trilinear filtering
+        entry["resample"] = []
+        for v in voxels:
+            if self.clock.left() < 20:
+                break
+            dims = np.ceil((hi - lo) / v).astype(int) + 1
+            count = int(np.prod(dims))
+            rec: dict[str, Any] = {"voxel_A": v, "dims": dims.tolist(), "voxels": count}
+            if count > self.args.max_voxels:
+                rec["skipped"] = f"{count:,} voxels exceed the cap of {self.args.max_voxels:,}"
+                entry["resample"].append(rec)
+                continue
+            vol = wp.zeros(tuple(int(x) for x in dims), dtype=float, device=dev)
+            origin = wp.vec3(*lo)
+
+            def grid_step(
+                i: int, vol: Any = vol, origin: Any = origin, v: float = v
+            ) -> dict[str, float]:
+                np.copyto(buf, frames[i % 3])
+                t0 = time.perf_counter()
+                r.set_positions(buf, check_finite=False)
+                f = r.prepare(uni)
+                wp.launch(splat_kernel, vol.shape, (f, origin, v, vol), device=dev)
+                wp.launch(
+                    grid_march_kernel,
+                    threads,
+                    (vol, origin, v, cam_d, uni.iso_level, dt, sh, rgba, depth),
+                    device=dev,
+                )
+                wp.synchronize_device(dev)
+                return {"wall": (time.perf_counter() - t0) * 1e3}
+
+            sr = self.timed(grid_step, nf)
+            grid_step(0)
+            a, d = read()
+            rec.update(sr)
+            rec["error_vs_fine"] = image_error(a, ref_rgb, d, ref_depth)
+            rec["speedup_of_ours"] = sr["median_ms"] / s_uni["median_ms"]
+            entry["resample"].append(rec)
+            err = rec["error_vs_fine"]["mean_abs_rgb"]
+            ours_err = s_uni["error_vs_fine"]["mean_abs_rgb"]
+            self.log(
+                f"  resample {v} A: {sr['median_ms']:.2f} ms, error {err:.4f} (ours {ours_err:.4f})"
+            )
+        self.results["baselines"].append(entry)
+        self.save()
+
+    def _shading(self, p: RenderParams, cam: Camera, w: int, h: int) -> Shading:
+        light = p.lighting
+        sh = Shading()
+        sh.background = wp.vec3(*p.background)
+        sh.uniform_color = wp.vec3(*p.uniform_color)
+        sh.key_dir = wp.vec3(*key_light_direction(_frame(cam, w, h)))
+        sh.ambient = light.ambient
+        sh.diffuse = light.diffuse
+        sh.specular = light.specular
+        sh.shininess = light.shininess
+        sh.head_weight = 0.6 if light.key_light else 1.0
+        sh.key_weight = 0.55 if light.key_light else 0.0
+        sh.ao = 0
+        sh.ao_step = 1.0
+        sh.iso = p.iso_level
+        sh.depth_cue = 0.0
+        return sh
+
+    # ---- register cap of the marching kernels (occupancy), chosen before the main table
+    def registers(self, sizes: list[int], w: int, h: int, caps: list[int]) -> None:
+        score: dict[int, float] = {}
+        for n in sizes:
+            for cap in caps:
+                if self.clock.left() < 30:
+                    break
+                r, frames = self.renderer(n, max_registers=cap)
+                cam = fit_camera(frames[0], w, h)
+                for mode in ("iso", "volume"):
+                    params = RenderParams(mode=mode)  # type: ignore[arg-type]
+                    step = self.frame_step(r, frames, params, cam, w, h)
+                    s = self.timed(step, self.args.baseline_frames)
+                    score[cap] = score.get(cap, 0.0) + s["median_ms"]
+                    self.results["registers"].append(
+                        {"n_atoms": n, "max_registers": cap, "mode": mode, "width": w, **s}
+                    )
+                    self.log(f"registers<={cap or 'auto'} N={n:,} {mode}: {s['median_ms']:.3f} ms")
+        if score:
+            best = min(score, key=lambda c: score[c])
+            self.results["max_registers"] = best
+            self.log(f"register cap for the rest of the run: {best or 'compiler choice'}")
+        self.save()
+
+    # ---- ablation: cell size
+    def ablation(self, sizes: list[int], w: int, h: int) -> None:
+        for n in sizes:
+            for cells in (1.0, 2.0, 3.0):
+                if self.clock.left() < 15:
+                    return
+                r, frames = self.renderer(n, cells_per_cutoff=cells)
+                cam = fit_camera(frames[0], w, h)
+                for mode in ("iso", "volume"):
+                    params = RenderParams(mode=mode)  # type: ignore[arg-type]
+                    s = self.timed(
+                        self.frame_step(r, frames, params, cam, w, h), self.args.baseline_frames
+                    )
+                    mem = r.memory_bytes()
+                    self.results["ablation"].append(
+                        {
+                            "n_atoms": n,
+                            "cells_per_cutoff": cells,
+                            "mode": mode,
+                            "width": w,
+                            "height": h,
+                            **s,
+                            "bytes_per_atom": (mem["per_atom"] + mem["grid"] + mem["other"]) / n,
+                        }
+                    )
+                    self.save()
+                    self.log(
+                        f"ablation N={n:,} cells/cutoff={cells} {mode}: {s['median_ms']:.3f} ms "
+                        f"{fmt_stages(s.get('stages_ms', {}))}"
+                    )
+                del r
+
+
+def _frame(cam: Camera, w: int, h: int) -> Any:
+    from server.render.camera import camera_frame
+
+    return camera_frame(cam, w, h)
+
+
+def fmt_stages(st: dict[str, float]) -> str:
+    return " ".join(f"{k}={v:.2f}" for k, v in st.items())
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def table(path: Path) -> str:
+    """Markdown tables of a results file (for benchmarks/README.md)."""
+    res = json.loads(Path(path).read_text())
+    lines = [
+        f"GPU: **{res['gpu']}** (warp {res['warp']}, {res['date']}); default parameters "
+        f"(sigma 1.5 A, iso 0.5, step 0.25 sigma, cutoff 3 sigma, key light, no AO; volume: "
+        f"'cloud'). Median of >= {min((f['frames'] for f in res['frames']), default=0)} frames "
+        "after warm-up; every frame uploads new positions and rebuilds the grid.",
+        "",
+        "| atoms | system | image | mode | median ms | fps | upload | grid | raycast | B/atom |",
+        "| ---: | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for f in res["frames"]:
+        st = f.get("stages_ms", {})
+        lines.append(
+            f"| {f['n_atoms']:,} | {f['system']} | {f['width']}x{f['height']} | {f['mode']} | "
+            f"{f['median_ms']:.3f} | {f['fps']:.0f} | {st.get('upload', 0):.3f} | "
+            f"{st.get('grid', 0):.3f} | {st.get('raycast', 0):.3f} | {f['bytes_per_atom']:.1f} |"
+        )
+    if res["grid_build"]:
+        lines += [
+            "",
+            "Grid rebuild (median ms): dense cell grid (upload from the pinned buffer, sort, cell "
+            "starts, sorted atoms, cell and brick density bounds) vs `wp.HashGrid.build` alone.",
+            "",
+            "| atoms | dense grid | wp.HashGrid |",
+            "| ---: | ---: | ---: |",
+        ]
+        for g in res["grid_build"]:
+            lines.append(f"| {g['n_atoms']:,} | {g['dense_ms']:.3f} | {g['hashgrid_ms']:.3f} |")
+    if res["baselines"]:
+        lines += [
+            "",
+            "Baselines, iso mode (median ms per frame; error = mean |RGB difference| against "
+            "our renderer at a 5x finer step, uniform colour):",
+            "",
+            "| atoms | image | method | median ms | ours is faster by | image error |",
+            "| ---: | --- | --- | ---: | ---: | ---: |",
+        ]
+        for b in res["baselines"]:
+            img = f"{b['width']}x{b['height']}"
+            o = b["ours_uniform"]
+            lines.append(
+                f"| {b['n_atoms']:,} | {img} | ours | {o['median_ms']:.2f} | 1.0x | "
+                f"{o['error_vs_fine']['mean_abs_rgb']:.4f} |"
+            )
+            if "naive" in b:
+                nv = b["naive"]
+                same = nv["diff_vs_ours"]["mean_abs_rgb"]
+                lines.append(
+                    f"| {b['n_atoms']:,} | {img} | naive march (no skipping) | "
+                    f"{nv['median_ms']:.2f} | {nv['speedup_of_ours']:.1f}x | "
+                    f"same image (diff {same:.4f}) |"
+                )
+            if "hashgrid" in b:
+                hg = b["hashgrid"]
+                lines.append(
+                    f"| {b['n_atoms']:,} | {img} | wp.HashGrid march | {hg['median_ms']:.2f} | "
+                    f"{hg['speedup_of_ours']:.1f}x | {hg['error_vs_fine']['mean_abs_rgb']:.4f} |"
+                )
+            for rs in b.get("resample", []):
+                if "skipped" in rs:
+                    lines.append(
+                        f"| {b['n_atoms']:,} | {img} | resample {rs['voxel_A']} A | skipped | | "
+                        f"{rs['skipped']} |"
+                    )
+                    continue
+                lines.append(
+                    f"| {b['n_atoms']:,} | {img} | resample {rs['voxel_A']} A | "
+                    f"{rs['median_ms']:.2f} | {rs['speedup_of_ours']:.1f}x | "
+                    f"{rs['error_vs_fine']['mean_abs_rgb']:.4f} |"
+                )
+    if res.get("registers"):
+        lines += [
+            "",
+            "Register cap of the marching kernels (more resident warps vs spills); the run "
+            f"used {res['max_registers'] or 'the compiler default'}:",
+            "",
+            "| atoms | mode | register cap | median ms |",
+            "| ---: | --- | ---: | ---: |",
+        ]
+        for g in res["registers"]:
+            cap = g["max_registers"] or "compiler"
+            lines.append(f"| {g['n_atoms']:,} | {g['mode']} | {cap} | {g['median_ms']:.3f} |")
+    if res["ablation"]:
+        lines += [
+            "",
+            "Cell size (median ms; cell = cutoff / cells-per-cutoff):",
+            "",
+            "| atoms | image | mode | cells per cutoff | median ms | grid | raycast | B/atom |",
+            "| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: |",
+        ]
+        for a in res["ablation"]:
+            st = a.get("stages_ms", {})
+            lines.append(
+                f"| {a['n_atoms']:,} | {a['width']}x{a['height']} | {a['mode']} | "
+                f"{a['cells_per_cutoff']:g} | {a['median_ms']:.3f} | {st.get('grid', 0):.3f} | "
+                f"{st.get('raycast', 0):.3f} | {a['bytes_per_atom']:.1f} |"
+            )
+    for note in res.get("notes", []):
+        lines.append(f"\nNote: {note}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--device", default="auto")
+    p.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test, e.g. on cpu)")
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "render_quick.json"))
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--warmup", type=int, default=5)
+    p.add_argument("--baseline-frames", type=int, default=20)
+    p.add_argument("--grid-reps", type=int, default=20)
+    p.add_argument("--budget-s", type=float, default=480.0, help="wall-clock budget of the run")
+    p.add_argument("--max-config-s", type=float, default=20.0, help="at most this long per config")
+    p.add_argument("--max-voxels", type=int, default=1 << 28)
+    p.add_argument("--sections", default="registers,main,grid,baselines,ablation")
+    p.add_argument("--sizes", default="", help="comma-separated atom counts (main table)")
+    p.add_argument("--images", default="", help="folder for sample images (1920x1080 runs)")
+    p.add_argument("--image-n", type=int, default=1_000_000)
+    p.add_argument("--table", default="", help="print the markdown tables of a results file")
+    p.add_argument("--max-registers", type=int, default=64, help="0 = compiler's choice")
+    p.add_argument("--register-caps", default="0,128,80,64", help="caps the first section tries")
+    args = p.parse_args(argv)
+    if args.table:
+        print(table(Path(args.table)), end="")
+        return 0
+    if args.quick:
+        args.frames, args.warmup, args.baseline_frames, args.grid_reps = 3, 1, 2, 2
+    b = Bench(args)
+    sections = set(args.sections.split(","))
+    if args.quick:
+        sizes, res = [496, 3000], [(64, 48)]
+        base_sizes, base_res, voxels = [496], (64, 48), [1.5, 0.75]
+        abl_sizes, abl_res = [496], (64, 48)
+    else:
+        sizes, res = FULL_SIZES, FULL_RES
+        base_sizes, base_res, voxels = (
+            [10_000, 100_000, 1_000_000],
+            (1920, 1080),
+            [1.5, 0.75, 0.375],
+        )
+        abl_sizes, abl_res = [100_000, 1_000_000], (1920, 1080)
+    if args.sizes:
+        sizes = [int(s) for s in args.sizes.split(",")]
+    b.log(f"device {b.device} ({b.gpu}), budget {args.budget_s:.0f} s")
+    if "registers" in sections:
+        if args.quick:
+            b.registers([496], 64, 48, [0, 128])
+        else:
+            b.registers(
+                [100_000, 1_000_000], 1920, 1080, [int(c) for c in args.register_caps.split(",")]
+            )
+    if "main" in sections:
+        b.main_table(sizes, res, grid="grid" in sections)
+    if "baselines" in sections:
+        b.baselines(base_sizes, *base_res, voxels)
+    if "ablation" in sections:
+        b.ablation(abl_sizes, *abl_res)
+    b.save()
+    print(table(Path(args.out)), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

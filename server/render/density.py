@@ -1,0 +1,361 @@
+"""The multiscale Gaussian molecular density as warp functions the ray caster calls.
+
+    S(P) = sum_i w_i exp(-|P - a_i|^2 / (2 s_i^2)),   only atoms with |P - a_i| < k s_i
+
+`s_i` is sigma (uniform mode) or sigma * r_i / R_REF (vdw mode). The truncation drops at most
+w exp(-k^2 / 2) per atom (1.1 % of an atom's peak for k = 3) and, for atoms spread with number
+density rho, at most rho w (2 pi s^2)^(3/2) P(chi_3 > k) in total: 2.9 % of the fully
+overlapped density for k = 3, 0.01 % for k = 5 (docs/rendering.md).
+
+A density is a `DensityModel`: a field struct plus four functions with fixed signatures. The
+ray caster (raycast.py) is generated from a model, so another density (the geodesic warped one
+of thesis 5.3) plugs in by providing its own struct and functions; the struct must carry
+`info` (GridInfo, one entry), `bound` (one float per cell) and `brick_bound` (one per brick)
+because the caster walks bricks and cells to skip empty space.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, no_type_check
+
+import warp as wp
+
+from server.render import device as _device  # noqa: F401  (initialises warp)
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.struct
+class GridInfo:
+    """The cell grid of one frame, computed on the device (no host round trip)."""
+
+    origin: wp.vec3
+    h: float
+    inv_h: float
+    dims: wp.vec3i
+    ncells: int
+    box_hi: wp.vec3
+    reach: float
+    valid: int
+    bdims: wp.vec3i  # bricks of BRICK^3 cells per axis
+    bricks: int  # 1 when the brick bounds exist for this grid
+
+
+BRICK = 4
+"""Cells per brick edge: the coarse level of empty-space skipping."""
+
+
+@wp.struct
+class GaussianField:
+    """Device view of the sorted atoms and the cell grid, passed by value to kernels."""
+
+    atoms: wp.array[wp.vec4]  # sorted by cell: (x, y, z, weight)
+    inv2s2: wp.array[float]  # sorted, 1 / (2 s_i^2); read only when per_atom != 0
+    order: wp.array[wp.int32]  # sorted slot -> original atom index
+    colors: wp.array[wp.uint32]  # original atom index -> RGBA8
+    cell_start: wp.array[wp.int32]  # ncells + 1 offsets into atoms
+    bound: wp.array[float]  # per cell: upper bound of S in the cell (or > stop level)
+    brick_bound: wp.array[float]  # per brick of BRICK^3 cells: the largest cell bound
+    info: wp.array[GridInfo]  # one entry
+    inv2s2_uniform: float
+    half_k2: float  # an atom counts while d^2 / (2 s^2) < k^2 / 2
+    per_atom: int
+
+
+@wp.struct
+class Sample:
+    """Everything shading needs at one point, gathered in one pass over the neighbours."""
+
+    value: float
+    grad: wp.vec3
+    color: wp.vec3
+    weight: float
+    atom: int
+
+
+@wp.func
+@no_type_check
+def axis_span(a: float, b: float, origin: float, inv_h: float, n: int):
+    """Cells [lo, hi] along one axis that overlap [a, b] (clamped, possibly empty)."""
+    fa = wp.clamp((a - origin) * inv_h, -1.0, float(n))
+    fb = wp.clamp((b - origin) * inv_h, -1.0, float(n))
+    return wp.max(int(wp.floor(fa)), 0), wp.min(int(wp.floor(fb)), n - 1)
+
+
+@wp.func
+@no_type_check
+def interval_gap(lo_a: float, hi_a: float, lo_b: float, hi_b: float) -> float:
+    """Distance between intervals [lo_a, hi_a] and [lo_b, hi_b] (0 when they overlap)."""
+    return wp.max(wp.max(lo_a - hi_b, lo_b - hi_a), 0.0)
+
+
+@wp.func
+@no_type_check
+def unpack_rgb(c: wp.uint32) -> wp.vec3:
+    r = float(c & wp.uint32(255))
+    g = float((c >> wp.uint32(8)) & wp.uint32(255))
+    b = float((c >> wp.uint32(16)) & wp.uint32(255))
+    return wp.vec3(r, g, b) * (1.0 / 255.0)
+
+
+@wp.func
+@no_type_check
+def atom_exponent(f: GaussianField, j: int, a: wp.vec4, p: wp.vec3) -> float:
+    """d^2 / (2 s_j^2) for sorted atom j."""
+    ex = a[0] - p[0]
+    ey = a[1] - p[1]
+    ez = a[2] - p[2]
+    c = f.inv2s2_uniform
+    if f.per_atom != 0:
+        c = f.inv2s2[j]
+    return (ex * ex + ey * ey + ez * ez) * c
+
+
+@wp.func
+@no_type_check
+def dist2(a: wp.vec4, p: wp.vec3) -> float:
+    ex = a[0] - p[0]
+    ey = a[1] - p[1]
+    ez = a[2] - p[2]
+    return ex * ex + ey * ey + ez * ez
+
+
+@wp.func
+@no_type_check
+def row_value(f: GaussianField, p: wp.vec3, j0: int, j1: int) -> float:
+    """Sum over sorted atoms [j0, j1); the uniform/per-atom choice is made once per row."""
+    s = wp.float32(0.0)
+    if f.per_atom == 0:
+        c = f.inv2s2_uniform
+        for j in range(j0, j1):
+            a = f.atoms[j]
+            e = dist2(a, p) * c
+            if e < f.half_k2:
+                s += a[3] * wp.exp(-e)
+    else:
+        for j in range(j0, j1):
+            a = f.atoms[j]
+            e = dist2(a, p) * f.inv2s2[j]
+            if e < f.half_k2:
+                s += a[3] * wp.exp(-e)
+    return s
+
+
+@wp.func
+@no_type_check
+def row_value_grad(f: GaussianField, p: wp.vec3, j0: int, j1: int) -> wp.vec4:
+    """(gradient, value) over sorted atoms [j0, j1)."""
+    s = wp.float32(0.0)
+    g = wp.vec3(0.0, 0.0, 0.0)
+    if f.per_atom == 0:
+        c = f.inv2s2_uniform
+        for j in range(j0, j1):
+            a = f.atoms[j]
+            e = dist2(a, p) * c
+            if e < f.half_k2:
+                t = a[3] * wp.exp(-e)
+                s += t
+                g += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * c * t)
+    else:
+        for j in range(j0, j1):
+            a = f.atoms[j]
+            cj = f.inv2s2[j]
+            e = dist2(a, p) * cj
+            if e < f.half_k2:
+                t = a[3] * wp.exp(-e)
+                s += t
+                g += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * cj * t)
+    return wp.vec4(g[0], g[1], g[2], s)
+
+
+@wp.func
+@no_type_check
+def gaussian_value(f: GaussianField, p: wp.vec3) -> float:
+    """S(p). Cells are visited in rows along x (contiguous in the sorted atoms, so one atom
+    range per row); rows whose box lies beyond the cutoff radius are skipped."""
+    g = f.info[0]
+    r = g.reach
+    r2 = r * r
+    z0, z1 = axis_span(p[2] - r, p[2] + r, g.origin[2], g.inv_h, g.dims[2])
+    y0, y1 = axis_span(p[1] - r, p[1] + r, g.origin[1], g.inv_h, g.dims[1])
+    x0, x1 = axis_span(p[0] - r, p[0] + r, g.origin[0], g.inv_h, g.dims[0])
+    total = wp.float32(0.0)
+    for iz in range(z0, z1 + 1):
+        zlo = g.origin[2] + float(iz) * g.h
+        dz = interval_gap(p[2], p[2], zlo, zlo + g.h)
+        for iy in range(y0, y1 + 1):
+            ylo = g.origin[1] + float(iy) * g.h
+            dy = interval_gap(p[1], p[1], ylo, ylo + g.h)
+            if dy * dy + dz * dz < r2:
+                row = (iz * g.dims[1] + iy) * g.dims[0]
+                j0 = f.cell_start[row + x0]
+                j1 = f.cell_start[row + x1 + 1]
+                if j1 > j0:
+                    total += row_value(f, p, j0, j1)
+    return total
+
+
+@wp.func
+@no_type_check
+def gaussian_value_grad(f: GaussianField, p: wp.vec3) -> wp.vec4:
+    """(dS/dx, dS/dy, dS/dz, S) at p; the gradient is analytic."""
+    g = f.info[0]
+    r = g.reach
+    r2 = r * r
+    z0, z1 = axis_span(p[2] - r, p[2] + r, g.origin[2], g.inv_h, g.dims[2])
+    y0, y1 = axis_span(p[1] - r, p[1] + r, g.origin[1], g.inv_h, g.dims[1])
+    x0, x1 = axis_span(p[0] - r, p[0] + r, g.origin[0], g.inv_h, g.dims[0])
+    acc = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    for iz in range(z0, z1 + 1):
+        zlo = g.origin[2] + float(iz) * g.h
+        dz = interval_gap(p[2], p[2], zlo, zlo + g.h)
+        for iy in range(y0, y1 + 1):
+            ylo = g.origin[1] + float(iy) * g.h
+            dy = interval_gap(p[1], p[1], ylo, ylo + g.h)
+            if dy * dy + dz * dz < r2:
+                row = (iz * g.dims[1] + iy) * g.dims[0]
+                j0 = f.cell_start[row + x0]
+                j1 = f.cell_start[row + x1 + 1]
+                if j1 > j0:
+                    acc += row_value_grad(f, p, j0, j1)
+    return acc
+
+
+@wp.func
+@no_type_check
+def gaussian_sample(f: GaussianField, p: wp.vec3) -> Sample:
+    """Value, gradient, contribution-weighted colour and the largest contributor at p.
+
+    Ties between equal contributions go to the lower original atom index, so the atom id is
+    deterministic even for coincident atoms."""
+    g = f.info[0]
+    r = g.reach
+    r2 = r * r
+    z0, z1 = axis_span(p[2] - r, p[2] + r, g.origin[2], g.inv_h, g.dims[2])
+    y0, y1 = axis_span(p[1] - r, p[1] + r, g.origin[1], g.inv_h, g.dims[1])
+    total = wp.float32(0.0)
+    grad = wp.vec3(0.0, 0.0, 0.0)
+    color = wp.vec3(0.0, 0.0, 0.0)
+    best_w = wp.float32(-1.0)
+    best = wp.int32(-1)
+    for iz in range(z0, z1 + 1):
+        zlo = g.origin[2] + float(iz) * g.h
+        dz = interval_gap(p[2], p[2], zlo, zlo + g.h)
+        for iy in range(y0, y1 + 1):
+            ylo = g.origin[1] + float(iy) * g.h
+            dy = interval_gap(p[1], p[1], ylo, ylo + g.h)
+            rem = r2 - dy * dy - dz * dz
+            if rem > 0.0:
+                hw = wp.sqrt(rem)
+                x0, x1 = axis_span(p[0] - hw, p[0] + hw, g.origin[0], g.inv_h, g.dims[0])
+                row = (iz * g.dims[1] + iy) * g.dims[0]
+                for j in range(f.cell_start[row + x0], f.cell_start[row + x1 + 1]):
+                    a = f.atoms[j]
+                    e = atom_exponent(f, j, a, p)
+                    if e < f.half_k2:
+                        c = f.inv2s2_uniform
+                        if f.per_atom != 0:
+                            c = f.inv2s2[j]
+                        term = a[3] * wp.exp(-e)
+                        total += term
+                        grad += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * c * term)
+                        oj = int(f.order[j])
+                        color += unpack_rgb(f.colors[oj]) * term
+                        if term > best_w or (term == best_w and oj < best):
+                            best_w = term
+                            best = oj
+    s = Sample()
+    s.value = total
+    s.grad = grad
+    s.color = color
+    s.weight = total
+    s.atom = best
+    return s
+
+
+@wp.func
+@no_type_check
+def gaussian_box_bound(f: GaussianField, lo: wp.vec3, hi: wp.vec3, stop_above: float) -> float:
+    """An upper bound of S over the box [lo, hi]: every atom in reach counted at its smallest
+    distance to the box. Returns early once the sum exceeds `stop_above` (the caller only
+    compares against that level)."""
+    g = f.info[0]
+    r = g.reach
+    r2 = r * r
+    z0, z1 = axis_span(lo[2] - r, hi[2] + r, g.origin[2], g.inv_h, g.dims[2])
+    y0, y1 = axis_span(lo[1] - r, hi[1] + r, g.origin[1], g.inv_h, g.dims[1])
+    total = wp.float32(0.0)
+    for iz in range(z0, z1 + 1):
+        zlo = g.origin[2] + float(iz) * g.h
+        dz = interval_gap(lo[2], hi[2], zlo, zlo + g.h)
+        for iy in range(y0, y1 + 1):
+            ylo = g.origin[1] + float(iy) * g.h
+            dy = interval_gap(lo[1], hi[1], ylo, ylo + g.h)
+            rem = r2 - dy * dy - dz * dz
+            if rem > 0.0:
+                hw = wp.sqrt(rem)
+                x0, x1 = axis_span(lo[0] - hw, hi[0] + hw, g.origin[0], g.inv_h, g.dims[0])
+                row = (iz * g.dims[1] + iy) * g.dims[0]
+                for j in range(f.cell_start[row + x0], f.cell_start[row + x1 + 1]):
+                    a = f.atoms[j]
+                    q = wp.vec3(
+                        wp.clamp(a[0], lo[0], hi[0]),
+                        wp.clamp(a[1], lo[1], hi[1]),
+                        wp.clamp(a[2], lo[2], hi[2]),
+                    )
+                    e = atom_exponent(f, j, a, q)
+                    if e < f.half_k2:
+                        total += a[3] * wp.exp(-e)
+                        if total > stop_above:
+                            return total
+    return total
+
+
+@wp.kernel
+@no_type_check
+def gather_atoms_kernel(
+    positions: wp.array[wp.vec3],
+    weights: wp.array[float],
+    radii: wp.array[float],
+    order: wp.array[wp.int32],
+    sigma_per_radius: float,
+    per_atom: int,
+    atoms: wp.array[wp.vec4],
+    inv2s2: wp.array[float],
+):
+    """Copy atoms into cell order (x, y, z, w), with 1 / (2 s_i^2) in vdw mode."""
+    i = wp.tid()
+    j = order[i]
+    p = positions[j]
+    atoms[i] = wp.vec4(p[0], p[1], p[2], weights[j])
+    if per_atom != 0:
+        s = sigma_per_radius * radii[j]
+        inv2s2[i] = 0.5 / (s * s)
+
+
+@dataclass(frozen=True)
+class DensityModel:
+    """A density the ray caster can draw.
+
+    `value(f, p) -> float`, `value_grad(f, p) -> vec4(grad, value)`, `sample(f, p) -> Sample`,
+    `box_bound(f, lo, hi, stop_above) -> float` (>= the density anywhere in the box, or any
+    value above `stop_above` once that is certain), all `@wp.func` over the struct `field`.
+    """
+
+    name: str
+    field: Any
+    value: Any
+    value_grad: Any
+    sample: Any
+    box_bound: Any
+
+
+GAUSSIAN = DensityModel(
+    name="gaussian",
+    field=GaussianField,
+    value=gaussian_value,
+    value_grad=gaussian_value_grad,
+    sample=gaussian_sample,
+    box_bound=gaussian_box_bound,
+)

@@ -1,0 +1,8 @@
+"""The one exception of the render core, so callers can map bad input to a clear reply."""
+
+from __future__ import annotations
+
+
+class RenderError(ValueError):
+    """Invalid render input (positions, parameters, image size, device), raised before any
+    kernel launch with a message that names the offending value."""

@@ -1,0 +1,271 @@
+"""Uniform cell grid rebuilt on the device every frame.
+
+Build: bounding box (atomic min/max) -> grid layout (one thread, so the host never waits) ->
+cell key per atom and per-cell counts -> stable radix sort of (key, atom) -> exclusive scan of
+the counts = `cell_start`. Cells are ordered x-fastest, so a row of neighbouring cells is one
+contiguous range of sorted atoms. Everything is sized once from the atom count; the grid never
+has more than `cell_capacity(n)` cells (the cell size grows when the box would need more).
+"""
+
+from __future__ import annotations
+
+from typing import Any, no_type_check
+
+import warp
+
+from server.render import device as _device  # noqa: F401  (initialises warp)
+from server.render.density import BRICK, GridInfo
+
+wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
+
+wp.set_module_options({"enable_backward": False})
+
+MIN_CELLS = 1 << 15
+CELLS_PER_ATOM = 1.875
+MAX_REDUCE_THREADS = 1 << 14
+
+
+def cell_capacity(n_atoms: int) -> int:
+    """Most cells a grid for `n_atoms` may use: bounds device memory at 8 bytes per cell."""
+    return max(int(CELLS_PER_ATOM * n_atoms), MIN_CELLS)
+
+
+def brick_capacity(cells: int) -> int:
+    """Bricks allocated for a grid of `cells` cells (4x headroom over cells / 64 for thin
+    boxes; a grid needing more simply walks cells only)."""
+    return cells // 16 + 1024
+
+
+@wp.kernel
+@no_type_check
+def bbox_kernel(
+    positions: wp.array[wp.vec3],
+    n: int,
+    stride: int,
+    bmin: wp.array[float],
+    bmax: wp.array[float],
+    bad: wp.array[wp.int32],
+):
+    """Strided min/max per thread, then one atomic per axis: few atomics, exact result.
+    A non-finite coordinate flags the frame (it then draws background only)."""
+    t = wp.tid()
+    lo = wp.vec3(wp.inf, wp.inf, wp.inf)
+    hi = wp.vec3(-wp.inf, -wp.inf, -wp.inf)
+    finite = wp.int32(1)
+    i = t
+    while i < n:
+        p = positions[i]
+        if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
+            finite = 0
+        lo = wp.min(lo, p)
+        hi = wp.max(hi, p)
+        i += stride
+    if finite == 0:
+        wp.atomic_max(bad, 0, 1)
+    if lo[0] <= hi[0]:
+        for k in range(3):
+            wp.atomic_min(bmin, k, lo[k])
+            wp.atomic_max(bmax, k, hi[k])
+
+
+@wp.kernel
+@no_type_check
+def setup_kernel(
+    bmin: wp.array[float],
+    bmax: wp.array[float],
+    reach: float,
+    cells_per_reach: float,
+    capacity: int,
+    brick_capacity: int,
+    bad: wp.array[wp.int32],
+    info: wp.array[GridInfo],
+):
+    """Lay the grid over the atoms plus `reach` on every side, so the density is zero on and
+    outside its box; the cell size is reach / cells_per_reach unless that needs more cells
+    than `capacity`. Resets the min/max accumulators for the next frame."""
+    lo = wp.vec3(bmin[0], bmin[1], bmin[2])
+    hi = wp.vec3(bmax[0], bmax[1], bmax[2])
+    for k in range(3):
+        bmin[k] = wp.inf
+        bmax[k] = -wp.inf
+    finite = bad[0] == 0
+    bad[0] = 0
+    g = GridInfo()
+    g.valid = 0
+    if finite and lo[0] <= hi[0] and lo[1] <= hi[1] and lo[2] <= hi[2]:
+        amax = wp.max(wp.max(wp.abs(lo[0]), wp.abs(hi[0])), wp.max(wp.abs(lo[1]), wp.abs(hi[1])))
+        amax = wp.max(amax, wp.max(wp.abs(lo[2]), wp.abs(hi[2])))
+        # float32 rounding of positions and cell coordinates must never lose a neighbour
+        r = reach * (1.0 + 1.0e-4) + amax * 4.0e-7 + 1.0e-6
+        h = r / cells_per_reach
+        origin = lo - wp.vec3(r, r, r)
+        ext = hi - lo + wp.vec3(2.0 * r, 2.0 * r, 2.0 * r)
+        nx = wp.float32(1.0)
+        ny = wp.float32(1.0)
+        nz = wp.float32(1.0)
+        for _it in range(200):
+            nx = wp.floor(ext[0] / h) + 1.0
+            ny = wp.floor(ext[1] / h) + 1.0
+            nz = wp.floor(ext[2] / h) + 1.0
+            if nx * ny * nz <= float(capacity):
+                break
+            h = h * 1.1
+        g.origin = origin
+        g.h = h
+        g.inv_h = 1.0 / h
+        g.dims = wp.vec3i(int(nx), int(ny), int(nz))
+        g.ncells = int(nx) * int(ny) * int(nz)
+        g.box_hi = origin + wp.vec3(nx * h, ny * h, nz * h)
+        g.reach = r
+        g.valid = 1
+        bx = (int(nx) + BRICK - 1) // BRICK
+        by = (int(ny) + BRICK - 1) // BRICK
+        bz = (int(nz) + BRICK - 1) // BRICK
+        g.bdims = wp.vec3i(bx, by, bz)
+        g.bricks = 0
+        if bx * by * bz <= brick_capacity:
+            g.bricks = 1
+    info[0] = g
+
+
+@wp.kernel
+@no_type_check
+def keys_kernel(
+    positions: wp.array[wp.vec3],
+    info: wp.array[GridInfo],
+    keys: wp.array[wp.int32],
+    values: wp.array[wp.int32],
+    counts: wp.array[wp.int32],
+):
+    """Cell of each atom (x fastest), its index as the sort value, and integer cell counts
+    (integer atomics, so the counts and everything after them are deterministic)."""
+    i = wp.tid()
+    g = info[0]
+    q = (positions[i] - g.origin) * g.inv_h
+    cx = wp.clamp(int(wp.floor(q[0])), 0, g.dims[0] - 1)
+    cy = wp.clamp(int(wp.floor(q[1])), 0, g.dims[1] - 1)
+    cz = wp.clamp(int(wp.floor(q[2])), 0, g.dims[2] - 1)
+    c = (cz * g.dims[1] + cy) * g.dims[0] + cx
+    keys[i] = c
+    values[i] = i
+    wp.atomic_add(counts, c, 1)
+
+
+@wp.kernel
+@no_type_check
+def brick_kernel(
+    info: wp.array[GridInfo], cell_bound: wp.array[float], brick_bound: wp.array[float]
+):
+    """Largest cell bound of each brick: a ray skips a whole brick when even that is low."""
+    b = wp.tid()
+    g = info[0]
+    if g.valid == 0 or g.bricks == 0:
+        return
+    nb = g.bdims[0] * g.bdims[1] * g.bdims[2]
+    if b >= nb:
+        return
+    bx = (b % g.bdims[0]) * BRICK
+    by = ((b // g.bdims[0]) % g.bdims[1]) * BRICK
+    bz = (b // (g.bdims[0] * g.bdims[1])) * BRICK
+    m = wp.float32(0.0)
+    for z in range(bz, wp.min(bz + BRICK, g.dims[2])):
+        for y in range(by, wp.min(by + BRICK, g.dims[1])):
+            row = (z * g.dims[1] + y) * g.dims[0]
+            for x in range(bx, wp.min(bx + BRICK, g.dims[0])):
+                m = wp.max(m, cell_bound[row + x])
+    brick_bound[b] = m
+
+
+class CellGrid:
+    """Device buffers of the grid for up to `n_atoms` atoms, reused every frame.
+
+    `cell_values` (float, capacity + 1) is scratch that the counts use during the build and
+    the caller may fill with per-cell data afterwards (the density bound): sharing it keeps
+    the grid at 8 bytes per cell.
+    """
+
+    def __init__(self, device: str, n_atoms: int):
+        self.device = device
+        self.n_atoms = int(n_atoms)
+        self.capacity = cell_capacity(self.n_atoms)
+        n2 = max(2 * self.n_atoms, 2)
+        self.keys = wp.zeros(n2, dtype=wp.int32, device=device)
+        self.order = wp.zeros(n2, dtype=wp.int32, device=device)
+        self.cell_start = wp.zeros(self.capacity + 1, dtype=wp.int32, device=device)
+        self.cell_values = wp.zeros(self.capacity + 1, dtype=float, device=device)
+        self.brick_capacity = brick_capacity(self.capacity)
+        self.brick_values = wp.zeros(self.brick_capacity, dtype=float, device=device)
+        self._counts = wp.array(
+            ptr=self.cell_values.ptr,
+            dtype=wp.int32,
+            shape=(self.capacity + 1,),
+            device=device,
+            copy=False,
+        )
+        self.bmin = wp.full(3, wp.inf, dtype=float, device=device)
+        self.bmax = wp.full(3, -wp.inf, dtype=float, device=device)
+        self.bad = wp.zeros(1, dtype=wp.int32, device=device)
+        self.info = wp.zeros(1, dtype=GridInfo, device=device)
+        self._end_bit = max(int(self.capacity).bit_length(), 1)
+
+    @property
+    def nbytes(self) -> int:
+        arrays = (
+            self.keys,
+            self.order,
+            self.cell_start,
+            self.cell_values,
+            self.brick_values,
+            self.bmin,
+            self.bmax,
+        )
+        return sum(int(a.capacity) for a in arrays) + 64
+
+    def invalidate(self) -> None:
+        """Mark the grid empty (no atoms): rays then see only background."""
+        self.info.zero_()
+
+    def build(self, positions: wp.array, n: int, reach: float, cells_per_reach: float) -> None:
+        """Rebuild for the first `n` positions; all launches are asynchronous."""
+        if n <= 0:
+            self.invalidate()
+            return
+        dev = self.device
+        threads = min(max(n // 64, 1), MAX_REDUCE_THREADS)
+        wp.launch(
+            bbox_kernel,
+            threads,
+            (positions, n, threads, self.bmin, self.bmax, self.bad),
+            device=dev,
+        )
+        wp.launch(
+            setup_kernel,
+            1,
+            (
+                self.bmin,
+                self.bmax,
+                float(reach),
+                float(cells_per_reach),
+                self.capacity,
+                self.brick_capacity,
+                self.bad,
+                self.info,
+            ),
+            device=dev,
+        )
+        self._counts.zero_()
+        wp.launch(
+            keys_kernel, n, (positions, self.info, self.keys, self.order, self._counts), device=dev
+        )
+        wp.utils.radix_sort_pairs(self.keys, self.order, n, 0, self._end_bit)
+        wp.utils.array_scan(self._counts, self.cell_start, inclusive=False)
+
+    def build_bricks(self) -> None:
+        """Brick maxima of `cell_values`, once the caller has filled the cell bounds."""
+        args = (self.info, self.cell_values, self.brick_values)
+        wp.launch(brick_kernel, self.brick_capacity, args, device=self.device)
+
+    def read_info(self) -> dict[str, object]:
+        """The grid layout on the host (synchronises; for tests and reports)."""
+        g = self.info.numpy()[0]
+        return {name: g[name] for name in g.dtype.names} if g.dtype.names else {"raw": g}

@@ -1,0 +1,724 @@
+"""Direct ray casting of a density, one thread per pixel, generated for a `DensityModel`.
+
+Every kernel that evaluates the density is made by `kernels_for(model)`, which closes over
+the model's `@wp.func`s: another density gets its own kernels without a change here.
+(This module keeps real annotations: warp resolves kernel annotations of closures eagerly.)
+
+Per ray: clip to the grid box (and t >= 0), walk the cells front to back (3D DDA), skip cells
+whose density bound says nothing there can matter, and sample the density only at the global
+lattice t_k = k * dt inside the other cells. A fixed lattice (not one anchored at the box
+entry) keeps images stable while the molecule moves and lets tests reproduce every sample.
+
+Iso mode: the first sign change of S - iso between lattice samples is bracketed, bisected
+`REFINE_STEPS` times and finished with a secant step, so the hit is within dt / 2^steps of the
+true crossing. A ray that starts inside the surface (camera inside the molecule) looks for the
+first way out instead; shading is two-sided.
+Volume mode: emission-absorption front to back through a transfer-function table with
+step-corrected opacity, stopping at accumulated alpha >= 0.99; its lattice is shifted per
+pixel by a fixed hash (`pixel_jitter`) so thin transfer-function features do not alias into
+rings.
+"""
+
+from dataclasses import dataclass
+from typing import Any, no_type_check
+
+import numpy as np
+import warp as wp
+
+from server.render import device as _device  # noqa: F401  (initialises warp)
+from server.render.camera import CameraFrame
+from server.render.density import BRICK, GAUSSIAN, DensityModel, GridInfo
+
+wp.set_module_options({"enable_backward": False})
+
+TILE_W = 8
+TILE_H = 4
+TILE = TILE_W * TILE_H
+REFINE_STEPS = 4
+STOP_ALPHA = 0.99
+DEPTH_ALPHA = 0.5
+"""Volume mode reports depth and atom id where accumulated opacity first reaches this."""
+
+_STOP_ALPHA = wp.constant(STOP_ALPHA)  # type: ignore[no-untyped-call]
+_DEPTH_ALPHA = wp.constant(DEPTH_ALPHA)  # type: ignore[no-untyped-call]
+
+_BRICK = wp.constant(BRICK)  # type: ignore[no-untyped-call]
+_TILE_W = wp.constant(TILE_W)  # type: ignore[no-untyped-call]
+_TILE = wp.constant(TILE)  # type: ignore[no-untyped-call]
+
+
+@wp.struct
+class CameraData:
+    eye: wp.vec3
+    right: wp.vec3
+    up: wp.vec3
+    forward: wp.vec3
+    scale: float
+    aspect: float
+    ortho: int
+    width: int
+    height: int
+    tiles_x: int
+
+
+@wp.struct
+class Shading:
+    background: wp.vec3
+    uniform_color: wp.vec3
+    key_dir: wp.vec3
+    ambient: float
+    diffuse: float
+    specular: float
+    shininess: float
+    head_weight: float
+    key_weight: float
+    ao: int
+    ao_step: float
+    iso: float
+    depth_cue: float
+
+
+@wp.struct
+class March:
+    iso: float
+    dt: float
+    skip_below: float
+    refine: int
+
+
+@wp.struct
+class Volume:
+    table: wp.array[wp.vec4]
+    last: int
+    x_to_u: float
+    dt_ref: float
+    clear_level: float
+    shade: int
+
+
+@wp.func
+@no_type_check
+def pixel_of(cam: CameraData, tid: int):
+    """Thread -> pixel in 8x4 tiles, so a 32-thread warp casts neighbouring rays."""
+    tile = tid // _TILE
+    local = tid % _TILE
+    x = (tile % cam.tiles_x) * _TILE_W + local % _TILE_W
+    y = (tile // cam.tiles_x) * (_TILE // _TILE_W) + local // _TILE_W
+    ok = wp.int32(0)
+    if x < cam.width and y < cam.height:
+        ok = 1
+    return x, y, ok
+
+
+@wp.func
+@no_type_check
+def camera_ray(cam: CameraData, x: int, y: int):
+    u = (2.0 * (float(x) + 0.5) / float(cam.width) - 1.0) * cam.aspect * cam.scale
+    v = (1.0 - 2.0 * (float(y) + 0.5) / float(cam.height)) * cam.scale
+    if cam.ortho != 0:
+        return cam.eye + cam.right * u + cam.up * v, cam.forward
+    return cam.eye, wp.normalize(cam.forward + cam.right * u + cam.up * v)
+
+
+@wp.func
+@no_type_check
+def slab(o: float, d: float, lo: float, hi: float, t0: float, t1: float):
+    """Intersect [t0, t1] with the ray's parameter range inside one axis slab."""
+    a = t0
+    b = t1
+    if wp.abs(d) < 1.0e-20:
+        if o < lo or o > hi:
+            a = 1.0
+            b = 0.0
+    else:
+        inv = 1.0 / d
+        ta = (lo - o) * inv
+        tb = (hi - o) * inv
+        a = wp.max(a, wp.min(ta, tb))
+        b = wp.min(b, wp.max(ta, tb))
+    return a, b
+
+
+@wp.func
+@no_type_check
+def clip_box(o: wp.vec3, d: wp.vec3, lo: wp.vec3, hi: wp.vec3):
+    t0, t1 = slab(o[0], d[0], lo[0], hi[0], 0.0, wp.inf)
+    t0, t1 = slab(o[1], d[1], lo[1], hi[1], t0, t1)
+    t0, t1 = slab(o[2], d[2], lo[2], hi[2], t0, t1)
+    return t0, t1
+
+
+@wp.func
+@no_type_check
+def dda_axis(o: float, d: float, t: float, origin: float, h: float, n: int):
+    """Start cell, step, parameter of the next cell boundary and boundary spacing."""
+    q = wp.clamp((o + d * t - origin) / h, 0.0, float(n) - 0.5)
+    c = wp.clamp(int(wp.floor(q)), 0, n - 1)
+    step = wp.int32(0)
+    t_next = float(wp.inf)
+    t_delta = float(wp.inf)
+    if d > 1.0e-20:
+        step = 1
+        t_next = (origin + float(c + 1) * h - o) / d
+        t_delta = h / d
+    elif d < -1.0e-20:
+        step = -1
+        t_next = (origin + float(c) * h - o) / d
+        t_delta = -h / d
+    return c, step, t_next, t_delta
+
+
+@wp.func
+@no_type_check
+def axis_next(o: float, d: float, s: int, origin: float, h: float, c: int) -> float:
+    """Ray parameter where it leaves slab c (of width h) along one axis, moving by s."""
+    if s > 0:
+        return (origin + float(c + 1) * h - o) / d
+    if s < 0:
+        return (origin + float(c) * h - o) / d
+    return wp.inf
+
+
+@wp.func
+@no_type_check
+def brick_exit(
+    o: wp.vec3, d: wp.vec3, g: GridInfo, cx: int, cy: int, cz: int, sx: int, sy: int, sz: int
+):
+    """Leave the brick holding cell (cx, cy, cz): the exit parameter and the first cell past
+    it (computed on the exit axis, so the walk always moves forward)."""
+    bx = cx // _BRICK
+    by = cy // _BRICK
+    bz = cz // _BRICK
+    hb = g.h * float(_BRICK)
+    tbx = axis_next(o[0], d[0], sx, g.origin[0], hb, bx)
+    tby = axis_next(o[1], d[1], sy, g.origin[1], hb, by)
+    tbz = axis_next(o[2], d[2], sz, g.origin[2], hb, bz)
+    tb = wp.min(wp.min(tbx, tby), tbz)
+    p = o + d * tb
+    nx = wp.clamp(int(wp.floor((p[0] - g.origin[0]) * g.inv_h)), bx * _BRICK, bx * _BRICK + 3)
+    ny = wp.clamp(int(wp.floor((p[1] - g.origin[1]) * g.inv_h)), by * _BRICK, by * _BRICK + 3)
+    nz = wp.clamp(int(wp.floor((p[2] - g.origin[2]) * g.inv_h)), bz * _BRICK, bz * _BRICK + 3)
+    if tbx <= tby and tbx <= tbz:
+        nx = bx * _BRICK + _BRICK
+        if sx < 0:
+            nx = bx * _BRICK - 1
+    elif tby <= tbz:
+        ny = by * _BRICK + _BRICK
+        if sy < 0:
+            ny = by * _BRICK - 1
+    else:
+        nz = bz * _BRICK + _BRICK
+        if sz < 0:
+            nz = bz * _BRICK - 1
+    return tb, nx, ny, nz
+
+
+@wp.func
+@no_type_check
+def in_grid(g: GridInfo, cx: int, cy: int, cz: int) -> bool:
+    return cx >= 0 and cy >= 0 and cz >= 0 and cx < g.dims[0] and cy < g.dims[1] and cz < g.dims[2]
+
+
+@wp.func
+@no_type_check
+def brick_of(g: GridInfo, cx: int, cy: int, cz: int) -> int:
+    return ((cz // _BRICK) * g.bdims[1] + cy // _BRICK) * g.bdims[0] + cx // _BRICK
+
+
+@wp.func
+@no_type_check
+def pixel_jitter(x: int, y: int) -> float:
+    """A fixed per-pixel offset in [0, 1) (integer hash, identical on every device): volume
+    samples sit at (k + jitter) dt, which turns the rings a shared lattice draws through thin
+    transfer-function features into fine noise that does not flicker."""
+    h = wp.uint32(x) * wp.uint32(1973) + wp.uint32(y) * wp.uint32(9277) + wp.uint32(26699)
+    h = (h ^ (h >> wp.uint32(16))) * wp.uint32(0x7FEB352D)
+    h = (h ^ (h >> wp.uint32(15))) * wp.uint32(0x846CA68B)
+    h = h ^ (h >> wp.uint32(16))
+    return float(h >> wp.uint32(8)) * (1.0 / 16777216.0)
+
+
+@wp.func
+@no_type_check
+def pack_rgba(c: wp.vec3) -> wp.uint32:
+    r = wp.uint32(wp.clamp(c[0], 0.0, 1.0) * 255.0 + 0.5)
+    g = wp.uint32(wp.clamp(c[1], 0.0, 1.0) * 255.0 + 0.5)
+    b = wp.uint32(wp.clamp(c[2], 0.0, 1.0) * 255.0 + 0.5)
+    return r | (g << wp.uint32(8)) | (b << wp.uint32(16)) | (wp.uint32(255) << wp.uint32(24))
+
+
+@wp.func
+@no_type_check
+def facing(n_raw: wp.vec3, d: wp.vec3) -> wp.vec3:
+    """Outward normal from a density gradient, turned towards the viewer (two-sided)."""
+    gl = wp.length(n_raw)
+    n = -d
+    if gl > 1.0e-30:
+        n = -n_raw / gl
+    if wp.dot(n, d) > 0.0:
+        n = -n
+    return n
+
+
+@wp.func
+@no_type_check
+def lit(sh: Shading, base: wp.vec3, n: wp.vec3, v: wp.vec3, ao: float) -> wp.vec3:
+    """Blinn-Phong: a headlight at the eye plus an optional key light fixed to the camera."""
+    dh = wp.max(wp.dot(n, v), 0.0)
+    diff = sh.head_weight * dh
+    spec = sh.head_weight * wp.pow(dh, sh.shininess)
+    if sh.key_weight > 0.0:
+        dk = wp.max(wp.dot(n, sh.key_dir), 0.0)
+        if dk > 0.0:
+            hk = wp.normalize(sh.key_dir + v)
+            diff += sh.key_weight * dk
+            spec += sh.key_weight * wp.pow(wp.max(wp.dot(n, hk), 0.0), sh.shininess)
+    c = base * (sh.ambient * ao + sh.diffuse * diff * (0.5 + 0.5 * ao))
+    s = sh.specular * spec * ao
+    return wp.vec3(
+        wp.clamp(c[0] + s, 0.0, 1.0), wp.clamp(c[1] + s, 0.0, 1.0), wp.clamp(c[2] + s, 0.0, 1.0)
+    )
+
+
+@wp.func
+@no_type_check
+def fog(sh: Shading, g: GridInfo, cam: CameraData, t: float, c: wp.vec3) -> wp.vec3:
+    """Depth cue: blend towards the background across the grid box's depth range."""
+    if sh.depth_cue <= 0.0:
+        return c
+    center = (g.origin + g.box_hi) * 0.5
+    radius = wp.length(g.box_hi - g.origin) * 0.5
+    dc = wp.dot(center - cam.eye, cam.forward)
+    near = wp.max(dc - radius, 0.0)
+    far = dc + radius
+    f = sh.depth_cue * wp.clamp((t - near) / wp.max(far - near, 1.0e-6), 0.0, 1.0)
+    return c * (1.0 - f) + sh.background * f
+
+
+def _make(model: DensityModel, fast_math: bool, max_registers: int) -> "RaycastKernels":
+    Field = model.field
+    options = {"fast_math": bool(fast_math)}
+    # the ray-marching kernels carry many live values; capping their registers trades a few
+    # spills for more resident warps to hide the latency of the neighbour gathers
+    regs = max_registers if max_registers > 0 else None
+    value = model.value
+    value_grad = model.value_grad
+    sample = model.sample
+    box_bound = model.box_bound
+
+    @wp.func
+    @no_type_check
+    def refine(
+        f: Field,
+        o: wp.vec3,
+        d: wp.vec3,
+        t_lo: float,
+        t_hi: float,
+        v_lo: float,
+        v_hi: float,
+        iso: float,
+        inside: int,
+        steps: int,
+    ) -> float:
+        """Bisect [t_lo, t_hi] (side of t_lo = `inside`), then one secant step.
+        A negative v_lo means its value was never computed (a skipped cell)."""
+        lo = float(t_lo)
+        hi = float(t_hi)
+        vlo = float(v_lo)
+        vhi = float(v_hi)
+        for _i in range(steps):
+            tm = 0.5 * (lo + hi)
+            vm = value(f, o + d * tm)
+            side = wp.int32(0)
+            if vm >= iso:
+                side = 1
+            if side == inside:
+                lo = tm
+                vlo = vm
+            else:
+                hi = tm
+                vhi = vm
+        if vlo < 0.0:
+            vlo = value(f, o + d * lo)
+        u = wp.float32(0.5)
+        den = vhi - vlo
+        if wp.abs(den) > 1.0e-30:
+            u = wp.clamp((iso - vlo) / den, 0.0, 1.0)
+        return lo + (hi - lo) * u
+
+    @wp.func
+    @no_type_check
+    def occlusion(f: Field, p: wp.vec3, n: wp.vec3, sh: Shading) -> float:
+        """Density-based ambient occlusion: how much density lies just outside the surface."""
+        occ = wp.float32(0.0)
+        for i in range(4):
+            v = value(f, p + n * (sh.ao_step * float(i + 1)))
+            occ += wp.min(v / sh.iso, 1.0)
+        return 1.0 - 0.8 * occ * 0.25
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @no_type_check
+    def bound_kernel(f: Field, stop_above: float, out: wp.array[float]):
+        c = wp.tid()
+        g = f.info[0]
+        if g.valid == 0 or c >= g.ncells:
+            return
+        ix = c % g.dims[0]
+        iy = (c // g.dims[0]) % g.dims[1]
+        iz = c // (g.dims[0] * g.dims[1])
+        lo = g.origin + wp.vec3(float(ix), float(iy), float(iz)) * g.h
+        hi = lo + wp.vec3(g.h, g.h, g.h)
+        out[c] = box_bound(f, lo, hi, stop_above)
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @no_type_check
+    def evaluate_kernel(
+        f: Field,
+        points: wp.array[wp.vec3],
+        values: wp.array[float],
+        value_grads: wp.array[wp.vec4],
+        colors: wp.array[wp.vec4],
+        atoms: wp.array[wp.int32],
+    ):
+        i = wp.tid()
+        p = points[i]
+        values[i] = value(f, p)
+        value_grads[i] = value_grad(f, p)
+        s = sample(f, p)
+        c = s.color
+        if s.weight > 0.0:
+            c = s.color / s.weight
+        colors[i] = wp.vec4(c[0], c[1], c[2], s.value)
+        atoms[i] = s.atom
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @no_type_check
+    def histogram_kernel(
+        f: Field, n_side: int, x_scale: float, bins: int, counts: wp.array[wp.int32]
+    ):
+        i, j, k = wp.tid()
+        g = f.info[0]
+        if g.valid == 0:
+            return
+        s = 1.0 / float(n_side)
+        frac = wp.vec3((float(i) + 0.5) * s, (float(j) + 0.5) * s, (float(k) + 0.5) * s)
+        p = g.origin + wp.cw_mul(g.box_hi - g.origin, frac)
+        v = value(f, p)
+        if v > 0.0:
+            b = int(wp.min(v * x_scale, float(bins - 1)))
+            wp.atomic_add(counts, b, 1)
+
+    @wp.kernel(
+        enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
+    )
+    @no_type_check
+    def iso_march_kernel(f: Field, cam: CameraData, m: March, hit_t: wp.array[float]):
+        x, y, ok = pixel_of(cam, wp.tid())
+        if ok == 0:
+            return
+        pix = y * cam.width + x
+        hit = float(wp.inf)
+        g = f.info[0]
+        o, d = camera_ray(cam, x, y)
+        t0, t1 = clip_box(o, d, g.origin, g.box_hi)
+        if g.valid != 0 and t0 < t1:
+            dt = m.dt
+            k = int(wp.ceil(t0 / dt))
+            cx0, sx, tx0, dtx = dda_axis(o[0], d[0], t0, g.origin[0], g.h, g.dims[0])
+            cy0, sy, ty0, dty = dda_axis(o[1], d[1], t0, g.origin[1], g.h, g.dims[1])
+            cz0, sz, tz0, dtz = dda_axis(o[2], d[2], t0, g.origin[2], g.h, g.dims[2])
+            cx = int(cx0)
+            cy = int(cy0)
+            cz = int(cz0)
+            tx = float(tx0)
+            ty = float(ty0)
+            tz = float(tz0)
+            first = wp.int32(1)
+            inside = wp.int32(0)
+            prev_v = wp.float32(-1.0)
+            left = g.dims[0] + g.dims[1] + g.dims[2] + 3
+            while left > 0:
+                left -= 1
+                if (
+                    inside == 0
+                    and g.bricks != 0
+                    and f.brick_bound[brick_of(g, cx, cy, cz)] < m.skip_below
+                ):
+                    tb, nx, ny, nz = brick_exit(o, d, g, cx, cy, cz, sx, sy, sz)
+                    k_end = int(wp.ceil(wp.min(tb, t1) / dt))
+                    if k_end > k:
+                        first = 0
+                        prev_v = -1.0
+                        k = k_end
+                    if tb >= t1 or not in_grid(g, nx, ny, nz):
+                        break
+                    cx = nx
+                    cy = ny
+                    cz = nz
+                    tx = axis_next(o[0], d[0], sx, g.origin[0], g.h, cx)
+                    ty = axis_next(o[1], d[1], sy, g.origin[1], g.h, cy)
+                    tz = axis_next(o[2], d[2], sz, g.origin[2], g.h, cz)
+                    continue
+                t_exit = wp.min(wp.min(tx, ty), wp.min(tz, t1))
+                cell = (cz * g.dims[1] + cy) * g.dims[0] + cx
+                if inside == 0 and f.bound[cell] < m.skip_below:
+                    k_end = int(wp.ceil(t_exit / dt))
+                    if k_end > k:
+                        first = 0
+                        prev_v = -1.0
+                        k = k_end
+                else:
+                    while float(k) * dt < t_exit:
+                        t = float(k) * dt
+                        v = value(f, o + d * t)
+                        above = wp.int32(0)
+                        if v >= m.iso:
+                            above = 1
+                        if first == 1:
+                            first = 0
+                            inside = above
+                        elif above != inside:
+                            hit = refine(f, o, d, t - dt, t, prev_v, v, m.iso, inside, m.refine)
+                            break
+                        prev_v = v
+                        k += 1
+                    if hit < wp.inf:
+                        break
+                if t_exit >= t1:
+                    break
+                if tx <= ty and tx <= tz:
+                    cx += sx
+                    tx += dtx
+                    if cx < 0 or cx >= g.dims[0]:
+                        break
+                elif ty <= tz:
+                    cy += sy
+                    ty += dty
+                    if cy < 0 or cy >= g.dims[1]:
+                        break
+                else:
+                    cz += sz
+                    tz += dtz
+                    if cz < 0 or cz >= g.dims[2]:
+                        break
+        hit_t[pix] = hit
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @no_type_check
+    def iso_shade_kernel(
+        f: Field,
+        cam: CameraData,
+        sh: Shading,
+        hit_t: wp.array[float],
+        rgba: wp.array[wp.uint32],
+        depth: wp.array[float],
+        ids: wp.array[wp.int32],
+    ):
+        x, y, ok = pixel_of(cam, wp.tid())
+        if ok == 0:
+            return
+        pix = y * cam.width + x
+        t = hit_t[pix]
+        if t == wp.inf:
+            rgba[pix] = pack_rgba(sh.background)
+            depth[pix] = wp.inf
+            ids[pix] = -1
+            return
+        o, d = camera_ray(cam, x, y)
+        p = o + d * t
+        s = sample(f, p)
+        n = facing(s.grad, d)
+        base = sh.uniform_color
+        if s.weight > 0.0:
+            base = s.color / s.weight
+        ao = wp.float32(1.0)
+        if sh.ao != 0:
+            ao = occlusion(f, p, n, sh)
+        c = fog(sh, f.info[0], cam, t, lit(sh, base, n, -d, ao))
+        rgba[pix] = pack_rgba(c)
+        depth[pix] = t
+        ids[pix] = s.atom
+
+    @wp.kernel(
+        enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
+    )
+    @no_type_check
+    def volume_kernel(
+        f: Field,
+        cam: CameraData,
+        m: March,
+        vol: Volume,
+        sh: Shading,
+        rgba: wp.array[wp.uint32],
+        depth: wp.array[float],
+        ids: wp.array[wp.int32],
+    ):
+        x, y, ok = pixel_of(cam, wp.tid())
+        if ok == 0:
+            return
+        pix = y * cam.width + x
+        acc = wp.vec3(0.0, 0.0, 0.0)
+        alpha = wp.float32(0.0)
+        t_depth = float(wp.inf)
+        g = f.info[0]
+        o, d = camera_ray(cam, x, y)
+        t0, t1 = clip_box(o, d, g.origin, g.box_hi)
+        if g.valid != 0 and t0 < t1:
+            dt = m.dt
+            jit = pixel_jitter(x, y)
+            k = int(wp.ceil(t0 / dt - jit))
+            cx0, sx, tx0, dtx = dda_axis(o[0], d[0], t0, g.origin[0], g.h, g.dims[0])
+            cy0, sy, ty0, dty = dda_axis(o[1], d[1], t0, g.origin[1], g.h, g.dims[1])
+            cz0, sz, tz0, dtz = dda_axis(o[2], d[2], t0, g.origin[2], g.h, g.dims[2])
+            cx = int(cx0)
+            cy = int(cy0)
+            cz = int(cz0)
+            tx = float(tx0)
+            ty = float(ty0)
+            tz = float(tz0)
+            done = wp.int32(0)
+            left = g.dims[0] + g.dims[1] + g.dims[2] + 3
+            while left > 0:
+                left -= 1
+                if g.bricks != 0 and f.brick_bound[brick_of(g, cx, cy, cz)] <= vol.clear_level:
+                    tb, nx, ny, nz = brick_exit(o, d, g, cx, cy, cz, sx, sy, sz)
+                    k = wp.max(k, int(wp.ceil(wp.min(tb, t1) / dt - jit)))
+                    if tb >= t1 or not in_grid(g, nx, ny, nz):
+                        break
+                    cx = nx
+                    cy = ny
+                    cz = nz
+                    tx = axis_next(o[0], d[0], sx, g.origin[0], g.h, cx)
+                    ty = axis_next(o[1], d[1], sy, g.origin[1], g.h, cy)
+                    tz = axis_next(o[2], d[2], sz, g.origin[2], g.h, cz)
+                    continue
+                t_exit = wp.min(wp.min(tx, ty), wp.min(tz, t1))
+                cell = (cz * g.dims[1] + cy) * g.dims[0] + cx
+                if f.bound[cell] <= vol.clear_level:
+                    k = wp.max(k, int(wp.ceil(t_exit / dt - jit)))
+                else:
+                    while (float(k) + jit) * dt < t_exit:
+                        t = (float(k) + jit) * dt
+                        p = o + d * t
+                        vg = wp.vec4(0.0, 0.0, 0.0, 0.0)
+                        if vol.shade != 0:
+                            vg = value_grad(f, p)
+                        else:
+                            vg = wp.vec4(0.0, 0.0, 0.0, value(f, p))
+                        u = wp.clamp(vg[3] * vol.x_to_u, 0.0, float(vol.last))
+                        i0 = wp.min(int(wp.floor(u)), vol.last)
+                        i1 = wp.min(i0 + 1, vol.last)
+                        fr = u - float(i0)
+                        e = vol.table[i0] * (1.0 - fr) + vol.table[i1] * fr
+                        a = wp.clamp(e[3], 0.0, 1.0)
+                        if a > 0.0:
+                            a_s = 1.0 - wp.pow(1.0 - a, vol.dt_ref)
+                            col = wp.vec3(e[0], e[1], e[2])
+                            if vol.shade != 0:
+                                n = facing(wp.vec3(vg[0], vg[1], vg[2]), d)
+                                col = lit(sh, col, n, -d, 1.0)
+                            col = fog(sh, g, cam, t, col)
+                            acc += col * ((1.0 - alpha) * a_s)
+                            alpha += (1.0 - alpha) * a_s
+                            if t_depth == wp.inf and alpha >= _DEPTH_ALPHA:
+                                t_depth = t
+                            if alpha >= _STOP_ALPHA:
+                                done = 1
+                                break
+                        k += 1
+                if done != 0 or t_exit >= t1:
+                    break
+                if tx <= ty and tx <= tz:
+                    cx += sx
+                    tx += dtx
+                    if cx < 0 or cx >= g.dims[0]:
+                        break
+                elif ty <= tz:
+                    cy += sy
+                    ty += dty
+                    if cy < 0 or cy >= g.dims[1]:
+                        break
+                else:
+                    cz += sz
+                    tz += dtz
+                    if cz < 0 or cz >= g.dims[2]:
+                        break
+        rgba[pix] = pack_rgba(acc + sh.background * (1.0 - alpha))
+        depth[pix] = t_depth
+        atom = wp.int32(-1)
+        if t_depth < wp.inf:
+            atom = sample(f, o + d * t_depth).atom
+        ids[pix] = atom
+
+    return RaycastKernels(
+        model=model,
+        bound=bound_kernel,
+        evaluate=evaluate_kernel,
+        histogram=histogram_kernel,
+        iso_march=iso_march_kernel,
+        iso_shade=iso_shade_kernel,
+        volume=volume_kernel,
+    )
+
+
+@dataclass(frozen=True)
+class RaycastKernels:
+    """The kernels generated for one density model."""
+
+    model: DensityModel
+    bound: Any
+    evaluate: Any
+    histogram: Any
+    iso_march: Any
+    iso_shade: Any
+    volume: Any
+
+
+_KERNELS: dict[tuple[str, bool, int], RaycastKernels] = {}
+
+
+def kernels_for(
+    model: DensityModel = GAUSSIAN, fast_math: bool = True, max_registers: int = 0
+) -> RaycastKernels:
+    """The kernels of `model`, generated once per process. `fast_math` lets CUDA use its
+    hardware exp/divide/sqrt approximations (a few ulp); `max_registers` (0 = compiler's
+    choice) caps the registers of the marching kernels on CUDA. CPU builds ignore both."""
+    key = (model.name, bool(fast_math), int(max_registers))
+    k = _KERNELS.get(key)
+    if k is None or k.model is not model:
+        k = _make(model, bool(fast_math), int(max_registers))
+        _KERNELS[key] = k
+    return k
+
+
+def camera_data(frame: CameraFrame) -> CameraData:
+    """The device struct of a numpy camera frame."""
+    c = CameraData()
+    c.eye = wp.vec3(*(float(v) for v in frame.eye))
+    c.right = wp.vec3(*(float(v) for v in frame.right))
+    c.up = wp.vec3(*(float(v) for v in frame.up))
+    c.forward = wp.vec3(*(float(v) for v in frame.forward))
+    c.scale = float(frame.scale)
+    c.aspect = float(frame.aspect)
+    c.ortho = int(frame.ortho)
+    c.width = int(frame.width)
+    c.height = int(frame.height)
+    c.tiles_x = tiles(frame.width, frame.height)[0]
+    return c
+
+
+def tiles(width: int, height: int) -> tuple[int, int]:
+    return -(-width // TILE_W), -(-height // TILE_H)
+
+
+def launch_size(width: int, height: int) -> int:
+    """Threads for an image: whole 8x4 tiles."""
+    tx, ty = tiles(width, height)
+    return tx * ty * TILE
+
+
+def key_light_direction(frame: CameraFrame) -> np.ndarray:
+    """World direction towards the key light: upper left, in front of the camera."""
+    d = -0.45 * frame.right + 0.55 * frame.up - 0.70 * frame.forward
+    out: np.ndarray = d / np.linalg.norm(d)
+    return out

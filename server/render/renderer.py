@@ -1,0 +1,585 @@
+"""The Renderer: owns every device buffer and turns topology, positions, parameters and a
+camera into an image that stays on the device.
+
+Per frame: positions upload (asynchronous from the pinned `host_positions()` buffer), grid
+rebuild on the device, ray cast. The grid is rebuilt whenever positions or a parameter that
+shapes the density changed; a camera-only change re-casts rays over the same grid.
+Buffers are sized by the topology and the largest image so far, never per frame.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import warp
+
+from protocol import Camera, RenderParams, Topology
+from server.render import colors, raycast, transfer
+from server.render import device as devmod
+from server.render.camera import CameraFrame, camera_frame
+from server.render.density import GaussianField, gather_atoms_kernel
+from server.render.errors import RenderError
+from server.render.grid import CellGrid
+
+wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
+
+MAX_SIDE = 16384
+HISTOGRAM_SIDE = 64
+HISTOGRAM_X_MAX = 3.0
+AO_STEP_SIGMAS = 0.6
+STAGES = ("upload", "grid", "raycast", "total")
+
+
+@dataclass(frozen=True)
+class Derived:
+    """Device-side constants of one set of render parameters."""
+
+    sigma: float
+    per_atom: int
+    sigma_per_radius: float
+    reach: float
+    inv2s2: float
+    half_k2: float
+    dt: float
+    iso: float
+
+
+class Renderer:
+    """Ray-casting renderer of the Gaussian molecular density (see docs/rendering.md).
+
+    `cells_per_cutoff` sets the grid cell to cutoff / cells_per_cutoff (1 = cell equals the
+    cutoff; the cell grows when memory caps the cell count); `empty_space_skipping=False`
+    marches every lattice sample (a baseline); `fast_math` picks CUDA's approximate
+    transcendentals; `max_registers` caps the marching kernels' registers on CUDA (0 leaves
+    it to the compiler).
+    """
+
+    def __init__(
+        self,
+        device: str = "auto",
+        max_atoms: int = 4_000_000,
+        max_pixels: int = 3840 * 2160,
+        *,
+        cells_per_cutoff: float = 2.0,
+        empty_space_skipping: bool = True,
+        fast_math: bool = True,
+        max_registers: int = 64,
+    ) -> None:
+        if max_atoms < 0 or max_pixels < 1:
+            raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
+        if not cells_per_cutoff >= 1.0:
+            raise RenderError(f"cells_per_cutoff must be >= 1, got {cells_per_cutoff}")
+        self.device: str = devmod.resolve(device)
+        self.max_atoms = int(max_atoms)
+        self.max_pixels = int(max_pixels)
+        self.cells_per_cutoff = float(cells_per_cutoff)
+        self.empty_space_skipping = bool(empty_space_skipping)
+        self._dev = wp.get_device(self.device)
+        self._cuda = bool(self._dev.is_cuda)
+        self._kernels = raycast.kernels_for(fast_math=fast_math, max_registers=max_registers)
+        self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+
+        self._topology: Topology | None = None
+        self._n = 0
+        self._alloc_atoms(0)
+        self._r_min = self._r_max = colors.R_REF
+        self._have_positions = False
+        self._positions_version = 0
+        self._grid_key: tuple[Any, ...] | None = None
+        self._color_key: tuple[Any, ...] | None = None
+        self._tf_key: tuple[Any, ...] | None = None
+        self._tf = transfer.build_table()
+        self._tf_table = wp.zeros(transfer.TABLE_SIZE, dtype=wp.vec4, device=self.device)
+        self._hist = wp.zeros(4096, dtype=wp.int32, device=self.device)
+        self._pixels = 0
+        self._alloc_pixels(1)
+        self._image: tuple[int, int] | None = None
+        self._last: tuple[RenderParams, Derived] | None = None
+        self._uploaded = False
+        self._upload_ms = 0.0
+        if self._cuda:
+            self._stream = wp.get_stream(self.device)
+            self._events = [wp.Event(self.device, enable_timing=True) for _ in range(5)]
+
+    # ------------------------------------------------------------------ buffers
+
+    def _alloc_atoms(self, n: int) -> None:
+        d = self.device
+        m = max(n, 1)
+        self._pos = wp.zeros(m, dtype=wp.vec3, device=d)
+        self._weights = wp.zeros(m, dtype=float, device=d)
+        self._radii = wp.zeros(m, dtype=float, device=d)
+        self._colors = wp.zeros(m, dtype=wp.uint32, device=d)
+        self._sorted = wp.zeros(m, dtype=wp.vec4, device=d)
+        self._inv2s2 = wp.zeros(m, dtype=float, device=d)
+        self._grid = CellGrid(d, n)
+        self._grid.invalidate()
+        if self._cuda:
+            self._staging = wp.zeros(m, dtype=wp.vec3, device="cpu", pinned=True)
+        else:
+            self._staging = wp.zeros(m, dtype=wp.vec3, device="cpu")
+        self._atom_capacity = n
+
+    def _alloc_pixels(self, count: int) -> None:
+        if count <= self._pixels:
+            return
+        d = self.device
+        self._hit = wp.zeros(count, dtype=float, device=d)
+        self._rgba = wp.zeros(count, dtype=wp.uint32, device=d)
+        self._depth = wp.zeros(count, dtype=float, device=d)
+        self._ids = wp.zeros(count, dtype=wp.int32, device=d)
+        self._pixels = count
+
+    def memory_bytes(self) -> dict[str, int]:
+        """Device bytes by purpose; `per_atom` + `grid` is what the density costs beyond
+        positions and image buffers."""
+        atom = (self._weights, self._radii, self._colors, self._sorted, self._inv2s2)
+        pix = (self._hit, self._rgba, self._depth, self._ids)
+        return {
+            "positions": int(self._pos.capacity),
+            "per_atom": sum(int(a.capacity) for a in atom),
+            "grid": int(self._grid.nbytes),
+            "image": sum(int(a.capacity) for a in pix),
+            "other": int(self._tf_table.capacity + self._hist.capacity),
+        }
+
+    # ------------------------------------------------------------------ inputs
+
+    @property
+    def n_atoms(self) -> int:
+        return self._n
+
+    def set_topology(self, topology: Topology) -> None:
+        """Take a topology once: radii, weights and colours are prepared for the device."""
+        n = int(topology.n_atoms)
+        if n > self.max_atoms:
+            raise RenderError(f"topology has {n} atoms, this renderer allows {self.max_atoms}")
+        if n > self._atom_capacity:
+            self._alloc_atoms(n)
+        self._topology = topology
+        self._n = n
+        self._have_positions = False
+        self._grid_key = None
+        self._color_key = None
+        if n:
+            radii = colors.atom_radii(topology)
+            self._r_min = float(radii.min())
+            self._r_max = float(radii.max())
+            wp.copy(self._radii, wp.array(radii, dtype=float, device="cpu"), count=n)
+            w = colors.atom_weights(topology)
+            wp.copy(self._weights, wp.array(w, dtype=float, device="cpu"), count=n)
+        self._grid.invalidate()
+
+    def host_positions(self) -> npt.NDArray[np.float32]:
+        """A (n, 3) float32 host buffer (page-locked on CUDA devices): positions written here
+        and passed to `set_positions` upload asynchronously, without a host copy. Rewrite it
+        only after `render` returns."""
+        a: npt.NDArray[np.float32] = self._staging.numpy().view(np.float32).reshape(-1, 3)
+        return a[: self._n]
+
+    def set_positions(self, positions: npt.ArrayLike, *, check_finite: bool = True) -> None:
+        """Positions (n, 3) in angstrom for the next render; n must match the topology.
+
+        `check_finite=False` skips the host-side NaN/Inf scan (one pass over the array) for
+        positions already validated upstream, e.g. by the protocol decoder; the device still
+        refuses a non-finite frame by drawing background only."""
+        if self._topology is None:
+            raise RenderError("set_topology must come before set_positions")
+        arr = np.asarray(positions)
+        if arr.ndim != 2 or arr.shape[1] != 3:
+            raise RenderError(f"positions must have shape (n, 3), got {arr.shape}")
+        if arr.shape[0] != self._n:
+            raise RenderError(f"positions have {arr.shape[0]} atoms, topology has {self._n}")
+        if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+            raise RenderError(f"positions must be real numbers, got dtype {arr.dtype}")
+        if arr.dtype != np.float32 or not arr.flags.c_contiguous:
+            arr = np.ascontiguousarray(arr, dtype=np.float32)
+        n = self._n
+        if check_finite and n and not math.isfinite(float(arr.sum(dtype=np.float32))):
+            bad = np.nonzero(~np.isfinite(arr).all(axis=1))[0]
+            if len(bad):
+                raise RenderError(
+                    f"positions contain NaN or Inf ({len(bad)} atoms, first index {bad[0]})"
+                )
+            raise RenderError("positions are too large (beyond ±1e30 angstrom)")
+        t0 = time.perf_counter()
+        if n:
+            staged = arr.__array_interface__["data"][0] == self._staging.ptr
+            src = (
+                self._staging if staged else wp.array(arr, dtype=wp.vec3, device="cpu", copy=False)
+            )
+            if self._cuda:
+                self._stream.record_event(self._events[0])
+                wp.copy(self._pos, src, count=n)
+                self._stream.record_event(self._events[1])
+            else:
+                wp.copy(self._pos, src, count=n)
+        self._upload_ms = (time.perf_counter() - t0) * 1e3
+        self._uploaded = True
+        self._have_positions = True
+        self._positions_version += 1
+
+    # ------------------------------------------------------------------ checks
+
+    def _check_size(self, width: Any, height: Any) -> tuple[int, int]:
+        if isinstance(width, bool) or isinstance(height, bool):
+            raise RenderError("image size must be integers")
+        try:
+            w, h = int(width), int(height)
+        except (TypeError, ValueError):
+            raise RenderError(f"image size must be integers, got {width!r}x{height!r}") from None
+        if w != width or h != height:
+            raise RenderError(f"image size must be integers, got {width!r}x{height!r}")
+        if w < 1 or h < 1:
+            raise RenderError(f"image size must be at least 1x1, got {w}x{h}")
+        if w > MAX_SIDE or h > MAX_SIDE:
+            raise RenderError(f"image side over the limit of {MAX_SIDE}: {w}x{h}")
+        if w * h > self.max_pixels:
+            raise RenderError(f"image {w}x{h} has {w * h} pixels, the limit is {self.max_pixels}")
+        return w, h
+
+    @staticmethod
+    def _check_params(params: RenderParams) -> None:
+        def positive(name: str, v: float) -> None:
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise RenderError(f"{name} must be a positive finite number, got {v!r}")
+
+        positive("sigma_A", params.sigma_A)
+        positive("iso_level", params.iso_level)
+        positive("step_sigmas", params.step_sigmas)
+        positive("cutoff_sigmas", params.cutoff_sigmas)
+        if params.mode not in ("iso", "volume"):
+            raise RenderError(f"mode must be 'iso' or 'volume', got {params.mode!r}")
+        if params.radius_mode not in ("uniform", "vdw"):
+            raise RenderError(f"radius_mode must be 'uniform' or 'vdw', got {params.radius_mode!r}")
+        if params.cutoff_sigmas > 10:
+            raise RenderError(f"cutoff_sigmas must be <= 10, got {params.cutoff_sigmas}")
+
+    @staticmethod
+    def _check_camera(camera: Camera, width: int, height: int) -> CameraFrame:
+        values = [*camera.target, *camera.orientation, camera.distance, camera.fov_deg]
+        if not all(isinstance(v, int | float) and math.isfinite(v) for v in values):
+            raise RenderError("camera has a non-finite value")
+        if not camera.distance > 0:
+            raise RenderError(f"camera distance must be positive, got {camera.distance}")
+        if camera.projection == "perspective" and not 0 < camera.fov_deg < 180:
+            raise RenderError(f"camera fov_deg must be in (0, 180), got {camera.fov_deg}")
+        if camera.projection == "orthographic" and not camera.ortho_height > 0:
+            raise RenderError(f"camera ortho_height must be positive, got {camera.ortho_height}")
+        try:
+            return camera_frame(camera, width, height)
+        except ValueError as exc:
+            raise RenderError(f"invalid camera: {exc}") from None
+
+    def _derive(self, p: RenderParams) -> Derived:
+        sigma = float(p.sigma_A)
+        k = float(p.cutoff_sigmas)
+        if p.radius_mode == "vdw":
+            spr = sigma / colors.R_REF
+            s_max = spr * self._r_max
+            per_atom = 1
+        else:
+            spr = 0.0
+            s_max = sigma
+            per_atom = 0
+        return Derived(
+            sigma=sigma,
+            per_atom=per_atom,
+            sigma_per_radius=spr,
+            reach=k * s_max,
+            inv2s2=0.5 / (sigma * sigma),
+            half_k2=0.5 * k * k,
+            dt=float(p.step_sigmas) * sigma,
+            iso=float(p.iso_level),
+        )
+
+    # ------------------------------------------------------------------ rendering
+
+    def _field(self, d: Derived) -> GaussianField:
+        f = GaussianField()
+        f.atoms = self._sorted
+        f.inv2s2 = self._inv2s2
+        f.order = self._grid.order
+        f.colors = self._colors
+        f.cell_start = self._grid.cell_start
+        f.bound = self._grid.cell_values
+        f.brick_bound = self._grid.brick_values
+        f.info = self._grid.info
+        f.inv2s2_uniform = d.inv2s2
+        f.half_k2 = d.half_k2
+        f.per_atom = d.per_atom
+        return f
+
+    def _update_colors(self, p: RenderParams) -> None:
+        assert self._topology is not None
+        key = (p.color_by, tuple(p.uniform_color))
+        if key != self._color_key and self._n:
+            c = colors.atom_colors(self._topology, p.color_by, p.uniform_color)
+            wp.copy(self._colors, wp.array(c, dtype=wp.uint32, device="cpu"), count=self._n)
+            self._color_key = key
+
+    def _update_tf(self, p: RenderParams) -> None:
+        pts = tuple((q.x, tuple(q.color), q.alpha) for q in p.transfer_function)
+        key = (pts, p.tf_preset)
+        if key != self._tf_key:
+            try:
+                self._tf = transfer.build_table(p.transfer_function, p.tf_preset)
+            except (ValueError, KeyError) as exc:
+                raise RenderError(f"invalid transfer function: {exc}") from None
+            wp.copy(self._tf_table, wp.array(self._tf.rgba, dtype=wp.vec4, device="cpu"))
+            self._tf_key = key
+
+    def _stop_level(self, p: RenderParams, d: Derived) -> float:
+        """Density level the cell bounds are compared with (-1: no skipping)."""
+        if not self.empty_space_skipping:
+            return -1.0
+        if p.mode == "iso":
+            return d.iso
+        c = self._tf.clear_below
+        return -1.0 if c < 0 else (math.inf if math.isinf(c) else c * d.iso)
+
+    def _build_grid(self, p: RenderParams, d: Derived, f: GaussianField, stop: float) -> None:
+        n = self._n
+        key = (self._positions_version, d, self.cells_per_cutoff, stop)
+        if n == 0 or not self._have_positions:
+            self._grid.invalidate()
+            self._grid_key = None
+            return
+        if key == self._grid_key:
+            return
+        dev = self.device
+        self._grid.build(self._pos, n, d.reach, self.cells_per_cutoff)
+        wp.launch(
+            gather_atoms_kernel,
+            n,
+            (
+                self._pos,
+                self._weights,
+                self._radii,
+                self._grid.order,
+                d.sigma_per_radius,
+                d.per_atom,
+                self._sorted,
+                self._inv2s2,
+            ),
+            device=dev,
+        )
+        wp.launch(self._kernels.bound, self._grid.capacity, (f, stop, f.bound), device=dev)
+        self._grid.build_bricks()
+        self._grid_key = key
+
+    def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:
+        light = p.lighting
+        sh = raycast.Shading()
+        sh.background = wp.vec3(*(float(v) for v in p.background))
+        sh.uniform_color = wp.vec3(*(float(v) for v in p.uniform_color))
+        sh.key_dir = wp.vec3(*(float(v) for v in raycast.key_light_direction(frame)))
+        sh.ambient = float(light.ambient)
+        sh.diffuse = float(light.diffuse)
+        sh.specular = float(light.specular)
+        sh.shininess = float(light.shininess)
+        sh.head_weight = 0.6 if light.key_light else 1.0
+        sh.key_weight = 0.55 if light.key_light else 0.0
+        sh.ao = int(light.ambient_occlusion)
+        sh.ao_step = AO_STEP_SIGMAS * d.sigma
+        sh.iso = d.iso
+        sh.depth_cue = float(light.depth_cue)
+        return sh
+
+    def render(self, params: RenderParams, camera: Camera, width: int, height: int) -> None:
+        """Render one image; it stays on the device (read it with `read_rgba` and friends).
+
+        Raises RenderError for invalid input before launching anything."""
+        t_start = time.perf_counter()
+        w, h = self._check_size(width, height)
+        self._check_params(params)
+        frame = self._check_camera(camera, w, h)
+        if self._n and not self._have_positions:
+            raise RenderError("no positions: call set_positions after set_topology")
+        d = self._derive(params)
+        if params.mode == "volume":
+            self._update_tf(params)
+        if self._n:
+            self._update_colors(params)
+        self._alloc_pixels(w * h)
+        dev = self.device
+        stop = self._stop_level(params, d)
+        f = self._field(d)
+        k = self._kernels
+        ev = self._events if self._cuda else None
+
+        if ev is not None:
+            self._stream.record_event(ev[2])
+        t_grid = time.perf_counter()
+        self._build_grid(params, d, f, stop)
+        if ev is not None:
+            self._stream.record_event(ev[3])
+        t_cast = time.perf_counter()
+
+        cam = raycast.camera_data(frame)
+        m = raycast.March()
+        m.iso = d.iso
+        m.dt = d.dt
+        m.skip_below = stop if params.mode == "iso" else -1.0
+        m.refine = raycast.REFINE_STEPS
+        sh = self._shading(params, d, frame)
+        threads = raycast.launch_size(w, h)
+        if params.mode == "iso":
+            wp.launch(k.iso_march, threads, (f, cam, m, self._hit), device=dev)
+            wp.launch(
+                k.iso_shade,
+                threads,
+                (f, cam, sh, self._hit, self._rgba, self._depth, self._ids),
+                device=dev,
+            )
+        else:
+            vol = raycast.Volume()
+            vol.table = self._tf_table
+            vol.last = transfer.TABLE_SIZE - 1
+            vol.x_to_u = (transfer.TABLE_SIZE - 1) / (self._tf.x_max * d.iso)
+            vol.dt_ref = d.dt / transfer.REFERENCE_LENGTH
+            vol.clear_level = stop
+            lt = params.lighting
+            vol.shade = int(lt.diffuse > 0 or lt.specular > 0)
+            wp.launch(
+                k.volume,
+                threads,
+                (f, cam, m, vol, sh, self._rgba, self._depth, self._ids),
+                device=dev,
+            )
+        if ev is not None:
+            self._stream.record_event(ev[4])
+            wp.synchronize_event(ev[4])
+            grid_ms = wp.get_event_elapsed_time(ev[2], ev[3])
+            cast_ms = wp.get_event_elapsed_time(ev[3], ev[4])
+            up_ms = wp.get_event_elapsed_time(ev[0], ev[1]) if self._uploaded else 0.0
+            total = wp.get_event_elapsed_time(ev[0] if self._uploaded else ev[2], ev[4])
+        else:
+            t_end = time.perf_counter()
+            grid_ms = (t_cast - t_grid) * 1e3
+            cast_ms = (t_end - t_cast) * 1e3
+            up_ms = self._upload_ms if self._uploaded else 0.0
+            total = up_ms + (t_end - t_start) * 1e3
+        self.timings = {"upload": up_ms, "grid": grid_ms, "raycast": cast_ms, "total": total}
+        self._uploaded = False
+        self._image = (w, h)
+        self._last = (params, d)
+
+    # ------------------------------------------------------------------ outputs
+
+    def _need_image(self) -> tuple[int, int]:
+        if self._image is None:
+            raise RenderError("nothing rendered yet")
+        return self._image
+
+    def read_rgba(self) -> npt.NDArray[np.uint8]:
+        """(height, width, 4) uint8, row 0 at the top."""
+        w, h = self._need_image()
+        a: npt.NDArray[np.uint8] = self._rgba[: w * h].numpy().view(np.uint8).reshape(h, w, 4)
+        return a.copy()
+
+    def read_depth(self) -> npt.NDArray[np.float32]:
+        """(height, width) float32 distance along each ray; inf where nothing was hit."""
+        w, h = self._need_image()
+        d: npt.NDArray[np.float32] = self._depth[: w * h].numpy().reshape(h, w)
+        return d.astype(np.float32, copy=True)
+
+    def read_atom_ids(self) -> npt.NDArray[np.int32]:
+        """(height, width) int32 id of the atom contributing most at the hit; -1 background."""
+        w, h = self._need_image()
+        ids: npt.NDArray[np.int32] = self._ids[: w * h].numpy().reshape(h, w)
+        return ids.astype(np.int32, copy=True)
+
+    def pick(self, x: int, y: int) -> tuple[int | None, float | None]:
+        """Atom id and depth at pixel (x from the left, y from the top) of the last image."""
+        w, h = self._need_image()
+        if not (0 <= int(x) < w and 0 <= int(y) < h):
+            raise RenderError(f"pixel ({x}, {y}) outside the {w}x{h} image")
+        i = int(y) * w + int(x)
+        atom = int(self._ids[i : i + 1].numpy()[0])
+        depth = float(self._depth[i : i + 1].numpy()[0])
+        if atom < 0 or not math.isfinite(depth):
+            return None, None
+        return atom, depth
+
+    def prepare(self, params: RenderParams) -> GaussianField:
+        """Build the grid for `params` (when positions or the density changed) and return the
+        device field, for tools that evaluate the density with their own kernels."""
+        self._check_params(params)
+        if self._n and not self._have_positions:
+            raise RenderError("no positions: call set_positions after set_topology")
+        d = self._derive(params)
+        if params.mode == "volume":
+            self._update_tf(params)
+        if self._n:
+            self._update_colors(params)
+        f = self._field(d)
+        self._build_grid(params, d, f, self._stop_level(params, d))
+        self._last = (params, d)
+        return f
+
+    def grid_info(self) -> dict[str, Any]:
+        """The last grid's layout (origin, cell size, dims, ...); synchronises."""
+        return self._grid.read_info()
+
+    def evaluate(
+        self, points: npt.ArrayLike
+    ) -> tuple[
+        npt.NDArray[np.float32],
+        npt.NDArray[np.float32],
+        npt.NDArray[np.float32],
+        npt.NDArray[np.int32],
+    ]:
+        """Density, (gradient, density), (colour, density) and top atom at points, through
+        the same device functions the ray caster uses (for tests and tools)."""
+        if self._last is None:
+            raise RenderError("render once before evaluating the density")
+        pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        m = len(pts)
+        dev = self.device
+        wp_pts = wp.array(pts, dtype=wp.vec3, device=dev)
+        vals = wp.zeros(max(m, 1), dtype=float, device=dev)
+        vgs = wp.zeros(max(m, 1), dtype=wp.vec4, device=dev)
+        cols = wp.zeros(max(m, 1), dtype=wp.vec4, device=dev)
+        ids = wp.zeros(max(m, 1), dtype=wp.int32, device=dev)
+        if m:
+            f = self._field(self._last[1])
+            wp.launch(self._kernels.evaluate, m, (f, wp_pts, vals, vgs, cols, ids), device=dev)
+        return (
+            vals.numpy()[:m].copy(),
+            vgs.numpy()[:m].copy(),
+            cols.numpy()[:m].copy(),
+            ids.numpy()[:m].copy(),
+        )
+
+    def density_histogram(
+        self, bins: int = 64
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]:
+        """Counts and bin edges of the density (in units of the iso level, the transfer
+        function's x) at a 64^3 lattice of points over the last frame's grid box. Zero density
+        is left out; values beyond the last edge count in the last bin."""
+        if not 1 <= int(bins) <= self._hist.shape[0]:
+            raise RenderError(f"bins must be in [1, {self._hist.shape[0]}], got {bins}")
+        bins = int(bins)
+        if self._last is None:
+            raise RenderError("render once before asking for a histogram")
+        params, d = self._last
+        x_hi = max(HISTOGRAM_X_MAX, self._tf.x_max if params.mode == "volume" else 0.0)
+        edges = np.linspace(0.0, x_hi, bins + 1)
+        self._hist.zero_()
+        if self._n and self._have_positions:
+            f = self._field(d)
+            s = HISTOGRAM_SIDE
+            wp.launch(
+                self._kernels.histogram,
+                (s, s, s),
+                (f, s, bins / (x_hi * d.iso), bins, self._hist),
+                device=self.device,
+            )
+        counts = self._hist.numpy()[:bins].astype(np.int64)
+        return counts, edges

@@ -1,0 +1,211 @@
+"""Density, gradient, colour blend and top atom on the device vs the brute-force oracle, and
+the cell grid's neighbour completeness."""
+
+from __future__ import annotations
+
+from typing import no_type_check
+
+import numpy as np
+import pytest
+import warp as wp
+
+from protocol import RenderParams
+from server.render import colors
+from server.render.camera import fit_camera
+from server.render.density import GaussianField
+from server.render.grid import CellGrid
+from server.render.raycast import kernels_for
+from tests.render import oracle
+from tests.render.conftest import blob, make_topology
+from tests.render.helpers import oracle_molecule, render
+
+
+def _points_near(pos: np.ndarray, m: int, seed: int, spread: float = 3.0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    base = pos[rng.integers(0, len(pos), m)]
+    return (base + rng.normal(size=(m, 3)) * spread).astype(np.float32)
+
+
+@pytest.mark.parametrize(
+    ("radius_mode", "sigma", "offset", "cells"),
+    [
+        ("uniform", 1.5, (0.0, 0.0, 0.0), 2.0),
+        ("uniform", 0.8, (-350.0, 1200.0, -75.0), 1.0),
+        ("vdw", 1.2, (-20.0, -30.0, -40.0), 2.0),
+    ],
+)
+def test_density_and_gradient_match_oracle(
+    device: str, radius_mode: str, sigma: float, offset: tuple[float, float, float], cells: float
+) -> None:
+    n = 60
+    top = make_topology(n, radii=None)
+    pos = blob(n, seed=3, offset=offset)
+    params = RenderParams(sigma_A=sigma, radius_mode=radius_mode)  # type: ignore[arg-type]
+    r = render(device, top, pos, params, fit_camera(pos, 8, 6), 8, 6, cells_per_cutoff=cells)
+    pts = _points_near(pos, 400, seed=5)
+    vals, vgs, cols, ids = r.evaluate(pts)
+    mol = oracle_molecule(top, pos, params)
+    # the oracle in float64 at the float32 points the device saw
+    ref, ref_grad = oracle.density(mol, pts.astype(np.float64))
+    scale = max(float(ref.max()), 1e-12)
+    np.testing.assert_allclose(vals, ref, rtol=1e-5, atol=1e-5 * scale)
+    np.testing.assert_allclose(vgs[:, 3], ref, rtol=1e-5, atol=1e-5 * scale)
+    np.testing.assert_allclose(cols[:, 3], ref, rtol=1e-5, atol=1e-5 * scale)
+    gscale = float(np.abs(ref_grad).max())
+    np.testing.assert_allclose(vgs[:, :3], ref_grad, rtol=1e-4, atol=2e-5 * gscale)
+    hit = ref > 1e-3 * scale
+    assert hit.sum() > 100
+    np.testing.assert_allclose(cols[hit, :3], oracle.blended_color(mol, pts)[hit], atol=2e-5)
+    best, margin = oracle.top_atom(mol, pts)
+    clear = hit & (margin > 1e-4)
+    assert clear.sum() > 100
+    np.testing.assert_array_equal(ids[clear], best[clear])
+    assert np.all(ids[ref == 0] == -1)
+
+
+def test_truncation_bound_is_documented(device: str) -> None:
+    """Truncation error of an isolated atom is below w exp(-k^2 / 2) everywhere."""
+    top = make_topology(1)
+    pos = np.zeros((1, 3), np.float32)
+    params = RenderParams(sigma_A=1.0, cutoff_sigmas=3.0)
+    r = render(device, top, pos, params, fit_camera(pos, 4, 4), 4, 4)
+    d = np.linspace(0.0, 5.0, 200)
+    pts = np.stack([d, np.zeros_like(d), np.zeros_like(d)], axis=1)
+    vals = r.evaluate(pts)[0]
+    exact = np.exp(-(d**2) / 2)
+    assert np.abs(vals - exact).max() <= np.exp(-4.5) + 1e-6
+    assert vals[d >= 3.0 + 1e-6].max() == 0.0
+
+
+def _probe_field(grid: CellGrid, device: str, n: int, radius: float) -> GaussianField:
+    """A field whose 'density' counts atoms within `radius` (weights = 1 + index), built
+    from the grid alone: exp(-1e-12 d^2) == 1 in float32, cutoff d < radius."""
+    f = GaussianField()
+    f.atoms = wp.zeros(n, dtype=wp.vec4, device=device)
+    f.inv2s2 = wp.zeros(1, dtype=float, device=device)
+    f.order = grid.order
+    f.colors = wp.zeros(n, dtype=wp.uint32, device=device)
+    f.cell_start = grid.cell_start
+    f.bound = grid.cell_values
+    f.brick_bound = grid.brick_values
+    f.info = grid.info
+    f.inv2s2_uniform = 1e-12
+    f.half_k2 = 1e-12 * radius * radius
+    f.per_atom = 0
+    return f
+
+
+@wp.kernel
+@no_type_check
+def _weights_in_order(
+    pos: wp.array[wp.vec3],
+    order: wp.array[wp.int32],
+    out: wp.array[wp.vec4],
+):
+    i = wp.tid()
+    j = order[i]
+    p = pos[j]
+    out[i] = wp.vec4(p[0], p[1], p[2], float(j + 1))
+
+
+@pytest.mark.parametrize(
+    ("offset", "spread", "cells_per_reach"),
+    [
+        ((0.0, 0.0, 0.0), 6.0, 1.0),
+        ((-2500.0, -40.0, 910.0), 6.0, 2.0),
+        ((30.0, -60.0, 5.0), 300.0, 2.0),  # wide box: the cell cap forces larger cells
+    ],
+)
+def test_grid_finds_every_atom_within_cutoff(
+    device: str, offset: tuple[float, float, float], spread: float, cells_per_reach: float
+) -> None:
+    n = 300
+    radius = 2.5
+    rng = np.random.default_rng(11)
+    centers = rng.normal(size=(12, 3)) * spread + np.asarray(offset)
+    pos = (centers[rng.integers(0, 12, n)] + rng.normal(size=(n, 3)) * 2.0).astype(np.float32)
+    grid = CellGrid(device, n)
+    wp_pos = wp.array(pos, dtype=wp.vec3, device=device)
+    grid.build(wp_pos, n, radius, cells_per_reach)
+    info = grid.read_info()
+    assert int(info["valid"]) == 1
+    assert int(info["ncells"]) <= grid.capacity
+    f = _probe_field(grid, device, n, radius)
+    wp.launch(_weights_in_order, n, (wp_pos, grid.order, f.atoms), device=device)
+    probes = np.concatenate([pos[:100] + rng.normal(size=(100, 3)) * 1.5, pos[100:150]])
+    probes = probes.astype(np.float32)
+    k = kernels_for()
+    m = len(probes)
+    vals = wp.zeros(m, dtype=float, device=device)
+    out = [wp.zeros(m, dtype=t, device=device) for t in (wp.vec4, wp.vec4, wp.int32)]
+    wp.launch(
+        k.evaluate,
+        m,
+        (f, wp.array(probes, dtype=wp.vec3, device=device), vals, *out),
+        device=device,
+    )
+    got = vals.numpy().astype(np.float64)
+    d = np.linalg.norm(probes[:, None, :].astype(np.float64) - pos[None, :, :], axis=-1)
+    within = d < radius
+    # float32 rounding may move an atom sitting exactly on the cutoff sphere either way
+    edge = np.abs(d - radius) < 1e-3 + 2e-7 * float(np.abs(pos).max())
+    lo = ((within & ~edge) * (np.arange(n) + 1)).sum(axis=1)
+    hi = ((within | edge) * (np.arange(n) + 1)).sum(axis=1)
+    assert within.sum() > 500
+    assert np.all(got >= lo - 0.5) and np.all(got <= hi + 0.5), np.nonzero(
+        (got < lo - 0.5) | (got > hi + 0.5)
+    )
+
+
+def test_grid_is_sorted_by_cell(device: str) -> None:
+    n = 200
+    pos = blob(n, seed=9, offset=(-40.0, 10.0, -5.0))
+    grid = CellGrid(device, n)
+    grid.build(wp.array(pos, dtype=wp.vec3, device=device), n, 3.0, 2.0)
+    info = grid.read_info()
+    dims = np.asarray(info["dims"])
+    origin = np.asarray(info["origin"], dtype=np.float64)
+    h = float(info["h"])
+    order = grid.order.numpy()[:n]
+    start = grid.cell_start.numpy()[: int(info["ncells"]) + 1]
+    assert sorted(order.tolist()) == list(range(n))
+    cell = np.floor((pos[order] - origin) / h).astype(int)
+    key = (cell[:, 2] * dims[1] + cell[:, 1]) * dims[0] + cell[:, 0]
+    assert np.all(np.diff(key) >= 0)
+    assert start[0] == 0 and start[-1] == n
+    for c in np.unique(key):
+        assert np.all(key[start[c] : start[c + 1]] == c)
+
+
+def test_brick_bounds_are_cell_maxima(device: str) -> None:
+    n = 400
+    rng = np.random.default_rng(4)
+    pos = (rng.uniform(-60, 60, size=(n, 3))).astype(np.float32)
+    grid = CellGrid(device, n)
+    grid.build(wp.array(pos, dtype=wp.vec3, device=device), n, 2.0, 2.0)
+    info = grid.read_info()
+    assert int(info["bricks"]) == 1
+    dims = np.asarray(info["dims"])
+    cells = int(np.prod(dims))
+    values = rng.uniform(0, 1, size=grid.capacity + 1).astype(np.float32)
+    grid.cell_values.assign(values)
+    grid.build_bricks()
+    vol = values[:cells].reshape(dims[2], dims[1], dims[0])
+    b = np.asarray(info["bdims"])
+    pad = np.full((b[2] * 4, b[1] * 4, b[0] * 4), -1.0, np.float32)
+    pad[: dims[2], : dims[1], : dims[0]] = vol
+    want = pad.reshape(b[2], 4, b[1], 4, b[0], 4).max(axis=(1, 3, 5)).reshape(-1)
+    got = grid.brick_values.numpy()[: len(want)]
+    np.testing.assert_array_equal(got, want)
+
+
+def test_vdw_mode_widens_big_atoms(device: str) -> None:
+    top = make_topology(2, elements=["H", "S"])
+    pos = np.array([[-10.0, 0.0, 0.0], [10.0, 0.0, 0.0]], np.float32)
+    params = RenderParams(sigma_A=1.0, radius_mode="vdw")
+    r = render(device, top, pos, params, fit_camera(pos, 4, 4), 4, 4)
+    pts = np.array([[-8.5, 0.0, 0.0], [11.5, 0.0, 0.0]], np.float32)
+    vals = r.evaluate(pts)[0]
+    s_h = 1.0 * colors.VDW_RADII["H"] / colors.R_REF
+    s_s = 1.0 * colors.VDW_RADII["S"] / colors.R_REF
+    np.testing.assert_allclose(vals, np.exp(-(1.5**2) / (2 * np.array([s_h, s_s]) ** 2)), rtol=1e-5)

@@ -1,0 +1,79 @@
+"""Golden images of a real small molecule (gramicidin A, PDB 1GRM, 272 atoms), compared with
+tolerance. The coordinates travel with the tests (data/gramicidin_1grm.npz, read from
+MDAnalysisTests' 1grm_single.pdb) so this runs without MDAnalysis.
+
+Regenerate deliberately with `pytest tests/render --regen-golden` (then look at the PNGs)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from protocol import Lighting, RenderParams
+from server.render.camera import fit_camera, orbit
+from tests.render.conftest import GOLDEN_DIR, make_topology
+from tests.render.helpers import render
+
+W, H = 160, 120
+
+CASES = {
+    "iso_element": RenderParams(sigma_A=1.2, iso_level=0.5, color_by="element"),
+    "iso_chain_ao": RenderParams(
+        sigma_A=2.0,
+        iso_level=0.8,
+        color_by="chain",
+        lighting=Lighting(ambient_occlusion=True, depth_cue=0.5),
+    ),
+    "volume_cloud": RenderParams(mode="volume", sigma_A=1.5, tf_preset="cloud"),
+    "volume_shells": RenderParams(mode="volume", sigma_A=1.8, tf_preset="shells"),
+}
+
+
+def assert_image_approx_equal(got: np.ndarray, want: np.ndarray, name: str) -> None:
+    """Small differences (float order on another device) pass; a changed picture does not."""
+    assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
+    diff = np.abs(got.astype(np.int32) - want.astype(np.int32)).max(axis=-1)
+    mean = float(diff.mean())
+    far = float((diff > 24).mean())
+    assert mean <= 1.0 and far <= 0.01, f"{name}: mean diff {mean:.2f}, {far:.2%} pixels off"
+
+
+@pytest.fixture(scope="module")
+def gramicidin() -> tuple[object, np.ndarray]:
+    d = np.load(Path(__file__).parent / "data" / "gramicidin_1grm.npz")
+    top = make_topology(
+        len(d["positions"]),
+        elements=[str(e) for e in d["elements"]],
+        chains=[str(c) for c in d["chains"]],
+        residues=[str(r) for r in d["residues"]],
+        bfactors=d["bfactors"].astype(np.float32),
+    )
+    return top, d["positions"].astype(np.float32)
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_golden(
+    device: str, name: str, gramicidin: tuple[object, np.ndarray], regen_golden: bool
+) -> None:
+    top, pos = gramicidin
+    cam = orbit(fit_camera(pos, W, H, margin=2.0), 35.0, 20.0)
+    r = render(device, top, pos, CASES[name], cam, W, H)  # type: ignore[arg-type]
+    got = r.read_rgba()[..., :3]
+    path: Path = GOLDEN_DIR / f"{name}.png"
+    if regen_golden and device == "cpu":
+        GOLDEN_DIR.mkdir(exist_ok=True)
+        Image.fromarray(got).save(path)
+    want = np.asarray(Image.open(path).convert("RGB"))
+    assert_image_approx_equal(got, want, name)
+    # guard against a blank reference: the molecule fills a good part of the frame
+    assert np.isfinite(r.read_depth()).mean() > 0.1
+
+
+def test_comparison_catches_a_different_picture() -> None:
+    want = np.asarray(Image.open(GOLDEN_DIR / "iso_element.png").convert("RGB"))
+    shifted = np.roll(want, 6, axis=1)
+    with pytest.raises(AssertionError):
+        assert_image_approx_equal(shifted, want, "shifted")

@@ -1,0 +1,226 @@
+"""Ray casting vs brute-force references: iso hit depth per pixel (per-ray root finder on the
+same sample lattice), volume compositing (numpy front-to-back), picking, and the claim that
+empty-space skipping never changes an image."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol import Camera, Lighting, RenderParams, TFPoint
+from server.render import raycast
+from server.render.camera import camera_frame, fit_camera, image_rays, look_at, orbit
+from server.render.renderer import Renderer
+from server.render.transfer import build_table
+from tests.render import oracle
+from tests.render.conftest import blob, make_topology
+from tests.render.helpers import oracle_molecule, render
+
+W, H = 64, 48
+
+
+def _t_range(r: Renderer, origins: np.ndarray) -> tuple[float, float]:
+    """A lattice range covering the grid box for every ray (outside it S == 0)."""
+    info = r.grid_info()
+    lo = np.asarray(info["origin"], dtype=np.float64)
+    hi = np.asarray(info["box_hi"], dtype=np.float64)
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    o = origins.reshape(-1, 3)
+    dist = np.linalg.norm(corners[None, :, :] - o[:, None, :], axis=-1)
+    return 0.0, float(dist.max()) + 1.0
+
+
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
+def test_iso_depth_matches_root_finder(device: str, projection: str) -> None:
+    n = 45
+    top = make_topology(n)
+    pos = blob(n, seed=21, spread=2.5)
+    params = RenderParams(sigma_A=1.4, iso_level=0.6, step_sigmas=0.3)
+    cam = orbit(fit_camera(pos, W, H, projection, margin=-2.0), 25.0, -15.0)  # type: ignore[arg-type]
+    r = render(device, top, pos, params, cam, W, H)
+    depth = r.read_depth()
+    ids = r.read_atom_ids()
+    frame = camera_frame(cam, W, H)
+    origins, dirs = image_rays(frame)
+    dt = params.step_sigmas * params.sigma_A
+    mol = oracle_molecule(top, pos, params)
+    ref = oracle.first_crossings(mol, origins, dirs, _t_range(r, origins), dt, params.iso_level)
+    t_ref = ref.t.reshape(H, W)
+    amb = ref.ambiguous.reshape(H, W)
+    hit_ref = np.isfinite(t_ref)
+    hit = np.isfinite(depth)
+    assert 0.2 < hit_ref.mean() < 0.9
+    mismatch = hit != hit_ref
+    assert np.all(amb[mismatch]), f"{mismatch.sum()} unexplained hit/miss differences"
+    both = hit & hit_ref & ~amb
+    tol = dt / 2**raycast.REFINE_STEPS + 2e-4
+    err = np.abs(depth[both] - t_ref[both])
+    assert err.max() <= tol, err.max()
+    assert np.median(err) <= tol / 20, "the final secant step should land far inside the bracket"
+    assert np.all(ids[~hit] == -1) and np.all(ids[hit] >= 0)
+    pts = origins[both] + depth[both][:, None] * dirs[both]
+    best, margin = oracle.top_atom(mol, pts)
+    clear = margin > 1e-3
+    np.testing.assert_array_equal(ids[both][clear], best[clear])
+    y, x = np.argwhere(both)[0]
+    atom, d = r.pick(int(x), int(y))
+    assert atom == ids[y, x] and d == pytest.approx(float(depth[y, x]))
+    by, bx = np.argwhere(~hit)[0]
+    assert r.pick(int(bx), int(by)) == (None, None)
+
+
+@pytest.mark.parametrize(
+    ("tf", "preset", "light"),
+    [
+        ((), "cloud", Lighting()),
+        ((), "shells", Lighting(key_light=False, depth_cue=0.6)),
+        (
+            (
+                TFPoint(x=0.0, alpha=0.0),
+                TFPoint(x=0.3, color=(1, 0.5, 0), alpha=0.3),
+                TFPoint(x=1.5, alpha=0.9),
+            ),
+            "cloud",
+            Lighting(diffuse=0.0, specular=0.0),
+        ),
+    ],
+)
+def test_volume_matches_numpy_compositor(
+    device: str, tf: tuple[TFPoint, ...], preset: str, light: Lighting
+) -> None:
+    n = 30
+    w, h = 20, 14
+    top = make_topology(n)
+    pos = blob(n, seed=4)
+    params = RenderParams(
+        mode="volume",
+        sigma_A=1.3,
+        iso_level=0.5,
+        step_sigmas=0.35,
+        transfer_function=list(tf),
+        tf_preset=preset,  # type: ignore[arg-type]
+        lighting=light,
+        background=(0.1, 0.2, 0.3),
+    )
+    cam = fit_camera(pos, w, h, margin=1.0)
+    r = render(device, top, pos, params, cam, w, h)
+    img = r.read_rgba().astype(np.float64) / 255.0
+    depth = r.read_depth()
+    frame = camera_frame(cam, w, h)
+    origins, dirs = image_rays(frame)
+    info = r.grid_info()
+    lo = np.asarray(info["origin"], dtype=np.float64)
+    hi = np.asarray(info["box_hi"], dtype=np.float64)
+    center, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+    dc = float((center - frame.eye) @ frame.forward)
+    kw = dict(light.model_dump())
+    lt = oracle.Light(
+        ambient=kw["ambient"],
+        diffuse=kw["diffuse"],
+        specular=kw["specular"],
+        shininess=kw["shininess"],
+        head_weight=0.6 if light.key_light else 1.0,
+        key_weight=0.55 if light.key_light else 0.0,
+        key_dir=raycast.key_light_direction(frame),
+        background=np.array(params.background),
+        depth_cue=light.depth_cue,
+        fog_near=max(dc - radius, 0.0),
+        fog_far=dc + radius,
+    )
+    table = build_table(params.transfer_function, params.tf_preset)
+    mol = oracle_molecule(top, pos, params)
+    dt = params.step_sigmas * params.sigma_A
+    t_range = _t_range(r, origins)
+    shade = light.diffuse > 0 or light.specular > 0
+    ref = np.zeros((h, w, 3))
+    ref_depth = np.zeros((h, w))
+    for y in range(h):
+        for x in range(w):
+            ref[y, x], ref_depth[y, x] = oracle.composite(
+                mol,
+                origins[y, x],
+                dirs[y, x],
+                t_range,
+                dt,
+                params.iso_level,
+                table,
+                lt,
+                shade,
+                jitter=oracle.pixel_jitter(x, y),
+            )
+    diff = np.abs(img[..., :3] - ref)
+    assert diff.max() <= 3.0 / 255.0, diff.max()
+    assert np.all(img[..., 3] == 1.0)
+    covered = np.isfinite(ref_depth)
+    assert covered.any()
+    agree = np.isfinite(depth) == covered
+    assert agree.mean() > 0.97
+    both = np.isfinite(depth) & covered
+    assert np.allclose(depth[both], ref_depth[both], atol=dt * 1.01)
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+@pytest.mark.parametrize("mode", ["iso", "volume"])
+def test_empty_space_skipping_changes_nothing(device: str, mode: str, sparse: bool) -> None:
+    n = 50
+    top = make_topology(n)
+    pos = blob(n, seed=8, spread=7.0)
+    if sparse:  # far-apart lumps: rays jump whole empty bricks between them
+        pos[::3] += np.float32(45.0)
+        pos[1::3] -= np.float32([30.0, -20.0, 40.0])
+    params = RenderParams(mode=mode, sigma_A=1.1)  # type: ignore[arg-type]
+    cam = fit_camera(pos, W, H)
+    fast = render(device, top, pos, params, cam, W, H)
+    naive = render(device, top, pos, params, cam, W, H, empty_space_skipping=False)
+    np.testing.assert_array_equal(fast.read_rgba(), naive.read_rgba())
+    np.testing.assert_array_equal(fast.read_depth(), naive.read_depth())
+    np.testing.assert_array_equal(fast.read_atom_ids(), naive.read_atom_ids())
+
+
+def test_cell_size_does_not_change_the_image(device: str) -> None:
+    top = make_topology(40)
+    pos = blob(40, seed=2)
+    params = RenderParams(sigma_A=1.5)
+    cam = fit_camera(pos, W, H)
+    a = render(device, top, pos, params, cam, W, H, cells_per_cutoff=1.0)
+    b = render(device, top, pos, params, cam, W, H, cells_per_cutoff=2.0)
+    diff = np.abs(a.read_rgba().astype(int) - b.read_rgba().astype(int))
+    assert (diff > 2).mean() < 0.002
+    both = np.isfinite(a.read_depth()) & np.isfinite(b.read_depth())
+    assert np.allclose(a.read_depth()[both], b.read_depth()[both], atol=1e-3)
+
+
+def test_camera_inside_molecule_sees_the_wall(device: str) -> None:
+    n = 200
+    top = make_topology(n)
+    rng = np.random.default_rng(0)
+    pos = (rng.uniform(-9, 9, size=(n, 3))).astype(np.float32)
+    params = RenderParams(sigma_A=1.6, iso_level=0.3)
+    cam = look_at((0.0, 0.0, 0.0), (0.0, 0.0, -5.0), fov_deg=70.0)
+    r = render(device, top, pos, params, cam, 40, 30)
+    mol = oracle_molecule(top, pos, params)
+    assert oracle.density(mol, np.zeros((1, 3)))[0][0] >= params.iso_level
+    depth = r.read_depth()
+    assert np.isfinite(depth).mean() > 0.5
+    assert np.nanmin(np.where(np.isfinite(depth), depth, np.nan)) > 0.0
+    frame = camera_frame(cam, 40, 30)
+    origins, dirs = image_rays(frame)
+    ys, xs = np.nonzero(np.isfinite(depth))
+    pts = origins[ys, xs] + depth[ys, xs, None] * dirs[ys, xs]
+    vals = oracle.density(mol, pts)[0]
+    assert np.median(np.abs(vals - params.iso_level)) < 0.02
+
+
+def test_orthographic_depth_is_distance_from_the_camera_plane(device: str) -> None:
+    top = make_topology(1)
+    pos = np.array([[1.0, -2.0, 3.0]], np.float32)
+    params = RenderParams(sigma_A=1.0, iso_level=0.5)
+    cam = Camera(
+        target=(1.0, -2.0, 3.0), distance=20.0, projection="orthographic", ortho_height=8.0
+    )
+    r = render(device, top, pos, params, cam, 33, 33)
+    radius = np.sqrt(2 * np.log(1 / 0.5))
+    assert r.read_depth()[16, 16] == pytest.approx(20.0 - radius, abs=2e-3)
+    assert r.read_depth()[0, 0] == np.inf

@@ -1,0 +1,130 @@
+"""Renderer behaviour: determinism, buffer reuse, timings, colouring, histogram, memory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol import Lighting, RenderParams
+from server.render import Renderer
+from server.render.camera import fit_camera, orbit
+from server.render.grid import MIN_CELLS
+from tests.render.conftest import blob, make_topology
+from tests.render.helpers import render
+
+
+def test_deterministic_for_identical_input(device: str) -> None:
+    top = make_topology(60)
+    pos = blob(60, seed=12)
+    cam = fit_camera(pos, 48, 36)
+    for mode in ("iso", "volume"):
+        params = RenderParams(mode=mode, lighting=Lighting(ambient_occlusion=True, depth_cue=0.4))  # type: ignore[arg-type]
+        a = render(device, top, pos, params, cam, 48, 36)
+        b = render(device, top, pos, params, cam, 48, 36)
+        a.set_positions(pos + 5.0)
+        a.render(params, cam, 48, 36)
+        a.set_positions(pos)
+        a.render(params, cam, 48, 36)
+        np.testing.assert_array_equal(a.read_rgba(), b.read_rgba())
+        np.testing.assert_array_equal(a.read_depth(), b.read_depth())
+        np.testing.assert_array_equal(a.read_atom_ids(), b.read_atom_ids())
+
+
+def test_buffers_are_reused_across_frames(device: str) -> None:
+    n = 50
+    r = Renderer(device)
+    r.set_topology(make_topology(n))
+    pos = blob(n, seed=2)
+    cam = fit_camera(pos, 40, 30)
+    r.set_positions(pos)
+    r.render(RenderParams(), cam, 40, 30)
+    names = ("_pos", "_sorted", "_inv2s2", "_colors", "_hit", "_rgba", "_depth", "_ids")
+    ptrs = {k: getattr(r, k).ptr for k in names}
+    grid_ptrs = (r._grid.keys.ptr, r._grid.order.ptr, r._grid.cell_start.ptr)
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        r.set_positions(pos + rng.normal(size=pos.shape).astype(np.float32) * 0.1)
+        r.render(RenderParams(mode="volume" if i % 2 else "iso"), cam, 40, 30)
+        r.render(RenderParams(), cam, 20, 10)
+    assert {k: getattr(r, k).ptr for k in names} == ptrs
+    assert (r._grid.keys.ptr, r._grid.order.ptr, r._grid.cell_start.ptr) == grid_ptrs
+
+
+def test_pinned_host_buffer_path(device: str) -> None:
+    n = 30
+    top = make_topology(n)
+    pos = blob(n, seed=3)
+    cam = fit_camera(pos, 32, 24)
+    a = Renderer(device)
+    a.set_topology(top)
+    buf = a.host_positions()
+    assert buf.shape == (n, 3) and buf.dtype == np.float32
+    buf[:] = pos
+    a.set_positions(buf)
+    a.render(RenderParams(), cam, 32, 24)
+    b = render(device, top, pos, RenderParams(), cam, 32, 24)
+    np.testing.assert_array_equal(a.read_rgba(), b.read_rgba())
+
+
+def test_timings_and_grid_reuse(device: str) -> None:
+    n = 40
+    r = Renderer(device)
+    r.set_topology(make_topology(n))
+    pos = blob(n, seed=4)
+    cam = fit_camera(pos, 32, 24)
+    r.set_positions(pos)
+    r.render(RenderParams(), cam, 32, 24)
+    assert set(r.timings) == {"upload", "grid", "raycast", "total"}
+    assert all(v >= 0.0 for v in r.timings.values())
+    key = r._grid_key
+    r.render(RenderParams(), orbit(cam, 30.0, 0.0), 32, 24)
+    assert r._grid_key == key and r.timings["upload"] == 0.0
+    r.render(RenderParams(sigma_A=2.0), cam, 32, 24)
+    assert r._grid_key != key
+
+
+@pytest.mark.parametrize(
+    "color_by", ["element", "residue", "chain", "uniform", "bfactor", "charge"]
+)
+def test_every_coloring_renders(device: str, color_by: str) -> None:
+    n = 24
+    pos = blob(n, seed=7)
+    cam = fit_camera(pos, 24, 18, margin=-2.0)
+    with_values = make_topology(
+        n,
+        bfactors=np.linspace(5, 60, n).astype(np.float32),
+        charges=np.linspace(-1, 1, n).astype(np.float32),
+    )
+    bare = make_topology(n)
+    params = RenderParams(color_by=color_by, uniform_color=(0.1, 0.9, 0.2))  # type: ignore[arg-type]
+    img = render(device, with_values, pos, params, cam, 24, 18).read_rgba()
+    fallback = render(device, bare, pos, params, cam, 24, 18).read_rgba()
+    uniform = render(
+        device, bare, pos, params.model_copy(update={"color_by": "uniform"}), cam, 24, 18
+    )
+    assert img.shape == (18, 24, 4)
+    if color_by in ("bfactor", "charge"):
+        np.testing.assert_array_equal(fallback, uniform.read_rgba())
+
+
+def test_density_histogram(device: str) -> None:
+    n = 40
+    pos = blob(n, seed=10)
+    r = render(
+        device, make_topology(n), pos, RenderParams(iso_level=0.5), fit_camera(pos, 8, 8), 8, 8
+    )
+    counts, edges = r.density_histogram(32)
+    assert counts.shape == (32,) and edges.shape == (33,)
+    assert edges[0] == 0.0 and edges[-1] == pytest.approx(3.0)
+    assert counts.sum() > 1000
+    assert counts[0] > counts[-2]  # most of the box is thin density
+
+
+def test_memory_per_atom_within_budget(device: str) -> None:
+    n = 5000
+    r = Renderer(device)
+    r.set_topology(make_topology(n))
+    mem = r.memory_bytes()
+    beyond = mem["per_atom"] + mem["grid"] + mem["other"]
+    # 64 bytes per atom plus the fixed minimum grid of MIN_CELLS cells
+    assert beyond <= 64 * n + 8 * MIN_CELLS + 64 * 1024
