@@ -16,7 +16,7 @@ from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import MESSAGE_TYPES, PROTOCOL_VERSION, AnyMessage, Error, Message
 
 _ADAPTER: TypeAdapter[AnyMessage] = TypeAdapter(AnyMessage)
-_MAX_DEPTH_CONTAINERS = 100_000
+_MAX_CONTAINER_ENTRIES = 100_000
 
 
 def encode(message: Message) -> bytes:
@@ -45,10 +45,17 @@ def unpack(raw: bytes, limits: Limits = DEFAULT_LIMITS) -> Any:
             use_list=True,
             max_bin_len=n,
             max_str_len=n,
-            max_array_len=min(n, _MAX_DEPTH_CONTAINERS),
-            max_map_len=min(n, _MAX_DEPTH_CONTAINERS),
+            # per-atom string lists (names, elements) may be as long as the atom limit
+            max_array_len=min(n, limits.max_atoms + _MAX_CONTAINER_ENTRIES),
+            max_map_len=min(n, _MAX_CONTAINER_ENTRIES),
             max_ext_len=0,
         )
+    except ValueError as exc:
+        # a container longer than the atom limit allows is too large; any other declared
+        # length beyond the message's own size means the bytes are cut or corrupt
+        if "max_array_len" in str(exc) and limits.max_atoms + _MAX_CONTAINER_ENTRIES < n:
+            raise ProtocolError(ErrorCode.TOO_LARGE, f"a list exceeds the limits ({exc})") from None
+        raise ProtocolError(ErrorCode.INVALID_MESSAGE, "not valid msgpack: ValueError") from None
     except Exception as exc:  # msgpack raises many types for corrupt input
         raise ProtocolError(
             ErrorCode.INVALID_MESSAGE, f"not valid msgpack: {type(exc).__name__}"

@@ -87,6 +87,8 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
         ws_max_size=settings.limits.max_message_bytes,
         ws_ping_interval=20.0,
         ws_ping_timeout=20.0,
+        # frames are raw floats and images are JPEG: deflate costs CPU and saves nothing
+        ws_per_message_deflate=False,
         lifespan="on",
     )
 

@@ -158,3 +158,19 @@ def test_error_message_echoes_ref() -> None:
     back = p.decode(p.encode(reply))
     assert isinstance(back, p.Error)
     assert back.ref == 41 and back.code == "invalid_message" and back.path == "frame.step"
+
+
+def test_topology_of_many_atoms_decodes() -> None:
+    n = 250_000
+    topo = p.Topology(
+        n_atoms=n,
+        elements=["C"] * n,
+        names=["CA"] * n,
+        residue_ids=p.WireArray.from_numpy(np.arange(n), "<i4"),
+        residue_names=["ALA"] * n,
+        chain_ids=["A"] * n,
+        bonds=p.WireArray.from_numpy(np.zeros((0, 2)), "<i4"),
+    )
+    assert p.decode(p.encode(topo)).n_atoms == n
+    err = reject(p.unpack(p.encode(topo)), p.Limits(max_atoms=1000))
+    assert err.code == p.ErrorCode.TOO_LARGE

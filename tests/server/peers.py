@@ -31,7 +31,12 @@ class Peer:
         headers = {"Origin": origin} if origin else None
         # entered as a context manager (the supported form); `close()` closes it
         self.ws: ClientConnection = connect(
-            url, additional_headers=headers, max_size=None, max_queue=max_queue, open_timeout=20
+            url,
+            additional_headers=headers,
+            max_size=None,
+            max_queue=max_queue,
+            open_timeout=20,
+            compression=None,
         ).__enter__()
         self.seq = 0
         self.welcome: p.Welcome | None = None

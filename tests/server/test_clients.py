@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
-
 import protocol as p
 from server.auth import RateLimiter
 from server.clients import MAX_QUEUED_CONTROL, Client, ClientState
@@ -19,26 +17,18 @@ def image(i: int) -> p.Image:
 
 
 def test_unsent_images_are_replaced_not_queued() -> None:
-    async def scenario() -> Client:
-        client = make_client()
-        for i in range(1, 51):
-            client.offer_image(image(i))
-        return client
-
-    client = asyncio.run(scenario())
+    client = make_client()
+    for i in range(1, 51):
+        client.offer_image(image(i))
     assert client.frames_dropped == 49
     assert client._image is not None
     assert p.decode(client._image) == image(50)
 
 
 def test_control_messages_keep_order_and_a_reader_that_never_reads_is_cut_off() -> None:
-    async def scenario() -> Client:
-        client = make_client()
-        for i in range(MAX_QUEUED_CONTROL + 5):
-            client.send(p.Pong(ref=i))
-        return client
-
-    client = asyncio.run(scenario())
+    client = make_client()
+    for i in range(MAX_QUEUED_CONTROL + 5):
+        client.send(p.Pong(ref=i))
     assert len(client._control) == MAX_QUEUED_CONTROL
     assert [p.decode(client._control[i]).ref for i in (0, 1, 2)] == [0, 1, 2]  # type: ignore[attr-defined]
     assert client.state is ClientState.CLOSING
