@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from tests.browser.simulation import ScriptedSimulation
+from tests.browser.simulation import OpenMMSimulation
 from tests.conftest import LiveServer
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -61,10 +61,10 @@ def chromium() -> Iterator[Any]:
 
 
 @pytest.fixture
-def simulation(live_server: LiveServer) -> Iterator[ScriptedSimulation]:
+def simulation(live_server: LiveServer) -> Iterator[OpenMMSimulation]:
     """The simulation feeding the server's default session; `stop()` kills it, `start()`
     brings it back."""
-    sim = ScriptedSimulation(live_server.ws_url, live_server.token, frame_period_s=0.2)
+    sim = OpenMMSimulation(live_server.ws_url, live_server.token)
     sim.start()
     yield sim
     sim.stop()

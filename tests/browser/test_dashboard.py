@@ -17,7 +17,7 @@ from PIL import Image
 from playwright.sync_api import expect
 
 from tests.browser.conftest import Dashboard, OpenDashboard
-from tests.browser.simulation import ScriptedSimulation
+from tests.browser.simulation import OpenMMSimulation
 from tests.conftest import LiveServer
 
 pytestmark = pytest.mark.browser
@@ -135,7 +135,7 @@ def record_text(dash: Dashboard, selector: str) -> None:
 
 
 def test_page_loads_and_streamed_frames_are_drawn(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation, artifacts: Path
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, artifacts: Path
 ) -> None:
     dash = open_dashboard()
     blank = snapshot(dash)
@@ -157,7 +157,7 @@ def test_page_loads_and_streamed_frames_are_drawn(
 
 
 def test_sigma_slider_changes_the_received_image(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation, live_server: LiveServer
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     dash = open_dashboard()
     wait_for_full_view(dash)
@@ -176,7 +176,7 @@ def test_sigma_slider_changes_the_received_image(
 
 
 def test_dragging_rotates_the_view(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation
 ) -> None:
     dash = open_dashboard()
     wait_for_full_view(dash)
@@ -198,7 +198,7 @@ def test_dragging_rotates_the_view(
 
 
 def test_clicking_an_atom_shows_its_details(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation, live_server: LiveServer
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     dash = open_dashboard()
     wait_for_full_view(dash)
@@ -228,7 +228,7 @@ def test_clicking_an_atom_shows_its_details(
 
 
 def test_ctrl_drag_pulls_an_atom_and_release_stops_the_force(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation, live_server: LiveServer
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     dash = open_dashboard()
     wait_for_full_view(dash)
@@ -269,7 +269,7 @@ def test_ctrl_drag_pulls_an_atom_and_release_stops_the_force(
 
 
 def test_temperature_change_is_pending_until_acknowledged_with_its_step(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation
 ) -> None:
     dash = open_dashboard()
     page = dash.page
@@ -296,7 +296,7 @@ def test_temperature_change_is_pending_until_acknowledged_with_its_step(
 
 
 def test_killing_the_simulation_shows_disconnected_and_it_recovers(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation
 ) -> None:
     dash = open_dashboard()
     page = dash.page
@@ -317,7 +317,7 @@ def test_killing_the_simulation_shows_disconnected_and_it_recovers(
 
 
 def test_viewer_page_has_steering_disabled_with_a_reason(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation
 ) -> None:
     dash = open_dashboard("viewer")
     page = dash.page
@@ -346,7 +346,7 @@ def test_viewer_page_has_steering_disabled_with_a_reason(
 
 
 def test_steerer_link_with_a_viewer_token_falls_back_to_viewing(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation
 ) -> None:
     dash = open_dashboard("steerer-with-viewer-token")
     page = dash.page
@@ -360,7 +360,7 @@ def test_steerer_link_with_a_viewer_token_falls_back_to_viewing(
 
 
 def test_transfer_function_editor_steers_the_session(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation, live_server: LiveServer
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     from server.render.transfer import PRESETS
 
@@ -420,7 +420,7 @@ def test_transfer_function_editor_steers_the_session(
 
 
 def test_shared_link_sets_render_params_and_camera(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation, live_server: LiveServer
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     first = open_dashboard(hash="#v=1&sigma=3.2&color=chain&bg=ffffff")
     wait_until(
@@ -447,7 +447,7 @@ def test_shared_link_sets_render_params_and_camera(
 
 
 def test_screenshot_downloads_a_full_resolution_png(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation
 ) -> None:
     dash = open_dashboard()
     wait_for_frame(dash)
@@ -476,7 +476,7 @@ def test_screenshot_downloads_a_full_resolution_png(
 
 
 def test_plots_receive_points_and_export_csv(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation, live_server: LiveServer
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     dash = open_dashboard()
     page = dash.page
@@ -516,7 +516,7 @@ def test_plots_receive_points_and_export_csv(
 
 
 def test_help_overlay_and_keyboard_operation(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation, live_server: LiveServer
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     dash = open_dashboard()
     page = dash.page
@@ -551,7 +551,7 @@ def test_help_overlay_and_keyboard_operation(
 
 
 def test_page_reconnects_after_a_server_restart(
-    open_dashboard: OpenDashboard, simulation: ScriptedSimulation, live_server: LiveServer
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     dash = open_dashboard(allow=(r"WebSocket connection to .* failed",))
     page = dash.page
@@ -573,7 +573,7 @@ def test_page_reconnects_after_a_server_restart(
 @pytest.mark.parametrize("size", [(1280, 800), (800, 900)], ids=["1280x800", "800-wide"])
 def test_layout_has_no_overlapping_controls(
     open_dashboard: OpenDashboard,
-    simulation: ScriptedSimulation,
+    simulation: OpenMMSimulation,
     artifacts: Path,
     size: tuple[int, int],
 ) -> None:
