@@ -28,6 +28,7 @@ log = logging.getLogger("scalesteer.ws")
 Endpoint = Literal["sim", "view"]
 _client_ids = itertools.count(1)
 MAX_ERRORS_PER_10S = 50
+OFFLOAD_BYTES = 1 << 20
 
 
 class RefusedError(Exception):
@@ -178,7 +179,10 @@ async def _receive_loop(
             raw = await _receive(ws, limits)
             if raw is None:
                 return
-            message = p.decode(raw, limits)
+            if len(raw) > OFFLOAD_BYTES:  # big frames: validate off the event loop
+                message = await asyncio.to_thread(p.decode, raw, limits)
+            else:
+                message = p.decode(raw, limits)
             await _dispatch(session, client, message)
         except p.ProtocolError as err:
             state.metrics.errors.labels(err.code.value).inc()

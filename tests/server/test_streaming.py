@@ -220,3 +220,35 @@ def test_sessions_are_independent(live_server: LiveServer) -> None:
     assert sessions["beta"]["n_atoms"] == 12
     for peer in (sim_a, sim_b, va, vb, steer_a):
         peer.close()
+
+
+def test_large_frames_are_validated_and_rendered(live_server: LiveServer) -> None:
+    n = 120_000  # 1.4 MB of positions: decoded off the event loop
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(-40, 40, (n, 3)).astype(np.float32)
+    topo = p.Topology(
+        n_atoms=n,
+        elements=["C"] * n,
+        names=["C"] * n,
+        residue_ids=p.WireArray.from_numpy(np.arange(n) // 10, "<i4"),
+        residue_names=["UNK"] * n,
+        chain_ids=["A"] * n,
+        bonds=p.WireArray.from_numpy(np.zeros((0, 2)), "<i4"),
+    )
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "big")
+    sim.send(topo)
+    sim.send(frame(pos, 7))
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "big")
+    img = viewer.expect(p.Image, 120, where=lambda m: m.step == 7)
+    assert decode_jpeg(img).std() > 1.0
+    bad = pos.copy()
+    bad[n // 2] = np.nan
+    raw = p.unpack(p.encode(frame(pos, 8)))
+    raw["positions"]["data"] = bad.tobytes()
+    import msgpack
+
+    sim.send_raw(msgpack.packb(raw))
+    err = sim.expect(p.Error)
+    assert err.path == "frame.positions" and "NaN" in err.message
+    sim.close()
+    viewer.close()
