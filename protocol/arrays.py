@@ -35,7 +35,7 @@ def limits_from(info: ValidationInfo) -> Limits:
 class WireArray(BaseModel):
     """An n-dimensional array as raw bytes. Use `from_numpy` / `to_numpy`."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="ignore")
 
     dtype: str = Field(description="numpy dtype string, e.g. '<f4', '<i4', '|u1'")
     shape: tuple[Annotated[int, Field(ge=0)], ...] = Field(max_length=MAX_NDIM)

@@ -28,6 +28,8 @@ Seq = Annotated[int, Field(ge=0, lt=2**53)]
 Name = Annotated[str, Field(max_length=64)]
 
 Role = Literal["simulation", "steerer", "viewer"]
+SESSION_NAME = r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$"
+"""Session names: letters, digits, '_', '-', '.', not starting with '.' (they name log files)."""
 
 
 class Model(BaseModel):
@@ -54,7 +56,7 @@ class Hello(Message):
     protocol_version: str = PROTOCOL_VERSION
     token: Annotated[str, Field(max_length=256)] | None = None
     client: Annotated[str, Field(max_length=128)] = "unknown"
-    session: Annotated[str, Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] | None = None
+    session: Annotated[str, Field(pattern=SESSION_NAME)] | None = None
 
 
 class Welcome(Message):

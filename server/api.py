@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import shutil
 import tempfile
+import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -83,9 +85,15 @@ def _dataset(state: AppState, name: str) -> Path:
     return path
 
 
-async def _save_upload(upload: UploadFile, directory: Path, limit: int) -> Path:
-    name = Path(upload.filename or "upload").name or "upload"
-    target = directory / name
+_UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
+
+
+async def _save_upload(upload: UploadFile, directory: Path, limit: int, index: int = 0) -> Path:
+    """Stream an upload to `directory` under a unique, safe name that keeps its extension."""
+    name = _UNSAFE.sub("_", Path(upload.filename or "upload").name).lstrip(".")
+    if not name:
+        raise HTTPException(422, f"unusable file name {upload.filename!r}")
+    target = directory / f"{index}-{name}"
     size = 0
     with open(target, "wb") as out:
         while chunk := await upload.read(1 << 20):
@@ -176,7 +184,7 @@ async def render_image(
         from server.render.camera import fit_camera
 
         cam = fit_camera(positions, width, height)
-    key = f"rest-{id(positions)}"
+    key = f"rest:{uuid.uuid4().hex}"
     try:
         out = await state.gpu.call(
             state.gpu.render_sync, key, topology, 1, positions, 1, render_params, cam, width, height
@@ -216,27 +224,28 @@ async def create_job(
         raise HTTPException(422, "give exactly one of topology (upload) or dataset")
     render_params = _model(p.RenderParams, params, "params") or p.RenderParams()
     cam = _model(p.Camera, camera, "camera")
+    from simulation_adapters.structure import StructureError, load
+
     workdir = Path(tempfile.mkdtemp(prefix="job-", dir=state.upload_dir))
     try:
         limit = state.settings.max_upload_bytes
         if topology is not None:
             top = await _save_upload(topology, workdir, limit)
-            trajs = [await _save_upload(t, workdir, limit) for t in trajectory or []]
+            trajs = [
+                await _save_upload(t, workdir, limit, i + 1) for i, t in enumerate(trajectory or [])
+            ]
         else:
             top = _dataset(state, dataset or "")
             trajs = [_dataset(state, t) for t in trajectory_dataset or []]
-    except BaseException:
+        try:  # fail fast on unreadable input, before a job exists
+            await asyncio.to_thread(
+                load, str(top), [str(t) for t in trajs], max_atoms=state.settings.limits.max_atoms
+            )
+        except StructureError as exc:
+            raise HTTPException(422, str(exc)) from None
+    except BaseException:  # nothing of a refused job stays on disk
         shutil.rmtree(workdir, ignore_errors=True)
         raise
-    from simulation_adapters.structure import StructureError, load
-
-    try:  # fail fast on unreadable input, before a job exists
-        await asyncio.to_thread(
-            load, str(top), [str(t) for t in trajs], max_atoms=state.settings.limits.max_atoms
-        )
-    except StructureError as exc:
-        shutil.rmtree(workdir, ignore_errors=True)
-        raise HTTPException(422, str(exc)) from None
     spec = JobSpec(
         topology=top,
         trajectories=trajs,

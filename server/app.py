@@ -6,18 +6,21 @@ import asyncio
 import contextlib
 import logging
 import re
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable, MutableMapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fastapi import FastAPI, WebSocket
+from fastapi import FastAPI, HTTPException, WebSocket
 from fastapi.staticfiles import StaticFiles
 from starlette.responses import PlainTextResponse
 
+from protocol.messages import SESSION_NAME
 from server import ws as ws_endpoints
 from server.api import router
+from server.auth import host_allowed
 from server.gpu import GpuQueue
 from server.jobs import JobManager
 from server.metrics import Metrics
@@ -26,7 +29,7 @@ from server.settings import ServerSettings
 from server.steering_log import SteeringLog
 
 log = logging.getLogger("scalesteer.app")
-_SESSION_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+_SESSION_NAME = re.compile(SESSION_NAME)
 
 
 @dataclass
@@ -38,7 +41,7 @@ class SessionRegistry:
     _sessions: dict[str, Session] = field(default_factory=dict)
     _lock: asyncio.Lock = field(default_factory=asyncio.Lock)
 
-    async def get_or_create(self, name: str) -> Session:
+    async def get_or_create(self, name: str, create: bool = True) -> Session:
         from protocol import ErrorCode, ProtocolError
 
         if not _SESSION_NAME.match(name):
@@ -47,6 +50,10 @@ class SessionRegistry:
             )
         async with self._lock:
             session = self._sessions.get(name)
+            if session is None and not create:
+                raise ProtocolError(
+                    ErrorCode.NOT_FOUND, f"no session named {name!r}", "hello.session"
+                )
             if session is None:
                 if len(self._sessions) >= self.limit:
                     raise ProtocolError(
@@ -57,6 +64,20 @@ class SessionRegistry:
 
     def get(self, name: str) -> Session | None:
         return self._sessions.get(name)
+
+    async def reap(self, idle_s: float, keep: str = "default") -> None:
+        """Close sessions nobody has used for `idle_s` (their GPU scenes go with them)."""
+        now = time.monotonic()
+        async with self._lock:
+            stale = [
+                s
+                for name, s in self._sessions.items()
+                if name != keep and s.idle_since is not None and now - s.idle_since > idle_s
+            ]
+            for session in stale:
+                self._sessions.pop(session.id, None)
+        for session in stale:
+            await session.close()
 
     def all(self) -> list[Session]:
         return list(self._sessions.values())
@@ -111,7 +132,7 @@ class UploadLimit:
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
                 if seen > self.limit:
-                    raise _BodyTooLargeError()
+                    raise _BodyTooLargeError(self.limit)
             return message
 
         try:
@@ -122,8 +143,37 @@ class UploadLimit:
             )(scope, receive, send)
 
 
-class _BodyTooLargeError(Exception):
-    pass
+class _BodyTooLargeError(HTTPException):
+    """Raised while a body streams in; FastAPI answers it as the 413 it is."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(413, f"request body exceeds the upload limit of {limit} bytes")
+
+
+class HostCheck:
+    """Refuses HTTP requests and WebSocket handshakes whose Host header is not this server's."""
+
+    def __init__(self, app: Any, settings: ServerSettings) -> None:
+        self.app = app
+        self.settings = settings
+
+    async def __call__(
+        self,
+        scope: MutableMapping[str, Any],
+        receive: Callable[[], Awaitable[Any]],
+        send: Callable[[Any], Awaitable[None]],
+    ) -> None:
+        if scope["type"] in ("http", "websocket"):
+            host = dict(scope.get("headers") or []).get(b"host", b"").decode("latin-1")
+            if not host_allowed(self.settings, host):
+                if scope["type"] == "websocket":
+                    await send(
+                        {"type": "websocket.close", "code": 1008, "reason": "host not allowed"}
+                    )
+                    return
+                await PlainTextResponse(f"host {host!r} not allowed", 403)(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
 
 
 def create_app(settings: ServerSettings) -> FastAPI:
@@ -158,9 +208,18 @@ def create_app(settings: ServerSettings) -> FastAPI:
             upload_dir=upload_dir,
         )
         app.state.scalesteer = state
+        await state.sessions.get_or_create("default")
+
+        async def reaper() -> None:
+            while True:
+                await asyncio.sleep(min(30.0, settings.session_idle_s / 4))
+                await state.sessions.reap(settings.session_idle_s)
+
+        reaping = asyncio.create_task(reaper(), name="session-reaper")
         try:
             yield
         finally:
+            reaping.cancel()
             await state.jobs.close()
             await state.sessions.close()
             await asyncio.to_thread(gpu.close)
@@ -186,4 +245,5 @@ def create_app(settings: ServerSettings) -> FastAPI:
     if (settings.client_dir / "index.html").is_file():
         app.mount("/", StaticFiles(directory=settings.client_dir, html=True), name="client")
     app.add_middleware(UploadLimit, limit=settings.max_upload_bytes + 1024 * 1024)
+    app.add_middleware(HostCheck, settings=settings)
     return app

@@ -5,9 +5,10 @@ from __future__ import annotations
 import hmac
 import time
 from dataclasses import dataclass
+from urllib.parse import urlsplit
 
 from protocol import Role
-from server.settings import ServerSettings
+from server.settings import ServerSettings, is_loopback
 
 STEERING_TYPES = frozenset({"sim_params", "control", "forces", "pull", "render_params"})
 SIMULATION_TYPES = frozenset({"topology", "frame", "params_ack"})
@@ -50,6 +51,27 @@ def may_send(role: Role, kind: str) -> bool:
     return False
 
 
+LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
+
+
+def _hostname(host_header: str) -> str:
+    host = host_header.strip().lower()
+    if host.startswith("["):  # [::1]:8000
+        return host[1 : host.find("]")] if "]" in host else host
+    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
+def host_allowed(settings: ServerSettings, host_header: str | None) -> bool:
+    """A loopback-bound server answers only to loopback names (or allow-listed hosts), so a
+    web page cannot reach it through a DNS name rebound to 127.0.0.1."""
+    if not is_loopback(settings.host):
+        return True
+    if not host_header:
+        return False
+    extra = {urlsplit(o).hostname for o in settings.allowed_origins if o != "*"}
+    return _hostname(host_header) in LOOPBACK_NAMES | {h for h in extra if h}
+
+
 def origin_allowed(settings: ServerSettings, origin: str | None, host_header: str | None) -> bool:
     """Browsers must come from this server's own origin or the allow-list; scripts send none."""
     if origin is None:
@@ -58,7 +80,7 @@ def origin_allowed(settings: ServerSettings, origin: str | None, host_header: st
     if origin in settings.allowed_origins or "*" in settings.allowed_origins:
         return True
     own = {f"http://{settings.host}:{settings.port}", f"https://{settings.host}:{settings.port}"}
-    if host_header:
+    if host_header and host_allowed(settings, host_header):
         own |= {f"http://{host_header}", f"https://{host_header}"}
     if settings.host in ("127.0.0.1", "localhost", "::1"):
         own |= {f"http://localhost:{settings.port}", f"http://127.0.0.1:{settings.port}"}

@@ -63,6 +63,7 @@ class Client:
             return
         if len(self._control) >= MAX_QUEUED_CONTROL:
             log.warning("client %s is not reading; disconnecting", self.client_id)
+            self._control.clear()
             self.state = ClientState.CLOSING
             self._wake.set()
             return
@@ -86,14 +87,20 @@ class Client:
         self.recent_errors.append(now)
         return sum(1 for t in self.recent_errors if now - t < 10.0)
 
+    def _is(self, state: ClientState) -> bool:
+        """The state now (other tasks change it while the sender awaits)."""
+        return self.state is state
+
     async def run_sender(self, on_image_sent: Callable[[], None] | None = None) -> None:
         """Drain the queues until the client closes; control first, then the latest image."""
         try:
-            while self.state is ClientState.CONNECTED:
+            while not self._is(ClientState.CLOSED):
                 await self._wake.wait()
                 self._wake.clear()
-                while self._control and self.state is ClientState.CONNECTED:
+                while self._control and not self._is(ClientState.CLOSED):
                     await self.ws.send_bytes(self._control.popleft())
+                if self._is(ClientState.CLOSING):
+                    break  # what was queued is out; now close
                 if self._image is not None and self.state is ClientState.CONNECTED:
                     data, self._image = self._image, None
                     await self.ws.send_bytes(data)
@@ -111,3 +118,9 @@ class Client:
     def close(self) -> None:
         self.state = ClientState.CLOSED
         self._wake.set()
+
+    def close_after_flush(self) -> None:
+        """Send what is queued, then close the socket (1008)."""
+        if self.state is ClientState.CONNECTED:
+            self.state = ClientState.CLOSING
+            self._wake.set()

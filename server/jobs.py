@@ -124,7 +124,7 @@ class JobManager:
         from simulation_adapters.structure import StructureError, load
 
         spec = job.spec
-        key = f"job-{job.id}"
+        key = f"job:{job.id}"
         writer: FrameWriter | None = None
         loop = asyncio.get_running_loop()
         try:

@@ -82,12 +82,15 @@ class Session:
         steering_log: SteeringLog,
     ) -> None:
         self.id = session_id
+        self.scene_key = f"session:{session_id}"  # GPU scene; ':' never occurs in a name
         self.settings = settings
         self.gpu = gpu
         self.encoders = encoders
         self.metrics = metrics
         self.steering_log = steering_log
         self.created = time.time()
+        self.idle_since: float | None = time.monotonic()
+        """When the last client and the simulation left (None while anyone is connected)."""
         self.clients: dict[str, Client] = {}
         self.sim: Client | None = None
         self.topology: p.Topology | None = None
@@ -124,16 +127,18 @@ class Session:
     # ------------------------------------------------------------------ clients
 
     def attach(self, client: Client) -> None:
+        self.idle_since = None
         if client.role == "simulation":
             if self.sim is not None and self.sim is not client:
                 old = self.sim
+                self._fail_pending("the simulation was replaced by a new connection")
                 old.send(
                     p.Error(
                         code=p.ErrorCode.FORBIDDEN,
                         message="replaced by a new simulation connection",
                     )
                 )
-                old.close()
+                old.close_after_flush()
             self.sim = client
         else:
             self.clients[client.client_id] = client
@@ -151,11 +156,7 @@ class Session:
                 self.status = self.status.model_copy(
                     update={"state": "disconnected", "steps_per_s": 0.0}
                 )
-                for seq, pending in list(self.pending.items()):
-                    self.pending.pop(seq)
-                    self._reply_ack(
-                        pending, p.ParamsAck(ref=0, ok=False, detail="simulation disconnected")
-                    )
+                self._fail_pending("simulation disconnected")
                 self.broadcast(p.State(sim=self.status))
         else:
             self.clients.pop(client.client_id, None)
@@ -166,6 +167,13 @@ class Session:
                 self._send_forces()
                 self.broadcast(p.State(pulling=[a.pull for a in self.pulls.values()]))
         self.broadcast(p.State(clients=self.client_infos()))
+        if not self.clients and self.sim is None:
+            self.idle_since = time.monotonic()
+
+    def _fail_pending(self, why: str) -> None:
+        """Steering forwarded to a simulation that is gone will never be acknowledged."""
+        for seq in list(self.pending):
+            self._reply_ack(self.pending.pop(seq), p.ParamsAck(ref=0, ok=False, detail=why))
 
     def client_infos(self) -> list[p.ClientInfo]:
         infos = [c.info() for c in self.clients.values()]
@@ -358,6 +366,16 @@ class Session:
                 self._check_atoms(np.asarray([message.atom]), "pull.atom", message.seq)
                 if message.release:
                     self.pulls.pop(message.atom, None)
+                elif (
+                    message.atom not in self.pulls
+                    and len(self.pulls) >= self.settings.limits.max_forces
+                ):
+                    raise p.ProtocolError(
+                        p.ErrorCode.TOO_LARGE,
+                        f"at most {self.settings.limits.max_forces} atoms may be pulled at once",
+                        "pull.atom",
+                        message.seq,
+                    )
                 else:
                     self.pulls[message.atom] = ActivePull(message, client.client_id)
                 log_id = self._log(
@@ -481,6 +499,8 @@ class Session:
             if self._rendered.get(key) == version and not any(c.needs_image for c in members):
                 continue
             refs = {c.client_id: c.view_ref for c in members}
+            for c in members:  # a view arriving during the render sets it again
+                c.needs_image = False
             camera = p.Camera.model_validate_json(camera_json)
             await self._render_group(members, camera, w, h, interactive, refs)
             self._rendered[key] = version
@@ -512,7 +532,7 @@ class Session:
         want_hist = not interactive and now - self._last_hist > 1.0
         out: RenderOutput = await self.gpu.call(
             self.gpu.render_sync,
-            self.id,
+            self.scene_key,
             self.topology,
             self.topology_id,
             self.positions,
@@ -554,7 +574,6 @@ class Session:
             histogram=hist,
         )
         for client in members:
-            client.needs_image = False
             if client.offer_image(base.model_copy(update={"ref": refs.get(client.client_id)})):
                 self.metrics.frames_dropped.inc()
 
@@ -572,7 +591,7 @@ class Session:
         topo, positions = self.topology, self.positions
         atom, depth = await self.gpu.call(
             self.gpu.pick_sync,
-            self.id,
+            self.scene_key,
             topo,
             self.topology_id,
             positions,
@@ -643,4 +662,4 @@ class Session:
         for task in self._tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        await self.gpu.release(self.id)
+        await self.gpu.release(self.scene_key)

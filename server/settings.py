@@ -39,6 +39,7 @@ class ServerSettings:
     viewer_limits: Limits = VIEWER_LIMITS
     max_upload_bytes: int = 512 * 1024 * 1024
     max_sessions: int = 64
+    session_idle_s: float = 600.0
     interactive_idle_s: float = 0.15
     interactive_scale: float = 0.5
     interactive_jpeg_quality: int = 60

@@ -15,7 +15,9 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-_SAFE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+from protocol.messages import SESSION_NAME
+
+_SAFE = re.compile(SESSION_NAME)
 
 
 class SteeringLog:
@@ -28,7 +30,7 @@ class SteeringLog:
         self._lock = threading.Lock()
 
     def path(self, session: str) -> Path:
-        if not _SAFE.match(session) or session.startswith("."):
+        if not _SAFE.match(session):
             raise ValueError(f"invalid session name {session!r}")
         return self.directory / f"{session}.jsonl"
 

@@ -85,10 +85,13 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
                 1008,
             )
         try:
-            session = await state.sessions.get_or_create(hello.session or "default")
+            session = await state.sessions.get_or_create(
+                hello.session or "default", create=role != "viewer"
+            )
         except p.ProtocolError as err:
             raise RefusedError(err.with_ref(hello.seq), 1008) from None
-        limits = settings.limits if role != "viewer" else settings.viewer_limits
+        # browsers and scripts send only small control messages; simulations send frames
+        limits = settings.limits if endpoint == "sim" else settings.viewer_limits
         client = Client(
             client_id=f"c{next(_client_ids)}",
             role=role,
@@ -183,7 +186,18 @@ async def _receive_loop(
                 message = await asyncio.to_thread(p.decode, raw, limits)
             else:
                 message = p.decode(raw, limits)
-            await _dispatch(session, client, message)
+            try:
+                await _dispatch(session, client, message)
+            except p.ProtocolError:
+                raise
+            except Exception:  # a server fault: logged here, reported without details
+                log.exception("handling %s from %s failed", message.type, client.client_id)
+                raise p.ProtocolError(
+                    p.ErrorCode.INTERNAL,
+                    "the server failed to handle this message; see its log",
+                    message.type,
+                    message.seq,
+                ) from None
         except p.ProtocolError as err:
             state.metrics.errors.labels(err.code.value).inc()
             client.send(p.error_message(err))
@@ -210,6 +224,8 @@ async def _dispatch(session: object, client: Client, message: p.Message) -> None
         raise p.ProtocolError(
             p.ErrorCode.RATE_LIMITED, f"too many {kind} messages; slow down", "type", message.seq
         )
+    if client.role == "simulation" and session.sim is not client:
+        return  # a replaced simulation connection: its last words are not applied
     match message:
         case p.Topology():
             session.on_topology(message)
@@ -227,8 +243,11 @@ async def _dispatch(session: object, client: Client, message: p.Message) -> None
             )
         case p.Pong() | p.Error():
             if isinstance(message, p.Error):
-                log.info(
-                    "client %s reported %s: %s", client.client_id, message.code, message.message
+                log.debug(  # peer-chosen text: quoted, cut short, not at info level
+                    "client %s reported %s: %r",
+                    client.client_id,
+                    message.code,
+                    message.message[:200],
                 )
         case _:
             session.steer(client, message)

@@ -27,8 +27,20 @@ def test_unsent_images_are_replaced_not_queued() -> None:
 
 def test_control_messages_keep_order_and_a_reader_that_never_reads_is_cut_off() -> None:
     client = make_client()
-    for i in range(MAX_QUEUED_CONTROL + 5):
+    for i in range(MAX_QUEUED_CONTROL):
         client.send(p.Pong(ref=i))
     assert len(client._control) == MAX_QUEUED_CONTROL
     assert [p.decode(client._control[i]).ref for i in (0, 1, 2)] == [0, 1, 2]  # type: ignore[attr-defined]
+    assert client.state is ClientState.CONNECTED
+    client.send(p.Pong(ref=MAX_QUEUED_CONTROL))  # one too many: dropped, and the client goes
     assert client.state is ClientState.CLOSING
+    assert len(client._control) == 0
+
+
+def test_replaced_client_flushes_then_closes() -> None:
+    client = make_client()
+    client.send(p.Error(code=p.ErrorCode.FORBIDDEN, message="replaced"))
+    client.close_after_flush()
+    assert client.state is ClientState.CLOSING and len(client._control) == 1
+    client.offer_image(image(1))  # nothing new is taken once closing
+    assert client._image is None

@@ -61,6 +61,8 @@ def test_render_rejects_bad_input_with_a_reason(live_server: LiveServer) -> None
         assert r.status_code == 422 and "params.sigma_A" in r.json()["detail"]
         r = c.post("/api/render", files={"file": ("a.pdb", b"x")})
         assert r.status_code == 401
+        r = c.post("/api/render", headers=AUTH, files={"file": ("..", b"ATOM")})
+        assert r.status_code == 422 and "file name" in r.json()["detail"]
 
 
 def test_upload_size_limit(tmp_path: Path) -> None:

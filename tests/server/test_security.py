@@ -164,3 +164,78 @@ def test_hostile_input_on_both_endpoints_leaves_other_sessions_serving(
     assert codes.get("invalid_message", 0) > 0
     sim.close()
     watcher.close()
+
+
+def test_foreign_host_header_is_refused(live_server: LiveServer) -> None:
+    """A page reaching the loopback server through a rebound DNS name sends its own Host."""
+    import httpx
+
+    r = httpx.get(
+        f"{live_server.url}/healthz", headers={"Host": f"evil.example:{live_server.port}"}
+    )
+    assert r.status_code == 403
+    assert httpx.get(f"{live_server.url}/healthz").status_code == 200
+    with pytest.raises(InvalidStatus):
+        Peer(
+            live_server.view_url,
+            "viewer",
+            live_server.viewer_token,
+            origin=f"http://evil.example:{live_server.port}",
+        )
+
+
+def test_viewers_join_but_do_not_create_sessions(live_server: LiveServer) -> None:
+    peer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "made-up", hello=False)
+    peer.send(p.Hello(role="viewer", token=live_server.viewer_token, session="made-up"))
+    error, _ = closed_with(peer)
+    assert error is not None and error.code == "not_found"
+    default = Peer(live_server.view_url, "viewer", live_server.viewer_token)  # always exists
+    assert default.welcome is not None and default.welcome.session_id == "default"
+    default.close()
+    bad = Peer(live_server.view_url, "steerer", live_server.token, hello=False)
+    bad.send_raw(
+        msgpack.packb({"type": "hello", "role": "steerer", "token": "test-token", "session": ".."})
+    )
+    error, _ = closed_with(bad)
+    assert error is not None and error.code == "invalid_message" and error.path == "hello.session"
+
+
+def test_a_new_simulation_replaces_the_old_one_cleanly(live_server: LiveServer) -> None:
+    old = Peer(live_server.ws_url, "simulation", live_server.token)
+    topo, pos = molecule(10)
+    old.send(topo)
+    old.send(frame(pos, 0))
+    steerer = Peer(live_server.view_url, "steerer", live_server.token)
+    seq = steerer.send(p.SimParams(temperature_K=320.0))
+    old.expect(p.SimParams)  # forwarded, never acknowledged
+    new = Peer(live_server.ws_url, "simulation", live_server.token)
+    error, code = closed_with(old)
+    assert error is not None and "replaced" in error.message and code == 1008
+    ack = steerer.expect(p.ParamsAck, where=lambda m: m.ref == seq)
+    assert not ack.ok and "replaced" in ack.detail
+    new.send(topo)
+    new.send(frame(pos, 5))
+    steerer.expect(p.Image, 60, where=lambda m: m.step == 5)
+    new.close()
+    steerer.close()
+
+
+def test_pulls_are_capped(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from tests.conftest import make_settings, start_server
+
+    server = start_server(make_settings(tmp_path, limits=p.Limits(max_forces=2)))
+    try:
+        sim = Peer(server.ws_url, "simulation", server.token)
+        topo, pos = molecule(10)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        steerer = Peer(server.view_url, "steerer", server.token)
+        for atom in (0, 1):
+            steerer.send(p.Pull(atom=atom, target=(0.0, 0.0, 0.0)))
+        seq = steerer.send(p.Pull(atom=2, target=(0.0, 0.0, 0.0)))
+        err = steerer.expect(p.Error, where=lambda m: m.ref == seq)
+        assert err.code == "too_large" and err.path == "pull.atom"
+        sim.close()
+        steerer.close()
+    finally:
+        server.stop()
