@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  read-only viewer link: {view}")
     n_atoms = simulation.topology.getNumAtoms()
     print(f"  simulation: villin headpiece, {n_atoms} atoms, OpenMM {platform}")
-    print("  try: raise the temperature to 450-600 K and watch the helices fray; 300 K calms it")
+    print("  try: raise the temperature to 450-600 K and watch the motion grow; 300 K calms it")
     print("  Ctrl-C stops the demo\n", flush=True)
     if not args.no_browser:
         with contextlib.suppress(Exception):
