@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from protocol import Control, Frame, Message, SimParams, WireArray
+from simulation_adapters.cli_support import configure_logging, parse
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from simulation_adapters.structure import Structure, StructureError, load
 
@@ -303,16 +304,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = build_parser()
-    try:
-        args = ap.parse_args(argv)
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s"
-    )
-    if not args.verbose:  # MDAnalysis notes optional packages it lacks at import
-        logging.getLogger("MDAnalysis").setLevel(logging.ERROR)
+    args = parse(build_parser(), argv)
+    if isinstance(args, int):
+        return args
+    configure_logging(args.verbose)
     if not args.fps > 0:
         print("scalesteer replay: error: --fps must be positive", file=sys.stderr)
         return 2
