@@ -378,6 +378,7 @@ class Bench:
             "grid_build": [],
             "baselines": [],
             "ablation": [],
+            "graphs": [],
             "registers": [],
             "max_registers": args.max_registers,
             "notes": [],
@@ -730,6 +731,30 @@ class Bench:
             self.log(f"register cap for the rest of the run: {best or 'compiler choice'}")
         self.save()
 
+    # ---- graph replay vs launching kernels one by one
+    def graphs(self, cases: list[tuple[int, int, int]]) -> None:
+        """The same frames with the frame's launches replayed as one CUDA graph (the default)
+        and launched one by one: what launch overhead costs at each size."""
+        for n, w, h in cases:
+            for replay in (True, False):
+                if self.clock.left() < 15:
+                    return
+                r, frames = self.renderer(n, graphs=replay)
+                cam = fit_camera(frames[0], w, h)
+                params = RenderParams()
+                s = self.timed(
+                    self.frame_step(r, frames, params, cam, w, h), self.args.baseline_frames
+                )
+                self.results["graphs"].append(
+                    {"n_atoms": n, "width": w, "height": h, "graphs": replay, **s}
+                )
+                self.save()
+                self.log(
+                    f"graphs={replay} N={n:,} {w}x{h}: {s['median_ms']:.3f} ms "
+                    f"{fmt_stages(s.get('stages_ms', {}))}"
+                )
+                del r
+
     # ---- ablation: cell size
     def ablation(self, sizes: list[int], w: int, h: int) -> None:
         for n in sizes:
@@ -894,7 +919,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--budget-s", type=float, default=480.0, help="wall-clock budget of the run")
     p.add_argument("--max-config-s", type=float, default=20.0, help="at most this long per config")
     p.add_argument("--max-voxels", type=int, default=1 << 28)
-    p.add_argument("--sections", default="registers,main,grid,baselines,ablation")
+    p.add_argument("--sections", default="registers,main,grid,graphs,baselines,ablation")
     p.add_argument("--sizes", default="", help="comma-separated atom counts (main table)")
     p.add_argument("--images", default="", help="folder for sample images (1920x1080 runs)")
     p.add_argument("--image-n", type=int, default=1_000_000)
@@ -933,6 +958,11 @@ def main(argv: list[str] | None = None) -> int:
             )
     if "main" in sections:
         b.main_table(sizes, res, grid="grid" in sections)
+    if "graphs" in sections:
+        if args.quick:
+            b.graphs([(496, 64, 48)])
+        else:
+            b.graphs([(496, 500, 500), (5_684, 500, 500), (100_000, 1920, 1080)])
     if "baselines" in sections:
         b.baselines(base_sizes, *base_res, voxels)
     if "ablation" in sections:

@@ -80,6 +80,12 @@ class CameraFrame:
     width: int
     height: int
 
+    def key(self) -> tuple[float | int | bool, ...]:
+        """Every value as a hashable tuple: equal keys draw the same rays."""
+        vectors = (self.eye, self.right, self.up, self.forward)
+        values = tuple(float(v) for vec in vectors for v in vec)
+        return (*values, self.scale, self.aspect, self.ortho, self.width, self.height)
+
 
 def camera_frame(camera: Camera, width: int, height: int) -> CameraFrame:
     r = quat_to_matrix(camera.orientation)

@@ -9,8 +9,12 @@ Buffers are sized by the topology and the largest image so far, never per frame.
 
 from __future__ import annotations
 
+import functools
+import logging
 import math
 import time
+from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,7 +26,7 @@ from protocol import Camera, RenderParams, Topology
 from server.render import colors, raycast, transfer
 from server.render import device as devmod
 from server.render.camera import CameraFrame, camera_frame
-from server.render.density import GaussianField, gather_atoms_kernel
+from server.render.density import GAUSSIAN, DensityModel, GaussianField, gather_atoms_kernel
 from server.render.errors import RenderError
 from server.render.grid import CellGrid
 
@@ -33,6 +37,10 @@ HISTOGRAM_SIDE = 64
 HISTOGRAM_X_MAX = 3.0
 AO_STEP_SIGMAS = 0.6
 STAGES = ("upload", "grid", "raycast", "total")
+GRAPH_CACHE = 4
+"""CUDA graphs kept per renderer (least recently used dropped): one per distinct frame set-up."""
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -56,7 +64,10 @@ class Renderer:
     cutoff; the cell grows when memory caps the cell count); `empty_space_skipping=False`
     marches every lattice sample (a baseline); `fast_math` picks CUDA's approximate
     transcendentals; `max_registers` caps the marching kernels' registers on CUDA (0 leaves
-    it to the compiler).
+    it to the compiler); `density` is the model the ray caster evaluates (any model over
+    `GaussianField`, the sorted atoms and cell grid this class builds); `graphs` replays
+    repeated frame set-ups as captured graphs (None: on CUDA devices only; True: also on the
+    CPU, through warp's API capture).
     """
 
     def __init__(
@@ -69,6 +80,8 @@ class Renderer:
         empty_space_skipping: bool = True,
         fast_math: bool = True,
         max_registers: int = 64,
+        density: DensityModel = GAUSSIAN,
+        graphs: bool | None = None,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
@@ -81,8 +94,14 @@ class Renderer:
         self.empty_space_skipping = bool(empty_space_skipping)
         self._dev = wp.get_device(self.device)
         self._cuda = bool(self._dev.is_cuda)
-        self._kernels = raycast.kernels_for(fast_math=fast_math, max_registers=max_registers)
+        if density.field is not GaussianField:
+            raise RenderError(f"density {density.name!r} needs a GaussianField to draw with")
+        self._kernels = raycast.kernels_for(density, fast_math, max_registers)
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        self._graphs: OrderedDict[tuple[Any, ...], Any] | None = (
+            OrderedDict() if graphs or (graphs is None and self._cuda) else None
+        )
+        self._last_launch: tuple[Any, ...] | None = None
 
         self._topology: Topology | None = None
         self._n = 0
@@ -124,6 +143,7 @@ class Renderer:
         else:
             self._staging = wp.zeros(m, dtype=wp.vec3, device="cpu")
         self._atom_capacity = n
+        self._drop_graphs()
 
     def _alloc_pixels(self, count: int) -> None:
         if count <= self._pixels:
@@ -134,6 +154,7 @@ class Renderer:
         self._depth = wp.zeros(count, dtype=float, device=d)
         self._ids = wp.zeros(count, dtype=wp.int32, device=d)
         self._pixels = count
+        self._drop_graphs()
 
     def memory_bytes(self) -> dict[str, int]:
         """Device bytes by purpose; `per_atom` + `grid` is what the density costs beyond
@@ -343,16 +364,15 @@ class Renderer:
         c = self._tf.clear_below
         return -1.0 if c < 0 else (math.inf if math.isinf(c) else c * d.iso)
 
-    def _build_grid(self, p: RenderParams, d: Derived, f: GaussianField, stop: float) -> None:
-        n = self._n
+    def _grid_key_for(self, d: Derived, stop: float) -> tuple[Any, ...] | None:
+        """The key of the grid this frame needs, or None when the last one still holds."""
         key = (self._positions_version, d, self.cells_per_cutoff, stop)
-        if n == 0 or not self._have_positions:
-            self._grid.invalidate()
-            self._grid_key = None
-            return
-        if key == self._grid_key:
-            return
+        return None if key == self._grid_key else key
+
+    def _build_grid(self, d: Derived, f: GaussianField, stop: float) -> None:
+        """Grid, sorted atoms, cell bounds and brick bounds: launches only."""
         dev = self.device
+        n = self._n
         self._grid.build(self._pos, n, d.reach, self.cells_per_cutoff)
         wp.launch(
             gather_atoms_kernel,
@@ -371,7 +391,6 @@ class Renderer:
         )
         wp.launch(self._kernels.bound, self._grid.capacity, (f, stop, f.bound), device=dev)
         self._grid.build_bricks()
-        self._grid_key = key
 
     def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:
         light = p.lighting
@@ -391,42 +410,31 @@ class Renderer:
         sh.depth_cue = float(light.depth_cue)
         return sh
 
-    def render(self, params: RenderParams, camera: Camera, width: int, height: int) -> None:
-        """Render one image; it stays on the device (read it with `read_rgba` and friends).
-
-        Raises RenderError for invalid input before launching anything."""
-        t_start = time.perf_counter()
-        w, h = self._check_size(width, height)
-        self._check_params(params)
-        frame = self._check_camera(camera, w, h)
-        if self._n and not self._have_positions:
-            raise RenderError("no positions: call set_positions after set_topology")
-        d = self._derive(params)
-        if params.mode == "volume":
-            self._update_tf(params)
-        if self._n:
-            self._update_colors(params)
-        self._alloc_pixels(w * h)
+    def _launch_frame(
+        self,
+        params: RenderParams,
+        d: Derived,
+        f: GaussianField,
+        stop: float,
+        frame: CameraFrame,
+        build: bool,
+    ) -> float:
+        """Every device operation of one frame after the upload, in order: the same calls run
+        eagerly or into a graph capture. Returns the host time at the grid/cast boundary."""
         dev = self.device
-        stop = self._stop_level(params, d)
-        f = self._field(d)
         k = self._kernels
-        ev = self._events if self._cuda else None
-
-        if ev is not None:
-            self._stream.record_event(ev[2])
-        t_grid = time.perf_counter()
-        self._build_grid(params, d, f, stop)
-        if ev is not None:
-            self._stream.record_event(ev[3])
+        if build:
+            self._build_grid(d, f, stop)
+        if self._cuda:
+            self._stream.record_event(self._events[3])
         t_cast = time.perf_counter()
-
+        w, h = frame.width, frame.height
         cam = raycast.camera_data(frame)
         m = raycast.March()
         m.iso = d.iso
         m.dt = d.dt
         m.skip_below = stop if params.mode == "iso" else -1.0
-        m.refine = raycast.REFINE_STEPS
+        m.refine = raycast.REFINE_PASSES
         sh = self._shading(params, d, frame)
         threads = raycast.launch_size(w, h)
         if params.mode == "iso":
@@ -452,6 +460,79 @@ class Renderer:
                 (f, cam, m, vol, sh, self._rgba, self._depth, self._ids),
                 device=dev,
             )
+        return t_cast
+
+    def _replay_or_launch(self, key: tuple[Any, ...], launch: Callable[[], float]) -> float:
+        """Replay the frame's graph when one exists for exactly these launches, capture
+        one when the same launches come twice in a row (a streamed trajectory, a still
+        camera), else launch eagerly. A graph replays every kernel, sort and scan with one
+        call, which removes the per-launch host cost that dominates small molecules."""
+        graphs = self._graphs
+        assert graphs is not None
+        graph = graphs.get(key)
+        if graph is None and key == self._last_launch:
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                    launch()
+                graph = cap.graph
+            except Exception as exc:  # any capture failure: launch eagerly from now on
+                log.warning("graph capture failed, launching kernels one by one: %s", exc)
+                self._graphs = None
+                self._last_launch = None
+                return launch()
+            graphs[key] = graph
+            while len(graphs) > GRAPH_CACHE:
+                graphs.pop(next(iter(graphs)))
+        self._last_launch = key
+        if graph is None:
+            return launch()
+        graphs.move_to_end(key)
+        wp.capture_launch(graph)
+        return time.perf_counter()
+
+    def _drop_graphs(self) -> None:
+        """Graphs hold buffer addresses: forget them when buffers are reallocated."""
+        if self._graphs is not None:
+            self._graphs.clear()
+        self._last_launch = None
+
+    def render(self, params: RenderParams, camera: Camera, width: int, height: int) -> None:
+        """Render one image; it stays on the device (read it with `read_rgba` and friends).
+
+        Raises RenderError for invalid input before launching anything."""
+        t_start = time.perf_counter()
+        w, h = self._check_size(width, height)
+        self._check_params(params)
+        frame = self._check_camera(camera, w, h)
+        if self._n and not self._have_positions:
+            raise RenderError("no positions: call set_positions after set_topology")
+        d = self._derive(params)
+        if params.mode == "volume":
+            self._update_tf(params)
+        if self._n:
+            self._update_colors(params)
+        self._alloc_pixels(w * h)
+        stop = self._stop_level(params, d)
+        f = self._field(d)
+        ev = self._events if self._cuda else None
+        grid_key = self._grid_key_for(d, stop) if self._n else None
+        if not self._n:
+            self._grid.invalidate()
+            self._grid_key = None
+
+        if ev is not None:
+            self._stream.record_event(ev[2])
+        t_grid = time.perf_counter()
+        launch = functools.partial(
+            self._launch_frame, params, d, f, stop, frame, grid_key is not None
+        )
+        if self._graphs is not None:
+            key = (grid_key is not None, self._n, d, stop, params.model_dump_json(), frame.key())
+            t_cast = self._replay_or_launch(key, launch)
+        else:
+            t_cast = launch()
+        if grid_key is not None:
+            self._grid_key = grid_key
         if ev is not None:
             self._stream.record_event(ev[4])
             wp.synchronize_event(ev[4])
@@ -519,7 +600,15 @@ class Renderer:
         if self._n:
             self._update_colors(params)
         f = self._field(d)
-        self._build_grid(params, d, f, self._stop_level(params, d))
+        stop = self._stop_level(params, d)
+        if not (self._n and self._have_positions):
+            self._grid.invalidate()
+            self._grid_key = None
+        else:
+            key = self._grid_key_for(d, stop)
+            if key is not None:
+                self._build_grid(d, f, stop)
+                self._grid_key = key
         self._last = (params, d)
         return f
 

@@ -67,7 +67,9 @@ def blended_color(mol: Molecule, points: npt.ArrayLike) -> F:
 @dataclass(frozen=True)
 class IsoResult:
     t: F  # (rays,) refined hit distance, inf for none
-    ambiguous: npt.NDArray[np.bool_]  # a lattice sample lies within 1e-4 of the iso level
+    # a lattice sample lies within 1e-4 of the iso level, or the hit bracket crosses it
+    # more than once
+    ambiguous: npt.NDArray[np.bool_]
 
 
 def first_crossings(
@@ -98,9 +100,12 @@ def first_crossings(
             amb[r] = bool(near.any())
             continue
         j = change[0]
-        amb[r] = bool(near[: j + 1].any())
         a, b = ts[j] - dt, ts[j]
         inside = above[0]
+        # the cutoff makes S jump where an atom enters reach, so a bracket can hold several
+        # crossings; which one a refinement lands on is then a matter of method
+        fine = density_chunked(mol, o[r] + np.linspace(a, b, 257)[:, None] * d[r]) >= iso
+        amb[r] = bool(near[: j + 1].any()) or int(np.count_nonzero(fine[1:] != fine[:-1])) > 1
         for _ in range(60):
             m = 0.5 * (a + b)
             vm = density_chunked(mol, (o[r] + m * d[r])[None, :])[0]

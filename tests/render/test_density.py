@@ -3,6 +3,7 @@ the cell grid's neighbour completeness."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import no_type_check
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 import warp as wp
 
 from protocol import RenderParams
-from server.render import colors
+from server.render import colors, density
 from server.render.camera import fit_camera
 from server.render.density import GaussianField
 from server.render.grid import CellGrid
@@ -209,3 +210,92 @@ def test_vdw_mode_widens_big_atoms(device: str) -> None:
     s_h = 1.0 * colors.VDW_RADII["H"] / colors.R_REF
     s_s = 1.0 * colors.VDW_RADII["S"] / colors.R_REF
     np.testing.assert_allclose(vals, np.exp(-(1.5**2) / (2 * np.array([s_h, s_s]) ** 2)), rtol=1e-5)
+
+
+@wp.kernel
+@no_type_check
+def _batched_kernel(
+    f: GaussianField,
+    o: wp.array[wp.vec3],
+    d: wp.array[wp.vec3],
+    ts: wp.array[wp.vec4],
+    single: wp.array2d[float],
+    single_grad: wp.array2d[wp.vec4],
+    four: wp.array[wp.vec4],
+    two: wp.array2d[wp.vec4],
+):
+    i = wp.tid()
+    t = ts[i]
+    for q in range(4):
+        p = o[i] + d[i] * t[q]
+        single[i, q] = density.gaussian_value(f, p)
+        single_grad[i, q] = density.gaussian_value_grad(f, p)
+    four[i] = density.gaussian_value4(f, o[i], d[i], t)
+    g0, g1 = density.gaussian_value_grad2(f, o[i], d[i], wp.vec2(t[0], t[1]))
+    two[i, 0] = g0
+    two[i, 1] = g1
+
+
+@pytest.mark.parametrize(
+    ("radius_mode", "offset", "spacing"),
+    [
+        ("uniform", (0.0, 0.0, 0.0), 0.4),
+        ("uniform", (-350.0, 1200.0, -75.0), 1.3),
+        ("vdw", (-20.0, -30.0, -40.0), 0.6),
+    ],
+)
+def test_batched_samples_equal_single_samples(
+    device: str, radius_mode: str, offset: tuple[float, float, float], spacing: float
+) -> None:
+    """`value4` / `value_grad2` (four or two points along a line in one pass over the
+    neighbours) give what `value` / `value_grad` give point by point, also for segments longer
+    than a cell and lines in every direction."""
+    n = 80
+    top = make_topology(n, radii=None)
+    pos = blob(n, seed=13, offset=offset)
+    params = RenderParams(sigma_A=1.3, radius_mode=radius_mode)  # type: ignore[arg-type]
+    r = render(device, top, pos, params, fit_camera(pos, 8, 6), 8, 6)
+    f = r.prepare(params)
+    rng = np.random.default_rng(17)
+    m = 300
+    origins = _points_near(pos, m, seed=19, spread=4.0)
+    dirs = rng.normal(size=(m, 3))
+    dirs = (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)).astype(np.float32)
+    t0 = rng.uniform(-2.0, 2.0, size=(m, 1))
+    ts = (t0 + spacing * np.arange(4)[None, :]).astype(np.float32)
+    arr = [wp.array(a, dtype=wp.vec3, device=device) for a in (origins, dirs)]
+    wts = wp.array(ts, dtype=wp.vec4, device=device)
+    single = wp.zeros((m, 4), dtype=float, device=device)
+    single_grad = wp.zeros((m, 4), dtype=wp.vec4, device=device)
+    four = wp.zeros(m, dtype=wp.vec4, device=device)
+    two = wp.zeros((m, 2), dtype=wp.vec4, device=device)
+    wp.launch(_batched_kernel, m, (f, *arr, wts, single, single_grad, four, two), device=device)
+    ref = single.numpy()
+    assert (ref > 1e-3).sum() > 300
+    scale = float(ref.max())
+    np.testing.assert_allclose(four.numpy(), ref, rtol=2e-6, atol=1e-6 * scale)
+    g = single_grad.numpy()[:, :2, :]
+    gscale = float(np.abs(g).max())
+    np.testing.assert_allclose(two.numpy(), g, rtol=2e-6, atol=1e-6 * gscale)
+
+
+def test_a_model_without_batched_forms_draws_the_same_image(device: str) -> None:
+    """The caster's per-point fallbacks for `value4` / `value_grad2` (what a new density
+    model gets when it provides only the four required functions)."""
+    plain = dataclasses.replace(
+        density.GAUSSIAN, name="gaussian-per-point", value4=None, value_grad2=None
+    )
+    n = 40
+    top = make_topology(n)
+    pos = blob(n, seed=6)
+    cam = fit_camera(pos, 40, 30)
+    for mode in ("iso", "volume"):
+        params = RenderParams(mode=mode, sigma_A=1.2)  # type: ignore[arg-type]
+        a = render(device, top, pos, params, cam, 40, 30)
+        b = render(device, top, pos, params, cam, 40, 30, density=plain)
+        diff = np.abs(a.read_rgba().astype(int) - b.read_rgba().astype(int))
+        assert diff.max() <= 1, mode
+        hit = np.isfinite(a.read_depth())
+        assert hit.mean() > (0.05 if mode == "iso" else 0.02), mode
+        np.testing.assert_array_equal(hit, np.isfinite(b.read_depth()))
+        np.testing.assert_allclose(a.read_depth()[hit], b.read_depth()[hit], atol=1e-4)

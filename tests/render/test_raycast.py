@@ -55,7 +55,7 @@ def test_iso_depth_matches_root_finder(device: str, projection: str) -> None:
     mismatch = hit != hit_ref
     assert np.all(amb[mismatch]), f"{mismatch.sum()} unexplained hit/miss differences"
     both = hit & hit_ref & ~amb
-    tol = dt / 2**raycast.REFINE_STEPS + 2e-4
+    tol = dt / raycast.REFINE_SHRINK + 2e-4
     err = np.abs(depth[both] - t_ref[both])
     assert err.max() <= tol, err.max()
     assert np.median(err) <= tol / 20, "the final secant step should land far inside the bracket"

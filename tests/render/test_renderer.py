@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol import Lighting, RenderParams
+from protocol import Camera, Lighting, RenderParams
 from server.render import Renderer
 from server.render.camera import fit_camera, orbit
 from server.render.grid import MIN_CELLS
@@ -128,3 +128,39 @@ def test_memory_per_atom_within_budget(device: str) -> None:
     beyond = mem["per_atom"] + mem["grid"] + mem["other"]
     # 64 bytes per atom plus the fixed minimum grid of MIN_CELLS cells
     assert beyond <= 64 * n + 8 * MIN_CELLS + 64 * 1024
+
+
+def test_graph_replay_draws_what_eager_launches_draw(device: str) -> None:
+    """Frames replayed from a captured graph (a streamed trajectory, a still camera) equal
+    eager launches while positions, camera, parameters, topology and image size change."""
+    n = 60
+    top = make_topology(n)
+    pos = blob(n, seed=3)
+    cam = fit_camera(pos, 32, 24)
+    replay = Renderer(device, graphs=True)
+    eager = Renderer(device, graphs=False)
+    rng = np.random.default_rng(5)
+    steps: list[tuple[str, RenderParams, Camera, int, int]] = (
+        [("stream", RenderParams(sigma_A=1.3), cam, 32, 24)] * 4
+        + [("camera", RenderParams(sigma_A=1.3), orbit(cam, 30.0, 10.0), 32, 24)] * 3
+        + [("volume", RenderParams(mode="volume", sigma_A=1.1), cam, 32, 24)] * 3
+        + [("bigger", RenderParams(sigma_A=1.3), cam, 48, 40)] * 3
+    )
+    for r in (replay, eager):
+        r.set_topology(top)
+    replayed = 0
+    for i, (what, params, camera, w, h) in enumerate(steps):
+        if i == 10:  # same atom count, other elements: colours change on the device only
+            top = make_topology(n, elements=["O"] * n)
+            for r in (replay, eager):
+                r.set_topology(top)
+        frame = (pos + rng.normal(scale=0.3, size=pos.shape)).astype(np.float32)
+        for r in (replay, eager):
+            r.set_positions(frame)
+            r.render(params, camera, w, h)
+        assert replay._graphs is not None
+        replayed += int(replay._last_launch in replay._graphs)
+        np.testing.assert_array_equal(replay.read_rgba(), eager.read_rgba(), err_msg=what)
+        np.testing.assert_array_equal(replay.read_depth(), eager.read_depth(), err_msg=what)
+        np.testing.assert_array_equal(replay.read_atom_ids(), eager.read_atom_ids())
+    assert replayed >= 8, "every repeated set-up after its first frame should replay"
