@@ -81,8 +81,14 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q
 
 
-def build_system(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 3) float32 positions and (n,) element symbols of a protein-like system."""
+def build_system(n: int, seed: int = 0, compact: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) float32 positions and (n,) element symbols of a protein-like system.
+
+    Up to 3,341 atoms: the atoms of 4AKE nearest its centre. Larger systems are rotated,
+    jittered copies on a lattice whose neighbours just touch; `compact` keeps the n atoms
+    nearest the lattice centre (a compact multi-chain assembly, like the thesis's 5,684- and
+    10,000-atom complexes), otherwise whole copies are taken in order of their distance from
+    the centre and the last one is cut (a row of separate copies)."""
     base = np.load(DATA)
     pos0 = base["positions"].astype(np.float64)
     el0 = base["elements"]
@@ -93,6 +99,9 @@ def build_system(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     tiles = math.ceil(n / len(pos0))
     m = math.ceil(tiles ** (1 / 3))
+    if compact:
+        m = max(m, 2)
+        tiles = m**3
     spacing = 0.85 * float(np.ptp(pos0, axis=0).max())  # neighbours just touch
     grid = np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 3)
     grid = grid - (m - 1) / 2
@@ -102,7 +111,12 @@ def build_system(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         block = pos0 @ random_rotation(rng).T + c + rng.normal(size=3) * 1.0
         block += rng.normal(size=block.shape) * 0.3
         out[t * len(pos0) : (t + 1) * len(pos0)] = block
-    return out[:n], np.tile(el0, tiles)[:n]
+    elements = np.tile(el0, tiles)
+    if compact:
+        centre = out.mean(axis=0)
+        idx = np.sort(np.argsort(np.linalg.norm(out - centre, axis=1), kind="stable")[:n])
+        return out[idx], elements[idx]
+    return out[:n], elements[:n]
 
 
 def topology_of(elements: np.ndarray) -> Topology:
@@ -379,6 +393,7 @@ class Bench:
             "baselines": [],
             "ablation": [],
             "graphs": [],
+            "separated": [],
             "registers": [],
             "max_registers": args.max_registers,
             "notes": [],
@@ -392,7 +407,7 @@ class Bench:
 
     def system(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         if n not in self.systems:
-            self.systems = {n: build_system(n)}
+            self.systems = {n: build_system(n, compact=n in THESIS)}
         return self.systems[n]
 
     def renderer(self, n: int, **kw: Any) -> tuple[Renderer, list[np.ndarray]]:
@@ -461,7 +476,7 @@ class Bench:
                     beyond = mem["per_atom"] + mem["grid"] + mem["other"]
                     entry = {
                         "n_atoms": n,
-                        "system": THESIS.get(n, "tiled 4AKE"),
+                        "system": f"{THESIS[n]}-sized" if n in THESIS else "tiled 4AKE",
                         "width": w,
                         "height": h,
                         "mode": mode,
@@ -731,6 +746,26 @@ class Bench:
             self.log(f"register cap for the rest of the run: {best or 'compiler choice'}")
         self.save()
 
+    # ---- the thesis sizes above 3,341 atoms built as separate copies instead of compact
+    def separated(self, sizes: list[int], w: int, h: int) -> None:
+        for n in sizes:
+            if self.clock.left() < 15:
+                return
+            pos, el = build_system(n, compact=False)
+            r = Renderer(self.device, max_atoms=n, max_registers=self.results["max_registers"])
+            r.set_topology(topology_of(el))
+            frames = jittered_frames(pos, 3)
+            cam = fit_camera(frames[0], w, h)
+            for mode in ("iso", "volume"):
+                params = RenderParams(mode=mode)  # type: ignore[arg-type]
+                s = self.timed(self.frame_step(r, frames, params, cam, w, h), self.args.frames)
+                self.results["separated"].append(
+                    {"n_atoms": n, "width": w, "height": h, "mode": mode, **s}
+                )
+                self.save()
+                self.log(f"separate copies N={n:,} {w}x{h} {mode}: {s['median_ms']:.3f} ms")
+            del r
+
     # ---- graph replay vs launching kernels one by one
     def graphs(self, cases: list[tuple[int, int, int]]) -> None:
         """The same frames with the frame's launches replayed as one CUDA graph (the default)
@@ -756,9 +791,9 @@ class Bench:
                 del r
 
     # ---- ablation: cell size
-    def ablation(self, sizes: list[int], w: int, h: int) -> None:
+    def ablation(self, sizes: list[int], w: int, h: int, cells_list: list[float]) -> None:
         for n in sizes:
-            for cells in (1.0, 2.0, 3.0):
+            for cells in cells_list:
                 if self.clock.left() < 15:
                     return
                 r, frames = self.renderer(n, cells_per_cutoff=cells)
@@ -919,13 +954,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--budget-s", type=float, default=480.0, help="wall-clock budget of the run")
     p.add_argument("--max-config-s", type=float, default=20.0, help="at most this long per config")
     p.add_argument("--max-voxels", type=int, default=1 << 28)
-    p.add_argument("--sections", default="registers,main,grid,graphs,baselines,ablation")
+    p.add_argument("--sections", default="registers,main,grid,separated,graphs,baselines,ablation")
     p.add_argument("--sizes", default="", help="comma-separated atom counts (main table)")
     p.add_argument("--images", default="", help="folder for sample images (1920x1080 runs)")
     p.add_argument("--image-n", type=int, default=1_000_000)
+    p.add_argument("--ablation-sizes", default="", help="atom counts of the cell-size ablation")
+    p.add_argument("--ablation-image", default="", help="image size of the ablation, WxH")
+    p.add_argument("--ablation-cells", default="1,2,3", help="cells per cutoff it tries")
     p.add_argument("--table", default="", help="print the markdown tables of a results file")
     p.add_argument("--max-registers", type=int, default=64, help="0 = compiler's choice")
     p.add_argument("--register-caps", default="0,128,80,64", help="caps the first section tries")
+    p.add_argument("--register-sizes", default="100000,1000000", help="atom counts it tries")
     args = p.parse_args(argv)
     if args.table:
         print(table(Path(args.table)), end="")
@@ -954,10 +993,15 @@ def main(argv: list[str] | None = None) -> int:
             b.registers([496], 64, 48, [0, 128])
         else:
             b.registers(
-                [100_000, 1_000_000], 1920, 1080, [int(c) for c in args.register_caps.split(",")]
+                [int(v) for v in args.register_sizes.split(",")],
+                1920,
+                1080,
+                [int(c) for c in args.register_caps.split(",")],
             )
     if "main" in sections:
         b.main_table(sizes, res, grid="grid" in sections)
+    if "separated" in sections and not args.quick:
+        b.separated([5_684, 10_000], 500, 500)
     if "graphs" in sections:
         if args.quick:
             b.graphs([(496, 64, 48)])
@@ -966,7 +1010,11 @@ def main(argv: list[str] | None = None) -> int:
     if "baselines" in sections:
         b.baselines(base_sizes, *base_res, voxels)
     if "ablation" in sections:
-        b.ablation(abl_sizes, *abl_res)
+        if args.ablation_sizes:
+            abl_sizes = [int(v) for v in args.ablation_sizes.split(",")]
+        if args.ablation_image:
+            abl_res = tuple(int(v) for v in args.ablation_image.split("x"))  # type: ignore[assignment]
+        b.ablation(abl_sizes, *abl_res, [float(v) for v in args.ablation_cells.split(",")])
     b.save()
     print(table(Path(args.out)), end="")
     return 0

@@ -224,42 +224,70 @@ def gaussian_value_grad(f: GaussianField, p: wp.vec3) -> wp.vec4:
 
 @wp.func
 @no_type_check
+def add_values4(
+    v: wp.vec4,
+    a: wp.vec4,
+    c: float,
+    half_k2: float,
+    p0: wp.vec3,
+    p1: wp.vec3,
+    p2: wp.vec3,
+    p3: wp.vec3,
+) -> wp.vec4:
+    """v plus one atom's terms at the four points (each only within the cutoff)."""
+    pa = wp.vec3(a[0], a[1], a[2])
+    e0 = wp.length_sq(pa - p0) * c
+    e1 = wp.length_sq(pa - p1) * c
+    e2 = wp.length_sq(pa - p2) * c
+    e3 = wp.length_sq(pa - p3) * c
+    out = v
+    if e0 < half_k2:
+        out[0] = out[0] + a[3] * wp.exp(-e0)
+    if e1 < half_k2:
+        out[1] = out[1] + a[3] * wp.exp(-e1)
+    if e2 < half_k2:
+        out[2] = out[2] + a[3] * wp.exp(-e2)
+    if e3 < half_k2:
+        out[3] = out[3] + a[3] * wp.exp(-e3)
+    return out
+
+
+@wp.func
+@no_type_check
 def row_values4(
     f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, j0: int, j1: int, lim2: float
 ) -> wp.vec4:
     """S at the points o + d ts[q] from sorted atoms [j0, j1): one load per atom serves all
-    four. In uniform mode an atom with |a - mid|^2 >= lim2 (beyond the cutoff of every
-    point) is rejected with one distance."""
-    v0 = wp.float32(0.0)
-    v1 = wp.float32(0.0)
-    v2 = wp.float32(0.0)
-    v3 = wp.float32(0.0)
+    four. Atoms are taken two at a time so two loads are in flight (the loop is bound by
+    their latency). In uniform mode an atom with |a - mid|^2 >= lim2 (beyond the cutoff of
+    every point) is rejected with one distance."""
+    v = wp.vec4(0.0, 0.0, 0.0, 0.0)
     p0 = o + d * ts[0]
     p1 = o + d * ts[1]
     p2 = o + d * ts[2]
     p3 = o + d * ts[3]
     mid = (p0 + p3) * 0.5
     c = f.inv2s2_uniform
-    for j in range(j0, j1):
+    hk = f.half_k2
+    j = j0
+    while j + 1 < j1:
         a = f.atoms[j]
-        pa = wp.vec3(a[0], a[1], a[2])
+        b = f.atoms[j + 1]
+        if f.per_atom != 0:
+            v = add_values4(v, a, f.inv2s2[j], hk, p0, p1, p2, p3)
+            v = add_values4(v, b, f.inv2s2[j + 1], hk, p0, p1, p2, p3)
+        else:
+            if wp.length_sq(wp.vec3(a[0], a[1], a[2]) - mid) < lim2:
+                v = add_values4(v, a, c, hk, p0, p1, p2, p3)
+            if wp.length_sq(wp.vec3(b[0], b[1], b[2]) - mid) < lim2:
+                v = add_values4(v, b, c, hk, p0, p1, p2, p3)
+        j += 2
+    if j < j1:
+        a = f.atoms[j]
         if f.per_atom != 0:
             c = f.inv2s2[j]
-        elif wp.length_sq(pa - mid) >= lim2:
-            continue
-        e = wp.length_sq(pa - p0) * c
-        if e < f.half_k2:
-            v0 += a[3] * wp.exp(-e)
-        e = wp.length_sq(pa - p1) * c
-        if e < f.half_k2:
-            v1 += a[3] * wp.exp(-e)
-        e = wp.length_sq(pa - p2) * c
-        if e < f.half_k2:
-            v2 += a[3] * wp.exp(-e)
-        e = wp.length_sq(pa - p3) * c
-        if e < f.half_k2:
-            v3 += a[3] * wp.exp(-e)
-    return wp.vec4(v0, v1, v2, v3)
+        v = add_values4(v, a, c, hk, p0, p1, p2, p3)
+    return v
 
 
 @wp.func
@@ -299,47 +327,67 @@ def gaussian_value4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp
 
 @wp.func
 @no_type_check
-def row_value_grad2(f: GaussianField, pa: wp.vec3, pb: wp.vec3, j0: int, j1: int):
-    """(gradient, value) at pa and pb from sorted atoms [j0, j1)."""
-    a0 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    a1 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    c = f.inv2s2_uniform
-    for j in range(j0, j1):
-        a = f.atoms[j]
-        if f.per_atom != 0:
-            c = f.inv2s2[j]
-        q = wp.vec3(a[0], a[1], a[2])
-        u = q - pa
-        e = wp.length_sq(u) * c
-        if e < f.half_k2:
-            t = a[3] * wp.exp(-e)
-            g = u * (2.0 * c * t)
-            a0 += wp.vec4(g[0], g[1], g[2], t)
-        u = q - pb
-        e = wp.length_sq(u) * c
-        if e < f.half_k2:
-            t = a[3] * wp.exp(-e)
-            g = u * (2.0 * c * t)
-            a1 += wp.vec4(g[0], g[1], g[2], t)
-    return a0, a1
+def atom_term(a: wp.vec4, pa: wp.vec3, p: wp.vec3, c: float, half_k2: float) -> wp.vec4:
+    """(gradient, value) of one atom at p; zero beyond the cutoff."""
+    u = pa - p
+    e = wp.length_sq(u) * c
+    out = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    if e < half_k2:
+        t = a[3] * wp.exp(-e)
+        g = u * (2.0 * c * t)
+        out = wp.vec4(g[0], g[1], g[2], t)
+    return out
 
 
 @wp.func
 @no_type_check
-def gaussian_value_grad2(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec2):
-    """(gradient, value) at o + d ts[0] and o + d ts[1] in one pass (shaded volumes)."""
+def row_value_grad4(
+    f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, j0: int, j1: int, lim2: float
+):
+    """(gradient, value) at the points o + d ts[q] from sorted atoms [j0, j1), with the
+    same uniform-mode rejection as `row_values4`."""
+    a0 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    a1 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    a2 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    a3 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    p0 = o + d * ts[0]
+    p3 = o + d * ts[3]
+    mid = (p0 + p3) * 0.5
+    c = f.inv2s2_uniform
+    for j in range(j0, j1):
+        a = f.atoms[j]
+        pa = wp.vec3(a[0], a[1], a[2])
+        if f.per_atom != 0:
+            c = f.inv2s2[j]
+        elif wp.length_sq(pa - mid) >= lim2:
+            continue
+        a0 += atom_term(a, pa, p0, c, f.half_k2)
+        a1 += atom_term(a, pa, o + d * ts[1], c, f.half_k2)
+        a2 += atom_term(a, pa, o + d * ts[2], c, f.half_k2)
+        a3 += atom_term(a, pa, p3, c, f.half_k2)
+    return a0, a1, a2, a3
+
+
+@wp.func
+@no_type_check
+def gaussian_value_grad4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4):
+    """(gradient, value) at the four points o + d ts[q] (ts increasing) in one pass over the
+    neighbours of their segment (shaded volume rendering)."""
     g = f.info[0]
     r = g.reach
     r2 = r * r
     pa = o + d * ts[0]
-    pb = o + d * ts[1]
+    pb = o + d * ts[3]
     lo = wp.min(pa, pb)
     hi = wp.max(pa, pb)
+    lim = (wp.sqrt(f.half_k2 / f.inv2s2_uniform) + 0.5 * wp.length(pb - pa)) * 1.0001 + 1.0e-5
     z0, z1 = axis_span(lo[2] - r, hi[2] + r, g.origin[2], g.inv_h, g.dims[2])
     y0, y1 = axis_span(lo[1] - r, hi[1] + r, g.origin[1], g.inv_h, g.dims[1])
     x0, x1 = axis_span(lo[0] - r, hi[0] + r, g.origin[0], g.inv_h, g.dims[0])
     acc0 = wp.vec4(0.0, 0.0, 0.0, 0.0)
     acc1 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    acc2 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    acc3 = wp.vec4(0.0, 0.0, 0.0, 0.0)
     for iz in range(z0, z1 + 1):
         zlo = g.origin[2] + float(iz) * g.h
         dz = interval_gap(lo[2], hi[2], zlo, zlo + g.h)
@@ -351,10 +399,12 @@ def gaussian_value_grad2(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec2):
                 j0 = f.cell_start[row + x0]
                 j1 = f.cell_start[row + x1 + 1]
                 if j1 > j0:
-                    b0, b1 = row_value_grad2(f, pa, pb, j0, j1)
+                    b0, b1, b2, b3 = row_value_grad4(f, o, d, ts, j0, j1, lim * lim)
                     acc0 += b0
                     acc1 += b1
-    return acc0, acc1
+                    acc2 += b2
+                    acc3 += b3
+    return acc0, acc1, acc2, acc3
 
 
 @wp.func
@@ -478,8 +528,8 @@ class DensityModel:
     value above `stop_above` once that is certain), all `@wp.func` over the struct `field`.
     Optional batched forms, used by the ray caster to load each neighbour once for several
     samples along a line: `value4(f, o, d, ts: vec4) -> vec4` (S at o + d ts[q]) and
-    `value_grad2(f, o, d, ts: vec2) -> (vec4, vec4)`; a model without them gets versions that
-    call `value` / `value_grad` per point.
+    `value_grad4(f, o, d, ts: vec4) -> (vec4, vec4, vec4, vec4)` ((gradient, S) at each);
+    a model without them gets versions that call `value` / `value_grad` per point.
     """
 
     name: str
@@ -489,7 +539,7 @@ class DensityModel:
     sample: Any
     box_bound: Any
     value4: Any = None
-    value_grad2: Any = None
+    value_grad4: Any = None
 
 
 GAUSSIAN = DensityModel(
@@ -500,5 +550,5 @@ GAUSSIAN = DensityModel(
     sample=gaussian_sample,
     box_bound=gaussian_box_bound,
     value4=gaussian_value4,
-    value_grad2=gaussian_value_grad2,
+    value_grad4=gaussian_value_grad4,
 )

@@ -231,7 +231,7 @@ class CellGrid:
             self.invalidate()
             return
         dev = self.device
-        threads = min(max(n // 64, 1), MAX_REDUCE_THREADS)
+        threads = min(max(n // 8, 1), MAX_REDUCE_THREADS)
         wp.launch(
             bbox_kernel,
             threads,

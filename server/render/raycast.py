@@ -302,6 +302,103 @@ def fog(sh: Shading, g: GridInfo, cam: CameraData, t: float, c: wp.vec3) -> wp.v
     return c * (1.0 - f) + sh.background * f
 
 
+@wp.func
+@no_type_check
+def clear(b: float, level: float, inclusive: int) -> bool:
+    """A bound that says the density there cannot matter: below `level` (or at it)."""
+    return b < level or (inclusive != 0 and b == level)
+
+
+@wp.func
+@no_type_check
+def walk(
+    bound: wp.array[float],
+    brick_bound: wp.array[float],
+    g: GridInfo,
+    o: wp.vec3,
+    d: wp.vec3,
+    t1: float,
+    dt: float,
+    shift: float,
+    level: float,
+    inclusive: int,
+    skip: int,
+    k: int,
+    cx: int,
+    cy: int,
+    cz: int,
+    sx: int,
+    sy: int,
+    sz: int,
+    tx: float,
+    ty: float,
+    tz: float,
+    dtx: float,
+    dty: float,
+    dtz: float,
+    left: int,
+):
+    """Walk the cells (3D DDA, whole bricks where their bound allows) from the current cell
+    to the first lattice sample t_k = (k + shift) dt that lies in a cell whose bound does not
+    let it be skipped (`skip` = 0: no cell is skipped). Returns the new walk state, whether
+    samples were jumped (the previous sample's value is then unknown) and whether the ray is
+    still in the grid with a sample to take."""
+    jumped = wp.int32(0)
+    active = wp.int32(1)
+    ready = wp.int32(0)
+    while ready == 0 and active != 0:
+        if (
+            skip != 0
+            and g.bricks != 0
+            and clear(brick_bound[brick_of(g, cx, cy, cz)], level, inclusive)
+        ):
+            tb, nx, ny, nz = brick_exit(o, d, g, cx, cy, cz, sx, sy, sz)
+            k_end = int(wp.ceil(wp.min(tb, t1) / dt - shift))
+            if k_end > k:
+                jumped = 1
+                k = k_end
+            left -= 1
+            if tb >= t1 or not in_grid(g, nx, ny, nz) or left <= 0:
+                active = 0
+            else:
+                cx = nx
+                cy = ny
+                cz = nz
+                tx = axis_next(o[0], d[0], sx, g.origin[0], g.h, cx)
+                ty = axis_next(o[1], d[1], sy, g.origin[1], g.h, cy)
+                tz = axis_next(o[2], d[2], sz, g.origin[2], g.h, cz)
+            continue
+        t_exit = wp.min(wp.min(tx, ty), wp.min(tz, t1))
+        cell = (cz * g.dims[1] + cy) * g.dims[0] + cx
+        if skip != 0 and clear(bound[cell], level, inclusive):
+            k_end = int(wp.ceil(t_exit / dt - shift))
+            if k_end > k:
+                jumped = 1
+                k = k_end
+        elif (float(k) + shift) * dt < t_exit:
+            ready = 1
+        if ready == 0:
+            left -= 1
+            if t_exit >= t1 or left <= 0:
+                active = 0
+            elif tx <= ty and tx <= tz:
+                cx += sx
+                tx += dtx
+                if cx < 0 or cx >= g.dims[0]:
+                    active = 0
+            elif ty <= tz:
+                cy += sy
+                ty += dty
+                if cy < 0 or cy >= g.dims[1]:
+                    active = 0
+            else:
+                cz += sz
+                tz += dtz
+                if cz < 0 or cz >= g.dims[2]:
+                    active = 0
+    return k, cx, cy, cz, tx, ty, tz, left, jumped, active
+
+
 def _make(model: DensityModel, fast_math: bool, max_registers: int) -> "RaycastKernels":
     Field = model.field
     options = {"fast_math": bool(fast_math)}
@@ -313,7 +410,7 @@ def _make(model: DensityModel, fast_math: bool, max_registers: int) -> "RaycastK
     sample = model.sample
     box_bound = model.box_bound
     value4 = model.value4
-    value_grad2 = model.value_grad2
+    value_grad4 = model.value_grad4
     if value4 is None:
 
         @wp.func
@@ -327,14 +424,19 @@ def _make(model: DensityModel, fast_math: bool, max_registers: int) -> "RaycastK
             )
 
         value4 = value4_each
-    if value_grad2 is None:
+    if value_grad4 is None:
 
         @wp.func
         @no_type_check
-        def value_grad2_each(f: Field, o: wp.vec3, d: wp.vec3, ts: wp.vec2):
-            return value_grad(f, o + d * ts[0]), value_grad(f, o + d * ts[1])
+        def value_grad4_each(f: Field, o: wp.vec3, d: wp.vec3, ts: wp.vec4):
+            return (
+                value_grad(f, o + d * ts[0]),
+                value_grad(f, o + d * ts[1]),
+                value_grad(f, o + d * ts[2]),
+                value_grad(f, o + d * ts[3]),
+            )
 
-        value_grad2 = value_grad2_each
+        value_grad4 = value_grad4_each
 
     @wp.func
     @no_type_check
@@ -474,83 +576,45 @@ def _make(model: DensityModel, fast_math: bool, max_registers: int) -> "RaycastK
             inside = wp.int32(0)
             prev_v = wp.float32(-1.0)
             left = g.dims[0] + g.dims[1] + g.dims[2] + 3
-            while left > 0:
-                left -= 1
-                if (
-                    inside == 0
-                    and g.bricks != 0
-                    and f.brick_bound[brick_of(g, cx, cy, cz)] < m.skip_below
-                ):
-                    tb, nx, ny, nz = brick_exit(o, d, g, cx, cy, cz, sx, sy, sz)
-                    k_end = int(wp.ceil(wp.min(tb, t1) / dt))
-                    if k_end > k:
-                        first = 0
-                        prev_v = -1.0
-                        k = k_end
-                    if tb >= t1 or not in_grid(g, nx, ny, nz):
-                        break
-                    cx = nx
-                    cy = ny
-                    cz = nz
-                    tx = axis_next(o[0], d[0], sx, g.origin[0], g.h, cx)
-                    ty = axis_next(o[1], d[1], sy, g.origin[1], g.h, cy)
-                    tz = axis_next(o[2], d[2], sz, g.origin[2], g.h, cz)
-                    continue
-                t_exit = wp.min(wp.min(tx, ty), wp.min(tz, t1))
-                cell = (cz * g.dims[1] + cy) * g.dims[0] + cx
-                if inside == 0 and f.bound[cell] < m.skip_below:
-                    k_end = int(wp.ceil(t_exit / dt))
-                    if k_end > k:
-                        first = 0
-                        prev_v = -1.0
-                        k = k_end
-                else:
-                    # four lattice samples per pass; a pass may run past this cell, which
-                    # only means the next cells start with k already beyond their entry
-                    while float(k) * dt < t_exit:
-                        ts = wp.vec4(
-                            float(k) * dt, float(k + 1) * dt, float(k + 2) * dt, float(k + 3) * dt
-                        )
-                        v4 = value4(f, o, d, ts)
-                        q_hit = wp.int32(-1)
-                        for q in range(4):
+            active = wp.int32(1)
+            # one density pass per outer iteration: the cheap cell walk to the next lattice
+            # sample that needs the density diverges, the expensive pass does not
+            while active != 0:
+                k, cx, cy, cz, tx, ty, tz, left, jumped, active = walk(
+                    f.bound, f.brick_bound, g, o, d, t1, dt, 0.0, m.skip_below, 0,
+                    1 - inside, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
+                )  # fmt: skip
+                if jumped != 0:
+                    first = 0
+                    prev_v = -1.0
+                if active != 0:
+                    # four lattice samples; the pass may run past this cell, which only means
+                    # the next cells start with k already beyond their entry
+                    ts = wp.vec4(
+                        float(k) * dt, float(k + 1) * dt, float(k + 2) * dt, float(k + 3) * dt
+                    )
+                    v4 = value4(f, o, d, ts)
+                    q_hit = wp.int32(-1)
+                    for q in range(4):
+                        if q_hit < 0:
+                            above = wp.int32(0)
+                            if v4[q] >= m.iso:
+                                above = 1
+                            if first == 1:
+                                first = 0
+                                inside = above
+                            elif above != inside:
+                                q_hit = q
                             if q_hit < 0:
-                                above = wp.int32(0)
-                                if v4[q] >= m.iso:
-                                    above = 1
-                                if first == 1:
-                                    first = 0
-                                    inside = above
-                                elif above != inside:
-                                    q_hit = q
-                                if q_hit < 0:
-                                    prev_v = v4[q]
-                        if q_hit >= 0:
-                            tq = ts[q_hit]
-                            t_prev = float(k + q_hit - 1) * dt
-                            v = v4[q_hit]
-                            hit = refine(f, o, d, t_prev, tq, prev_v, v, m.iso, inside, m.refine)
-                            break
+                                prev_v = v4[q]
+                    if q_hit >= 0:
+                        tq = ts[q_hit]
+                        t_prev = float(k + q_hit - 1) * dt
+                        v = v4[q_hit]
+                        hit = refine(f, o, d, t_prev, tq, prev_v, v, m.iso, inside, m.refine)
+                        active = 0
+                    else:
                         k += 4
-                    if hit < wp.inf:
-                        break
-                if t_exit >= t1:
-                    break
-                if tx <= ty and tx <= tz:
-                    cx += sx
-                    tx += dtx
-                    if cx < 0 or cx >= g.dims[0]:
-                        break
-                elif ty <= tz:
-                    cy += sy
-                    ty += dty
-                    if cy < 0 or cy >= g.dims[1]:
-                        break
-                else:
-                    cz += sz
-                    tz += dtz
-                    if cz < 0 or cz >= g.dims[2]:
-                        break
         hit_t[pix] = hit
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
@@ -626,90 +690,61 @@ def _make(model: DensityModel, fast_math: bool, max_registers: int) -> "RaycastK
             tx = float(tx0)
             ty = float(ty0)
             tz = float(tz0)
-            done = wp.int32(0)
             left = g.dims[0] + g.dims[1] + g.dims[2] + 3
-            while left > 0:
-                left -= 1
-                if g.bricks != 0 and f.brick_bound[brick_of(g, cx, cy, cz)] <= vol.clear_level:
-                    tb, nx, ny, nz = brick_exit(o, d, g, cx, cy, cz, sx, sy, sz)
-                    k = wp.max(k, int(wp.ceil(wp.min(tb, t1) / dt - jit)))
-                    if tb >= t1 or not in_grid(g, nx, ny, nz):
-                        break
-                    cx = nx
-                    cy = ny
-                    cz = nz
-                    tx = axis_next(o[0], d[0], sx, g.origin[0], g.h, cx)
-                    ty = axis_next(o[1], d[1], sy, g.origin[1], g.h, cy)
-                    tz = axis_next(o[2], d[2], sz, g.origin[2], g.h, cz)
-                    continue
-                t_exit = wp.min(wp.min(tx, ty), wp.min(tz, t1))
-                cell = (cz * g.dims[1] + cy) * g.dims[0] + cx
-                if f.bound[cell] <= vol.clear_level:
-                    k = wp.max(k, int(wp.ceil(t_exit / dt - jit)))
-                else:
-                    # shaded: two samples per pass (value and gradient); unshaded: four
-                    while (float(k) + jit) * dt < t_exit:
-                        ts = wp.vec4(
-                            (float(k) + jit) * dt,
-                            (float(k + 1) + jit) * dt,
-                            (float(k + 2) + jit) * dt,
-                            (float(k + 3) + jit) * dt,
-                        )
-                        g0 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-                        g1 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-                        vals = wp.vec4(0.0, 0.0, 0.0, 0.0)
-                        count = wp.int32(4)
-                        if vol.shade != 0:
-                            g0, g1 = value_grad2(f, o, d, wp.vec2(ts[0], ts[1]))
-                            vals = wp.vec4(g0[3], g1[3], 0.0, 0.0)
-                            count = 2
-                        else:
-                            vals = value4(f, o, d, ts)
-                        for q in range(4):
-                            tq = ts[q]
-                            if q < count and done == 0 and tq < t1:
-                                u = wp.clamp(vals[q] * vol.x_to_u, 0.0, float(vol.last))
-                                i0 = wp.min(int(wp.floor(u)), vol.last)
-                                i1 = wp.min(i0 + 1, vol.last)
-                                fr = u - float(i0)
-                                e = vol.table[i0] * (1.0 - fr) + vol.table[i1] * fr
-                                a = wp.clamp(e[3], 0.0, 1.0)
-                                if a > 0.0:
-                                    a_s = 1.0 - wp.pow(1.0 - a, vol.dt_ref)
-                                    col = wp.vec3(e[0], e[1], e[2])
-                                    if vol.shade != 0:
-                                        gq = g0
-                                        if q == 1:
-                                            gq = g1
-                                        n = facing(wp.vec3(gq[0], gq[1], gq[2]), d)
-                                        col = lit(sh, col, n, -d, 1.0)
-                                    col = fog(sh, g, cam, tq, col)
-                                    acc += col * ((1.0 - alpha) * a_s)
-                                    alpha += (1.0 - alpha) * a_s
-                                    if t_depth == wp.inf and alpha >= _DEPTH_ALPHA:
-                                        t_depth = tq
-                                    if alpha >= _STOP_ALPHA:
-                                        done = 1
-                        if done != 0:
-                            break
-                        k += count
-                if done != 0 or t_exit >= t1:
-                    break
-                if tx <= ty and tx <= tz:
-                    cx += sx
-                    tx += dtx
-                    if cx < 0 or cx >= g.dims[0]:
-                        break
-                elif ty <= tz:
-                    cy += sy
-                    ty += dty
-                    if cy < 0 or cy >= g.dims[1]:
-                        break
-                else:
-                    cz += sz
-                    tz += dtz
-                    if cz < 0 or cz >= g.dims[2]:
-                        break
+            active = wp.int32(1)
+            while active != 0:
+                k, cx, cy, cz, tx, ty, tz, left, _jumped, active = walk(
+                    f.bound, f.brick_bound, g, o, d, t1, dt, jit, vol.clear_level, 1,
+                    1, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
+                )  # fmt: skip
+                if active != 0:
+                    # four samples per pass, with gradients when shaded
+                    ts = wp.vec4(
+                        (float(k) + jit) * dt,
+                        (float(k + 1) + jit) * dt,
+                        (float(k + 2) + jit) * dt,
+                        (float(k + 3) + jit) * dt,
+                    )
+                    g0 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+                    g1 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+                    g2 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+                    g3 = wp.vec4(0.0, 0.0, 0.0, 0.0)
+                    vals = wp.vec4(0.0, 0.0, 0.0, 0.0)
+                    if vol.shade != 0:
+                        g0, g1, g2, g3 = value_grad4(f, o, d, ts)
+                        vals = wp.vec4(g0[3], g1[3], g2[3], g3[3])
+                    else:
+                        vals = value4(f, o, d, ts)
+                    for q in range(4):
+                        tq = ts[q]
+                        if active != 0 and tq < t1:
+                            u = wp.clamp(vals[q] * vol.x_to_u, 0.0, float(vol.last))
+                            i0 = wp.min(int(wp.floor(u)), vol.last)
+                            i1 = wp.min(i0 + 1, vol.last)
+                            fr = u - float(i0)
+                            e = vol.table[i0] * (1.0 - fr) + vol.table[i1] * fr
+                            a = wp.clamp(e[3], 0.0, 1.0)
+                            if a > 0.0:
+                                a_s = 1.0 - wp.pow(1.0 - a, vol.dt_ref)
+                                col = wp.vec3(e[0], e[1], e[2])
+                                if vol.shade != 0:
+                                    gq = g0
+                                    if q == 1:
+                                        gq = g1
+                                    elif q == 2:
+                                        gq = g2
+                                    elif q == 3:
+                                        gq = g3
+                                    n = facing(wp.vec3(gq[0], gq[1], gq[2]), d)
+                                    col = lit(sh, col, n, -d, 1.0)
+                                col = fog(sh, g, cam, tq, col)
+                                acc += col * ((1.0 - alpha) * a_s)
+                                alpha += (1.0 - alpha) * a_s
+                                if t_depth == wp.inf and alpha >= _DEPTH_ALPHA:
+                                    t_depth = tq
+                                if alpha >= _STOP_ALPHA:
+                                    active = 0
+                    k += 4
         rgba[pix] = pack_rgba(acc + sh.background * (1.0 - alpha))
         depth[pix] = t_depth
         atom = wp.int32(-1)
