@@ -81,14 +81,8 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q
 
 
-def build_system(n: int, seed: int = 0, compact: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 3) float32 positions and (n,) element symbols of a protein-like system.
-
-    Up to 3,341 atoms: the atoms of 4AKE nearest its centre. Larger systems are rotated,
-    jittered copies on a lattice whose neighbours just touch; `compact` keeps the n atoms
-    nearest the lattice centre (a compact multi-chain assembly, like the thesis's 5,684- and
-    10,000-atom complexes), otherwise whole copies are taken in order of their distance from
-    the centre and the last one is cut (a row of separate copies)."""
+def build_system(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) float32 positions and (n,) element symbols of a protein-like system."""
     base = np.load(DATA)
     pos0 = base["positions"].astype(np.float64)
     el0 = base["elements"]
@@ -99,9 +93,6 @@ def build_system(n: int, seed: int = 0, compact: bool = False) -> tuple[np.ndarr
     rng = np.random.default_rng(seed)
     tiles = math.ceil(n / len(pos0))
     m = math.ceil(tiles ** (1 / 3))
-    if compact:
-        m = max(m, 2)
-        tiles = m**3
     spacing = 0.85 * float(np.ptp(pos0, axis=0).max())  # neighbours just touch
     grid = np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 3)
     grid = grid - (m - 1) / 2
@@ -111,12 +102,7 @@ def build_system(n: int, seed: int = 0, compact: bool = False) -> tuple[np.ndarr
         block = pos0 @ random_rotation(rng).T + c + rng.normal(size=3) * 1.0
         block += rng.normal(size=block.shape) * 0.3
         out[t * len(pos0) : (t + 1) * len(pos0)] = block
-    elements = np.tile(el0, tiles)
-    if compact:
-        centre = out.mean(axis=0)
-        idx = np.sort(np.argsort(np.linalg.norm(out - centre, axis=1), kind="stable")[:n])
-        return out[idx], elements[idx]
-    return out[:n], elements[:n]
+    return out[:n], np.tile(el0, tiles)[:n]
 
 
 def topology_of(elements: np.ndarray) -> Topology:
@@ -393,9 +379,9 @@ class Bench:
             "baselines": [],
             "ablation": [],
             "graphs": [],
-            "separated": [],
             "registers": [],
             "max_registers": args.max_registers,
+            "volume_max_registers": args.volume_max_registers,
             "notes": [],
         }
         self.systems: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -407,12 +393,13 @@ class Bench:
 
     def system(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         if n not in self.systems:
-            self.systems = {n: build_system(n, compact=n in THESIS)}
+            self.systems = {n: build_system(n)}
         return self.systems[n]
 
     def renderer(self, n: int, **kw: Any) -> tuple[Renderer, list[np.ndarray]]:
         pos, el = self.system(n)
         kw.setdefault("max_registers", self.results["max_registers"])
+        kw.setdefault("volume_max_registers", self.results["volume_max_registers"])
         r = Renderer(self.device, max_atoms=max(n, 1), **kw)
         r.set_topology(topology_of(el))
         frames = jittered_frames(pos, 3)
@@ -476,7 +463,7 @@ class Bench:
                     beyond = mem["per_atom"] + mem["grid"] + mem["other"]
                     entry = {
                         "n_atoms": n,
-                        "system": f"{THESIS[n]}-sized" if n in THESIS else "tiled 4AKE",
+                        "system": THESIS.get(n, "tiled 4AKE"),
                         "width": w,
                         "height": h,
                         "mode": mode,
@@ -585,6 +572,7 @@ class Bench:
                 max_atoms=n,
                 empty_space_skipping=False,
                 max_registers=self.results["max_registers"],
+                volume_max_registers=self.results["volume_max_registers"],
             )
             rn.set_topology(topology_of(self.system(n)[1]))
             sn = self.timed(self.frame_step(rn, frames, iso, cam, w, h), nf)
@@ -724,47 +712,29 @@ class Bench:
 
     # ---- register cap of the marching kernels (occupancy), chosen before the main table
     def registers(self, sizes: list[int], w: int, h: int, caps: list[int]) -> None:
-        score: dict[int, float] = {}
+        """Each cap on both marching kernels; the rest of the run uses the fastest per mode."""
+        score: dict[str, dict[int, float]] = {"iso": {}, "volume": {}}
         for n in sizes:
             for cap in caps:
                 if self.clock.left() < 30:
                     break
-                r, frames = self.renderer(n, max_registers=cap)
+                r, frames = self.renderer(n, max_registers=cap, volume_max_registers=cap)
                 cam = fit_camera(frames[0], w, h)
                 for mode in ("iso", "volume"):
                     params = RenderParams(mode=mode)  # type: ignore[arg-type]
                     step = self.frame_step(r, frames, params, cam, w, h)
                     s = self.timed(step, self.args.baseline_frames)
-                    score[cap] = score.get(cap, 0.0) + s["median_ms"]
+                    score[mode][cap] = score[mode].get(cap, 0.0) + s["median_ms"]
                     self.results["registers"].append(
                         {"n_atoms": n, "max_registers": cap, "mode": mode, "width": w, **s}
                     )
                     self.log(f"registers<={cap or 'auto'} N={n:,} {mode}: {s['median_ms']:.3f} ms")
-        if score:
-            best = min(score, key=lambda c: score[c])
-            self.results["max_registers"] = best
-            self.log(f"register cap for the rest of the run: {best or 'compiler choice'}")
+        for mode, key in (("iso", "max_registers"), ("volume", "volume_max_registers")):
+            if score[mode]:
+                best = min(score[mode], key=lambda c: score[mode][c])
+                self.results[key] = best
+                self.log(f"{mode} register cap for the rest of the run: {best or 'compiler'}")
         self.save()
-
-    # ---- the thesis sizes above 3,341 atoms built as separate copies instead of compact
-    def separated(self, sizes: list[int], w: int, h: int) -> None:
-        for n in sizes:
-            if self.clock.left() < 15:
-                return
-            pos, el = build_system(n, compact=False)
-            r = Renderer(self.device, max_atoms=n, max_registers=self.results["max_registers"])
-            r.set_topology(topology_of(el))
-            frames = jittered_frames(pos, 3)
-            cam = fit_camera(frames[0], w, h)
-            for mode in ("iso", "volume"):
-                params = RenderParams(mode=mode)  # type: ignore[arg-type]
-                s = self.timed(self.frame_step(r, frames, params, cam, w, h), self.args.frames)
-                self.results["separated"].append(
-                    {"n_atoms": n, "width": w, "height": h, "mode": mode, **s}
-                )
-                self.save()
-                self.log(f"separate copies N={n:,} {w}x{h} {mode}: {s['median_ms']:.3f} ms")
-            del r
 
     # ---- graph replay vs launching kernels one by one
     def graphs(self, cases: list[tuple[int, int, int]]) -> None:
@@ -912,7 +882,8 @@ def table(path: Path) -> str:
         lines += [
             "",
             "Register cap of the marching kernels (more resident warps vs spills); the run "
-            f"used {res['max_registers'] or 'the compiler default'}:",
+            f"used {res['max_registers'] or 'the compiler default'} for iso and "
+            f"{res.get('volume_max_registers') or 'the compiler default'} for volume:",
             "",
             "| atoms | mode | register cap | median ms |",
             "| ---: | --- | ---: | ---: |",
@@ -954,7 +925,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--budget-s", type=float, default=480.0, help="wall-clock budget of the run")
     p.add_argument("--max-config-s", type=float, default=20.0, help="at most this long per config")
     p.add_argument("--max-voxels", type=int, default=1 << 28)
-    p.add_argument("--sections", default="registers,main,grid,separated,graphs,baselines,ablation")
+    p.add_argument("--sections", default="registers,main,grid,graphs,baselines,ablation")
     p.add_argument("--sizes", default="", help="comma-separated atom counts (main table)")
     p.add_argument("--images", default="", help="folder for sample images (1920x1080 runs)")
     p.add_argument("--image-n", type=int, default=1_000_000)
@@ -962,7 +933,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ablation-image", default="", help="image size of the ablation, WxH")
     p.add_argument("--ablation-cells", default="1,2,3", help="cells per cutoff it tries")
     p.add_argument("--table", default="", help="print the markdown tables of a results file")
-    p.add_argument("--max-registers", type=int, default=64, help="0 = compiler's choice")
+    p.add_argument("--max-registers", type=int, default=64, help="iso; 0 = compiler's choice")
+    p.add_argument("--volume-max-registers", type=int, default=80, help="volume kernel")
     p.add_argument("--register-caps", default="0,128,80,64", help="caps the first section tries")
     p.add_argument("--register-sizes", default="100000,1000000", help="atom counts it tries")
     args = p.parse_args(argv)
@@ -1000,8 +972,6 @@ def main(argv: list[str] | None = None) -> int:
             )
     if "main" in sections:
         b.main_table(sizes, res, grid="grid" in sections)
-    if "separated" in sections and not args.quick:
-        b.separated([5_684, 10_000], 500, 500)
     if "graphs" in sections:
         if args.quick:
             b.graphs([(496, 64, 48)])

@@ -399,12 +399,15 @@ def walk(
     return k, cx, cy, cz, tx, ty, tz, left, jumped, active
 
 
-def _make(model: DensityModel, fast_math: bool, max_registers: int) -> "RaycastKernels":
+def _make(
+    model: DensityModel, fast_math: bool, max_registers: int, volume_max_registers: int
+) -> "RaycastKernels":
     Field = model.field
     options = {"fast_math": bool(fast_math)}
     # the ray-marching kernels carry many live values; capping their registers trades a few
     # spills for more resident warps to hide the latency of the neighbour gathers
     regs = max_registers if max_registers > 0 else None
+    volume_regs = volume_max_registers if volume_max_registers > 0 else None
     value = model.value
     value_grad = model.value_grad
     sample = model.sample
@@ -654,7 +657,10 @@ def _make(model: DensityModel, fast_math: bool, max_registers: int) -> "RaycastK
         ids[pix] = s.atom
 
     @wp.kernel(
-        enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
+        enable_backward=False,
+        module="unique",
+        module_options=options,
+        cuda_max_registers=volume_regs,
     )
     @no_type_check
     def volume_kernel(
@@ -776,19 +782,23 @@ class RaycastKernels:
     volume: Any
 
 
-_KERNELS: dict[tuple[str, bool, int], RaycastKernels] = {}
+_KERNELS: dict[tuple[str, bool, int, int], RaycastKernels] = {}
 
 
 def kernels_for(
-    model: DensityModel = GAUSSIAN, fast_math: bool = True, max_registers: int = 0
+    model: DensityModel = GAUSSIAN,
+    fast_math: bool = True,
+    max_registers: int = 0,
+    volume_max_registers: int = 0,
 ) -> RaycastKernels:
     """The kernels of `model`, generated once per process. `fast_math` lets CUDA use its
-    hardware exp/divide/sqrt approximations (a few ulp); `max_registers` (0 = compiler's
-    choice) caps the registers of the marching kernels on CUDA. CPU builds ignore both."""
-    key = (model.name, bool(fast_math), int(max_registers))
+    hardware exp/divide/sqrt approximations (a few ulp); `max_registers` and
+    `volume_max_registers` (0 = compiler's choice) cap the registers of the iso and volume
+    marching kernels on CUDA. CPU builds ignore them."""
+    key = (model.name, bool(fast_math), int(max_registers), int(volume_max_registers))
     k = _KERNELS.get(key)
     if k is None or k.model is not model:
-        k = _make(model, bool(fast_math), int(max_registers))
+        k = _make(model, bool(fast_math), int(max_registers), int(volume_max_registers))
         _KERNELS[key] = k
     return k
 

@@ -63,8 +63,9 @@ class Renderer:
     `cells_per_cutoff` sets the grid cell to cutoff / cells_per_cutoff (1 = cell equals the
     cutoff; the cell grows when memory caps the cell count); `empty_space_skipping=False`
     marches every lattice sample (a baseline); `fast_math` picks CUDA's approximate
-    transcendentals; `max_registers` caps the marching kernels' registers on CUDA (0 leaves
-    it to the compiler); `density` is the model the ray caster evaluates (any model over
+    transcendentals; `max_registers` / `volume_max_registers` cap the iso / volume marching
+    kernels' registers on CUDA (0 leaves it to the compiler; the defaults were the fastest
+    measured, benchmarks/README.md); `density` is the model the ray caster evaluates (any model over
     `GaussianField`, the sorted atoms and cell grid this class builds); `graphs` replays
     repeated frame set-ups as captured graphs (None: on CUDA devices only; True: also on the
     CPU, through warp's API capture).
@@ -80,6 +81,7 @@ class Renderer:
         empty_space_skipping: bool = True,
         fast_math: bool = True,
         max_registers: int = 64,
+        volume_max_registers: int = 80,
         density: DensityModel = GAUSSIAN,
         graphs: bool | None = None,
     ) -> None:
@@ -96,7 +98,7 @@ class Renderer:
         self._cuda = bool(self._dev.is_cuda)
         if density.field is not GaussianField:
             raise RenderError(f"density {density.name!r} needs a GaussianField to draw with")
-        self._kernels = raycast.kernels_for(density, fast_math, max_registers)
+        self._kernels = raycast.kernels_for(density, fast_math, max_registers, volume_max_registers)
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         self._graphs: OrderedDict[tuple[Any, ...], Any] | None = (
             OrderedDict() if graphs or (graphs is None and self._cuda) else None
