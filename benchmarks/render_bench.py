@@ -878,6 +878,23 @@ def table(path: Path) -> str:
                     f"{rs['median_ms']:.2f} | {rs['speedup_of_ours']:.1f}x | "
                     f"{rs['error_vs_fine']['mean_abs_rgb']:.4f} |"
                 )
+    if res.get("graphs"):
+        lines += [
+            "",
+            "Graph replay (the default on CUDA) vs launching the frame's kernels one by one "
+            "(iso, median ms per frame):",
+            "",
+            "| atoms | image | graph replay | one by one | ratio |",
+            "| ---: | --- | ---: | ---: | ---: |",
+        ]
+        by = {(g["n_atoms"], g["width"], g["height"], g["graphs"]): g for g in res["graphs"]}
+        for (n, w, h, replay), g in by.items():
+            other = by.get((n, w, h, False))
+            if replay and other:
+                lines.append(
+                    f"| {n:,} | {w}x{h} | {g['median_ms']:.3f} | {other['median_ms']:.3f} | "
+                    f"{other['median_ms'] / g['median_ms']:.2f}x |"
+                )
     if res.get("registers"):
         lines += [
             "",
