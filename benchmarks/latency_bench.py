@@ -227,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
                 "gpu": gpu_name(args.device),
                 "device": args.device,
                 "size": [w, h],
-                "encoder": "pillow-libjpeg-turbo",
+                "encoder": server.app_state.encoder.describe(),
+                "encode_workers": server.settings.encode_workers,
                 "date": time.strftime("%Y-%m-%d"),
             }
             print(

@@ -21,7 +21,6 @@ from pydantic import ValidationError
 
 import protocol as p
 from server.auth import token_role
-from server.encoder import encode_image
 from server.jobs import FINAL, JobSpec, JobState
 
 if TYPE_CHECKING:
@@ -192,7 +191,7 @@ async def render_image(
     finally:
         await state.gpu.release(key)
     data, _ms = await asyncio.get_running_loop().run_in_executor(
-        state.encoders, encode_image, out.rgba, format, render_params.jpeg_quality
+        state.encoders, state.encoder.encode, out.rgba, format, render_params.jpeg_quality
     )
     return Response(data, media_type=f"image/{format}")
 
@@ -347,6 +346,7 @@ async def healthz(state: State) -> dict[str, Any]:
     return {
         "status": "ok",
         "device": state.gpu.actual_device or state.settings.device,
+        "encoder": state.encoder.describe(),
         "sessions": len(state.sessions.all()),
     }
 

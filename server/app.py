@@ -21,6 +21,7 @@ from protocol.messages import SESSION_NAME
 from server import ws as ws_endpoints
 from server.api import router
 from server.auth import host_allowed
+from server.encoder import ImageEncoder, select_encoder
 from server.gpu import GpuQueue
 from server.jobs import JobManager
 from server.metrics import Metrics
@@ -93,6 +94,7 @@ class AppState:
     settings: ServerSettings
     gpu: GpuQueue
     encoders: ThreadPoolExecutor
+    encoder: ImageEncoder
     metrics: Metrics
     steering_log: SteeringLog
     sessions: SessionRegistry
@@ -189,18 +191,26 @@ def create_app(settings: ServerSettings) -> FastAPI:
             max_atoms=settings.limits.max_atoms,
             max_pixels=settings.limits.max_image_pixels,
         )
-        encoders = ThreadPoolExecutor(max_workers=4, thread_name_prefix="encode")
+        encoders = ThreadPoolExecutor(
+            max_workers=settings.encode_workers, thread_name_prefix="encode"
+        )
+        encoder = await asyncio.to_thread(select_encoder, settings.device)
+        # shared by all sessions: encodes in flight never outnumber the encoder threads
+        encode_slots = asyncio.Semaphore(settings.encode_workers)
         steering_log = SteeringLog(state_dir / "logs")
         upload_dir = state_dir / "uploads"
         upload_dir.mkdir(parents=True, exist_ok=True)
 
         def new_session(name: str) -> Session:
-            return Session(name, settings, gpu, encoders, metrics, steering_log)
+            return Session(
+                name, settings, gpu, encoders, metrics, steering_log, encoder, encode_slots
+            )
 
         state = AppState(
             settings=settings,
             gpu=gpu,
             encoders=encoders,
+            encoder=encoder,
             metrics=metrics,
             steering_log=steering_log,
             sessions=SessionRegistry(new_session, settings.max_sessions),

@@ -2,7 +2,8 @@
 
 Control messages (state, acks, errors) are queued in order; images go through a slot of depth
 one where the newest replaces an unsent older one, so a slow client only loses its own frames
-and never holds anyone else up.
+and never holds anyone else up. Images are encoded in parallel and may finish out of order, so
+the slot refuses an image older than one the client already got.
 """
 
 from __future__ import annotations
@@ -32,6 +33,17 @@ class ClientState(enum.Enum):
     CLOSED = "closed"
 
 
+class ImageOffer(enum.Enum):
+    """What became of an image offered to a client."""
+
+    TAKEN = "taken"
+    REPLACED = "replaced"
+    """Taken, and an unsent older image was dropped for it."""
+    STALE = "stale"
+    """Dropped: a newer image had already been offered."""
+    CLOSED = "closed"
+
+
 @dataclass(eq=False)
 class Client:
     """A peer of a session: simulation, steerer or viewer."""
@@ -48,6 +60,8 @@ class Client:
     needs_image: bool = True
     frames_sent: int = 0
     frames_dropped: int = 0
+    newest_frame: int = 0
+    """`frame_id` of the newest image offered; an older one arriving later is stale."""
     state: ClientState = ClientState.CONNECTED
     _control: deque[bytes] = field(default_factory=deque)
     _image: bytes | None = None
@@ -70,16 +84,24 @@ class Client:
         self._control.append(p.encode(message))
         self._wake.set()
 
-    def offer_image(self, message: p.Image) -> bool:
-        """Put an image in the slot; returns True when it replaced one never sent."""
+    def offer_image(self, message: p.Image) -> ImageOffer:
+        """Put an image in the slot (see `offer_encoded`)."""
+        return self.offer_encoded(message.frame_id, p.encode(message))
+
+    def offer_encoded(self, frame_id: int, data: bytes) -> ImageOffer:
+        """Put an encoded image in the slot, unless a newer one was offered before it."""
         if self.state is not ClientState.CONNECTED:
-            return False
-        dropped = self._image is not None
-        if dropped:
+            return ImageOffer.CLOSED
+        if frame_id <= self.newest_frame:
             self.frames_dropped += 1
-        self._image = p.encode(message)
+            return ImageOffer.STALE
+        self.newest_frame = frame_id
+        replaced = self._image is not None
+        if replaced:
+            self.frames_dropped += 1
+        self._image = data
         self._wake.set()
-        return dropped
+        return ImageOffer.REPLACED if replaced else ImageOffer.TAKEN
 
     def note_error(self) -> int:
         """Record a protocol error; returns how many happened in the last 10 s."""

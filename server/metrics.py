@@ -18,6 +18,11 @@ class Metrics:
             "Images replaced before a slow client took them",
             registry=r,
         )
+        self.frames_stale = Counter(
+            "scalesteer_frames_stale",
+            "Images whose encode finished after a newer image had gone to the client",
+            registry=r,
+        )
         self.sim_frames = Counter(
             "scalesteer_sim_frames", "Frames received from simulations", registry=r
         )

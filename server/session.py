@@ -2,9 +2,11 @@
 
 The session decides *when* to render (a new frame, a parameter or camera change; bursts coalesce,
 latest wins) and at which quality (reduced while someone interacts, a full still ~150 ms after).
-Viewers with the same camera and size share one render. Steering is validated upstream, applied
-here, logged, broadcast and forwarded to the simulation, and acknowledged with the step at which
-the simulation applied it.
+Viewers with the same camera and size share one render. Rendering and encoding overlap: a render
+hands its pixels to the encoder pool and the next render starts at once, with at most one encode
+in flight per encoder thread; an image whose encode finishes after a newer one's is dropped.
+Steering is validated upstream, applied here, logged, broadcast and forwarded to the simulation,
+and acknowledged with the step at which the simulation applied it.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import contextlib
 import itertools
 import logging
 import time
+from collections import deque
 from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import Any
@@ -22,8 +25,8 @@ import numpy as np
 import numpy.typing as npt
 
 import protocol as p
-from server.clients import Client
-from server.encoder import encode_image
+from server.clients import Client, ImageOffer
+from server.encoder import ImageEncoder
 from server.gpu import GpuQueue, RenderOutput
 from server.metrics import Metrics
 from server.settings import ServerSettings
@@ -40,6 +43,18 @@ class PendingSteer:
     client_seq: int | None
     kind: str
     log_id: int
+
+
+@dataclass
+class Rendered:
+    """A render waiting for its encode: the pixels and what its image message will say."""
+
+    out: RenderOutput
+    frame_id: int
+    step: int
+    width: int
+    height: int
+    jpeg_quality: int
 
 
 @dataclass
@@ -80,12 +95,17 @@ class Session:
         encoders: Executor,
         metrics: Metrics,
         steering_log: SteeringLog,
+        encoder: ImageEncoder | None = None,
+        encode_slots: asyncio.Semaphore | None = None,
     ) -> None:
         self.id = session_id
         self.scene_key = f"session:{session_id}"  # GPU scene; ':' never occurs in a name
         self.settings = settings
         self.gpu = gpu
         self.encoders = encoders
+        self.encoder = encoder or ImageEncoder()
+        self.encode_slots = encode_slots or asyncio.Semaphore(settings.encode_workers)
+        """Taken before a render, given back when its encode ends: bounds encodes in flight."""
         self.metrics = metrics
         self.steering_log = steering_log
         self.created = time.time()
@@ -112,13 +132,15 @@ class Session:
         self._dirty = asyncio.Event()
         self._closed = False
         self._last_state_sent = 0.0
-        self._rate_window: list[tuple[float, int]] = []
+        self._rate_window: deque[tuple[float, int]] = deque()
+        """(time, step) of the frames of the last 3 s, for steps/s."""
         self.render_count = 0
         self.last_timings: dict[str, float] = {}
         self.last_encode_ms = 0.0
         self._render_times: list[float] = []
         self._last_hist = 0.0
         self.histogram: npt.NDArray[np.float32] | None = None
+        self._encoding: set[asyncio.Task[None]] = set()
         self._tasks = [
             asyncio.create_task(self._render_loop(), name=f"render-{session_id}"),
             asyncio.create_task(self._stats_loop(), name=f"stats-{session_id}"),
@@ -225,8 +247,10 @@ class Session:
                 frame.seq,
             )
         now = time.monotonic()
-        self._rate_window = [(t, s) for t, s in self._rate_window if now - t < 3.0]
-        self._rate_window.append((now, frame.step))
+        window = self._rate_window
+        while window and now - window[0][0] >= 3.0:
+            window.popleft()
+        window.append((now, frame.step))
         rate = 0.0
         if len(self._rate_window) > 1:
             (t0, s0), (t1, s1) = self._rate_window[0], self._rate_window[-1]
@@ -493,7 +517,7 @@ class Session:
             return
         still_due = False
         for key, members in self._groups(time.monotonic()).items():
-            camera_json, w, h, interactive = key
+            camera_json, _w, _h, interactive = key
             still_due = still_due or interactive
             version = self._scene_version
             if self._rendered.get(key) == version and not any(c.needs_image for c in members):
@@ -502,7 +526,7 @@ class Session:
             for c in members:  # a view arriving during the render sets it again
                 c.needs_image = False
             camera = p.Camera.model_validate_json(camera_json)
-            await self._render_group(members, camera, w, h, interactive, refs)
+            await self._render_group(key, members, camera, refs)
             self._rendered[key] = version
         if still_due:  # come back for the full-quality still once the interaction pauses
             delay = self.settings.interactive_idle_s + 0.01
@@ -512,14 +536,38 @@ class Session:
 
     async def _render_group(
         self,
+        key: ViewKey,
         members: list[Client],
         camera: p.Camera,
-        w: int,
-        h: int,
-        interactive: bool,
         refs: dict[str, int | None],
     ) -> None:
-        assert self.topology is not None and self.positions is not None
+        """Render one view on the GPU, then leave its encoding and delivery to a task of its own.
+
+        The encoder slot is taken before the scene is read, so a render waiting for a free
+        encoder renders the newest frame once it gets one.
+        """
+        await self.encode_slots.acquire()
+        try:
+            rendered = await self._render(camera, key)
+        except BaseException:
+            self.encode_slots.release()
+            raise
+        if rendered is None:
+            self.encode_slots.release()
+            return
+        task = asyncio.create_task(
+            self._encode_and_offer(key, rendered, members, refs),
+            name=f"encode-{self.id}-{rendered.frame_id}",
+        )
+        self._encoding.add(task)
+        task.add_done_callback(self._encoding.discard)
+
+    async def _render(self, camera: p.Camera, key: ViewKey) -> Rendered | None:
+        """One render of the current scene for a view; None when the scene went away while
+        the render waited for an encoder (a topology of another size clears the positions)."""
+        if self.topology is None or self.positions is None:
+            return None
+        _camera_json, w, h, interactive = key
         params = self.render_params
         scale = params.quality * (self.settings.interactive_scale if interactive else 1.0)
         rw, rh = max(1, round(w * scale)), max(1, round(h * scale))
@@ -530,6 +578,7 @@ class Session:
         rw, rh = max(1, int(rw * shrink)), max(1, int(rh * shrink))
         now = time.monotonic()
         want_hist = not interactive and now - self._last_hist > 1.0
+        step = self.status.step  # the step of the positions rendered, not of a later frame
         out: RenderOutput = await self.gpu.call(
             self.gpu.render_sync,
             self.scene_key,
@@ -546,36 +595,67 @@ class Session:
         if want_hist:
             self._last_hist = now
             self.histogram = out.histogram
-        quality = self.settings.interactive_jpeg_quality if interactive else params.jpeg_quality
-        loop = asyncio.get_running_loop()
-        data, encode_ms = await loop.run_in_executor(
-            self.encoders, encode_image, out.rgba, "jpeg", quality
-        )
         self.render_count += 1
         self.last_timings = out.timings
-        self.last_encode_ms = encode_ms
         self._render_times.append(time.monotonic())
         self.metrics.frames_rendered.inc()
         self.metrics.render_ms.observe(out.timings.get("total", 0.0))
+        quality = self.settings.interactive_jpeg_quality if interactive else params.jpeg_quality
+        return Rendered(out, next(self._frame_ids), step, rw, rh, quality)
+
+    async def _encode_and_offer(
+        self,
+        key: ViewKey,
+        rendered: Rendered,
+        members: list[Client],
+        refs: dict[str, int | None],
+    ) -> None:
+        """Encode off the event loop, then offer the image to the view's clients."""
+        out = rendered.out
+        loop = asyncio.get_running_loop()
+        try:
+            data, encode_ms = await loop.run_in_executor(
+                self.encoders, self.encoder.encode, out.rgba, "jpeg", rendered.jpeg_quality
+            )
+        except Exception:
+            log.exception("encoding failed in session %s", self.id)
+            self._rendered.pop(key, None)  # render this view again on the next change
+            self.broadcast(
+                p.Error(code=p.ErrorCode.INTERNAL, message="encoding failed; see the server log")
+            )
+            return
+        finally:
+            self.encode_slots.release()
+        if self._closed:
+            return
+        self.last_encode_ms = encode_ms
         self.metrics.encode_ms.observe(encode_ms)
-        frame_id = next(self._frame_ids)
         hist = p.WireArray.from_numpy(out.histogram, "<f4") if out.histogram is not None else None
         base = p.Image(
-            frame_id=frame_id,
-            step=self.status.step,
+            frame_id=rendered.frame_id,
+            step=rendered.step,
             format="jpeg",
             data=data,
-            width=rw,
-            height=rh,
-            still=not interactive,
+            width=rendered.width,
+            height=rendered.height,
+            still=not key[3],
             render_ms=out.timings.get("total", 0.0),
             encode_ms=encode_ms,
             server_time=time.time(),
             histogram=hist,
         )
+        packed: dict[int | None, bytes] = {}  # viewers that echo the same ref share the bytes
         for client in members:
-            if client.offer_image(base.model_copy(update={"ref": refs.get(client.client_id)})):
-                self.metrics.frames_dropped.inc()
+            ref = refs.get(client.client_id)
+            if ref not in packed:
+                packed[ref] = p.encode(base.model_copy(update={"ref": ref}))
+            match client.offer_encoded(rendered.frame_id, packed[ref]):
+                case ImageOffer.REPLACED:
+                    self.metrics.frames_dropped.inc()
+                case ImageOffer.STALE:
+                    self.metrics.frames_stale.inc()
+                case _:
+                    pass
 
     async def pick(self, client: Client, pick: p.Pick) -> p.Picked:
         if self.topology is None or self.positions is None:
@@ -657,9 +737,10 @@ class Session:
 
     async def close(self) -> None:
         self._closed = True
-        for task in self._tasks:
+        tasks = [*self._tasks, *self._encoding]
+        for task in tasks:
             task.cancel()
-        for task in self._tasks:
+        for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         await self.gpu.release(self.scene_key)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
+import os
 import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,6 +12,12 @@ from protocol import DEFAULT_LIMITS, Limits, RenderParams
 
 VIEWER_LIMITS = Limits(max_message_bytes=256 * 1024)
 """Browsers and scripts send only small control messages."""
+
+
+def default_encode_workers() -> int:
+    """One encoder thread per core, at most 8: a 1080p JPEG keeps one core busy for 10-30 ms,
+    so a few encodes in flight keep up with a GPU that renders a frame in about 10 ms."""
+    return max(1, min(8, os.cpu_count() or 1))
 
 
 def is_loopback(host: str) -> bool:
@@ -44,6 +51,8 @@ class ServerSettings:
     interactive_scale: float = 0.5
     interactive_jpeg_quality: int = 60
     default_size: tuple[int, int] = (640, 480)
+    encode_workers: int = field(default_factory=default_encode_workers)
+    """Threads that encode images; also how many encodes the renderer keeps in flight."""
     render_defaults: RenderParams = field(default_factory=RenderParams)
     stats_interval_s: float = 1.0
     state_interval_s: float = 0.1
@@ -55,5 +64,7 @@ class ServerSettings:
             raise ValueError("--no-token-on-loopback-only needs a loopback --host")
         if self.token is None and not self.open_on_loopback:
             raise ValueError("a token is required unless the server is open on loopback only")
+        if self.encode_workers < 1:
+            raise ValueError("--encode-workers must be at least 1")
         if self.data_dir is not None and not self.data_dir.is_dir():
             raise ValueError(f"--data-dir {self.data_dir} is not a directory")

@@ -58,6 +58,30 @@ def test_non_finite_positions(bad: float) -> None:
     assert "NaN" in err.message
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("where", [0, 1_000, 299_999])
+def test_non_finite_anywhere_in_a_big_frame_is_refused(bad: float, where: int) -> None:
+    pos = np.random.default_rng(0).uniform(-50, 50, (100_000, 3)).astype(np.float32)
+    pos.reshape(-1)[where] = bad
+    obj = raw_of("frame")
+    obj["positions"] = {"dtype": "<f4", "shape": [100_000, 3], "data": pos.tobytes()}
+    err = reject(obj)
+    assert (err.code, err.path) == (p.ErrorCode.INVALID_MESSAGE, "frame.positions")
+
+
+def test_finite_values_whose_sum_overflows_are_accepted() -> None:
+    big = np.finfo(np.float32).max
+    pos = np.full((1_000, 3), big, np.float32)
+    pos[::2] = -big / 2
+    with np.errstate(over="ignore"):
+        assert not np.isfinite(pos.sum())  # the quick test cannot decide; the exact one must
+    obj = raw_of("frame")
+    obj["positions"] = {"dtype": "<f4", "shape": [1_000, 3], "data": pos.tobytes()}
+    frame = p.decode(msgpack.packb(obj, use_bin_type=True))
+    assert isinstance(frame, p.Frame)
+    assert np.array_equal(frame.positions.to_numpy(), pos)
+
+
 def test_non_finite_scalars() -> None:
     obj = raw_of("frame")
     obj["time_ps"] = float("nan")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import protocol as p
 from server.auth import RateLimiter
-from server.clients import MAX_QUEUED_CONTROL, Client, ClientState
+from server.clients import MAX_QUEUED_CONTROL, Client, ClientState, ImageOffer
 
 
 def make_client() -> Client:
@@ -23,6 +23,18 @@ def test_unsent_images_are_replaced_not_queued() -> None:
     assert client.frames_dropped == 49
     assert client._image is not None
     assert p.decode(client._image) == image(50)
+
+
+def test_an_image_older_than_one_already_offered_is_refused() -> None:
+    client = make_client()
+    assert client.offer_image(image(5)) is ImageOffer.TAKEN
+    assert client.offer_image(image(3)) is ImageOffer.STALE  # its encode finished late
+    assert client.offer_image(image(5)) is ImageOffer.STALE
+    assert p.decode(client._image) == image(5)  # type: ignore[arg-type]
+    assert client.offer_image(image(6)) is ImageOffer.REPLACED
+    assert client.frames_dropped == 3
+    client.close()
+    assert client.offer_image(image(7)) is ImageOffer.CLOSED
 
 
 def test_control_messages_keep_order_and_a_reader_that_never_reads_is_cut_off() -> None:
