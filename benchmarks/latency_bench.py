@@ -11,6 +11,8 @@ reflects it (`image.ref` == its seq), decodes the JPEG, and records the stages:
 Throughput: a simulation streams frames of an N-atom system as fast as the server takes them;
 1, 10 and 50 viewers share one view (one render feeds all), then 4 viewers each hold their own
 camera (four renders per frame). Frames/s delivered per viewer are counted over a fixed window.
+The simulation and the viewers run in two processes of their own, so the server's process
+(and its GIL) holds only the server.
 
     python benchmarks/latency_bench.py                      # GPU run (results JSON + table)
     python benchmarks/latency_bench.py --quick --device cpu # smoke test on the CPU device
@@ -19,12 +21,13 @@ camera (four renders per frame). Frames/s delivered per viewer are counted over 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import io
 import json
+import multiprocessing as mp
 import platform
 import statistics
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -126,68 +129,115 @@ def latency(server: ServerThread, n_atoms: int, changes: int) -> dict[str, Any]:
     return out
 
 
-def throughput(
-    server: ServerThread, n_atoms: int, viewers: int, own_camera: bool, seconds: float
-) -> dict[str, Any]:
-    url = f"ws://127.0.0.1:{server.port}"
-    session = f"tp-{viewers}-{int(own_camera)}"
+def _stream(url: str, session: str, n_atoms: int, ready: Any, stop: Any, rate: Any) -> None:
+    """Child process: a simulation sending frames of an N-atom system as fast as the server
+    takes them (messages encoded once beforehand, as a fast adapter would)."""
     sim = Peer(f"{url}/ws/sim", "simulation", "bench", session)
     pos, elements = build_system(n_atoms)
     sim.send(topology_of(elements))
     rng = np.random.default_rng(0)
-    frames = [(pos + rng.normal(0, 0.05, pos.shape)).astype(np.float32) for _ in range(4)]
-    sim.send(frame(frames[0], 0))
-    peers = [
-        Peer(f"{url}/ws/view", "viewer", "bench-view", session, max_queue=4) for _ in range(viewers)
+    raw = [
+        p.encode(frame((pos + rng.normal(0, 0.05, pos.shape)).astype(np.float32), k))
+        for k in range(4)
     ]
-    base = peers[0].expect(p.State, 60, where=lambda m: m.camera is not None).camera
-    assert base is not None
-    if own_camera:
-        for k, peer in enumerate(peers):
+    sim.send_raw(raw[0])
+    ready.set()
+    k = 0
+    t0 = time.monotonic()
+    while not stop.is_set():
+        k += 1
+        sim.send_raw(raw[k % len(raw)])
+    rate.put(k / (time.monotonic() - t0))
+    sim.close()
+
+
+async def _count_images(
+    url: str, session: str, viewers: int, own_camera: bool, size: tuple[int, int], seconds: float
+) -> list[float]:
+    from websockets.asyncio.client import connect
+
+    conns = []
+    for _ in range(viewers):
+        ws = await connect(f"{url}/ws/view", max_size=None, compression=None, max_queue=4)
+        hello = p.Hello(role="viewer", token="bench-view", client="bench", session=session, seq=1)
+        await ws.send(p.encode(hello))
+        conns.append(ws)
+    limits = p.Limits(max_message_bytes=1 << 30)
+    if own_camera:  # the session's camera, turned about y by a different angle per viewer
+        base = None
+        while base is None:
+            msg = p.decode(await conns[0].recv(), limits)
+            if isinstance(msg, p.State) and msg.camera is not None:
+                base = msg.camera
+        for k, ws in enumerate(conns):
             angle = 0.4 * (k + 1)
             q = (float(np.cos(angle / 2)), 0.0, float(np.sin(angle / 2)), 0.0)
-            w, h = server.settings.default_size
-            peer.send(p.View(camera=base.model_copy(update={"orientation": q}), width=w, height=h))
-    for peer in peers:
-        peer.expect(p.Image, 300)
-    stop = threading.Event()
+            view = p.View(camera=base.model_copy(update={"orientation": q}), width=size[0],
+                          height=size[1], seq=2)  # fmt: skip
+            await ws.send(p.encode(view))
     counts = [0] * viewers
 
-    def read(k: int) -> None:
-        while not stop.is_set():
-            try:
-                raw = peers[k].ws.recv(timeout=0.5)
-            except TimeoutError:
-                continue
-            except Exception:
-                return
+    async def read(k: int) -> None:
+        async for raw in conns[k]:
             if isinstance(raw, bytes) and b"\xa5image" in raw[:16]:
                 counts[k] += 1
 
-    def stream() -> None:
-        step = 0
-        while not stop.is_set():
-            step += 1
-            sim.send(frame(frames[step % len(frames)], step))
-
-    readers = [threading.Thread(target=read, args=(k,), daemon=True) for k in range(viewers)]
-    for t in readers:
-        t.start()
-    streamer = threading.Thread(target=stream, daemon=True)
-    streamer.start()
-    time.sleep(2.0)  # reach steady state
-    start_counts = list(counts)
+    tasks = [asyncio.create_task(read(k)) for k in range(viewers)]
+    while min(counts) == 0:  # every viewer has its first image
+        await asyncio.sleep(0.05)
+    await asyncio.sleep(2.0)  # steady state
+    start = list(counts)
     t0 = time.monotonic()
-    time.sleep(seconds)
+    await asyncio.sleep(seconds)
     elapsed = time.monotonic() - t0
-    per_viewer = [(c - s) / elapsed for c, s in zip(counts, start_counts, strict=True)]
-    stop.set()
-    streamer.join(10)
-    for t in readers:
-        t.join(5)
+    per_viewer = [(c - s) / elapsed for c, s in zip(counts, start, strict=True)]
+    for t in tasks:
+        t.cancel()
+    for ws in conns:
+        await ws.close()
+    return per_viewer
+
+
+def _viewers(
+    url: str,
+    session: str,
+    viewers: int,
+    own_camera: bool,
+    size: tuple[int, int],
+    seconds: float,
+    out: Any,
+) -> None:
+    """Child process: all viewer connections on one asyncio loop, counting images."""
+    out.put(asyncio.run(_count_images(url, session, viewers, own_camera, size, seconds)))
+
+
+def throughput(
+    server: ServerThread, n_atoms: int, viewers: int, own_camera: bool, seconds: float
+) -> dict[str, Any]:
+    """Frames/s delivered per viewer. The simulation and the viewers run in processes of
+    their own, so the server's process holds only the server."""
+    url = f"ws://127.0.0.1:{server.port}"
+    session = f"tp-{viewers}-{int(own_camera)}"
+    ctx = mp.get_context("spawn")
+    ready, stop, out, rate = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
+    streamer = ctx.Process(target=_stream, args=(url, session, n_atoms, ready, stop, rate))
+    streamer.start()
+    try:
+        if not ready.wait(300):
+            raise TimeoutError("the simulation process did not start streaming")
+        size = server.settings.default_size
+        args = (url, session, viewers, own_camera, size, seconds, out)
+        counter = ctx.Process(target=_viewers, args=args)
+        counter.start()
+        per_viewer: list[float] = out.get(timeout=300)
+        counter.join(30)
+    finally:
+        stop.set()
+        sent = rate.get(timeout=60) if streamer.is_alive() else None
+        streamer.join(30)
+        if streamer.is_alive():
+            streamer.terminate()
     state = server.app_state.sessions.get(session)
-    for peer in [*peers, sim]:
-        peer.close()
     return {
         "n_atoms": n_atoms,
         "viewers": viewers,
@@ -196,6 +246,7 @@ def throughput(
         "fps_per_viewer_min": min(per_viewer),
         "render_timings_ms": state.last_timings if state else {},
         "encode_ms": state.last_encode_ms if state else None,
+        "sim_frames_per_s": sent,
     }
 
 
