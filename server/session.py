@@ -45,6 +45,18 @@ class PendingSteer:
     log_id: int
 
 
+@dataclass(frozen=True)
+class Scene:
+    """What one render pass draws: a topology and one frame of positions."""
+
+    topology: p.Topology
+    topology_id: int
+    positions: npt.NDArray[np.float32]
+    positions_id: int
+    step: int
+    version: int
+
+
 @dataclass
 class Rendered:
     """A render waiting for its encode: the pixels and what its image message will say."""
@@ -516,6 +528,7 @@ class Session:
         if self.topology is None or self.positions is None or not self.clients:
             return
         still_due = False
+        frame: list[Scene] = []  # the frame of this pass, taken when its first render starts
         for key, members in self._groups(time.monotonic()).items():
             camera_json, _w, _h, interactive = key
             still_due = still_due or interactive
@@ -526,13 +539,26 @@ class Session:
             for c in members:  # a view arriving during the render sets it again
                 c.needs_image = False
             camera = p.Camera.model_validate_json(camera_json)
-            await self._render_group(key, members, camera, refs)
-            self._rendered[key] = version
+            rendered_version = await self._render_group(key, members, camera, refs, frame)
+            if rendered_version is not None:
+                self._rendered[key] = rendered_version
         if still_due:  # come back for the full-quality still once the interaction pauses
             delay = self.settings.interactive_idle_s + 0.01
             asyncio.get_running_loop().call_later(delay, self.mark_dirty)
         if len(self._rendered) > 256:
             self._rendered.clear()
+
+    def _scene(self) -> Scene | None:
+        if self.topology is None or self.positions is None:
+            return None
+        return Scene(
+            self.topology,
+            self.topology_id,
+            self.positions,
+            self.positions_id,
+            self.status.step,
+            self._scene_version,
+        )
 
     async def _render_group(
         self,
@@ -540,32 +566,40 @@ class Session:
         members: list[Client],
         camera: p.Camera,
         refs: dict[str, int | None],
-    ) -> None:
+        frame: list[Scene],
+    ) -> int | None:
         """Render one view on the GPU, then leave its encoding and delivery to a task of its own.
+        Returns the scene version rendered (None: nothing was).
 
         The encoder slot is taken before the scene is read, so a render waiting for a free
-        encoder renders the newest frame once it gets one.
+        encoder renders the newest frame once it gets one; the other views of the same pass
+        (`frame`) render that same frame, so its upload and grid serve them all.
         """
         await self.encode_slots.acquire()
         try:
-            rendered = await self._render(camera, key)
+            if not frame:
+                scene = self._scene()
+                if scene is not None:
+                    frame.append(scene)
+            rendered = await self._render(camera, key, frame[0]) if frame else None
         except BaseException:
             self.encode_slots.release()
             raise
         if rendered is None:
             self.encode_slots.release()
-            return
+            return None
         task = asyncio.create_task(
             self._encode_and_offer(key, rendered, members, refs),
             name=f"encode-{self.id}-{rendered.frame_id}",
         )
         self._encoding.add(task)
         task.add_done_callback(self._encoding.discard)
+        return frame[0].version
 
-    async def _render(self, camera: p.Camera, key: ViewKey) -> Rendered | None:
-        """One render of the current scene for a view; None when the scene went away while
-        the render waited for an encoder (a topology of another size clears the positions)."""
-        if self.topology is None or self.positions is None:
+    async def _render(self, camera: p.Camera, key: ViewKey, scene: Scene) -> Rendered | None:
+        """One render of `scene` for a view; None when a new topology arrived since the scene
+        was taken (the next pass renders that one)."""
+        if scene.topology_id != self.topology_id:
             return None
         _camera_json, w, h, interactive = key
         params = self.render_params
@@ -578,14 +612,14 @@ class Session:
         rw, rh = max(1, int(rw * shrink)), max(1, int(rh * shrink))
         now = time.monotonic()
         want_hist = not interactive and now - self._last_hist > 1.0
-        step = self.status.step  # the step of the positions rendered, not of a later frame
+        step = scene.step  # the step of the positions rendered, not of a later frame
         out: RenderOutput = await self.gpu.call(
             self.gpu.render_sync,
             self.scene_key,
-            self.topology,
-            self.topology_id,
-            self.positions,
-            self.positions_id,
+            scene.topology,
+            scene.topology_id,
+            scene.positions,
+            scene.positions_id,
             params,
             camera,
             rw,

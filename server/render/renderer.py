@@ -13,7 +13,7 @@ import functools
 import logging
 import math
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -37,8 +37,9 @@ HISTOGRAM_SIDE = 64
 HISTOGRAM_X_MAX = 3.0
 AO_STEP_SIGMAS = 0.6
 STAGES = ("upload", "grid", "raycast", "total")
-GRAPH_CACHE = 4
-"""CUDA graphs kept per renderer (least recently used dropped): one per distinct frame set-up."""
+GRAPH_CACHE = 8
+"""CUDA graphs kept per renderer (least recently used dropped): one per distinct frame set-up,
+e.g. one per viewer camera when several viewers each hold their own."""
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +105,7 @@ class Renderer:
             OrderedDict() if graphs or (graphs is None and self._cuda) else None
         )
         self._last_launch: tuple[Any, ...] | None = None
+        self._recent: deque[tuple[Any, ...]] = deque(maxlen=GRAPH_CACHE)
 
         self._topology: Topology | None = None
         self._n = 0
@@ -466,13 +468,14 @@ class Renderer:
 
     def _replay_or_launch(self, key: tuple[Any, ...], launch: Callable[[], float]) -> float:
         """Replay the frame's graph when one exists for exactly these launches, capture
-        one when the same launches come twice in a row (a streamed trajectory, a still
-        camera), else launch eagerly. A graph replays every kernel, sort and scan with one
-        call, which removes the per-launch host cost that dominates small molecules."""
+        one when the same launches were among the last few (a streamed trajectory, a still
+        camera, viewers taking turns with their own cameras), else launch eagerly. A graph
+        replays every kernel, sort and scan with one call, which removes the per-launch host
+        cost that dominates small molecules."""
         graphs = self._graphs
         assert graphs is not None
         graph = graphs.get(key)
-        if graph is None and key == self._last_launch:
+        if graph is None and key in self._recent:
             try:
                 with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
                     launch()
@@ -481,11 +484,13 @@ class Renderer:
                 log.warning("graph capture failed, launching kernels one by one: %s", exc)
                 self._graphs = None
                 self._last_launch = None
+                self._recent.clear()
                 return launch()
             graphs[key] = graph
             while len(graphs) > GRAPH_CACHE:
                 graphs.pop(next(iter(graphs)))
         self._last_launch = key
+        self._recent.append(key)
         if graph is None:
             return launch()
         graphs.move_to_end(key)
@@ -497,6 +502,7 @@ class Renderer:
         if self._graphs is not None:
             self._graphs.clear()
         self._last_launch = None
+        self._recent.clear()
 
     def render(self, params: RenderParams, camera: Camera, width: int, height: int) -> None:
         """Render one image; it stays on the device (read it with `read_rgba` and friends).

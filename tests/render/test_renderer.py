@@ -164,3 +164,28 @@ def test_graph_replay_draws_what_eager_launches_draw(device: str) -> None:
         np.testing.assert_array_equal(replay.read_depth(), eager.read_depth(), err_msg=what)
         np.testing.assert_array_equal(replay.read_atom_ids(), eager.read_atom_ids())
     assert replayed >= 8, "every repeated set-up after its first frame should replay"
+
+
+def test_cameras_taking_turns_replay_their_graphs(device: str) -> None:
+    """Viewers with cameras of their own render in turn on one frame: after one round each
+    set-up replays its own graph, and the images stay those of eager launches."""
+    n = 50
+    top = make_topology(n)
+    pos = blob(n, seed=4)
+    base = fit_camera(pos, 24, 20)
+    cams = [orbit(base, 40.0 * k, 0.0) for k in range(3)]
+    replay = Renderer(device, graphs=True)
+    eager = Renderer(device, graphs=False)
+    params = RenderParams(sigma_A=1.2)
+    for r in (replay, eager):
+        r.set_topology(top)
+        r.set_positions(pos)
+    replayed = 0
+    for i in range(12):
+        cam = cams[i % 3]
+        for r in (replay, eager):
+            r.render(params, cam, 24, 20)
+        assert replay._graphs is not None
+        replayed += int(replay._last_launch in replay._graphs)
+        np.testing.assert_array_equal(replay.read_rgba(), eager.read_rgba())
+    assert replayed >= 8

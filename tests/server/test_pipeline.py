@@ -191,3 +191,32 @@ def test_a_render_waiting_for_an_encoder_skips_a_scene_that_went_away(
     sim.close()
     viewer.close()
     live.stop()
+
+
+def test_views_of_one_pass_render_the_same_frame(server: LiveServer) -> None:
+    """Viewers with cameras of their own, frames arriving faster than renders: each pass
+    renders every view from one frame (one upload and grid), so the viewers see the same
+    steps instead of each catching a different newer frame."""
+    stream = Stream(server, "turns")
+    viewers = [
+        Peer(server.view_url, "viewer", server.viewer_token, "turns", max_queue=None)
+        for _ in range(3)
+    ]
+    base = viewers[0].expect(p.State, 30, where=lambda m: m.camera is not None).camera
+    assert base is not None
+    for k, v in enumerate(viewers):
+        q = (float(np.cos(0.3 * (k + 1))), 0.0, float(np.sin(0.3 * (k + 1))), 0.0)
+        v.send(p.View(camera=base.model_copy(update={"orientation": q}), width=64, height=48))
+    for v in viewers:
+        v.expect(p.Image, 60)
+    stream.start()
+    got = [
+        {m.step for m in v.drain(3.0) if isinstance(m, p.Image) and m.width == 64} for v in viewers
+    ]
+    stream.stop()
+    assert stream.step > 1.5 * max(len(g) for g in got), "frames did not outpace the renders"
+    common = got[0] & got[1] & got[2]
+    assert min(len(g) for g in got) >= 5, [len(g) for g in got]
+    assert len(common) >= 0.8 * min(len(g) for g in got), (len(common), [len(g) for g in got])
+    for v in viewers:
+        v.close()
