@@ -153,6 +153,8 @@ class Session:
         self._last_hist = 0.0
         self.histogram: npt.NDArray[np.float32] | None = None
         self._encoding: set[asyncio.Task[None]] = set()
+        self._frame_taken = asyncio.Event()
+        self._frame_taken.set()
         self._tasks = [
             asyncio.create_task(self._render_loop(), name=f"render-{session_id}"),
             asyncio.create_task(self._stats_loop(), name=f"stats-{session_id}"),
@@ -194,6 +196,8 @@ class Session:
                 self.broadcast(p.State(sim=self.status))
         else:
             self.clients.pop(client.client_id, None)
+            if not self.clients:
+                self._frame_taken.set()
             mine = [a for a, pull in self.pulls.items() if pull.client_id == client.client_id]
             for atom in mine:
                 self.pulls.pop(atom)
@@ -287,6 +291,8 @@ class Session:
         )
         self.metrics.sim_frames.inc()
         self._scene_version += 1
+        if self.clients:
+            self._frame_taken.clear()
         if self.pulls:
             self._send_forces()
         if now - self._last_state_sent >= self.settings.state_interval_s:
@@ -581,6 +587,7 @@ class Session:
                 scene = self._scene()
                 if scene is not None:
                     frame.append(scene)
+                    self._frame_taken.set()
             rendered = await self._render(camera, key, frame[0]) if frame else None
         except BaseException:
             self.encode_slots.release()
@@ -769,8 +776,19 @@ class Session:
             "renders": self.render_count,
         }
 
+    async def frame_taken(self, timeout: float) -> None:
+        """Wait, at most `timeout` s, until a render has taken the newest frame. The
+        simulation's connection reads its next frame only then, so frames that no render would
+        draw are neither received nor validated: ingest keeps pace with rendering, and the
+        event loop's time goes to the viewers."""
+        if self._frame_taken.is_set() or not self.clients:
+            return
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._frame_taken.wait(), timeout)
+
     async def close(self) -> None:
         self._closed = True
+        self._frame_taken.set()
         tasks = [*self._tasks, *self._encoding]
         for task in tasks:
             task.cancel()

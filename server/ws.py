@@ -231,6 +231,7 @@ async def _dispatch(session: object, client: Client, message: p.Message) -> None
             session.on_topology(message)
         case p.Frame():
             session.on_frame(message)
+            await session.frame_taken(session.settings.frame_wait_s)
         case p.ParamsAck():
             session.on_ack(message)
         case p.View():

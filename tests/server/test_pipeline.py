@@ -220,3 +220,29 @@ def test_views_of_one_pass_render_the_same_frame(server: LiveServer) -> None:
     assert len(common) >= 0.8 * min(len(g) for g in got), (len(common), [len(g) for g in got])
     for v in viewers:
         v.close()
+
+
+def test_frames_are_read_at_the_pace_of_rendering(server: LiveServer) -> None:
+    """With viewers attached, a simulation's next frame is read once a render took the last
+    one: frames nobody would see are not received and validated. Without viewers the
+    simulation is read at once."""
+    frames = server.app_state.metrics.sim_frames
+    stream = Stream(server, "pace")
+    session = server.app_state.sessions.get("pace")
+    stream.start()
+    time.sleep(0.5)
+    n0, s0 = frames._value.get(), stream.step
+    time.sleep(1.0)
+    unpaced = (frames._value.get() - n0) / max(stream.step - s0, 1)
+    assert unpaced > 0.9, unpaced  # no viewer: everything sent is read
+
+    viewer = Peer(server.view_url, "viewer", server.viewer_token, "pace", max_queue=None)
+    viewer.send(p.View(camera=p.Camera(), width=480, height=360))  # slow CPU renders
+    viewer.expect(p.Image, 60, where=lambda m: m.width == 480)
+    n0, r0 = frames._value.get(), session.render_count
+    time.sleep(2.0)
+    read, renders = frames._value.get() - n0, session.render_count - r0
+    stream.stop()
+    assert renders >= 3, renders
+    assert read <= 2 * renders + 4, (read, renders)
+    viewer.close()
