@@ -51,7 +51,8 @@ class ServerSettings:
     interactive_scale: float = 0.5
     interactive_jpeg_quality: int = 60
     frame_wait_s: float = 0.25
-    """Longest a simulation's next frame waits to be read until a render took the last one."""
+    """Longest a simulation's next big frame (over 1 MiB) waits to be read until a render took
+    the last one."""
     default_size: tuple[int, int] = (640, 480)
     encode_workers: int = field(default_factory=default_encode_workers)
     """Threads that encode images; also how many encodes the renderer keeps in flight."""

@@ -182,12 +182,17 @@ async def _receive_loop(
             raw = await _receive(ws, limits)
             if raw is None:
                 return
-            if len(raw) > OFFLOAD_BYTES:  # big frames: validate off the event loop
+            big = len(raw) > OFFLOAD_BYTES
+            if big:  # big frames: validate off the event loop
                 message = await asyncio.to_thread(p.decode, raw, limits)
             else:
                 message = p.decode(raw, limits)
             try:
                 await _dispatch(session, client, message)
+                if big and isinstance(message, p.Frame):
+                    # the next big frame is read once a render took this one: few fit in the
+                    # socket's buffers, so acks behind them wait one render at most
+                    await session.frame_taken(session.settings.frame_wait_s)
             except p.ProtocolError:
                 raise
             except Exception:  # a server fault: logged here, reported without details
@@ -231,7 +236,6 @@ async def _dispatch(session: object, client: Client, message: p.Message) -> None
             session.on_topology(message)
         case p.Frame():
             session.on_frame(message)
-            await session.frame_taken(session.settings.frame_wait_s)
         case p.ParamsAck():
             session.on_ack(message)
         case p.View():
