@@ -31,10 +31,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mode", default="iso", choices=["iso", "volume"])
     p.add_argument("--frames", type=int, default=4)
     p.add_argument("--device", default="cuda:0")
+    p.add_argument("--budget", type=int, default=None, help="first marching kernel's passes")
+    p.add_argument("--lanes", type=int, default=None, help="threads per queued ray")
     args = p.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
     pos, el = build_system(args.atoms)
-    r = Renderer(args.device, max_atoms=args.atoms, graphs=False)
+    kw = {}
+    if args.budget is not None:
+        kw["march_budget"] = args.budget
+    if args.lanes is not None:
+        kw["split_lanes"] = args.lanes
+    r = Renderer(args.device, max_atoms=args.atoms, graphs=False, **kw)
     r.set_topology(topology_of(el))
     cam = fit_camera(pos, w, h)
     params = RenderParams(mode=args.mode)  # type: ignore[arg-type]

@@ -61,6 +61,7 @@ from server.render.raycast import (
     pack_rgba,
     pixel_of,
 )
+from server.render.renderer import SPLIT_LANES
 
 wp: Any = warp  # host API calls are dynamic
 
@@ -380,6 +381,10 @@ class Bench:
             "ablation": [],
             "graphs": [],
             "registers": [],
+            "budgets": [],
+            "blocks": [],
+            "march_budget": args.march_budget,
+            "split_lanes": args.split_lanes,
             "max_registers": args.max_registers,
             "volume_max_registers": args.volume_max_registers,
             "notes": [],
@@ -400,6 +405,8 @@ class Bench:
         pos, el = self.system(n)
         kw.setdefault("max_registers", self.results["max_registers"])
         kw.setdefault("volume_max_registers", self.results["volume_max_registers"])
+        kw.setdefault("march_budget", self.results["march_budget"])
+        kw.setdefault("split_lanes", self.results["split_lanes"])
         r = Renderer(self.device, max_atoms=max(n, 1), **kw)
         r.set_topology(topology_of(el))
         frames = jittered_frames(pos, 3)
@@ -573,6 +580,8 @@ class Bench:
                 empty_space_skipping=False,
                 max_registers=self.results["max_registers"],
                 volume_max_registers=self.results["volume_max_registers"],
+                march_budget=self.results["march_budget"],
+                split_lanes=self.results["split_lanes"],
             )
             rn.set_topology(topology_of(self.system(n)[1]))
             sn = self.timed(self.frame_step(rn, frames, iso, cam, w, h), nf)
@@ -735,6 +744,74 @@ class Bench:
                 self.results[key] = best
                 self.log(f"{mode} register cap for the rest of the run: {best or 'compiler'}")
         self.save()
+
+    # ---- pass budget of the first iso marching kernel (long rays queued for a second one)
+    def budgets(
+        self, cases: list[tuple[int, int, int]], budgets: list[tuple[int | None, int]]
+    ) -> None:
+        """Iso frames with each first-kernel pass budget (0: one kernel, no queue) and lanes
+        per queued ray in the second, with the share of rays that went on to the second."""
+        for n, w, h in cases:
+            for budget, lanes in budgets:
+                if self.clock.left() < 15:
+                    return
+                r, frames = self.renderer(n, march_budget=budget, split_lanes=lanes)
+                cam = fit_camera(frames[0], w, h)
+                params = RenderParams()
+                s = self.timed(
+                    self.frame_step(r, frames, params, cam, w, h), self.args.baseline_frames
+                )
+                used = r._budget_for(w * h)
+                queued = int(r._queue_len.numpy()[0]) if used > 0 else 0
+                self.results["budgets"].append(
+                    {
+                        "n_atoms": n,
+                        "width": w,
+                        "height": h,
+                        "march_budget": budget,
+                        "march_budget_used": used,
+                        "split_lanes": lanes,
+                        "queued_share": queued / (w * h),
+                        **s,
+                    }
+                )
+                self.save()
+                self.log(
+                    f"budget={budget}({used}) lanes={lanes} N={n:,} {w}x{h}: "
+                    f"{s['median_ms']:.3f} ms, "
+                    f"queued {100 * queued / (w * h):.1f}% {fmt_stages(s.get('stages_ms', {}))}"
+                )
+                del r
+
+    # ---- threads per block of the marching kernels
+    def blocks(self, cases: list[tuple[int, int, int]], sizes: list[int]) -> None:
+        """Iso and volume frames with each block size of the marching kernels."""
+        import server.render.renderer as renderer_module
+
+        default = renderer_module.MARCH_BLOCK
+        try:
+            for n, w, h in cases:
+                for block in sizes:
+                    if self.clock.left() < 15:
+                        return
+                    renderer_module.MARCH_BLOCK = block
+                    r, frames = self.renderer(n)
+                    cam = fit_camera(frames[0], w, h)
+                    for mode in ("iso", "volume"):
+                        params = RenderParams(mode=mode)  # type: ignore[arg-type]
+                        s = self.timed(
+                            self.frame_step(r, frames, params, cam, w, h),
+                            self.args.baseline_frames,
+                        )
+                        self.results["blocks"].append(
+                            {"n_atoms": n, "width": w, "height": h, "mode": mode,
+                             "block_dim": block, **s}
+                        )  # fmt: skip
+                        self.log(f"block={block} N={n:,} {w}x{h} {mode}: {s['median_ms']:.3f} ms")
+                    self.save()
+                    del r
+        finally:
+            renderer_module.MARCH_BLOCK = default
 
     # ---- graph replay vs launching kernels one by one
     def graphs(self, cases: list[tuple[int, int, int]]) -> None:
@@ -954,6 +1031,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--volume-max-registers", type=int, default=80, help="volume kernel")
     p.add_argument("--register-caps", default="0,128,80,64", help="caps the first section tries")
     p.add_argument("--register-sizes", default="100000,1000000", help="atom counts it tries")
+    p.add_argument(
+        "--march-budget", type=int, default=None, help="iso first-kernel passes (default: auto)"
+    )
+    p.add_argument("--block-sizes", default="64,128,256", help="block sizes it tries")
+    p.add_argument("--budget-cases", default="", help="N@WxH,... the budget section runs")
+    p.add_argument("--split-lanes", type=int, default=SPLIT_LANES, help="lanes per queued ray")
+    p.add_argument(
+        "--budgets", default="0,4,8,12,16", help="budget[:lanes] pairs the budget section tries"
+    )
     args = p.parse_args(argv)
     if args.table:
         print(table(Path(args.table)), end="")
@@ -989,6 +1075,29 @@ def main(argv: list[str] | None = None) -> int:
             )
     if "main" in sections:
         b.main_table(sizes, res, grid="grid" in sections)
+    if "budgets" in sections:
+        tries = [
+            (
+                None if v.split(":")[0] == "auto" else int(v.split(":")[0]),
+                int(v.split(":")[1]) if ":" in v else args.split_lanes,
+            )
+            for v in args.budgets.split(",")
+        ]
+        cases = [(496, 64, 48)] if args.quick else [
+            (5_684, 500, 500), (10_000, 500, 500), (100_000, 1920, 1080), (1_000_000, 1920, 1080)
+        ]  # fmt: skip
+        if args.budget_cases:
+            cases = [
+                (int(n), *(int(v) for v in size.split("x")))  # type: ignore[misc]
+                for n, size in (c.split("@") for c in args.budget_cases.split(","))
+            ]
+        b.budgets(cases, tries)
+    if "blocks" in sections:
+        block_sizes = [int(v) for v in args.block_sizes.split(",")]
+        cases = [(496, 64, 48)] if args.quick else [
+            (5_684, 500, 500), (100_000, 1920, 1080), (1_000_000, 1920, 1080)
+        ]  # fmt: skip
+        b.blocks(cases, block_sizes)
     if "graphs" in sections:
         if args.quick:
             b.graphs([(496, 64, 48)])

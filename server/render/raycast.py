@@ -91,6 +91,7 @@ class March:
     dt: float
     skip_below: float
     refine: int
+    budget: int
 
 
 @wp.struct
@@ -224,6 +225,17 @@ def brick_exit(
 @no_type_check
 def in_grid(g: GridInfo, cx: int, cy: int, cz: int) -> bool:
     return cx >= 0 and cy >= 0 and cz >= 0 and cx < g.dims[0] and cy < g.dims[1] and cz < g.dims[2]
+
+
+@wp.func
+@no_type_check
+def cell_at(g: GridInfo, p: wp.vec3) -> int:
+    """Index of the cell holding p (clamped to the grid)."""
+    q = (p - g.origin) * g.inv_h
+    cx = wp.clamp(int(wp.floor(q[0])), 0, g.dims[0] - 1)
+    cy = wp.clamp(int(wp.floor(q[1])), 0, g.dims[1] - 1)
+    cz = wp.clamp(int(wp.floor(q[2])), 0, g.dims[2] - 1)
+    return (cz * g.dims[1] + cy) * g.dims[0] + cx
 
 
 @wp.func
@@ -550,12 +562,101 @@ def _make(
             b = int(wp.min(v * x_scale, float(bins - 1)))
             wp.atomic_add(counts, b, 1)
 
+    @wp.func
+    @no_type_check
+    def march_iso(
+        f: Field,
+        m: March,
+        o: wp.vec3,
+        d: wp.vec3,
+        t_from: float,
+        t1: float,
+        k: int,
+        first: int,
+        inside: int,
+        prev_v: float,
+        budget: int,
+    ):
+        """March one ray from lattice sample k (the walk starts in the cell at `t_from`) to
+        its first crossing, taking at most `budget` density passes (0: no limit). Returns
+        the hit (inf: none), whether the ray still has work (budget spent) and the state that
+        resumes it: k, first, inside and the last sample's value (-1: unknown)."""
+        g = f.info[0]
+        dt = m.dt
+        hit = float(wp.inf)
+        cx0, sx, tx0, dtx = dda_axis(o[0], d[0], t_from, g.origin[0], g.h, g.dims[0])
+        cy0, sy, ty0, dty = dda_axis(o[1], d[1], t_from, g.origin[1], g.h, g.dims[1])
+        cz0, sz, tz0, dtz = dda_axis(o[2], d[2], t_from, g.origin[2], g.h, g.dims[2])
+        cx = int(cx0)
+        cy = int(cy0)
+        cz = int(cz0)
+        tx = float(tx0)
+        ty = float(ty0)
+        tz = float(tz0)
+        left = g.dims[0] + g.dims[1] + g.dims[2] + 3
+        active = wp.int32(1)
+        more = wp.int32(0)
+        passes = wp.int32(0)
+        # one density pass per outer iteration: the cheap cell walk to the next lattice
+        # sample that needs the density diverges, the expensive pass does not
+        while active != 0:
+            k, cx, cy, cz, tx, ty, tz, left, jumped, active = walk(
+                f.bound, f.brick_bound, g, o, d, t1, dt, 0.0, m.skip_below, 0,
+                1 - inside, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
+            )  # fmt: skip
+            if jumped != 0:
+                first = 0
+                prev_v = -1.0
+            if active != 0 and budget > 0 and passes >= budget:
+                more = 1
+                active = 0
+            if active != 0:
+                passes += 1
+                # four lattice samples; the pass may run past this cell, which only means
+                # the next cells start with k already beyond their entry
+                ts = wp.vec4(float(k) * dt, float(k + 1) * dt, float(k + 2) * dt, float(k + 3) * dt)
+                v4 = value4(f, o, d, ts)
+                q_hit = wp.int32(-1)
+                for q in range(4):
+                    if q_hit < 0:
+                        above = wp.int32(0)
+                        if v4[q] >= m.iso:
+                            above = 1
+                        if first == 1:
+                            first = 0
+                            inside = above
+                        elif above != inside:
+                            q_hit = q
+                        if q_hit < 0:
+                            prev_v = v4[q]
+                if q_hit >= 0:
+                    tq = ts[q_hit]
+                    t_prev = float(k + q_hit - 1) * dt
+                    v = v4[q_hit]
+                    hit = refine(f, o, d, t_prev, tq, prev_v, v, m.iso, inside, m.refine)
+                    active = 0
+                else:
+                    k += 4
+        return hit, more, k, first, inside, prev_v
+
     @wp.kernel(
         enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
     )
     @no_type_check
-    def iso_march_kernel(f: Field, cam: CameraData, m: March, hit_t: wp.array[float]):
-        x, y, ok = pixel_of(cam, wp.tid())
+    def iso_march_kernel(
+        f: Field,
+        cam: CameraData,
+        m: March,
+        hit_t: wp.array[float],
+        queue: wp.array[wp.vec4i],
+        queue_v: wp.array[float],
+        queue_len: wp.array[wp.int32],
+        found: wp.array[wp.int32],
+    ):
+        """First phase: every ray marches up to `m.budget` passes; rays with more to do go
+        to the queue, so the few long ones (grazing the surface) continue in full warps."""
+        tid = wp.tid()
+        x, y, ok = pixel_of(cam, tid)
         if ok == 0:
             return
         pix = y * cam.width + x
@@ -564,61 +665,126 @@ def _make(
         o, d = camera_ray(cam, x, y)
         t0, t1 = clip_box(o, d, g.origin, g.box_hi)
         if g.valid != 0 and t0 < t1:
+            k0 = int(wp.ceil(t0 / m.dt))
+            hit, more, k, first, inside, prev_v = march_iso(
+                f, m, o, d, t0, t1, k0, 1, 0, -1.0, m.budget
+            )
+            if more != 0:
+                slot = wp.atomic_add(queue_len, 0, 1)
+                queue[slot] = wp.vec4i(tid, k, first, inside)
+                queue_v[slot] = prev_v
+                found[slot] = 2147483647
+        hit_t[pix] = hit
+
+    @wp.kernel(
+        enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
+    )
+    @no_type_check
+    def iso_resume_kernel(
+        f: Field,
+        cam: CameraData,
+        m: March,
+        hit_t: wp.array[float],
+        queue: wp.array[wp.vec4i],
+        queue_v: wp.array[float],
+        queue_len: wp.array[wp.int32],
+        found: wp.array[wp.int32],
+    ):
+        """Second phase: the queued rays, each to its end (launched for the whole image;
+        threads past the queue's length return at once)."""
+        i = wp.tid()
+        if i >= queue_len[0]:
+            return
+        e = queue[i]
+        x, y, _ok = pixel_of(cam, e[0])
+        g = f.info[0]
+        o, d = camera_ray(cam, x, y)
+        _t0, t1 = clip_box(o, d, g.origin, g.box_hi)
+        k = e[1]
+        hit, _more, _k, _first, _inside, _v = march_iso(
+            f, m, o, d, float(k) * m.dt, t1, k, e[2], e[3], queue_v[i], 0
+        )
+        hit_t[y * cam.width + x] = hit
+
+    @wp.kernel(
+        enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
+    )
+    @no_type_check
+    def iso_split_kernel(
+        f: Field,
+        cam: CameraData,
+        m: March,
+        hit_t: wp.array[float],
+        queue: wp.array[wp.vec4i],
+        queue_v: wp.array[float],
+        queue_len: wp.array[wp.int32],
+        found: wp.array[wp.int32],
+        lanes: int,
+        rays_per_launch: int,
+    ):
+        """Second phase with `lanes` threads per queued ray: lane j of round r takes the
+        four samples from k + 3 (r lanes + j) (neighbouring groups share a sample, so every
+        interval is inside one group), skips them when their cells' bounds clear them, and
+        reports its first change of side; the smallest sample index wins (`found`), and as
+        hits are ordered like their brackets, an atomic minimum of the refined hit keeps the
+        first crossing whichever lane finishes first."""
+        tid = wp.tid()
+        lane = tid % lanes
+        i = tid // lanes
+        n_queued = queue_len[0]
+        while i < n_queued:
+            e = queue[i]
+            x, y, _ok = pixel_of(cam, e[0])
+            pix = y * cam.width + x
+            g = f.info[0]
+            o, d = camera_ray(cam, x, y)
+            _t0, t1 = clip_box(o, d, g.origin, g.box_hi)
             dt = m.dt
-            k = int(wp.ceil(t0 / dt))
-            cx0, sx, tx0, dtx = dda_axis(o[0], d[0], t0, g.origin[0], g.h, g.dims[0])
-            cy0, sy, ty0, dty = dda_axis(o[1], d[1], t0, g.origin[1], g.h, g.dims[1])
-            cz0, sz, tz0, dtz = dda_axis(o[2], d[2], t0, g.origin[2], g.h, g.dims[2])
-            cx = int(cx0)
-            cy = int(cy0)
-            cz = int(cz0)
-            tx = float(tx0)
-            ty = float(ty0)
-            tz = float(tz0)
-            first = wp.int32(1)
-            inside = wp.int32(0)
-            prev_v = wp.float32(-1.0)
-            left = g.dims[0] + g.dims[1] + g.dims[2] + 3
-            active = wp.int32(1)
-            # one density pass per outer iteration: the cheap cell walk to the next lattice
-            # sample that needs the density diverges, the expensive pass does not
-            while active != 0:
-                k, cx, cy, cz, tx, ty, tz, left, jumped, active = walk(
-                    f.bound, f.brick_bound, g, o, d, t1, dt, 0.0, m.skip_below, 0,
-                    1 - inside, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
-                )  # fmt: skip
-                if jumped != 0:
-                    first = 0
-                    prev_v = -1.0
-                if active != 0:
-                    # four lattice samples; the pass may run past this cell, which only means
-                    # the next cells start with k already beyond their entry
-                    ts = wp.vec4(
-                        float(k) * dt, float(k + 1) * dt, float(k + 2) * dt, float(k + 3) * dt
-                    )
+            k0 = e[1]
+            inside = e[3]
+            rnd = wp.int32(0)
+            going = wp.int32(1)
+            while going != 0:
+                gs = k0 + 3 * (rnd * lanes + lane)
+                rnd += 1
+                if float(gs) * dt >= t1 or wp.atomic_add(found, i, 0) < gs:
+                    going = 0
+                    continue
+                ts = wp.vec4(
+                    float(gs) * dt, float(gs + 1) * dt, float(gs + 2) * dt, float(gs + 3) * dt
+                )
+                need = wp.int32(1)
+                if inside == 0:
+                    need = 0
+                    for q in range(4):
+                        if not clear(f.bound[cell_at(g, o + d * ts[q])], m.skip_below, 0):
+                            need = 1
+                if need != 0:
                     v4 = value4(f, o, d, ts)
                     q_hit = wp.int32(-1)
+                    q_from = wp.int32(1)
+                    if gs == k0:
+                        q_from = 0
                     for q in range(4):
-                        if q_hit < 0:
+                        if q_hit < 0 and q >= q_from:
                             above = wp.int32(0)
                             if v4[q] >= m.iso:
                                 above = 1
-                            if first == 1:
-                                first = 0
-                                inside = above
-                            elif above != inside:
+                            if above != inside:
                                 q_hit = q
-                            if q_hit < 0:
-                                prev_v = v4[q]
                     if q_hit >= 0:
-                        tq = ts[q_hit]
-                        t_prev = float(k + q_hit - 1) * dt
-                        v = v4[q_hit]
-                        hit = refine(f, o, d, t_prev, tq, prev_v, v, m.iso, inside, m.refine)
-                        active = 0
-                    else:
-                        k += 4
-        hit_t[pix] = hit
+                        s_hit = gs + q_hit
+                        wp.atomic_min(found, i, s_hit)
+                        v_prev = queue_v[i]
+                        if q_hit > 0:
+                            v_prev = v4[q_hit - 1]
+                        t = refine(
+                            f, o, d, float(s_hit - 1) * dt, ts[q_hit], v_prev, v4[q_hit], m.iso,
+                            inside, m.refine,
+                        )  # fmt: skip
+                        wp.atomic_min(hit_t, pix, t)
+                        going = 0
+            i += rays_per_launch
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
@@ -764,6 +930,8 @@ def _make(
         evaluate=evaluate_kernel,
         histogram=histogram_kernel,
         iso_march=iso_march_kernel,
+        iso_resume=iso_resume_kernel,
+        iso_split=iso_split_kernel,
         iso_shade=iso_shade_kernel,
         volume=volume_kernel,
     )
@@ -778,6 +946,8 @@ class RaycastKernels:
     evaluate: Any
     histogram: Any
     iso_march: Any
+    iso_resume: Any
+    iso_split: Any
     iso_shade: Any
     volume: Any
 

@@ -40,6 +40,22 @@ STAGES = ("upload", "grid", "raycast", "total")
 GRAPH_CACHE = 8
 """CUDA graphs kept per renderer (least recently used dropped): one per distinct frame set-up,
 e.g. one per viewer camera when several viewers each hold their own."""
+MARCH_BUDGET = 6
+"""Density passes an iso ray takes in the first marching kernel when rays are split; rays
+that need more are queued for a second kernel."""
+SPLIT_LANES = 8
+SPLIT_RAYS = 16384
+"""The second marching kernel gives each queued ray SPLIT_LANES threads that march
+consecutive stretches of it at once (1: one thread continues the ray); it runs
+SPLIT_LANES * SPLIT_RAYS threads that stride over the queue."""
+MARCH_BLOCK = 256
+"""Threads per block of the marching kernels."""
+SPLIT_PIXELS_PER_SM = 8 * 1024
+SPLIT_MIN_ATOMS = 4096
+"""Rays are split automatically on CUDA for images of at most SPLIT_PIXELS_PER_SM pixels per
+multiprocessor (too few rays to fill the GPU: the slowest rays set the frame time) and
+molecules of at least SPLIT_MIN_ATOMS atoms (long enough rays). Both bounds come from the
+budget sweep in benchmarks/README.md; elsewhere the extra kernel costs more than it saves."""
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +85,9 @@ class Renderer:
     measured, benchmarks/README.md); `density` is the model the ray caster evaluates (any model over
     `GaussianField`, the sorted atoms and cell grid this class builds); `graphs` replays
     repeated frame set-ups as captured graphs (None: on CUDA devices only; True: also on the
-    CPU, through warp's API capture).
+    CPU, through warp's API capture); `march_budget` is the number of density passes an iso
+    ray takes before it is queued for `split_lanes` threads to finish (0: never split; None:
+    split small images of larger molecules on CUDA, see `SPLIT_MIN_ATOMS`).
     """
 
     def __init__(
@@ -85,9 +103,15 @@ class Renderer:
         volume_max_registers: int = 80,
         density: DensityModel = GAUSSIAN,
         graphs: bool | None = None,
+        march_budget: int | None = None,
+        split_lanes: int = SPLIT_LANES,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
+        if march_budget is not None and march_budget < 0:
+            raise RenderError(f"march_budget must be >= 0, got {march_budget}")
+        if split_lanes < 1:
+            raise RenderError(f"split_lanes must be >= 1, got {split_lanes}")
         if not cells_per_cutoff >= 1.0:
             raise RenderError(f"cells_per_cutoff must be >= 1, got {cells_per_cutoff}")
         self.device: str = devmod.resolve(device)
@@ -95,6 +119,8 @@ class Renderer:
         self.max_pixels = int(max_pixels)
         self.cells_per_cutoff = float(cells_per_cutoff)
         self.empty_space_skipping = bool(empty_space_skipping)
+        self.march_budget = march_budget
+        self.split_lanes = int(split_lanes)
         self._dev = wp.get_device(self.device)
         self._cuda = bool(self._dev.is_cuda)
         if density.field is not GaussianField:
@@ -125,6 +151,11 @@ class Renderer:
         self._last: tuple[RenderParams, Derived] | None = None
         self._uploaded = False
         self._upload_ms = 0.0
+        # per-frame host work between the upload and the launch leaves the GPU idle: reuse
+        # what the last frame computed from the same (immutable) parameter and camera objects
+        self._params_seen: tuple[RenderParams, str] | None = None
+        self._camera_seen: tuple[Camera, int, int, CameraFrame, tuple[Any, ...]] | None = None
+        self._field_seen: tuple[Derived, GaussianField] | None = None
         if self._cuda:
             self._stream = wp.get_stream(self.device)
             self._events = [wp.Event(self.device, enable_timing=True) for _ in range(5)]
@@ -147,6 +178,7 @@ class Renderer:
         else:
             self._staging = wp.zeros(m, dtype=wp.vec3, device="cpu")
         self._atom_capacity = n
+        self._field_seen = None
         self._drop_graphs()
 
     def _alloc_pixels(self, count: int) -> None:
@@ -157,6 +189,10 @@ class Renderer:
         self._rgba = wp.zeros(count, dtype=wp.uint32, device=d)
         self._depth = wp.zeros(count, dtype=float, device=d)
         self._ids = wp.zeros(count, dtype=wp.int32, device=d)
+        self._queue = wp.zeros(count, dtype=wp.vec4i, device=d)
+        self._queue_v = wp.zeros(count, dtype=float, device=d)
+        self._queue_len = wp.zeros(1, dtype=wp.int32, device=d)
+        self._found = wp.zeros(count, dtype=wp.int32, device=d)
         self._pixels = count
         self._drop_graphs()
 
@@ -164,7 +200,15 @@ class Renderer:
         """Device bytes by purpose; `per_atom` + `grid` is what the density costs beyond
         positions and image buffers."""
         atom = (self._weights, self._radii, self._colors, self._sorted, self._inv2s2)
-        pix = (self._hit, self._rgba, self._depth, self._ids)
+        pix = (
+            self._hit,
+            self._rgba,
+            self._depth,
+            self._ids,
+            self._queue,
+            self._queue_v,
+            self._found,
+        )
         return {
             "positions": int(self._pos.capacity),
             "per_atom": sum(int(a.capacity) for a in atom),
@@ -326,6 +370,9 @@ class Renderer:
     # ------------------------------------------------------------------ rendering
 
     def _field(self, d: Derived) -> GaussianField:
+        seen = self._field_seen
+        if seen is not None and seen[0] == d:
+            return seen[1]
         f = GaussianField()
         f.atoms = self._sorted
         f.inv2s2 = self._inv2s2
@@ -338,6 +385,7 @@ class Renderer:
         f.inv2s2_uniform = d.inv2s2
         f.half_k2 = d.half_k2
         f.per_atom = d.per_atom
+        self._field_seen = (d, f)
         return f
 
     def _update_colors(self, p: RenderParams) -> None:
@@ -439,10 +487,21 @@ class Renderer:
         m.dt = d.dt
         m.skip_below = stop if params.mode == "iso" else -1.0
         m.refine = raycast.REFINE_PASSES
+        m.budget = self._budget_for(w * h)
         sh = self._shading(params, d, frame)
         threads = raycast.launch_size(w, h)
         if params.mode == "iso":
-            wp.launch(k.iso_march, threads, (f, cam, m, self._hit), device=dev)
+            queued = (self._hit, self._queue, self._queue_v, self._queue_len, self._found)
+            if m.budget > 0:
+                self._queue_len.zero_()
+            wp.launch(k.iso_march, threads, (f, cam, m, *queued), device=dev, block_dim=MARCH_BLOCK)
+            if m.budget > 0 and self.split_lanes > 1:
+                lanes = self.split_lanes
+                rays = min(w * h, SPLIT_RAYS)
+                args = (f, cam, m, *queued, lanes, rays)
+                wp.launch(k.iso_split, lanes * rays, args, device=dev, block_dim=MARCH_BLOCK)
+            elif m.budget > 0:
+                wp.launch(k.iso_resume, threads, (f, cam, m, *queued), device=dev)
             wp.launch(
                 k.iso_shade,
                 threads,
@@ -463,8 +522,16 @@ class Renderer:
                 threads,
                 (f, cam, m, vol, sh, self._rgba, self._depth, self._ids),
                 device=dev,
+                block_dim=MARCH_BLOCK,
             )
         return t_cast
+
+    def _budget_for(self, pixels: int) -> int:
+        """Passes before an iso ray is queued for the split second kernel (0: one kernel)."""
+        if self.march_budget is not None:
+            return self.march_budget
+        small = pixels <= SPLIT_PIXELS_PER_SM * int(getattr(self._dev, "sm_count", 0) or 0)
+        return MARCH_BUDGET if self._cuda and small and self._n >= SPLIT_MIN_ATOMS else 0
 
     def _replay_or_launch(self, key: tuple[Any, ...], launch: Callable[[], float]) -> float:
         """Replay the frame's graph when one exists for exactly these launches, capture
@@ -510,8 +577,15 @@ class Renderer:
         Raises RenderError for invalid input before launching anything."""
         t_start = time.perf_counter()
         w, h = self._check_size(width, height)
-        self._check_params(params)
-        frame = self._check_camera(camera, w, h)
+        seen = self._params_seen
+        if seen is None or seen[0] is not params:
+            self._check_params(params)
+            seen = self._params_seen = (params, params.model_dump_json())
+        cam_seen = self._camera_seen
+        if cam_seen is None or cam_seen[0] is not camera or cam_seen[1:3] != (w, h):
+            frame = self._check_camera(camera, w, h)
+            cam_seen = self._camera_seen = (camera, w, h, frame, frame.key())
+        frame = cam_seen[3]
         if self._n and not self._have_positions:
             raise RenderError("no positions: call set_positions after set_topology")
         d = self._derive(params)
@@ -535,7 +609,7 @@ class Renderer:
             self._launch_frame, params, d, f, stop, frame, grid_key is not None
         )
         if self._graphs is not None:
-            key = (grid_key is not None, self._n, d, stop, params.model_dump_json(), frame.key())
+            key = (grid_key is not None, self._n, d, stop, seen[1], cam_seen[4])
             t_cast = self._replay_or_launch(key, launch)
         else:
             t_cast = launch()

@@ -10,6 +10,7 @@ import pytest
 from protocol import Camera, Lighting, RenderParams, TFPoint
 from server.render import raycast
 from server.render.camera import camera_frame, fit_camera, image_rays, look_at, orbit
+from server.render.errors import RenderError
 from server.render.renderer import Renderer
 from server.render.transfer import build_table
 from tests.render import oracle
@@ -177,6 +178,39 @@ def test_empty_space_skipping_changes_nothing(device: str, mode: str, sparse: bo
     np.testing.assert_array_equal(fast.read_rgba(), naive.read_rgba())
     np.testing.assert_array_equal(fast.read_depth(), naive.read_depth())
     np.testing.assert_array_equal(fast.read_atom_ids(), naive.read_atom_ids())
+
+
+@pytest.mark.parametrize("scene", ["blob", "sparse", "inside"])
+@pytest.mark.parametrize(("budget", "lanes"), [(1, 1), (1, 8), (2, 32), (3, 4)])
+def test_split_rays_draw_the_same_image(device: str, scene: str, budget: int, lanes: int) -> None:
+    """Queuing rays after `budget` passes and finishing them with `lanes` threads each
+    (forced here; automatic only for small images on CUDA) draws the one-kernel image."""
+    n = 120
+    top = make_topology(n)
+    pos = blob(n, seed=5, spread=8.0)
+    cam = fit_camera(pos, W, H)
+    if scene == "sparse":
+        pos[::3] += np.float32(45.0)
+        cam = fit_camera(pos, W, H)
+    elif scene == "inside":
+        cam = look_at((0.0, 0.0, 0.0), (0.0, 0.0, -5.0), fov_deg=70.0)
+    params = RenderParams(sigma_A=1.2, iso_level=0.4)
+    one = render(device, top, pos, params, cam, W, H, march_budget=0)
+    split = render(device, top, pos, params, cam, W, H, march_budget=budget, split_lanes=lanes)
+    assert int(split._queue_len.numpy()[0]) > 0
+    np.testing.assert_array_equal(split.read_depth(), one.read_depth())
+    np.testing.assert_array_equal(split.read_rgba(), one.read_rgba())
+    np.testing.assert_array_equal(split.read_atom_ids(), one.read_atom_ids())
+
+
+def test_split_policy_and_its_arguments() -> None:
+    auto = Renderer("cpu")
+    assert auto._budget_for(W * H) == 0  # never automatic on the CPU
+    assert Renderer("cpu", march_budget=5)._budget_for(W * H) == 5
+    with pytest.raises(RenderError, match="march_budget"):
+        Renderer("cpu", march_budget=-1)
+    with pytest.raises(RenderError, match="split_lanes"):
+        Renderer("cpu", split_lanes=0)
 
 
 def test_cell_size_does_not_change_the_image(device: str) -> None:
