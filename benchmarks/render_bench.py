@@ -1000,6 +1000,37 @@ def table(path: Path) -> str:
                 f"{a['cells_per_cutoff']:g} | {a['median_ms']:.3f} | {st.get('grid', 0):.3f} | "
                 f"{st.get('raycast', 0):.3f} | {a['bytes_per_atom']:.1f} |"
             )
+    if res.get("budgets"):
+        lines += [
+            "",
+            "Split rays (iso, median ms per frame): passes in the first marching kernel before a "
+            "ray is queued (0: one kernel), threads per queued ray in the second, and the share "
+            "of rays queued; `auto` is the default policy.",
+            "",
+            "| atoms | image | budget | lanes | median ms | queued |",
+            "| ---: | --- | --- | ---: | ---: | ---: |",
+        ]
+        for e in res["budgets"]:
+            b = e["march_budget"]
+            name = f"auto ({e['march_budget_used']})" if b is None else str(b)
+            lanes = e["split_lanes"] if e["march_budget_used"] else "-"
+            lines.append(
+                f"| {e['n_atoms']:,} | {e['width']}x{e['height']} | {name} | {lanes} | "
+                f"{e['median_ms']:.3f} | {100 * e['queued_share']:.1f} % |"
+            )
+    if res.get("blocks"):
+        lines += [
+            "",
+            "Threads per block of the marching kernels (median ms per frame):",
+            "",
+            "| atoms | image | mode | block | median ms |",
+            "| ---: | --- | --- | ---: | ---: |",
+        ]
+        for e in res["blocks"]:
+            lines.append(
+                f"| {e['n_atoms']:,} | {e['width']}x{e['height']} | {e['mode']} | "
+                f"{e['block_dim']} | {e['median_ms']:.3f} |"
+            )
     for note in res.get("notes", []):
         lines.append(f"\nNote: {note}")
     return "\n".join(lines) + "\n"
