@@ -85,6 +85,21 @@ def axis_span(a: float, b: float, origin: float, inv_h: float, n: int):
 
 @wp.func
 @no_type_check
+def row_span(g: GridInfo, lo_x: float, hi_x: float, dy: float, dz: float, r2: float):
+    """Cells [x0, x1] of the row at gaps (dy, dz) from the box [lo, hi] that hold atoms within
+    sqrt(r2) of a point of the box (empty when x1 < x0): the row's chord of the rounded box,
+    so no atom of a cutoff sphere is lost and rows near the rim load fewer atoms."""
+    rem = r2 - dy * dy - dz * dz
+    x0 = wp.int32(0)
+    x1 = wp.int32(-1)
+    if rem > 0.0:
+        hw = wp.sqrt(rem)
+        x0, x1 = axis_span(lo_x - hw, hi_x + hw, g.origin[0], g.inv_h, g.dims[0])
+    return x0, x1
+
+
+@wp.func
+@no_type_check
 def interval_gap(lo_a: float, hi_a: float, lo_b: float, hi_b: float) -> float:
     """Distance between intervals [lo_a, hi_a] and [lo_b, hi_b] (0 when they overlap)."""
     return wp.max(wp.max(lo_a - hi_b, lo_b - hi_a), 0.0)
@@ -179,7 +194,6 @@ def gaussian_value(f: GaussianField, p: wp.vec3) -> float:
     r2 = r * r
     z0, z1 = axis_span(p[2] - r, p[2] + r, g.origin[2], g.inv_h, g.dims[2])
     y0, y1 = axis_span(p[1] - r, p[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    x0, x1 = axis_span(p[0] - r, p[0] + r, g.origin[0], g.inv_h, g.dims[0])
     total = wp.float32(0.0)
     for iz in range(z0, z1 + 1):
         zlo = g.origin[2] + float(iz) * g.h
@@ -187,7 +201,8 @@ def gaussian_value(f: GaussianField, p: wp.vec3) -> float:
         for iy in range(y0, y1 + 1):
             ylo = g.origin[1] + float(iy) * g.h
             dy = interval_gap(p[1], p[1], ylo, ylo + g.h)
-            if dy * dy + dz * dz < r2:
+            x0, x1 = row_span(g, p[0], p[0], dy, dz, r2)
+            if x1 >= x0:
                 row = (iz * g.dims[1] + iy) * g.dims[0]
                 j0 = f.cell_start[row + x0]
                 j1 = f.cell_start[row + x1 + 1]
@@ -205,7 +220,6 @@ def gaussian_value_grad(f: GaussianField, p: wp.vec3) -> wp.vec4:
     r2 = r * r
     z0, z1 = axis_span(p[2] - r, p[2] + r, g.origin[2], g.inv_h, g.dims[2])
     y0, y1 = axis_span(p[1] - r, p[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    x0, x1 = axis_span(p[0] - r, p[0] + r, g.origin[0], g.inv_h, g.dims[0])
     acc = wp.vec4(0.0, 0.0, 0.0, 0.0)
     for iz in range(z0, z1 + 1):
         zlo = g.origin[2] + float(iz) * g.h
@@ -213,7 +227,8 @@ def gaussian_value_grad(f: GaussianField, p: wp.vec3) -> wp.vec4:
         for iy in range(y0, y1 + 1):
             ylo = g.origin[1] + float(iy) * g.h
             dy = interval_gap(p[1], p[1], ylo, ylo + g.h)
-            if dy * dy + dz * dz < r2:
+            x0, x1 = row_span(g, p[0], p[0], dy, dz, r2)
+            if x1 >= x0:
                 row = (iz * g.dims[1] + iy) * g.dims[0]
                 j0 = f.cell_start[row + x0]
                 j1 = f.cell_start[row + x1 + 1]
@@ -308,7 +323,6 @@ def gaussian_value4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp
     lim = (wp.sqrt(f.half_k2 / f.inv2s2_uniform) + 0.5 * wp.length(pb - pa)) * 1.0001 + 1.0e-5
     z0, z1 = axis_span(lo[2] - r, hi[2] + r, g.origin[2], g.inv_h, g.dims[2])
     y0, y1 = axis_span(lo[1] - r, hi[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    x0, x1 = axis_span(lo[0] - r, hi[0] + r, g.origin[0], g.inv_h, g.dims[0])
     total = wp.vec4(0.0, 0.0, 0.0, 0.0)
     for iz in range(z0, z1 + 1):
         zlo = g.origin[2] + float(iz) * g.h
@@ -316,7 +330,8 @@ def gaussian_value4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp
         for iy in range(y0, y1 + 1):
             ylo = g.origin[1] + float(iy) * g.h
             dy = interval_gap(lo[1], hi[1], ylo, ylo + g.h)
-            if dy * dy + dz * dz < r2:
+            x0, x1 = row_span(g, lo[0], hi[0], dy, dz, r2)
+            if x1 >= x0:
                 row = (iz * g.dims[1] + iy) * g.dims[0]
                 j0 = f.cell_start[row + x0]
                 j1 = f.cell_start[row + x1 + 1]
@@ -383,7 +398,6 @@ def gaussian_value_grad4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4):
     lim = (wp.sqrt(f.half_k2 / f.inv2s2_uniform) + 0.5 * wp.length(pb - pa)) * 1.0001 + 1.0e-5
     z0, z1 = axis_span(lo[2] - r, hi[2] + r, g.origin[2], g.inv_h, g.dims[2])
     y0, y1 = axis_span(lo[1] - r, hi[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    x0, x1 = axis_span(lo[0] - r, hi[0] + r, g.origin[0], g.inv_h, g.dims[0])
     acc0 = wp.vec4(0.0, 0.0, 0.0, 0.0)
     acc1 = wp.vec4(0.0, 0.0, 0.0, 0.0)
     acc2 = wp.vec4(0.0, 0.0, 0.0, 0.0)
@@ -394,7 +408,8 @@ def gaussian_value_grad4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4):
         for iy in range(y0, y1 + 1):
             ylo = g.origin[1] + float(iy) * g.h
             dy = interval_gap(lo[1], hi[1], ylo, ylo + g.h)
-            if dy * dy + dz * dz < r2:
+            x0, x1 = row_span(g, lo[0], hi[0], dy, dz, r2)
+            if x1 >= x0:
                 row = (iz * g.dims[1] + iy) * g.dims[0]
                 j0 = f.cell_start[row + x0]
                 j1 = f.cell_start[row + x1 + 1]
@@ -430,10 +445,8 @@ def gaussian_sample(f: GaussianField, p: wp.vec3) -> Sample:
         for iy in range(y0, y1 + 1):
             ylo = g.origin[1] + float(iy) * g.h
             dy = interval_gap(p[1], p[1], ylo, ylo + g.h)
-            rem = r2 - dy * dy - dz * dz
-            if rem > 0.0:
-                hw = wp.sqrt(rem)
-                x0, x1 = axis_span(p[0] - hw, p[0] + hw, g.origin[0], g.inv_h, g.dims[0])
+            x0, x1 = row_span(g, p[0], p[0], dy, dz, r2)
+            if x1 >= x0:
                 row = (iz * g.dims[1] + iy) * g.dims[0]
                 for j in range(f.cell_start[row + x0], f.cell_start[row + x1 + 1]):
                     a = f.atoms[j]
@@ -477,10 +490,8 @@ def gaussian_box_bound(f: GaussianField, lo: wp.vec3, hi: wp.vec3, stop_above: f
         for iy in range(y0, y1 + 1):
             ylo = g.origin[1] + float(iy) * g.h
             dy = interval_gap(lo[1], hi[1], ylo, ylo + g.h)
-            rem = r2 - dy * dy - dz * dz
-            if rem > 0.0:
-                hw = wp.sqrt(rem)
-                x0, x1 = axis_span(lo[0] - hw, hi[0] + hw, g.origin[0], g.inv_h, g.dims[0])
+            x0, x1 = row_span(g, lo[0], hi[0], dy, dz, r2)
+            if x1 >= x0:
                 row = (iz * g.dims[1] + iy) * g.dims[0]
                 for j in range(f.cell_start[row + x0], f.cell_start[row + x1 + 1]):
                     a = f.atoms[j]

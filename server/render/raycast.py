@@ -12,10 +12,13 @@ entry) keeps images stable while the molecule moves and lets tests reproduce eve
 Samples are taken four lattice steps at a time through the model's `value4`, which visits the
 neighbours of the short segment once for all four points.
 
-Iso mode: the first sign change of S - iso between lattice samples is bracketed, cut into
-five `REFINE_PASSES` times (four inner samples per pass, keeping the first sub-interval that
-changes sign) and finished with a secant step, so the hit is within dt / 5^passes of the
-crossing. A ray that starts inside the surface (camera inside the molecule) looks for the first
+Iso mode: the marching kernels find the lattice interval of the first sign change of
+S - iso (its index and the values at its ends); the shading kernel then cuts it into five
+`REFINE_PASSES` times (four inner samples per pass, keeping the first sub-interval that
+changes sign) and finishes with a secant step, so the hit is within dt / 5^passes of the
+crossing. Refining there, where all rays of a warp refine together, instead of in the march,
+where each ray refined while its neighbours were still marching, took a fifth off the 1M-atom
+frame. A ray that starts inside the surface (camera inside the molecule) looks for the first
 way out instead; shading is two-sided.
 Volume mode: emission-absorption front to back through a transfer-function table with
 step-corrected opacity, stopping at accumulated alpha >= 0.99; its lattice is shifted per
@@ -52,6 +55,8 @@ _DEPTH_ALPHA = wp.constant(DEPTH_ALPHA)  # type: ignore[no-untyped-call]
 _BRICK = wp.constant(BRICK)  # type: ignore[no-untyped-call]
 _TILE_W = wp.constant(TILE_W)  # type: ignore[no-untyped-call]
 _TILE = wp.constant(TILE)  # type: ignore[no-untyped-call]
+_NO_HIT = wp.constant(2147483647)  # type: ignore[no-untyped-call]
+"""`hit_k` of a ray without a crossing (larger than any lattice index, for atomic minima)."""
 
 
 @wp.struct
@@ -579,11 +584,14 @@ def _make(
     ):
         """March one ray from lattice sample k (the walk starts in the cell at `t_from`) to
         its first crossing, taking at most `budget` density passes (0: no limit). Returns
-        the hit (inf: none), whether the ray still has work (budget spent) and the state that
-        resumes it: k, first, inside and the last sample's value (-1: unknown)."""
+        the crossing's lattice index (-1: none) with the values on both sides of it (-1:
+        unknown), whether the ray still has work (budget spent) and the state that resumes
+        it: k, first, inside and the last sample's value (-1: unknown). Refinement is left to
+        the shading kernel, where every ray of a warp refines at once."""
         g = f.info[0]
         dt = m.dt
-        hit = float(wp.inf)
+        s_hit = wp.int32(-1)
+        v_hi = float(-1.0)
         cx0, sx, tx0, dtx = dda_axis(o[0], d[0], t_from, g.origin[0], g.h, g.dims[0])
         cy0, sy, ty0, dty = dda_axis(o[1], d[1], t_from, g.origin[1], g.h, g.dims[1])
         cz0, sz, tz0, dtz = dda_axis(o[2], d[2], t_from, g.origin[2], g.h, g.dims[2])
@@ -630,14 +638,12 @@ def _make(
                         if q_hit < 0:
                             prev_v = v4[q]
                 if q_hit >= 0:
-                    tq = ts[q_hit]
-                    t_prev = float(k + q_hit - 1) * dt
-                    v = v4[q_hit]
-                    hit = refine(f, o, d, t_prev, tq, prev_v, v, m.iso, inside, m.refine)
+                    s_hit = k + q_hit
+                    v_hi = v4[q_hit]
                     active = 0
                 else:
                     k += 4
-        return hit, more, k, first, inside, prev_v
+        return s_hit, wp.vec2(prev_v, v_hi), more, k, first, inside, prev_v
 
     @wp.kernel(
         enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
@@ -647,34 +653,40 @@ def _make(
         f: Field,
         cam: CameraData,
         m: March,
-        hit_t: wp.array[float],
+        hit_k: wp.array[wp.int32],
+        hit_v: wp.array[wp.vec2],
         queue: wp.array[wp.vec4i],
         queue_v: wp.array[float],
         queue_len: wp.array[wp.int32],
         found: wp.array[wp.int32],
     ):
-        """First phase: every ray marches up to `m.budget` passes; rays with more to do go
-        to the queue, so the few long ones (grazing the surface) continue in full warps."""
+        """First phase: every ray marches up to `m.budget` passes to the lattice interval of
+        its first crossing (`hit_k`, `hit_v`); rays with more to do go to the queue, so the
+        few long ones (grazing the surface) continue in full warps."""
         tid = wp.tid()
         x, y, ok = pixel_of(cam, tid)
         if ok == 0:
             return
         pix = y * cam.width + x
-        hit = float(wp.inf)
+        s_hit = wp.int32(-1)
+        v = wp.vec2(-1.0, -1.0)
         g = f.info[0]
         o, d = camera_ray(cam, x, y)
         t0, t1 = clip_box(o, d, g.origin, g.box_hi)
         if g.valid != 0 and t0 < t1:
             k0 = int(wp.ceil(t0 / m.dt))
-            hit, more, k, first, inside, prev_v = march_iso(
+            s_hit, v, more, k, first, inside, prev_v = march_iso(
                 f, m, o, d, t0, t1, k0, 1, 0, -1.0, m.budget
             )
             if more != 0:
                 slot = wp.atomic_add(queue_len, 0, 1)
                 queue[slot] = wp.vec4i(tid, k, first, inside)
                 queue_v[slot] = prev_v
-                found[slot] = 2147483647
-        hit_t[pix] = hit
+                found[slot] = _NO_HIT
+        hit_k[pix] = _NO_HIT
+        if s_hit >= 0:
+            hit_k[pix] = s_hit
+        hit_v[pix] = v
 
     @wp.kernel(
         enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
@@ -684,7 +696,8 @@ def _make(
         f: Field,
         cam: CameraData,
         m: March,
-        hit_t: wp.array[float],
+        hit_k: wp.array[wp.int32],
+        hit_v: wp.array[wp.vec2],
         queue: wp.array[wp.vec4i],
         queue_v: wp.array[float],
         queue_len: wp.array[wp.int32],
@@ -701,10 +714,13 @@ def _make(
         o, d = camera_ray(cam, x, y)
         _t0, t1 = clip_box(o, d, g.origin, g.box_hi)
         k = e[1]
-        hit, _more, _k, _first, _inside, _v = march_iso(
+        s_hit, v, _more, _k, _first, _inside, _v = march_iso(
             f, m, o, d, float(k) * m.dt, t1, k, e[2], e[3], queue_v[i], 0
         )
-        hit_t[y * cam.width + x] = hit
+        if s_hit >= 0:
+            pix = y * cam.width + x
+            hit_k[pix] = s_hit
+            hit_v[pix] = v
 
     @wp.kernel(
         enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
@@ -714,7 +730,8 @@ def _make(
         f: Field,
         cam: CameraData,
         m: March,
-        hit_t: wp.array[float],
+        hit_k: wp.array[wp.int32],
+        hit_v: wp.array[wp.vec2],
         queue: wp.array[wp.vec4i],
         queue_v: wp.array[float],
         queue_len: wp.array[wp.int32],
@@ -725,9 +742,9 @@ def _make(
         """Second phase with `lanes` threads per queued ray: lane j of round r takes the
         four samples from k + 3 (r lanes + j) (neighbouring groups share a sample, so every
         interval is inside one group), skips them when their cells' bounds clear them, and
-        reports its first change of side; the smallest sample index wins (`found`), and as
-        hits are ordered like their brackets, an atomic minimum of the refined hit keeps the
-        first crossing whichever lane finishes first."""
+        reports its first change of side; the smallest sample index wins (`found`, and an
+        atomic minimum into `hit_k` whichever lane finishes first). The values at the
+        winning interval stay unknown (the first phase left -1): shading computes them."""
         tid = wp.tid()
         lane = tid % lanes
         i = tid // lanes
@@ -775,14 +792,7 @@ def _make(
                     if q_hit >= 0:
                         s_hit = gs + q_hit
                         wp.atomic_min(found, i, s_hit)
-                        v_prev = queue_v[i]
-                        if q_hit > 0:
-                            v_prev = v4[q_hit - 1]
-                        t = refine(
-                            f, o, d, float(s_hit - 1) * dt, ts[q_hit], v_prev, v4[q_hit], m.iso,
-                            inside, m.refine,
-                        )  # fmt: skip
-                        wp.atomic_min(hit_t, pix, t)
+                        wp.atomic_min(hit_k, pix, s_hit)
                         going = 0
             i += rays_per_launch
 
@@ -791,23 +801,41 @@ def _make(
     def iso_shade_kernel(
         f: Field,
         cam: CameraData,
+        m: March,
         sh: Shading,
-        hit_t: wp.array[float],
+        hit_k: wp.array[wp.int32],
+        hit_v: wp.array[wp.vec2],
         rgba: wp.array[wp.uint32],
         depth: wp.array[float],
         ids: wp.array[wp.int32],
     ):
+        """Refine each ray's crossing inside its lattice interval, then shade it. Refining
+        here rather than in the march keeps a warp's refinement passes together: in the
+        march, each ray would refine while its neighbours were still marching."""
         x, y, ok = pixel_of(cam, wp.tid())
         if ok == 0:
             return
         pix = y * cam.width + x
-        t = hit_t[pix]
-        if t == wp.inf:
+        s_hit = hit_k[pix]
+        if s_hit == _NO_HIT:
             rgba[pix] = pack_rgba(sh.background)
             depth[pix] = wp.inf
             ids[pix] = -1
             return
         o, d = camera_ray(cam, x, y)
+        t_lo = float(s_hit - 1) * m.dt
+        t_hi = float(s_hit) * m.dt
+        v = hit_v[pix]
+        v_lo = v[0]
+        v_hi = v[1]
+        if v_hi < 0.0:
+            ends = value4(f, o, d, wp.vec4(t_lo, t_lo, t_hi, t_hi))
+            v_lo = ends[0]
+            v_hi = ends[3]
+        inside = wp.int32(0)
+        if v_hi < m.iso:
+            inside = 1
+        t = refine(f, o, d, t_lo, t_hi, v_lo, v_hi, m.iso, inside, m.refine)
         p = o + d * t
         s = sample(f, p)
         n = facing(s.grad, d)

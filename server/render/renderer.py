@@ -185,7 +185,8 @@ class Renderer:
         if count <= self._pixels:
             return
         d = self.device
-        self._hit = wp.zeros(count, dtype=float, device=d)
+        self._hit_k = wp.zeros(count, dtype=wp.int32, device=d)
+        self._hit_v = wp.zeros(count, dtype=wp.vec2, device=d)
         self._rgba = wp.zeros(count, dtype=wp.uint32, device=d)
         self._depth = wp.zeros(count, dtype=float, device=d)
         self._ids = wp.zeros(count, dtype=wp.int32, device=d)
@@ -201,7 +202,8 @@ class Renderer:
         positions and image buffers."""
         atom = (self._weights, self._radii, self._colors, self._sorted, self._inv2s2)
         pix = (
-            self._hit,
+            self._hit_k,
+            self._hit_v,
             self._rgba,
             self._depth,
             self._ids,
@@ -491,7 +493,8 @@ class Renderer:
         sh = self._shading(params, d, frame)
         threads = raycast.launch_size(w, h)
         if params.mode == "iso":
-            queued = (self._hit, self._queue, self._queue_v, self._queue_len, self._found)
+            hits = (self._hit_k, self._hit_v)
+            queued = (*hits, self._queue, self._queue_v, self._queue_len, self._found)
             if m.budget > 0:
                 self._queue_len.zero_()
             wp.launch(k.iso_march, threads, (f, cam, m, *queued), device=dev, block_dim=MARCH_BLOCK)
@@ -505,7 +508,7 @@ class Renderer:
             wp.launch(
                 k.iso_shade,
                 threads,
-                (f, cam, sh, self._hit, self._rgba, self._depth, self._ids),
+                (f, cam, m, sh, *hits, self._rgba, self._depth, self._ids),
                 device=dev,
             )
         else:

@@ -38,7 +38,7 @@ def test_buffers_are_reused_across_frames(device: str) -> None:
     cam = fit_camera(pos, 40, 30)
     r.set_positions(pos)
     r.render(RenderParams(), cam, 40, 30)
-    names = ("_pos", "_sorted", "_inv2s2", "_colors", "_hit", "_rgba", "_depth", "_ids")
+    names = ("_pos", "_sorted", "_inv2s2", "_colors", "_hit_k", "_hit_v", "_rgba", "_depth", "_ids")
     ptrs = {k: getattr(r, k).ptr for k in names}
     grid_ptrs = (r._grid.keys.ptr, r._grid.order.ptr, r._grid.cell_start.ptr)
     rng = np.random.default_rng(0)
