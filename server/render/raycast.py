@@ -16,10 +16,12 @@ Iso mode: the marching kernels find the lattice interval of the first sign chang
 S - iso (its index and the values at its ends); the shading kernel then cuts it into five
 `REFINE_PASSES` times (four inner samples per pass, keeping the first sub-interval that
 changes sign) and finishes with a secant step, so the hit is within dt / 5^passes of the
-crossing. Refining there, where all rays of a warp refine together, instead of in the march,
-where each ray refined while its neighbours were still marching, took a fifth off the 1M-atom
-frame. A ray that starts inside the surface (camera inside the molecule) looks for the first
-way out instead; shading is two-sided.
+crossing; a Newton step from the shading sample (kept inside that bracket) then takes the
+depth of most rays to within about 1e-5 dt of the surface. Refining in the shading kernel,
+where all rays of a warp refine together, instead of in the march, where each ray refined
+while its neighbours were still marching, took a sixth off the 1M-atom frame. A ray that
+starts inside the surface (camera inside the molecule) looks for the first way out instead;
+shading is two-sided.
 Volume mode: emission-absorption front to back through a transfer-function table with
 step-corrected opacity, stopping at accumulated alpha >= 0.99; its lattice is shifted per
 pixel by a fixed hash (`pixel_jitter`) so thin transfer-function features do not alias into
@@ -471,10 +473,10 @@ def _make(
         iso: float,
         inside: int,
         passes: int,
-    ) -> float:
+    ):
         """Narrow [t_lo, t_hi] (side of t_lo = `inside`) to its first fifth that changes side,
         `passes` times, then one secant step. A negative v_lo means its value was never
-        computed (a skipped cell)."""
+        computed (a skipped cell). Returns the secant point and the final bracket."""
         lo = float(t_lo)
         hi = float(t_hi)
         vlo = float(v_lo)
@@ -504,7 +506,7 @@ def _make(
         den = vhi - vlo
         if wp.abs(den) > 1.0e-30:
             u = wp.clamp((iso - vlo) / den, 0.0, 1.0)
-        return lo + (hi - lo) * u
+        return lo + (hi - lo) * u, lo, hi
 
     @wp.func
     @no_type_check
@@ -835,9 +837,14 @@ def _make(
         inside = wp.int32(0)
         if v_hi < m.iso:
             inside = 1
-        t = refine(f, o, d, t_lo, t_hi, v_lo, v_hi, m.iso, inside, m.refine)
+        t, b_lo, b_hi = refine(f, o, d, t_lo, t_hi, v_lo, v_hi, m.iso, inside, m.refine)
         p = o + d * t
         s = sample(f, p)
+        # one Newton step along the ray from the sample shading needs anyway: the depth
+        # lands much closer to the surface than the secant point (kept in the bracket)
+        slope = wp.dot(s.grad, d)
+        if wp.abs(slope) > 1.0e-30:
+            t = wp.clamp(t + (m.iso - s.value) / slope, b_lo, b_hi)
         n = facing(s.grad, d)
         base = sh.uniform_color
         if s.weight > 0.0:

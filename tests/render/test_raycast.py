@@ -59,7 +59,9 @@ def test_iso_depth_matches_root_finder(device: str, projection: str) -> None:
     tol = dt / raycast.REFINE_SHRINK + 2e-4
     err = np.abs(depth[both] - t_ref[both])
     assert err.max() <= tol, err.max()
-    assert np.median(err) <= tol / 20, "the final secant step should land far inside the bracket"
+    # the secant point is refined by one Newton step from the shading sample: half the
+    # crossings come within a hundred-thousandth of a step (float32 depth, ~1e-6 A)
+    assert np.median(err) <= 1e-5 * dt + 2e-6, "the Newton step should land on the surface"
     assert np.all(ids[~hit] == -1) and np.all(ids[hit] >= 0)
     pts = origins[both] + depth[both][:, None] * dirs[both]
     best, margin = oracle.top_atom(mol, pts)
