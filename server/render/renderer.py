@@ -99,7 +99,7 @@ class Renderer:
         cells_per_cutoff: float = 2.0,
         empty_space_skipping: bool = True,
         fast_math: bool = True,
-        max_registers: int = 64,
+        max_registers: int = 80,
         volume_max_registers: int = 80,
         density: DensityModel = GAUSSIAN,
         graphs: bool | None = None,
