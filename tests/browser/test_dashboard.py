@@ -138,11 +138,18 @@ def test_page_loads_and_streamed_frames_are_drawn(
     open_dashboard: OpenDashboard, simulation: OpenMMSimulation, artifacts: Path
 ) -> None:
     dash = open_dashboard()
-    blank = snapshot(dash)
+    # the canvas and the id of the frame on it, read together: the first frame may already
+    # be drawn by now, and only a canvas without one shows what "blank" looks like
+    shown = dash.evaluate(
+        f"""() => ({{pixels: ({SNAPSHOT_JS})(),
+                    frame: Number(document.getElementById('viewport').dataset.frame ?? -1)}})"""
+    )
+    if shown["frame"] < 0:
+        blank = np.asarray(shown["pixels"], dtype=np.float64)
+        assert blank.std() < 1.0, "before any frame the canvas is empty"
     first = wait_for_frame(dash)
     image = snapshot(dash)
     assert image.std() > 5.0, "the molecule is not visible on the canvas"
-    assert np.abs(image - blank).mean() > 2.0, "the canvas did not change"
     later = wait_for_frame(dash, first)
     assert later > first, "frames keep arriving as the simulation runs"
     wait_for_full_view(dash)
