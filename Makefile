@@ -1,4 +1,5 @@
-# scalesteer: `make demo` runs the OpenMM villin demo; `make test` runs the whole suite.
+# scalesteer: `make demo` runs the OpenMM villin demo; `make test` runs the whole suite
+# (ruff and mypy, then pytest and node --test).
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
@@ -40,7 +41,8 @@ chromium:
 demo: $(VENV)/.demo-installed client
 	$(BIN)/scalesteer demo
 
-test: $(VENV)/.dev-installed client chromium
+# lint and types first: a style or type error fails the suite like a failing test
+test: check client chromium
 	@$(BIN)/python -m pytest; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: treating as failure"; exit 1; fi; \
 	if [ $$rc -ne 0 ]; then exit $$rc; fi

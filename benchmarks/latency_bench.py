@@ -42,7 +42,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 from render_bench import build_system, topology_of
 
 import protocol as p
-from server.serve import ServerThread
+from server.commands.serve import ServerThread
 from server.settings import ServerSettings
 from tests.server.peers import Peer, frame
 

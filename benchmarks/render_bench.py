@@ -486,7 +486,7 @@ class Bench:
                         f"N={n:>9,} {w}x{h} {mode:6s} {s['median_ms']:8.3f} ms "
                         f"{s['fps']:8.1f} fps  stages {fmt_stages(s.get('stages_ms', {}))}"
                     )
-                    if self.args.images and n == self.args.image_n and w == 1920:
+                    if self.args.images and n == self.args.image_n and w == max(res)[0]:
                         from PIL import Image
 
                         img = Image.fromarray(r.read_rgba()[..., :3]).resize((960, 540))
@@ -1052,7 +1052,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-voxels", type=int, default=1 << 28)
     p.add_argument("--sections", default="registers,main,grid,graphs,baselines,ablation")
     p.add_argument("--sizes", default="", help="comma-separated atom counts (main table)")
-    p.add_argument("--images", default="", help="folder for sample images (1920x1080 runs)")
+    p.add_argument(
+        "--images", default="", help="folder for sample images (of the widest image size)"
+    )
     p.add_argument("--image-n", type=int, default=1_000_000)
     p.add_argument("--ablation-sizes", default="", help="atom counts of the cell-size ablation")
     p.add_argument("--ablation-image", default="", help="image size of the ablation, WxH")
@@ -1077,6 +1079,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.quick:
         args.frames, args.warmup, args.baseline_frames, args.grid_reps = 3, 1, 2, 2
+    if args.images:
+        Path(args.images).mkdir(parents=True, exist_ok=True)
     b = Bench(args)
     sections = set(args.sections.split(","))
     if args.quick:

@@ -291,10 +291,16 @@ class RenderParams(Model):
 
 
 def _partial(model: type[Model], name: str) -> type[Model]:
-    fields: dict[str, Any] = {
-        k: (f.annotation | None, None)  # type: ignore[operator]
-        for k, f in model.model_fields.items()
-    }
+    """`model` with every field optional (None: not set), keeping each field's constraints;
+    nested models become partial too, so a patch names only the leaves it changes."""
+    fields: dict[str, Any] = {}
+    for key, info in model.model_fields.items():
+        kind: Any = info.annotation
+        if isinstance(kind, type) and issubclass(kind, Model):
+            kind = _partial(kind, f"{kind.__name__}Patch")
+        if info.metadata:
+            kind = Annotated[kind, *info.metadata]
+        fields[key] = (kind | None, None)
     return create_model(name, __base__=Model, __doc__=f"A partial {model.__name__}.", **fields)
 
 
@@ -311,6 +317,8 @@ class SetRenderParams(Message):
     params: RenderParamsPatch
 
     def changes(self) -> dict[str, Any]:
+        """The fields the sender set, nested models included (a partial `lighting` names only
+        the lighting fields it changes)."""
         return self.params.model_dump(exclude_none=True)
 
 

@@ -46,6 +46,10 @@ class ServerSettings:
     viewer_limits: Limits = VIEWER_LIMITS
     max_upload_bytes: int = 512 * 1024 * 1024
     max_sessions: int = 64
+    job_retention_s: float = 24 * 3600.0
+    """How long a finished job's output stays downloadable."""
+    job_max_bytes: int = 2 << 30
+    """Disk the outputs of finished jobs may take together; the oldest go first beyond it."""
     session_idle_s: float = 600.0
     interactive_idle_s: float = 0.15
     interactive_scale: float = 0.5

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from protocol import Control, ErrorCode, Forces, Frame, Message, SimParams, WireArray
+from protocol.forces import cap_forces
 from simulation_adapters.cli_support import configure_logging, parse
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from simulation_adapters.imd_session import (
@@ -34,7 +35,7 @@ from simulation_adapters.imd_session import (
     IMDError,
     IMDSession,
 )
-from simulation_adapters.structure import Structure, StructureError, load
+from structures.reader import Structure, StructureError, load
 
 log = logging.getLogger("scalesteer.imd")
 
@@ -318,13 +319,9 @@ class IMDBridge:
 
     def _apply_forces(self, imd: IMDSession, msg: Forces) -> tuple[bool, dict[str, Any], str]:
         idx = msg.indices.to_numpy().astype(np.int64)
-        vec = msg.forces.to_numpy().astype(np.float64)
         if idx.size and int(idx.max()) >= self.n_atoms:
             raise ValueError(f"atom index out of range [0, {self.n_atoms})")
-        norms = np.linalg.norm(vec, axis=1)
-        over = norms > self.max_force
-        if over.any():
-            vec[over] *= (self.max_force / norms[over])[:, None]
+        vec, capped = cap_forces(msg.forces.to_numpy(), self.max_force)
         wanted = {int(i): v for i, v in zip(idx, vec, strict=True) if np.any(v != 0)}
         # released atoms get an explicit zero: NAMD forgets a force only when told zero
         send = sorted(set(wanted) | set(self._active_forces))
@@ -334,7 +331,7 @@ class IMDBridge:
         forces = np.array([wanted.get(i, np.zeros(3)) for i in send]) * factor
         imd.send_forces(np.array(send, dtype=np.int32), forces)
         self._active_forces = wanted
-        applied = {"atoms": len(wanted), "capped": int(over.sum()), "unit": self.units.force_unit}
+        applied = {"atoms": len(wanted), "capped": capped, "unit": self.units.force_unit}
         return True, applied, ""
 
     def _apply_control(self, imd: IMDSession, msg: Control) -> tuple[bool, dict[str, Any], str]:

@@ -18,6 +18,8 @@ import numpy.typing as npt
 import openmm
 import openmm.app as app
 
+from protocol.forces import cap_forces
+
 log = logging.getLogger("scalesteer.openmm")
 
 ENERGY = "-(fx*x + fy*y + fz*z)"
@@ -80,13 +82,9 @@ class PullForce:
         """Make these the only pulled atoms (an empty array releases all). Raises ValueError for
         an index outside the system."""
         idx = np.asarray(indices, dtype=np.int64).reshape(-1)
-        vec = np.asarray(forces_kJmolA, dtype=np.float64).reshape(-1, 3)
         if idx.size and (idx.min() < 0 or idx.max() >= self.n_particles):
             raise ValueError(f"atom index out of range [0, {self.n_particles})")
-        norms = np.linalg.norm(vec, axis=1)
-        over = norms > self.max_force
-        if over.any():
-            vec[over] *= (self.max_force / norms[over])[:, None]
+        vec, capped = cap_forces(forces_kJmolA, self.max_force)
         wanted: dict[int, tuple[float, float, float]] = {}
         for i, f in zip(idx.tolist(), vec * KJ_PER_A_TO_KJ_PER_NM, strict=True):
             if np.any(f != 0.0):
@@ -99,7 +97,7 @@ class PullForce:
             self.force.updateParametersInContext(context)
             self.updates += 1
         self.active = wanted
-        return PullResult(atoms=len(wanted), capped=int(over.sum()), updated=bool(changed))
+        return PullResult(atoms=len(wanted), capped=capped, updated=bool(changed))
 
     def energy_groups(self, integration_groups: int = 0xFFFFFFFF) -> int:
         """The force-group mask that leaves the pull out (for reporting physical energies)."""

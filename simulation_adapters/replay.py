@@ -26,7 +26,7 @@ import numpy as np
 from protocol import Control, Frame, Message, SimParams, WireArray
 from simulation_adapters.cli_support import configure_logging, parse
 from simulation_adapters.connection import ConnectionState, SimulationConnection
-from simulation_adapters.structure import Structure, StructureError, load
+from structures.reader import Structure, StructureError, load
 
 log = logging.getLogger("scalesteer.replay")
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from server.serve import ServerThread
+from server.commands.serve import ServerThread
 from server.settings import ServerSettings
 
 

@@ -22,7 +22,7 @@ from protocol import Control, Error, Forces, SimParams, WireArray
 from simulation_adapters import imd
 from simulation_adapters.imd import BridgeError, IMDBridge, parse_address
 from simulation_adapters.imd_session import IMDHandshakeError, IMDSession
-from simulation_adapters.structure import Structure, topology_of
+from structures.reader import Structure, topology_of
 from tests.adapters.sim_peer import SimPeer
 
 N_ATOMS = 12

@@ -25,18 +25,16 @@ from protocol import Control, Hello, Message, ParamsAck, Pull, SimParams, Welcom
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from simulation_adapters.openmm_reporter import SteeringReporter, run_steered
 from simulation_adapters.replay import TrajectoryReplay
-from simulation_adapters.structure import load
+from structures.reader import load
 from tests.adapters.openmm_helpers import argon_recipe
+from tests.conftest import LiveServer
 
 M = TypeVar("M", bound=Message)
 
 
 @pytest.fixture
-def live(request: pytest.FixtureRequest) -> Any:
-    try:
-        return request.getfixturevalue("live_server")
-    except pytest.FixtureLookupError:
-        pytest.skip("needs the `live_server` fixture (tests/conftest.py) running the render server")
+def live(live_server: LiveServer) -> LiveServer:
+    return live_server
 
 
 def sim_url(live: Any) -> str:
@@ -197,8 +195,6 @@ def _log(live: Any, session: str) -> list[dict[str, Any]]:
 
 
 def test_adapter_survives_a_server_restart(no_leaked_threads: None, live: Any) -> None:
-    if not hasattr(live, "restart"):
-        pytest.skip("the live_server fixture cannot restart the server")
     sim = argon_recipe(n_side=4).make("CPU")
     rep = SteeringReporter(sim_url(live), token=live.token, interval=5, session="restart")
     rep.connection._backoff_max = 1.0  # keep the test short
@@ -236,8 +232,6 @@ def test_replay_streams_to_the_server(no_leaked_threads: None, live: Any) -> Non
 
 
 def test_a_wrong_token_is_refused(no_leaked_threads: None, live: Any) -> None:
-    if not live.token:
-        pytest.skip("the live server runs without a token")
     with SimulationConnection(sim_url(live), token=f"{live.token}-wrong") as conn:
         assert not conn.wait_connected(20)
         assert conn.state is ConnectionState.FAILED and conn.error

@@ -13,7 +13,7 @@ from MDAnalysisTests.datafiles import DCD, GRO, MMCIF, PSF, XTC, PDB_multiframe
 from protocol import Control, SimParams
 from simulation_adapters import replay
 from simulation_adapters.replay import TrajectoryReplay
-from simulation_adapters.structure import load
+from structures.reader import load
 from tests.adapters.sim_peer import SimPeer
 
 

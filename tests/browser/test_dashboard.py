@@ -246,9 +246,9 @@ def test_ctrl_drag_pulls_an_atom_and_release_stops_the_force(
     page.mouse.down()
     expect(page.locator("#pull-hint")).to_be_visible()
     page.mouse.move(x + 80, y - 30, steps=6)
-    pulls = wait_until(lambda: dict(session(live_server).pulls), "the server holds the pull")
-    (atom, active), *_ = pulls.items()
-    target = np.asarray(active.pull.target)
+    pulls = wait_until(lambda: dict(session(live_server).forces.pulls), "the server holds the pull")
+    (atom, (_owner, pull)), *_ = pulls.items()
+    target = np.asarray(pull.target)
     picked = np.asarray(
         [float(v) for v in page.locator("#pick-position").text_content()[1:-3].split(",")]
     )
@@ -268,7 +268,7 @@ def test_ctrl_drag_pulls_an_atom_and_release_stops_the_force(
     page.mouse.up()
     page.keyboard.up("Control")
     expect(page.locator("#pull-hint")).to_be_hidden()
-    wait_until(lambda: not session(live_server).pulls, "the pull was released")
+    wait_until(lambda: not session(live_server).forces.pulls, "the pull was released")
     expect(page.locator("#pulling-list")).to_have_text("no active pulls")
 
 

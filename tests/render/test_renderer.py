@@ -75,7 +75,6 @@ def test_timings_and_grid_reuse(device: str) -> None:
     r.set_positions(pos)
     r.render(RenderParams(), cam, 32, 24)
     assert set(r.timings) == {"upload", "grid", "raycast", "total"}
-    assert all(v >= 0.0 for v in r.timings.values())
     key = r._grid_key
     r.render(RenderParams(), orbit(cam, 30.0, 0.0), 32, 24)
     assert r._grid_key == key and r.timings["upload"] == 0.0

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.timewarp import arclength_warp, gaussian_filter, warped_convolve
+from timewarp import arclength_warp, gaussian_filter, warped_convolve
 
 wp = pytest.importorskip("warp")
 
-from server.timewarp.batched import (  # noqa: E402 - only once warp is known to be importable
+from timewarp.batched import (  # noqa: E402 - only once warp is known to be importable
     BatchedWarpedSmoother,
     default_device,
     warped_smooth_batched,
@@ -106,7 +106,7 @@ def test_truncation_matches_the_truncated_numpy_sum() -> None:
 
 def test_package_import_needs_no_optional_dependency() -> None:
     code = (
-        "import sys, server.timewarp as tw; "
+        "import sys, timewarp as tw; "
         "bad = [m for m in ('warp', 'matplotlib', 'skimage', 'scipy') if m in sys.modules]; "
         "sys.exit(1 if bad else 0)"
     )

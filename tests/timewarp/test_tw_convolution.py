@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import integrate, ndimage
 
-from server.timewarp import (
+from timewarp import (
     AffineWarp,
     IdentityWarp,
     PiecewiseLinearWarp,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from server.timewarp import (
+from timewarp import (
     METHODS,
     add_noise,
     arclength_warp,
@@ -15,7 +15,7 @@ from server.timewarp import (
     total_absolute_error,
     warped_denoise,
 )
-from server.timewarp.denoise import method_noise_only
+from timewarp.denoise import method_noise_only
 
 
 @pytest.mark.parametrize(("level", "as_variance", "std"), [(0.5, False, 0.5), (0.25, True, 0.5)])

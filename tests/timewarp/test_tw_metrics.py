@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from server.timewarp import (
+from timewarp import (
     AffineWarp,
     IdentityWarp,
     energy_bandwidth,

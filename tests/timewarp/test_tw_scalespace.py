@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import integrate, optimize
 
-from server.timewarp import (
+from timewarp import (
     IdentityWarp,
     PiecewiseLinearWarp,
     Warp,

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from server.timewarp import (
+from timewarp import (
     AffineWarp,
     CallableWarp,
     IdentityWarp,

@@ -1,0 +1,1 @@
+"""The `scalesteer` command line: one module per subcommand, loaded only when chosen."""

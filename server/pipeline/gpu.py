@@ -1,0 +1,143 @@
+"""The GPU queue: one thread owns the device, and every render — live sessions and batch jobs —
+runs on it in submission order.
+
+Work arrives as `RenderRequest`s naming a *slot*: each slot (a session, a job, a one-off REST
+render) keeps its own Renderer, so its topology and buffers stay resident between requests. A
+request carries a `Snapshot` (topology and positions with the ids that tell whether the slot's
+copies are current), so a slot uploads what changed and nothing else.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+import protocol as p
+
+if TYPE_CHECKING:
+    from server.render import Renderer
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """The molecule one render draws: a topology and one simulation frame's positions.
+
+    `topology_id` and `positions_id` change whenever their arrays do (the GPU slot compares them
+    with what it holds); `step` is the simulation step of the positions; `version` counts every
+    change to what a session would draw (positions or render parameters)."""
+
+    topology: p.Topology
+    positions: npt.NDArray[np.float32]
+    topology_id: int = 1
+    positions_id: int = 1
+    step: int = 0
+    version: int = 0
+
+
+@dataclass(frozen=True)
+class RenderRequest:
+    """One image of `snapshot` for the renderer of `slot`; `histogram` also measures the
+    density histogram (for the transfer-function editor)."""
+
+    slot: str
+    snapshot: Snapshot
+    params: p.RenderParams
+    camera: p.Camera
+    width: int
+    height: int
+    histogram: bool = False
+
+
+@dataclass
+class RenderOutput:
+    rgba: npt.NDArray[np.uint8]
+    timings: dict[str, float]
+    histogram: npt.NDArray[np.float32] | None = None
+
+
+@dataclass
+class _Slot:
+    renderer: Renderer
+    topology_id: int = -1
+    positions_id: int = -1
+
+
+@dataclass
+class GpuQueue:
+    """Serialises device work on one thread; methods named `*_sync` run on that thread."""
+
+    device: str = "auto"
+    max_atoms: int = 4_000_000
+    max_pixels: int = 3840 * 2160
+    _pool: ThreadPoolExecutor = field(
+        default_factory=lambda: ThreadPoolExecutor(max_workers=1, thread_name_prefix="gpu")
+    )
+    _slots: dict[str, _Slot] = field(default_factory=dict)
+    actual_device: str = ""
+
+    async def call(self, fn: Callable[..., T], *args: Any) -> T:
+        return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+
+    async def render(self, request: RenderRequest) -> RenderOutput:
+        return await self.call(self.render_sync, request)
+
+    async def pick(self, request: RenderRequest, x: int, y: int) -> tuple[int | None, float | None]:
+        """The atom and depth at pixel (x, y) of the image `request` draws."""
+        return await self.call(self.pick_sync, request, x, y)
+
+    async def release(self, slot: str) -> None:
+        await self.call(self.release_sync, slot)
+
+    def _slot(self, key: str) -> _Slot:
+        slot = self._slots.get(key)
+        if slot is None:
+            from server.render import Renderer
+
+            renderer = Renderer(
+                device=self.device, max_atoms=self.max_atoms, max_pixels=self.max_pixels
+            )
+            self.actual_device = renderer.device
+            slot = self._slots[key] = _Slot(renderer)
+        return slot
+
+    def _prepare(self, request: RenderRequest) -> Renderer:
+        slot = self._slot(request.slot)
+        snap = request.snapshot
+        if slot.topology_id != snap.topology_id:
+            slot.renderer.set_topology(snap.topology)
+            slot.topology_id = snap.topology_id
+            slot.positions_id = -1
+        if slot.positions_id != snap.positions_id:
+            # frames were checked finite when decoded; skip the host-side scan
+            slot.renderer.set_positions(snap.positions, check_finite=False)
+            slot.positions_id = snap.positions_id
+        renderer = slot.renderer
+        renderer.render(request.params, request.camera, request.width, request.height)
+        return renderer
+
+    def render_sync(self, request: RenderRequest) -> RenderOutput:
+        renderer = self._prepare(request)
+        rgba = renderer.read_rgba()
+        hist = None
+        if request.histogram:
+            counts, _edges = renderer.density_histogram(64)
+            hist = np.asarray(counts, dtype=np.float32)
+        return RenderOutput(rgba=rgba, timings=dict(renderer.timings), histogram=hist)
+
+    def pick_sync(self, request: RenderRequest, x: int, y: int) -> tuple[int | None, float | None]:
+        return self._prepare(request).pick(x, y)
+
+    def release_sync(self, slot: str) -> None:
+        self._slots.pop(slot, None)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._slots.clear()

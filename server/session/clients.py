@@ -1,0 +1,149 @@
+"""One connected WebSocket peer and its outgoing queues.
+
+Control messages (state, acks, errors) are queued in order; images go through a slot of depth
+one where the newest replaces an unsent older one, so a slow client only loses its own frames
+and never holds anyone else up. Images are encoded in parallel and may finish out of order, so
+the slot refuses an image older than one the client already got.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import logging
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import protocol as p
+
+log = logging.getLogger("scalesteer.clients")
+
+MAX_QUEUED_CONTROL = 1024
+
+
+class Transport(Protocol):
+    """What a client sends through: a WebSocket in the server, anything alike in tests."""
+
+    async def send_bytes(self, data: bytes) -> None: ...
+
+    async def close(self, code: int = 1000, reason: str | None = None) -> None: ...
+
+
+class ClientState(enum.Enum):
+    CONNECTED = "connected"
+    CLOSING = "closing"
+    CLOSED = "closed"
+
+
+class ImageOffer(enum.Enum):
+    """What became of an image offered to a client."""
+
+    TAKEN = "taken"
+    REPLACED = "replaced"
+    """Taken, and an unsent older image was dropped for it."""
+    STALE = "stale"
+    """Dropped: a newer image had already been offered."""
+    CLOSED = "closed"
+
+
+@dataclass(eq=False)
+class Client:
+    """A peer of a session: simulation, steerer or viewer."""
+
+    client_id: str
+    role: p.Role
+    name: str
+    ws: Transport
+    view: p.View | None = None
+    view_ref: int | None = None
+    interacting_until: float = 0.0
+    needs_image: bool = True
+    frames_sent: int = 0
+    frames_dropped: int = 0
+    newest_frame: int = 0
+    """`frame_id` of the newest image offered; an older one arriving later is stale."""
+    state: ClientState = ClientState.CONNECTED
+    _control: deque[bytes] = field(default_factory=deque)
+    _image: bytes | None = None
+    _wake: asyncio.Event = field(default_factory=asyncio.Event)
+
+    def info(self) -> p.ClientInfo:
+        return p.ClientInfo(client_id=self.client_id, role=self.role, client=self.name)
+
+    def send(self, message: p.Message) -> None:
+        """Queue a control message; a peer that lets 1024 pile up is disconnected."""
+        if self.state is ClientState.CONNECTED:
+            self.send_encoded(p.encode(message))
+
+    def send_encoded(self, data: bytes) -> None:
+        """Queue an encoded control message (one encoding serves every client of a broadcast)."""
+        if self.state is not ClientState.CONNECTED:
+            return
+        if len(self._control) >= MAX_QUEUED_CONTROL:
+            log.warning("client %s is not reading; disconnecting", self.client_id)
+            self._control.clear()
+            self.state = ClientState.CLOSING
+            self._wake.set()
+            return
+        self._control.append(data)
+        self._wake.set()
+
+    def offer_image(self, message: p.Image) -> ImageOffer:
+        """Put an image in the slot (see `offer_encoded`)."""
+        return self.offer_encoded(message.frame_id, p.encode(message))
+
+    def offer_encoded(self, frame_id: int, data: bytes) -> ImageOffer:
+        """Put an encoded image in the slot, unless a newer one was offered before it."""
+        if self.state is not ClientState.CONNECTED:
+            return ImageOffer.CLOSED
+        if frame_id <= self.newest_frame:
+            self.frames_dropped += 1
+            return ImageOffer.STALE
+        self.newest_frame = frame_id
+        replaced = self._image is not None
+        if replaced:
+            self.frames_dropped += 1
+        self._image = data
+        self._wake.set()
+        return ImageOffer.REPLACED if replaced else ImageOffer.TAKEN
+
+    def _is(self, state: ClientState) -> bool:
+        """The state now (other tasks change it while the sender awaits)."""
+        return self.state is state
+
+    async def run_sender(self, on_image_sent: Callable[[], None] | None = None) -> None:
+        """Drain the queues until the client closes; control first, then the latest image."""
+        try:
+            while not self._is(ClientState.CLOSED):
+                await self._wake.wait()
+                self._wake.clear()
+                while self._control and not self._is(ClientState.CLOSED):
+                    await self.ws.send_bytes(self._control.popleft())
+                if self._is(ClientState.CLOSING):
+                    break  # what was queued is out; now close
+                if self._image is not None and self.state is ClientState.CONNECTED:
+                    data, self._image = self._image, None
+                    await self.ws.send_bytes(data)
+                    self.frames_sent += 1
+                    if on_image_sent is not None:
+                        on_image_sent()
+        except Exception:  # the socket went away; the receive loop cleans up
+            pass
+        finally:
+            if self.state is ClientState.CLOSING:
+                with contextlib.suppress(Exception):
+                    await self.ws.close(code=1008, reason="client too slow")
+            self.state = ClientState.CLOSED
+
+    def close(self) -> None:
+        self.state = ClientState.CLOSED
+        self._wake.set()
+
+    def close_after_flush(self) -> None:
+        """Send what is queued, then close the socket (1008)."""
+        if self.state is ClientState.CONNECTED:
+            self.state = ClientState.CLOSING
+            self._wake.set()

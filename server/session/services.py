@@ -1,0 +1,43 @@
+"""What a session needs from below, as narrow interfaces: a render backend and the shared
+encoding resources. The server passes the GPU queue and its encoder pool; unit tests pass a
+backend that draws without a GPU."""
+
+from __future__ import annotations
+
+import asyncio
+from concurrent.futures import Executor
+from dataclasses import dataclass
+from typing import Protocol
+
+from server.metrics import Metrics
+from server.pipeline.encoder import ImageEncoder
+from server.pipeline.gpu import RenderOutput, RenderRequest
+from server.session.steering_log import SteeringLog
+
+
+class RenderBackend(Protocol):
+    """Renders images of snapshots, one slot (renderer) per caller; `GpuQueue` is the real one."""
+
+    @property
+    def actual_device(self) -> str: ...
+
+    async def render(self, request: RenderRequest) -> RenderOutput: ...
+
+    async def pick(
+        self, request: RenderRequest, x: int, y: int
+    ) -> tuple[int | None, float | None]: ...
+
+    async def release(self, slot: str) -> None: ...
+
+
+@dataclass(frozen=True)
+class Services:
+    """Resources every session of a server shares."""
+
+    backend: RenderBackend
+    encoders: Executor
+    encoder: ImageEncoder
+    encode_slots: asyncio.Semaphore
+    """Taken before a render, given back when its encode ends: bounds encodes in flight."""
+    metrics: Metrics
+    steering_log: SteeringLog

@@ -1,0 +1,637 @@
+"""A session: one simulation source, the molecule it sends, the shared render state and the
+clients watching it. This class is the facade the WebSocket edge talks to; the work is done by
+
+- `roster.Roster`: who is connected;
+- `steering`: render-parameter patches, simulation parameters confirmed by the engine, acks;
+- `forces.ForceBook`: pulls and script forces merged into the one set an engine applies;
+- `scheduler.RenderScheduler`: when to render which view group, at which quality;
+- `delivery.Delivery`: encoding and offering images to clients;
+- a `services.RenderBackend` (the GPU queue) that draws.
+
+All methods run on the event loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import ValidationError
+
+import protocol as p
+from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
+from server.session.clients import Client
+from server.session.delivery import Delivery, Rendered
+from server.session.forces import ForceBook
+from server.session.roster import Roster
+from server.session.scheduler import RenderScheduler, ViewKey
+from server.session.services import Services
+from server.session.steering import (
+    AckBook,
+    Pending,
+    apply_sim_params,
+    merge_patch,
+    sim_params_changes,
+)
+from server.settings import ServerSettings
+
+log = logging.getLogger("scalesteer.session")
+
+RATE_WINDOW_S = 3.0
+
+
+class StepRate:
+    """Simulation steps per second over the frames of the last few seconds."""
+
+    def __init__(self, window_s: float = RATE_WINDOW_S) -> None:
+        self.window_s = window_s
+        self._frames: deque[tuple[float, int]] = deque()
+
+    def add(self, now: float, step: int) -> float:
+        frames = self._frames
+        while frames and now - frames[0][0] >= self.window_s:
+            frames.popleft()
+        frames.append((now, step))
+        (t0, s0), (t1, s1) = frames[0], frames[-1]
+        return max(0.0, (s1 - s0) / (t1 - t0)) if t1 > t0 else 0.0
+
+
+def _invalid(exc: ValidationError, path: str, seq: int | None) -> p.ProtocolError:
+    err = exc.errors(include_url=False)[0]
+    where = ".".join(str(x) for x in err["loc"])
+    return p.ProtocolError(
+        p.ErrorCode.INVALID_MESSAGE,
+        f"{where}: {err['msg']}" if where else err["msg"],
+        f"{path}.{where}" if where else path,
+        seq,
+    )
+
+
+class Session:
+    """State and behaviour of one session."""
+
+    def __init__(self, session_id: str, settings: ServerSettings, services: Services) -> None:
+        self.id = session_id
+        self.slot = f"session:{session_id}"  # its renderer on the GPU; ':' never occurs in a name
+        self.settings = settings
+        self.services = services
+        self.created = time.time()
+        self.idle_since: float | None = time.monotonic()
+        """When the last client and the simulation left (None while anyone is connected)."""
+        self.roster = Roster()
+        self.topology: p.Topology | None = None
+        self.topology_id = 0
+        self.positions: npt.NDArray[np.float32] | None = None
+        self.positions_id = 0
+        self.status = p.SimStatus(state="waiting")
+        self.render_params = settings.render_defaults
+        self.sim_params = p.SimParams()
+        """What the simulation has confirmed (a change shows here once acknowledged)."""
+        self.camera: p.Camera | None = None
+        self.forces = ForceBook()
+        self.acks = AckBook()
+        self.scheduler = RenderScheduler(settings)
+        self.delivery = Delivery(session_id, services)
+        self.version = 0
+        """Counts every change to what the session draws (positions, render parameters)."""
+        self._log_seq = itertools.count(1)
+        self._image_ids = itertools.count(1)
+        self._step_rate = StepRate()
+        self._dirty = asyncio.Event()
+        self._closed = False
+        self._last_state_sent = 0.0
+        self.render_count = 0
+        self.last_timings: dict[str, float] = {}
+        self._render_times: list[float] = []
+        self.histogram: npt.NDArray[np.float32] | None = None
+        self._frame_taken = asyncio.Event()
+        self._frame_taken.set()
+        self._tasks = [
+            asyncio.create_task(self._render_loop(), name=f"render-{session_id}"),
+            asyncio.create_task(self._stats_loop(), name=f"stats-{session_id}"),
+        ]
+
+    # ------------------------------------------------------------------ clients
+
+    @property
+    def sim(self) -> Client | None:
+        return self.roster.sim
+
+    @property
+    def clients(self) -> dict[str, Client]:
+        return self.roster.clients
+
+    def attach(self, client: Client) -> None:
+        self.idle_since = None
+        replaced = self.roster.add(client)
+        if replaced is not None:
+            self._fail_pending("the simulation was replaced by a new connection")
+            replaced.send(
+                p.Error(
+                    code=p.ErrorCode.FORBIDDEN, message="replaced by a new simulation connection"
+                )
+            )
+            replaced.close_after_flush()
+        if client.role != "simulation":
+            client.needs_image = True
+        self.services.metrics.clients.labels(client.role).inc()
+        client.send(self.full_state())
+        self.broadcast(p.State(clients=self.roster.infos()))
+        self.mark_dirty()
+
+    def detach(self, client: Client) -> None:
+        self.services.metrics.clients.labels(client.role).dec()
+        if self.roster.remove(client):
+            self.status = self.status.model_copy(
+                update={"state": "disconnected", "steps_per_s": 0.0}
+            )
+            self._fail_pending("simulation disconnected")
+            self.broadcast(p.State(sim=self.status))
+        elif client.role != "simulation":
+            if not self.clients:
+                self._frame_taken.set()
+            if self.forces.drop_client(client.client_id):
+                self._send_forces()
+                self.broadcast(p.State(pulling=self.forces.pulling()))
+        self.broadcast(p.State(clients=self.roster.infos()))
+        if self.roster.empty:
+            self.idle_since = time.monotonic()
+
+    def _fail_pending(self, why: str) -> None:
+        """Steering forwarded to a simulation that is gone will never be acknowledged."""
+        for pending in self.acks.take_all():
+            self._settle(pending, p.ParamsAck(ref=0, ok=False, detail=why))
+
+    def client_infos(self) -> list[p.ClientInfo]:
+        return self.roster.infos()
+
+    def full_state(self) -> p.State:
+        return p.State(
+            render_params=self.render_params,
+            sim_params=self.sim_params,
+            sim=self.status,
+            clients=self.roster.infos(),
+            pulling=self.forces.pulling(),
+            camera=self.camera,
+        )
+
+    def broadcast(self, message: p.Message) -> None:
+        self.roster.broadcast(message)
+
+    # ------------------------------------------------------------------ simulation input
+
+    def on_topology(self, topology: p.Topology) -> None:
+        changed = self.topology is None or self.topology.n_atoms != topology.n_atoms
+        self.topology = topology
+        self.topology_id += 1
+        if changed:
+            self.positions = None
+            self.camera = None
+            self.forces.clear()
+        self.status = self.status.model_copy(
+            update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": "running"}
+        )
+        self.broadcast(p.State(sim=self.status))
+
+    def on_frame(self, frame: p.Frame) -> None:
+        """Take a frame: the topology must be known and the atom counts must agree."""
+        if self.topology is None:
+            raise p.ProtocolError(
+                p.ErrorCode.NOT_READY, "send a topology before frames", "frame", frame.seq
+            )
+        n = frame.positions.shape[0]
+        if n != self.topology.n_atoms:
+            raise p.ProtocolError(
+                p.ErrorCode.INVALID_MESSAGE,
+                f"frame.positions has {n} atoms, the topology has {self.topology.n_atoms}",
+                "frame.positions",
+                frame.seq,
+            )
+        now = time.monotonic()
+        rate = self._step_rate.add(now, frame.step)
+        self.positions = frame.positions.to_numpy()
+        self.positions_id += 1
+        if self.camera is None:
+            from server.render.camera import fit_camera
+
+            w, h = self.settings.default_size
+            self.camera = fit_camera(self.positions, w, h)
+            self.broadcast(p.State(camera=self.camera))
+        paused = self.status.state == "paused"
+        self.status = p.SimStatus(
+            state="paused" if paused else "running",
+            step=frame.step,
+            time_ps=frame.time_ps,
+            steps_per_s=rate,
+            n_atoms=n,
+            engine=self.status.engine,
+            observables=dict(frame.observables),
+        )
+        self.services.metrics.sim_frames.inc()
+        self.version += 1
+        if self.clients:
+            self._frame_taken.clear()
+        if self.forces.springs:
+            self._send_forces()
+        if now - self._last_state_sent >= self.settings.state_interval_s:
+            self._last_state_sent = now
+            self.broadcast(p.State(sim=self.status))
+        self.mark_dirty()
+
+    def on_ack(self, ack: p.ParamsAck) -> None:
+        pending = self.acks.take(ack.ref)
+        if pending is None:
+            return  # an ack for an automatic force update
+        self._log(
+            {
+                "event": "applied" if ack.ok else "failed",
+                "ref": pending.log_id,
+                "kind": pending.kind,
+                "step": ack.step,
+                "time_ps": ack.time_ps,
+                "detail": ack.detail,
+            }
+        )
+        self._settle(pending, ack)
+
+    def _settle(self, pending: Pending, ack: p.ParamsAck) -> None:
+        """Apply what an acknowledgement confirms (or undo what it refuses), then answer the
+        client that asked."""
+        if pending.kind == "control" and ack.ok:
+            action = ack.applied.get("action")
+            if action in ("pause", "resume"):
+                state = "paused" if action == "pause" else "running"
+                self.status = self.status.model_copy(update={"state": state})
+                self.broadcast(p.State(sim=self.status))
+        if pending.proposal is not None:
+            if ack.ok:
+                self.sim_params = apply_sim_params(self.sim_params, pending.proposal)
+            # refused: every dashboard goes back to the confirmed values
+            self.broadcast(p.State(sim_params=self.sim_params))
+        client = self.clients.get(pending.client_id)
+        if client is not None and pending.client_seq is not None:
+            client.send(ack.model_copy(update={"ref": pending.client_seq, "seq": None}))
+
+    # ------------------------------------------------------------------ steering
+
+    def _log(self, entry: dict[str, Any]) -> int:
+        log_id = next(self._log_seq)
+        self.services.steering_log.append(
+            self.id, {"id": log_id, "sim_step": self.status.step, **entry}
+        )
+        return log_id
+
+    def _forward(self, message: p.Message, pending: Pending) -> None:
+        """Send a steering message to the simulation; the ack comes back through `on_ack`."""
+        assert self.sim is not None
+        seq = self.acks.expect(pending)
+        self.sim.send(message.model_copy(update={"seq": seq}))
+
+    def _need_sim(self, message: p.Message) -> None:
+        if self.sim is None:
+            raise p.ProtocolError(
+                p.ErrorCode.NOT_READY,
+                "no simulation is connected to this session",
+                message.type,
+                message.seq,
+            )
+
+    def steer(self, client: Client, message: p.Message) -> None:
+        """Apply a steering message from a steerer (roles and rates checked by the caller)."""
+        who = {"client_id": client.client_id, "client": client.name}
+        match message:
+            case p.SetRenderParams():
+                self._set_render_params(client, message, who)
+            case p.SimParams():
+                self._need_sim(message)
+                changes = sim_params_changes(message)
+                log_id = self._log({"event": "sim_params", **who, "changes": changes})
+                pending = Pending(client.client_id, message.seq, "sim_params", log_id, message)
+                self._forward(message, pending)
+            case p.Control():
+                self._need_sim(message)
+                changes = message.model_dump(exclude_none=True, exclude={"seq", "type"})
+                log_id = self._log({"event": "control", **who, **changes})
+                self._forward(message, Pending(client.client_id, message.seq, "control", log_id))
+            case p.Forces():
+                self._need_sim(message)
+                self._script_forces(client, message, who)
+            case p.Pull():
+                self._need_sim(message)
+                self._pull(client, message, who)
+            case _:
+                raise p.ProtocolError(
+                    p.ErrorCode.FORBIDDEN,
+                    f"{message.type} is not a steering message",
+                    "type",
+                    message.seq,
+                )
+
+    def _set_render_params(
+        self, client: Client, message: p.SetRenderParams, who: dict[str, str]
+    ) -> None:
+        try:
+            merged, changes = merge_patch(self.render_params, message.changes())
+        except ValidationError as exc:
+            raise _invalid(exc, "render_params.params", message.seq) from None
+        client.view_ref = message.seq
+        if not changes:
+            return
+        self.render_params = merged
+        self._log({"event": "render_params", **who, "changes": changes})
+        self.broadcast(p.State(render_params=merged))
+        self.version += 1
+        self.scheduler.interacting(time.monotonic())
+        self.mark_dirty()
+
+    def _script_forces(self, client: Client, message: p.Forces, who: dict[str, str]) -> None:
+        limit = self.settings.limits.max_forces
+        if message.indices.count > limit:
+            raise p.ProtocolError(
+                p.ErrorCode.TOO_LARGE, f"more than {limit} forces", "forces.indices", message.seq
+            )
+        atoms = message.indices.to_numpy()
+        self._check_atoms(atoms, "forces.indices", message.seq)
+        vectors = message.forces.to_numpy()
+        if not np.isfinite(vectors).all():
+            raise p.ProtocolError(
+                p.ErrorCode.INVALID_MESSAGE, "forces must be finite", "forces.forces", message.seq
+            )
+        self.forces.set_scripted(client.client_id, atoms, vectors)
+        log_id = self._log({"event": "forces", **who, "atoms": atoms.tolist()})
+        self._forward(
+            self._merged_forces(), Pending(client.client_id, message.seq, "forces", log_id)
+        )
+
+    def _pull(self, client: Client, message: p.Pull, who: dict[str, str]) -> None:
+        self._check_atoms(np.asarray([message.atom]), "pull.atom", message.seq)
+        limit = self.settings.limits.max_forces
+        new = not message.release and message.atom not in self.forces.pulls
+        if new and len(self.forces.pulls) >= limit:
+            raise p.ProtocolError(
+                p.ErrorCode.TOO_LARGE,
+                f"at most {limit} atoms may be pulled at once",
+                "pull.atom",
+                message.seq,
+            )
+        self.forces.pull(client.client_id, message)
+        log_id = self._log(
+            {
+                "event": "pull",
+                **who,
+                "atom": message.atom,
+                "target": message.target,
+                "force": message.force,
+                "release": message.release,
+            }
+        )
+        self.broadcast(p.State(pulling=self.forces.pulling()))
+        pending = Pending(client.client_id, message.seq, "pull", log_id)
+        self._forward(self._merged_forces(), pending)
+
+    def _check_atoms(self, atoms: npt.NDArray[Any], path: str, seq: int | None) -> None:
+        n = self.topology.n_atoms if self.topology is not None else 0
+        if atoms.size and (int(atoms.max()) >= n or int(atoms.min()) < 0):
+            raise p.ProtocolError(
+                p.ErrorCode.INVALID_MESSAGE, f"atom index out of range [0, {n})", path, seq
+            )
+
+    def _merged_forces(self) -> p.Forces:
+        idx, forces = self.forces.merged(self.positions)
+        return p.Forces(
+            indices=p.WireArray.from_numpy(idx, "<i4"),
+            forces=p.WireArray.from_numpy(forces, "<f4"),
+        )
+
+    def _send_forces(self) -> None:
+        """Send the merged forces again (springs follow the atoms; no ack is awaited)."""
+        if self.sim is None:
+            return
+        message = self._merged_forces()
+        self.sim.send(message.model_copy(update={"seq": self.acks.next_seq()}))
+
+    # ------------------------------------------------------------------ views and rendering
+
+    def set_view(self, client: Client, view: p.View) -> None:
+        lim = self.settings.limits
+        if (
+            max(view.width, view.height) > lim.max_image_side
+            or view.width * view.height > lim.max_image_pixels
+        ):
+            raise p.ProtocolError(
+                p.ErrorCode.TOO_LARGE,
+                f"view {view.width}x{view.height} exceeds the image limit "
+                f"({lim.max_image_side} px a side, {lim.max_image_pixels} px)",
+                "view.width",
+                view.seq,
+            )
+        client.view = view
+        client.view_ref = view.seq
+        client.needs_image = True
+        if view.interacting:
+            client.interacting_until = time.monotonic() + self.settings.interactive_idle_s
+        self.mark_dirty()
+
+    def mark_dirty(self) -> None:
+        self._dirty.set()
+
+    def snapshot(self) -> Snapshot | None:
+        """The molecule as it is now, for one render pass."""
+        if self.topology is None or self.positions is None:
+            return None
+        return Snapshot(
+            topology=self.topology,
+            positions=self.positions,
+            topology_id=self.topology_id,
+            positions_id=self.positions_id,
+            step=self.status.step,
+            version=self.version,
+        )
+
+    async def _render_loop(self) -> None:
+        while not self._closed:
+            await self._dirty.wait()
+            self._dirty.clear()
+            try:
+                await self._render_pending()
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("render failed in session %s", self.id)
+                self.broadcast(
+                    p.Error(code=p.ErrorCode.INTERNAL, message="render failed; see the server log")
+                )
+                await asyncio.sleep(0.5)
+
+    async def _render_pending(self) -> None:
+        if self.topology is None or self.positions is None or not self.clients:
+            return
+        plan = self.scheduler.plan(
+            self.clients.values(), time.monotonic(), self.version, self.camera
+        )
+        taken: list[Snapshot] = []  # the snapshot of this pass, taken when its first render starts
+        for key, members in plan.groups:
+            refs = {c.client_id: c.view_ref for c in members}
+            version = await self._render_group(key, members, refs, taken)
+            if version is not None:
+                self.scheduler.rendered(key, version)
+        if plan.come_back_in is not None:  # the full-quality still once the interaction pauses
+            asyncio.get_running_loop().call_later(plan.come_back_in, self.mark_dirty)
+
+    async def _render_group(
+        self,
+        key: ViewKey,
+        members: list[Client],
+        refs: dict[str, int | None],
+        taken: list[Snapshot],
+    ) -> int | None:
+        """Render one view group, then leave its encoding and delivery to a task of its own.
+        Returns the version rendered (None: nothing was).
+
+        The encode slot is taken before the snapshot, so a render waiting for a free encoder
+        renders the newest frame once it gets one; the other groups of the same pass render
+        that same snapshot (`taken`), so its upload and grid serve them all.
+        """
+        slots = self.services.encode_slots
+        await slots.acquire()
+        try:
+            if not taken:
+                snap = self.snapshot()
+                if snap is not None:
+                    taken.append(snap)
+                    self._frame_taken.set()
+            rendered = await self._render(key, taken[0]) if taken else None
+        except BaseException:
+            slots.release()
+            raise
+        if rendered is None:
+            slots.release()
+            return None
+        self.delivery.start(rendered, members, refs, lambda: self.scheduler.forget(key))
+        return taken[0].version
+
+    async def _render(self, key: ViewKey, snap: Snapshot) -> Rendered | None:
+        """One render of `snap` for a view group; None when a new topology arrived since the
+        snapshot was taken (the next pass renders that one)."""
+        if snap.topology_id != self.topology_id:
+            return None
+        params = self.render_params
+        width, height = self.scheduler.image_size(key, params.quality)
+        now = time.monotonic()
+        request = RenderRequest(
+            slot=self.slot,
+            snapshot=snap,
+            params=params,
+            camera=key.camera,
+            width=width,
+            height=height,
+            histogram=self.scheduler.histogram_due(key, now),
+        )
+        out: RenderOutput = await self.services.backend.render(request)
+        if out.histogram is not None:
+            self.histogram = out.histogram
+        self.render_count += 1
+        self.last_timings = out.timings
+        self._render_times.append(time.monotonic())
+        metrics = self.services.metrics
+        metrics.frames_rendered.inc()
+        metrics.render_ms.observe(out.timings.get("total", 0.0))
+        quality = self.scheduler.jpeg_quality(key, params)
+        return Rendered(
+            out, next(self._image_ids), snap.step, width, height, quality, not key.interactive
+        )
+
+    async def pick(self, client: Client, pick: p.Pick) -> p.Picked:
+        snap = self.snapshot()
+        if snap is None:
+            raise p.ProtocolError(p.ErrorCode.NOT_READY, "nothing to pick yet", "pick", pick.seq)
+        camera, w, h = self.scheduler.view_of(client, self.camera)
+        if pick.x >= w or pick.y >= h:
+            raise p.ProtocolError(
+                p.ErrorCode.INVALID_MESSAGE,
+                f"pixel ({pick.x}, {pick.y}) is outside the {w}x{h} view",
+                "pick.x",
+                pick.seq,
+            )
+        request = RenderRequest(self.slot, snap, self.render_params, camera, w, h)
+        atom, depth = await self.services.backend.pick(request, pick.x, pick.y)
+        if atom is None:
+            return p.Picked(ref=pick.seq)
+        topo, positions = snap.topology, snap.positions
+        return p.Picked(
+            ref=pick.seq,
+            atom=atom,
+            element=topo.elements[atom],
+            name=topo.names[atom],
+            residue_id=int(topo.residue_ids.to_numpy()[atom]),
+            residue_name=topo.residue_names[atom],
+            chain=topo.chain_ids[atom],
+            position=(
+                float(positions[atom, 0]),
+                float(positions[atom, 1]),
+                float(positions[atom, 2]),
+            ),
+            depth=depth,
+        )
+
+    async def _stats_loop(self) -> None:
+        while not self._closed:
+            await asyncio.sleep(self.settings.stats_interval_s)
+            now = time.monotonic()
+            self._render_times = [t for t in self._render_times if now - t < 2.0]
+            fps = len(self._render_times) / 2.0
+            t = self.last_timings
+            for client in list(self.clients.values()):
+                client.send(
+                    p.Stats(
+                        render_fps=fps,
+                        render_ms=t.get("total", 0.0),
+                        encode_ms=self.delivery.last_encode_ms,
+                        grid_ms=t.get("grid", 0.0),
+                        upload_ms=t.get("upload", 0.0),
+                        frames_sent=client.frames_sent,
+                        frames_dropped=client.frames_dropped,
+                        sim_frames=self.positions_id,
+                        device=self.services.backend.actual_device,
+                    )
+                )
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "created": self.created,
+            "status": self.status.model_dump(),
+            "clients": [c.model_dump() for c in self.roster.infos()],
+            "n_atoms": self.topology.n_atoms if self.topology else 0,
+            "title": self.topology.title if self.topology else "",
+            "render_params": self.render_params.model_dump(),
+            "renders": self.render_count,
+        }
+
+    async def frame_taken(self, timeout: float) -> None:
+        """Wait, at most `timeout` s, until a render has taken the newest frame. The
+        simulation's connection reads its next frame only then, so frames that no render would
+        draw are neither received nor validated: ingest keeps pace with rendering, and the
+        event loop's time goes to the viewers."""
+        if self._frame_taken.is_set() or not self.clients:
+            return
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._frame_taken.wait(), timeout)
+
+    async def close(self) -> None:
+        self._closed = True
+        self._frame_taken.set()
+        tasks = [*self._tasks, *self.delivery.in_flight()]
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        await self.services.backend.release(self.slot)

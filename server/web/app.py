@@ -1,0 +1,113 @@
+"""The FastAPI application factory: resources start with the app's lifespan and stop with it."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+
+from fastapi import FastAPI, WebSocket
+from fastapi.staticfiles import StaticFiles
+
+from server.metrics import Metrics
+from server.pipeline.encoder import select_encoder
+from server.pipeline.gpu import GpuQueue
+from server.pipeline.jobs import JobManager
+from server.session.services import Services
+from server.session.session import Session
+from server.session.steering_log import SteeringLog
+from server.settings import ServerSettings
+from server.web import ws as ws_endpoints
+from server.web.middleware import HostCheck, UploadLimit
+from server.web.rest import router
+from server.web.state import AppState, SessionRegistry
+
+log = logging.getLogger("scalesteer.app")
+
+
+def create_app(settings: ServerSettings) -> FastAPI:
+    """Build the app; resources start with the app's lifespan and stop with it."""
+    state_dir = settings.state_dir
+    state_dir.mkdir(parents=True, exist_ok=True)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        metrics = Metrics()
+        gpu = GpuQueue(
+            device=settings.device,
+            max_atoms=settings.limits.max_atoms,
+            max_pixels=settings.limits.max_image_pixels,
+        )
+        encoders = ThreadPoolExecutor(
+            max_workers=settings.encode_workers, thread_name_prefix="encode"
+        )
+        encoder = await asyncio.to_thread(select_encoder, settings.device)
+        # shared by all sessions: encodes in flight never outnumber the encoder threads
+        encode_slots = asyncio.Semaphore(settings.encode_workers)
+        steering_log = SteeringLog(state_dir / "logs")
+        upload_dir = state_dir / "uploads"
+        upload_dir.mkdir(parents=True, exist_ok=True)
+
+        services = Services(gpu, encoders, encoder, encode_slots, metrics, steering_log)
+
+        def new_session(name: str) -> Session:
+            return Session(name, settings, services)
+
+        state = AppState(
+            settings=settings,
+            gpu=gpu,
+            services=services,
+            sessions=SessionRegistry(new_session, settings.max_sessions),
+            jobs=JobManager(
+                state_dir / "jobs",
+                gpu,
+                encoders,
+                metrics,
+                settings.limits.max_atoms,
+                retention_s=settings.job_retention_s,
+                max_bytes=settings.job_max_bytes,
+            ),
+            upload_dir=upload_dir,
+        )
+        app.state.scalesteer = state
+        await state.sessions.get_or_create("default")
+
+        async def reaper() -> None:
+            while True:
+                await asyncio.sleep(min(30.0, settings.session_idle_s / 4))
+                await state.sessions.reap(settings.session_idle_s)
+
+        reaping = asyncio.create_task(reaper(), name="session-reaper")
+        try:
+            yield
+        finally:
+            reaping.cancel()
+            await state.jobs.close()
+            await state.sessions.close()
+            await asyncio.to_thread(gpu.close)
+            encoders.shutdown(wait=True)
+            steering_log.close()
+
+    app = FastAPI(
+        title="scalesteer",
+        description="Interactive multiscale visualization and steering of molecular simulations.",
+        version="0.1.0",
+        lifespan=lifespan,
+    )
+    app.include_router(router)
+
+    @app.websocket("/ws/sim")
+    async def ws_sim(websocket: WebSocket) -> None:
+        await ws_endpoints.handle(websocket, app.state.scalesteer, "sim")
+
+    @app.websocket("/ws/view")
+    async def ws_view(websocket: WebSocket) -> None:
+        await ws_endpoints.handle(websocket, app.state.scalesteer, "view")
+
+    if (settings.client_dir / "index.html").is_file():
+        app.mount("/", StaticFiles(directory=settings.client_dir, html=True), name="client")
+    app.add_middleware(UploadLimit, limit=settings.max_upload_bytes + 1024 * 1024)
+    app.add_middleware(HostCheck, settings=settings)
+    return app

@@ -1,0 +1,108 @@
+"""Who may do what: tokens grant roles, WebSocket Origins are checked, steering is rate-limited."""
+
+from __future__ import annotations
+
+import hmac
+import time
+from dataclasses import dataclass
+from urllib.parse import urlsplit
+
+from protocol import Role
+from server.settings import ServerSettings, is_loopback
+
+STEERING_TYPES = frozenset({"sim_params", "control", "forces", "pull", "render_params"})
+SIMULATION_TYPES = frozenset({"topology", "frame", "params_ack"})
+VIEWER_TYPES = frozenset({"view", "pick", "ping", "pong", "error"})
+
+
+def _same(a: str | None, b: str | None) -> bool:
+    return a is not None and b is not None and hmac.compare_digest(a.encode(), b.encode())
+
+
+def grant(settings: ServerSettings, token: str | None, role: Role) -> Role | None:
+    """The role a token earns for the requested role, or None when refused.
+
+    The server token grants any role; the viewer token only `viewer`.
+    """
+    if settings.open_on_loopback or _same(token, settings.token):
+        return role
+    if role == "viewer" and _same(token, settings.viewer_token):
+        return "viewer"
+    return None
+
+
+def token_role(settings: ServerSettings, token: str | None) -> Role | None:
+    """The strongest role a token carries (REST access)."""
+    if settings.open_on_loopback or _same(token, settings.token):
+        return "steerer"
+    if _same(token, settings.viewer_token):
+        return "viewer"
+    return None
+
+
+def may_send(role: Role, kind: str) -> bool:
+    """Whether a connection with `role` may send a message of type `kind`."""
+    if kind in VIEWER_TYPES:
+        return True
+    if role == "simulation":
+        return kind in SIMULATION_TYPES
+    if role == "steerer":
+        return kind in STEERING_TYPES
+    return False
+
+
+LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
+
+
+def _hostname(host_header: str) -> str:
+    host = host_header.strip().lower()
+    if host.startswith("["):  # [::1]:8000
+        return host[1 : host.find("]")] if "]" in host else host
+    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
+def host_allowed(settings: ServerSettings, host_header: str | None) -> bool:
+    """A loopback-bound server answers only to loopback names (or allow-listed hosts), so a
+    web page cannot reach it through a DNS name rebound to 127.0.0.1."""
+    if not is_loopback(settings.host):
+        return True
+    if not host_header:
+        return False
+    extra = {urlsplit(o).hostname for o in settings.allowed_origins if o != "*"}
+    return _hostname(host_header) in LOOPBACK_NAMES | {h for h in extra if h}
+
+
+def origin_allowed(settings: ServerSettings, origin: str | None, host_header: str | None) -> bool:
+    """Browsers must come from this server's own origin or the allow-list; scripts send none."""
+    if origin is None:
+        return True
+    origin = origin.rstrip("/")
+    if origin in settings.allowed_origins or "*" in settings.allowed_origins:
+        return True
+    own = {f"http://{settings.host}:{settings.port}", f"https://{settings.host}:{settings.port}"}
+    if host_header and host_allowed(settings, host_header):
+        own |= {f"http://{host_header}", f"https://{host_header}"}
+    if settings.host in ("127.0.0.1", "localhost", "::1"):
+        own |= {f"http://localhost:{settings.port}", f"http://127.0.0.1:{settings.port}"}
+    return origin in own
+
+
+@dataclass
+class RateLimiter:
+    """Token bucket: `rate` per second with a burst of `burst`."""
+
+    rate: float
+    burst: float
+    tokens: float = -1.0
+    stamp: float = 0.0
+
+    def allow(self, now: float | None = None) -> bool:
+        now = time.monotonic() if now is None else now
+        if self.tokens < 0:
+            self.tokens, self.stamp = self.burst, now
+        self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
+        self.stamp = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False

@@ -1,0 +1,111 @@
+"""The application's state: the one object every route and endpoint reaches the server through.
+
+`AppState` holds the shared resources (settings, GPU queue, encoders, metrics, steering log,
+jobs) and the `SessionRegistry` of live sessions. It is built by `server.web.app.create_app`'s
+lifespan and read by the routes (`rest.py`) and WebSocket endpoints (`ws.py`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import time
+from collections.abc import Callable
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from protocol.messages import SESSION_NAME
+from server.metrics import Metrics
+from server.pipeline.encoder import ImageEncoder
+from server.pipeline.gpu import GpuQueue
+from server.pipeline.jobs import JobManager
+from server.session.services import Services
+from server.session.session import Session
+from server.session.steering_log import SteeringLog
+from server.settings import ServerSettings
+
+_SESSION_NAME = re.compile(SESSION_NAME)
+
+
+@dataclass
+class SessionRegistry:
+    """Live sessions by name; a session outlives its clients and its simulation."""
+
+    factory: Callable[[str], Session]
+    limit: int
+    _sessions: dict[str, Session] = field(default_factory=dict)
+    _lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+
+    async def get_or_create(self, name: str, create: bool = True) -> Session:
+        from protocol import ErrorCode, ProtocolError
+
+        if not _SESSION_NAME.match(name):
+            raise ProtocolError(
+                ErrorCode.INVALID_MESSAGE, f"invalid session name {name!r}", "hello.session"
+            )
+        async with self._lock:
+            session = self._sessions.get(name)
+            if session is None and not create:
+                raise ProtocolError(
+                    ErrorCode.NOT_FOUND, f"no session named {name!r}", "hello.session"
+                )
+            if session is None:
+                if len(self._sessions) >= self.limit:
+                    raise ProtocolError(
+                        ErrorCode.TOO_LARGE, f"the server holds its limit of {self.limit} sessions"
+                    )
+                session = self._sessions[name] = self.factory(name)
+            return session
+
+    def get(self, name: str) -> Session | None:
+        return self._sessions.get(name)
+
+    async def reap(self, idle_s: float, keep: str = "default") -> None:
+        """Close sessions nobody has used for `idle_s` (their GPU scenes go with them)."""
+        now = time.monotonic()
+        async with self._lock:
+            stale = [
+                s
+                for name, s in self._sessions.items()
+                if name != keep and s.idle_since is not None and now - s.idle_since > idle_s
+            ]
+            for session in stale:
+                self._sessions.pop(session.id, None)
+        for session in stale:
+            await session.close()
+
+    def all(self) -> list[Session]:
+        return list(self._sessions.values())
+
+    async def close(self) -> None:
+        for session in self._sessions.values():
+            await session.close()
+        self._sessions.clear()
+
+
+@dataclass
+class AppState:
+    settings: ServerSettings
+    gpu: GpuQueue
+    services: Services
+    """What every session shares (the GPU queue as its render backend, encoders, log)."""
+    sessions: SessionRegistry
+    jobs: JobManager
+    upload_dir: Path
+
+    @property
+    def metrics(self) -> Metrics:
+        return self.services.metrics
+
+    @property
+    def encoder(self) -> ImageEncoder:
+        return self.services.encoder
+
+    @property
+    def encoders(self) -> Executor:
+        return self.services.encoders
+
+    @property
+    def steering_log(self) -> SteeringLog:
+        return self.services.steering_log

@@ -1,0 +1,287 @@
+"""The WebSocket endpoints: `/ws/sim` for simulation adapters, `/ws/view` for browsers and scripts.
+
+Each connection: Origin check, `hello` within a timeout, token -> role, then a receive loop that
+decodes with the connection's limits, checks what the role may send and how fast, and dispatches
+to the session. Every rejection is a coded `error`; only abuse closes the connection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Literal
+
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+import protocol as p
+from server.session.clients import Client, ClientState
+from server.session.session import Session
+from server.web.auth import (
+    SIMULATION_TYPES,
+    STEERING_TYPES,
+    RateLimiter,
+    grant,
+    may_send,
+    origin_allowed,
+)
+from server.web.state import AppState
+
+log = logging.getLogger("scalesteer.ws")
+
+Endpoint = Literal["sim", "view"]
+_client_ids = itertools.count(1)
+MAX_ERRORS_PER_10S = 50
+ANY_PER_STEER = 20
+"""Other messages (views, picks, pings) a connection may send per steering message allowed."""
+OFFLOAD_BYTES = 1 << 20
+
+
+@dataclass
+class Guard:
+    """Per-connection rate limits and the count of its recent protocol errors."""
+
+    steer: RateLimiter
+    any: RateLimiter
+    errors: deque[float] = field(default_factory=lambda: deque(maxlen=64))
+
+    @classmethod
+    def for_limits(cls, limits: p.Limits) -> Guard:
+        rate = limits.max_steer_per_s
+        return cls(RateLimiter(rate, rate), RateLimiter(ANY_PER_STEER * rate, ANY_PER_STEER * rate))
+
+    def note_error(self) -> int:
+        """Record a protocol error; returns how many happened in the last 10 s."""
+        now = time.monotonic()
+        self.errors.append(now)
+        return sum(1 for t in self.errors if now - t < 10.0)
+
+
+class RefusedError(Exception):
+    """Ends a connection: the error to send and the close code."""
+
+    def __init__(self, error: p.ProtocolError, close_code: int) -> None:
+        super().__init__(error.message)
+        self.error = error
+        self.close_code = close_code
+
+
+async def _receive(ws: WebSocket, limits: p.Limits) -> bytes | None:
+    """The next binary message, None when the peer left; oversized frames refuse the peer."""
+    event = await ws.receive()
+    if event["type"] == "websocket.disconnect":
+        return None
+    data = event.get("bytes")
+    if data is None:
+        raise p.ProtocolError(p.ErrorCode.INVALID_MESSAGE, "send binary msgpack frames, not text")
+    if len(data) > limits.max_message_bytes:
+        raise RefusedError(
+            p.ProtocolError(
+                p.ErrorCode.TOO_LARGE,
+                f"message of {len(data)} bytes exceeds the limit of {limits.max_message_bytes}",
+            ),
+            1009,
+        )
+    return bytes(data)
+
+
+async def _send_now(ws: WebSocket, message: p.Message) -> None:
+    with contextlib.suppress(Exception):
+        await ws.send_bytes(p.encode(message))
+
+
+async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
+    settings = state.settings
+    if not origin_allowed(settings, ws.headers.get("origin"), ws.headers.get("host")):
+        state.metrics.errors.labels("forbidden").inc()
+        await ws.close(code=1008, reason="origin not allowed")
+        return
+    await ws.accept()
+    client: Client | None = None
+    session = None
+    sender: asyncio.Task[None] | None = None
+    try:
+        hello = await _handshake(ws, state, endpoint)
+        role = grant(settings, hello.token, hello.role)
+        if role is None:
+            raise RefusedError(
+                p.ProtocolError(
+                    p.ErrorCode.UNAUTHORIZED, "missing or wrong token", "hello.token", hello.seq
+                ),
+                1008,
+            )
+        try:
+            session = await state.sessions.get_or_create(
+                hello.session or "default", create=role != "viewer"
+            )
+        except p.ProtocolError as err:
+            raise RefusedError(err.with_ref(hello.seq), 1008) from None
+        # browsers and scripts send only small control messages; simulations send frames
+        limits = settings.limits if endpoint == "sim" else settings.viewer_limits
+        client = Client(client_id=f"c{next(_client_ids)}", role=role, name=hello.client, ws=ws)
+        guard = Guard.for_limits(limits)
+        client.send(
+            p.Welcome(session_id=session.id, client_id=client.client_id, role=role, limits=limits)
+        )
+        sender = asyncio.create_task(
+            client.run_sender(state.metrics.images_sent.inc), name=f"send-{client.client_id}"
+        )
+        session.attach(client)
+        log.info("%s %s joined session %s as %s", endpoint, client.client_id, session.id, role)
+        await _receive_loop(ws, state, session, client, guard, limits)
+    except RefusedError as refused:
+        state.metrics.errors.labels(refused.error.code.value).inc()
+        if client is not None:
+            client.close()
+        await _send_now(ws, p.error_message(refused.error))
+        with contextlib.suppress(Exception):
+            await ws.close(code=refused.close_code, reason=refused.error.code.value)
+    except (WebSocketDisconnect, asyncio.CancelledError):
+        pass
+    except Exception:
+        log.exception("connection failed")
+    finally:
+        if client is not None:
+            if session is not None:
+                session.detach(client)
+            client.close()
+        if sender is not None:
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await sender
+
+
+async def _handshake(ws: WebSocket, state: AppState, endpoint: Endpoint) -> p.Hello:
+    settings = state.settings
+    try:
+        raw = await asyncio.wait_for(_receive(ws, settings.viewer_limits), settings.hello_timeout_s)
+    except TimeoutError:
+        raise RefusedError(
+            p.ProtocolError(p.ErrorCode.NOT_READY, "no hello within the timeout"), 1008
+        ) from None
+    except p.ProtocolError as err:
+        raise RefusedError(err, 1008) from None
+    if raw is None:
+        raise WebSocketDisconnect(1000)
+    try:
+        message = p.decode(raw, settings.viewer_limits)
+    except p.ProtocolError as err:
+        raise RefusedError(err, 1008) from None
+    if not isinstance(message, p.Hello):
+        raise RefusedError(
+            p.ProtocolError(
+                p.ErrorCode.NOT_READY,
+                f"the first message must be hello, got {message.type}",
+                "type",
+                message.seq,
+            ),
+            1008,
+        )
+    wanted = {"sim": ("simulation",), "view": ("steerer", "viewer")}[endpoint]
+    if message.role not in wanted:
+        raise RefusedError(
+            p.ProtocolError(
+                p.ErrorCode.FORBIDDEN,
+                f"role {message.role!r} does not belong on /ws/{endpoint}",
+                "hello.role",
+                message.seq,
+            ),
+            1008,
+        )
+    return message
+
+
+async def _receive_loop(
+    ws: WebSocket,
+    state: AppState,
+    session: Session,
+    client: Client,
+    guard: Guard,
+    limits: p.Limits,
+) -> None:
+    while client.state is ClientState.CONNECTED:
+        try:
+            raw = await _receive(ws, limits)
+            if raw is None:
+                return
+            big = len(raw) > OFFLOAD_BYTES
+            if big:  # big frames: validate off the event loop
+                message = await asyncio.to_thread(p.decode, raw, limits)
+            else:
+                message = p.decode(raw, limits)
+            try:
+                await _dispatch(session, client, guard, message)
+                if big and isinstance(message, p.Frame):
+                    # the next big frame is read once a render took this one: few fit in the
+                    # socket's buffers, so acks behind them wait one render at most
+                    await session.frame_taken(session.settings.frame_wait_s)
+            except p.ProtocolError:
+                raise
+            except Exception:  # a server fault: logged here, reported without details
+                log.exception("handling %s from %s failed", message.type, client.client_id)
+                raise p.ProtocolError(
+                    p.ErrorCode.INTERNAL,
+                    "the server failed to handle this message; see its log",
+                    message.type,
+                    message.seq,
+                ) from None
+        except p.ProtocolError as err:
+            state.metrics.errors.labels(err.code.value).inc()
+            client.send(p.error_message(err))
+            if guard.note_error() > MAX_ERRORS_PER_10S:
+                raise RefusedError(
+                    p.ProtocolError(p.ErrorCode.RATE_LIMITED, "too many invalid messages"), 1008
+                ) from None
+
+
+async def _dispatch(session: Session, client: Client, guard: Guard, message: p.Message) -> None:
+    kind = message.type
+    if not may_send(client.role, kind):
+        why = (
+            "a viewer cannot steer"
+            if client.role == "viewer"
+            else f"role {client.role} may not send {kind}"
+        )
+        raise p.ProtocolError(p.ErrorCode.FORBIDDEN, why, "type", message.seq)
+    # a simulation's own messages are never rate-limited: its frames are read one at a time and
+    # the newest replaces the last (ingest is paced by `frame_taken`, not refused)
+    if not (client.role == "simulation" and kind in SIMULATION_TYPES):
+        limiter = guard.steer if kind in STEERING_TYPES else guard.any
+        if not limiter.allow():
+            raise p.ProtocolError(
+                p.ErrorCode.RATE_LIMITED,
+                f"too many {kind} messages; slow down",
+                "type",
+                message.seq,
+            )
+    if client.role == "simulation" and session.sim is not client:
+        return  # a replaced simulation connection: its last words are not applied
+    match message:
+        case p.Topology():
+            session.on_topology(message)
+        case p.Frame():
+            session.on_frame(message)
+        case p.ParamsAck():
+            session.on_ack(message)
+        case p.View():
+            session.set_view(client, message)
+        case p.Pick():
+            client.send(await session.pick(client, message))
+        case p.Ping():
+            client.send(
+                p.Pong(ref=message.seq, client_time=message.client_time, server_time=time.time())
+            )
+        case p.Pong() | p.Error():
+            if isinstance(message, p.Error):
+                log.debug(  # peer-chosen text: quoted, cut short, not at info level
+                    "client %s reported %s: %r",
+                    client.client_id,
+                    message.code,
+                    message.message[:200],
+                )
+        case _:
+            session.steer(client, message)

@@ -1,0 +1,45 @@
+"""The render benchmark's command line works as documented (a smoke run on the CPU device)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_quick_run_writes_results_and_sample_images_into_a_new_folder(tmp_path: Path) -> None:
+    images = tmp_path / "not" / "yet" / "there"
+    out = tmp_path / "quick.json"
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "render_bench.py"),
+            "--quick",
+            "--device",
+            "cpu",
+            "--sections",
+            "main",
+            "--sizes",
+            "496",
+            "--image-n",
+            "496",
+            "--images",
+            str(images),
+            "--out",
+            str(out),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert sorted(f.name for f in images.iterdir()) == [
+        "render_iso_496.jpg",
+        "render_volume_496.jpg",
+    ]
+    frames = json.loads(out.read_text())["frames"]
+    assert {(f["n_atoms"], f["mode"]) for f in frames} == {(496, "iso"), (496, "volume")}

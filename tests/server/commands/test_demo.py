@@ -1,0 +1,80 @@
+"""`scalesteer demo` as a user runs it: a real OpenMM villin simulation behind a real server."""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import protocol as p
+from tests.server.peers import Peer
+
+ROOT = Path(__file__).resolve().parents[3]
+pytest.importorskip("openmm")
+
+
+@pytest.mark.slow
+def test_demo_serves_frames_and_takes_steering(tmp_path: Path) -> None:
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "server.commands.cli",
+            "demo",
+            "--port",
+            "0",
+            "--no-browser",
+            "--duration",
+            "240",
+            "--state-dir",
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        url = None
+        deadline = time.monotonic() + 180
+        lines = []
+        assert proc.stdout is not None
+        while url is None and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            m = re.search(r"dashboard:\s+http://127\.0\.0\.1:(\d+)/\?token=(\S+)", line)
+            if m:
+                url = (int(m.group(1)), m.group(2))
+        assert url is not None, "".join(lines)
+        port, token = url
+        steerer = Peer(f"ws://127.0.0.1:{port}/ws/view", "steerer", token)
+        state = steerer.expect(
+            p.State, 120, where=lambda m: m.sim is not None and m.sim.n_atoms > 0
+        )
+        assert state.sim is not None and state.sim.n_atoms == 582
+        first = steerer.expect(p.Image, 180, where=lambda m: m.step is not None and m.step > 0)
+        later = steerer.expect(
+            p.Image, 180, where=lambda m: m.step is not None and m.step > first.step
+        )
+        assert later.width > 0 and later.data[:2] == b"\xff\xd8"
+        seq = steerer.send(p.SimParams(temperature_K=450.0))
+        ack = steerer.expect(p.ParamsAck, 120, where=lambda m: m.ref == seq)
+        assert ack.ok and ack.step is not None and ack.step >= first.step
+        steerer.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
+    assert proc.returncode == 0

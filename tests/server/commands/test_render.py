@@ -1,0 +1,69 @@
+"""`scalesteer render` end to end on real structure files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytest.importorskip("MDAnalysis")
+datafiles = pytest.importorskip("MDAnalysisTests.datafiles")
+GRO, PDB_HOLE, XYZ = datafiles.GRO, datafiles.PDB_HOLE, datafiles.XYZ
+
+from server.commands.render import main  # noqa: E402
+from server.render.device import cuda_count  # noqa: E402
+
+ABSENT_GPU = f"cuda:{cuda_count()}"
+"""One past the last CUDA device of this machine: absent wherever the test runs."""
+
+
+@pytest.mark.parametrize(("src", "mode"), [(PDB_HOLE, "iso"), (GRO, "volume"), (XYZ, "iso")])
+def test_renders_structure_files(
+    tmp_path: Path, src: str, mode: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "sub" / "still.png"
+    rc = main([src, "-o", str(out), "--size", "40x30", "--mode", mode, "--device", "cpu"])
+    assert rc == 0, capsys.readouterr().err
+    img = np.asarray(Image.open(out))
+    assert img.shape == (30, 40, 3)
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 10  # a molecule, not a flat image
+    assert "40x30" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        (["missing.pdb", "-o", "x.png"], "no such file"),
+        ([PDB_HOLE, "-o", "x.png", "--frame", "3"], "frame 3 out of range"),
+        ([PDB_HOLE, "-o", "x.gif"], ".png or .jpg"),
+        ([PDB_HOLE, "-o", "x.png", "--sigma", "0"], "sigma_A"),
+        ([PDB_HOLE, "-o", "x.png", "--device", ABSENT_GPU], "device"),
+    ],
+)
+def test_clear_errors(
+    tmp_path: Path,
+    argv: list[str],
+    match: str,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "scalesteer render: error:" in err and match in err
+
+
+def test_unreadable_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "broken.pdb"
+    bad.write_bytes(b"\x00\x01 not a pdb \xff" * 10)
+    assert main([str(bad), "-o", str(tmp_path / "o.png")]) == 2
+    assert "broken.pdb" in capsys.readouterr().err
+
+
+def test_bad_size_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main([PDB_HOLE, "-o", "x.png", "--size", "800by600"])
+    assert exc.value.code == 2
+    assert "800x600" in capsys.readouterr().err

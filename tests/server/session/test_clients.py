@@ -1,0 +1,57 @@
+"""The per-client send queues: control messages in order, images latest-wins with one slot."""
+
+from __future__ import annotations
+
+import protocol as p
+from server.session.clients import MAX_QUEUED_CONTROL, Client, ClientState, ImageOffer
+from tests.server.session.fakes import Loopback
+
+
+def make_client() -> Client:
+    return Client("c1", "viewer", "test", ws=Loopback())
+
+
+def image(i: int) -> p.Image:
+    return p.Image(frame_id=i, format="jpeg", data=bytes([i % 256]) * 100, width=1, height=1)
+
+
+def test_unsent_images_are_replaced_not_queued() -> None:
+    client = make_client()
+    for i in range(1, 51):
+        client.offer_image(image(i))
+    assert client.frames_dropped == 49
+    assert client._image is not None
+    assert p.decode(client._image) == image(50)
+
+
+def test_an_image_older_than_one_already_offered_is_refused() -> None:
+    client = make_client()
+    assert client.offer_image(image(5)) is ImageOffer.TAKEN
+    assert client.offer_image(image(3)) is ImageOffer.STALE  # its encode finished late
+    assert client.offer_image(image(5)) is ImageOffer.STALE
+    assert p.decode(client._image) == image(5)  # type: ignore[arg-type]
+    assert client.offer_image(image(6)) is ImageOffer.REPLACED
+    assert client.frames_dropped == 3
+    client.close()
+    assert client.offer_image(image(7)) is ImageOffer.CLOSED
+
+
+def test_control_messages_keep_order_and_a_reader_that_never_reads_is_cut_off() -> None:
+    client = make_client()
+    for i in range(MAX_QUEUED_CONTROL):
+        client.send(p.Pong(ref=i))
+    assert len(client._control) == MAX_QUEUED_CONTROL
+    assert [p.decode(client._control[i]).ref for i in (0, 1, 2)] == [0, 1, 2]  # type: ignore[attr-defined]
+    assert client.state is ClientState.CONNECTED
+    client.send(p.Pong(ref=MAX_QUEUED_CONTROL))  # one too many: dropped, and the client goes
+    assert client.state is ClientState.CLOSING
+    assert len(client._control) == 0
+
+
+def test_replaced_client_flushes_then_closes() -> None:
+    client = make_client()
+    client.send(p.Error(code=p.ErrorCode.FORBIDDEN, message="replaced"))
+    client.close_after_flush()
+    assert client.state is ClientState.CLOSING and len(client._control) == 1
+    client.offer_image(image(1))  # nothing new is taken once closing
+    assert client._image is None

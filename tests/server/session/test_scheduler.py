@@ -1,0 +1,93 @@
+"""The image scheduler's policy, with time passed in: who shares a render, when a view is due,
+what an interactive view costs and when the still follows."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import protocol as p
+from server.session.scheduler import RenderScheduler
+from server.settings import ServerSettings
+from tests.server.session.fakes import client
+
+SETTINGS = ServerSettings(
+    token="t", default_size=(200, 100), interactive_idle_s=0.15, interactive_scale=0.5
+)
+
+
+def viewer(cid: str, camera: p.Camera | None = None, size: tuple[int, int] = (200, 100)):  # type: ignore[no-untyped-def]
+    c = client(cid, "viewer")
+    if camera is not None:
+        c.view = p.View(camera=camera, width=size[0], height=size[1])
+    return c
+
+
+def test_viewers_with_the_same_view_share_one_render() -> None:
+    s = RenderScheduler(SETTINGS)
+    cam = p.Camera(distance=30.0)
+    a, b, c = viewer("a", cam), viewer("b", cam), viewer("c", p.Camera(distance=60.0))
+    plan = s.plan([a, b, c], now=10.0, version=1, default_camera=None)
+    assert sorted(len(members) for _, members in plan.groups) == [1, 2]
+    assert plan.come_back_in is None
+
+
+def test_a_group_renders_a_version_once_unless_a_member_asks_again() -> None:
+    s = RenderScheduler(SETTINGS)
+    a = viewer("a")
+    ((key, _),) = s.plan([a], 10.0, 1, None).groups
+    s.rendered(key, 1)
+    assert s.plan([a], 10.1, 1, None).groups == []
+    assert len(s.plan([a], 10.2, 2, None).groups) == 1  # a new frame
+    s.rendered(key, 2)
+    a.needs_image = True  # e.g. a new view message
+    assert len(s.plan([a], 10.3, 2, None).groups) == 1
+    assert not a.needs_image
+    s.forget(key)  # its image was lost (encode failed)
+    assert len(s.plan([a], 10.4, 2, None).groups) == 1
+
+
+def test_interaction_renders_small_and_fast_then_a_still_follows() -> None:
+    s = RenderScheduler(SETTINGS)
+    a = viewer("a")
+    s.interacting(now=100.0)
+    plan = s.plan([a], 100.05, 1, None)
+    ((key, _),) = plan.groups
+    assert key.interactive
+    assert s.image_size(key, quality=1.0) == (100, 50)
+    assert s.jpeg_quality(key, p.RenderParams()) == SETTINGS.interactive_jpeg_quality
+    assert plan.come_back_in is not None and plan.come_back_in > SETTINGS.interactive_idle_s
+    s.rendered(key, 1)
+    later = s.plan([a], 100.05 + plan.come_back_in, 1, None)  # same version, now a still
+    ((still_key, _),) = later.groups
+    assert not still_key.interactive and later.come_back_in is None
+    assert s.image_size(still_key, quality=1.0) == (200, 100)
+    assert s.jpeg_quality(still_key, p.RenderParams(jpeg_quality=92)) == 92
+
+
+def test_one_client_interacting_leaves_the_others_at_full_quality() -> None:
+    s = RenderScheduler(SETTINGS)
+    a, b = viewer("a"), viewer("b")
+    a.interacting_until = 50.0
+    groups = s.plan([a, b], 49.9, 1, None).groups
+    assert {(k.interactive, len(m)) for k, m in groups} == {(True, 1), (False, 1)}
+
+
+def test_image_sizes_respect_quality_and_the_server_limits() -> None:
+    small = replace(SETTINGS, limits=p.Limits(max_image_side=128, max_image_pixels=128 * 64))
+    s = RenderScheduler(small)
+    key = s.plan([viewer("a", p.Camera(), (400, 200))], 1.0, 1, None).groups[0][0]
+    w, h = s.image_size(key, quality=1.0)
+    assert w <= 128 and w * h <= 128 * 64 and abs(w / h - 2.0) < 0.05
+    assert s.image_size(key, quality=0.1) == (40, 20)
+
+
+def test_the_histogram_comes_with_stills_at_most_once_a_second() -> None:
+    s = RenderScheduler(SETTINGS)
+    a = viewer("a")
+    ((key, _),) = s.plan([a], 5.0, 1, None).groups
+    assert s.histogram_due(key, 5.0)
+    assert not s.histogram_due(key, 5.5)
+    assert s.histogram_due(key, 6.1)
+    s.interacting(7.0)
+    ((moving, _),) = s.plan([a], 7.01, 2, None).groups
+    assert not s.histogram_due(moving, 8.5)

@@ -1,0 +1,191 @@
+"""The session facade against a render backend without a GPU and clients without sockets:
+frames become images for every viewer, steering is confirmed by acks, forces merge."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Callable, Coroutine
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import protocol as p
+from server.session.session import Session
+from server.settings import ServerSettings
+from tests.server.peers import frame, molecule
+from tests.server.session.fakes import PaintBackend, client, sent, services
+
+SETTINGS = ServerSettings(token="t", default_size=(40, 30), stats_interval_s=60.0)
+
+
+def run(test: Callable[[Session, PaintBackend], Coroutine[Any, Any, None]], tmp: Path) -> None:
+    async def main() -> None:
+        backend = PaintBackend()
+        session = Session("s", SETTINGS, services(tmp, backend))
+        try:
+            await test(session, backend)
+        finally:
+            await session.close()
+            session.services.steering_log.close()
+
+    # a thread of its own: another test's framework may hold this thread's event loop
+    errors: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            asyncio.run(main())
+        except BaseException as exc:
+            errors.append(exc)
+
+    thread = threading.Thread(target=target)
+    thread.start()
+    thread.join(60)
+    assert not thread.is_alive(), "the session test hung"
+    if errors:
+        raise errors[0]
+
+
+async def settle(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    while not predicate():
+        if loop.time() > end:
+            raise TimeoutError("condition not met")
+        await asyncio.sleep(0.005)
+
+
+def images(c: Any) -> list[p.Image]:
+    return [m for m in sent(c) if isinstance(m, p.Image)]
+
+
+def test_a_frame_reaches_every_viewer_as_one_shared_render(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        a, b = client("a", "viewer"), client("b", "viewer")
+        session.attach(a)
+        session.attach(b)
+        session.on_topology(topo)
+        session.on_frame(frame(pos, 5))
+        await settle(lambda: bool(images(a)) and bool(images(b)))
+        assert len(backend.requests) == 1  # one render served both
+        request = backend.requests[0]
+        assert request.snapshot.step == 5 and (request.width, request.height) == (40, 30)
+        img = images(a)[0]
+        assert img.step == 5 and img.still and (img.width, img.height) == (40, 30)
+        assert images(b)[0].frame_id == img.frame_id
+
+    run(body, tmp_path)
+
+
+def test_frames_that_outrun_rendering_coalesce_to_the_newest(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        a = client("a", "viewer")
+        session.attach(a)
+        session.on_topology(topo)
+        backend.gate = asyncio.Event()
+        session.on_frame(frame(pos, 1))
+        await settle(lambda: len(backend.requests) == 1)  # the render of step 1 is in flight
+        for step in range(2, 40):
+            session.on_frame(frame(pos, step))
+        backend.gate.set()
+        await settle(lambda: any(i.step == 39 for i in images(a)))
+        assert [r.snapshot.step for r in backend.requests] == [1, 39]
+
+    run(body, tmp_path)
+
+
+def test_sim_params_show_only_once_the_engine_confirms(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        sim, steerer = client("sim", "simulation"), client("u")
+        session.attach(sim)
+        session.attach(steerer)
+        session.on_topology(topo)
+        session.on_frame(frame(pos, 0))
+        session.steer(steerer, p.SimParams(seq=4, temperature_K=900.0))
+        forwarded = [m for m in sent(sim) if isinstance(m, p.SimParams)][-1]
+        assert session.sim_params.temperature_K is None
+        session.on_ack(p.ParamsAck(ref=forwarded.seq or 0, ok=False, detail="too hot"))
+        assert session.sim_params.temperature_K is None
+        reply = [m for m in sent(steerer) if isinstance(m, p.ParamsAck)][-1]
+        assert reply.ref == 4 and not reply.ok
+        session.steer(steerer, p.SimParams(seq=5, temperature_K=310.0))
+        forwarded = [m for m in sent(sim) if isinstance(m, p.SimParams)][-1]
+        session.on_ack(p.ParamsAck(ref=forwarded.seq or 0, ok=True, step=3))
+        assert session.sim_params.temperature_K == 310.0
+        states = [m for m in sent(steerer) if isinstance(m, p.State) and m.sim_params]
+        assert [s.sim_params.temperature_K for s in states] == [None, None, 310.0]  # type: ignore[union-attr]
+
+    run(body, tmp_path)
+
+
+def test_steering_without_a_simulation_is_refused_and_logged_nowhere(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        steerer = client("u")
+        session.attach(steerer)
+        with pytest.raises(p.ProtocolError) as err:
+            session.steer(steerer, p.Control(action="pause"))
+        assert err.value.code == p.ErrorCode.NOT_READY
+        assert session.services.steering_log.read("s") == []
+
+    run(body, tmp_path)
+
+
+def test_an_invalid_render_patch_names_the_field_and_changes_nothing(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        steerer = client("u")
+        session.attach(steerer)
+        before = session.render_params
+        patch = p.SetRenderParams.model_construct(
+            type="render_params", seq=3, params=p.RenderParams.model_construct(sigma_A=-1.0)
+        )
+        with pytest.raises(p.ProtocolError) as err:
+            session.steer(steerer, patch)
+        assert err.value.path == "render_params.params.sigma_A"
+        assert session.render_params is before
+
+    run(body, tmp_path)
+
+
+def test_a_leaving_puller_releases_its_atoms_for_the_engine(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        sim, user = client("sim", "simulation"), client("u")
+        session.attach(sim)
+        session.attach(user)
+        session.on_topology(topo)
+        session.on_frame(frame(pos, 0))
+        target = tuple(float(v) + 1.0 for v in pos[2])
+        session.steer(user, p.Pull(seq=1, atom=2, target=target))  # type: ignore[arg-type]
+        pulled = [m for m in sent(sim) if isinstance(m, p.Forces)][-1]
+        assert pulled.indices.to_numpy().tolist() == [2]
+        session.on_frame(frame(pos + np.float32(0.5), 1))  # the spring follows the atom
+        followed = [m for m in sent(sim) if isinstance(m, p.Forces)][-1]
+        assert not np.allclose(followed.forces.to_numpy(), pulled.forces.to_numpy())
+        session.detach(user)
+        released = [m for m in sent(sim) if isinstance(m, p.Forces)][-1]
+        assert released.indices.count == 0
+
+    run(body, tmp_path)
+
+
+def test_a_pick_answers_with_the_atom_and_where_it_is(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        a = client("a", "viewer")
+        session.attach(a)
+        with pytest.raises(p.ProtocolError):
+            await session.pick(a, p.Pick(x=1, y=1))
+        session.on_topology(topo)
+        session.on_frame(frame(pos, 0))
+        hit = await session.pick(a, p.Pick(seq=9, x=3, y=4))
+        assert hit.ref == 9 and hit.atom == 0 and hit.element == topo.elements[0]
+        assert hit.position == pytest.approx(tuple(float(v) for v in pos[0]))
+        with pytest.raises(p.ProtocolError, match="outside"):
+            await session.pick(a, p.Pick(x=40, y=0))
+
+    run(body, tmp_path)

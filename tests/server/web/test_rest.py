@@ -1,0 +1,233 @@
+"""REST: one-off renders, batch jobs over a real trajectory, sessions, health, metrics, the log."""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+import zipfile
+from pathlib import Path
+
+import httpx
+import pytest
+from PIL import Image
+
+import protocol as p
+from tests.conftest import LiveServer, make_settings, start_server
+from tests.server.peers import Peer, frame, molecule
+
+pytest.importorskip("MDAnalysisTests")
+from MDAnalysisTests.datafiles import DCD, GRO, PSF, PDB_small
+
+AUTH = {"Authorization": "Bearer test-token"}
+
+
+def client(server: LiveServer) -> httpx.Client:
+    return httpx.Client(base_url=server.url, timeout=120)
+
+
+def test_render_uploaded_structure_as_png(live_server: LiveServer) -> None:
+    with client(live_server) as c, open(PDB_small, "rb") as fh:
+        r = c.post(
+            "/api/render",
+            headers=AUTH,
+            files={"file": ("adk.pdb", fh)},
+            data={"width": "96", "height": "72", "params": json.dumps({"sigma_A": 2.0})},
+        )
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "image/png"
+    img = Image.open(io.BytesIO(r.content))
+    assert img.format == "PNG" and img.size == (96, 72)
+    assert max(img.convert("L").getextrema()) > 60
+
+
+def test_render_rejects_bad_input_with_a_reason(live_server: LiveServer) -> None:
+    with client(live_server) as c:
+        r = c.post(
+            "/api/render", headers=AUTH, files={"file": ("junk.pdb", b"\x00\x01garbage" * 10)}
+        )
+        assert r.status_code == 422 and "junk.pdb" in r.json()["detail"]
+        r = c.post("/api/render", headers=AUTH, files={"file": ("model.exe", b"MZ....")})
+        assert r.status_code == 422 and "unsupported structure format" in r.json()["detail"]
+        r = c.post("/api/render", headers=AUTH, data={"dataset": "../../etc/passwd"})
+        assert r.status_code == 404
+        with open(PDB_small, "rb") as fh:
+            r = c.post(
+                "/api/render",
+                headers=AUTH,
+                files={"file": ("a.pdb", fh)},
+                data={"params": '{"sigma_A": -1}'},
+            )
+        assert r.status_code == 422 and "params.sigma_A" in r.json()["detail"]
+        r = c.post("/api/render", files={"file": ("a.pdb", b"x")})
+        assert r.status_code == 401
+        r = c.post("/api/render", headers=AUTH, files={"file": ("..", b"ATOM")})
+        assert r.status_code == 422 and "file name" in r.json()["detail"]
+
+
+def test_upload_size_limit(tmp_path: Path) -> None:
+    server = start_server(make_settings(tmp_path, max_upload_bytes=10_000))
+    try:
+        with client(server) as c:
+            r = c.post("/api/render", headers=AUTH, files={"file": ("big.pdb", b"ATOM" * 20_000)})
+        assert r.status_code == 413 and "exceeds" in r.text
+    finally:
+        server.stop()
+
+
+def wait_job(c: httpx.Client, job_id: str, timeout: float = 240) -> tuple[dict, list[int]]:
+    seen = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        info = c.get(f"/api/jobs/{job_id}", headers=AUTH).json()
+        seen.append(info["progress"]["done"])
+        if info["state"] in ("done", "failed", "cancelled", "expired"):
+            return info, seen
+        time.sleep(0.2)
+    raise TimeoutError(job_id)
+
+
+def test_trajectory_job_to_zip_and_mp4(live_server: LiveServer) -> None:
+    with client(live_server) as c:
+        with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+            r = c.post(
+                "/api/jobs",
+                headers=AUTH,
+                files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                data={"width": "48", "height": "36", "output": "zip"},
+            )
+        assert r.status_code == 202, r.text
+        info, seen = wait_job(c, r.json()["id"])
+        assert info["state"] == "done", info
+        assert info["progress"] == {"done": 98, "total": 98}
+        assert seen == sorted(seen) and seen[-1] == 98
+        z = zipfile.ZipFile(io.BytesIO(c.get(info["result"], headers=AUTH).content))
+        names = z.namelist()
+        assert len(names) == 98 and names[0] == "frame_000000.png"
+        assert Image.open(io.BytesIO(z.read(names[-1]))).size == (48, 36)
+
+        with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+            r = c.post(
+                "/api/jobs",
+                headers=AUTH,
+                files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                data={
+                    "width": "48",
+                    "height": "36",
+                    "output": "mp4",
+                    "start": "10",
+                    "stop": "40",
+                    "stride": "3",
+                },
+            )
+        info, _ = wait_job(c, r.json()["id"])
+        assert info["state"] == "done", info
+        movie = c.get(info["result"], headers=AUTH)
+        assert movie.headers["content-type"] == "video/mp4"
+    import av
+
+    with av.open(io.BytesIO(movie.content)) as container:
+        frames = sum(1 for _ in container.decode(video=0))
+    assert frames == 10
+
+
+def test_job_cancel_and_bad_job_input(live_server: LiveServer) -> None:
+    with client(live_server) as c:
+        with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+            r = c.post(
+                "/api/jobs",
+                headers=AUTH,
+                files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                data={"width": "160", "height": "120"},
+            )
+        job_id = r.json()["id"]
+        assert c.delete(f"/api/jobs/{job_id}", headers=AUTH).status_code == 200
+        info, _ = wait_job(c, job_id)
+        assert info["state"] == "cancelled" and info["progress"]["done"] < 98
+        assert c.get(f"/api/jobs/{job_id}/result", headers=AUTH).status_code == 409
+        with open(GRO, "rb") as top, open(DCD, "rb") as traj:
+            r = c.post(
+                "/api/jobs",
+                headers=AUTH,
+                files=[("topology", ("big.gro", top)), ("trajectory", ("adk.dcd", traj))],
+                data={"width": "32", "height": "24"},
+            )
+        assert r.status_code == 422, r.text
+        assert "atoms" in r.json()["detail"], r.json()
+        r = c.post("/api/jobs", headers=AUTH, files=[("topology", ("t.pdb", b"junk\n" * 5))])
+        assert r.status_code == 422 and "t.pdb" in r.json()["detail"]
+        r = c.post(
+            "/api/jobs", headers={"Authorization": "Bearer viewer-token"}, data={"dataset": "x"}
+        )
+        assert r.status_code == 403
+        assert c.get("/api/jobs/nope", headers=AUTH).status_code == 404
+
+
+def test_sessions_health_metrics_and_log_survive_restart(live_server: LiveServer) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "logged")
+    topo, pos = molecule(12)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    steerer = Peer(live_server.view_url, "steerer", live_server.token, "logged")
+    steerer.send(p.SetRenderParams(params={"sigma_A": 2.5}))
+    steerer.send(p.Control(action="pause"))
+    fwd = sim.expect(p.Control)
+    sim.send(p.ParamsAck(ref=fwd.seq, step=40, applied={"action": "pause"}))
+    steerer.expect(p.ParamsAck)
+    steerer.expect(p.Image, 60)
+    with client(live_server) as c:
+        assert c.get("/healthz").json()["status"] == "ok"
+        listed = {s["id"]: s for s in c.get("/api/sessions", headers=AUTH).json()}
+        assert listed["logged"]["n_atoms"] == 12
+        assert c.get("/api/sessions/logged", headers=AUTH).json()["status"]["state"] == "paused"
+        assert c.get("/api/sessions/missing", headers=AUTH).status_code == 404
+        metrics = c.get("/metrics").text
+        assert (
+            "scalesteer_frames_rendered_total" in metrics
+            and "scalesteer_render_ms_bucket" in metrics
+        )
+        before = c.get("/api/sessions/logged/log", headers=AUTH).json()
+    assert [e["event"] for e in before] == ["render_params", "control", "applied"]
+    sim.close()
+    steerer.close()
+    restarted = live_server.restart()
+    try:
+        with client(restarted) as c:
+            after = c.get("/api/sessions/logged/log", headers=AUTH).json()
+        assert after == before
+    finally:
+        restarted.stop()
+
+
+def test_finished_job_outputs_are_reaped_by_age_and_disk_cap(tmp_path: Path) -> None:
+    """Outputs of finished jobs do not accumulate: past the disk cap the oldest go first, and
+    none outlives the retention time; a reaped job says why its result is gone."""
+    server = start_server(make_settings(tmp_path, job_max_bytes=50_000, job_retention_s=3600))
+    jobs_dir = tmp_path / "state" / "jobs"
+    try:
+        with client(server) as c:
+            ids = []
+            for _ in range(3):
+                with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+                    r = c.post(
+                        "/api/jobs",
+                        headers=AUTH,
+                        files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                        data={"width": "40", "height": "30", "stop": "12", "output": "zip"},
+                    )
+                assert r.status_code == 202, r.text
+                info, _ = wait_job(c, r.json()["id"])
+                assert info["state"] == "done", info
+                ids.append(info["id"])
+            sizes = sorted(f.stat().st_size for f in jobs_dir.glob("*.zip"))
+            assert sum(sizes) <= 50_000 and len(sizes) == 2
+            first = c.get(f"/api/jobs/{ids[0]}", headers=AUTH).json()
+            assert first["state"] == "expired" and "exceeded" in first["error"]
+            assert c.get(f"/api/jobs/{ids[0]}/result", headers=AUTH).status_code == 409
+            assert c.get(f"/api/jobs/{ids[-1]}/result", headers=AUTH).status_code == 200
+        jobs = server.app_state.jobs
+        jobs.reap(now=time.time() + 7200)  # two hours later: past the retention time
+        assert list(jobs_dir.glob("*.zip")) == []
+        assert all(j.state.value == "expired" for j in jobs.jobs.values())
+    finally:
+        server.stop()

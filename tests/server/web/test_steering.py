@@ -1,0 +1,142 @@
+"""Steering through a real server: patches merge deeply, refused simulation parameters are
+rolled back, forces from scripts and pulls reach the engine as one set, and a fast simulation
+is never throttled."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+import protocol as p
+from tests.conftest import LiveServer
+from tests.server.peers import Peer, frame, molecule
+
+
+def connect(live: LiveServer, session: str) -> tuple[Peer, Peer, np.ndarray]:
+    sim = Peer(live.ws_url, "simulation", live.token, session)
+    topo, pos = molecule()
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    steerer = Peer(live.view_url, "steerer", live.token, session)
+    steerer.expect(p.State, where=lambda m: m.sim is not None and m.sim.n_atoms == 24)
+    return sim, steerer, pos
+
+
+def test_a_partial_lighting_patch_keeps_the_other_fields(live_server: LiveServer) -> None:
+    sim, steerer, _ = connect(live_server, "lighting")
+    steerer.send(p.SetRenderParams(params={"lighting": {"specular": 0.9}}))
+    steerer.expect(
+        p.State, where=lambda m: m.render_params and m.render_params.lighting.specular == 0.9
+    )
+    steerer.send(p.SetRenderParams(params={"lighting": {"ambient": 0.5}}))
+    state = steerer.expect(
+        p.State, where=lambda m: m.render_params and m.render_params.lighting.ambient == 0.5
+    )
+    assert state.render_params is not None
+    assert state.render_params.lighting.specular == 0.9, "the earlier change was reset"
+    log = [
+        e
+        for e in live_server.app_state.steering_log.read("lighting")
+        if e["event"] == "render_params"
+    ]
+    deadline = time.monotonic() + 10
+    while len(log) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+        log = [
+            e
+            for e in live_server.app_state.steering_log.read("lighting")
+            if e["event"] == "render_params"
+        ]
+    assert [e["changes"] for e in log] == [
+        {"lighting.specular": 0.9},
+        {"lighting.ambient": 0.5},
+    ]
+    sim.close()
+    steerer.close()
+
+
+def test_refused_sim_params_are_rolled_back(live_server: LiveServer) -> None:
+    sim, steerer, _ = connect(live_server, "refuse")
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "refuse")
+    viewer.expect(p.State, where=lambda m: m.sim_params is not None)
+    seq = steerer.send(p.SimParams(temperature_K=450.0))
+    forwarded = sim.expect(p.SimParams)
+    assert forwarded.temperature_K == 450.0
+    sim.send(p.ParamsAck(ref=forwarded.seq, ok=False, detail="the engine refuses"))
+    ack = steerer.expect(p.ParamsAck, where=lambda m: m.ref == seq)
+    assert not ack.ok and "refuses" in ack.detail
+    state = viewer.expect(p.State, where=lambda m: m.sim_params is not None)
+    assert state.sim_params is not None and state.sim_params.temperature_K is None
+    session = live_server.app_state.sessions.get("refuse")
+    assert session.sim_params.temperature_K is None
+    # an accepted change shows once the engine has acknowledged it, not before
+    seq = steerer.send(p.SimParams(temperature_K=350.0))
+    forwarded = sim.expect(p.SimParams)
+    assert session.sim_params.temperature_K is None
+    sim.send(p.ParamsAck(ref=forwarded.seq, ok=True, step=5, applied={"temperature_K": 350.0}))
+    assert steerer.expect(p.ParamsAck, where=lambda m: m.ref == seq).ok
+    state = viewer.expect(p.State, where=lambda m: m.sim_params is not None)
+    assert state.sim_params is not None and state.sim_params.temperature_K == 350.0
+    for peer in (sim, steerer, viewer):
+        peer.close()
+
+
+def forces_of(message: p.Forces) -> dict[int, tuple[float, ...]]:
+    idx = message.indices.to_numpy().tolist()
+    vec = message.forces.to_numpy().tolist()
+    return {int(i): tuple(round(v, 3) for v in f) for i, f in zip(idx, vec, strict=True)}
+
+
+def test_script_forces_and_pulls_reach_the_engine_as_one_set(live_server: LiveServer) -> None:
+    sim, script, pos = connect(live_server, "forces")
+    user = Peer(live_server.view_url, "steerer", live_server.token, "forces")
+    script.send(
+        p.Forces(
+            indices=p.WireArray.from_numpy(np.array([3], np.int32), "<i4"),
+            forces=p.WireArray.from_numpy(np.array([[5.0, 0.0, 0.0]], np.float32), "<f4"),
+        )
+    )
+    assert forces_of(sim.expect(p.Forces)) == {3: (5.0, 0.0, 0.0)}
+    user.send(p.Pull(atom=7, force=(0.0, 0.0, 10.0)))
+    assert forces_of(sim.expect(p.Forces)) == {3: (5.0, 0.0, 0.0), 7: (0.0, 0.0, 10.0)}
+    user.send(p.Pull(atom=9, target=tuple(float(v) + 2.0 for v in pos[9])))  # type: ignore[arg-type]
+    merged = forces_of(sim.expect(p.Forces))
+    assert set(merged) == {3, 7, 9} and merged[3] == (5.0, 0.0, 0.0)
+    # springs follow every frame; the script's force stays in every update
+    sim.send(frame(pos, 1))
+    assert set(forces_of(sim.expect(p.Forces))) == {3, 7, 9}
+    user.close()  # its pulls go with it; the script's force stays
+    assert forces_of(sim.expect(p.Forces)) == {3: (5.0, 0.0, 0.0)}
+    script.send(
+        p.Forces(
+            indices=p.WireArray.from_numpy(np.zeros(0, np.int32), "<i4"),
+            forces=p.WireArray.from_numpy(np.zeros((0, 3), np.float32), "<f4"),
+        )
+    )
+    assert forces_of(sim.expect(p.Forces)) == {}
+    sim.close()
+    script.close()
+
+
+def test_a_fast_small_simulation_is_never_throttled(live_server: LiveServer) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "fast")
+    topo, pos = molecule(4)
+    sim.send(topo)
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "fast")
+    n = 8000  # well over a second's worth of any per-connection message allowance
+    for step in range(n):
+        sim.send(frame(pos, step))
+    sim.send(p.Ping(client_time=1.0))
+    replies = []
+    while True:
+        message = sim.recv(60)
+        replies.append(message)
+        if isinstance(message, p.Pong):
+            break
+    errors = [m for m in replies if isinstance(m, p.Error)]
+    assert errors == [], errors[:3]
+    session = live_server.app_state.sessions.get("fast")
+    assert session.sim is not None and session.status.step == n - 1
+    sim.close()
+    viewer.close()

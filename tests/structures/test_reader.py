@@ -1,0 +1,71 @@
+"""Reading structures into topologies: formats, guessed elements and bonds, readable errors."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from MDAnalysisTests.datafiles import DCD, GRO, MMCIF, PDBX, PSF, XTC, PDB_multiframe
+
+from structures.reader import StructureError, lammps_atom_style, load
+from tests.adapters.lammps_helpers import write_argon_data
+
+
+def test_lammps_data_with_only_masses(tmp_path: Path) -> None:
+    data = tmp_path / "argon.data"
+    write_argon_data(data, 3)
+    assert lammps_atom_style(str(data)) == "id type x y z"
+    s = load(str(data))
+    assert s.topology.n_atoms == 27 and s.n_frames == 1
+    assert set(s.topology.elements) == {"Ar"}  # named from the mass, 39.948
+    assert s.topology.names[:2] == ["Ar1", "Ar2"] and s.topology.bonds.shape == (0, 2)
+    assert s.positions(0)[0].tolist() == pytest.approx([1.95, 1.95, 1.95])
+
+
+def test_lammps_data_without_a_style_comment_names_the_fix(tmp_path: Path) -> None:
+    data = tmp_path / "bare.data"
+    write_argon_data(data, 2)
+    data.write_text(data.read_text().replace("Atoms # atomic", "Atoms"))
+    with pytest.raises(StructureError, match="Atoms # full"):
+        load(str(data))
+    assert load(str(data), atom_style="id type x y z").topology.n_atoms == 8
+
+
+def test_formats_and_guessed_bonds() -> None:
+    assert load(PSF, [DCD]).n_frames == 98
+    assert load(GRO, [XTC], guess_bonds=False).n_frames == 10
+    pdb = load(PDB_multiframe)
+    assert pdb.n_frames == 24 and pdb.topology.bonds.shape[0] > 380
+    cif = load(os.path.join(MMCIF, "1YJP.cif"))
+    assert cif.topology.n_atoms == 66 and cif.topology.bonds.shape[0] >= 55
+    assert cif.topology.elements[:3] == ["N", "C", "C"]
+    assert load(PDBX).topology.n_atoms == 60
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("/nope.pdb", ()), "no such file"),
+        ((PSF, ()), "has no coordinates"),
+        ((PSF, (XTC,)), "same number of atoms"),
+        ((__file__, ()), "unsupported structure format 'py'"),
+        ((PSF, (__file__,)), "unsupported trajectory format 'py'"),
+    ],
+)
+def test_unreadable_input_is_a_structure_error(args: tuple, message: str) -> None:
+    with pytest.raises(StructureError, match=message):
+        load(args[0], args[1])
+
+
+def test_garbage_file_is_a_structure_error(tmp_path: Path) -> None:
+    junk = tmp_path / "junk.pdb"
+    junk.write_bytes(b"\x00\x01 not a structure \xff" * 10)
+    with pytest.raises(StructureError):
+        load(str(junk))
+
+
+def test_a_bare_topology_is_enough_for_the_imd_bridge() -> None:
+    s = load(PSF, require_coordinates=False)
+    assert s.n_frames == 0 and s.topology.n_atoms == 3341
+    assert s.topology.bonds.shape[0] == 3365  # from the PSF, nothing guessed
