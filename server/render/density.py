@@ -12,9 +12,9 @@ ray caster (raycast.py) is generated from a model, so another density (the geode
 of thesis 5.3) plugs in by providing its own struct and functions; the struct must carry
 `info` (GridInfo, one entry), `bound` (one float per cell) and `brick_bound` (one per brick)
 because the caster walks bricks and cells to skip empty space.
+(No `from __future__ import annotations`: `cell_rows` makes functions whose annotations name
+its arguments, which warp resolves eagerly.)
 """
-
-from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any, no_type_check
@@ -136,11 +136,76 @@ def dist2(a: wp.vec4, p: wp.vec3) -> float:
     return ex * ex + ey * ey + ez * ez
 
 
+@wp.struct
+class Span4:
+    """Four points o + d ts[q] along a line (ts increasing), and the squared radius around
+    their middle beyond which an atom reaches none of them (uniform mode)."""
+
+    o: wp.vec3
+    d: wp.vec3
+    ts: wp.vec4
+    lim2: float
+
+
+@wp.struct
+class BoxQuery:
+    lo: wp.vec3
+    hi: wp.vec3
+    stop_above: float
+
+
+def cell_rows(name: str, row: Any, query: Any, acc: Any, stop: Any = None) -> Any:
+    """The neighbour walk every density evaluation shares, made for one row function.
+
+    Returns `walk(f, lo, hi, q, acc) -> acc`: for every row of cells (along x) within the
+    cutoff reach of the box [lo, hi], trimmed to the chord of the reach around the box
+    (`row_span`), the row's atoms are one contiguous range [j0, j1) of the sorted atoms, and
+    `acc = row(f, q, j0, j1, acc)`. `stop(q, acc) -> bool`, when given, ends the walk early.
+    `query` and `acc` are the warp types of `q` and `acc`."""
+    Query = query
+    Acc = acc
+    done = stop
+    if done is None:
+
+        @no_type_check
+        def never(q: Query, total: Acc) -> bool:
+            return False
+
+        done = wp.func(name=f"never_{name}")(never)
+
+    @no_type_check
+    def walk(f: GaussianField, lo: wp.vec3, hi: wp.vec3, q: Query, total: Acc) -> Acc:
+        g = f.info[0]
+        r = g.reach
+        r2 = r * r
+        z0, z1 = axis_span(lo[2] - r, hi[2] + r, g.origin[2], g.inv_h, g.dims[2])
+        y0, y1 = axis_span(lo[1] - r, hi[1] + r, g.origin[1], g.inv_h, g.dims[1])
+        out = total
+        for iz in range(z0, z1 + 1):
+            zlo = g.origin[2] + float(iz) * g.h
+            dz = interval_gap(lo[2], hi[2], zlo, zlo + g.h)
+            for iy in range(y0, y1 + 1):
+                ylo = g.origin[1] + float(iy) * g.h
+                dy = interval_gap(lo[1], hi[1], ylo, ylo + g.h)
+                x0, x1 = row_span(g, lo[0], hi[0], dy, dz, r2)
+                if x1 >= x0:
+                    cells = (iz * g.dims[1] + iy) * g.dims[0]
+                    j0 = f.cell_start[cells + x0]
+                    j1 = f.cell_start[cells + x1 + 1]
+                    if j1 > j0:
+                        out = row(f, q, j0, j1, out)
+                        if done(q, out):
+                            return out
+        return out
+
+    return wp.func(name=f"walk_{name}")(walk)
+
+
 @wp.func
 @no_type_check
-def row_value(f: GaussianField, p: wp.vec3, j0: int, j1: int) -> float:
+def row_value(f: GaussianField, p: wp.vec3, j0: int, j1: int, total: float) -> float:
     """Sum over sorted atoms [j0, j1); the uniform/per-atom choice is made once per row."""
-    s = wp.float32(0.0)
+    s = total
     if f.per_atom == 0:
         c = f.inv2s2_uniform
         for j in range(j0, j1):
@@ -159,10 +224,10 @@ def row_value(f: GaussianField, p: wp.vec3, j0: int, j1: int) -> float:
 
 @wp.func
 @no_type_check
-def row_value_grad(f: GaussianField, p: wp.vec3, j0: int, j1: int) -> wp.vec4:
-    """(gradient, value) over sorted atoms [j0, j1)."""
-    s = wp.float32(0.0)
-    g = wp.vec3(0.0, 0.0, 0.0)
+def row_value_grad(f: GaussianField, p: wp.vec3, j0: int, j1: int, acc: wp.vec4) -> wp.vec4:
+    """(gradient, value) over sorted atoms [j0, j1), added to acc."""
+    s = acc[3]
+    g = wp.vec3(acc[0], acc[1], acc[2])
     if f.per_atom == 0:
         c = f.inv2s2_uniform
         for j in range(j0, j1):
@@ -182,59 +247,6 @@ def row_value_grad(f: GaussianField, p: wp.vec3, j0: int, j1: int) -> wp.vec4:
                 s += t
                 g += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * cj * t)
     return wp.vec4(g[0], g[1], g[2], s)
-
-
-@wp.func
-@no_type_check
-def gaussian_value(f: GaussianField, p: wp.vec3) -> float:
-    """S(p). Cells are visited in rows along x (contiguous in the sorted atoms, so one atom
-    range per row); rows whose box lies beyond the cutoff radius are skipped."""
-    g = f.info[0]
-    r = g.reach
-    r2 = r * r
-    z0, z1 = axis_span(p[2] - r, p[2] + r, g.origin[2], g.inv_h, g.dims[2])
-    y0, y1 = axis_span(p[1] - r, p[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    total = wp.float32(0.0)
-    for iz in range(z0, z1 + 1):
-        zlo = g.origin[2] + float(iz) * g.h
-        dz = interval_gap(p[2], p[2], zlo, zlo + g.h)
-        for iy in range(y0, y1 + 1):
-            ylo = g.origin[1] + float(iy) * g.h
-            dy = interval_gap(p[1], p[1], ylo, ylo + g.h)
-            x0, x1 = row_span(g, p[0], p[0], dy, dz, r2)
-            if x1 >= x0:
-                row = (iz * g.dims[1] + iy) * g.dims[0]
-                j0 = f.cell_start[row + x0]
-                j1 = f.cell_start[row + x1 + 1]
-                if j1 > j0:
-                    total += row_value(f, p, j0, j1)
-    return total
-
-
-@wp.func
-@no_type_check
-def gaussian_value_grad(f: GaussianField, p: wp.vec3) -> wp.vec4:
-    """(dS/dx, dS/dy, dS/dz, S) at p; the gradient is analytic."""
-    g = f.info[0]
-    r = g.reach
-    r2 = r * r
-    z0, z1 = axis_span(p[2] - r, p[2] + r, g.origin[2], g.inv_h, g.dims[2])
-    y0, y1 = axis_span(p[1] - r, p[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    acc = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    for iz in range(z0, z1 + 1):
-        zlo = g.origin[2] + float(iz) * g.h
-        dz = interval_gap(p[2], p[2], zlo, zlo + g.h)
-        for iy in range(y0, y1 + 1):
-            ylo = g.origin[1] + float(iy) * g.h
-            dy = interval_gap(p[1], p[1], ylo, ylo + g.h)
-            x0, x1 = row_span(g, p[0], p[0], dy, dz, r2)
-            if x1 >= x0:
-                row = (iz * g.dims[1] + iy) * g.dims[0]
-                j0 = f.cell_start[row + x0]
-                j1 = f.cell_start[row + x1 + 1]
-                if j1 > j0:
-                    acc += row_value_grad(f, p, j0, j1)
-    return acc
 
 
 @wp.func
@@ -269,19 +281,18 @@ def add_values4(
 
 @wp.func
 @no_type_check
-def row_values4(
-    f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, j0: int, j1: int, lim2: float
-) -> wp.vec4:
-    """S at the points o + d ts[q] from sorted atoms [j0, j1): one load per atom serves all
+def row_values4(f: GaussianField, q: Span4, j0: int, j1: int, total: wp.vec4) -> wp.vec4:
+    """S at the four points of `q` from sorted atoms [j0, j1): one load per atom serves all
     four. Atoms are taken two at a time so two loads are in flight (the loop is bound by
     their latency). In uniform mode an atom with |a - mid|^2 >= lim2 (beyond the cutoff of
     every point) is rejected with one distance."""
-    v = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    p0 = o + d * ts[0]
-    p1 = o + d * ts[1]
-    p2 = o + d * ts[2]
-    p3 = o + d * ts[3]
+    v = total
+    p0 = q.o + q.d * q.ts[0]
+    p1 = q.o + q.d * q.ts[1]
+    p2 = q.o + q.d * q.ts[2]
+    p3 = q.o + q.d * q.ts[3]
     mid = (p0 + p3) * 0.5
+    lim2 = q.lim2
     c = f.inv2s2_uniform
     hk = f.half_k2
     j = j0
@@ -307,41 +318,6 @@ def row_values4(
 
 @wp.func
 @no_type_check
-def gaussian_value4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp.vec4:
-    """S at the four points o + d ts[q] (ts increasing) in one pass over the neighbours of
-    the segment they span: the ray caster samples four lattice steps at a time, so nearby rows
-    and atoms are loaded once instead of four times. Each point's sum is the one `value`
-    would give there (same atoms, same order)."""
-    g = f.info[0]
-    r = g.reach
-    r2 = r * r
-    pa = o + d * ts[0]
-    pb = o + d * ts[3]
-    lo = wp.min(pa, pb)
-    hi = wp.max(pa, pb)
-    # reject radius around the middle: cutoff plus half the segment, with room for rounding
-    lim = (wp.sqrt(f.half_k2 / f.inv2s2_uniform) + 0.5 * wp.length(pb - pa)) * 1.0001 + 1.0e-5
-    z0, z1 = axis_span(lo[2] - r, hi[2] + r, g.origin[2], g.inv_h, g.dims[2])
-    y0, y1 = axis_span(lo[1] - r, hi[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    total = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    for iz in range(z0, z1 + 1):
-        zlo = g.origin[2] + float(iz) * g.h
-        dz = interval_gap(lo[2], hi[2], zlo, zlo + g.h)
-        for iy in range(y0, y1 + 1):
-            ylo = g.origin[1] + float(iy) * g.h
-            dy = interval_gap(lo[1], hi[1], ylo, ylo + g.h)
-            x0, x1 = row_span(g, lo[0], hi[0], dy, dz, r2)
-            if x1 >= x0:
-                row = (iz * g.dims[1] + iy) * g.dims[0]
-                j0 = f.cell_start[row + x0]
-                j1 = f.cell_start[row + x1 + 1]
-                if j1 > j0:
-                    total += row_values4(f, o, d, ts, j0, j1, lim * lim)
-    return total
-
-
-@wp.func
-@no_type_check
 def atom_term(a: wp.vec4, pa: wp.vec3, p: wp.vec3, c: float, half_k2: float) -> wp.vec4:
     """(gradient, value) of one atom at p; zero beyond the cutoff."""
     u = pa - p
@@ -356,17 +332,17 @@ def atom_term(a: wp.vec4, pa: wp.vec3, p: wp.vec3, c: float, half_k2: float) -> 
 
 @wp.func
 @no_type_check
-def row_value_grad4(
-    f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, j0: int, j1: int, lim2: float
-):
-    """(gradient, value) at the points o + d ts[q] from sorted atoms [j0, j1), with the
-    same uniform-mode rejection as `row_values4`."""
-    a0 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    a1 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    a2 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    a3 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    p0 = o + d * ts[0]
-    p3 = o + d * ts[3]
+def row_value_grad4(f: GaussianField, q: Span4, j0: int, j1: int, acc: wp.mat44) -> wp.mat44:
+    """(gradient, value) at the four points of `q` (rows of acc) from sorted atoms [j0, j1),
+    with the same uniform-mode rejection as `row_values4`."""
+    a0 = acc[0]
+    a1 = acc[1]
+    a2 = acc[2]
+    a3 = acc[3]
+    p0 = q.o + q.d * q.ts[0]
+    p1 = q.o + q.d * q.ts[1]
+    p2 = q.o + q.d * q.ts[2]
+    p3 = q.o + q.d * q.ts[3]
     mid = (p0 + p3) * 0.5
     c = f.inv2s2_uniform
     for j in range(j0, j1):
@@ -374,13 +350,125 @@ def row_value_grad4(
         pa = wp.vec3(a[0], a[1], a[2])
         if f.per_atom != 0:
             c = f.inv2s2[j]
-        elif wp.length_sq(pa - mid) >= lim2:
+        elif wp.length_sq(pa - mid) >= q.lim2:
             continue
         a0 += atom_term(a, pa, p0, c, f.half_k2)
-        a1 += atom_term(a, pa, o + d * ts[1], c, f.half_k2)
-        a2 += atom_term(a, pa, o + d * ts[2], c, f.half_k2)
+        a1 += atom_term(a, pa, p1, c, f.half_k2)
+        a2 += atom_term(a, pa, p2, c, f.half_k2)
         a3 += atom_term(a, pa, p3, c, f.half_k2)
-    return a0, a1, a2, a3
+    return wp.matrix_from_rows(a0, a1, a2, a3)
+
+
+@wp.func
+@no_type_check
+def row_sample(f: GaussianField, p: wp.vec3, j0: int, j1: int, acc: Sample) -> Sample:
+    """Value, gradient, contribution-weighted colour and largest contributor over sorted atoms
+    [j0, j1), added to acc (`acc.weight` holds the largest contribution so far)."""
+    total = acc.value
+    grad = acc.grad
+    color = acc.color
+    best_w = acc.weight
+    best = acc.atom
+    for j in range(j0, j1):
+        a = f.atoms[j]
+        e = atom_exponent(f, j, a, p)
+        if e < f.half_k2:
+            c = f.inv2s2_uniform
+            if f.per_atom != 0:
+                c = f.inv2s2[j]
+            term = a[3] * wp.exp(-e)
+            total += term
+            grad += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * c * term)
+            oj = int(f.order[j])
+            color += unpack_rgb(f.colors[oj]) * term
+            if term > best_w or (term == best_w and oj < best):
+                best_w = term
+                best = oj
+    s = Sample()
+    s.value = total
+    s.grad = grad
+    s.color = color
+    s.weight = best_w
+    s.atom = best
+    return s
+
+
+@wp.func
+@no_type_check
+def row_bound(f: GaussianField, q: BoxQuery, j0: int, j1: int, total: float) -> float:
+    """Every atom of [j0, j1) counted at its smallest distance to the box; stops adding once
+    the sum exceeds `q.stop_above`."""
+    s = total
+    for j in range(j0, j1):
+        a = f.atoms[j]
+        nearest = wp.vec3(
+            wp.clamp(a[0], q.lo[0], q.hi[0]),
+            wp.clamp(a[1], q.lo[1], q.hi[1]),
+            wp.clamp(a[2], q.lo[2], q.hi[2]),
+        )
+        e = atom_exponent(f, j, a, nearest)
+        if e < f.half_k2:
+            s += a[3] * wp.exp(-e)
+            if s > q.stop_above:
+                return s
+    return s
+
+
+@wp.func
+@no_type_check
+def bound_reached(q: BoxQuery, total: float) -> bool:
+    return total > q.stop_above
+
+
+_walk_value = cell_rows("value", row_value, wp.vec3, float)
+_walk_value_grad = cell_rows("value_grad", row_value_grad, wp.vec3, wp.vec4)
+_walk_values4 = cell_rows("values4", row_values4, Span4, wp.vec4)
+_walk_value_grad4 = cell_rows("value_grad4", row_value_grad4, Span4, wp.mat44)
+_walk_sample = cell_rows("sample", row_sample, wp.vec3, Sample)
+_walk_bound = cell_rows("bound", row_bound, BoxQuery, float, bound_reached)
+
+
+@wp.func
+@no_type_check
+def gaussian_value(f: GaussianField, p: wp.vec3) -> float:
+    """S(p)."""
+    return _walk_value(f, p, p, p, wp.float32(0.0))
+
+
+@wp.func
+@no_type_check
+def gaussian_value_grad(f: GaussianField, p: wp.vec3) -> wp.vec4:
+    """(dS/dx, dS/dy, dS/dz, S) at p; the gradient is analytic."""
+    return _walk_value_grad(f, p, p, p, wp.vec4(0.0, 0.0, 0.0, 0.0))
+
+
+@wp.func
+@no_type_check
+def span4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> Span4:
+    q = Span4()
+    q.o = o
+    q.d = d
+    q.ts = ts
+    pa = o + d * ts[0]
+    pb = o + d * ts[3]
+    # reject radius around the middle: cutoff plus half the segment, with room for rounding
+    lim = (wp.sqrt(f.half_k2 / f.inv2s2_uniform) + 0.5 * wp.length(pb - pa)) * 1.0001 + 1.0e-5
+    q.lim2 = lim * lim
+    return q
+
+
+@wp.func
+@no_type_check
+def gaussian_value4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp.vec4:
+    """S at the four points o + d ts[q] (ts increasing) in one pass over the neighbours of
+    the segment they span: the ray caster samples four lattice steps at a time, so nearby rows
+    and atoms are loaded once instead of four times. Each point's sum is the one `value`
+    would give there (same atoms, same order)."""
+    pa = o + d * ts[0]
+    pb = o + d * ts[3]
+    return _walk_values4(
+        f, wp.min(pa, pb), wp.max(pa, pb), span4(f, o, d, ts), wp.vec4(0.0, 0.0, 0.0, 0.0)
+    )
 
 
 @wp.func
@@ -388,38 +476,11 @@ def row_value_grad4(
 def gaussian_value_grad4(f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4):
     """(gradient, value) at the four points o + d ts[q] (ts increasing) in one pass over the
     neighbours of their segment (shaded volume rendering)."""
-    g = f.info[0]
-    r = g.reach
-    r2 = r * r
     pa = o + d * ts[0]
     pb = o + d * ts[3]
-    lo = wp.min(pa, pb)
-    hi = wp.max(pa, pb)
-    lim = (wp.sqrt(f.half_k2 / f.inv2s2_uniform) + 0.5 * wp.length(pb - pa)) * 1.0001 + 1.0e-5
-    z0, z1 = axis_span(lo[2] - r, hi[2] + r, g.origin[2], g.inv_h, g.dims[2])
-    y0, y1 = axis_span(lo[1] - r, hi[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    acc0 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    acc1 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    acc2 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    acc3 = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    for iz in range(z0, z1 + 1):
-        zlo = g.origin[2] + float(iz) * g.h
-        dz = interval_gap(lo[2], hi[2], zlo, zlo + g.h)
-        for iy in range(y0, y1 + 1):
-            ylo = g.origin[1] + float(iy) * g.h
-            dy = interval_gap(lo[1], hi[1], ylo, ylo + g.h)
-            x0, x1 = row_span(g, lo[0], hi[0], dy, dz, r2)
-            if x1 >= x0:
-                row = (iz * g.dims[1] + iy) * g.dims[0]
-                j0 = f.cell_start[row + x0]
-                j1 = f.cell_start[row + x1 + 1]
-                if j1 > j0:
-                    b0, b1, b2, b3 = row_value_grad4(f, o, d, ts, j0, j1, lim * lim)
-                    acc0 += b0
-                    acc1 += b1
-                    acc2 += b2
-                    acc3 += b3
-    return acc0, acc1, acc2, acc3
+    zero = wp.mat44(0.0)
+    m = _walk_value_grad4(f, wp.min(pa, pb), wp.max(pa, pb), span4(f, o, d, ts), zero)
+    return m[0], m[1], m[2], m[3]
 
 
 @wp.func
@@ -429,46 +490,14 @@ def gaussian_sample(f: GaussianField, p: wp.vec3) -> Sample:
 
     Ties between equal contributions go to the lower original atom index, so the atom id is
     deterministic even for coincident atoms."""
-    g = f.info[0]
-    r = g.reach
-    r2 = r * r
-    z0, z1 = axis_span(p[2] - r, p[2] + r, g.origin[2], g.inv_h, g.dims[2])
-    y0, y1 = axis_span(p[1] - r, p[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    total = wp.float32(0.0)
-    grad = wp.vec3(0.0, 0.0, 0.0)
-    color = wp.vec3(0.0, 0.0, 0.0)
-    best_w = wp.float32(-1.0)
-    best = wp.int32(-1)
-    for iz in range(z0, z1 + 1):
-        zlo = g.origin[2] + float(iz) * g.h
-        dz = interval_gap(p[2], p[2], zlo, zlo + g.h)
-        for iy in range(y0, y1 + 1):
-            ylo = g.origin[1] + float(iy) * g.h
-            dy = interval_gap(p[1], p[1], ylo, ylo + g.h)
-            x0, x1 = row_span(g, p[0], p[0], dy, dz, r2)
-            if x1 >= x0:
-                row = (iz * g.dims[1] + iy) * g.dims[0]
-                for j in range(f.cell_start[row + x0], f.cell_start[row + x1 + 1]):
-                    a = f.atoms[j]
-                    e = atom_exponent(f, j, a, p)
-                    if e < f.half_k2:
-                        c = f.inv2s2_uniform
-                        if f.per_atom != 0:
-                            c = f.inv2s2[j]
-                        term = a[3] * wp.exp(-e)
-                        total += term
-                        grad += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * c * term)
-                        oj = int(f.order[j])
-                        color += unpack_rgb(f.colors[oj]) * term
-                        if term > best_w or (term == best_w and oj < best):
-                            best_w = term
-                            best = oj
-    s = Sample()
-    s.value = total
-    s.grad = grad
-    s.color = color
-    s.weight = total
-    s.atom = best
+    start = Sample()
+    start.value = 0.0
+    start.grad = wp.vec3(0.0, 0.0, 0.0)
+    start.color = wp.vec3(0.0, 0.0, 0.0)
+    start.weight = -1.0
+    start.atom = -1
+    s = _walk_sample(f, p, p, p, start)
+    s.weight = s.value
     return s
 
 
@@ -478,34 +507,11 @@ def gaussian_box_bound(f: GaussianField, lo: wp.vec3, hi: wp.vec3, stop_above: f
     """An upper bound of S over the box [lo, hi]: every atom in reach counted at its smallest
     distance to the box. Returns early once the sum exceeds `stop_above` (the caller only
     compares against that level)."""
-    g = f.info[0]
-    r = g.reach
-    r2 = r * r
-    z0, z1 = axis_span(lo[2] - r, hi[2] + r, g.origin[2], g.inv_h, g.dims[2])
-    y0, y1 = axis_span(lo[1] - r, hi[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    total = wp.float32(0.0)
-    for iz in range(z0, z1 + 1):
-        zlo = g.origin[2] + float(iz) * g.h
-        dz = interval_gap(lo[2], hi[2], zlo, zlo + g.h)
-        for iy in range(y0, y1 + 1):
-            ylo = g.origin[1] + float(iy) * g.h
-            dy = interval_gap(lo[1], hi[1], ylo, ylo + g.h)
-            x0, x1 = row_span(g, lo[0], hi[0], dy, dz, r2)
-            if x1 >= x0:
-                row = (iz * g.dims[1] + iy) * g.dims[0]
-                for j in range(f.cell_start[row + x0], f.cell_start[row + x1 + 1]):
-                    a = f.atoms[j]
-                    q = wp.vec3(
-                        wp.clamp(a[0], lo[0], hi[0]),
-                        wp.clamp(a[1], lo[1], hi[1]),
-                        wp.clamp(a[2], lo[2], hi[2]),
-                    )
-                    e = atom_exponent(f, j, a, q)
-                    if e < f.half_k2:
-                        total += a[3] * wp.exp(-e)
-                        if total > stop_above:
-                            return total
-    return total
+    q = BoxQuery()
+    q.lo = lo
+    q.hi = hi
+    q.stop_above = stop_above
+    return _walk_bound(f, lo, hi, q, wp.float32(0.0))
 
 
 @wp.kernel

@@ -330,6 +330,22 @@ def clear(b: float, level: float, inclusive: int) -> bool:
 
 @wp.func
 @no_type_check
+def walk_start(o: wp.vec3, d: wp.vec3, t: float, g: GridInfo):
+    """The state `walk` starts from at ray parameter t: the cell, the step, the parameters of
+    the next cell boundary and the boundary spacing on each axis, and the most cells a walk
+    can visit."""
+    cx0, sx, tx0, dtx = dda_axis(o[0], d[0], t, g.origin[0], g.h, g.dims[0])
+    cy0, sy, ty0, dty = dda_axis(o[1], d[1], t, g.origin[1], g.h, g.dims[1])
+    cz0, sz, tz0, dtz = dda_axis(o[2], d[2], t, g.origin[2], g.h, g.dims[2])
+    left = g.dims[0] + g.dims[1] + g.dims[2] + 3
+    return (
+        int(cx0), int(cy0), int(cz0), sx, sy, sz,
+        float(tx0), float(ty0), float(tz0), dtx, dty, dtz, left,
+    )  # fmt: skip
+
+
+@wp.func
+@no_type_check
 def walk(
     bound: wp.array[float],
     brick_bound: wp.array[float],
@@ -416,6 +432,28 @@ def walk(
                 if cz < 0 or cz >= g.dims[2]:
                     active = 0
     return k, cx, cy, cz, tx, ty, tz, left, jumped, active
+
+
+@wp.func
+@no_type_check
+def side_of(v: float, iso: float) -> int:
+    """1 above (or at) the iso level, 0 below."""
+    above = wp.int32(0)
+    if v >= iso:
+        above = 1
+    return above
+
+
+@wp.func
+@no_type_check
+def side_change(v4: wp.vec4, iso: float, inside: int, q_from: int) -> int:
+    """The first of the four samples, from `q_from` on, on the other side of the iso level
+    than `inside`; -1 when none is."""
+    hit = wp.int32(-1)
+    for q in range(4):
+        if hit < 0 and q >= q_from and side_of(v4[q], iso) != inside:
+            hit = q
+    return hit
 
 
 def _make(
@@ -594,16 +632,7 @@ def _make(
         dt = m.dt
         s_hit = wp.int32(-1)
         v_hi = float(-1.0)
-        cx0, sx, tx0, dtx = dda_axis(o[0], d[0], t_from, g.origin[0], g.h, g.dims[0])
-        cy0, sy, ty0, dty = dda_axis(o[1], d[1], t_from, g.origin[1], g.h, g.dims[1])
-        cz0, sz, tz0, dtz = dda_axis(o[2], d[2], t_from, g.origin[2], g.h, g.dims[2])
-        cx = int(cx0)
-        cy = int(cy0)
-        cz = int(cz0)
-        tx = float(tx0)
-        ty = float(ty0)
-        tz = float(tz0)
-        left = g.dims[0] + g.dims[1] + g.dims[2] + 3
+        cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left = walk_start(o, d, t_from, g)
         active = wp.int32(1)
         more = wp.int32(0)
         passes = wp.int32(0)
@@ -626,24 +655,20 @@ def _make(
                 # the next cells start with k already beyond their entry
                 ts = wp.vec4(float(k) * dt, float(k + 1) * dt, float(k + 2) * dt, float(k + 3) * dt)
                 v4 = value4(f, o, d, ts)
-                q_hit = wp.int32(-1)
-                for q in range(4):
-                    if q_hit < 0:
-                        above = wp.int32(0)
-                        if v4[q] >= m.iso:
-                            above = 1
-                        if first == 1:
-                            first = 0
-                            inside = above
-                        elif above != inside:
-                            q_hit = q
-                        if q_hit < 0:
-                            prev_v = v4[q]
+                q_from = wp.int32(0)
+                if first == 1:  # the ray's first sample says which side it starts on
+                    first = 0
+                    inside = side_of(v4[0], m.iso)
+                    q_from = 1
+                q_hit = side_change(v4, m.iso, inside, q_from)
                 if q_hit >= 0:
+                    if q_hit > 0:
+                        prev_v = v4[q_hit - 1]
                     s_hit = k + q_hit
                     v_hi = v4[q_hit]
                     active = 0
                 else:
+                    prev_v = v4[3]
                     k += 4
         return s_hit, wp.vec2(prev_v, v_hi), more, k, first, inside, prev_v
 
@@ -661,67 +686,59 @@ def _make(
         queue_v: wp.array[float],
         queue_len: wp.array[wp.int32],
         found: wp.array[wp.int32],
+        resume: int,
     ):
-        """First phase: every ray marches up to `m.budget` passes to the lattice interval of
-        its first crossing (`hit_k`, `hit_v`); rays with more to do go to the queue, so the
-        few long ones (grazing the surface) continue in full warps."""
+        """March rays to the lattice interval of their first crossing (`hit_k`, `hit_v`).
+
+        First phase (`resume` = 0, a thread per pixel): every ray marches up to `m.budget`
+        passes; rays with more to do go to the queue, so the few long ones (grazing the
+        surface) continue in full warps. Second phase (`resume` = 1, a thread per queued ray;
+        threads past the queue's length return at once): each queued ray to its end."""
         tid = wp.tid()
-        x, y, ok = pixel_of(cam, tid)
+        g = f.info[0]
+        ray = tid
+        k = wp.int32(0)
+        first = wp.int32(1)
+        inside = wp.int32(0)
+        prev_v = float(-1.0)
+        budget = m.budget
+        if resume != 0:
+            if tid >= queue_len[0]:
+                return
+            e = queue[tid]
+            ray = e[0]
+            k = e[1]
+            first = e[2]
+            inside = e[3]
+            prev_v = queue_v[tid]
+            budget = 0
+        x, y, ok = pixel_of(cam, ray)
         if ok == 0:
             return
         pix = y * cam.width + x
-        s_hit = wp.int32(-1)
-        v = wp.vec2(-1.0, -1.0)
-        g = f.info[0]
         o, d = camera_ray(cam, x, y)
         t0, t1 = clip_box(o, d, g.origin, g.box_hi)
-        if g.valid != 0 and t0 < t1:
-            k0 = int(wp.ceil(t0 / m.dt))
+        s_hit = wp.int32(-1)
+        v = wp.vec2(-1.0, -1.0)
+        if resume != 0:
+            t0 = float(k) * m.dt
+        elif g.valid != 0 and t0 < t1:
+            k = int(wp.ceil(t0 / m.dt))
+        if resume != 0 or (g.valid != 0 and t0 < t1):
             s_hit, v, more, k, first, inside, prev_v = march_iso(
-                f, m, o, d, t0, t1, k0, 1, 0, -1.0, m.budget
+                f, m, o, d, t0, t1, k, first, inside, prev_v, budget
             )
             if more != 0:
                 slot = wp.atomic_add(queue_len, 0, 1)
                 queue[slot] = wp.vec4i(tid, k, first, inside)
                 queue_v[slot] = prev_v
                 found[slot] = _NO_HIT
-        hit_k[pix] = _NO_HIT
+        if resume == 0:
+            hit_k[pix] = _NO_HIT
         if s_hit >= 0:
             hit_k[pix] = s_hit
-        hit_v[pix] = v
-
-    @wp.kernel(
-        enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
-    )
-    @no_type_check
-    def iso_resume_kernel(
-        f: Field,
-        cam: CameraData,
-        m: March,
-        hit_k: wp.array[wp.int32],
-        hit_v: wp.array[wp.vec2],
-        queue: wp.array[wp.vec4i],
-        queue_v: wp.array[float],
-        queue_len: wp.array[wp.int32],
-        found: wp.array[wp.int32],
-    ):
-        """Second phase: the queued rays, each to its end (launched for the whole image;
-        threads past the queue's length return at once)."""
-        i = wp.tid()
-        if i >= queue_len[0]:
-            return
-        e = queue[i]
-        x, y, _ok = pixel_of(cam, e[0])
-        g = f.info[0]
-        o, d = camera_ray(cam, x, y)
-        _t0, t1 = clip_box(o, d, g.origin, g.box_hi)
-        k = e[1]
-        s_hit, v, _more, _k, _first, _inside, _v = march_iso(
-            f, m, o, d, float(k) * m.dt, t1, k, e[2], e[3], queue_v[i], 0
-        )
-        if s_hit >= 0:
-            pix = y * cam.width + x
-            hit_k[pix] = s_hit
+            hit_v[pix] = v
+        elif resume == 0:
             hit_v[pix] = v
 
     @wp.kernel(
@@ -780,17 +797,10 @@ def _make(
                             need = 1
                 if need != 0:
                     v4 = value4(f, o, d, ts)
-                    q_hit = wp.int32(-1)
                     q_from = wp.int32(1)
                     if gs == k0:
                         q_from = 0
-                    for q in range(4):
-                        if q_hit < 0 and q >= q_from:
-                            above = wp.int32(0)
-                            if v4[q] >= m.iso:
-                                above = 1
-                            if above != inside:
-                                q_hit = q
+                    q_hit = side_change(v4, m.iso, inside, q_from)
                     if q_hit >= 0:
                         s_hit = gs + q_hit
                         wp.atomic_min(found, i, s_hit)
@@ -888,16 +898,7 @@ def _make(
             dt = m.dt
             jit = pixel_jitter(x, y)
             k = int(wp.ceil(t0 / dt - jit))
-            cx0, sx, tx0, dtx = dda_axis(o[0], d[0], t0, g.origin[0], g.h, g.dims[0])
-            cy0, sy, ty0, dty = dda_axis(o[1], d[1], t0, g.origin[1], g.h, g.dims[1])
-            cz0, sz, tz0, dtz = dda_axis(o[2], d[2], t0, g.origin[2], g.h, g.dims[2])
-            cx = int(cx0)
-            cy = int(cy0)
-            cz = int(cz0)
-            tx = float(tx0)
-            ty = float(ty0)
-            tz = float(tz0)
-            left = g.dims[0] + g.dims[1] + g.dims[2] + 3
+            cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left = walk_start(o, d, t0, g)
             active = wp.int32(1)
             while active != 0:
                 k, cx, cy, cz, tx, ty, tz, left, _jumped, active = walk(
@@ -965,7 +966,6 @@ def _make(
         evaluate=evaluate_kernel,
         histogram=histogram_kernel,
         iso_march=iso_march_kernel,
-        iso_resume=iso_resume_kernel,
         iso_split=iso_split_kernel,
         iso_shade=iso_shade_kernel,
         volume=volume_kernel,
@@ -981,7 +981,6 @@ class RaycastKernels:
     evaluate: Any
     histogram: Any
     iso_march: Any
-    iso_resume: Any
     iso_split: Any
     iso_shade: Any
     volume: Any

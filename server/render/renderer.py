@@ -497,14 +497,15 @@ class Renderer:
             queued = (*hits, self._queue, self._queue_v, self._queue_len, self._found)
             if m.budget > 0:
                 self._queue_len.zero_()
-            wp.launch(k.iso_march, threads, (f, cam, m, *queued), device=dev, block_dim=MARCH_BLOCK)
+            march = (f, cam, m, *queued)
+            wp.launch(k.iso_march, threads, (*march, 0), device=dev, block_dim=MARCH_BLOCK)
             if m.budget > 0 and self.split_lanes > 1:
                 lanes = self.split_lanes
                 rays = min(w * h, SPLIT_RAYS)
-                args = (f, cam, m, *queued, lanes, rays)
+                args = (*march, lanes, rays)
                 wp.launch(k.iso_split, lanes * rays, args, device=dev, block_dim=MARCH_BLOCK)
             elif m.budget > 0:
-                wp.launch(k.iso_resume, threads, (f, cam, m, *queued), device=dev)
+                wp.launch(k.iso_march, threads, (*march, 1), device=dev, block_dim=MARCH_BLOCK)
             wp.launch(
                 k.iso_shade,
                 threads,
