@@ -263,7 +263,7 @@ def throughput(
         "fps_per_viewer_mean": statistics.fmean(per_viewer),
         "fps_per_viewer_min": min(per_viewer),
         "render_timings_ms": state.last_timings if state else {},
-        "encode_ms": state.last_encode_ms if state else None,
+        "encode_ms": state.delivery.last_encode_ms if state else None,
         "sim_frames_per_s": sent,
     }
 
