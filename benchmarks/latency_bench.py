@@ -86,8 +86,8 @@ def _steer(url: str, n_atoms: int, changes: int, out: Any) -> None:
     """Child process: a simulation (one frame) and a steerer timing each change to the
     decoded image; puts the per-change rows on `out`."""
     sim = Peer(f"{url}/ws/sim", "simulation", "bench", "latency")
-    pos, elements = build_system(n_atoms)
-    sim.send(topology_of(elements))
+    pos, elements, bonds = build_system(n_atoms)
+    sim.send(topology_of(elements, bonds))
     sim.send(frame(pos, 0))
     steer = Peer(f"{url}/ws/view", "steerer", "bench", "latency")
     steer.expect(p.Image, 300)
@@ -151,8 +151,8 @@ def _stream(url: str, session: str, n_atoms: int, ready: Any, stop: Any, rate: A
     """Child process: a simulation sending frames of an N-atom system as fast as the server
     takes them (messages encoded once beforehand, as a fast adapter would)."""
     sim = Peer(f"{url}/ws/sim", "simulation", "bench", session)
-    pos, elements = build_system(n_atoms)
-    sim.send(topology_of(elements))
+    pos, elements, bonds = build_system(n_atoms)
+    sim.send(topology_of(elements, bonds))
     rng = np.random.default_rng(0)
     raw = [
         p.encode(frame((pos + rng.normal(0, 0.05, pos.shape)).astype(np.float32), k))

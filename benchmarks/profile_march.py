@@ -35,14 +35,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lanes", type=int, default=None, help="threads per queued ray")
     args = p.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
-    pos, el = build_system(args.atoms)
+    pos, el, bonds = build_system(args.atoms)
     kw = {}
     if args.budget is not None:
         kw["march_budget"] = args.budget
     if args.lanes is not None:
         kw["split_lanes"] = args.lanes
     r = Renderer(args.device, max_atoms=args.atoms, graphs=False, **kw)
-    r.set_topology(topology_of(el))
+    r.set_topology(topology_of(el, bonds))
     cam = fit_camera(pos, w, h)
     params = RenderParams(mode=args.mode)  # type: ignore[arg-type]
     for i, frame in enumerate(jittered_frames(pos, args.frames)):

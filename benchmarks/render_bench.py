@@ -82,15 +82,33 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     return q
 
 
-def build_system(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 3) float32 positions and (n,) element symbols of a protein-like system."""
+def distance_bonds(pos: np.ndarray, elements: np.ndarray) -> np.ndarray:
+    """Bonds between atoms closer than 1.9 A (1.3 A with a hydrogen), in blocks of rows."""
+    light = np.array([str(e).upper().startswith("H") for e in elements])
+    out = []
+    for a in range(0, len(pos), 1024):
+        d = np.linalg.norm(pos[a : a + 1024, None] - pos[None], axis=-1)
+        limit = np.where(light[a : a + 1024, None] | light[None, :], 1.3, 1.9)
+        i, j = np.nonzero(d < limit)
+        keep = i + a < j
+        out.append(np.stack([i[keep] + a, j[keep]], axis=1))
+    return np.concatenate(out).astype(np.int32)
+
+
+def build_system(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(n, 3) float32 positions, (n,) element symbols and (m, 2) bonds of a protein-like
+    system (bonds by distance in adenylate kinase, copied with every tile)."""
     base = np.load(DATA)
     pos0 = base["positions"].astype(np.float64)
     el0 = base["elements"]
     pos0 = pos0 - pos0.mean(axis=0)
+    bonds0 = distance_bonds(pos0, el0)
     if n <= len(pos0):
         idx = np.sort(np.argsort(np.linalg.norm(pos0, axis=1), kind="stable")[:n])
-        return pos0[idx].astype(np.float32), el0[idx]
+        where = np.full(len(pos0), -1)
+        where[idx] = np.arange(n)
+        kept = bonds0[(where[bonds0[:, 0]] >= 0) & (where[bonds0[:, 1]] >= 0)]
+        return pos0[idx].astype(np.float32), el0[idx], where[kept].astype(np.int32)
     rng = np.random.default_rng(seed)
     tiles = math.ceil(n / len(pos0))
     m = math.ceil(tiles ** (1 / 3))
@@ -103,10 +121,12 @@ def build_system(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
         block = pos0 @ random_rotation(rng).T + c + rng.normal(size=3) * 1.0
         block += rng.normal(size=block.shape) * 0.3
         out[t * len(pos0) : (t + 1) * len(pos0)] = block
-    return out[:n], np.tile(el0, tiles)[:n]
+    bonds = np.concatenate([bonds0 + t * len(pos0) for t in range(tiles)])
+    bonds = bonds[(bonds < n).all(axis=1)]
+    return out[:n], np.tile(el0, tiles)[:n], bonds.astype(np.int32)
 
 
-def topology_of(elements: np.ndarray) -> Topology:
+def topology_of(elements: np.ndarray, bonds: np.ndarray | None = None) -> Topology:
     n = len(elements)
     els = [str(e) for e in elements]
     return Topology.model_construct(
@@ -116,7 +136,7 @@ def topology_of(elements: np.ndarray) -> Topology:
         residue_ids=WireArray.from_numpy(np.zeros(n, np.int32), "<i4"),
         residue_names=["ALA"] * n,
         chain_ids=["A"] * n,
-        bonds=WireArray.from_numpy(np.zeros((0, 2), np.int32), "<i4"),
+        bonds=WireArray.from_numpy(np.zeros((0, 2), np.int32) if bonds is None else bonds, "<i4"),
         radii=None,
         charges=None,
         bfactors=None,
@@ -359,6 +379,59 @@ def image_error(a: np.ndarray, b: np.ndarray, da: np.ndarray, db: np.ndarray) ->
 # ----------------------------------------------------------------------------- sections
 
 
+def warped_quality() -> dict[str, Any]:
+    """The design measures of the warped density (float64 reference, strength 1): the crease
+    ratio (largest second difference of S along lines through the molecule, at step h over at
+    h / 2: 4 is smooth, 2 creased) and benzene's ring ratio S(centre) / S(bond midpoint) at the
+    sigma where the classical density fills the ring."""
+    from server.render.skeleton import Skeleton, warped_density
+
+    def mol(pos: np.ndarray, bonds: list[tuple[int, int]]) -> tuple[np.ndarray, Skeleton]:
+        top = topology_of(np.array(["C"] * len(pos)), np.array(bonds, np.int32))
+        return pos, Skeleton.of(top)
+
+    ang = np.arange(6) * math.pi / 3
+    ring = np.stack([1.39 * np.cos(ang), 1.39 * np.sin(ang), 0 * ang], axis=1)
+    cases = {
+        "three atoms": mol(
+            np.array([[-1.3, -0.75, 0.0], [0.0, 0.0, 0.0], [1.3, -0.75, 0.0]]), [(0, 1), (1, 2)]
+        ),
+        "benzene ring": mol(ring, [(i, (i + 1) % 6) for i in range(6)]),
+    }
+    out: dict[str, Any] = {"crease_ratio": {}, "ring_ratio": {}}
+    rng = np.random.default_rng(3)
+    for name, (pos, sk) in cases.items():
+        ones = np.ones(len(pos))
+        for strength in (0.0, 1.0):
+            worst = math.inf
+            for _ in range(12):
+                v = rng.normal(size=3)
+                v /= np.linalg.norm(v)
+                o = pos[rng.integers(len(pos))] + rng.normal(scale=0.3, size=3)
+                sec = []
+                for hh in (0.02, 0.01):
+                    t = np.arange(-4.0, 4.0, hh)
+                    d = warped_density(o + t[:, None] * v, pos, ones, sk, 1.0, strength)[0]
+                    sec.append(np.abs(d[2:] - 2 * d[1:-1] + d[:-2]).max())
+                worst = min(worst, sec[0] / sec[1])
+            out["crease_ratio"][f"{name}, {'warped' if strength else 'classical'}"] = worst
+    pos, sk = cases["benzene ring"]
+    ones = np.ones(6)
+    center, mid = np.zeros((1, 3)), ((pos[0] + pos[1]) / 2)[None]
+    lo, hi = 0.3, 3.0
+    for _ in range(40):
+        sig = 0.5 * (lo + hi)
+        c = warped_density(center, pos, ones, sk, sig, 0.0)[0][0]
+        m = warped_density(mid, pos, ones, sk, sig, 0.0)[0][0]
+        lo, hi = (lo, sig) if c >= m else (sig, hi)
+    for strength in (0.0, 1.0):
+        c = warped_density(center, pos, ones, sk, hi, strength)[0][0]
+        m = warped_density(mid, pos, ones, sk, hi, strength)[0][0]
+        out["ring_ratio"]["warped" if strength else "classical"] = c / m
+    out["ring_sigma"] = hi
+    return out
+
+
 class Bench:
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
@@ -383,32 +456,33 @@ class Bench:
             "registers": [],
             "budgets": [],
             "blocks": [],
+            "warped": [],
             "march_budget": args.march_budget,
             "split_lanes": args.split_lanes,
             "max_registers": args.max_registers,
             "volume_max_registers": args.volume_max_registers,
             "notes": [],
         }
-        self.systems: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.systems: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def save(self) -> None:
         out = Path(self.args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(self.results, indent=1))
 
-    def system(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+    def system(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if n not in self.systems:
             self.systems = {n: build_system(n)}
         return self.systems[n]
 
     def renderer(self, n: int, **kw: Any) -> tuple[Renderer, list[np.ndarray]]:
-        pos, el = self.system(n)
+        pos, el, bonds = self.system(n)
         kw.setdefault("max_registers", self.results["max_registers"])
         kw.setdefault("volume_max_registers", self.results["volume_max_registers"])
         kw.setdefault("march_budget", self.results["march_budget"])
         kw.setdefault("split_lanes", self.results["split_lanes"])
         r = Renderer(self.device, max_atoms=max(n, 1), **kw)
-        r.set_topology(topology_of(el))
+        r.set_topology(topology_of(el, bonds))
         frames = jittered_frames(pos, 3)
         return r, frames
 
@@ -493,6 +567,39 @@ class Bench:
                         img.save(Path(self.args.images) / f"render_{mode}_{n}.jpg", quality=85)
             if grid and self.clock.left() > 15:
                 self.grid_build(n, r, frames)
+
+    # ---- the warped density next to the classical one
+    def warped(self, cases: list[tuple[int, int, int]]) -> None:
+        """Iso frames of the classical and the bond-graph warped density (strength 1) on the
+        same renderer and frames, one after the other, grid rebuilt every frame."""
+        for n, w, h in cases:
+            if self.clock.left() < 20:
+                self.results["notes"].append(f"warped section stopped before N={n}: budget")
+                break
+            r, frames = self.renderer(n)
+            cam = fit_camera(frames[0], w, h)
+            row: dict[str, Any] = {"n_atoms": n, "system": THESIS.get(n, "tiled 4AKE")}
+            row.update(width=w, height=h)
+            for space in ("classical", "warped"):
+                params = RenderParams(scale_space=space)  # type: ignore[arg-type]
+                row[space] = self.timed(
+                    self.frame_step(r, frames, params, cam, w, h), self.args.frames
+                )
+                mem = r.memory_bytes()
+                row[f"{space}_bytes_per_atom"] = (
+                    mem["per_atom"] + mem["grid"] + mem["other"] + mem.get("skeleton", 0)
+                ) / n
+            row["warped_over_classical_fps"] = (
+                row["classical"]["median_ms"] / row["warped"]["median_ms"]
+            )
+            self.results["warped"].append(row)
+            self.save()
+            self.log(
+                f"N={n:>9,} {w}x{h} classical {row['classical']['median_ms']:.3f} ms, warped "
+                f"{row['warped']['median_ms']:.3f} ms ({row['warped_over_classical_fps']:.2f}x fps)"
+            )
+        self.results["warped_quality"] = warped_quality()
+        self.save()
 
     # ---- grid build: dense grid vs wp.HashGrid
     def grid_build(self, n: int, r: Renderer, frames: list[np.ndarray]) -> None:
@@ -583,7 +690,7 @@ class Bench:
                 march_budget=self.results["march_budget"],
                 split_lanes=self.results["split_lanes"],
             )
-            rn.set_topology(topology_of(self.system(n)[1]))
+            rn.set_topology(topology_of(self.system(n)[1], self.system(n)[2]))
             sn = self.timed(self.frame_step(rn, frames, iso, cam, w, h), nf)
             rn.set_positions(frames[0])
             rn.render(iso, cam, w, h)
@@ -600,7 +707,7 @@ class Bench:
         threads = launch_size(w, h)
         rgba = wp.zeros(w * h, dtype=wp.uint32, device=dev)
         depth = wp.zeros(w * h, dtype=float, device=dev)
-        pos, _ = self.system(n)
+        pos = self.system(n)[0]
         reach = uni.cutoff_sigmas * uni.sigma_A
         lo = pos.min(axis=0) - reach - 1.0
         hi = pos.max(axis=0) + reach + 1.0
@@ -883,13 +990,23 @@ def fmt_stages(st: dict[str, float]) -> str:
 # ----------------------------------------------------------------------------- report
 
 
+def _describe(params: dict[str, Any]) -> str:
+    levels = params.get("level_scale", "absolute")
+    unit = "of the mean density at the atoms" if levels == "mean" else "atoms of density"
+    return (
+        f"sigma {params['sigma_A']} A, iso {params['iso_level']} ({unit}), step "
+        f"{params['step_sigmas']} sigma, cutoff {params['cutoff_sigmas']} sigma, key light, "
+        f"volume: '{params['tf_preset']}'"
+    )
+
+
 def table(path: Path) -> str:
     """Markdown tables of a results file (for benchmarks/README.md)."""
     res = json.loads(Path(path).read_text())
     lines = [
-        f"GPU: **{res['gpu']}** (warp {res['warp']}, {res['date']}); default parameters "
-        f"(sigma 1.5 A, iso 0.5, step 0.25 sigma, cutoff 3 sigma, key light, no AO; volume: "
-        f"'cloud'). Median of >= {min((f['frames'] for f in res['frames']), default=0)} frames "
+        f"GPU: **{res['gpu']}** (warp {res['warp']}, {res['date']}); parameters "
+        f"{_describe(res['params'])}. Median of >= "
+        f"{min((f['frames'] for f in res['frames']), default=0)} frames "
         "after warm-up; every frame uploads new positions and rebuilds the grid.",
         "",
         "| atoms | system | image | mode | median ms | fps | upload | grid | raycast | B/atom |",
@@ -902,6 +1019,34 @@ def table(path: Path) -> str:
             f"{f['median_ms']:.3f} | {f['fps']:.0f} | {st.get('upload', 0):.3f} | "
             f"{st.get('grid', 0):.3f} | {st.get('raycast', 0):.3f} | {f['bytes_per_atom']:.1f} |"
         )
+    if res.get("warped"):
+        lines += [
+            "",
+            "Warped density (strength 1) next to the classical one, iso, median ms per frame "
+            "(grid and segment grid rebuilt every frame):",
+            "",
+            "| atoms | image | classical ms | warped ms | warped fps / classical fps | "
+            "B/atom classical | B/atom warped |",
+            "| ---: | --- | ---: | ---: | ---: | ---: | ---: |",
+        ]
+        for row in res["warped"]:
+            lines.append(
+                f"| {row['n_atoms']:,} | {row['width']}x{row['height']} | "
+                f"{row['classical']['median_ms']:.3f} | {row['warped']['median_ms']:.3f} | "
+                f"{row['warped_over_classical_fps']:.2f} | "
+                f"{row['classical_bytes_per_atom']:.1f} | {row['warped_bytes_per_atom']:.1f} |"
+            )
+        quality = res.get("warped_quality")
+        if quality:
+            creases = ", ".join(f"{k} {v:.2f}" for k, v in quality["crease_ratio"].items())
+            rings = quality["ring_ratio"]
+            lines += [
+                "",
+                f"Crease ratio (4 smooth, 2 creased): {creases}. Benzene ring ratio "
+                f"S(centre) / S(bond midpoint) at sigma {quality['ring_sigma']:.3f} A (where the "
+                f"classical density fills the ring): classical {rings['classical']:.2f}, warped "
+                f"{rings['warped']:.2f}.",
+            ]
     if res["grid_build"]:
         lines += [
             "",
@@ -1069,6 +1214,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--block-sizes", default="64,128,256", help="block sizes it tries")
     p.add_argument("--budget-cases", default="", help="N@WxH,... the budget section runs")
+    p.add_argument("--warped-cases", default="", help="N@WxH,... the warped section runs")
     p.add_argument("--split-lanes", type=int, default=SPLIT_LANES, help="lanes per queued ray")
     p.add_argument(
         "--budgets", default="0,4,8,12,16", help="budget[:lanes] pairs the budget section tries"
@@ -1110,6 +1256,16 @@ def main(argv: list[str] | None = None) -> int:
             )
     if "main" in sections:
         b.main_table(sizes, res, grid="grid" in sections)
+    if "warped" in sections:
+        cases = [(496, 64, 48)] if args.quick else [
+            (n, 500, 500) for n in THESIS
+        ] + [(100_000, 1920, 1080), (1_000_000, 1920, 1080)]  # fmt: skip
+        if args.warped_cases:
+            cases = [
+                (int(n), *(int(v) for v in size.split("x")))  # type: ignore[misc]
+                for n, size in (c.split("@") for c in args.warped_cases.split(","))
+            ]
+        b.warped(cases)
     if "budgets" in sections:
         tries = [
             (

@@ -15,7 +15,7 @@ from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
 from protocol.limits import Limits
 
-PROTOCOL_VERSION = "1.0"
+PROTOCOL_VERSION = "1.1"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -272,13 +272,19 @@ TFPreset = Literal["cloud", "shells", "iso-like"]
 
 
 class RenderParams(Model):
-    """How the density is built and shown; shared by every viewer of a session."""
+    """How the density is built and shown; shared by every viewer of a session.
+
+    `iso_level` (and the transfer function's x) are fractions of the density's own scale,
+    the mean density at the atoms at this sigma (`level_scale="mean"`), so the surface stays
+    near the molecule's extent as sigma grows; `level_scale="absolute"` reads them in units of
+    one atom's peak density instead. `scale_space="warped"` draws the bond-graph warped density
+    (docs/rendering.md), `warp_strength` 0 being the classical one."""
 
     mode: Literal["iso", "volume"] = "iso"
     sigma_A: Annotated[float, Field(ge=0.05, le=50, allow_inf_nan=False)] = 1.5
     radius_mode: Literal["uniform", "vdw"] = "uniform"
-    iso_level: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.5
-    cutoff_sigmas: Annotated[float, Field(ge=1, le=6, allow_inf_nan=False)] = 3.0
+    iso_level: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.25
+    cutoff_sigmas: Annotated[float, Field(ge=1, le=6, allow_inf_nan=False)] = 4.0
     step_sigmas: Annotated[float, Field(ge=0.02, le=2, allow_inf_nan=False)] = 0.25
     transfer_function: list[TFPoint] = Field(default_factory=list, max_length=64)
     tf_preset: TFPreset = "cloud"
@@ -288,6 +294,10 @@ class RenderParams(Model):
     background: RGB = (0.08, 0.09, 0.11)
     quality: Annotated[float, Field(ge=0.1, le=2, allow_inf_nan=False)] = 1.0
     jpeg_quality: Annotated[int, Field(ge=10, le=100)] = 85
+    scale_space: Literal["classical", "warped"] = "classical"
+    warp_strength: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 1.0
+    density_weights: Literal["uniform", "electrons"] = "uniform"
+    level_scale: Literal["mean", "absolute"] = "mean"
 
 
 def _partial(model: type[Model], name: str) -> type[Model]:

@@ -76,6 +76,14 @@ VDW_RADII: dict[str, float] = {
     "I": 1.98,
 }
 
+#: Atomic numbers (electron counts of the neutral atoms) for `density_weights="electrons"`.
+ATOMIC_NUMBERS: dict[str, int] = {
+    "H": 1, "He": 2, "Li": 3, "Be": 4, "B": 5, "C": 6, "N": 7, "O": 8, "F": 9, "Ne": 10,
+    "Na": 11, "Mg": 12, "Al": 13, "Si": 14, "P": 15, "S": 16, "Cl": 17, "Ar": 18, "K": 19,
+    "Ca": 20, "Mn": 25, "Fe": 26, "Co": 27, "Ni": 28, "Cu": 29, "Zn": 30, "Se": 34, "Br": 35,
+    "I": 53,
+}  # fmt: skip
+
 _HYDROPHOBIC = {"ALA", "VAL", "LEU", "ILE", "MET", "PHE", "TRP", "PRO", "GLY", "NLE", "MSE"}
 _POLAR = {"SER", "THR", "ASN", "GLN", "TYR", "CYS", "CYX", "HSE"}
 _ACIDIC = {"ASP", "GLU", "ASH", "GLH"}
@@ -231,11 +239,15 @@ def atom_radii(topology: Topology) -> npt.NDArray[np.float32]:
     ).astype(np.float32)
 
 
-def atom_weights(topology: Topology) -> npt.NDArray[np.float32]:
-    """(n,) Gaussian weights w_i: one per atom, so the iso level reads in 'atoms of density'.
-
-    Every atom counts the same because the density models where matter is (the thesis's
-    soft-sphere electron cloud up to a constant); the width, not the height, carries the
-    atom's size in `vdw` mode.
-    """
-    return np.ones(topology.n_atoms, dtype=np.float32)
+def atom_weights(topology: Topology, kind: str = "uniform") -> npt.NDArray[np.float32]:
+    """(n,) the atom densities d(a_i) of the thesis (eq. 5.5): one per atom (`uniform`: the
+    density models where matter is; the width, not the height, carries the atom's size in
+    `vdw` mode), or the atom's electron count, its atomic number (`electrons`; unknown
+    elements count as carbon)."""
+    if kind == "uniform":
+        return np.ones(topology.n_atoms, dtype=np.float32)
+    if kind != "electrons":
+        raise ValueError(f"density weights must be 'uniform' or 'electrons', got {kind!r}")
+    return np.array(
+        [ATOMIC_NUMBERS.get(_element_key(e), 6) for e in topology.elements], dtype=np.float32
+    )

@@ -1,15 +1,18 @@
 """The multiscale Gaussian molecular density as warp functions the ray caster calls.
 
-    S(P) = sum_i w_i exp(-|P - a_i|^2 / (2 s_i^2)),   only atoms with |P - a_i| < k s_i
+    S(P) = sum_i w_i K(|P - a_i|^2 / (2 s_i^2)),   K(e) = exp(-e) (1 - (e / ek)^16)^2,
+    only atoms with |P - a_i| < k s_i (e < ek = k^2 / 2)
 
-`s_i` is sigma (uniform mode) or sigma * r_i / R_REF (vdw mode). The truncation drops at most
-w exp(-k^2 / 2) per atom (1.1 % of an atom's peak for k = 3) and, for atoms spread with number
-density rho, at most rho w (2 pi s^2)^(3/2) P(chi_3 > k) in total: 2.9 % of the fully
-overlapped density for k = 3, 0.01 % for k = 5 (docs/rendering.md).
+`s_i` is sigma (uniform mode) or sigma * r_i / R_REF (vdw mode). The taper brings each atom's
+Gaussian to zero with zero slope at the cutoff, so S is smooth where atoms enter reach (a
+hard cut leaves a step of w exp(-ek) there). Each atom's K differs from its Gaussian by at most
+1.04 w exp(-k^2 / 2) (0.04 % of the peak for k = 4, the default); for atoms spread with number
+density rho the missing tail is about rho w (2 pi s^2)^(3/2) P(chi_3 > k): 0.1 % of the fully
+overlapped density for k = 4 (docs/rendering.md).
 
 A density is a `DensityModel`: a field struct plus four functions with fixed signatures. The
-ray caster (raycast.py) is generated from a model, so another density (the geodesic warped one
-of thesis 5.3) plugs in by providing its own struct and functions; the struct must carry
+ray caster (raycast.py) is generated from a model, so another density (the bond-graph warped
+one, warped.py) plugs in by providing its own struct and functions; the struct must carry
 `info` (GridInfo, one entry), `bound` (one float per cell) and `brick_bound` (one per brick)
 because the caster walks bricks and cells to skip empty space.
 (No `from __future__ import annotations`: `cell_rows` makes functions whose annotations name
@@ -60,6 +63,7 @@ class GaussianField:
     info: wp.array[GridInfo]  # one entry
     inv2s2_uniform: float
     half_k2: float  # an atom counts while d^2 / (2 s^2) < k^2 / 2
+    inv_half_k2: float
     per_atom: int
 
 
@@ -154,16 +158,20 @@ class BoxQuery:
     stop_above: float
 
 
-def cell_rows(name: str, row: Any, query: Any, acc: Any, stop: Any = None) -> Any:
+def cell_rows(
+    name: str, row: Any, query: Any, acc: Any, stop: Any = None, field: Any = None
+) -> Any:
     """The neighbour walk every density evaluation shares, made for one row function.
 
     Returns `walk(f, lo, hi, q, acc) -> acc`: for every row of cells (along x) within the
     cutoff reach of the box [lo, hi], trimmed to the chord of the reach around the box
-    (`row_span`), the row's atoms are one contiguous range [j0, j1) of the sorted atoms, and
+    (`row_span`), the row's items are one contiguous range [j0, j1) of the sorted items, and
     `acc = row(f, q, j0, j1, acc)`. `stop(q, acc) -> bool`, when given, ends the walk early.
-    `query` and `acc` are the warp types of `q` and `acc`."""
+    `query` and `acc` are the warp types of `q` and `acc`; `field` is the struct walked (any
+    with `info` and `cell_start`; GaussianField by default)."""
     Query = query
     Acc = acc
+    Field = GaussianField if field is None else field
     done = stop
     if done is None:
 
@@ -174,7 +182,7 @@ def cell_rows(name: str, row: Any, query: Any, acc: Any, stop: Any = None) -> An
         done = wp.func(name=f"never_{name}")(never)
 
     @no_type_check
-    def walk(f: GaussianField, lo: wp.vec3, hi: wp.vec3, q: Query, total: Acc) -> Acc:
+    def walk(f: Field, lo: wp.vec3, hi: wp.vec3, q: Query, total: Acc) -> Acc:
         g = f.info[0]
         r = g.reach
         r2 = r * r
@@ -201,6 +209,46 @@ def cell_rows(name: str, row: Any, query: Any, acc: Any, stop: Any = None) -> An
     return wp.func(name=f"walk_{name}")(walk)
 
 
+TAPER_POWER = 16
+"""Each atom's Gaussian is multiplied by (1 - (e / ek)^16)^2, e = d^2 / 2 s^2, ek = k^2 / 2:
+it reaches zero with zero slope at the cutoff, so the summed density has no step or crease
+where an atom enters reach; inside, the factor differs from 1 by less than 2 (e / ek)^16."""
+
+
+@wp.func
+@no_type_check
+def taper(u: float) -> wp.vec2:
+    """(w, dw/du) of w(u) = (1 - u^16)^2 for u = e / ek in [0, 1)."""
+    u2 = u * u
+    u4 = u2 * u2
+    u8 = u4 * u4
+    u16 = u8 * u8
+    m = 1.0 - u16
+    return wp.vec2(m * m, -32.0 * m * u8 * u4 * u2 * u)
+
+
+@wp.func
+@no_type_check
+def kernel(e: float, inv_ek: float) -> float:
+    """One atom's tapered Gaussian exp(-e) w(e / ek) (inside the cutoff)."""
+    u = e * inv_ek
+    u2 = u * u
+    u4 = u2 * u2
+    u8 = u4 * u4
+    m = 1.0 - u8 * u8
+    return wp.exp(-e) * m * m
+
+
+@wp.func
+@no_type_check
+def kernel_slope(e: float, inv_ek: float) -> wp.vec2:
+    """(K, -dK/de) of K(e) = exp(-e) w(e / ek): the gradient of an atom's term at P is
+    -dK/de * 2 c (a - P)."""
+    t = taper(e * inv_ek)
+    x = wp.exp(-e)
+    return wp.vec2(x * t[0], x * (t[0] - t[1] * inv_ek))
+
+
 @wp.func
 @no_type_check
 def row_value(f: GaussianField, p: wp.vec3, j0: int, j1: int, total: float) -> float:
@@ -212,13 +260,13 @@ def row_value(f: GaussianField, p: wp.vec3, j0: int, j1: int, total: float) -> f
             a = f.atoms[j]
             e = dist2(a, p) * c
             if e < f.half_k2:
-                s += a[3] * wp.exp(-e)
+                s += a[3] * kernel(e, f.inv_half_k2)
     else:
         for j in range(j0, j1):
             a = f.atoms[j]
             e = dist2(a, p) * f.inv2s2[j]
             if e < f.half_k2:
-                s += a[3] * wp.exp(-e)
+                s += a[3] * kernel(e, f.inv_half_k2)
     return s
 
 
@@ -234,18 +282,18 @@ def row_value_grad(f: GaussianField, p: wp.vec3, j0: int, j1: int, acc: wp.vec4)
             a = f.atoms[j]
             e = dist2(a, p) * c
             if e < f.half_k2:
-                t = a[3] * wp.exp(-e)
-                s += t
-                g += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * c * t)
+                k = kernel_slope(e, f.inv_half_k2) * a[3]
+                s += k[0]
+                g += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * c * k[1])
     else:
         for j in range(j0, j1):
             a = f.atoms[j]
             cj = f.inv2s2[j]
             e = dist2(a, p) * cj
             if e < f.half_k2:
-                t = a[3] * wp.exp(-e)
-                s += t
-                g += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * cj * t)
+                k = kernel_slope(e, f.inv_half_k2) * a[3]
+                s += k[0]
+                g += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * cj * k[1])
     return wp.vec4(g[0], g[1], g[2], s)
 
 
@@ -256,6 +304,7 @@ def add_values4(
     a: wp.vec4,
     c: float,
     half_k2: float,
+    inv_half_k2: float,
     p0: wp.vec3,
     p1: wp.vec3,
     p2: wp.vec3,
@@ -269,13 +318,13 @@ def add_values4(
     e3 = wp.length_sq(pa - p3) * c
     out = v
     if e0 < half_k2:
-        out[0] = out[0] + a[3] * wp.exp(-e0)
+        out[0] = out[0] + a[3] * kernel(e0, inv_half_k2)
     if e1 < half_k2:
-        out[1] = out[1] + a[3] * wp.exp(-e1)
+        out[1] = out[1] + a[3] * kernel(e1, inv_half_k2)
     if e2 < half_k2:
-        out[2] = out[2] + a[3] * wp.exp(-e2)
+        out[2] = out[2] + a[3] * kernel(e2, inv_half_k2)
     if e3 < half_k2:
-        out[3] = out[3] + a[3] * wp.exp(-e3)
+        out[3] = out[3] + a[3] * kernel(e3, inv_half_k2)
     return out
 
 
@@ -295,38 +344,41 @@ def row_values4(f: GaussianField, q: Span4, j0: int, j1: int, total: wp.vec4) ->
     lim2 = q.lim2
     c = f.inv2s2_uniform
     hk = f.half_k2
+    ik = f.inv_half_k2
     j = j0
     while j + 1 < j1:
         a = f.atoms[j]
         b = f.atoms[j + 1]
         if f.per_atom != 0:
-            v = add_values4(v, a, f.inv2s2[j], hk, p0, p1, p2, p3)
-            v = add_values4(v, b, f.inv2s2[j + 1], hk, p0, p1, p2, p3)
+            v = add_values4(v, a, f.inv2s2[j], hk, ik, p0, p1, p2, p3)
+            v = add_values4(v, b, f.inv2s2[j + 1], hk, ik, p0, p1, p2, p3)
         else:
             if wp.length_sq(wp.vec3(a[0], a[1], a[2]) - mid) < lim2:
-                v = add_values4(v, a, c, hk, p0, p1, p2, p3)
+                v = add_values4(v, a, c, hk, ik, p0, p1, p2, p3)
             if wp.length_sq(wp.vec3(b[0], b[1], b[2]) - mid) < lim2:
-                v = add_values4(v, b, c, hk, p0, p1, p2, p3)
+                v = add_values4(v, b, c, hk, ik, p0, p1, p2, p3)
         j += 2
     if j < j1:
         a = f.atoms[j]
         if f.per_atom != 0:
             c = f.inv2s2[j]
-        v = add_values4(v, a, c, hk, p0, p1, p2, p3)
+        v = add_values4(v, a, c, hk, ik, p0, p1, p2, p3)
     return v
 
 
 @wp.func
 @no_type_check
-def atom_term(a: wp.vec4, pa: wp.vec3, p: wp.vec3, c: float, half_k2: float) -> wp.vec4:
+def atom_term(
+    a: wp.vec4, pa: wp.vec3, p: wp.vec3, c: float, half_k2: float, inv_half_k2: float
+) -> wp.vec4:
     """(gradient, value) of one atom at p; zero beyond the cutoff."""
     u = pa - p
     e = wp.length_sq(u) * c
     out = wp.vec4(0.0, 0.0, 0.0, 0.0)
     if e < half_k2:
-        t = a[3] * wp.exp(-e)
-        g = u * (2.0 * c * t)
-        out = wp.vec4(g[0], g[1], g[2], t)
+        k = kernel_slope(e, inv_half_k2) * a[3]
+        g = u * (2.0 * c * k[1])
+        out = wp.vec4(g[0], g[1], g[2], k[0])
     return out
 
 
@@ -352,10 +404,10 @@ def row_value_grad4(f: GaussianField, q: Span4, j0: int, j1: int, acc: wp.mat44)
             c = f.inv2s2[j]
         elif wp.length_sq(pa - mid) >= q.lim2:
             continue
-        a0 += atom_term(a, pa, p0, c, f.half_k2)
-        a1 += atom_term(a, pa, p1, c, f.half_k2)
-        a2 += atom_term(a, pa, p2, c, f.half_k2)
-        a3 += atom_term(a, pa, p3, c, f.half_k2)
+        a0 += atom_term(a, pa, p0, c, f.half_k2, f.inv_half_k2)
+        a1 += atom_term(a, pa, p1, c, f.half_k2, f.inv_half_k2)
+        a2 += atom_term(a, pa, p2, c, f.half_k2, f.inv_half_k2)
+        a3 += atom_term(a, pa, p3, c, f.half_k2, f.inv_half_k2)
     return wp.matrix_from_rows(a0, a1, a2, a3)
 
 
@@ -376,9 +428,10 @@ def row_sample(f: GaussianField, p: wp.vec3, j0: int, j1: int, acc: Sample) -> S
             c = f.inv2s2_uniform
             if f.per_atom != 0:
                 c = f.inv2s2[j]
-            term = a[3] * wp.exp(-e)
+            k = kernel_slope(e, f.inv_half_k2) * a[3]
+            term = k[0]
             total += term
-            grad += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * c * term)
+            grad += (wp.vec3(a[0], a[1], a[2]) - p) * (2.0 * c * k[1])
             oj = int(f.order[j])
             color += unpack_rgb(f.colors[oj]) * term
             if term > best_w or (term == best_w and oj < best):
@@ -534,6 +587,30 @@ def gather_atoms_kernel(
     if per_atom != 0:
         s = sigma_per_radius * radii[j]
         inv2s2[i] = 0.5 / (s * s)
+
+
+@wp.kernel
+@no_type_check
+def mean_density_kernel(
+    f: GaussianField,
+    positions: wp.array[wp.vec3],
+    stride: int,
+    total: wp.array[float],
+):
+    """Sum of the density at every `stride`-th atom (the reference of relative iso levels)."""
+    k = wp.tid()
+    wp.atomic_add(total, 0, gaussian_value(f, positions[k * stride]))
+
+
+@wp.kernel
+@no_type_check
+def rescale_kernel(atoms: wp.array[wp.vec4], total: wp.array[float], samples: float):
+    """Divide every sorted atom's weight by the mean density at the sampled atoms."""
+    j = wp.tid()
+    t = total[0]
+    if t > 0.0:
+        a = atoms[j]
+        atoms[j] = wp.vec4(a[0], a[1], a[2], a[3] * samples / t)
 
 
 @dataclass(frozen=True)

@@ -23,12 +23,20 @@ import numpy.typing as npt
 import warp
 
 from protocol import Camera, RenderParams, Topology
-from server.render import colors, raycast, transfer
+from server.render import colors, raycast, transfer, warped
 from server.render import device as devmod
 from server.render.camera import CameraFrame, camera_frame
-from server.render.density import GAUSSIAN, DensityModel, GaussianField, gather_atoms_kernel
+from server.render.density import (
+    GAUSSIAN,
+    DensityModel,
+    GaussianField,
+    gather_atoms_kernel,
+    mean_density_kernel,
+    rescale_kernel,
+)
 from server.render.errors import RenderError
 from server.render.grid import CellGrid
+from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
 
 wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
 
@@ -50,6 +58,10 @@ consecutive stretches of it at once (1: one thread continues the ray); it runs
 SPLIT_LANES * SPLIT_RAYS threads that stride over the queue."""
 MARCH_BLOCK = 256
 """Threads per block of the marching kernels."""
+MEAN_SAMPLES = 4096
+"""Atoms whose density sets the scale of relative levels (every n // 4096-th atom)."""
+SEGMENT_SLACK = 1.5
+"""The segment grid assumes no bond grows beyond this times its length in the first frame."""
 SPLIT_PIXELS_PER_SM = 8 * 1024
 SPLIT_MIN_ATOMS = 4096
 """Rays are split automatically on CUDA for images of at most SPLIT_PIXELS_PER_SM pixels per
@@ -62,7 +74,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Derived:
-    """Device-side constants of one set of render parameters."""
+    """Device-side constants of one set of render parameters. `sigma` is the spatial scale of
+    the atoms' Gaussians (s3 of the warped density, sigma otherwise)."""
 
     sigma: float
     per_atom: int
@@ -72,6 +85,9 @@ class Derived:
     half_k2: float
     dt: float
     iso: float
+    weights: str
+    relative: bool
+    warp: WarpScales | None
 
 
 class Renderer:
@@ -126,6 +142,8 @@ class Renderer:
         if density.field is not GaussianField:
             raise RenderError(f"density {density.name!r} needs a GaussianField to draw with")
         self._kernels = raycast.kernels_for(density, fast_math, max_registers, volume_max_registers)
+        self._kernel_options = (fast_math, max_registers, volume_max_registers)
+        self._warped_kernels: raycast.RaycastKernels | None = None
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         self._graphs: OrderedDict[tuple[Any, ...], Any] | None = (
             OrderedDict() if graphs or (graphs is None and self._cuda) else None
@@ -155,7 +173,8 @@ class Renderer:
         # what the last frame computed from the same (immutable) parameter and camera objects
         self._params_seen: tuple[RenderParams, str] | None = None
         self._camera_seen: tuple[Camera, int, int, CameraFrame, tuple[Any, ...]] | None = None
-        self._field_seen: tuple[Derived, GaussianField] | None = None
+        self._field_seen: tuple[Derived, Any] | None = None
+        self._density_total = wp.zeros(1, dtype=float, device=self.device)
         if self._cuda:
             self._stream = wp.get_stream(self.device)
             self._events = [wp.Event(self.device, enable_timing=True) for _ in range(5)]
@@ -173,6 +192,10 @@ class Renderer:
         self._inv2s2 = wp.zeros(m, dtype=float, device=d)
         self._grid = CellGrid(d, n)
         self._grid.invalidate()
+        self._weights_key: tuple[Any, ...] | None = None
+        self._skeleton: Skeleton | None = None
+        self._skel: _SkeletonBuffers | None = None
+        self._ref_positions: npt.NDArray[np.float32] | None = None
         if self._cuda:
             self._staging = wp.zeros(m, dtype=wp.vec3, device="cpu", pinned=True)
         else:
@@ -217,6 +240,7 @@ class Renderer:
             "grid": int(self._grid.nbytes),
             "image": sum(int(a.capacity) for a in pix),
             "other": int(self._tf_table.capacity + self._hist.capacity),
+            "skeleton": self._skel.nbytes if self._skel is not None else 0,
         }
 
     # ------------------------------------------------------------------ inputs
@@ -237,13 +261,15 @@ class Renderer:
         self._have_positions = False
         self._grid_key = None
         self._color_key = None
+        self._weights_key = None
+        self._skeleton = None
+        self._skel = None
+        self._ref_positions = None
         if n:
             radii = colors.atom_radii(topology)
             self._r_min = float(radii.min())
             self._r_max = float(radii.max())
             wp.copy(self._radii, wp.array(radii, dtype=float, device="cpu"), count=n)
-            w = colors.atom_weights(topology)
-            wp.copy(self._weights, wp.array(w, dtype=float, device="cpu"), count=n)
         self._grid.invalidate()
 
     def host_positions(self) -> npt.NDArray[np.float32]:
@@ -291,6 +317,9 @@ class Renderer:
             else:
                 wp.copy(self._pos, src, count=n)
         self._upload_ms = (time.perf_counter() - t0) * 1e3
+        if self._ref_positions is None:
+            # bonds keep their lengths (the warped density's graph tables use these)
+            self._ref_positions = np.array(arr[:n], dtype=np.float32)
         self._uploaded = True
         self._have_positions = True
         self._positions_version += 1
@@ -348,7 +377,10 @@ class Renderer:
             raise RenderError(f"invalid camera: {exc}") from None
 
     def _derive(self, p: RenderParams) -> Derived:
-        sigma = float(p.sigma_A)
+        warp = None
+        if p.scale_space == "warped" and p.warp_strength > 0.0:
+            warp = WarpScales.of(float(p.sigma_A), float(p.warp_strength))
+        sigma = warp.space if warp is not None else float(p.sigma_A)
         k = float(p.cutoff_sigmas)
         if p.radius_mode == "vdw":
             spr = sigma / colors.R_REF
@@ -367,14 +399,25 @@ class Renderer:
             half_k2=0.5 * k * k,
             dt=float(p.step_sigmas) * sigma,
             iso=float(p.iso_level),
+            weights=str(p.density_weights),
+            relative=p.level_scale == "mean",
+            warp=warp,
         )
 
     # ------------------------------------------------------------------ rendering
 
-    def _field(self, d: Derived) -> GaussianField:
+    def _field(self, d: Derived) -> Any:
+        """The struct the kernels read: a GaussianField, or a WarpedField around one."""
         seen = self._field_seen
         if seen is not None and seen[0] == d:
             return seen[1]
+        f = self._gaussian_field(d)
+        if d.warp is not None:
+            f = self._warped_field(d, f)
+        self._field_seen = (d, f)
+        return f
+
+    def _gaussian_field(self, d: Derived) -> GaussianField:
         f = GaussianField()
         f.atoms = self._sorted
         f.inv2s2 = self._inv2s2
@@ -386,9 +429,60 @@ class Renderer:
         f.info = self._grid.info
         f.inv2s2_uniform = d.inv2s2
         f.half_k2 = d.half_k2
+        f.inv_half_k2 = 1.0 / d.half_k2
         f.per_atom = d.per_atom
-        self._field_seen = (d, f)
         return f
+
+    def _warped_field(self, d: Derived, gauss: GaussianField) -> Any:
+        assert d.warp is not None
+        skel = self._skeleton_buffers()
+        s = warped.SkeletonField()
+        s.info = skel.grid.info
+        s.cell_start = skel.grid.cell_start
+        s.seg_a = skel.seg_a
+        s.seg_b = skel.seg_b
+        s.r2 = d.warp.reach * d.warp.reach
+        s.atten = d.warp.atten
+        f = warped.WarpedField()
+        f.info = gauss.info
+        f.bound = gauss.bound
+        f.brick_bound = gauss.brick_bound
+        f.gauss = gauss
+        f.skel = s
+        return f
+
+    def _kernels_of(self, d: Derived) -> raycast.RaycastKernels:
+        if d.warp is None:
+            return self._kernels
+        if self._warped_kernels is None:
+            self._warped_kernels = raycast.kernels_for(warped.WARPED, *self._kernel_options)
+        return self._warped_kernels
+
+    def _skeleton_buffers(self) -> _SkeletonBuffers:
+        """The bond segments and graph of the topology on the device (built once per topology,
+        with the bond lengths of the first frame)."""
+        if self._skel is None:
+            assert self._topology is not None
+            self._skeleton = Skeleton.of(self._topology)
+            ref = self._ref_positions if self._ref_positions is not None else np.zeros((self._n, 3))
+            self._skel = _SkeletonBuffers(self.device, self._skeleton, ref)
+        return self._skel
+
+    def _update_weights(self, d: Derived) -> None:
+        """The atoms' weights: uniform or electron counts, smoothed along the bond graph in
+        warped mode (when the topology, the weights or the graph scale change)."""
+        assert self._topology is not None
+        graph = d.warp.graph if d.warp is not None else 0.0
+        key = (d.weights, graph)
+        if key == self._weights_key or not self._n:
+            return
+        base = colors.atom_weights(self._topology, d.weights)
+        if graph <= 0.0:
+            wp.copy(self._weights, wp.array(base, dtype=float, device="cpu"), count=self._n)
+        else:
+            skel = self._skeleton_buffers()
+            skel.smooth(base, graph, self._weights)
+        self._weights_key = key
 
     def _update_colors(self, p: RenderParams) -> None:
         assert self._topology is not None
@@ -423,10 +517,12 @@ class Renderer:
         key = (self._positions_version, d, self.cells_per_cutoff, stop)
         return None if key == self._grid_key else key
 
-    def _build_grid(self, d: Derived, f: GaussianField, stop: float) -> None:
-        """Grid, sorted atoms, cell bounds and brick bounds: launches only."""
+    def _build_grid(self, d: Derived, f: Any, stop: float) -> None:
+        """Grid, sorted atoms (weights divided by the mean density at the atoms for relative
+        levels), the warped density's segments, cell bounds and brick bounds: launches only."""
         dev = self.device
         n = self._n
+        g = f.gauss if d.warp is not None else f
         self._grid.build(self._pos, n, d.reach, self.cells_per_cutoff)
         wp.launch(
             gather_atoms_kernel,
@@ -443,7 +539,17 @@ class Renderer:
             ),
             device=dev,
         )
-        wp.launch(self._kernels.bound, self._grid.capacity, (f, stop, f.bound), device=dev)
+        if d.relative:
+            samples = min(n, MEAN_SAMPLES)
+            self._density_total.zero_()
+            mean = (g, self._pos, n // samples, self._density_total)
+            wp.launch(mean_density_kernel, samples, mean, device=dev)
+            rescale = (self._sorted, self._density_total, float(samples))
+            wp.launch(rescale_kernel, n, rescale, device=dev)
+        if d.warp is not None:
+            self._skeleton_buffers().build(self._pos, d.warp.reach)
+        kernels = self._kernels_of(d)
+        wp.launch(kernels.bound, self._grid.capacity, (f, stop, f.bound), device=dev)
         self._grid.build_bricks()
 
     def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:
@@ -476,7 +582,7 @@ class Renderer:
         """Every device operation of one frame after the upload, in order: the same calls run
         eagerly or into a graph capture. Returns the host time at the grid/cast boundary."""
         dev = self.device
-        k = self._kernels
+        k = self._kernels_of(d)
         if build:
             self._build_grid(d, f, stop)
         if self._cuda:
@@ -597,6 +703,7 @@ class Renderer:
             self._update_tf(params)
         if self._n:
             self._update_colors(params)
+            self._update_weights(d)
         self._alloc_pixels(w * h)
         stop = self._stop_level(params, d)
         f = self._field(d)
@@ -674,7 +781,7 @@ class Renderer:
             return None, None
         return atom, depth
 
-    def prepare(self, params: RenderParams) -> GaussianField:
+    def prepare(self, params: RenderParams) -> Any:
         """Build the grid for `params` (when positions or the density changed) and return the
         device field, for tools that evaluate the density with their own kernels."""
         self._check_params(params)
@@ -685,6 +792,7 @@ class Renderer:
             self._update_tf(params)
         if self._n:
             self._update_colors(params)
+            self._update_weights(d)
         f = self._field(d)
         stop = self._stop_level(params, d)
         if not (self._n and self._have_positions):
@@ -697,6 +805,14 @@ class Renderer:
                 self._grid_key = key
         self._last = (params, d)
         return f
+
+    def density_scale(self) -> float:
+        """The density's own scale in the last grid: the mean density at the sampled atoms that
+        relative levels are fractions of (1 for absolute levels); synchronises."""
+        if self._last is None or not self._last[1].relative or not self._n:
+            return 1.0
+        samples = min(self._n, MEAN_SAMPLES)
+        return float(self._density_total.numpy()[0]) / samples
 
     def grid_info(self) -> dict[str, Any]:
         """The last grid's layout (origin, cell size, dims, ...); synchronises."""
@@ -723,8 +839,10 @@ class Renderer:
         cols = wp.zeros(max(m, 1), dtype=wp.vec4, device=dev)
         ids = wp.zeros(max(m, 1), dtype=wp.int32, device=dev)
         if m:
-            f = self._field(self._last[1])
-            wp.launch(self._kernels.evaluate, m, (f, wp_pts, vals, vgs, cols, ids), device=dev)
+            d = self._last[1]
+            f = self._field(d)
+            kernels = self._kernels_of(d)
+            wp.launch(kernels.evaluate, m, (f, wp_pts, vals, vgs, cols, ids), device=dev)
         return (
             vals.numpy()[:m].copy(),
             vgs.numpy()[:m].copy(),
@@ -751,10 +869,69 @@ class Renderer:
             f = self._field(d)
             s = HISTOGRAM_SIDE
             wp.launch(
-                self._kernels.histogram,
+                self._kernels_of(d).histogram,
                 (s, s, s),
                 (f, s, bins / (x_hi * d.iso), bins, self._hist),
                 device=self.device,
             )
         counts = self._hist.numpy()[:bins].astype(np.int64)
         return counts, edges
+
+
+class _SkeletonBuffers:
+    """The warped density's device tables for one topology: the segments (and their cell
+    grid, rebuilt every frame) and the bond graph for the along-graph smoothing."""
+
+    def __init__(self, device: str, skeleton: Skeleton, reference: npt.ArrayLike) -> None:
+        self.device = device
+        self.skeleton = skeleton
+        self.reference = np.asarray(reference, dtype=np.float64)
+        m = len(skeleton.segments)
+        self.count = m
+        self.ends = wp.array(skeleton.segments, dtype=wp.vec2i, device=device)
+        self.mids = wp.zeros(max(m, 1), dtype=wp.vec3, device=device)
+        self.seg_a = wp.zeros(max(m, 1), dtype=wp.vec4, device=device)
+        self.seg_b = wp.zeros(max(m, 1), dtype=wp.vec4, device=device)
+        self.grid = CellGrid(device, m)
+        self.grid.invalidate()
+        self.half_length = 0.5 * SEGMENT_SLACK * skeleton.max_segment(self.reference)
+        self.adj_start = wp.array(skeleton.adj_start, dtype=wp.int32, device=device)
+        self.adj_atom = wp.array(skeleton.adj_atom, dtype=wp.int32, device=device)
+        self.cells = wp.array(skeleton.cell_weights(self.reference), dtype=float, device=device)
+
+    @property
+    def nbytes(self) -> int:
+        arrays = (self.ends, self.mids, self.seg_a, self.seg_b, self.adj_start, self.adj_atom)
+        return sum(int(a.capacity) for a in arrays) + int(self.grid.nbytes)
+
+    def build(self, positions: wp.array, reach: float) -> None:
+        """Segments from this frame's positions into the cells of their midpoints."""
+        if not self.count:
+            self.grid.invalidate()
+            return
+        dev = self.device
+        args = (positions, self.ends, self.mids)
+        wp.launch(warped.segment_mids_kernel, self.count, args, device=dev)
+        self.grid.build(self.mids, self.count, reach + self.half_length, 1.0)
+        gather = (positions, self.ends, self.grid.order, self.seg_a, self.seg_b)
+        wp.launch(warped.gather_segments_kernel, self.count, gather, device=dev)
+
+    def smooth(self, densities: npt.NDArray[np.float32], scale: float, out: wp.array) -> None:
+        """dt: `densities` smoothed along the bond graph at warped scale `scale`, into `out`."""
+        sk = self.skeleton
+        n = sk.n_atoms
+        lengths = sk.warped_lengths(self.reference, densities)
+        along = lengths[sk.adj_bond].astype(np.float32)
+        adj_length = wp.array(along, dtype=float, device=self.device)
+        dens = wp.array(np.asarray(densities, dtype=np.float32), dtype=float, device=self.device)
+        args = (
+            self.adj_start,
+            self.adj_atom,
+            adj_length,
+            self.cells,
+            dens,
+            float(scale),
+            float(GRAPH_CUTOFF_SIGMAS * scale),
+            out,
+        )
+        wp.launch(warped.smooth_densities_kernel, n, args, device=self.device)

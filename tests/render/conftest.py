@@ -47,6 +47,7 @@ def make_topology(
     bfactors: np.ndarray | None = None,
     charges: np.ndarray | None = None,
     radii: np.ndarray | None = None,
+    bonds: np.ndarray | None = None,
 ) -> Topology:
     els = elements if elements is not None else ["CNOSH"[i % 5] for i in range(n)]
     return Topology(
@@ -58,7 +59,7 @@ def make_topology(
         if residues is not None
         else ["ALA", "GLU", "LYS", "SER"] * (n // 4) + ["GLY"] * (n % 4),
         chain_ids=chains if chains is not None else ["A" if i < n // 2 else "B" for i in range(n)],
-        bonds=WireArray.from_numpy(np.zeros((0, 2)), "<i4"),
+        bonds=WireArray.from_numpy(np.zeros((0, 2)) if bonds is None else bonds, "<i4"),
         bfactors=None if bfactors is None else WireArray.from_numpy(bfactors, "<f4"),
         charges=None if charges is None else WireArray.from_numpy(charges, "<f4"),
         radii=None if radii is None else WireArray.from_numpy(radii, "<f4"),
@@ -81,3 +82,13 @@ def molecule() -> Callable[..., tuple[Topology, np.ndarray]]:
         return make_topology(n), blob(n, seed, **kw)  # type: ignore[arg-type]
 
     return make
+
+
+def bonds_by_distance(positions: np.ndarray, elements: list[str]) -> np.ndarray:
+    """Bonds between atoms closer than 1.9 A (1.3 A when either is a hydrogen)."""
+    pos = np.asarray(positions, dtype=np.float64)
+    d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+    light = np.array([e.upper().startswith("H") for e in elements])
+    limit = np.where(light[:, None] | light[None, :], 1.3, 1.9)
+    i, j = np.nonzero(np.triu(d < limit, k=1))
+    return np.stack([i, j], axis=1).astype(np.int32)

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import replace
+
 import numpy as np
 
 from protocol import Camera, RenderParams, Topology
 from server.render import colors
-from server.render.renderer import Renderer
-from tests.render.oracle import Molecule
+from server.render.renderer import MEAN_SAMPLES, Renderer
+from server.render.skeleton import Skeleton, warped_density
+from tests.render.oracle import Molecule, density
 
 
 def oracle_molecule(topology: Topology, positions: np.ndarray, params: RenderParams) -> Molecule:
@@ -18,13 +22,25 @@ def oracle_molecule(topology: Topology, positions: np.ndarray, params: RenderPar
     else:
         sig = np.full(n, params.sigma_A)
     rgb = colors.unpack_rgba(colors.atom_colors(topology, params.color_by, params.uniform_color))
-    return Molecule(
+    raw = Molecule(
         positions=np.asarray(positions, dtype=np.float64),
-        weights=np.ones(n),
+        weights=colors.atom_weights(topology, params.density_weights).astype(np.float64),
         sigmas=sig,
         k=params.cutoff_sigmas,
         colors=rgb,
     )
+    if params.level_scale == "absolute" or n == 0:
+        return raw
+    return replace(raw, weights=raw.weights / density_scale(raw))
+
+
+def density_scale(mol: Molecule) -> float:
+    """The documented scale of relative levels: the mean density at every (n // 4096)-th atom
+    (all atoms up to 4096)."""
+    n = len(mol.positions)
+    samples = min(n, MEAN_SAMPLES)
+    at = mol.positions[np.arange(samples) * (n // samples)]
+    return float(density(mol, at)[0].mean())
 
 
 def render(
@@ -43,3 +59,31 @@ def render(
         r.set_positions(positions)
     r.render(params, camera, width, height)
     return r
+
+
+def warped_reference(
+    topology: Topology, positions: np.ndarray, params: RenderParams
+) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """The documented warped density of these inputs (float64, every atom), with the same
+    relative-level scale as the renderer: (S, grad S) at (m, 3) points."""
+    skeleton = Skeleton.of(topology)
+    dens = colors.atom_weights(topology, params.density_weights).astype(np.float64)
+    pos = np.asarray(positions, dtype=np.float64)
+    strength = params.warp_strength if params.scale_space == "warped" else 0.0
+
+    def raw(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return warped_density(
+            points, pos, dens, skeleton, params.sigma_A, strength, params.cutoff_sigmas
+        )
+
+    scale = 1.0
+    n = topology.n_atoms
+    if params.level_scale == "mean" and n:
+        samples = min(n, MEAN_SAMPLES)
+        scale = float(raw(pos[np.arange(samples) * (n // samples)])[0].mean())
+
+    def density_at(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        s, g = raw(points)
+        return s / scale, g / scale
+
+    return density_at

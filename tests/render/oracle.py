@@ -3,6 +3,7 @@ point, no grid, no skipping. They restate the documented formulas, not the kerne
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,24 +23,45 @@ class Molecule:
     colors: F  # (n, 3)
 
 
+def _kernel(e: F, k: float) -> tuple[F, F]:
+    """K(e) = exp(-e) (1 - (e / ek)^16)^2 inside e < ek = k^2 / 2 (0 outside), and -dK/de."""
+    ek = 0.5 * k * k
+    inside = e < ek
+    u = np.where(inside, e / ek, 1.0)
+    w = (1.0 - u**16) ** 2
+    dw = -32.0 * (1.0 - u**16) * u**15 / ek
+    x = np.exp(-e)
+    return np.where(inside, x * w, 0.0), np.where(inside, x * (w - dw), 0.0)
+
+
 def contributions(mol: Molecule, points: npt.ArrayLike) -> tuple[F, F]:
-    """(m, n) terms w_i exp(-d^2 / 2 s_i^2) (zero beyond k s_i) and (m, n, 3) offsets a - p."""
+    """(m, n) terms w_i K(d^2 / 2 s_i^2) (zero beyond k s_i) and (m, n, 3) offsets a - p."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     off = mol.positions[None, :, :] - p[:, None, :]
     d2 = (off**2).sum(axis=-1)
     e = d2 / (2.0 * mol.sigmas[None, :] ** 2)
-    term = np.where(e < 0.5 * mol.k**2, mol.weights[None, :] * np.exp(-e), 0.0)
+    term = mol.weights[None, :] * _kernel(e, mol.k)[0]
     return term, off
 
 
 def density(mol: Molecule, points: npt.ArrayLike) -> tuple[F, F]:
     """S and its gradient at points."""
-    term, off = contributions(mol, points)
-    grad = (term[:, :, None] * off / mol.sigmas[None, :, None] ** 2).sum(axis=1)
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    off = mol.positions[None, :, :] - p[:, None, :]
+    e = (off**2).sum(axis=-1) / (2.0 * mol.sigmas[None, :] ** 2)
+    value, slope = _kernel(e, mol.k)
+    term = mol.weights[None, :] * value
+    grad = ((mol.weights[None, :] * slope)[:, :, None] * off / mol.sigmas[None, :, None] ** 2).sum(
+        axis=1
+    )
     return term.sum(axis=1), grad
 
 
 def density_chunked(mol: Molecule, points: npt.ArrayLike, chunk: int = 4096) -> F:
+    return density_of(mol, points, chunk)
+
+
+def density_of(mol: Molecule, points: npt.ArrayLike, chunk: int = 4096) -> F:
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.empty(len(p))
     for i in range(0, len(p), chunk):
@@ -73,7 +95,7 @@ class IsoResult:
 
 
 def first_crossings(
-    mol: Molecule,
+    mol: Molecule | Callable[[F], F],
     origins: F,
     dirs: F,
     t_range: tuple[float, float],
@@ -81,7 +103,20 @@ def first_crossings(
     iso: float,
 ) -> IsoResult:
     """First sign change of S - iso on the lattice t_k = k dt (k dt in t_range, t >= 0),
-    relative to the sign at the first sample, refined to 1e-9 by bisection."""
+    relative to the sign at the first sample, refined to 1e-9 by bisection. `mol` is the
+    Gaussian molecule, or any density as a function of (m, 3) points."""
+    if isinstance(mol, Molecule):
+        molecule = mol
+
+        def density_chunked(_: object, pts: F) -> F:
+            return density_of(molecule, pts)
+
+    else:
+        fn = mol
+
+        def density_chunked(_: object, pts: F) -> F:
+            return np.asarray(fn(np.asarray(pts, dtype=np.float64).reshape(-1, 3)))
+
     o = origins.reshape(-1, 3)
     d = dirs.reshape(-1, 3)
     lo_t = max(t_range[0], 0.0)

@@ -43,14 +43,18 @@ def test_no_topology_gives_background(device: str) -> None:
 
 
 @pytest.mark.parametrize("count", [1, 25])
-def test_atoms_at_one_point_make_a_sphere(device: str, count: int) -> None:
-    """n coincident atoms: S = n exp(-r^2 / 2 s^2), a sphere of radius s sqrt(2 ln(n / iso))."""
+@pytest.mark.parametrize("scale", ["absolute", "mean"])
+def test_atoms_at_one_point_make_a_sphere(device: str, count: int, scale: str) -> None:
+    """n coincident atoms: S = n exp(-r^2 / 2 s^2), a sphere of radius s sqrt(2 ln(n / iso))
+    with absolute levels; relative ones divide S by its value at the atoms (n), so the sphere
+    has radius s sqrt(2 ln(1 / iso)) however many atoms coincide."""
     top = make_topology(count)
     pos = np.tile(np.array([[3.0, -1.0, 2.0]], np.float32), (count, 1))
-    params = RenderParams(sigma_A=1.5, iso_level=0.5)
+    params = RenderParams(sigma_A=1.5, iso_level=0.5, level_scale=scale)  # type: ignore[arg-type]
     cam = Camera(target=(3.0, -1.0, 2.0), distance=30.0, fov_deg=30.0)
     r = render(device, top, pos, params, cam, 41, 41)
-    radius = 1.5 * math.sqrt(2 * math.log(count / 0.5))
+    peak = count if scale == "absolute" else 1
+    radius = 1.5 * math.sqrt(2 * math.log(peak / 0.5))
     assert r.read_depth()[20, 20] == pytest.approx(30.0 - radius, abs=2e-3)
     ids = r.read_atom_ids()
     assert np.all(ids[np.isfinite(r.read_depth())] == 0)
@@ -64,11 +68,12 @@ def test_huge_and_tiny_sigma_render(device: str) -> None:
     top = make_topology(30)
     pos = blob(30, seed=5)
     cam = fit_camera(pos, 32, 24)
-    huge = render(device, top, pos, RenderParams(sigma_A=50.0, iso_level=0.5), cam, 32, 24)
+    absolute = {"iso_level": 0.5, "level_scale": "absolute"}
+    huge = render(device, top, pos, RenderParams(sigma_A=50.0, **absolute), cam, 32, 24)  # type: ignore[arg-type]
     d = huge.read_depth()
     # the camera sits inside one fat cloud of radius ~ 50 sqrt(2 ln 60) = 143 A: its far wall
     assert np.isfinite(d).mean() > 0.9 and np.nanmin(np.where(np.isfinite(d), d, np.nan)) > 100
-    tiny = render(device, top, pos, RenderParams(sigma_A=0.05, iso_level=0.5), cam, 32, 24)
+    tiny = render(device, top, pos, RenderParams(sigma_A=0.05, **absolute), cam, 32, 24)  # type: ignore[arg-type]
     d = tiny.read_depth()
     # tiny spheres of radius ~0.06 A are mostly missed by the rays, never garbage
     assert np.all(np.isinf(d) | (d > 0))

@@ -14,21 +14,25 @@ from PIL import Image
 
 from protocol import Lighting, RenderParams
 from server.render.camera import fit_camera, orbit
-from tests.render.conftest import GOLDEN_DIR, make_topology
+from tests.render.conftest import GOLDEN_DIR, bonds_by_distance, make_topology
 from tests.render.helpers import render
 
 W, H = 160, 120
 
 CASES = {
-    "iso_element": RenderParams(sigma_A=1.2, iso_level=0.5, color_by="element"),
+    "iso_element": RenderParams(sigma_A=1.2, color_by="element"),
     "iso_chain_ao": RenderParams(
         sigma_A=2.0,
-        iso_level=0.8,
+        iso_level=0.4,
         color_by="chain",
         lighting=Lighting(ambient_occlusion=True, depth_cue=0.5),
     ),
     "volume_cloud": RenderParams(mode="volume", sigma_A=1.5, tf_preset="cloud"),
     "volume_shells": RenderParams(mode="volume", sigma_A=1.8, tf_preset="shells"),
+    "iso_warped": RenderParams(sigma_A=2.0, scale_space="warped", color_by="residue"),
+    "volume_warped": RenderParams(
+        mode="volume", sigma_A=2.0, scale_space="warped", tf_preset="cloud"
+    ),
 }
 
 
@@ -44,12 +48,14 @@ def assert_image_approx_equal(got: np.ndarray, want: np.ndarray, name: str) -> N
 @pytest.fixture(scope="module")
 def gramicidin() -> tuple[object, np.ndarray]:
     d = np.load(Path(__file__).parent / "data" / "gramicidin_1grm.npz")
+    elements = [str(e) for e in d["elements"]]
     top = make_topology(
         len(d["positions"]),
-        elements=[str(e) for e in d["elements"]],
+        elements=elements,
         chains=[str(c) for c in d["chains"]],
         residues=[str(r) for r in d["residues"]],
         bfactors=d["bfactors"].astype(np.float32),
+        bonds=bonds_by_distance(d["positions"], elements),
     )
     return top, d["positions"].astype(np.float32)
 
