@@ -15,8 +15,8 @@ export const RENDER_DEFAULTS = Object.freeze({
   mode: "iso",
   sigma_A: 1.5,
   radius_mode: "uniform",
-  iso_level: 0.5,
-  cutoff_sigmas: 3.0,
+  iso_level: 0.25,
+  cutoff_sigmas: 4.0,
   step_sigmas: 0.25,
   transfer_function: Object.freeze([]),
   tf_preset: "cloud",
@@ -26,6 +26,10 @@ export const RENDER_DEFAULTS = Object.freeze({
   background: Object.freeze([0.08, 0.09, 0.11]),
   quality: 1.0,
   jpeg_quality: 85,
+  scale_space: "classical",
+  warp_strength: 1.0,
+  density_weights: "uniform",
+  level_scale: "mean",
 });
 
 export const ENUMS = Object.freeze({
@@ -34,6 +38,9 @@ export const ENUMS = Object.freeze({
   tf_preset: ["cloud", "shells", "iso-like"],
   color_by: ["element", "residue", "chain", "uniform", "bfactor", "charge"],
   projection: ["perspective", "orthographic"],
+  scale_space: ["classical", "warped"],
+  density_weights: ["uniform", "electrons"],
+  level_scale: ["mean", "absolute"],
 });
 
 /** Numeric ranges [min, max] (inclusive where the protocol allows; open ends nudged in). */
@@ -44,6 +51,7 @@ export const RANGES = Object.freeze({
   step_sigmas: [0.02, 2],
   quality: [0.1, 2],
   jpeg_quality: [10, 100],
+  warp_strength: [0, 1],
   "lighting.ambient": [0, 1],
   "lighting.diffuse": [0, 1],
   "lighting.specular": [0, 1],

@@ -18,6 +18,9 @@ export class RenderPanel {
     this.isoSlider = $("iso-slider");
     this.isoNumber = $("iso-number");
     this.modeRadios = [...document.querySelectorAll('input[name="mode"]')];
+    this.spaceRadios = [...document.querySelectorAll('input[name="scale-space"]')];
+    this.warpStrength = $("warp-strength");
+    this.densityWeights = $("density-weights");
     this.radiusMode = $("radius-mode");
     this.colorBy = $("color-by");
     this.uniformColor = $("uniform-color");
@@ -74,6 +77,24 @@ export class RenderPanel {
         if (radio.checked) this.emit({ mode: radio.value }, true, radio);
       });
     }
+    for (const radio of this.spaceRadios) {
+      radio.addEventListener("change", () => {
+        if (!radio.checked) return;
+        this.emit({ scale_space: radio.value }, true, radio);
+        this.syncEnabled();
+      });
+    }
+    for (const type of ["input", "change"]) {
+      this.warpStrength.addEventListener(type, () => {
+        const value = clampParam("warp_strength", this.warpStrength.value);
+        if (value === null) return;
+        this.showOutput(this.warpStrength);
+        this.emit({ warp_strength: value }, type === "change", this.warpStrength);
+      });
+    }
+    this.densityWeights.addEventListener("change", () =>
+      this.emit({ density_weights: this.densityWeights.value }, true, this.densityWeights),
+    );
     this.radiusMode.addEventListener("change", () =>
       this.emit({ radius_mode: this.radiusMode.value }, true, this.radiusMode),
     );
@@ -136,6 +157,9 @@ export class RenderPanel {
 
   syncEnabled() {
     this.uniformColor.disabled = this.disabled || this.colorBy.value !== "uniform";
+    const warped = this.render.scale_space === "warped";
+    this.warpStrength.disabled = this.disabled || !warped;
+    $("warp-row").classList.toggle("muted", !warped);
   }
 
   setDisabled(disabled) {
@@ -159,6 +183,10 @@ export class RenderPanel {
       this.isoNumber.value = String(sig(render.iso_level, 3));
     }
     for (const radio of this.modeRadios) radio.checked = radio.value === render.mode;
+    for (const radio of this.spaceRadios) radio.checked = radio.value === render.scale_space;
+    set(this.warpStrength, render.warp_strength);
+    this.showOutput(this.warpStrength);
+    set(this.densityWeights, render.density_weights);
     set(this.radiusMode, render.radius_mode);
     set(this.colorBy, render.color_by);
     set(this.uniformColor, rgbToHex(render.uniform_color));

@@ -30,6 +30,10 @@ const FIELDS = [
   ["key", "lighting.key_light", "bool"],
   ["ao", "lighting.ambient_occlusion", "bool"],
   ["cue", "lighting.depth_cue", "num"],
+  ["space", "scale_space", "enum"],
+  ["warp", "warp_strength", "num"],
+  ["weights", "density_weights", "enum"],
+  ["levels", "level_scale", "enum"],
 ];
 
 /** A number in at most `digits` significant digits, without trailing zeros. */

@@ -40,7 +40,31 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="image file to write (.png or .jpg)")
     p.add_argument("--sigma", type=float, default=1.5, help="Gaussian scale in angstrom")
     p.add_argument("--mode", choices=("iso", "volume"), default="iso")
-    p.add_argument("--iso", type=float, default=0.5, help="iso level (atoms of density)")
+    p.add_argument(
+        "--iso",
+        type=float,
+        default=0.25,
+        help="iso level, a fraction of the mean density at the atoms (see --levels)",
+    )
+    p.add_argument(
+        "--levels",
+        choices=("mean", "absolute"),
+        default="mean",
+        help="iso levels relative to the mean density at the atoms, or in atoms of density",
+    )
+    p.add_argument(
+        "--scale-space",
+        choices=("classical", "warped"),
+        default="classical",
+        help="warped: the bond-graph warped density (docs/rendering.md)",
+    )
+    p.add_argument("--warp-strength", type=float, default=1.0, help="0 (classical) to 1")
+    p.add_argument(
+        "--weights",
+        choices=("uniform", "electrons"),
+        default="uniform",
+        help="atom densities: one per atom or the electron count",
+    )
     p.add_argument("--size", type=_size, default=(800, 600), help="WxH in pixels")
     p.add_argument(
         "--color-by",
@@ -78,6 +102,10 @@ def main(argv: list[str] | None = None) -> int:
             mode=args.mode,
             sigma_A=args.sigma,
             iso_level=args.iso,
+            level_scale=args.levels,
+            scale_space=args.scale_space,
+            warp_strength=args.warp_strength,
+            density_weights=args.weights,
             color_by=args.color_by,
             radius_mode=args.radius_mode,
             tf_preset=args.tf_preset,

@@ -182,6 +182,27 @@ def test_sigma_slider_changes_the_received_image(
     wait_until(lambda: "sigma=0.8" in dash.evaluate("() => location.hash"), "the URL names it")
 
 
+def test_the_warped_scale_space_is_one_click_away(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
+) -> None:
+    dash = open_dashboard()
+    wait_for_full_view(dash)
+    page = dash.page
+    strength = page.locator("#warp-strength")
+    expect(strength).to_be_disabled()  # classical: the strength does not apply
+    expect(page.locator("#space-help")).to_contain_text("along the bonds")
+    before = snapshot(dash)
+    page.locator('input[name="scale-space"][value="warped"]').check()
+    wait_until(lambda: session(live_server).render_params.scale_space == "warped", "warped arrived")
+    expect(strength).to_be_enabled()
+    warped = wait_for_new_image(dash, before, threshold=4.0)
+    strength.focus()
+    strength.press("Home")  # strength 0: the classical density again
+    wait_until(lambda: session(live_server).render_params.warp_strength == 0.0, "strength 0")
+    wait_for_new_image(dash, warped, threshold=4.0)
+    wait_until(lambda: "space=warped" in dash.evaluate("() => location.hash"), "URL keeps it")
+
+
 def test_dragging_rotates_the_view(
     open_dashboard: OpenDashboard, simulation: OpenMMSimulation
 ) -> None:

@@ -39,6 +39,7 @@ def test_renders_structure_files(
         ([PDB_HOLE, "-o", "x.png", "--frame", "3"], "frame 3 out of range"),
         ([PDB_HOLE, "-o", "x.gif"], ".png or .jpg"),
         ([PDB_HOLE, "-o", "x.png", "--sigma", "0"], "sigma_A"),
+        ([PDB_HOLE, "-o", "x.png", "--warp-strength", "2"], "warp_strength"),
         ([PDB_HOLE, "-o", "x.png", "--device", ABSENT_GPU], "device"),
     ],
 )
@@ -67,3 +68,16 @@ def test_bad_size_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
         main([PDB_HOLE, "-o", "x.png", "--size", "800by600"])
     assert exc.value.code == 2
     assert "800x600" in capsys.readouterr().err
+
+
+def test_the_warped_density_renders_and_differs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    images = {}
+    for space in ("classical", "warped"):
+        out = tmp_path / f"{space}.png"
+        argv = [PDB_HOLE, "-o", str(out), "--size", "48x36", "--device", "cpu"]
+        assert main([*argv, "--scale-space", space, "--weights", "electrons"]) == 0
+        images[space] = np.asarray(Image.open(out), dtype=np.float64)
+    assert np.abs(images["classical"] - images["warped"]).mean() > 2.0
+    assert len(np.unique(images["warped"].reshape(-1, 3), axis=0)) > 10
