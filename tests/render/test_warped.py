@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy import ndimage
 
 import timewarp
 from protocol import RenderParams
@@ -266,6 +265,7 @@ def test_a_straight_chain_on_the_device(device: str) -> None:
 
 
 def _components(mol: Mol, sigma: float, strength: float, level: float, h: float = 0.15) -> int:
+    ndimage = pytest.importorskip("scipy.ndimage")
     f = _density(mol, sigma, strength)
     pos = mol.positions.astype(np.float64)
     lo, hi = pos.min(0) - 3 * sigma - 1, pos.max(0) + 3 * sigma + 1
