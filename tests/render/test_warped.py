@@ -264,11 +264,14 @@ def test_a_straight_chain_on_the_device(device: str) -> None:
     np.testing.assert_allclose(r.evaluate(axis)[0], ref, rtol=1e-5)
 
 
-def _components(mol: Mol, sigma: float, strength: float, level: float, h: float = 0.15) -> int:
+def _components(mol: Mol, sigma: float, strength: float, level: float) -> int:
+    """Connected components of {S >= level x the mean of S at the atoms} on a lattice of a
+    fifth of the spatial scale (0.08 A at least), over the molecule and 2.5 sigma around it."""
     ndimage = pytest.importorskip("scipy.ndimage")
     f = _density(mol, sigma, strength)
     pos = mol.positions.astype(np.float64)
-    lo, hi = pos.min(0) - 3 * sigma - 1, pos.max(0) + 3 * sigma + 1
+    h = max(0.2 * WarpScales.of(sigma, strength).space, 0.08)
+    lo, hi = pos.min(0) - 2.5 * sigma, pos.max(0) + 2.5 * sigma
     axes = [np.arange(lo[k], hi[k] + h, h) for k in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     values = f(grid).reshape([len(a) for a in axes])  # type: ignore[operator]
