@@ -589,25 +589,42 @@ def gather_atoms_kernel(
         inv2s2[i] = 0.5 / (s * s)
 
 
+MEAN_LANES = 64
+"""Partial sums of the mean density at the sampled atoms (a fixed order: the same frame
+gives the same scale bit for bit, where atomic float adds would not)."""
+_LANES = wp.constant(MEAN_LANES)  # type: ignore[no-untyped-call]
+
+
 @wp.kernel
 @no_type_check
 def mean_density_kernel(
-    f: GaussianField,
-    positions: wp.array[wp.vec3],
-    stride: int,
-    total: wp.array[float],
+    f: GaussianField, positions: wp.array[wp.vec3], stride: int, values: wp.array[float]
 ):
-    """Sum of the density at every `stride`-th atom (the reference of relative iso levels)."""
+    """The density at every `stride`-th atom (the reference of relative iso levels)."""
     k = wp.tid()
-    wp.atomic_add(total, 0, gaussian_value(f, positions[k * stride]))
+    values[k] = gaussian_value(f, positions[k * stride])
 
 
 @wp.kernel
 @no_type_check
-def rescale_kernel(atoms: wp.array[wp.vec4], total: wp.array[float], samples: float):
+def partial_sums_kernel(values: wp.array[float], count: int, partial: wp.array[float]):
+    t = wp.tid()
+    s = float(0.0)
+    i = t
+    while i < count:
+        s += values[i]
+        i += _LANES
+    partial[t] = s
+
+
+@wp.kernel
+@no_type_check
+def rescale_kernel(atoms: wp.array[wp.vec4], partial: wp.array[float], samples: float):
     """Divide every sorted atom's weight by the mean density at the sampled atoms."""
     j = wp.tid()
-    t = total[0]
+    t = float(0.0)
+    for q in range(_LANES):
+        t += partial[q]
     if t > 0.0:
         a = atoms[j]
         atoms[j] = wp.vec4(a[0], a[1], a[2], a[3] * samples / t)
@@ -623,7 +640,11 @@ class DensityModel:
     Optional batched forms, used by the ray caster to load each neighbour once for several
     samples along a line: `value4(f, o, d, ts: vec4) -> vec4` (S at o + d ts[q]) and
     `value_grad4(f, o, d, ts: vec4) -> (vec4, vec4, vec4, vec4)` ((gradient, S) at each);
-    a model without them gets versions that call `value` / `value_grad` per point.
+    a model without them gets versions that call `value` / `value_grad` per point. Also
+    optional, for models that can cheaply tell a value is below a level: `value4_level(f, o,
+    d, ts, level)` and `value_grad4_level(...)`, exact where a value may reach `level`, and any
+    negative value (read "below, value unknown") where it cannot; the marching kernels only
+    compare values with the level, so they use these.
     """
 
     name: str
@@ -634,6 +655,8 @@ class DensityModel:
     box_bound: Any
     value4: Any = None
     value_grad4: Any = None
+    value4_level: Any = None
+    value_grad4_level: Any = None
 
 
 GAUSSIAN = DensityModel(

@@ -497,6 +497,24 @@ def _make(
             )
 
         value_grad4 = value_grad4_each
+    value4_level = model.value4_level
+    if value4_level is None:
+
+        @wp.func
+        @no_type_check
+        def value4_exact(f: Field, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float) -> wp.vec4:
+            return value4(f, o, d, ts)
+
+        value4_level = value4_exact
+    value_grad4_level = model.value_grad4_level
+    if value_grad4_level is None:
+
+        @wp.func
+        @no_type_check
+        def value_grad4_exact(f: Field, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float):
+            return value_grad4(f, o, d, ts)
+
+        value_grad4_level = value_grad4_exact
 
     @wp.func
     @no_type_check
@@ -654,7 +672,7 @@ def _make(
                 # four lattice samples; the pass may run past this cell, which only means
                 # the next cells start with k already beyond their entry
                 ts = wp.vec4(float(k) * dt, float(k + 1) * dt, float(k + 2) * dt, float(k + 3) * dt)
-                v4 = value4(f, o, d, ts)
+                v4 = value4_level(f, o, d, ts, m.iso)
                 q_from = wp.int32(0)
                 if first == 1:  # the ray's first sample says which side it starts on
                     first = 0
@@ -796,7 +814,7 @@ def _make(
                         if not clear(f.bound[cell_at(g, o + d * ts[q])], m.skip_below, 0):
                             need = 1
                 if need != 0:
-                    v4 = value4(f, o, d, ts)
+                    v4 = value4_level(f, o, d, ts, m.iso)
                     q_from = wp.int32(1)
                     if gs == k0:
                         q_from = 0
@@ -918,11 +936,13 @@ def _make(
                     g2 = wp.vec4(0.0, 0.0, 0.0, 0.0)
                     g3 = wp.vec4(0.0, 0.0, 0.0, 0.0)
                     vals = wp.vec4(0.0, 0.0, 0.0, 0.0)
+                    # below the clear level the transfer function is transparent: a model
+                    # may answer there with any value below it (value4_level)
                     if vol.shade != 0:
-                        g0, g1, g2, g3 = value_grad4(f, o, d, ts)
+                        g0, g1, g2, g3 = value_grad4_level(f, o, d, ts, vol.clear_level)
                         vals = wp.vec4(g0[3], g1[3], g2[3], g3[3])
                     else:
-                        vals = value4(f, o, d, ts)
+                        vals = value4_level(f, o, d, ts, vol.clear_level)
                     for q in range(4):
                         tq = ts[q]
                         if active != 0 and tq < t1:

@@ -28,10 +28,12 @@ from server.render import device as devmod
 from server.render.camera import CameraFrame, camera_frame
 from server.render.density import (
     GAUSSIAN,
+    MEAN_LANES,
     DensityModel,
     GaussianField,
     gather_atoms_kernel,
     mean_density_kernel,
+    partial_sums_kernel,
     rescale_kernel,
 )
 from server.render.errors import RenderError
@@ -174,7 +176,8 @@ class Renderer:
         self._params_seen: tuple[RenderParams, str] | None = None
         self._camera_seen: tuple[Camera, int, int, CameraFrame, tuple[Any, ...]] | None = None
         self._field_seen: tuple[Derived, Any] | None = None
-        self._density_total = wp.zeros(1, dtype=float, device=self.device)
+        self._density_samples = wp.zeros(MEAN_SAMPLES, dtype=float, device=self.device)
+        self._density_partial = wp.zeros(MEAN_LANES, dtype=float, device=self.device)
         if self._cuda:
             self._stream = wp.get_stream(self.device)
             self._events = [wp.Event(self.device, enable_timing=True) for _ in range(5)]
@@ -541,10 +544,11 @@ class Renderer:
         )
         if d.relative:
             samples = min(n, MEAN_SAMPLES)
-            self._density_total.zero_()
-            mean = (g, self._pos, n // samples, self._density_total)
+            mean = (g, self._pos, n // samples, self._density_samples)
             wp.launch(mean_density_kernel, samples, mean, device=dev)
-            rescale = (self._sorted, self._density_total, float(samples))
+            partial = (self._density_samples, samples, self._density_partial)
+            wp.launch(partial_sums_kernel, MEAN_LANES, partial, device=dev)
+            rescale = (self._sorted, self._density_partial, float(samples))
             wp.launch(rescale_kernel, n, rescale, device=dev)
         if d.warp is not None:
             self._skeleton_buffers().build(self._pos, d.warp.reach)
@@ -812,7 +816,7 @@ class Renderer:
         if self._last is None or not self._last[1].relative or not self._n:
             return 1.0
         samples = min(self._n, MEAN_SAMPLES)
-        return float(self._density_total.numpy()[0]) / samples
+        return float(self._density_partial.numpy().astype(np.float64).sum()) / samples
 
     def grid_info(self) -> dict[str, Any]:
         """The last grid's layout (origin, cell size, dims, ...); synchronises."""
@@ -912,7 +916,7 @@ class _SkeletonBuffers:
         dev = self.device
         args = (positions, self.ends, self.mids)
         wp.launch(warped.segment_mids_kernel, self.count, args, device=dev)
-        self.grid.build(self.mids, self.count, reach + self.half_length, 1.0)
+        self.grid.build(self.mids, self.count, reach + self.half_length, 2.0)
         gather = (positions, self.ends, self.grid.order, self.seg_a, self.seg_b)
         wp.launch(warped.gather_segments_kernel, self.count, gather, device=dev)
 

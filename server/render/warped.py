@@ -262,6 +262,60 @@ def warped_value4(f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp.vec
 
 @wp.func
 @no_type_check
+def warped_value4_level(
+    f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float
+) -> wp.vec4:
+    """`warped_value4`, but -1 where the Gaussian part alone is below `level` (the factor
+    never exceeds 1): the skeleton walk runs only where the density may reach the level."""
+    v = gaussian_value4(f.gauss, o, d, ts)
+    if f.skel.atten > 0.0 and (v[0] >= level or v[1] >= level or v[2] >= level or v[3] >= level):
+        pa = o + d * ts[0]
+        pb = o + d * ts[3]
+        zero = wp.vec4(0.0, 0.0, 0.0, 0.0)
+        h = _walk_h4(f.skel, wp.min(pa, pb), wp.max(pa, pb), points4(o, d, ts), zero)
+        for q in range(4):
+            if v[q] >= level:
+                v[q] = v[q] * attenuation(f.skel, h[q])
+            else:
+                v[q] = -1.0
+    elif f.skel.atten > 0.0:
+        v = wp.vec4(-1.0, -1.0, -1.0, -1.0)
+    return v
+
+
+@wp.func
+@no_type_check
+def warped_value_grad4_level(f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float):
+    """`warped_value_grad4`, with value -1 where the Gaussian part is below `level`."""
+    g0, g1, g2, g3 = gaussian_value_grad4(f.gauss, o, d, ts)
+    if f.skel.atten > 0.0:
+        if g0[3] >= level or g1[3] >= level or g2[3] >= level or g3[3] >= level:
+            pa = o + d * ts[0]
+            pb = o + d * ts[3]
+            zero = wp.mat44(0.0)
+            m = _walk_hgrad4(f.skel, wp.min(pa, pb), wp.max(pa, pb), points4(o, d, ts), zero)
+            g0 = attenuated(g0, attenuation_grad(f.skel, m[0]))
+            g1 = attenuated(g1, attenuation_grad(f.skel, m[1]))
+            g2 = attenuated(g2, attenuation_grad(f.skel, m[2]))
+            g3 = attenuated(g3, attenuation_grad(f.skel, m[3]))
+        g0 = below(g0, level)
+        g1 = below(g1, level)
+        g2 = below(g2, level)
+        g3 = below(g3, level)
+    return g0, g1, g2, g3
+
+
+@wp.func
+@no_type_check
+def below(g: wp.vec4, level: float) -> wp.vec4:
+    out = g
+    if g[3] < level:
+        out = wp.vec4(g[0], g[1], g[2], -1.0)
+    return out
+
+
+@wp.func
+@no_type_check
 def attenuated(vg: wp.vec4, ag: wp.vec4) -> wp.vec4:
     return vg * ag[3] + wp.vec4(ag[0], ag[1], ag[2], 0.0) * vg[3]
 
@@ -296,11 +350,49 @@ def warped_sample(f: WarpedField, p: wp.vec3) -> Sample:
     return s
 
 
+@wp.struct
+class BoxNear:
+    """A box as its centre and half diagonal: a point of the box is within `half` of `center`."""
+
+    center: wp.vec3
+    half: float
+
+
+@wp.func
+@no_type_check
+def row_skeleton_box(s: SkeletonField, q: BoxNear, j0: int, j1: int, h: float) -> float:
+    """H at its largest over the box: every segment counted at a lower bound of its distance
+    to the box (H only grows as distances shrink)."""
+    out = h
+    for j in range(j0, j1):
+        off = segment_offset(s, j, q.center)
+        dmin = wp.max(wp.length(off) - q.half, 0.0)
+        d2 = dmin * dmin
+        if d2 < s.r2:
+            out += skeleton_term(s.r2, d2)[0]
+    return out
+
+
+_walk_h_box = cell_rows("skeleton_box", row_skeleton_box, BoxNear, float, field=SkeletonField)
+
+
 @wp.func
 @no_type_check
 def warped_box_bound(f: WarpedField, lo: wp.vec3, hi: wp.vec3, stop_above: float) -> float:
-    """The Gaussian bound: the attenuation never exceeds 1."""
-    return gaussian_box_bound(f.gauss, lo, hi, stop_above)
+    """The Gaussian bound times the largest factor anywhere in the box (the smallest phi^2 a
+    point of the box can have): cells away from every bond, such as a ring's middle or the gap
+    between two strands, are skipped where the warp empties them."""
+    amax = float(1.0)
+    if f.skel.atten > 0.0:
+        q = BoxNear()
+        q.center = (lo + hi) * 0.5
+        q.half = wp.length(hi - lo) * 0.5
+        amax = attenuation(f.skel, _walk_h_box(f.skel, lo, hi, q, wp.float32(0.0)))
+    bound = float(0.0)
+    if amax > 0.0:
+        # a sum that passes stop_above / amax already puts the bound above stop_above
+        bound = gaussian_box_bound(f.gauss, lo, hi, stop_above / amax) * amax
+    return bound
 
 
 WARPED = DensityModel(
@@ -312,6 +404,8 @@ WARPED = DensityModel(
     box_bound=warped_box_bound,
     value4=warped_value4,
     value_grad4=warped_value_grad4,
+    value4_level=warped_value4_level,
+    value_grad4_level=warped_value_grad4_level,
 )
 
 

@@ -334,3 +334,15 @@ def test_the_default_cutoff_keeps_the_surface_in_place() -> None:
             if a is not None and b is not None:
                 shift = max(shift, abs(a - b))
         assert shift <= max(0.05, 0.01 * sigma), (sigma, shift)
+
+
+@pytest.mark.parametrize("mode", ["iso", "volume"])
+def test_empty_space_skipping_changes_nothing(device: str, mode: str) -> None:
+    """The warped cell bounds (the Gaussian bound times the largest warp factor in the cell)
+    only skip what cannot matter: the image equals the one marched without skipping."""
+    mol = villin()
+    params = RenderParams(mode=mode, scale_space="warped", sigma_A=1.3)  # type: ignore[arg-type]
+    cam = orbit(fit_camera(mol.positions, 40, 30, margin=0.5), 20.0, 10.0)
+    a = render(device, mol.topology, mol.positions, params, cam, 40, 30)
+    b = render(device, mol.topology, mol.positions, params, cam, 40, 30, empty_space_skipping=False)
+    np.testing.assert_array_equal(a.read_rgba(), b.read_rgba())
