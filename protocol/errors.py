@@ -21,6 +21,8 @@ class ErrorCode(StrEnum):
     NOT_READY = "not_ready"
     NOT_FOUND = "not_found"
     INTERNAL = "internal"
+    CONFLICT = "conflict"
+    """The session already has a simulation from another adapter instance."""
 
 
 class ProtocolError(Exception):

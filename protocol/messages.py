@@ -15,7 +15,7 @@ from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
 from protocol.limits import Limits
 
-PROTOCOL_VERSION = "1.1"
+PROTOCOL_VERSION = "1.2"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -23,6 +23,9 @@ PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Unit = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+Coordinate = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False)]
+"""A position in angstrom; a million angstrom (0.1 mm) is beyond any simulation box."""
+Point = tuple[Coordinate, Coordinate, Coordinate]
 RGB = tuple[Unit, Unit, Unit]
 Seq = Annotated[int, Field(ge=0, lt=2**53)]
 Name = Annotated[str, Field(max_length=64)]
@@ -57,6 +60,11 @@ class Hello(Message):
     token: Annotated[str, Field(max_length=256)] | None = None
     client: Annotated[str, Field(max_length=128)] = "unknown"
     session: Annotated[str, Field(pattern=SESSION_NAME)] | None = None
+    instance: Annotated[str, Field(max_length=64)] | None = None
+    """A simulation's identity across its reconnections (random per adapter process): a new
+    connection of the same instance replaces the old one; another instance is refused while
+    the session has a simulation, unless it asks to `takeover`."""
+    takeover: bool = False
 
 
 class Welcome(Message):
@@ -201,7 +209,7 @@ class Pull(Message):
 
     type: Literal["pull"] = "pull"
     atom: Annotated[int, Field(ge=0)]
-    target: Vec3 | None = None
+    target: Point | None = None
     force: Vec3 | None = None
     spring_k: Annotated[float, Field(gt=0, le=10_000, allow_inf_nan=False)] = 10.0
     max_force: Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)] = 1000.0

@@ -21,6 +21,7 @@ import enum
 import logging
 import math
 import random
+import secrets
 import threading
 import time
 from collections import deque
@@ -57,7 +58,9 @@ SteeringMessage = SimParams | Control | Forces
 """What the server sends a simulation to steer it."""
 
 #: error codes after which reconnecting with the same settings cannot succeed
-FATAL_CODES = frozenset({ErrorCode.UNAUTHORIZED, ErrorCode.FORBIDDEN, ErrorCode.VERSION_MISMATCH})
+FATAL_CODES = frozenset(
+    {ErrorCode.UNAUTHORIZED, ErrorCode.FORBIDDEN, ErrorCode.VERSION_MISMATCH, ErrorCode.CONFLICT}
+)
 
 
 class ConnectionState(enum.Enum):
@@ -113,6 +116,7 @@ class SimulationConnection:
         backoff_initial: float = 0.2,
         backoff_max: float = 10.0,
         welcome_timeout: float = 10.0,
+        takeover: bool = False,
     ) -> None:
         parts = urlsplit(url)
         if parts.scheme not in ("ws", "wss") or not parts.hostname:
@@ -122,7 +126,16 @@ class SimulationConnection:
         self.session = session
         self.client = client[:128]
         try:  # a bad session name or token must fail here, not later on the I/O thread
-            self._hello = Hello(role="simulation", token=token, client=self.client, session=session)
+            self._hello = Hello(
+                role="simulation",
+                token=token,
+                client=self.client,
+                session=session,
+                # one identity across reconnections: the server lets this process back in
+                # but refuses a second simulation in the same session (unless it takes over)
+                instance=secrets.token_hex(8),
+                takeover=takeover,
+            )
         except ValueError as exc:
             problem = exc.errors()[0]["msg"] if hasattr(exc, "errors") else str(exc)
             raise ValueError(f"invalid session name or token: {problem}") from None

@@ -103,6 +103,7 @@ class IMDBridge:
         allow_kill: bool = False,
         units: str = "auto",
         lossless: bool = False,
+        takeover: bool = False,
         max_force: float = 1000.0,
         connect_timeout: float = 30.0,
         handshake_timeout: float = 30.0,
@@ -128,6 +129,7 @@ class IMDBridge:
             client="imd-bridge",
             lossless=lossless,
             on_steer=self._on_steer,
+            takeover=takeover,
         )
         self.imd: IMDSession | None = None
         self.error: Exception | None = None
@@ -388,6 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--url", default="ws://127.0.0.1:8000/ws/sim", help="render server /ws/sim")
     ap.add_argument("--token", default=os.environ.get("SCALESTEER_TOKEN"), help="access token")
     ap.add_argument("--session", default="default", help="session name on the server")
+    ap.add_argument(
+        "--takeover", action="store_true", help="replace the session's current simulation"
+    )
     ap.add_argument("--allow-kill", action="store_true", help="let the dashboard stop the engine")
     ap.add_argument(
         "--units",
@@ -423,6 +428,7 @@ def main(argv: list[str] | None = None) -> int:
             lossless=args.lossless,
             max_force=args.max_force,
             connect_timeout=args.connect_timeout,
+            takeover=args.takeover,
         )
     except (StructureError, ValueError) as exc:
         print(f"scalesteer imd: error: {exc}", file=sys.stderr)

@@ -70,6 +70,7 @@ class SteeringReporter:
         title: str = "",
         resume_on_disconnect: bool = True,
         wrap: bool = False,
+        takeover: bool = False,
     ) -> None:
         if int(interval) < 1:
             raise ValueError("interval must be at least 1 step")
@@ -101,6 +102,7 @@ class SteeringReporter:
             lossless=lossless,
             on_steer=self._on_steer,
             on_state=self._on_state,
+            takeover=takeover,
         )
         self.connection.start()
 

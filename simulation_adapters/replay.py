@@ -15,6 +15,7 @@ import argparse
 import functools
 import logging
 import os
+import re
 import sys
 import threading
 import time
@@ -54,6 +55,7 @@ class TrajectoryReplay:
         lossless: bool = True,
         start_paused: bool = False,
         exit_at_end: bool = False,
+        takeover: bool = False,
     ) -> None:
         if not fps > 0:
             raise ValueError("fps must be positive")
@@ -81,6 +83,7 @@ class TrajectoryReplay:
             client="scalesteer-replay",
             lossless=lossless,
             on_steer=self._on_steer,
+            takeover=takeover,
         )
 
     # ------------------------------------------------------------------ lifecycle
@@ -280,6 +283,13 @@ def _time_ps(ts: Any) -> float:
 # ---------------------------------------------------------------------- command line
 
 
+def session_for(path: str) -> str:
+    """A session name of its own for a replayed file: replay-<file name>, so a replay never
+    lands in another run's session by default."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]", "_", os.path.basename(path)).lstrip(".")
+    return f"replay-{stem}"[:64]
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="scalesteer replay",
@@ -291,7 +301,14 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
     ap.add_argument("--url", default="ws://127.0.0.1:8000/ws/sim", help="render server /ws/sim")
     ap.add_argument("--token", default=os.environ.get("SCALESTEER_TOKEN"), help="access token")
-    ap.add_argument("--session", default="default", help="session name on the server")
+    ap.add_argument(
+        "--session",
+        default=None,
+        help="session name on the server (default: replay-<topology file name>)",
+    )
+    ap.add_argument(
+        "--takeover", action="store_true", help="replace the session's current simulation"
+    )
     ap.add_argument("--loop", action="store_true", help="start again after the last frame")
     ap.add_argument("--paused", action="store_true", help="start paused at frame 0")
     ap.add_argument("--exit-at-end", action="store_true", help="exit after the last frame")
@@ -313,23 +330,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         structure = load(args.topology, args.trajectory, guess_bonds=not args.no_guess_bonds)
+        session = args.session or session_for(args.topology)
         replay = TrajectoryReplay(
             structure,
             args.url,
             args.token,
-            args.session,
+            session,
             fps=args.fps,
             loop=args.loop,
             lossless=not args.drop_frames,
             start_paused=args.paused,
             exit_at_end=args.exit_at_end,
+            takeover=args.takeover,
         )
     except (StructureError, ValueError) as exc:
         print(f"scalesteer replay: error: {exc}", file=sys.stderr)
         return 2
     print(
         f"scalesteer replay: {structure.topology.n_atoms} atoms, {structure.n_frames} frames "
-        f"-> {args.url}",
+        f"-> {args.url}, session {session!r} (open the dashboard with ?session={session})",
         file=sys.stderr,
     )
     try:

@@ -57,6 +57,8 @@ class Client:
     role: p.Role
     name: str
     ws: Transport
+    instance: str | None = None
+    """A simulation adapter's identity across reconnections (`hello.instance`)."""
     view: p.View | None = None
     view_ref: int | None = None
     interacting_until: float = 0.0

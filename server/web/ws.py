@@ -120,9 +120,17 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
             )
         except p.ProtocolError as err:
             raise RefusedError(err.with_ref(hello.seq), 1008) from None
+        if role == "simulation":
+            claim_session(session, hello)
         # browsers and scripts send only small control messages; simulations send frames
         limits = settings.limits if endpoint == "sim" else settings.viewer_limits
-        client = Client(client_id=f"c{next(_client_ids)}", role=role, name=hello.client, ws=ws)
+        client = Client(
+            client_id=f"c{next(_client_ids)}",
+            role=role,
+            name=hello.client,
+            ws=ws,
+            instance=hello.instance,
+        )
         guard = Guard.for_limits(limits)
         client.send(
             p.Welcome(session_id=session.id, client_id=client.client_id, role=role, limits=limits)
@@ -153,6 +161,27 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await sender
+
+
+def claim_session(session: Session, hello: p.Hello) -> None:
+    """A session has one simulation. The same adapter instance reconnecting replaces its old
+    connection; another one is refused (it must not flap with the first) unless it asks to
+    take over."""
+    current = session.sim
+    if current is None or hello.takeover:
+        return
+    if hello.instance is not None and hello.instance == current.instance:
+        return
+    raise RefusedError(
+        p.ProtocolError(
+            p.ErrorCode.CONFLICT,
+            f"session {session.id!r} already has a simulation ({current.name}); "
+            "connect to another session, stop that one, or take over (hello.takeover)",
+            "hello.session",
+            hello.seq,
+        ),
+        1008,
+    )
 
 
 async def _handshake(ws: WebSocket, state: AppState, endpoint: Endpoint) -> p.Hello:

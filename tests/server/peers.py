@@ -27,6 +27,8 @@ class Peer:
         origin: str | None = None,
         max_queue: int | None = 64,
         hello: bool = True,
+        instance: str | None = None,
+        takeover: bool = False,
     ) -> None:
         headers = {"Origin": origin} if origin else None
         # entered as a context manager (the supported form); `close()` closes it
@@ -41,7 +43,16 @@ class Peer:
         self.seq = 0
         self.welcome: p.Welcome | None = None
         if hello:
-            self.send(p.Hello(role=role, token=token, client=f"test-{role}", session=session))
+            self.send(
+                p.Hello(
+                    role=role,
+                    token=token,
+                    client=f"test-{role}",
+                    session=session,
+                    instance=instance,
+                    takeover=takeover,
+                )
+            )
             self.welcome = self.expect(p.Welcome, timeout=20)
 
     def send(self, message: p.Message) -> int:

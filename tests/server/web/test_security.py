@@ -200,15 +200,23 @@ def test_viewers_join_but_do_not_create_sessions(live_server: LiveServer) -> Non
     assert error is not None and error.code == "invalid_message" and error.path == "hello.session"
 
 
-def test_a_new_simulation_replaces_the_old_one_cleanly(live_server: LiveServer) -> None:
-    old = Peer(live_server.ws_url, "simulation", live_server.token)
+def test_a_second_simulation_is_refused_unless_it_takes_over(live_server: LiveServer) -> None:
+    old = Peer(live_server.ws_url, "simulation", live_server.token, instance="a1")
     topo, pos = molecule(10)
     old.send(topo)
     old.send(frame(pos, 0))
     steerer = Peer(live_server.view_url, "steerer", live_server.token)
+    # another adapter instance: refused, and the first keeps the session
+    with pytest.raises(ConnectionClosed) as refused:
+        Peer(live_server.ws_url, "simulation", live_server.token, instance="b2")
+    assert refused.value.rcvd is not None and refused.value.rcvd.code == 1008
+    assert refused.value.rcvd.reason == "conflict"
+    old.send(frame(pos, 1))
+    steerer.expect(p.Image, 60, where=lambda m: m.step == 1)
+    # it asks to take over: the old one is told why and closed, its pending steering failed
     seq = steerer.send(p.SimParams(temperature_K=320.0))
     old.expect(p.SimParams)  # forwarded, never acknowledged
-    new = Peer(live_server.ws_url, "simulation", live_server.token)
+    new = Peer(live_server.ws_url, "simulation", live_server.token, instance="b2", takeover=True)
     error, code = closed_with(old)
     assert error is not None and "replaced" in error.message and code == 1008
     ack = steerer.expect(p.ParamsAck, where=lambda m: m.ref == seq)
@@ -216,8 +224,29 @@ def test_a_new_simulation_replaces_the_old_one_cleanly(live_server: LiveServer) 
     new.send(topo)
     new.send(frame(pos, 5))
     steerer.expect(p.Image, 60, where=lambda m: m.step == 5)
-    new.close()
+    # the same instance reconnecting (its old socket not yet noticed as gone) replaces itself
+    again = Peer(live_server.ws_url, "simulation", live_server.token, instance="b2")
+    error, code = closed_with(new)
+    assert code == 1008
+    again.send(topo)
+    again.send(frame(pos, 6))
+    steerer.expect(p.Image, 60, where=lambda m: m.step == 6)
+    again.close()
     steerer.close()
+
+
+def test_an_adapter_refused_for_a_taken_session_stops_trying(live_server: LiveServer) -> None:
+    from simulation_adapters.connection import ConnectionState, SimulationConnection
+
+    first = Peer(live_server.ws_url, "simulation", live_server.token, instance="first")
+    with SimulationConnection(live_server.ws_url, token=live_server.token) as second:
+        assert not second.wait_connected(10)
+        assert second.state is ConnectionState.FAILED
+        assert second.error is not None and "conflict" in second.error
+        connects = second.stats.connects
+        time.sleep(1.0)
+        assert second.stats.connects == connects == 0  # no flapping
+    first.close()
 
 
 def test_pulls_are_capped(tmp_path) -> None:  # type: ignore[no-untyped-def]
