@@ -14,6 +14,8 @@ from thesis.experiments import (
     SCALE_S,
     AllResults,
     DenoiseResults,
+    DenoiseSpectra,
+    LocalSpectra,
     Reconstruction,
     ScaleSpaceResult,
     SpectralChecks,
@@ -36,6 +38,13 @@ def _plt() -> Any:
 
 def _save(fig: Any, out: Path, name: str, dpi: int) -> str:
     fig.tight_layout()
+    fig.savefig(out / name, dpi=dpi)
+    _plt().close(fig)
+    return name
+
+
+def _save_as_is(fig: Any, out: Path, name: str, dpi: int) -> str:
+    """Save a figure that arranges itself (colour bars beside several panels)."""
     fig.savefig(out / name, dpi=dpi)
     _plt().close(fig)
     return name
@@ -193,6 +202,84 @@ def fig_transfer(sp: SpectralChecks, out: Path, dpi: int) -> str:
     return _save(fig, out, "fig_transfer_function.png", dpi)
 
 
+DB_RANGE = 60.0  # dynamic range shown in the short-time spectra
+
+
+def _db(mag: FloatArray) -> FloatArray:
+    return np.asarray(20.0 * np.log10(mag + 1e-12), dtype=np.float64)
+
+
+def _spectrogram(ax: Any, mag: FloatArray, k: FloatArray, top: float, cutoff: float) -> Any:
+    """One short-time spectrum, time across and frequency up, on a shared dB scale."""
+    n = mag.shape[0]
+    ext = (-0.5, n - 0.5, float(k[0]), float(k[-1]))
+    im = ax.imshow(
+        _db(mag).T, origin="lower", extent=ext, aspect="auto", cmap="magma",
+        vmin=top - DB_RANGE, vmax=top,
+    )  # fmt: skip
+    ax.axhline(cutoff, color="w", lw=0.7, ls="--")
+    ax.set_ylabel("cycles / sample")
+    return im
+
+
+def fig_local_spectra(loc: LocalSpectra, out: Path, dpi: int) -> list[str]:
+    """Figs. 3.2/3.4 (short-time spectra of the signal and both filters) and 3.5b (difference)."""
+    plt = _plt()
+    top = float(_db(loc.original).max())
+    fig, ax = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
+    panels = (
+        (loc.original, "(a) original signal"),
+        (loc.classical, f"(b) linear (classical) filter, s = {SCALE_S}"),
+        (loc.warped, f"(c) arclength-warped filter, s = {SCALE_S}"),
+    )
+    for a, (mag, title) in zip(ax, panels, strict=True):
+        im = _spectrogram(a, mag, loc.k, top, loc.cutoff)
+        a.set_title(f"{title}: |STFT|, Hann window of {2 * (loc.k.size - 1)} samples", fontsize=9)
+    ax[-1].set_xlabel("t (samples)")
+    fig.colorbar(im, ax=list(ax), shrink=0.6, label="dB")
+    fig.set_layout_engine("constrained")
+    names = [_save_as_is(fig, out, "fig3_2_local_spectra.png", dpi)]
+    fig, ax = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+    ax[0].step(loc.t[:-1] + 0.5, loc.dgamma, where="mid", color="k")
+    ax[0].set_title("(a) gamma'(t) of the arclength warp")
+    diff = loc.warped - loc.classical
+    lim = float(np.abs(diff).max())
+    ext = (-0.5, diff.shape[0] - 0.5, float(loc.k[0]), float(loc.k[-1]))
+    im = ax[1].imshow(
+        diff.T, origin="lower", extent=ext, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim
+    )
+    ax[1].axhline(loc.cutoff, color="k", lw=0.7, ls="--")
+    ax[1].set_title(
+        "(b) |STFT| of the warped minus |STFT| of the linear filtered signal", fontsize=9
+    )
+    ax[1].set_ylabel("cycles / sample")
+    ax[1].set_xlabel("t (samples)")
+    fig.colorbar(im, ax=list(ax), shrink=0.6, label="magnitude difference")
+    fig.set_layout_engine("constrained")
+    names.append(_save_as_is(fig, out, "fig3_5b_spectra_difference.png", dpi))
+    return names
+
+
+def fig_denoise_spectra(sp: DenoiseSpectra, out: Path, dpi: int) -> str:
+    """Fig. 4.8: short-time spectra of the clean, noisy, classical and warped denoised signal."""
+    plt = _plt()
+    top = float(_db(sp.spectra["clean"]).max())
+    fig, ax = plt.subplots(4, 1, figsize=(7, 8.5), sharex=True)
+    panels = (
+        ("clean", "(a) original signal"),
+        ("noisy", f"(b) noisy signal, noise std {sp.level}"),
+        ("classical", f"(c) classical filter, sigma = {DENOISE_SIGMA}"),
+        ("noisy_warp", f"(d) time-warped filter (noisy warp), sigma = {DENOISE_SIGMA}"),
+    )
+    for a, (key, title) in zip(ax, panels, strict=True):
+        im = _spectrogram(a, sp.spectra[key], sp.k, top, sp.cutoff)
+        a.set_title(title, fontsize=9)
+    ax[-1].set_xlabel("pixel")
+    fig.colorbar(im, ax=list(ax), shrink=0.5, label="|STFT| (dB)")
+    fig.set_layout_engine("constrained")
+    return _save_as_is(fig, out, "fig4_8_denoising_spectrograms.png", dpi)
+
+
 def make_figures(r: AllResults, out: Path, dpi: int) -> list[str]:
     """Write every figure into ``out``; returns their file names."""
     names = fig_scale_space(r.scale, out, dpi)
@@ -218,4 +305,6 @@ def make_figures(r: AllResults, out: Path, dpi: int) -> list[str]:
     names += fig_gamma_prime(r.denoise.real.clean, 0.3, out, dpi)
     names.append(fig_high_noise(r.denoise.real.clean, 0.9, out, dpi))
     names.append(fig_transfer(r.spectral, out, dpi))
+    names += fig_local_spectra(r.local, out, dpi)
+    names.append(fig_denoise_spectra(r.denoise.spectra["real"], out, dpi))
     return names

@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import platform
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -16,35 +17,66 @@ import numpy as np
 
 from thesis.experiments import (
     CAMERA_ROW,
+    CONCENTRATION,
     DENOISE_SIGMA,
+    EDGE_SHARE,
     NOISE_LEVELS,
     SCALE_S,
     SIGMAS,
+    SWEEP_LEVEL,
     SYNTH_N,
     THESIS_4_1,
     THESIS_4_2,
     THESIS_4_3,
     THESIS_4_4,
     THESIS_4_5,
+    TIE_TOL,
     AllResults,
     DenoiseResults,
+    DenoiseSpectra,
+    LocalSpectra,
     Reconstruction,
+    SigmaSweep,
+    WinRange,
     crossover,
     non_increasing,
+    tied_sigmas,
+    warped_wins,
 )
 from timewarp._types import FloatArray
 from timewarp.denoise import METHODS
 from timewarp.metrics import total_absolute_error
+from timewarp.warps import length_normalising_constant
 
 __all__ = ["write_report"]
 
 _SUMMARY = "<summary>"
+_LEDGER = "<ledger>"
 
 METHOD_NAMES = {
     "classical": "Classical filtering",
     "noisy_warp": "Noisy warped filter",
     "ground_truth_warp": "Ground truth warped filter",
 }
+
+
+# the claims checked, as the headline and the ledger name them
+EDGES = "edges survive longer in the warped scale space (fig. 3.3)"
+CAUSAL = "no new extrema as s grows (corollary 1)"
+LOCAL = "warped filtering adapts to the edges' local bandwidth spikes (figs. 3.2, 3.4, 3.5)"
+SHAPE = "classical better for small sigma, warped for large, one crossover (tables 4.1, 4.2)"
+SLOW = "the warped error grows more slowly with sigma (table 4.1)"
+ENERGY = "99.8 % of the ML energy below 10 Hz"
+THEOREM3 = "theorem 3: warping does not increase the smoothing error"
+LEMMA3 = "lemma 3: transfer function mass moves to k <= w"
+THEOREM5 = "theorem 5: the ground-truth warp beats classical denoising (tables 4.3, 4.4)"
+ORDER = "ground-truth warp < noisy warp < classical (tables 4.3, 4.4)"
+SPECTRO = "warped denoising keeps the edges' local bandwidth, classical flattens it (fig. 4.8)"
+TABLE45 = (
+    "with growing noise the noisy warp diverges from the ground truth and goes from better to "
+    "worse than classical (table 4.5)"
+)
+OVER = "the noisy gamma' mostly over-estimates the true one (figs. 4.9, 4.10)"
 
 
 def _fmt(x: float | None, nd: int = 3) -> str:
@@ -56,15 +88,91 @@ def _ms(v: FloatArray) -> str:
     return f"{v.mean():.2f} ± {sd:.2f}"
 
 
-class _Verdicts:
-    """Formats a verdict and remembers it, so the summary can count them."""
+def _mark(ok: bool) -> str:
+    """The verdict on one part of a claim; the claim as a whole is recorded by :class:`_Claims`."""
+    return "**holds here**" if ok else "**does not hold here**"
+
+
+@dataclass
+class _Claim:
+    """One statement of the thesis and the computed checks of each of its parts."""
+
+    name: str
+    parts: list[tuple[str, bool]]
+
+    @property
+    def status(self) -> str:
+        oks = [ok for _, ok in self.parts]
+        return "holds" if all(oks) else ("partly" if any(oks) else "fails")
+
+
+STATUS_TEXT = {
+    "holds": "holds",
+    "partly": "holds only in part (counted as not holding)",
+    "fails": "does not hold",
+}
+
+
+class _Claims:
+    """Records every claim checked, so the headline counts only what the numbers support.
+
+    A claim with several parts (two signals, two conditions) holds only if every part does; one
+    that holds in part is counted as not holding, and the report says so.
+    """
 
     def __init__(self) -> None:
-        self.results: list[bool] = []
+        self.claims: list[_Claim] = []
 
-    def __call__(self, ok: bool) -> str:
-        self.results.append(bool(ok))
-        return "**holds here**" if ok else "**does not hold here**"
+    def __call__(self, name: str, ok: bool) -> str:
+        """Record a claim with a single check and return its verdict."""
+        self.claims.append(_Claim(name, [("", bool(ok))]))
+        return _mark(ok)
+
+    def compound(self, name: str, parts: Sequence[tuple[str, bool]]) -> str:
+        """Record a claim with several checks and return the verdict on the whole claim."""
+        claim = _Claim(name, [(label, bool(ok)) for label, ok in parts])
+        self.claims.append(claim)
+        return {
+            "holds": "**holds here**",
+            "partly": "**holds only in part** (counted as not holding)",
+            "fails": "**does not hold here**",
+        }[claim.status]
+
+    def count(self, status: str) -> int:
+        return sum(c.status == status for c in self.claims)
+
+    def headline(self) -> str:
+        """The summary sentence: how many claims hold, hold in part, or fail, and which."""
+        held, part, fail = self.count("holds"), self.count("partly"), self.count("fails")
+
+        def names(status: str) -> str:
+            return "; ".join(f"*{c.name}*" for c in self.claims if c.status == status)
+
+        def verb(n: int, one: str, many: str) -> str:
+            return f"{n} {one if n == 1 else many}"
+
+        text = f"Of the {len(self.claims)} claims of the thesis checked below, "
+        text += verb(held, "holds here", "hold here")
+        if part:
+            text += "; " + verb(
+                part,
+                "holds only in part and is counted as not holding",
+                "hold only in part and are counted as not holding",
+            )
+            text += f": {names('partly')}"
+        text += "; " + verb(fail, "does not hold", "do not hold")
+        return text + (f": {names('fails')}." if fail else ".")
+
+    def table(self) -> list[str]:
+        """Every claim with the verdict on each of its parts: the ledger behind the headline."""
+        lines = ["| # | claim | parts checked | verdict |", "|---:|---|---|---|"]
+        for i, c in enumerate(self.claims, 1):
+            parts = "; ".join(
+                f"{label}: {'yes' if ok else 'no'}" if label else ("yes" if ok else "no")
+                for label, ok in c.parts
+            )
+            lines.append(f"| {i} | {c.name} | {parts} | {STATUS_TEXT[c.status]} |")
+        return lines
 
 
 def _rel(a: float, b: float) -> float:
@@ -72,10 +180,34 @@ def _rel(a: float, b: float) -> float:
     return 100.0 * (a - b) / b
 
 
+def _runs(sigmas: FloatArray, mask: Sequence[bool]) -> list[str]:
+    """Consecutive runs of tabulated sigmas where ``mask`` is set, as '0.467-1.133' strings."""
+    out: list[str] = []
+    for key, grp in itertools.groupby(enumerate(mask), key=lambda im: bool(im[1])):
+        idx = [i for i, _ in grp]
+        if key:
+            lo, hi = float(sigmas[idx[0]]), float(sigmas[idx[-1]])
+            out.append(f"{lo:.3f}" if lo == hi else f"{lo:.3f}-{hi:.3f}")
+    return out
+
+
+def _and(items: Sequence[str]) -> str:
+    """'a', 'a and b', 'a, b and c'."""
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+def _win_runs(wins: Sequence[WinRange]) -> str:
+    """The sigma runs where warped beats classical, 'none' when there are none."""
+    if not wins:
+        return "none"
+    return _and([f"{w.lo:.3f}" if w.lo == w.hi else f"{w.lo:.3f}-{w.hi:.3f}" for w in wins])
+
+
 def _summary(sigmas: FloatArray, c: FloatArray, w: FloatArray) -> dict[str, Any]:
     ic, iw = int(np.argmin(c)), int(np.argmin(w))
     grid, interp = crossover(sigmas, c, w)
     return {
+        "wins": warped_wins(sigmas, c, w),
         "c_min": float(c[ic]),
         "c_arg": float(sigmas[ic]),
         "w_min": float(w[iw]),
@@ -98,8 +230,64 @@ def _thesis_summary(th: dict[str, list[float]]) -> dict[str, Any]:
 def _summary_row(label: str, s: dict[str, Any]) -> str:
     return (
         f"| {label} | {s['c_min']:.3f} @ {s['c_arg']:.3f} | {s['w_min']:.3f} @ {s['w_arg']:.3f} "
-        f"| {_fmt(s['cross'])} | {_fmt(s['cross_i'])} | {s['c_last']:.2f} / {s['w_last']:.2f} |"
+        f"| {_fmt(s['cross'])} | {_fmt(s['cross_i'])} | {_win_runs(s['wins'])} "
+        f"| {s['c_last']:.2f} / {s['w_last']:.2f} |"
     )
+
+
+def single_crossover(rec: Reconstruction) -> bool:
+    """Classical wins (or ties) at the smallest sigmas and warped from one sigma to the end."""
+    wins = warped_wins(rec.sigmas, rec.classical, rec.warped)
+    return (
+        len(wins) == 1 and wins[0].hi == float(rec.sigmas[-1]) and wins[0].lo > float(rec.sigmas[0])
+    )
+
+
+def normalised_warp_text(rec: Reconstruction, plain: Reconstruction) -> str:
+    """What the lemma 2 normalised warp does to the ML reconstruction, read off the errors.
+
+    Each run of sigmas where warped wins is reported: a warp that loses at the end of the table
+    can still win over an interior range, and "never" is said only when no sigma wins.
+    """
+    sig, c, w = rec.sigmas, rec.classical, rec.warped
+    wins = warped_wins(sig, c, w)
+    t = rec.t_samples
+    dg = rec.warp.dgamma(t[:-1] + 0.5 * np.diff(t))
+    c_norm = length_normalising_constant(plain.warp, float(t[0]), float(t[-1]))
+    shape = (
+        f"dividing `gamma` by c = {c_norm:.3f} puts `gamma'` between {float(dg.min()):.2f} and "
+        f"{float(dg.max()):.2f}"
+    )
+    if float(dg.min()) < 1.0:
+        shape += (
+            ", below 1 on the flat parts, where the kernel is then wider than the classical one"
+        )
+    last = f"at sigma = {float(sig[-1]):.3f}: {float(w[-1]):.2f} vs {float(c[-1]):.2f}"
+    if not wins:
+        return (
+            "with the bandwidth-normalised warp the warped ML reconstruction never beats the "
+            f"classical one over the table (sigma {float(sig[0]):.3f}-{float(sig[-1]):.3f}; "
+            f"{last}): {shape}."
+        )
+    gain = 100.0 * (c - w) / c
+    ib = int(np.argmax(gain))
+    crosses = [x for r in wins for x in (r.lo_cross, r.hi_cross) if x is not None]
+    text = (
+        "with the bandwidth-normalised warp the warped ML reconstruction beats the classical "
+        f"one only for sigma {_win_runs(wins)} of the table"
+    )
+    if crosses:
+        text += f" (sign changes interpolated at {_and([f'{x:.3f}' for x in crosses])})"
+    text += f", by up to {gain[ib]:.1f} % (sigma {float(sig[ib]):.3f})"
+    worse = _runs(sig, list(w - c > TIE_TOL * np.abs(c)))
+    if worse:
+        text += f"; it is worse at sigma {_and(worse)}"
+        text += f" ({last})" if w[-1] > c[-1] else ""
+    ties = _runs(sig, list(np.isin(sig, tied_sigmas(sig, c, w))))
+    if ties:
+        text += f"; the two agree to within {100 * TIE_TOL:g} % at sigma {_and(ties)}"
+    plain_wins = _win_runs(warped_wins(plain.sigmas, plain.classical, plain.warped))
+    return f"{text}. Without the normalisation warped wins for sigma {plain_wins}; {shape}."
 
 
 def _recon_table(rec: Reconstruction, thesis: dict[str, list[float]]) -> list[str]:
@@ -164,11 +352,245 @@ def _mean(r: DenoiseResults, level: float, method: str) -> float:
     return float(r.study[level][method].mean())
 
 
+def _order_parts(err: dict[str, float]) -> tuple[bool, bool]:
+    """The two halves of the thesis's order: ground-truth warp < noisy warp < classical."""
+    return (
+        err["ground_truth_warp"] < err["noisy_warp"],
+        err["noisy_warp"] < err["classical"],
+    )
+
+
+def _order_words(err: dict[str, float], nd: int = 2) -> str:
+    gt_nw, nw_c = _order_parts(err)
+    return (
+        f"ground-truth warp {err['ground_truth_warp']:.{nd}f} "
+        f"{'<' if gt_nw else '>='} noisy warp {err['noisy_warp']:.{nd}f} "
+        f"{'<' if nw_c else '>='} classical {err['classical']:.{nd}f}"
+    )
+
+
+def _order_text(res: DenoiseResults) -> str:
+    """The thesis's order checked on the mean errors at level 0.3 and the common sigma."""
+    return _order_words({m: _mean(res, 0.3, m) for m in METHODS})
+
+
+def _best_order_text(sweeps: dict[str, SigmaSweep]) -> str:
+    """The same order with every method at its own best sigma."""
+    parts = []
+    for label, sw in sweeps.items():
+        err = {m: sw.best(m)[1] for m in METHODS}
+        ok = all(_order_parts(err))
+        spread = 100.0 * (max(err.values()) - min(err.values())) / min(err.values())
+        close = f"; all three within {spread:.1f} % of each other" if spread < 5.0 else ""
+        parts.append(
+            f"{label}: {_order_words(err, 3)} (the thesis's order "
+            f"{'holds' if ok else 'does not hold'}{close})"
+        )
+    return "; ".join(parts)
+
+
+def _order_depends_on_sigma(sweeps: dict[str, SigmaSweep]) -> bool:
+    """Whether the ranking of the three methods at the common sigma differs from their best."""
+    for sw in sweeps.values():
+        common = {m: sw.at(m, DENOISE_SIGMA) for m in METHODS}
+        best = {m: sw.best(m)[1] for m in METHODS}
+        if sorted(METHODS, key=common.__getitem__) != sorted(METHODS, key=best.__getitem__):
+            return True
+    return False
+
+
+def _sweep_table(sweeps: dict[str, SigmaSweep]) -> list[str]:
+    """Each method at its own best sigma and at the common sigma of tables 4.3 and 4.4."""
+    lines = [
+        "| signal | method | best sigma | mean error at best sigma "
+        f"| mean error at sigma = {DENOISE_SIGMA} (common) |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for label, sw in sweeps.items():
+        for m in METHODS:
+            s_best, e_best = sw.best(m)
+            end = " (end of grid)" if s_best in (sw.sigmas[0], sw.sigmas[-1]) else ""
+            lines.append(
+                f"| {label} | {METHOD_NAMES[m]} | {s_best:.2f}{end} | {e_best:.3f} "
+                f"| {sw.at(m, DENOISE_SIGMA):.3f} |"
+            )
+    return lines
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f} %"
+
+
+def _local_spectra_section(loc: LocalSpectra, claims: _Claims) -> list[str]:
+    """Figs. 3.2, 3.4 and 3.5b: short-time spectra of the signal and of both filters."""
+    window = 2 * (loc.k.size - 1)
+    n_edges = int(np.sum(loc.dgamma - 1.0 >= EDGE_SHARE * float(np.max(loc.dgamma - 1.0))))
+    kept_more = loc.kept["near"]["warped"] > loc.kept["near"]["classical"]
+    ratio = loc.diff_near / loc.diff_flat if loc.diff_flat > 0 else float("inf")
+    concentrated = ratio >= CONCENTRATION
+    verdict = claims.compound(
+        LOCAL, [("keeps more at edges", kept_more), ("differs mostly at edges", concentrated)]
+    )
+    return [
+        "## Chapter 3: local spectra of linear and warped filtering (figs. 3.2, 3.4, 3.5b)",
+        "",
+        f"Short-time Fourier magnitude of the step-edge signal and of both scale spaces at s = "
+        f"{SCALE_S}: a Hann window of {window} samples centred on every sample (numpy FFT, the "
+        "frame mean removed, the signal extended by its end values). The *high band* is above "
+        f"{loc.cutoff:.3f} cycles per sample, where the classical Gaussian keeps less than half "
+        f"the power. *At the edges*: the {int(loc.near.sum())} windows centred within "
+        f"{window // 4} samples of one of the {n_edges} segments where `gamma'` peaks (`gamma' "
+        f"- 1` at least {100 * EDGE_SHARE:g} % of its maximum); *away from edges*: the "
+        f"{int(loc.flat.sum())} windows with no such segment within {window // 2} samples. The "
+        "thesis does not state its window, so its time-frequency plots compare in kind only.",
+        "",
+        "![fig 3.2 and 3.4](fig3_2_local_spectra.png)",
+        "",
+        "![fig 3.5b](fig3_5b_spectra_difference.png)",
+        "",
+        "| windows | high-band energy kept: classical | high-band energy kept: warped |",
+        "|---|---:|---:|",
+        f"| at the edges | {_pct(loc.kept['near']['classical'])} "
+        f"| {_pct(loc.kept['near']['warped'])} |",
+        f"| away from edges | {_pct(loc.kept['flat']['classical'])} "
+        f"| {_pct(loc.kept['flat']['warped'])} |",
+        "",
+        "- *The arclength-warped filter adapts to the local bandwidth spike at each edge, which "
+        "the linear filter does not; where `gamma'` is small the two time-frequency plots "
+        f"nearly agree, where it peaks they differ much more*: {verdict}. "
+        f"At the edges the warped filter keeps {_pct(loc.kept['near']['warped'])} of the "
+        f"signal's high-band short-time energy and the classical one "
+        f"{_pct(loc.kept['near']['classical'])} ({_mark(kept_more)}). The mean magnitude of "
+        f"the warped-minus-classical difference per window is {loc.diff_near:.3f} at the edges "
+        f"and {loc.diff_flat:.4f} away from them, {ratio:.0f} times smaller "
+        f"({_mark(concentrated)}; 'much more' is read as at least {CONCENTRATION:g} times).",
+        "",
+    ]
+
+
+def _best_sigma_section(sweeps: dict[str, SigmaSweep], seeds: int) -> list[str]:
+    """Tables 4.3/4.4 with every method at its own best sigma beside the common sigma."""
+    sw = next(iter(sweeps.values()))
+    return [
+        "### Each method at its own best sigma",
+        "",
+        f"Comparing the methods at one sigma favours the one that sigma happens to suit. Mean "
+        f"total error over the same {seeds} noise draws at level {SWEEP_LEVEL}, sigma on a "
+        f"quarter-octave grid from {float(sw.sigmas[0]):.2f} to {float(sw.sigmas[-1]):.1f} "
+        f"through {DENOISE_SIGMA}:",
+        "",
+        *_sweep_table(sweeps),
+        "",
+    ]
+
+
+def _denoise_spectra_section(spectra: dict[str, DenoiseSpectra], claims: _Claims) -> list[str]:
+    """Fig. 4.8: the short-time spectra of the denoised scanline, and the edge statistics."""
+    real, syn = spectra["real"], spectra["synthetic"]
+    kept_more = real.kept["noisy_warp"] > real.kept["classical"]
+    closer = real.error["noisy_warp"] < real.error["classical"]
+    verdict = claims.compound(
+        SPECTRO, [("keeps more at edges", kept_more), ("closer to the clean spectrum", closer)]
+    )
+    rows = [
+        f"| {sp.label} | "
+        + " / ".join(_pct(sp.kept[m]) for m in METHODS)
+        + " | "
+        + " / ".join(f"{sp.error[m]:.3f}" for m in METHODS)
+        + " |"
+        for sp in spectra.values()
+    ]
+    return [
+        "### Local spectra of the denoised signals (fig. 4.8)",
+        "",
+        f"Short-time spectra as in chapter 3 (high band above {real.cutoff:.3f} cycles per "
+        f"sample, the half-power frequency of sigma = {DENOISE_SIGMA}), noise level "
+        f"{real.level}, seed 0 in the figure; the numbers are means over the seeds. Edges are "
+        "where the clean signal's `gamma'` peaks.",
+        "",
+        "![fig 4.8](fig4_8_denoising_spectrograms.png)",
+        "",
+        "| signal | clean high-band energy at edges kept: classical / noisy warp / GT warp "
+        "| short-time spectrum error at edges, relative: classical / noisy warp / GT warp |",
+        "|---|---:|---:|",
+        *rows,
+        "",
+        "- *Warped filtering adapts to the local bandwidth spikes of the (real) signal and "
+        "preserves them, whereas classical filtering flattens and attenuates them (fig. "
+        f"4.8)*: {verdict}. On the scanline the noisy-warp filter keeps "
+        f"{_pct(real.kept['noisy_warp'])} of the clean signal's high-band energy at the edges "
+        f"against {_pct(real.kept['classical'])} for classical filtering ({_mark(kept_more)}), "
+        f"and its short-time spectrum there is off by {real.error['noisy_warp']:.3f} against "
+        f"{real.error['classical']:.3f} ({_mark(closer)}; "
+        f"{_rel(real.error['noisy_warp'], real.error['classical']):+.1f} %). On the synthetic "
+        "signal, whose edges stretch the warp several-fold, the same "
+        f"numbers are {_pct(syn.kept['noisy_warp'])} vs {_pct(syn.kept['classical'])} and "
+        f"{syn.error['noisy_warp']:.3f} vs {syn.error['classical']:.3f}.",
+        "",
+    ]
+
+
+# each figure of thesis chapters 3-4 and the file that reproduces it
+THESIS_FIGURES = {
+    "3.1": ("fig3_3_scale_space.png", "panel (b): the signal and its linear scale space, s = 2"),
+    "3.2": ("fig3_2_local_spectra.png", "panels (a), (b)"),
+    "3.3": ("fig3_3_scale_space.png", ""),
+    "3.4": ("fig3_2_local_spectra.png", "panels (a)-(c)"),
+    "3.5a": ("fig3_5_gamma_prime.png", ""),
+    "3.5b": ("fig3_5b_spectra_difference.png", "panel (b), beside gamma' in (a)"),
+    "4.1": ("fig4_1_real_data.png", "a different photograph"),
+    "4.2": ("fig4_2_ml_error.png", ""),
+    "4.3": ("fig4_3_real_error.png", ""),
+    "4.4": ("fig4_4_ml_reconstruction.png", ""),
+    "4.5": ("fig4_5_real_reconstruction.png", ""),
+    "4.6": ("fig4_6_synthetic_denoising.png", ""),
+    "4.7": ("fig4_7_real_denoising.png", ""),
+    "4.8": ("fig4_8_denoising_spectrograms.png", ""),
+    "4.9": ("fig4_9_gamma_prime_noisy.png", ""),
+    "4.10": ("fig4_10_gamma_prime_difference.png", ""),
+    "4.11": ("fig4_11_high_noise.png", ""),
+}
+
+
+def _coverage(figures: Sequence[str]) -> list[str]:
+    """Which thesis figure each file reproduces, and everything that is not reproduced."""
+    made = set(figures)
+    rows = [
+        f"| {fig} | `{name}` | {note} |"
+        for fig, (name, note) in THESIS_FIGURES.items()
+        if name in made
+    ]
+    missing = [
+        f"- Figure {fig}: not drawn by this run (`{name}` was not written)."
+        for fig, (name, _) in THESIS_FIGURES.items()
+        if name not in made
+    ]
+    return [
+        "## Coverage, and what is not reproduced",
+        "",
+        "| thesis figure | file | note |",
+        "|---|---|---|",
+        *rows,
+        "",
+        "Not reproduced:",
+        "",
+        *missing,
+        "- The absolute error levels of tables 4.1-4.5 (see each section for why).",
+        "- The thesis's own test signals: its photograph is not identified and its synthetic "
+        "signals are defined only through their figures, so figs. 3.1-3.5, 4.1, 4.3 and 4.5-4.11 "
+        "show stand-ins (the step-edge signal and the `camera` scanline).",
+        "- The thesis's time-frequency settings (window type, length, overlap, scale): figs. "
+        "3.2, 3.4, 3.5b and 4.8 use a Hann window stated above, so they compare in kind, not "
+        "pixel for pixel.",
+        "",
+    ]
+
+
 def write_report(r: AllResults, out: Path) -> Path:
     """Assemble ``REPORT.md`` in ``out`` and return its path."""
     lines: list[str] = []
     a = lines.append
-    verdict = _Verdicts()
+    claims = _Claims()
     rc, sp, dn, sc = r.recon, r.spectral, r.denoise, r.scale
     ml_s, real_s = _rec_summary(rc.ml), _rec_summary(rc.real)
     th41, th42 = _thesis_summary(THESIS_4_1), _thesis_summary(THESIS_4_2)
@@ -206,6 +628,11 @@ def write_report(r: AllResults, out: Path) -> Path:
         f"{100 * sp.energy_below_10_no_mean:.2f} % (mean removed), "
         f"{100 * sp.energy_below_10:.2f} % (with mean) |"
     )
+    kept = r.local.kept["near"]
+    a(
+        "| step edges, high-band short-time energy kept at the edges: classical / warped "
+        f"| not given | {_pct(kept['classical'])} / {_pct(kept['warped'])} |"
+    )
     for label, res, th in (("synthetic", syn, THESIS_4_3), ("real", real, THESIS_4_4)):
         ours = " / ".join(f"{_mean(res, 0.3, m):.2f}" for m in METHODS)
         theirs = " / ".join(f"{th[m]:.3f}" for m in METHODS)
@@ -215,6 +642,8 @@ def write_report(r: AllResults, out: Path) -> Path:
     a(f"| real denoising, level 0.7: classical / noisy warp / GT warp | {theirs7} | {ours7} |")
     a("")
     a(_SUMMARY)  # replaced once every verdict below is known
+    a("")
+    a(_LEDGER)
     a("")
 
     # -- conventions -----------------------------------------------------------------------
@@ -285,7 +714,7 @@ def write_report(r: AllResults, out: Path) -> Path:
         f"{float(sc.dgamma.min()):.2f} on flat parts and peaks at the edges "
         f"(max {float(sc.dgamma.max()):.2f}), where the filter is effectively that much "
         "narrower. The thesis's claim that edges are preserved much longer by the warped "
-        f"scale space {verdict(war_dev < lin_dev and war_slope > lin_slope)}."
+        f"scale space {claims(EDGES, war_dev < lin_dev and war_slope > lin_slope)}."
     )
     a("")
     a(
@@ -300,11 +729,12 @@ def write_report(r: AllResults, out: Path) -> Path:
     a("")
     monotone = all(non_increasing(v) for v in sc.extrema.values())
     a(
-        f"The counts never increase with s: the causality claim {verdict(monotone)}. The "
+        f"The counts never increase with s: the causality claim {claims(CAUSAL, monotone)}. The "
         "property tests also check it on random signals, and check corollary 2 (maxima do "
         "not grow, minima do not sink as s increases)."
     )
     a("")
+    lines.extend(_local_spectra_section(r.local, claims))
 
     # -- reconstruction ----------------------------------------------------------------------
     a("## Section 4.2: reconstruction of the Marschner-Lobb function (table 4.1, figs. 4.2, 4.4)")
@@ -340,9 +770,10 @@ def write_report(r: AllResults, out: Path) -> Path:
     a("")
     a(
         "| set-up | min classical error @ sigma | min warped error @ sigma | crossover (grid) "
-        "| crossover (interpolated) | error at sigma = 1.333: classical / warped |"
+        "| crossover (interpolated) | warped better (by more than 0.1 %) at sigma "
+        "| error at sigma = 1.333: classical / warped |"
     )
-    a("|---|---:|---:|---:|---:|---:|")
+    a("|---|---:|---:|---:|---:|---|---:|")
     a(_summary_row("ML, thesis table 4.1", th41))
     a(_summary_row("ML, here", ml_s))
     for name, rec in rc.ml_variants.items():
@@ -376,28 +807,25 @@ def write_report(r: AllResults, out: Path) -> Path:
     a("What holds and what does not:")
     a("")
 
-    def shape_ok(rec: Reconstruction) -> bool:
-        s = _rec_summary(rec)
-        return bool(
-            s["cross"] is not None
-            and rec.warped[0] >= rec.classical[0]
-            and rec.warped[-1] < rec.classical[-1]
-        )
-
+    shape = claims.compound(
+        SHAPE, [("ML", single_crossover(rc.ml)), ("scanline", single_crossover(rc.real))]
+    )
     a(
         "- *Classical reconstruction is better for small sigma, warped for large sigma, with a "
-        f"single crossover*: {verdict(shape_ok(rc.ml))} for the ML function (crossover at "
-        f"sigma {_fmt(ml_s['cross_i'])} here, {_fmt(th41['cross_i'])} in table 4.1; the text "
-        f"says 'around 0.2') and {verdict(shape_ok(rc.real))} for the scanline (crossover "
-        f"{_fmt(real_s['cross_i'])} here, {_fmt(th42['cross_i'])} in table 4.2, whose text "
-        "says 'around 0.13' although the table puts it between 0.2 and 0.267)."
+        f"single crossover*: {shape}. ML function: "
+        f"{_mark(single_crossover(rc.ml))}, warped better at sigma {_win_runs(ml_s['wins'])} "
+        f"(crossover at {_fmt(ml_s['cross_i'])} here, {_fmt(th41['cross_i'])} in table 4.1; the "
+        f"text says 'around 0.2'); scanline: {_mark(single_crossover(rc.real))}, warped better "
+        f"at sigma {_win_runs(real_s['wins'])} (crossover {_fmt(real_s['cross_i'])} here, "
+        f"{_fmt(th42['cross_i'])} in table 4.2, whose text says 'around 0.13' although the "
+        "table puts it between 0.2 and 0.267)."
     )
     ptp_w, ptp_c = float(np.ptp(rc.ml.warped)), float(np.ptp(rc.ml.classical))
     th_ptp_w = float(np.ptp(THESIS_4_1["warped"]))
     th_ptp_c = float(np.ptp(THESIS_4_1["classical"]))
     a(
         "- *The warped error grows more slowly with sigma, so wide kernels are safer*: "
-        f"{verdict(ptp_w < ptp_c)} for the ML function (spread of the warped error over the "
+        f"{claims(SLOW, ptp_w < ptp_c)} for the ML function (spread of the warped error over the "
         f"table {ptp_w:.2f} vs classical {ptp_c:.2f}; thesis {th_ptp_w:.2f} vs {th_ptp_c:.2f})."
     )
     gap_ok = best_ml > 1.2 * th41["c_min"]
@@ -430,17 +858,9 @@ def write_report(r: AllResults, out: Path) -> Path:
         f"{ml_s['c_arg']:.3f} vs {th41['c_arg']:.3f}, warped {ml_s['w_arg']:.3f} vs "
         f"{th41['w_arg']:.3f}); sigma was not rescaled to match."
     )
-    norm = _rec_summary(rc.ml_variants["bandwidth-normalised warp"])
     a(
-        "- *Lemma 2 normalisation*: with the bandwidth-normalised warp the warped ML "
-        + (
-            f"reconstruction never beats the classical one over the table (at sigma = 1.333: "
-            f"{norm['w_last']:.2f} vs {norm['c_last']:.2f}): dividing `gamma` by "
-            f"c = {sp.c_norm:.3f} makes `gamma' < 1` on the flat parts, widening the kernel "
-            "there, which cancels the gain at the oscillations."
-            if norm["cross"] is None
-            else f"reconstruction beats the classical one from sigma {_fmt(norm['cross'])}."
-        )
+        "- *Lemma 2 normalisation*: "
+        + normalised_warp_text(rc.ml_variants["bandwidth-normalised warp"], rc.ml)
     )
     lo_h = min(float(rc.real.classical.min()), float(rc.real.warped.min()))
     hi_h = max(float(rc.real.classical.max()), float(rc.real.warped.max()))
@@ -460,7 +880,8 @@ def write_report(r: AllResults, out: Path) -> Path:
         "- Energy of eq. 4.27 below 10 Hz (20001 samples on [-1, 1]): "
         f"{100 * sp.energy_below_10:.2f} % of the total, {100 * sp.energy_below_10_no_mean:.2f} % "
         "of the energy once the mean is removed. The thesis's '99.8 %' "
-        f"{verdict(abs(sp.energy_below_10_no_mean - 0.998) < 0.0006)} for the mean-removed "
+        f"{claims(ENERGY, abs(sp.energy_below_10_no_mean - 0.998) < 0.0006)} for the "
+        "mean-removed "
         "signal."
     )
     a(
@@ -477,7 +898,7 @@ def write_report(r: AllResults, out: Path) -> Path:
     a("")
     th3_ok = all(row[4] <= row[3] and row[5] <= row[3] for row in sp.theorem3)
     a(
-        f"  The inequality {verdict(th3_ok)} at every sigma tested, with and without the "
+        f"  The inequality {claims(THEOREM3, th3_ok)} at every sigma tested, with and without the "
         f"lemma 2 normalisation (c = {sp.c_norm:.4f}). Theorem 3 bounds the smoothing error "
         "only; the total reconstruction error of the warped method is nevertheless larger for "
         "small sigma, which the thesis attributes to postaliasing from the non-uniform sampling "
@@ -489,7 +910,7 @@ def write_report(r: AllResults, out: Path) -> Path:
         f"{100 * sp.mass_above['arclength']:.1f} % for the arclength warp and "
         f"{100 * sp.mass_above['identity']:.1f} % for the identity warp, whose above-diagonal "
         "share is pure finite-window leakage. Energy moves to `k <= w` as the lemma says: "
-        f"{verdict(sp.mass_above['arclength'] < sp.mass_above['identity'])}."
+        f"{claims(LEMMA3, sp.mass_above['arclength'] < sp.mass_above['identity'])}."
     )
     a("")
     a("![transfer function](fig_transfer_function.png)")
@@ -520,6 +941,8 @@ def write_report(r: AllResults, out: Path) -> Path:
     a("")
     a("![fig 4.7](fig4_7_real_denoising.png)")
     a("")
+    lines.extend(_best_sigma_section(dn.sweeps, r.seeds))
+    lines.extend(_denoise_spectra_section(dn.spectra, claims))
     a("Table 4.5, real scanline, by noise level (thesis \\| here, mean ± std):")
     a("")
     a("| noise level | " + " | ".join(METHOD_NAMES[m] for m in METHODS) + " |")
@@ -601,49 +1024,81 @@ def write_report(r: AllResults, out: Path) -> Path:
         if gt_real and abs(real_gain) < 1.0
         else f" ({real_gain:+.2f} %)"
     )
+    theorem5 = claims.compound(THEOREM5, [("synthetic", gt_syn), ("real", gt_real)])
     a(
         "- *Warped filtering with the ground-truth warp has less total error than classical "
-        f"filtering (theorem 5)*: synthetic {verdict(gt_syn)} "
+        f"filtering (theorem 5)*: {theorem5}. Synthetic {_mark(gt_syn)} "
         f"({_rel(_mean(syn, 0.3, 'ground_truth_warp'), _mean(syn, 0.3, 'classical')):+.1f} %); "
-        f"real scanline {verdict(gt_real)}{real_note}."
-    )
-    a(
-        f"- *The noisy warp also beats classical filtering at level 0.3*: synthetic "
-        f"{verdict(nw_syn)}, real scanline {verdict(nw_real)}."
+        f"real scanline {_mark(gt_real)}{real_note}."
     )
     mn = syn.method_noise
     mn_share = mn["classical"] / float(s03["classical"].mean())
-    g_syn = dn.gamma["synthetic"][0.3]
+    g_syn, g_real = dn.gamma["synthetic"][0.3], dn.gamma["real"][0.3]
     expl = ""
     if not gt_nw_syn and mn_share > 0.5:
-        expl = (
-            " On this signal the classical error is mostly method noise (filtering the clean "
-            f"signal already costs {mn['classical']:.2f} of {float(s03['classical'].mean()):.2f}"
-            f", and the ground-truth warped filter {mn['ground_truth_warp']:.2f}): sigma = 6 "
-            "over-smooths its edges and 4-sample dip. The noise stretches the noisy warp "
-            f"everywhere (mean `gamma'` {g_syn.mean_noisy:.3f} vs {g_syn.mean_truth:.3f}), "
-            "which narrows the effective filter; here that removes more distortion than the "
-            "extra noise it lets through costs. Which warp wins thus depends on how sigma "
-            "compares with the signal's features, which the thesis does not report."
+        expl += (
+            " On the synthetic signal the classical error is mostly method noise (filtering the "
+            f"clean signal already costs {mn['classical']:.2f} of "
+            f"{float(s03['classical'].mean()):.2f}, and the ground-truth warped filter "
+            f"{mn['ground_truth_warp']:.2f}): sigma = 6 over-smooths its edges and 4-sample dip. "
+            "The noise stretches the noisy warp everywhere (mean `gamma'` "
+            f"{g_syn.mean_noisy:.3f} vs {g_syn.mean_truth:.3f}), which narrows the effective "
+            "filter; here that removes more distortion than the extra noise it lets through "
+            "costs."
         )
-    a(
-        f"- *The ground-truth warp beats the noisy warp*: synthetic {verdict(gt_nw_syn)}, "
-        f"real scanline {verdict(gt_nw_real)}.{expl}"
+    if not nw_real:
+        mnr = real.method_noise
+        expl += (
+            " On the scanline the same narrowing (mean `gamma'` "
+            f"{g_real.mean_noisy:.3f} vs {g_real.mean_truth:.3f}) only lets noise through: "
+            "warping removes little method noise there (clean input: classical "
+            f"{mnr['classical']:.2f}, ground-truth warp {mnr['ground_truth_warp']:.2f})."
+        )
+    order = claims.compound(
+        ORDER,
+        [
+            ("table 4.3, synthetic", gt_nw_syn and nw_syn),
+            ("table 4.4, real", gt_nw_real and nw_real),
+        ],
     )
+    a(
+        "- *Ground-truth warp < noisy warp < classical filtering at sigma = "
+        f"{DENOISE_SIGMA} (tables 4.3 and 4.4)*: {order}. Synthetic: {_order_text(syn)}; "
+        f"real scanline: {_order_text(real)}.{expl} At each method's own best sigma (table "
+        f"above) the order is, {_best_order_text(dn.sweeps)}. "
+        + (
+            "The ranking thus depends on the sigma, which the thesis fixes at 6 without "
+            "reporting a sweep."
+            if _order_depends_on_sigma(dn.sweeps)
+            else "The ranking is the same at the common and at the best sigmas."
+        )
+    )
+    lo = min(NOISE_LEVELS)
+    nw_wins_lo = _mean(real, lo, "noisy_warp") < _mean(real, lo, "classical")
     loss_txt = (
         f"the noisy warp is worse than classical filtering from level {first_loss} on"
         if first_loss is not None
         else "the noisy warp never becomes worse than classical filtering"
     )
+    t45 = claims.compound(
+        TABLE45,
+        [
+            ("divergence", diverges),
+            (f"better than classical at {lo}", nw_wins_lo),
+            (f"worse at {hi}", nw_loses_hi),
+        ],
+    )
+    tail = "; in the thesis from 0.7" if nw_wins_lo else ", so it never goes from better to worse"
     a(
-        "- *As noise grows the noisy warp diverges from the ground-truth warp and eventually "
-        f"loses to classical filtering (table 4.5)*: divergence {verdict(diverges)}; "
-        f"losing to classical at level {hi} {verdict(nw_loses_hi)} ({loss_txt}; in the "
-        "thesis from 0.7)."
+        "- *As noise grows the noisy warp diverges from the ground-truth warp and, once noise "
+        "is high, performs worse than classical filtering (table 4.5: better at 0.3 and 0.5, "
+        f"worse at 0.7)*: {t45}. Divergence {_mark(diverges)}; better than classical at level "
+        f"{lo} {_mark(nw_wins_lo)}; worse than classical at level {hi} {_mark(nw_loses_hi)} "
+        f"({loss_txt}{tail})."
     )
     a(
         "- *The noisy `gamma'` mostly over-estimates the ground truth (figs. 4.9-4.10)*: "
-        f"{verdict(over)} (table above)."
+        f"{claims(OVER, over)} (table above)."
     )
     grey_res = next(v for v in dn.variants if v.warp_gain != 1.0)
     grey_gt = _rel(_mean(grey_res, 0.3, "ground_truth_warp"), _mean(grey_res, 0.3, "classical"))
@@ -669,6 +1124,7 @@ def write_report(r: AllResults, out: Path) -> Path:
         f"about {sd_real:.2f}."
     )
     a("")
+    lines.extend(_coverage(r.figures))
     a("## Reproducing")
     a("")
     a("```")
@@ -679,14 +1135,14 @@ def write_report(r: AllResults, out: Path) -> Path:
     a("")
     a("Figures: " + ", ".join(f"`{n}`" for n in r.figures) + ".")
     a("")
-    held = sum(verdict.results)
     ratio = ml_s["c_min"] / th41["c_min"]
     lines[lines.index(_SUMMARY)] = (
-        f"Of the {len(verdict.results)} claims of the thesis checked below, {held} hold here and "
-        f"{len(verdict.results) - held} do not. Absolute error levels are not reproduced (the "
-        f"smallest ML reconstruction error here is {ratio:.2f} times the thesis's); each table "
-        "says why."
+        f"{claims.headline()} Absolute error levels are not reproduced (the smallest ML "
+        f"reconstruction error here is {ratio:.2f} times the thesis's); each table says why. "
+        "Every claim, with the check of each of its parts:"
     )
+    at = lines.index(_LEDGER)
+    lines[at : at + 1] = claims.table()
     path = out / "REPORT.md"
     path.write_text("\n".join(lines), encoding="utf-8")
     return path
