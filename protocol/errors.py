@@ -23,6 +23,8 @@ class ErrorCode(StrEnum):
     INTERNAL = "internal"
     CONFLICT = "conflict"
     """The session already has a simulation from another adapter instance."""
+    CAPACITY = "capacity"
+    """The server, the session or the token holds its limit of connections; try again later."""
 
 
 class ProtocolError(Exception):

@@ -149,6 +149,62 @@ class ParamsAck(Message):
     applied: dict[Name, Any] = Field(default_factory=dict, max_length=64)
 
 
+# ---------------------------------------------------------------- engine (S -> *, * -> V)
+
+ControlAction = Literal["pause", "resume", "reset", "step", "seek", "speed", "loop", "stop"]
+
+
+class ParamRange(Model):
+    """The values an engine accepts for one simulation parameter."""
+
+    min: FiniteFloat
+    max: FiniteFloat
+    unit: Annotated[str, Field(max_length=16)] = ""
+    recommended: FiniteFloat | None = None
+
+
+class PullLimits(Model):
+    """The most an engine lets a user pull with: per-atom force (kJ/mol/A) and spring
+    constant (kJ/mol/A^2)."""
+
+    max_force: PositiveFloat
+    max_spring_k: PositiveFloat
+
+
+class EngineInfo(Message):
+    """S->*, and *->V in `state.engine`: what this simulation can be steered with.
+
+    The server refuses steering outside it (naming the limit), and the dashboard disables what
+    the engine cannot do, saying why (`unavailable`)."""
+
+    type: Literal["engine"] = "engine"
+    name: Annotated[str, Field(max_length=128)]
+    kind: Literal["md", "replay", "imd"] = "md"
+    controls: list[ControlAction] = Field(default_factory=list, max_length=16)
+    params: dict[Name, ParamRange] = Field(default_factory=dict, max_length=32)
+    unavailable: dict[Name, Annotated[str, Field(max_length=256)]] = Field(
+        default_factory=dict, max_length=32
+    )
+    """Parameter or action -> why this engine cannot change it."""
+    pull: PullLimits | None = None
+    """None: this engine takes no external forces."""
+    n_frames: Annotated[int, Field(ge=0)] | None = None
+    """A replay's trajectory length."""
+    guard: Annotated[str, Field(max_length=256)] = ""
+    """What the adapter does when the simulation blows up, in a sentence."""
+
+
+class Event(Message):
+    """S->* and *->V: something every user of the session should know about (the adapter's
+    guard rolled back a blown-up run, a replay reached its end, ...)."""
+
+    type: Literal["event"] = "event"
+    level: Literal["info", "warning", "error"] = "info"
+    code: Name
+    message: Annotated[str, Field(max_length=1024)]
+    step: Annotated[int, Field(ge=0)] | None = None
+
+
 # ---------------------------------------------------------------- steering (V -> *, * -> S)
 
 EngineParam = bool | int | FiniteFloat | Annotated[str, Field(max_length=256)]
@@ -163,9 +219,6 @@ class SimParams(Message):
     friction_per_ps: Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)] | None = None
     frame_interval: Annotated[int, Field(ge=1, le=1_000_000)] | None = None
     engine: dict[Name, EngineParam] = Field(default_factory=dict, max_length=32)
-
-
-ControlAction = Literal["pause", "resume", "reset", "step", "seek", "speed", "loop", "stop"]
 
 
 class Control(Message):
@@ -405,7 +458,14 @@ class State(Message):
     sim_params: SimParams | None = None
     sim: SimStatus | None = None
     clients: list[ClientInfo] | None = None
+    """Everyone in the session: sent whole when a client joins, then as `joined`/`left`."""
+    joined: list[ClientInfo] | None = None
+    """Clients that joined since the last roster message."""
+    left: list[Name] | None = None
+    """`client_id`s of clients that left since the last roster message."""
     pulling: list[Pull] | None = None
+    engine: EngineInfo | None = None
+    """What the session's simulation can be steered with (see `EngineInfo`)."""
     camera: Camera | None = None
     """The session's default camera (framing the molecule), for viewers without their own."""
 
@@ -468,7 +528,9 @@ AnyMessage = Annotated[
     | Stats
     | Ping
     | Pong
-    | Error,
+    | Error
+    | EngineInfo
+    | Event,
     Field(discriminator="type"),
 ]
 
@@ -494,5 +556,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Ping,
         Pong,
         Error,
+        EngineInfo,
+        Event,
     )
 }

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from protocol import DEFAULT_LIMITS, Limits, RenderParams
+from structures.isolated import ReadLimits
 
 VIEWER_LIMITS = Limits(max_message_bytes=256 * 1024)
 """Browsers and scripts send only small control messages."""
@@ -46,10 +47,33 @@ class ServerSettings:
     viewer_limits: Limits = VIEWER_LIMITS
     max_upload_bytes: int = 512 * 1024 * 1024
     max_sessions: int = 64
+    max_connections: int = 1024
+    """Open WebSockets, all endpoints together (a connection counts from its first byte)."""
+    max_connections_per_token: int = 256
+    """Connections holding one token (the server token, or the viewer token) at once."""
+    max_clients_per_session: int = 256
+    """Viewers and steerers of one session at once."""
     job_retention_s: float = 24 * 3600.0
     """How long a finished job's output stays downloadable."""
     job_max_bytes: int = 2 << 30
     """Disk the outputs of finished jobs may take together; the oldest go first beyond it."""
+    max_running_jobs: int = 2
+    """Jobs that read and render at once; later ones wait `queued`."""
+    max_readers: int = 2
+    """Uploaded or named files read at once for `/api/render` and job checks (each in its own
+    process); further requests wait their turn."""
+    read_memory_bytes: int = 6 << 30
+    """Address space of one file-reading process."""
+    read_timeout_s: float = 120.0
+    """Wall time to open a file (and to read one frame: a quarter of it)."""
+    max_file_bytes: int = 2 << 30
+    """Largest size of a file once decompressed (`.gz`, `.bz2`)."""
+    viewer_renders_per_min: float = 30.0
+    """`/api/render` calls a viewer-token holder may make per minute (all viewers together)."""
+    viewer_max_atoms: int = 500_000
+    """Largest structure a viewer-token holder may have the server read (counted before
+    parsing), so the read-only link cannot buy minutes of CPU with a small compressed file."""
+    viewer_read_timeout_s: float = 20.0
     session_idle_s: float = 600.0
     interactive_idle_s: float = 0.15
     interactive_scale: float = 0.5
@@ -58,6 +82,11 @@ class ServerSettings:
     """Longest a simulation's next big frame (over 1 MiB) waits to be read until a render took
     the last one."""
     default_size: tuple[int, int] = (640, 480)
+    cpu_max_live_pixels: int = 960 * 540
+    """Largest live image rendered on the CPU device (about half a second there on 2 cores);
+    bigger canvases get a smaller image, scaled up by the browser."""
+    cpu_max_rest_pixels: int = 1920 * 1080
+    """Largest `/api/render` image on the CPU device."""
     encode_workers: int = field(default_factory=default_encode_workers)
     """Threads that encode images; also how many encodes the renderer keeps in flight."""
     render_defaults: RenderParams = field(default_factory=RenderParams)
@@ -65,6 +94,20 @@ class ServerSettings:
     state_interval_s: float = 0.1
     hello_timeout_s: float = 10.0
     client_dir: Path = Path(__file__).resolve().parents[1] / "client_web"
+
+    def read_limits(self, role: str = "steerer") -> ReadLimits:
+        """What reading one untrusted file may cost, for a holder of `role`'s token."""
+        viewer = role == "viewer"
+        timeout = self.viewer_read_timeout_s if viewer else self.read_timeout_s
+        return ReadLimits(
+            max_atoms=min(self.limits.max_atoms, self.viewer_max_atoms)
+            if viewer
+            else self.limits.max_atoms,
+            max_file_bytes=self.max_file_bytes,
+            memory_bytes=self.read_memory_bytes,
+            open_s=timeout,
+            frame_s=timeout / 4,
+        )
 
     def __post_init__(self) -> None:
         if self.open_on_loopback and not is_loopback(self.host):

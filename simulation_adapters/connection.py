@@ -36,8 +36,10 @@ from websockets.exceptions import ConnectionClosed, InvalidURI, WebSocketExcepti
 import protocol
 from protocol import (
     Control,
+    EngineInfo,
     Error,
     ErrorCode,
+    Event,
     Forces,
     Frame,
     Hello,
@@ -163,6 +165,7 @@ class SimulationConnection:
         self._control: deque[_Outgoing] = deque()
         self._steering: deque[Message] = deque()
         self._topology: Topology | None = None
+        self._engine: EngineInfo | None = None
         self._generation = 0
         self._closing = False
         self._flush_timeout = 5.0
@@ -214,6 +217,17 @@ class SimulationConnection:
         with self._lock:
             self._topology = topology
         self._kick()
+
+    def send_engine(self, engine: EngineInfo) -> None:
+        """Declare what this simulation can be steered with; re-sent after every reconnect,
+        right after the topology."""
+        with self._lock:
+            self._engine = engine
+        self._kick()
+
+    def send_event(self, event: Event) -> None:
+        """Tell everyone in the session (the guard fired, the replay ended, ...)."""
+        self._queue_control(event, current=False)
 
     def send_frame(self, frame: Frame, timeout: float | None = None) -> bool:
         """Hand a frame to the I/O thread.
@@ -518,12 +532,13 @@ class SimulationConnection:
     async def _writer(self, ws: ClientConnection, generation: int) -> None:
         assert self._wake is not None and self._drained is not None
         topology_sent: Topology | None = None
+        engine_sent: EngineInfo | None = None
         self._wake.set()  # a new connection: the topology (and what waits) goes out at once
         while True:
             await self._wake.wait()
             self._wake.clear()
             while True:
-                item = self._next_outgoing(generation, topology_sent)
+                item = self._next_outgoing(generation, topology_sent, engine_sent)
                 if item is None:
                     self._drained.set()
                     break
@@ -537,15 +552,19 @@ class SimulationConnection:
                     assert isinstance(msg, Topology)
                     topology_sent = msg
                     self.stats.topologies_sent += 1
+                elif kind == "engine":
+                    assert isinstance(msg, EngineInfo)
+                    engine_sent = msg
                 elif kind == "frame":
                     self.stats.frames_sent += 1
                 elif isinstance(msg, ParamsAck):
                     self.stats.acks_sent += 1
 
     def _next_outgoing(
-        self, generation: int, topology_sent: Topology | None
+        self, generation: int, topology_sent: Topology | None, engine_sent: EngineInfo | None
     ) -> tuple[str, Message] | None:
-        """Pick what to send next: control messages, then the topology, then one frame."""
+        """Pick what to send next: control messages, then the topology and the engine's
+        declaration, then one frame."""
         with self._changed:
             while self._control:
                 out = self._control.popleft()
@@ -555,6 +574,8 @@ class SimulationConnection:
                 return "topology", self._topology
             if topology_sent is None:
                 return None  # frames wait for the topology
+            if self._engine is not None and self._engine is not engine_sent:
+                return "engine", self._engine
             if self._frame_queue:
                 frame = self._frame_queue.popleft()
                 self._changed.notify_all()

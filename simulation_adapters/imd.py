@@ -25,8 +25,21 @@ from typing import Any
 
 import numpy as np
 
-from protocol import Control, ErrorCode, Forces, Frame, Message, SimParams, WireArray
+from protocol import (
+    Control,
+    EngineInfo,
+    ErrorCode,
+    Event,
+    Forces,
+    Frame,
+    Message,
+    ParamRange,
+    PullLimits,
+    SimParams,
+    WireArray,
+)
 from protocol.forces import cap_forces
+from protocol.messages import ControlAction
 from simulation_adapters.cli_support import configure_logging, parse
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from simulation_adapters.imd_session import (
@@ -104,7 +117,9 @@ class IMDBridge:
         units: str = "auto",
         lossless: bool = False,
         takeover: bool = False,
-        max_force: float = 1000.0,
+        max_force: float = 50.0,
+        max_spring_k: float = 10.0,
+        runaway_K: float | None = None,
         connect_timeout: float = 30.0,
         handshake_timeout: float = 30.0,
     ) -> None:
@@ -120,6 +135,11 @@ class IMDBridge:
         self.units_name = units
         self.units = UNITS["imdv3"]
         self.max_force = float(max_force)
+        self.max_spring_k = float(max_spring_k)
+        self.runaway_K = runaway_K
+        self.guard_trips = 0
+        self._first_temperature: float | None = None
+        self._guarded = False  # the guard paused the engine; cleared by resume
         self.connect_timeout = connect_timeout
         self.handshake_timeout = handshake_timeout
         self.connection = SimulationConnection(
@@ -211,6 +231,7 @@ class IMDBridge:
                 return
             self.imd = imd
         self.units = units_for(self.units_name, imd.version)
+        self.connection.send_engine(self.engine_info(imd.version))
         self._steer_thread = threading.Thread(
             target=self._steer_loop, name="scalesteer-imd-steering", daemon=True
         )
@@ -230,17 +251,81 @@ class IMDBridge:
             if self.connection.state is ConnectionState.FAILED:
                 raise BridgeError(f"render server: {self.connection.error}")
             frame = self._frame(raw)
+            if frame is None:
+                continue
             self.connection.send_frame(frame)
             self.frames_forwarded += 1
 
-    def _frame(self, raw: EngineFrame) -> Frame:
+    def engine_info(self, version: int) -> EngineInfo:
+        """What an IMD engine can be steered with through this bridge."""
+        controls: list[ControlAction] = ["pause", "resume"]
+        unavailable = {
+            name: "IMD cannot change it" for name in ("temperature_K", "timestep_fs",
+                                                      "friction_per_ps")
+        }  # fmt: skip
+        for action in ("step", "seek", "speed", "loop", "reset"):
+            unavailable[action] = f"IMD has no {action}"
+        if self.allow_kill:
+            controls.append("stop")
+        else:
+            unavailable["stop"] = "KILL is not allowed; start the bridge with --allow-kill"
+        return EngineInfo(
+            name=f"IMD v{version} engine ({self.units.name})",
+            kind="imd",
+            controls=controls,
+            params={"frame_interval": ParamRange(min=1, max=1_000_000, unit="steps")},
+            unavailable=unavailable,
+            pull=PullLimits(max_force=self.max_force, max_spring_k=self.max_spring_k),
+            guard="on NaN or a temperature runaway: release the forces and pause the engine",
+        )
+
+    def _guard(self, step: int, problem: str) -> None:
+        """The run blew up: release every force, pause the engine, tell the session (once per
+        pause; the engine cannot be rolled back over IMD)."""
+        if self._guarded:
+            return
+        self._guarded = True
+        self.guard_trips += 1
+        imd = self.imd
+        action = "forces released, engine paused"
+        try:
+            if imd is not None:
+                if self._active_forces:
+                    zeros = np.zeros((len(self._active_forces), 3))
+                    imd.send_forces(np.array(sorted(self._active_forces), dtype=np.int32), zeros)
+                    self._active_forces = {}
+                imd.pause()
+        except IMDError as exc:
+            action = f"could not reach the engine to pause it ({exc})"
+        text = f"the simulation blew up at step {step} ({problem}); {action}"
+        log.error("scalesteer imd: %s", text)
+        self.connection.send_event(Event(level="error", code="guard", message=text, step=step))
+
+    def _runaway(self, temperature: float | None) -> str:
+        if temperature is None or not math.isfinite(temperature):
+            return "" if temperature is None else "non-finite temperature"
+        if self._first_temperature is None:
+            self._first_temperature = temperature
+        base = self._first_temperature
+        limit = self.runaway_K if self.runaway_K is not None else max(2 * base, base + 300.0)
+        return (
+            f"temperature {temperature:.3g} K, above the guard's {limit:.0f} K"
+            if (temperature > limit)
+            else ""
+        )
+
+    def _frame(self, raw: EngineFrame) -> Frame | None:
+        """The frame to forward, or None for one the guard stopped (non-finite)."""
         u = self.units
         step = raw.step if raw.step is not None and raw.step >= 0 else self.frames_forwarded
         pos = raw.positions * np.float32(u.length_A) if u.length_A != 1.0 else raw.positions
         if not np.isfinite(pos).all():
-            text = f"the engine sent non-finite coordinates at step {step}"
-            self.connection.send_error(ErrorCode.INVALID_MESSAGE, text, "frame.positions")
-            raise BridgeError(text)
+            self._guard(int(step), "non-finite coordinates")
+            return None
+        temperature = raw.energies.get("temperature") if raw.energies else None
+        problem = self._runaway(temperature)
+        if problem:
+            self._guard(int(step), problem)
         time_ps = raw.time * u.time_ps if raw.time is not None else 0.0
         box = None
         if raw.box is not None and np.isfinite(raw.box).all() and np.any(raw.box):
@@ -341,6 +426,7 @@ class IMDBridge:
             changed = imd.pause()
             return True, {"paused": True}, "" if changed else "already paused"
         if msg.action == "resume":
+            self._guarded = False
             changed = imd.resume()
             return True, {"paused": False}, "" if changed else "not paused"
         if msg.action == "stop":
@@ -401,7 +487,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="the engine's IMD units (auto: IMD v3 -> imdv3, v2 -> imdv2)",
     )
     ap.add_argument("--lossless", action="store_true", help="never drop frames (engine may wait)")
-    ap.add_argument("--max-force", type=float, default=1000.0, help="cap per atom, kJ/mol/A")
+    ap.add_argument(
+        "--max-force", type=float, default=50.0, help="cap per atom, kJ/mol/A (default 50)"
+    )
     ap.add_argument("--connect-timeout", type=float, default=30.0, help="seconds to keep trying")
     ap.add_argument("-v", "--verbose", action="store_true")
     return ap

@@ -99,6 +99,10 @@ class PullForce:
         self.active = wanted
         return PullResult(atoms=len(wanted), capped=capped, updated=bool(changed))
 
+    def clear(self, context: openmm.Context) -> None:
+        """Release every pulled atom."""
+        self.apply(context, np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+
     def energy_groups(self, integration_groups: int = 0xFFFFFFFF) -> int:
         """The force-group mask that leaves the pull out (for reporting physical energies)."""
         return int(integration_groups) & ~(1 << self.group) & 0xFFFFFFFF

@@ -8,6 +8,11 @@ and `report` does the work on the MD thread: it applies the steering that arrive
 report (temperature, friction, time step, pause/resume, reset, pulling), then hands the frame to
 the connection's background thread, which never makes the MD wait. A pause holds the MD thread
 inside `report` on a condition variable (no busy-waiting) until resume, `step N`, stop or close.
+
+The reporter declares what it can be steered with (`EngineInfo`: temperature, time step and
+friction ranges sensible for this system, the pull limits), and guards the run: positions,
+energy or temperature that blow up (NaN, or a temperature past `runaway_K`) roll the context back
+to the last good report, release every pull, pause, and tell everyone in the session why.
 """
 
 from __future__ import annotations
@@ -23,7 +28,19 @@ import openmm
 import openmm.app as app
 import openmm.unit as unit
 
-from protocol import Control, ErrorCode, Forces, Frame, Message, SimParams, WireArray
+from protocol import (
+    Control,
+    EngineInfo,
+    ErrorCode,
+    Event,
+    Forces,
+    Frame,
+    Message,
+    ParamRange,
+    PullLimits,
+    SimParams,
+    WireArray,
+)
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from simulation_adapters.openmm_pull import PullForce
 from simulation_adapters.openmm_topology import (
@@ -54,6 +71,12 @@ class SteeringReporter:
     simulation resumes unless `resume_on_disconnect=False` (nobody is left to resume it).
     Positions are sent unwrapped so that an atom being pulled never jumps across the box;
     `wrap=True` sends them wrapped into the periodic box (molecules kept whole) instead.
+
+    The guard rolls back to the last calm report (temperature within 25 % or 50 K of the
+    thermostat's) when the run blows up: non-finite positions or energy, or a temperature above
+    `runaway_K` (default: twice the thermostat's temperature, at least 300 K above it).
+    `max_spring_k` is the stiffest pull spring accepted (kJ/mol/A^2); `max_force` also bounds
+    what a pull may apply per atom.
     """
 
     def __init__(
@@ -64,7 +87,9 @@ class SteeringReporter:
         session: str = "default",
         *,
         lossless: bool = False,
-        max_force: float = 1000.0,
+        max_force: float = 50.0,
+        max_spring_k: float = 10.0,
+        runaway_K: float | None = None,
         force_group: int | None = None,
         client: str | None = None,
         title: str = "",
@@ -76,6 +101,8 @@ class SteeringReporter:
             raise ValueError("interval must be at least 1 step")
         self.interval = int(interval)
         self.max_force = float(max_force)
+        self.max_spring_k = float(max_spring_k)
+        self.runaway_K = runaway_K
         self.force_group = force_group
         self.title = title
         self.resume_on_disconnect = resume_on_disconnect
@@ -90,10 +117,12 @@ class SteeringReporter:
         self._periodic = False
         self._cond = threading.Condition()
         self._wakeups = 0
-        self._budget = 0  # steps allowed while paused (`step N`)
+        self._step_until: int | None = None  # `step N` while paused: run to this step
         self._driven = False  # inside run_steered
         self._closed = False
-        self._warned_nonfinite = False
+        self._good: openmm.State | None = None  # the last calm report, to roll back to
+        self._good_step = 0
+        self.guard_trips = 0
         self.connection = SimulationConnection(
             url,
             token=token,
@@ -118,14 +147,114 @@ class SteeringReporter:
         }
 
     def report(self, simulation: app.Simulation, state: openmm.State) -> None:
-        """Apply pending steering, send this frame, and hold here while paused."""
-        with self._cond:
-            if self.paused:
-                self._budget = 0  # the steps granted by `step N` are done
+        """Check the run, apply pending steering, send this frame, hold here while paused."""
+        problem = self._blown_up(simulation, state)
+        if problem:
+            state = self.recover(simulation, problem)
+        elif self._calm(simulation, state):
+            self._checkpoint(simulation)
         if self._apply(simulation, self.connection.poll_steering()):
             state = simulation.context.getState(getPositions=True, getEnergy=True)
         self._send_frame(simulation, state)
         self._hold(simulation)
+
+    def recover(self, simulation: app.Simulation, problem: str) -> openmm.State:
+        """The guard: restore the last good state (the clock keeps counting), drop every
+        external force, pause, and tell the session. Returns the restored state."""
+        step = int(simulation.currentStep)
+        self.guard_trips += 1
+        if self.pull is not None:
+            self.pull.clear(simulation.context)
+        if self._good is not None:
+            self._restore(simulation, self._good)
+            where = f"rolled back to step {self._good_step}"
+        else:
+            where = "no good state to roll back to"
+        with self._cond:
+            self.paused, self._step_until = True, None
+        text = (
+            f"the simulation blew up at step {step} ({problem}); {where}, pulls released, "
+            "paused. Lower the temperature, time step or pull, then resume."
+        )
+        log.error("scalesteer: %s", text)
+        self.connection.send_event(Event(level="error", code="guard", message=text, step=step))
+        return simulation.context.getState(getPositions=True, getEnergy=True)
+
+    def _blown_up(self, simulation: app.Simulation, state: openmm.State) -> str:
+        """Why this state cannot go on ('' if it can)."""
+        pos = positions_angstrom(state)
+        if not np.isfinite(pos).all():
+            return "non-finite positions"
+        potential = state.getPotentialEnergy().value_in_unit(unit.kilojoule_per_mole)
+        if not math.isfinite(potential):
+            return "non-finite energy"
+        kinetic = state.getKineticEnergy().value_in_unit(unit.kilojoule_per_mole)
+        temperature = 2.0 * kinetic / (self._dof * R_KJ_PER_MOL_K)
+        limit = self._runaway_limit(simulation)
+        if not math.isfinite(temperature) or temperature > limit:
+            return f"temperature {temperature:.3g} K, above the guard's {limit:.0f} K"
+        return ""
+
+    def _calm(self, simulation: app.Simulation, state: openmm.State) -> bool:
+        """Close enough to the thermostat to roll back to: a state just under the runaway
+        limit would only blow up again."""
+        target = _thermostat_kelvin(simulation) or 300.0
+        kinetic = state.getKineticEnergy().value_in_unit(unit.kilojoule_per_mole)
+        temperature = 2.0 * kinetic / (self._dof * R_KJ_PER_MOL_K)
+        return bool(temperature <= max(1.25 * target, target + 50.0))
+
+    def _runaway_limit(self, simulation: app.Simulation) -> float:
+        if self.runaway_K is not None:
+            return self.runaway_K
+        target = _thermostat_kelvin(simulation) or 300.0
+        return max(2.0 * target, target + 300.0)
+
+    def _checkpoint(self, simulation: app.Simulation) -> None:
+        self._good = simulation.context.getState(
+            getPositions=True, getVelocities=True, getParameters=True
+        )
+        self._good_step = int(simulation.currentStep)
+
+    def engine_info(self, simulation: app.Simulation) -> EngineInfo:
+        """What this simulation can be steered with, and the sensible range of each value."""
+        integrator = simulation.context.getIntegrator()
+        kind = type(integrator).__name__
+        params: dict[str, ParamRange] = {
+            "frame_interval": ParamRange(min=1, max=1_000_000, unit="steps"),
+        }
+        unavailable: dict[str, str] = {
+            "seek": "a live simulation has no frames to seek",
+            "speed": "a live simulation runs as fast as it can",
+            "loop": "a live simulation does not loop",
+        }
+        temperature = _thermostat_kelvin(simulation)
+        if temperature is not None:
+            params["temperature_K"] = ParamRange(
+                min=1.0, max=1000.0, unit="K", recommended=temperature
+            )
+        else:
+            unavailable["temperature_K"] = f"{kind} has no thermostat"
+        if hasattr(integrator, "setStepSize"):
+            dt = integrator.getStepSize().value_in_unit(unit.femtoseconds)
+            params["timestep_fs"] = ParamRange(
+                min=0.1, max=max(dt, _max_timestep_fs(simulation.system)), unit="fs", recommended=dt
+            )
+        else:
+            unavailable["timestep_fs"] = f"{kind} has no fixed time step"
+        if hasattr(integrator, "setFriction") or hasattr(integrator, "setCollisionFrequency"):
+            params["friction_per_ps"] = ParamRange(min=0.01, max=100.0, unit="1/ps")
+        else:
+            unavailable["friction_per_ps"] = f"{kind} has no friction"
+        return EngineInfo(
+            name=f"OpenMM {openmm.__version__} ({kind})",
+            kind="md",
+            controls=["pause", "resume", "step", "reset", "stop"],
+            params=params,
+            unavailable=unavailable,
+            pull=PullLimits(max_force=self.max_force, max_spring_k=self.max_spring_k),
+            guard="on NaN or a temperature runaway: roll back to the last good frame, release "
+            "the pulls, pause",
+        )
 
     # ------------------------------------------------------------------ public helpers
 
@@ -146,12 +275,18 @@ class SteeringReporter:
         self.connection.send_topology(
             topology_message(simulation.topology, simulation.system, self.title)
         )
+        self.connection.send_engine(self.engine_info(simulation))
+        self._checkpoint(simulation)
 
     def steps_to_next_report(self, simulation: app.Simulation) -> int:
+        """Steps to the next report: the frame interval, and while paused no further than
+        where `step N` ends (frames keep coming while it runs)."""
+        step = int(simulation.currentStep)
+        regular = self.interval - step % self.interval
         with self._cond:
-            if self.paused and self._budget > 0:
-                return self._budget
-        return self.interval - int(simulation.currentStep) % self.interval
+            if self.paused and self._step_until is not None and self._step_until > step:
+                return min(regular, self._step_until - step)
+        return regular
 
     def service(self, simulation: app.Simulation) -> None:
         """Apply pending steering now and hold while paused (between `step` calls)."""
@@ -186,12 +321,9 @@ class SteeringReporter:
 
     def _send_frame(self, simulation: app.Simulation, state: openmm.State) -> None:
         pos = positions_angstrom(state)
-        if not np.isfinite(pos).all():
-            if not self._warned_nonfinite:
-                self._warned_nonfinite = True
-                text = f"OpenMM produced non-finite positions at step {simulation.currentStep}"
-                log.error("scalesteer: %s; frames are not sent", text)
-                self.connection.send_error(ErrorCode.INVALID_MESSAGE, text, "frame.positions")
+        if not np.isfinite(pos).all():  # nothing good to roll back to: say so, send nothing
+            text = f"OpenMM produced non-finite positions at step {simulation.currentStep}"
+            self.connection.send_error(ErrorCode.INVALID_MESSAGE, text, "frame.positions")
             return
         observables = self._observables(simulation, state)
         box = box_angstrom(state) if self._periodic else None
@@ -244,9 +376,12 @@ class SteeringReporter:
         while True:
             with self._cond:
                 seen = self._wakeups
+                stepping = self._step_until is not None and self._step_until > int(
+                    simulation.currentStep
+                )
                 if (
                     not self.paused
-                    or self._budget > 0
+                    or stepping
                     or self._closed
                     or (self.stop_requested and self._driven)
                 ):
@@ -336,16 +471,17 @@ class SteeringReporter:
         action = msg.action
         with self._cond:
             if action == "pause":
-                self.paused, self._budget = True, 0
+                self.paused, self._step_until = True, None
                 return True, {"paused": True}, ""
             if action == "resume":
-                self.paused, self._budget = False, 0
+                self.paused, self._step_until = False, None
                 return True, {"paused": False}, ""
             if action == "step":
                 if not self.paused:
                     return False, {}, "step applies only while paused"
-                self._budget += msg.n_steps
-                return True, {"steps": msg.n_steps}, ""
+                start = max(self._step_until or 0, int(simulation.currentStep))
+                self._step_until = start + msg.n_steps
+                return True, {"steps": msg.n_steps, "until_step": self._step_until}, ""
             if action == "stop":
                 if not self._driven:
                     return False, {}, "stop needs the run to be driven by run_steered()"
@@ -358,9 +494,13 @@ class SteeringReporter:
 
     def _reset(self, simulation: app.Simulation) -> None:
         assert self._initial_state is not None
+        self._restore(simulation, self._initial_state)
+
+    @staticmethod
+    def _restore(simulation: app.Simulation, state: openmm.State) -> None:
         context = simulation.context
         t, step = context.getTime(), context.getStepCount()
-        context.setState(self._initial_state)
+        context.setState(state)
         context.setTime(t)  # step and time stay monotonic for the session log
         context.setStepCount(step)
 
@@ -373,6 +513,31 @@ class SteeringReporter:
         if result.capped:
             detail = f"{result.capped} force(s) capped at {self.max_force} kJ/mol/A"
         return True, {"atoms": result.atoms, "capped": result.capped}, detail
+
+
+def _thermostat_kelvin(simulation: app.Simulation) -> float | None:
+    """The temperature the run is held at (integrator or thermostat), None without one."""
+    integrator = simulation.context.getIntegrator()
+    if hasattr(integrator, "getTemperature"):
+        return float(integrator.getTemperature().value_in_unit(unit.kelvin))
+    for force in simulation.system.getForces():
+        if isinstance(force, _THERMOSTATS) or type(force).__name__ in _BAROSTAT_NAMES:
+            return float(force.getDefaultTemperature().value_in_unit(unit.kelvin))
+    return None
+
+
+def _max_timestep_fs(system: openmm.System) -> float:
+    """A time step Langevin dynamics stays stable at: 1 fs with flexible bonds to hydrogen,
+    2.5 fs with them constrained, 4 fs with constraints and heavy hydrogens (repartitioned)."""
+    if system.getNumConstraints() == 0:
+        return 1.0
+    hydrogen_masses = [
+        system.getParticleMass(i).value_in_unit(unit.dalton)
+        for i in range(system.getNumParticles())
+        if 0.5 < system.getParticleMass(i).value_in_unit(unit.dalton) < 5.0
+    ]
+    heavy_hydrogens = bool(hydrogen_masses) and min(hydrogen_masses) >= 2.5
+    return 4.0 if heavy_hydrogens else 2.5
 
 
 def run_steered(
@@ -395,7 +560,16 @@ def run_steered(
         reporter.service(simulation)
         while done < steps and not reporter.stop_requested:
             chunk = min(steps - done, reporter.steps_to_next_report(simulation))
-            simulation.step(chunk)
+            before = int(simulation.currentStep)
+            try:
+                simulation.step(chunk)
+            except openmm.OpenMMException as exc:  # "Particle coordinate is NaN" and alike
+                if "nan" not in str(exc).lower():
+                    raise
+                done += max(0, int(simulation.currentStep) - before)
+                reporter.recover(simulation, str(exc).strip().splitlines()[0][:120])
+                reporter.service(simulation)  # paused: wait here for the dashboard
+                continue
             done += chunk
     finally:
         reporter._driven = False

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol import Control, Frame, Message, SimParams, WireArray
+from protocol import Control, EngineInfo, Frame, Message, ParamRange, SimParams, WireArray
 from simulation_adapters.cli_support import configure_logging, parse
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from structures.reader import Structure, StructureError, load
@@ -92,6 +92,7 @@ class TrajectoryReplay:
         """Play until stopped (a `stop` control, `close()`, or the end with `exit_at_end`)."""
         self.connection.start()
         self.connection.send_topology(self.structure.topology)
+        self.connection.send_engine(self.engine_info())
         try:
             self._play()
         finally:
@@ -205,6 +206,28 @@ class TrajectoryReplay:
         with self._cond:
             self._wakeups += 1
             self._cond.notify_all()
+
+    def engine_info(self) -> EngineInfo:
+        """A replay steers its playback, not physics: what the dashboard may offer."""
+        recorded = "a recorded trajectory"
+        return EngineInfo(
+            name=f"replay of {self.structure.topology.title or 'a trajectory'}"[:128],
+            kind="replay",
+            controls=["pause", "resume", "step", "seek", "speed", "loop", "reset", "stop"],
+            params={
+                "frame_interval": ParamRange(
+                    min=1, max=max(1, self.n_frames), unit="frames", recommended=self.stride
+                )
+            },
+            unavailable={
+                "temperature_K": f"{recorded} has no thermostat",
+                "timestep_fs": f"{recorded} has a fixed time step",
+                "friction_per_ps": f"{recorded} has no friction",
+                "pull": f"{recorded} cannot be pulled",
+            },
+            pull=None,
+            n_frames=self.n_frames,
+        )
 
     def _apply(self, messages: list[Message]) -> None:
         for msg in messages:

@@ -9,6 +9,7 @@ import { LatencyTracker, RateMeter, clockSample } from "./latency.js";
 import { Notices } from "./notices.js";
 import { RENDER_DEFAULTS, SIGMA_SLIDER, clamp, diffRender, mergeRender } from "./params.js";
 import { Plots } from "./plots.js";
+import { applyRoster } from "./roster.js";
 import { RenderPanel } from "./renderpanel.js";
 import { requestScreenshot, screenshotName } from "./screenshot.js";
 import { Shortcuts } from "./shortcuts.js";
@@ -157,6 +158,13 @@ class Dashboard {
         this.notices.serverError(m);
         return undefined;
       }
+      case "event":
+        this.notices.notify({
+          level: m.level,
+          code: m.code,
+          message: m.step !== undefined && m.step !== null ? `${m.message} (step ${m.step})` : m.message,
+        });
+        return undefined;
       case "pong": {
         const s = clockSample(m.client_time, m.server_time, Date.now() / 1000);
         this.rtt = s.rtt * 1000;
@@ -205,13 +213,18 @@ class Dashboard {
       this.plots.pushSim(m.sim, this.simParams?.temperature_K);
       this.showSimSummary();
     }
-    if (m.clients) {
-      this.clients = m.clients;
+    if (m.clients || m.joined || m.left) {
+      this.clients = applyRoster(this.clients, m);
       this.showClients();
     }
     if (m.pulling) {
       this.pulling = m.pulling;
       this.showPulling();
+    }
+    if (m.engine) {
+      this.engine = m.engine;
+      this.simPanel.setEngine(m.engine);
+      this.showPullLimits();
     }
     if (m.camera) {
       this.sessionCamera = normalizeCamera(m.camera);
@@ -476,8 +489,33 @@ class Dashboard {
     setText($("pick-atom"), "click an atom");
   }
 
+  /** The engine's pull limits beside the pull fields; pulling off where it takes no forces. */
+  showPullLimits() {
+    const e = this.engine;
+    const k = $("pull-k");
+    const max = $("pull-max");
+    if (e?.pull) {
+      k.max = String(e.pull.max_spring_k);
+      max.max = String(e.pull.max_force);
+      if (Number(k.value) > e.pull.max_spring_k) k.value = String(e.pull.max_spring_k);
+      if (Number(max.value) > e.pull.max_force) max.value = String(e.pull.max_force);
+      setText($("range-pull-k"), `≤ ${sig(e.pull.max_spring_k, 4)}`);
+      setText($("range-pull-max"), `≤ ${sig(e.pull.max_force, 4)}`);
+    } else if (e) {
+      setText($("range-pull-k"), "not available");
+      setText($("range-pull-max"), "not available");
+    }
+    const why = e && !e.pull ? `${e.name} cannot be pulled: ${e.unavailable?.pull || "it takes no external forces"}` : "";
+    $("pull-reason").hidden = !why;
+    setText($("pull-reason"), why);
+  }
+
   async pullStart(x, y) {
     if (this.role !== "steerer") return;
+    if (this.engine && !this.engine.pull) {
+      this.notices.notify({ level: "info", code: "pull", message: $("pull-reason").textContent });
+      return;
+    }
     const pull = { state: "picking", pointer: [x, y], atom: null, position: null };
     this.pull = pull;
     let reply;
@@ -527,8 +565,8 @@ class Dashboard {
       type: "pull",
       atom: pull.atom,
       target,
-      spring_k: clamp(Number($("pull-k").value) || 10, 0.01, 10000),
-      max_force: clamp(Number($("pull-max").value) || 1000, 0.01, 100000),
+      spring_k: clamp(Number($("pull-k").value) || 1, 0.01, this.engine?.pull?.max_spring_k ?? 10000),
+      max_force: clamp(Number($("pull-max").value) || 50, 0.01, this.engine?.pull?.max_force ?? 100000),
     });
   }
 

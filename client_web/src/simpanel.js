@@ -17,6 +17,7 @@ export class SimPanel {
     this.reset = $("sim-reset");
     this.inputs = new Map(SIM_FIELDS.map((key) => [key, document.querySelector(`[data-param="${key}"]`)]));
     this.disabled = false;
+    this.engine = null;
     this.bind();
     this.updateStatus(this.sim);
   }
@@ -30,6 +31,12 @@ export class SimPanel {
     for (const [key, input] of this.inputs) {
       input.addEventListener("change", () => {
         if (input.value.trim() === "") return;
+        const range = this.engine?.params?.[key];
+        const raw = Number(input.value);
+        if (range && Number.isFinite(raw) && (raw < range.min || raw > range.max)) {
+          this.onInvalid(`${key} ${input.value} is outside ${rangeText(this.engine, range)}; not sent`);
+          return;
+        }
         const value = clampParam(key, input.value);
         if (value === null || Number(input.value) !== value) {
           this.onInvalid(`${key}: ${input.value} is outside the allowed range; sent ${value}`);
@@ -58,11 +65,44 @@ export class SimPanel {
     this.syncButtons();
   }
 
+  /** What the simulation declared it can be steered with: ranges beside the fields, and
+   * what it cannot change disabled with the reason. */
+  setEngine(engine) {
+    this.engine = engine;
+    for (const [key, input] of this.inputs) {
+      const why = engine?.unavailable?.[key];
+      const range = engine?.params?.[key];
+      input.dataset.unavailable = why ? "true" : "";
+      input.title = why ? `${engine.name} cannot change this: ${why}` : range ? rangeText(engine, range) : "";
+      if (range) {
+        input.min = String(range.min);
+        input.max = String(range.max);
+      }
+      const hint = document.getElementById(`range-${key}`);
+      if (hint) setText(hint, why ? "not available" : range ? `${sig(range.min, 3)}–${sig(range.max, 4)}` : "");
+    }
+    this.syncButtons();
+  }
+
+  /** Why the engine cannot do `action`, or "" when it can (or nothing was declared). */
+  unavailable(action) {
+    const e = this.engine;
+    if (!e || !e.controls?.length || e.controls.includes(action)) return "";
+    return e.unavailable?.[action] || "not offered by this engine";
+  }
+
   syncButtons() {
     const connected = this.sim.state === "running" || this.sim.state === "paused";
     this.play.disabled = this.disabled || !connected;
-    this.stepBtn.disabled = this.disabled || !connected;
-    this.reset.disabled = this.disabled || !connected;
+    for (const [button, action] of [
+      [this.stepBtn, "step"],
+      [this.reset, "reset"],
+    ]) {
+      const why = this.unavailable(action);
+      button.disabled = this.disabled || !connected || Boolean(why);
+      if (why) button.title = `${this.engine.name} cannot ${action}: ${why}`;
+    }
+    for (const [, input] of this.inputs) input.disabled = this.disabled || input.dataset.unavailable === "true";
     setText(this.play, this.sim.state === "paused" ? "Resume" : "Pause");
     this.play.setAttribute("aria-pressed", String(this.sim.state === "paused"));
   }
@@ -110,4 +150,9 @@ export class SimPanel {
     node.dataset.state = status.state;
     setText(node, label ? `${label}: ${status.text}` : status.text);
   }
+}
+
+function rangeText(engine, range) {
+  const unit = range.unit ? ` ${range.unit}` : "";
+  return `${engine.name}'s range ${sig(range.min, 3)}–${sig(range.max, 4)}${unit}`;
 }

@@ -42,8 +42,48 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
         default=None,
         help="image encoder threads (default: one per core, at most 8)",
     )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="any numeric server limit, e.g. --set max_connections=256 "
+        "(names and defaults: docs/server.md)",
+    )
     ap.add_argument("--log-level", default="info")
     return ap
+
+
+def tunable_limits() -> dict[str, type]:
+    """The numeric settings `--set` may change: ints and floats of `ServerSettings`."""
+    import dataclasses
+
+    kinds = {"int": int, "float": float}
+    return {
+        f.name: kinds[str(f.type)]
+        for f in dataclasses.fields(ServerSettings)
+        if str(f.type) in kinds and f.name != "port"
+    }
+
+
+def _overrides(pairs: list[str]) -> dict[str, object]:
+    tunable = tunable_limits()
+    out: dict[str, object] = {}
+    for pair in pairs:
+        name, eq, raw = pair.partition("=")
+        name = name.strip().replace("-", "_")
+        if not eq or name not in tunable:
+            raise ValueError(
+                f"--set {pair!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(tunable))}"
+            )
+        try:
+            value = tunable[name](raw)
+        except ValueError:
+            raise ValueError(f"--set {name}: {raw!r} is not a {tunable[name].__name__}") from None
+        if value <= 0:
+            raise ValueError(f"--set {name}: must be positive, got {raw}")
+        out[name] = value
+    return out
 
 
 def settings_from(args: argparse.Namespace) -> ServerSettings:
@@ -65,6 +105,7 @@ def settings_from(args: argparse.Namespace) -> ServerSettings:
         kwargs["viewer_token"] = args.viewer_token
     if args.encode_workers is not None:
         kwargs["encode_workers"] = args.encode_workers
+    kwargs.update(_overrides(args.set))
     return ServerSettings(**kwargs)  # type: ignore[arg-type]
 
 
@@ -86,6 +127,7 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
     import uvicorn
 
     from server.web.app import create_app
+    from server.web.transport import guarded_protocol
 
     return uvicorn.Config(
         app if app is not None else create_app(settings),
@@ -93,14 +135,17 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
         port=settings.port,
         log_level=log_level,
         # websockets' sans-I/O protocol: of uvicorn's WebSocket implementations it takes the
-        # least CPU per 12 MB frame (the legacy one is deprecated and no faster; wsproto ~2.5x)
-        ws="websockets-sansio",
+        # least CPU per 12 MB frame (the legacy one is deprecated and no faster; wsproto ~2.5x);
+        # its message limit is the viewers' until a simulation's hello is accepted
+        ws=guarded_protocol(settings.viewer_limits.max_message_bytes),
         ws_max_size=settings.limits.max_message_bytes,
         ws_ping_interval=20.0,
         ws_ping_timeout=20.0,
         # frames are raw floats and images are JPEG: deflate costs CPU and saves nothing
         ws_per_message_deflate=False,
         lifespan="on",
+        # a shutdown never waits on a client for more than this (open dashboards included)
+        timeout_graceful_shutdown=5,
     )
 
 

@@ -3,6 +3,13 @@
 A job renders frame by frame (each frame is its own GPU submission, so live sessions keep their
 turn), writes to a temporary file, and only a complete file is reported `done`; anything that
 goes wrong marks the job `failed` with the reason and removes the partial output.
+
+Job records are files (`<jobs dir>/<id>.json`, written atomically at every change of state), so a
+restart loses none: a job that was queued or running starts again from its kept inputs (or fails
+saying why, when they are gone), a finished job's output stays downloadable. Ids are random
+(128 bits), so a job is reachable only by whoever was given its id. Input files are read in a
+child process (`structures.isolated`): a file that crashes the reader fails its job, not the
+server.
 """
 
 from __future__ import annotations
@@ -10,8 +17,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import enum
-import itertools
+import json
 import logging
+import os
+import re
+import secrets
 import shutil
 import threading
 import time
@@ -25,6 +35,8 @@ from server.metrics import Metrics
 from server.pipeline.encoder import encode_image
 from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
+from structures.isolated import IsolatedStructure, ReadLimits
+from structures.reader import StructureError
 
 log = logging.getLogger("scalesteer.jobs")
 
@@ -42,6 +54,7 @@ class JobState(enum.StrEnum):
 FINAL = (JobState.DONE, JobState.FAILED, JobState.CANCELLED, JobState.EXPIRED)
 MAX_RECORDS = 1000
 """Finished job records kept (oldest forgotten first); outputs follow the retention policy."""
+JOB_ID = re.compile(r"^j[A-Za-z0-9_-]{22}$")
 
 
 @dataclass
@@ -59,6 +72,42 @@ class JobSpec:
     fps: float = 30.0
     workdir: Path | None = None  # uploaded files live here; removed with the job
 
+    def record(self) -> dict[str, Any]:
+        """A JSON-able form, to survive restarts."""
+        return {
+            "topology": str(self.topology),
+            "trajectories": [str(t) for t in self.trajectories],
+            "params": self.params.model_dump(mode="json"),
+            "camera": self.camera.model_dump(mode="json") if self.camera else None,
+            "width": self.width,
+            "height": self.height,
+            "output": self.output,
+            "start": self.start,
+            "stop": self.stop,
+            "stride": self.stride,
+            "fps": self.fps,
+            "workdir": str(self.workdir) if self.workdir else None,
+        }
+
+    @classmethod
+    def from_record(cls, raw: dict[str, Any]) -> JobSpec:
+        camera = raw.get("camera")
+        workdir = raw.get("workdir")
+        return cls(
+            topology=Path(raw["topology"]),
+            trajectories=[Path(t) for t in raw["trajectories"]],
+            params=p.RenderParams.model_validate(raw["params"]),
+            camera=p.Camera.model_validate(camera) if camera else None,
+            width=int(raw["width"]),
+            height=int(raw["height"]),
+            output=raw["output"],
+            start=int(raw["start"]),
+            stop=None if raw["stop"] is None else int(raw["stop"]),
+            stride=int(raw["stride"]),
+            fps=float(raw["fps"]),
+            workdir=Path(workdir) if workdir else None,
+        )
+
 
 @dataclass
 class Job:
@@ -72,8 +121,41 @@ class Job:
     finished: float | None = None
     error: str | None = None
     result: Path | None = None
+    restarts: int = 0
+    """How many server restarts found this job unfinished (each started it again)."""
     cancel: threading.Event = field(default_factory=threading.Event)
     task: asyncio.Task[None] | None = None
+
+    def record(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "spec": self.spec.record(),
+            "state": self.state.value,
+            "total": self.total,
+            "done": self.done,
+            "created": self.created,
+            "started": self.started,
+            "finished": self.finished,
+            "error": self.error,
+            "result": str(self.result) if self.result else None,
+            "restarts": self.restarts,
+        }
+
+    @classmethod
+    def from_record(cls, raw: dict[str, Any]) -> Job:
+        return cls(
+            id=str(raw["id"]),
+            spec=JobSpec.from_record(raw["spec"]),
+            state=JobState(raw["state"]),
+            total=int(raw["total"]),
+            done=int(raw["done"]),
+            created=float(raw["created"]),
+            started=raw["started"],
+            finished=raw["finished"],
+            error=raw["error"],
+            result=Path(raw["result"]) if raw["result"] else None,
+            restarts=int(raw.get("restarts", 0)),
+        )
 
     def describe(self) -> dict[str, Any]:
         eta = None
@@ -90,6 +172,7 @@ class Job:
             "created": self.created,
             "started": self.started,
             "finished": self.finished,
+            "restarts": self.restarts,
             "result": f"/api/jobs/{self.id}/result" if self.state is JobState.DONE else None,
         }
 
@@ -99,19 +182,26 @@ class JobError(Exception):
 
 
 class JobManager:
+    MAX_RESTARTS = 2
+    """A job found unfinished after this many restarts fails instead of starting again (its
+    input may be what brings the server down)."""
+
     def __init__(
         self,
         directory: Path,
         gpu: GpuQueue,
         encoders: Executor,
         metrics: Metrics,
-        max_atoms: int,
+        read_limits: ReadLimits,
         *,
         retention_s: float = 24 * 3600.0,
         max_bytes: int = 2 << 30,
+        max_running: int = 2,
+        upload_dir: Path | None = None,
     ) -> None:
         """Outputs of finished jobs are kept `retention_s` seconds, and the newest of them
-        together at most `max_bytes` (older outputs are removed first)."""
+        together at most `max_bytes` (older outputs are removed first). At most `max_running`
+        jobs read and render at once; the others wait `queued`."""
         self.directory = directory
         self.retention_s = retention_s
         self.max_bytes = max_bytes
@@ -119,10 +209,82 @@ class JobManager:
         self.gpu = gpu
         self.encoders = encoders
         self.metrics = metrics
-        self.max_atoms = max_atoms
+        self.read_limits = read_limits
+        self.upload_dir = upload_dir
         self.jobs: dict[str, Job] = {}
-        self._ids = itertools.count(1)
-        self._token = f"{int(time.time()):x}"
+        self._running = asyncio.Semaphore(max_running)
+
+    def restore(self) -> list[Job]:
+        """Read the records a previous run left, clean what nothing refers to, and start again
+        the jobs it did not finish. Returns the jobs started again."""
+        for part in self.directory.glob("*.part*"):
+            part.unlink(missing_ok=True)
+        for tmp in self.directory.glob("*.json.tmp"):
+            tmp.unlink(missing_ok=True)
+        resumed: list[Job] = []
+        for path in sorted(self.directory.glob("*.json")):
+            try:
+                job = Job.from_record(json.loads(path.read_text(encoding="utf-8")))
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                log.warning("unreadable job record %s (%s); moved aside", path.name, exc)
+                path.rename(path.with_suffix(".broken"))
+                continue
+            self.jobs[job.id] = job
+            if job.state is JobState.DONE and (job.result is None or not job.result.is_file()):
+                job.state, job.result = JobState.EXPIRED, None
+                job.error = "output missing after a server restart"
+                self._save(job)
+            if job.state in FINAL:
+                continue
+            inputs = [job.spec.topology, *job.spec.trajectories]
+            if job.restarts >= self.MAX_RESTARTS:
+                self._fail_on_restart(
+                    job,
+                    f"the server restarted {job.restarts + 1} times "
+                    "while it ran; not started again",
+                )
+            elif not all(f.is_file() for f in inputs):
+                self._fail_on_restart(job, "the server restarted and its input files are gone")
+            else:
+                job.restarts += 1
+                job.state, job.done, job.started = JobState.QUEUED, 0, None
+                job.error = None
+                self._save(job)
+                job.task = asyncio.create_task(self._run(job), name=f"job-{job.id}")
+                resumed.append(job)
+        self._clean_uploads()
+        self.reap()
+        return resumed
+
+    def _fail_on_restart(self, job: Job, why: str) -> None:
+        job.state, job.error, job.finished = JobState.FAILED, why, time.time()
+        if job.spec.workdir is not None:
+            shutil.rmtree(job.spec.workdir, ignore_errors=True)
+        self.metrics.jobs.labels(job.state.value).inc()
+        self._save(job)
+
+    def _clean_uploads(self) -> None:
+        """Remove upload folders no unfinished job needs (requests cut off by a crash)."""
+        if self.upload_dir is None or not self.upload_dir.is_dir():
+            return
+        kept = {
+            j.spec.workdir.resolve()
+            for j in self.jobs.values()
+            if j.spec.workdir is not None and j.state not in FINAL
+        }
+        for entry in self.upload_dir.iterdir():
+            if entry.resolve() not in kept:
+                if entry.is_dir():
+                    shutil.rmtree(entry, ignore_errors=True)
+                else:
+                    entry.unlink(missing_ok=True)
+
+    def _save(self, job: Job) -> None:
+        """Write the job's record atomically (a crash leaves the old record or the new one)."""
+        path = self.directory / f"{job.id}.json"
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(job.record(), separators=(",", ":")), encoding="utf-8")
+        os.replace(tmp, path)
 
     def reap(self, now: float | None = None) -> list[Job]:
         """Apply the retention policy: remove outputs older than `retention_s`, then the oldest
@@ -160,6 +322,7 @@ class JobManager:
         job.result = None
         job.state = JobState.EXPIRED
         job.error = why
+        self._save(job)
 
     def forget(self, job: Job) -> None:
         """Drop a finished job and its output."""
@@ -167,11 +330,16 @@ class JobManager:
             job.result.unlink(missing_ok=True)
             job.result = None
         self.jobs.pop(job.id, None)
+        (self.directory / f"{job.id}.json").unlink(missing_ok=True)
+
+    def get(self, job_id: str) -> Job | None:
+        return self.jobs.get(job_id) if JOB_ID.match(job_id) else None
 
     def submit(self, spec: JobSpec) -> Job:
         self.reap()
-        job = Job(id=f"j{self._token}-{next(self._ids)}", spec=spec)
+        job = Job(id=f"j{secrets.token_urlsafe(16)}", spec=spec)
         self.jobs[job.id] = job
+        self._save(job)
         job.task = asyncio.create_task(self._run(job), name=f"job-{job.id}")
         return job
 
@@ -180,25 +348,31 @@ class JobManager:
         if job.state is JobState.QUEUED:
             job.state = JobState.CANCELLED
             job.finished = time.time()
+            self._save(job)
 
     async def _run(self, job: Job) -> None:
-        from structures.reader import StructureError, load
+        async with self._running:
+            await self._render(job)
 
+    async def _render(self, job: Job) -> None:
         spec = job.spec
         slot = f"job:{job.id}"
         writer: FrameWriter | None = None
+        structure: IsolatedStructure | None = None
         loop = asyncio.get_running_loop()
+        if job.cancel.is_set():
+            return
+        job.state = JobState.RUNNING
+        job.started = time.time()
+        self._save(job)
+        outcome, error, result = JobState.DONE, None, None
         try:
-            if job.cancel.is_set():
-                return
-            job.state = JobState.RUNNING
-            job.started = time.time()
             try:
                 structure = await asyncio.to_thread(
-                    load,
+                    IsolatedStructure,
                     str(spec.topology),
                     [str(t) for t in spec.trajectories],
-                    max_atoms=self.max_atoms,
+                    self.read_limits,
                 )
             except StructureError as exc:
                 raise JobError(str(exc)) from None
@@ -220,9 +394,12 @@ class JobManager:
             topology = structure.topology
             for n, index in enumerate(indices):
                 if job.cancel.is_set():
-                    job.state = JobState.CANCELLED
+                    outcome = JobState.CANCELLED
                     break
-                positions = await asyncio.to_thread(structure.positions, index)
+                try:
+                    positions = await asyncio.to_thread(structure.positions, index)
+                except StructureError as exc:
+                    raise JobError(str(exc)) from None
                 if camera is None:
                     from server.render.camera import fit_camera
 
@@ -238,38 +415,43 @@ class JobManager:
                     )
                 await loop.run_in_executor(self.encoders, writer.add, index, out.rgba, png)
                 job.done = n + 1
-            if job.state is JobState.CANCELLED:
-                await loop.run_in_executor(self.encoders, writer.abort)
-            else:
+            if outcome is JobState.DONE:
                 await loop.run_in_executor(self.encoders, writer.close)
-                job.result = final
-                job.state = JobState.DONE
+                result = final
         except JobError as exc:
-            job.state, job.error = JobState.FAILED, str(exc)
+            outcome, error = JobState.FAILED, str(exc)
         except asyncio.CancelledError:
-            job.state, job.error = JobState.CANCELLED, "server shutting down"
+            # shutting down: the record stays `running`, so the next start runs the job again
+            if writer is not None:
+                with contextlib.suppress(Exception):
+                    writer.abort()
+            if structure is not None:
+                structure.close()
             raise
         except Exception as exc:
             log.exception("job %s failed", job.id)
-            job.state, job.error = (
-                JobState.FAILED,
-                f"internal error ({type(exc).__name__}); see the server log",
-            )
-        finally:
-            if job.state is not JobState.DONE and writer is not None:
-                with contextlib.suppress(Exception):
-                    writer.abort()
-            job.finished = time.time()
-            self.metrics.jobs.labels(job.state.value).inc()
-            self.reap()
+            outcome = JobState.FAILED
+            error = f"internal error ({type(exc).__name__}); see the server log"
+        if structure is not None:
+            await asyncio.to_thread(structure.close)
+        if outcome is not JobState.DONE and writer is not None:
             with contextlib.suppress(Exception):
-                await self.gpu.release(slot)
-            if spec.workdir is not None:
-                shutil.rmtree(spec.workdir, ignore_errors=True)
+                writer.abort()
+        with contextlib.suppress(Exception):
+            await self.gpu.release(slot)
+        if spec.workdir is not None:
+            await asyncio.to_thread(shutil.rmtree, spec.workdir, True)
+        # the outcome is published in one step, with no await in between
+        job.state, job.error, job.result = outcome, error, result
+        job.finished = time.time()
+        self.metrics.jobs.labels(job.state.value).inc()
+        self._save(job)
+        self.reap()
 
     async def close(self) -> None:
+        """Stop the running jobs without finishing them: their records stay unfinished, so the
+        next start runs them again."""
         for job in self.jobs.values():
-            job.cancel.set()
             if job.task is not None and not job.task.done():
                 job.task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):

@@ -87,11 +87,25 @@ class Client:
         if len(self._control) >= MAX_QUEUED_CONTROL:
             log.warning("client %s is not reading; disconnecting", self.client_id)
             self._control.clear()
+            self._control.append(
+                p.encode(
+                    p.Error(
+                        code=p.ErrorCode.RATE_LIMITED,
+                        message=f"{MAX_QUEUED_CONTROL} messages waited for this client to read "
+                        "them; disconnecting (read faster, or send less)",
+                    )
+                )
+            )
             self.state = ClientState.CLOSING
             self._wake.set()
             return
         self._control.append(data)
         self._wake.set()
+
+    @property
+    def backlog(self) -> int:
+        """Control messages queued and not yet sent."""
+        return len(self._control)
 
     def offer_image(self, message: p.Image) -> ImageOffer:
         """Put an image in the slot (see `offer_encoded`)."""

@@ -13,6 +13,26 @@ class Roster:
     sim: Client | None = None
     clients: dict[str, Client] = field(default_factory=dict)
     """Viewers and steerers by client id (the simulation is not among them)."""
+    joined: dict[str, p.ClientInfo] = field(default_factory=dict)
+    left: list[str] = field(default_factory=list)
+    """Changes not yet broadcast (see `take_changes`)."""
+
+    def note_join(self, client: Client) -> None:
+        self.joined[client.client_id] = client.info()
+
+    def note_leave(self, client: Client) -> None:
+        if self.joined.pop(client.client_id, None) is None:
+            self.left.append(client.client_id)
+
+    def take_changes(self) -> p.State | None:
+        """The roster changes since the last call as one `state` delta (None if nothing
+        changed): a storm of joins costs one small message per client per interval, never
+        the whole list per join."""
+        if not self.joined and not self.left:
+            return None
+        delta = p.State(joined=list(self.joined.values()) or None, left=self.left or None)
+        self.joined, self.left = {}, []
+        return delta
 
     def add(self, client: Client) -> Client | None:
         """Take a client in; returns the simulation connection it replaces, if any."""

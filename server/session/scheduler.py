@@ -104,15 +104,18 @@ class RenderScheduler:
         """Render this group again on the next pass (its image was lost)."""
         self._rendered.pop(key, None)
 
-    def image_size(self, key: ViewKey, quality: float) -> tuple[int, int]:
+    def image_size(self, key: ViewKey, quality: float, on_cpu: bool = False) -> tuple[int, int]:
         """Pixels to render for a group: its canvas times the quality (halved, by default,
-        while interacting), shrunk to the server's image limits."""
+        while interacting), shrunk to the server's image limits, and on the CPU device to
+        `cpu_max_live_pixels` (one huge canvas must not hold every session's renders for
+        seconds; the browser scales the image up)."""
         scale = quality * (self.settings.interactive_scale if key.interactive else 1.0)
         rw, rh = max(1, round(key.width * scale)), max(1, round(key.height * scale))
         lim = self.settings.limits
-        shrink = min(
-            1.0, lim.max_image_side / max(rw, rh), (lim.max_image_pixels / (rw * rh)) ** 0.5
-        )
+        pixels = lim.max_image_pixels
+        if on_cpu:
+            pixels = min(pixels, self.settings.cpu_max_live_pixels)
+        shrink = min(1.0, lim.max_image_side / max(rw, rh), (pixels / (rw * rh)) ** 0.5)
         return max(1, int(rw * shrink)), max(1, int(rh * shrink))
 
     def jpeg_quality(self, key: ViewKey, params: p.RenderParams) -> int:

@@ -29,6 +29,7 @@ import protocol as p
 from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
 from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
+from server.session.engine_limits import check_control, check_pull, check_sim_params
 from server.session.forces import ForceBook
 from server.session.roster import Roster
 from server.session.scheduler import RenderScheduler, ViewKey
@@ -87,6 +88,8 @@ class Session:
         """When the last client and the simulation left (None while anyone is connected)."""
         self.roster = Roster()
         self.topology: p.Topology | None = None
+        self.engine: p.EngineInfo | None = None
+        """What the simulation declared it can be steered with (kept until a new one says)."""
         self.topology_id = 0
         self.positions: npt.NDArray[np.float32] | None = None
         self.positions_id = 0
@@ -101,8 +104,8 @@ class Session:
         self.delivery = Delivery(session_id, services)
         self.version = 0
         """Counts every change to what the session draws (positions, render parameters)."""
-        self._log_seq = itertools.count(1)
         self._image_ids = itertools.count(1)
+        self._roster_flush: asyncio.TimerHandle | None = None
         self._step_rate = StepRate()
         self._dirty = asyncio.Event()
         self._closed = False
@@ -142,12 +145,30 @@ class Session:
         if client.role != "simulation":
             client.needs_image = True
         self.services.metrics.clients.labels(client.role).inc()
+        if replaced is not None:
+            self.roster.note_leave(replaced)
+        self.roster.note_join(client)
+        self._roster_changed()
+        # the newcomer gets the whole roster now (the coming delta repeats it, harmlessly)
         client.send(self.full_state())
-        self.broadcast(p.State(clients=self.roster.infos()))
         self.mark_dirty()
+
+    def _roster_changed(self) -> None:
+        """Send the roster's changes soon, coalesced over `state_interval_s`."""
+        if self._roster_flush is None:
+            self._roster_flush = asyncio.get_running_loop().call_later(
+                self.settings.state_interval_s, self._flush_roster
+            )
+
+    def _flush_roster(self) -> None:
+        self._roster_flush = None
+        delta = self.roster.take_changes()
+        if delta is not None:
+            self.broadcast(delta)
 
     def detach(self, client: Client) -> None:
         self.services.metrics.clients.labels(client.role).dec()
+        member = client is self.roster.sim or client.client_id in self.roster.clients
         if self.roster.remove(client):
             self.status = self.status.model_copy(
                 update={"state": "disconnected", "steps_per_s": 0.0}
@@ -160,7 +181,9 @@ class Session:
             if self.forces.drop_client(client.client_id):
                 self._send_forces()
                 self.broadcast(p.State(pulling=self.forces.pulling()))
-        self.broadcast(p.State(clients=self.roster.infos()))
+        if member:  # a replaced simulation left the roster when it was replaced
+            self.roster.note_leave(client)
+            self._roster_changed()
         if self.roster.empty:
             self.idle_since = time.monotonic()
 
@@ -179,6 +202,7 @@ class Session:
             sim=self.status,
             clients=self.roster.infos(),
             pulling=self.forces.pulling(),
+            engine=self.engine,
             camera=self.camera,
         )
 
@@ -199,6 +223,27 @@ class Session:
             update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": "running"}
         )
         self.broadcast(p.State(sim=self.status))
+
+    def on_engine(self, info: p.EngineInfo) -> None:
+        self.engine = info
+        if info.pull is not None:
+            self.forces.max_force = min(self.forces.max_force, info.pull.max_force)
+        self.broadcast(p.State(engine=info))
+
+    def on_event(self, event: p.Event) -> None:
+        """Relay the simulation's event to everyone and log it. A guard that fired has dropped
+        every external force, so the pulls end here too."""
+        self._log(
+            {"event": "sim_event", "level": event.level, "code": event.code,
+             "message": event.message, "step": event.step}
+        )  # fmt: skip
+        if event.code == "guard":  # the adapter paused and dropped every external force
+            if self.forces.pulls or self.forces.scripted:
+                self.forces.clear()
+                self.broadcast(p.State(pulling=self.forces.pulling()))
+            self.status = self.status.model_copy(update={"state": "paused", "steps_per_s": 0.0})
+            self.broadcast(p.State(sim=self.status))
+        self.broadcast(event.model_copy(update={"seq": None}))
 
     def on_frame(self, frame: p.Frame) -> None:
         """Take a frame: the topology must be known and the atom counts must agree."""
@@ -282,7 +327,7 @@ class Session:
     # ------------------------------------------------------------------ steering
 
     def _log(self, entry: dict[str, Any]) -> int:
-        log_id = next(self._log_seq)
+        log_id = self.services.steering_log.next_id(self.id)
         self.services.steering_log.append(
             self.id, {"id": log_id, "sim_step": self.status.step, **entry}
         )
@@ -311,12 +356,14 @@ class Session:
                 self._set_render_params(client, message, who)
             case p.SimParams():
                 self._need_sim(message)
+                check_sim_params(self.engine, message)
                 changes = sim_params_changes(message)
                 log_id = self._log({"event": "sim_params", **who, "changes": changes})
                 pending = Pending(client.client_id, message.seq, "sim_params", log_id, message)
                 self._forward(message, pending)
             case p.Control():
                 self._need_sim(message)
+                check_control(self.engine, message)
                 changes = message.model_dump(exclude_none=True, exclude={"seq", "type"})
                 log_id = self._log({"event": "control", **who, **changes})
                 self._forward(message, Pending(client.client_id, message.seq, "control", log_id))
@@ -325,6 +372,7 @@ class Session:
                 self._script_forces(client, message, who)
             case p.Pull():
                 self._need_sim(message)
+                message = check_pull(self.engine, message)
                 self._pull(client, message, who)
             case _:
                 raise p.ProtocolError(
@@ -523,7 +571,8 @@ class Session:
         if snap.topology_id != self.topology_id:
             return None
         params = self.render_params
-        width, height = self.scheduler.image_size(key, params.quality)
+        device = self.services.backend.actual_device or self.settings.device
+        width, height = self.scheduler.image_size(key, params.quality, device.startswith("cpu"))
         now = time.monotonic()
         request = RenderRequest(
             slot=self.slot,
@@ -627,6 +676,8 @@ class Session:
 
     async def close(self) -> None:
         self._closed = True
+        if self._roster_flush is not None:
+            self._roster_flush.cancel()
         self._frame_taken.set()
         tasks = [*self._tasks, *self.delivery.in_flight()]
         for task in tasks:

@@ -28,6 +28,9 @@ class SteeringLog:
         self.directory.mkdir(parents=True, exist_ok=True)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="steering-log")
         self._lock = threading.Lock()
+        self._id_lock = threading.Lock()
+        self._ids: dict[str, int] = {}
+        """The last id handed out per session (read from disk on first use)."""
 
     def path(self, session: str) -> Path:
         if not _SAFE.match(session):
@@ -60,6 +63,42 @@ class SteeringLog:
                     except json.JSONDecodeError:
                         continue
         return out
+
+    def next_id(self, session: str) -> int:
+        """A new entry id for `session`: one more than any on disk or handed out in this
+        process, so a `ref` names one action for the life of the log, across restarts."""
+        with self._id_lock:
+            last = self._ids.get(session)
+            if last is None:
+                last = self.last_id(session)
+            self._ids[session] = last + 1
+            return last + 1
+
+    def last_id(self, session: str) -> int:
+        """The largest entry id on disk (0 for a new log), so ids continue across restarts and a
+        `ref` names one action for the life of the log. Reads only the file's tail."""
+        path = self.path(session)
+        if not path.exists():
+            return 0
+        with open(path, "rb") as fh:
+            end = fh.seek(0, os.SEEK_END)
+            chunk = 1 << 16
+            while True:
+                start = max(0, end - chunk)
+                fh.seek(start)
+                tail = fh.read(end - start)
+                lines = tail.split(b"\n")
+                complete = lines[1:-1] if start > 0 else lines[:-1]
+                for raw in reversed(complete):
+                    try:
+                        found = json.loads(raw).get("id")
+                    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+                        continue
+                    if isinstance(found, int):
+                        return found
+                if start == 0:
+                    return 0
+                chunk *= 4
 
     def close(self) -> None:
         self._writer.shutdown(wait=True)

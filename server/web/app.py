@@ -20,6 +20,7 @@ from server.session.session import Session
 from server.session.steering_log import SteeringLog
 from server.settings import ServerSettings
 from server.web import ws as ws_endpoints
+from server.web.auth import RateLimiter
 from server.web.middleware import HostCheck, UploadLimit
 from server.web.rest import router
 from server.web.state import AppState, SessionRegistry
@@ -65,13 +66,23 @@ def create_app(settings: ServerSettings) -> FastAPI:
                 gpu,
                 encoders,
                 metrics,
-                settings.limits.max_atoms,
+                settings.read_limits(),
                 retention_s=settings.job_retention_s,
                 max_bytes=settings.job_max_bytes,
+                max_running=settings.max_running_jobs,
+                upload_dir=upload_dir,
             ),
             upload_dir=upload_dir,
+            readers=asyncio.Semaphore(settings.max_readers),
+            viewer_renders=RateLimiter(
+                settings.viewer_renders_per_min / 60.0,
+                max(1.0, settings.viewer_renders_per_min / 6),
+            ),
         )
         app.state.scalesteer = state
+        resumed = state.jobs.restore()
+        if resumed:
+            log.info("started again %d job(s) a previous run left unfinished", len(resumed))
         await state.sessions.get_or_create("default")
 
         async def reaper() -> None:

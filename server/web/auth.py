@@ -11,7 +11,7 @@ from protocol import Role
 from server.settings import ServerSettings, is_loopback
 
 STEERING_TYPES = frozenset({"sim_params", "control", "forces", "pull", "render_params"})
-SIMULATION_TYPES = frozenset({"topology", "frame", "params_ack"})
+SIMULATION_TYPES = frozenset({"topology", "frame", "params_ack", "engine", "event"})
 VIEWER_TYPES = frozenset({"view", "pick", "ping", "pong", "error"})
 
 
@@ -106,3 +106,7 @@ class RateLimiter:
             self.tokens -= 1.0
             return True
         return False
+
+    def wait_s(self) -> float:
+        """Seconds until the next call would be allowed."""
+        return max(0.0, (1.0 - self.tokens) / self.rate)

@@ -17,13 +17,15 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 import protocol as p
 from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
 from server.web.auth import token_role
 from server.web.state import AppState
+from structures.isolated import IsolatedStructure
+from structures.reader import StructureError
 
 router = APIRouter()
 
@@ -57,13 +59,24 @@ def steerer_access(request: Request) -> p.Role:
 State = Annotated[AppState, Depends(app_state)]
 
 
-def _model(cls: type[Any], raw: str | None, field: str) -> Any:
+def _model(cls: type[BaseModel], raw: str | None, field: str) -> Any:
+    """Parse a JSON form field into `cls`; every problem is a 422 naming the field, and so is a
+    key the model does not know (a misspelt `sigma` must not fall back to the default)."""
     if raw is None or raw == "":
         return None
     try:
-        return cls.model_validate(json.loads(raw))
+        data = json.loads(raw)
     except json.JSONDecodeError as exc:
         raise HTTPException(422, f"{field}: not valid JSON ({exc.msg})") from None
+    except RecursionError:
+        raise HTTPException(422, f"{field}: nested too deeply") from None
+    except ValueError as exc:  # an integer of thousands of digits
+        raise HTTPException(422, f"{field}: {str(exc)[:120]}") from None
+    unknown = _unknown_keys(cls, data, field)
+    if unknown:
+        raise HTTPException(422, f"{unknown}: unknown field")
+    try:
+        return cls.model_validate(data)
     except ValidationError as exc:
         err = exc.errors(include_url=False)[0]
         where = ".".join(str(x) for x in err["loc"])
@@ -72,13 +85,37 @@ def _model(cls: type[Any], raw: str | None, field: str) -> Any:
         ) from None
 
 
+def _unknown_keys(cls: type[BaseModel], data: Any, where: str) -> str | None:
+    """The path of the first key in `data` that `cls` (or a model nested in it) has no field
+    for, or None."""
+    if not isinstance(data, dict):
+        return None
+    for key, value in data.items():
+        info = cls.model_fields.get(str(key))
+        if info is None:
+            return f"{where}.{key}"
+        nested = info.annotation
+        for candidate in (nested, *getattr(nested, "__args__", ())):
+            if isinstance(candidate, type) and issubclass(candidate, BaseModel):
+                found = _unknown_keys(candidate, value, f"{where}.{key}")
+                if found:
+                    return found
+    return None
+
+
 def _dataset(state: AppState, name: str) -> Path:
     root = state.settings.data_dir
     if root is None:
         raise HTTPException(404, "this server has no --data-dir; upload the file instead")
+    if "\x00" in name or len(name) > 1024 or any(len(part) > 255 for part in name.split("/")):
+        raise HTTPException(422, "dataset: not a usable file name")
     base = root.resolve()
-    path = (base / name).resolve()
-    if not path.is_relative_to(base) or not path.is_file():
+    try:
+        path = (base / name).resolve()
+        found = path.is_relative_to(base) and path.is_file()
+    except OSError:
+        found = False
+    if not found:
         raise HTTPException(404, f"no dataset named {name!r}")
     return path
 
@@ -91,6 +128,9 @@ async def _save_upload(upload: UploadFile, directory: Path, limit: int, index: i
     name = _UNSAFE.sub("_", Path(upload.filename or "upload").name).lstrip(".")
     if not name:
         raise HTTPException(422, f"unusable file name {upload.filename!r}")
+    if len(name) > 120:  # keep the extension, which names the format
+        stem, dot, ext = name.rpartition(".")
+        name = stem[: 100 - len(ext)] + dot + ext[:16] if dot else name[:120]
     target = directory / f"{index}-{name}"
     size = 0
     with open(target, "wb") as out:
@@ -104,10 +144,41 @@ async def _save_upload(upload: UploadFile, directory: Path, limit: int, index: i
     return target
 
 
+async def _read_frame(
+    state: AppState, path: Path, frame: int, role: p.Role
+) -> tuple[p.Topology, Any]:
+    """Topology and positions of one frame of an untrusted file, read in a child process."""
+    async with state.readers:
+        try:
+            structure = await asyncio.to_thread(
+                IsolatedStructure, str(path), (), state.settings.read_limits(role)
+            )
+        except StructureError as exc:
+            raise HTTPException(422, str(exc)) from None
+        try:
+            if frame >= structure.n_frames:
+                raise HTTPException(
+                    422, f"frame {frame} out of range: the file has {structure.n_frames}"
+                )
+            positions = await asyncio.to_thread(structure.positions, frame)
+        except StructureError as exc:
+            raise HTTPException(422, str(exc)) from None
+        finally:
+            await asyncio.to_thread(structure.close)
+    return structure.topology, positions
+
+
 def _check_size(state: AppState, width: int, height: int) -> None:
     lim = state.settings.limits
     if width < 1 or height < 1:
         raise HTTPException(422, f"image size {width}x{height}: width and height must be >= 1")
+    device = state.gpu.actual_device or state.settings.device
+    if device.startswith("cpu") and width * height > state.settings.cpu_max_rest_pixels:
+        raise HTTPException(
+            422,
+            f"image size {width}x{height}: this server renders on its CPU, where at most "
+            f"{state.settings.cpu_max_rest_pixels} pixels are rendered per image",
+        )
     if max(width, height) > lim.max_image_side or width * height > lim.max_image_pixels:
         raise HTTPException(
             422, f"image size {width}x{height} exceeds the limit ({lim.max_image_side} px a side)"
@@ -121,7 +192,7 @@ def _check_size(state: AppState, width: int, height: int) -> None:
 )
 async def render_image(
     state: State,
-    _role: Annotated[p.Role, Depends(viewer_access)],
+    role: Annotated[p.Role, Depends(viewer_access)],
     file: Annotated[UploadFile | None, File(description="PDB, mmCIF, GRO or XYZ")] = None,
     dataset: Annotated[
         str | None, Form(description="file name under the server's --data-dir")
@@ -139,6 +210,14 @@ async def render_image(
     format: Annotated[Literal["png", "jpeg"], Form()] = "png",
 ) -> Response:
     _check_size(state, width, height)
+    if role == "viewer" and not state.viewer_renders.allow():
+        wait = state.viewer_renders.wait_s()
+        raise HTTPException(
+            429,
+            f"renders with the viewer token are limited to "
+            f"{state.settings.viewer_renders_per_min:g} a minute; retry in {wait:.0f} s",
+            headers={"Retry-After": str(max(1, round(wait)))},
+        )
     given = [x for x in (file, dataset, session) if x is not None]
     if len(given) != 1:
         raise HTTPException(422, "give exactly one of file, dataset or session")
@@ -154,8 +233,6 @@ async def render_image(
         render_params = render_params or live.render_params
         cam = cam or live.camera
     else:
-        from structures.reader import StructureError, load
-
         workdir = Path(tempfile.mkdtemp(prefix="render-", dir=state.upload_dir))
         try:
             path = (
@@ -163,18 +240,7 @@ async def render_image(
                 if file
                 else _dataset(state, dataset or "")
             )
-            try:
-                structure = await asyncio.to_thread(
-                    load, str(path), (), max_atoms=state.settings.limits.max_atoms
-                )
-                if frame >= structure.n_frames:
-                    raise HTTPException(
-                        422, f"frame {frame} out of range: the file has {structure.n_frames}"
-                    )
-                positions = await asyncio.to_thread(structure.positions, frame)
-            except StructureError as exc:
-                raise HTTPException(422, str(exc)) from None
-            topology = structure.topology
+            topology, positions = await _read_frame(state, path, frame, role)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
     render_params = render_params or p.RenderParams()
@@ -221,8 +287,6 @@ async def create_job(
         raise HTTPException(422, "give exactly one of topology (upload) or dataset")
     render_params = _model(p.RenderParams, params, "params") or p.RenderParams()
     cam = _model(p.Camera, camera, "camera")
-    from structures.reader import StructureError, load
-
     workdir = Path(tempfile.mkdtemp(prefix="job-", dir=state.upload_dir))
     try:
         limit = state.settings.max_upload_bytes
@@ -234,12 +298,18 @@ async def create_job(
         else:
             top = _dataset(state, dataset or "")
             trajs = [_dataset(state, t) for t in trajectory_dataset or []]
-        try:  # fail fast on unreadable input, before a job exists
-            await asyncio.to_thread(
-                load, str(top), [str(t) for t in trajs], max_atoms=state.settings.limits.max_atoms
-            )
-        except StructureError as exc:
-            raise HTTPException(422, str(exc)) from None
+        # fail fast on unreadable input, before a job exists
+        async with state.readers:
+            try:
+                checked = await asyncio.to_thread(
+                    IsolatedStructure,
+                    str(top),
+                    [str(t) for t in trajs],
+                    state.settings.read_limits(),
+                )
+            except StructureError as exc:
+                raise HTTPException(422, str(exc)) from None
+            await asyncio.to_thread(checked.close)
     except BaseException:  # nothing of a refused job stays on disk
         shutil.rmtree(workdir, ignore_errors=True)
         raise
@@ -264,7 +334,7 @@ async def create_job(
 
 
 def _job(state: AppState, job_id: str) -> Any:
-    job = state.jobs.jobs.get(job_id)
+    job = state.jobs.get(job_id)
     if job is None:
         raise HTTPException(404, f"no job {job_id!r}")
     return job
@@ -272,7 +342,7 @@ def _job(state: AppState, job_id: str) -> Any:
 
 @router.get("/api/jobs/{job_id}", summary="Job state, progress and ETA")
 async def get_job(
-    job_id: str, state: State, _role: Annotated[p.Role, Depends(viewer_access)]
+    job_id: str, state: State, _role: Annotated[p.Role, Depends(steerer_access)]
 ) -> dict[str, Any]:
     result: dict[str, Any] = _job(state, job_id).describe()
     return result
@@ -280,7 +350,7 @@ async def get_job(
 
 @router.get("/api/jobs/{job_id}/result", summary="Download a finished job's output")
 async def get_job_result(
-    job_id: str, state: State, _role: Annotated[p.Role, Depends(viewer_access)]
+    job_id: str, state: State, _role: Annotated[p.Role, Depends(steerer_access)]
 ) -> FileResponse:
     job = _job(state, job_id)
     if job.state is not JobState.DONE or job.result is None:

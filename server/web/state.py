@@ -24,6 +24,7 @@ from server.session.services import Services
 from server.session.session import Session
 from server.session.steering_log import SteeringLog
 from server.settings import ServerSettings
+from server.web.auth import RateLimiter
 
 _SESSION_NAME = re.compile(SESSION_NAME)
 
@@ -85,6 +86,14 @@ class SessionRegistry:
 
 
 @dataclass
+class Connections:
+    """Open WebSockets: all of them, and per token (the server's, the viewers')."""
+
+    total: int = 0
+    by_token: dict[str, int] = field(default_factory=lambda: {"server": 0, "viewer": 0})
+
+
+@dataclass
 class AppState:
     settings: ServerSettings
     gpu: GpuQueue
@@ -93,6 +102,11 @@ class AppState:
     sessions: SessionRegistry
     jobs: JobManager
     upload_dir: Path
+    readers: asyncio.Semaphore
+    """Untrusted files read at once (each read is a child process)."""
+    viewer_renders: RateLimiter
+    """`/api/render` calls by viewer-token holders, together."""
+    connections: Connections = field(default_factory=Connections)
 
     @property
     def metrics(self) -> Metrics:

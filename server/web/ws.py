@@ -16,6 +16,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
+from starlette.responses import PlainTextResponse
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 import protocol as p
@@ -30,6 +31,7 @@ from server.web.auth import (
     origin_allowed,
 )
 from server.web.state import AppState
+from server.web.transport import raise_limit
 
 log = logging.getLogger("scalesteer.ws")
 
@@ -39,6 +41,8 @@ MAX_ERRORS_PER_10S = 50
 ANY_PER_STEER = 20
 """Other messages (views, picks, pings) a connection may send per steering message allowed."""
 OFFLOAD_BYTES = 1 << 20
+PONG_BACKLOG = 64
+"""A ping is not answered while this many messages wait to be sent to its peer."""
 
 
 @dataclass
@@ -100,10 +104,23 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
         state.metrics.errors.labels("forbidden").inc()
         await ws.close(code=1008, reason="origin not allowed")
         return
+    if state.connections.total >= settings.max_connections:
+        state.metrics.errors.labels("capacity").inc()
+        await ws.send_denial_response(
+            PlainTextResponse(
+                f"the server holds its limit of {settings.max_connections} connections; "
+                "try again later",
+                status_code=503,
+                headers={"Retry-After": "5"},
+            )
+        )
+        return
     await ws.accept()
     client: Client | None = None
     session = None
     sender: asyncio.Task[None] | None = None
+    counted: str | None = None
+    state.connections.total += 1
     try:
         hello = await _handshake(ws, state, endpoint)
         role = grant(settings, hello.token, hello.role)
@@ -114,14 +131,40 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
                 ),
                 1008,
             )
+        token_kind = "viewer" if role == "viewer" else "server"
+        if state.connections.by_token[token_kind] >= settings.max_connections_per_token:
+            raise RefusedError(
+                p.ProtocolError(
+                    p.ErrorCode.CAPACITY,
+                    f"{settings.max_connections_per_token} connections already hold this "
+                    "token; try again later",
+                    "hello.token",
+                    hello.seq,
+                ),
+                1013,
+            )
+        state.connections.by_token[token_kind] += 1
+        counted = token_kind
         try:
             session = await state.sessions.get_or_create(
                 hello.session or "default", create=role != "viewer"
             )
         except p.ProtocolError as err:
             raise RefusedError(err.with_ref(hello.seq), 1008) from None
+        if role != "simulation" and len(session.clients) >= settings.max_clients_per_session:
+            raise RefusedError(
+                p.ProtocolError(
+                    p.ErrorCode.CAPACITY,
+                    f"session {session.id!r} holds its limit of "
+                    f"{settings.max_clients_per_session} viewers and steerers",
+                    "hello.session",
+                    hello.seq,
+                ),
+                1013,
+            )
         if role == "simulation":
             claim_session(session, hello)
+            raise_limit(ws.scope, settings.limits.max_message_bytes)
         # browsers and scripts send only small control messages; simulations send frames
         limits = settings.limits if endpoint == "sim" else settings.viewer_limits
         client = Client(
@@ -153,9 +196,16 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
     except Exception:
         log.exception("connection failed")
     finally:
+        state.connections.total -= 1
+        if counted is not None:
+            state.connections.by_token[counted] -= 1
         if client is not None:
             if session is not None:
                 session.detach(client)
+            if client.state is ClientState.CLOSING and sender is not None:
+                # dropped for not reading: let the sender deliver the error and the close frame
+                with contextlib.suppress(Exception):
+                    await asyncio.wait_for(asyncio.shield(sender), 5.0)
             client.close()
         if sender is not None:
             sender.cancel()
@@ -244,6 +294,9 @@ async def _receive_loop(
                 message = p.decode(raw, limits)
             try:
                 await _dispatch(session, client, guard, message)
+                # messages already buffered would otherwise be handled back to back; let the
+                # sender and every other connection have their turn after each one
+                await asyncio.sleep(0)
                 if big and isinstance(message, p.Frame):
                     # the next big frame is read once a render took this one: few fit in the
                     # socket's buffers, so acks behind them wait one render at most
@@ -296,14 +349,22 @@ async def _dispatch(session: Session, client: Client, guard: Guard, message: p.M
             session.on_frame(message)
         case p.ParamsAck():
             session.on_ack(message)
+        case p.EngineInfo():
+            session.on_engine(message)
+        case p.Event():
+            session.on_event(message)
         case p.View():
             session.set_view(client, message)
         case p.Pick():
             client.send(await session.pick(client, message))
         case p.Ping():
-            client.send(
-                p.Pong(ref=message.seq, client_time=message.client_time, server_time=time.time())
-            )
+            # pings are latency probes: under a flood, answer only while the peer keeps up
+            if client.backlog < PONG_BACKLOG:
+                client.send(
+                    p.Pong(
+                        ref=message.seq, client_time=message.client_time, server_time=time.time()
+                    )
+                )
         case p.Pong() | p.Error():
             if isinstance(message, p.Error):
                 log.debug(  # peer-chosen text: quoted, cut short, not at info level

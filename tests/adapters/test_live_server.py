@@ -235,3 +235,70 @@ def test_a_wrong_token_is_refused(no_leaked_threads: None, live: Any) -> None:
     with SimulationConnection(sim_url(live), token=f"{live.token}-wrong") as conn:
         assert not conn.wait_connected(20)
         assert conn.state is ConnectionState.FAILED and conn.error
+
+
+def _refusal(steerer: Steerer, seq: int, timeout: float = 20.0) -> protocol.Error:
+    def found() -> protocol.Error | None:
+        with steerer._cond:
+            return next(
+                (m for m in steerer.received if isinstance(m, protocol.Error) and m.ref == seq),
+                None,
+            )
+
+    error: protocol.Error = wait_until(found, timeout)
+    return error
+
+
+def test_steering_cannot_blow_up_the_simulation(no_leaked_threads: None, live: Any) -> None:
+    """Values the protocol accepts but villin cannot take are refused with the engine's limit;
+    capped forces on every atom blow the run up, and the guard rolls it back, pauses it and
+    tells the dashboard, while the session and the server keep running."""
+    from tests.adapters.openmm_helpers import villin_recipe
+
+    sim = villin_recipe().make("CPU")
+    reporter = SteeringReporter(sim_url(live), token=live.token, interval=10, session="guarded")
+    sim.reporters.append(reporter)
+    runner = threading.Thread(target=run_steered, args=(sim, 10_000_000), name="md")
+    steerer = None
+    try:
+        assert reporter.connection.wait_connected(20), reporter.connection.error
+        runner.start()
+        steerer = Steerer(live, "guarded")
+        wait_until(lambda: session_summary(live, "guarded")["status"]["step"] > 0)
+        refused = [
+            (SimParams(temperature_K=10_000.0), "sim_params.temperature_K", "[1, 1000] K"),
+            (SimParams(timestep_fs=20.0), "sim_params.timestep_fs", "fs"),
+            (Pull(atom=0, target=(0.0, 0.0, 0.0), spring_k=100.0), "pull.spring_k", "stiffer"),
+            (Control(action="seek", frame=3), "control.action", "cannot seek"),
+        ]
+        for message, path, says in refused:
+            error = _refusal(steerer, steerer.send(message))
+            assert error.code == "invalid_message" and error.path == path, error
+            assert says in error.message and "OpenMM" in error.message, error.message
+        n = sim.system.getNumParticles()
+        vectors = np.random.default_rng(3).normal(size=(n, 3)) * 1e3
+        steerer.send(
+            protocol.Forces(
+                indices=protocol.WireArray.from_numpy(np.arange(n, dtype=np.int32), "<i4"),
+                forces=protocol.WireArray.from_numpy(vectors.astype(np.float32), "<f4"),
+            )
+        )
+
+        def guard_event() -> protocol.Event | None:
+            with steerer._cond:
+                return next((m for m in steerer.received if isinstance(m, protocol.Event)), None)
+
+        event = wait_until(guard_event, 60)
+        assert event.code == "guard" and "rolled back" in event.message
+        wait_until(lambda: session_summary(live, "guarded")["status"]["state"] == "paused")
+        held = sim.currentStep
+        assert steerer.ack(steerer.send(Control(action="resume"))).ok
+        wait_until(lambda: sim.currentStep > held + 100, 60)
+        assert reporter.guard_trips == 1 and runner.is_alive()
+        assert "sim_event" in {e["event"] for e in _log(live, "guarded")}
+    finally:
+        reporter.stop_requested = True
+        reporter.close()
+        runner.join(30)
+        if steerer is not None:
+            steerer.close()

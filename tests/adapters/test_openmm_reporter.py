@@ -14,7 +14,7 @@ import openmm.app as app
 import openmm.unit as unit
 import pytest
 
-from protocol import Control, Forces, Frame, ParamsAck, SimParams, WireArray
+from protocol import Control, EngineInfo, Event, Forces, Frame, ParamsAck, SimParams, WireArray
 from simulation_adapters.openmm_reporter import SteeringReporter, run_steered
 from tests.adapters.openmm_helpers import SystemRecipe, argon_recipe, villin_recipe
 from tests.adapters.sim_peer import SimPeer
@@ -160,13 +160,13 @@ def _displacement_along(
 def test_pull_moves_atom_and_release_stops_the_force(villin: SystemRecipe, peer: SimPeer) -> None:
     atom = 0  # the N-terminal nitrogen
     x = np.array([1.0, 0.0, 0.0])
-    pull = 100.0 * x  # kJ/mol/A
+    pull = 45.0 * x  # kJ/mol/A, under the reporter's default cap of 50
     control, _, control_reporter = _displacement_along(villin, peer, atom, x, 0.0, 200)
     control_reporter.close()
-    moved, sim, reporter = _displacement_along(villin, peer, atom, x, 100.0, 200)
+    moved, sim, reporter = _displacement_along(villin, peer, atom, x, 45.0, 200)
     try:
         assert reporter.pull is not None
-        assert moved - control > 2.0, (moved, control)  # angstrom, along the pull
+        assert moved - control > 1.0, (moved, control)  # angstrom, along the pull
         assert reporter.pull.updates == 1
         group = reporter.pull.group
         f = sim.context.getState(getForces=True, groups={group}).getForces(asNumpy=True)
@@ -345,3 +345,77 @@ def test_acks_carry_refs(steered: tuple[app.Simulation, SteeringReporter], peer:
     acks = [peer.wait_ack(s) for s in seqs]
     assert all(isinstance(a, ParamsAck) and a.ok for a in acks)
     assert reporter.interval == 10
+
+
+def test_a_long_step_while_paused_sends_frames_as_it_runs(
+    steered: tuple[app.Simulation, SteeringReporter], peer: SimPeer
+) -> None:
+    """`step N` while paused reports every `interval` steps on its way, not only at its end."""
+    sim, reporter = steered
+    send_and_wait_arrival(peer, reporter, Control(action="pause"))
+    runner = threading.Thread(target=run_steered, args=(sim, 100_000))
+    runner.start()
+    try:
+        wait_until(lambda: reporter.paused)
+        paused_at = sim.currentStep
+        seq = peer.send(Control(action="step", n_steps=40))
+        ack = peer.wait_ack(seq)
+        assert ack.ok and ack.applied["until_step"] == paused_at + 40
+        peer.wait_for(lambda: any(f.step == paused_at + 40 for f in peer.frames))
+        steps = sorted({f.step for f in peer.frames if paused_at < f.step <= paused_at + 40})
+        assert steps == list(range(paused_at + 5, paused_at + 41, 5))
+        time.sleep(0.3)
+        assert sim.currentStep == paused_at + 40 and reporter.paused
+    finally:
+        reporter.stop_requested = True
+        reporter.resume()
+        runner.join(60)
+
+
+def test_the_guard_rolls_back_a_blown_up_run_releases_the_pulls_and_pauses(
+    steered: tuple[app.Simulation, SteeringReporter], peer: SimPeer
+) -> None:
+    """Capped forces on every atom in random directions heat villin without bound; the guard
+    catches the runaway, restores the last good state and tells the session."""
+    sim, reporter = steered
+    n = sim.system.getNumParticles()
+    vectors = np.random.default_rng(3).normal(size=(n, 3)) * 1e3  # capped at max_force each
+    forces_pull(peer, reporter, list(range(n)), vectors)
+    runner = threading.Thread(target=run_steered, args=(sim, 100_000))
+    runner.start()
+    try:
+        events = peer.wait_for(lambda: [e for e in peer.of_type(Event) if e.code == "guard"], 60)
+        event = events[0]
+        assert event.level == "error" and "rolled back to step" in event.message
+        assert reporter.paused and reporter.guard_trips == 1
+        assert reporter.pull is not None and not reporter.pull.active
+        held = sim.currentStep
+        # the frame after the event shows the restored state (the MD thread owns the context)
+        after = peer.wait_for(lambda: [f for f in peer.frames if f.step >= (event.step or 0)])
+        restored = after[-1]
+        assert np.isfinite(restored.positions.to_numpy()).all()
+        assert restored.observables["temperature_K"] < 600.0
+        time.sleep(0.3)
+        assert sim.currentStep == held  # paused until someone resumes
+        peer.send(Control(action="resume"))
+        wait_until(lambda: sim.currentStep > held + 200, 60)
+        assert reporter.guard_trips == 1  # without the forces, the run goes on calmly
+    finally:
+        reporter.stop_requested = True
+        reporter.resume()
+        runner.join(60)
+
+
+def test_the_engine_declares_what_it_can_be_steered_with(
+    steered: tuple[app.Simulation, SteeringReporter], peer: SimPeer
+) -> None:
+    _sim, reporter = steered
+    info = peer.wait_for(lambda: peer.of_type(EngineInfo))[-1]
+    assert info.name.startswith("OpenMM") and "LangevinMiddleIntegrator" in info.name
+    assert set(info.controls) == {"pause", "resume", "step", "reset", "stop"}
+    assert info.params["temperature_K"].max == 1000.0
+    assert info.params["temperature_K"].recommended == pytest.approx(300.0)
+    # villin constrains its bonds to hydrogen (and its hydrogens are light): 2.5 fs at most
+    assert info.params["timestep_fs"].max == 2.5
+    assert info.pull is not None and info.pull.max_force == reporter.max_force
+    assert "seek" in info.unavailable

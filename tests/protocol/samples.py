@@ -115,6 +115,21 @@ def samples() -> dict[str, p.Message]:
             path="frame.positions",
             ref=4,
         ),
+        "engine": p.EngineInfo(
+            seq=20,
+            name="OpenMM 8.3 (LangevinMiddleIntegrator)",
+            controls=["pause", "resume", "step", "reset", "stop"],
+            params={
+                "temperature_K": p.ParamRange(min=1.0, max=1000.0, unit="K", recommended=300.0),
+                "timestep_fs": p.ParamRange(min=0.1, max=2.5, unit="fs", recommended=2.0),
+            },
+            unavailable={"seek": "a live simulation has no frames to seek"},
+            pull=p.PullLimits(max_force=50.0, max_spring_k=10.0),
+            guard="roll back, release the pulls, pause",
+        ),
+        "event": p.Event(
+            seq=21, level="error", code="guard", message="blew up; rolled back", step=1200
+        ),
     }
 
 

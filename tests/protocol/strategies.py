@@ -236,4 +236,30 @@ MESSAGES: dict[str, st.SearchStrategy[Any]] = {
         path=st.none() | name,
         ref=seq,
     ),
+    "engine": st.builds(
+        p.EngineInfo,
+        seq=seq,
+        name=st.text(max_size=40),
+        kind=st.sampled_from(["md", "replay", "imd"]),
+        controls=st.lists(st.sampled_from(["pause", "resume", "step", "seek"]), max_size=4),
+        params=st.dictionaries(
+            name,
+            st.builds(p.ParamRange, min=finite, max=finite, unit=st.text(max_size=8)),
+            max_size=3,
+        ),
+        unavailable=st.dictionaries(name, st.text(max_size=40), max_size=3),
+        pull=st.none()
+        | st.builds(
+            p.PullLimits, max_force=st.floats(0.1, 1e5), max_spring_k=st.floats(0.1, 1e4)
+        ),
+        n_frames=st.none() | st.integers(0, 10**6),
+    ),
+    "event": st.builds(
+        p.Event,
+        seq=seq,
+        level=st.sampled_from(["info", "warning", "error"]),
+        code=name,
+        message=st.text(max_size=64),
+        step=st.none() | st.integers(0, 10**9),
+    ),
 }

@@ -45,7 +45,10 @@ def test_control_messages_keep_order_and_a_reader_that_never_reads_is_cut_off() 
     assert client.state is ClientState.CONNECTED
     client.send(p.Pong(ref=MAX_QUEUED_CONTROL))  # one too many: dropped, and the client goes
     assert client.state is ClientState.CLOSING
-    assert len(client._control) == 0
+    # the backlog is dropped; only the reason is left to send before the close frame
+    assert len(client._control) == 1
+    reason = p.decode(client._control[0])
+    assert isinstance(reason, p.Error) and reason.code == "rate_limited"
 
 
 def test_replaced_client_flushes_then_closes() -> None:

@@ -195,6 +195,19 @@ def test_sessions_health_metrics_and_log_survive_restart(live_server: LiveServer
         with client(restarted) as c:
             after = c.get("/api/sessions/logged/log", headers=AUTH).json()
         assert after == before
+        # ids go on where the last run stopped: a `ref` names one action for the log's life
+        sim = Peer(restarted.ws_url, "simulation", restarted.token, "logged")
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        steerer = Peer(restarted.view_url, "steerer", restarted.token, "logged")
+        steerer.send(p.SetRenderParams(params={"sigma_A": 3.0}))
+        steerer.expect(p.Image, 60)
+        with client(restarted) as c:
+            again = c.get("/api/sessions/logged/log", headers=AUTH).json()
+        ids = [e["id"] for e in again]
+        assert len(again) == len(before) + 1 and ids == sorted(set(ids))
+        sim.close()
+        steerer.close()
     finally:
         restarted.stop()
 

@@ -1,0 +1,533 @@
+"""Hostile and careless input, end to end: damaged files, bombs, floods, storms and restarts.
+
+Each test reproduces one way the server was broken and checks it now holds: no crash, no 5xx, no
+hang, nothing acknowledged lost, and another session keeps serving meanwhile. Servers that must
+survive a crash or be killed run as their own process (`tests.server.processes`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import gzip
+import math
+import random
+import signal
+import time
+from collections.abc import Coroutine, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+import websockets
+
+import protocol as p
+from tests.conftest import LiveServer, make_settings, start_server
+from tests.server.peers import Peer, frame, molecule
+from tests.server.processes import TOKEN, VIEWER_TOKEN, ServerProcess
+
+pytest.importorskip("MDAnalysisTests")
+from MDAnalysisTests.datafiles import (
+    CRD,
+    DCD,
+    GRO,
+    PDBX,
+    PQR,
+    PSF,
+    XTC,
+    PDB_small,
+    XYZ_mini,
+    mol2_molecule,
+)
+
+T = TypeVar("T")
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+VIEWER = {"Authorization": f"Bearer {VIEWER_TOKEN}"}
+FINAL = ("done", "failed", "cancelled", "expired")
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[ServerProcess]:
+    proc = ServerProcess(tmp_path / "state")
+    yield proc
+    proc.stop()
+
+
+def watched_session(url: str, view_url: str, name: str) -> tuple[Peer, Peer, np.ndarray]:
+    """A calm session: a simulation and a viewer that has had its first image."""
+    sim = Peer(url, "simulation", TOKEN, name)
+    topo, pos = molecule(16)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    viewer = Peer(view_url, "viewer", VIEWER_TOKEN, name)
+    viewer.expect(p.Image, 60)
+    return sim, viewer, pos
+
+
+def still_serving(sim: Peer, viewer: Peer, pos: np.ndarray, step: int) -> None:
+    sim.send(frame(pos + np.float32(0.05), step))
+    viewer.expect(p.Image, 60, where=lambda m: m.step == step)
+
+
+def run_async(coroutine: Coroutine[Any, Any, T]) -> T:
+    """Run a coroutine on its own loop in its own thread (the test's thread may have a loop)."""
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        return pool.submit(asyncio.run, coroutine).result()
+
+
+def wait_job(c: httpx.Client, job_id: str, timeout: float = 120) -> dict[str, object]:
+    deadline = time.monotonic() + timeout
+    while True:
+        info: dict[str, object] = c.get(f"/api/jobs/{job_id}", headers=AUTH).json()
+        if info["state"] in FINAL or time.monotonic() > deadline:
+            return info
+        time.sleep(0.2)
+
+
+# ---------------------------------------------------------------- files (items 1, 2)
+
+
+def test_a_file_that_kills_the_reader_fails_the_request_not_the_server(
+    server: ServerProcess, tmp_path: Path
+) -> None:
+    """Item 1: the XTC with bytes 204-207 set to FF raised SIGFPE in the native reader and took
+    the server with it."""
+    sim, viewer, pos = watched_session(server.ws_url, server.view_url, "calm")
+    bad = tmp_path / "adk_oplsaa.xtc"
+    data = bytearray(Path(XTC).read_bytes())
+    data[204:208] = b"\xff\xff\xff\xff"
+    bad.write_bytes(bytes(data))
+    with httpx.Client(base_url=server.url, timeout=120) as c:
+        with open(GRO, "rb") as top, open(bad, "rb") as traj:
+            r = c.post(
+                "/api/jobs",
+                headers=AUTH,
+                files=[("topology", ("adk.gro", top)), ("trajectory", ("adk.xtc", traj))],
+                data={"width": "32", "height": "24"},
+            )
+        assert r.status_code == 422, r.text
+        assert "crashed" in r.json()["detail"] and "adk.xtc" in r.json()["detail"]
+        assert c.get("/healthz").json()["status"] == "ok"
+    assert server.alive()
+    still_serving(sim, viewer, pos, 7)
+    # nothing of the refused request stays on disk
+    assert not any((server.state_dir / "uploads").iterdir())
+    sim.close()
+    viewer.close()
+
+
+def _small_trajectories(directory: Path) -> dict[str, Path]:
+    """DCD, XTC and TRR files of the 3341-atom PDB_small, three frames each."""
+    import warnings
+
+    import MDAnalysis as mda
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        u = mda.Universe(PDB_small)
+    out = {}
+    for fmt in ("dcd", "xtc", "trr"):
+        path = directory / f"small.{fmt}"
+        with warnings.catch_warnings(), mda.Writer(str(path), u.atoms.n_atoms) as w:
+            warnings.simplefilter("ignore")
+            for i in range(3):
+                u.atoms.translate((0.1 * i, 0.0, 0.0))
+                w.write(u.atoms)
+        out[fmt] = path
+    return out
+
+
+def _mutants(data: bytes, rng: random.Random) -> Iterator[bytes]:
+    """A truncation, a burst of FF bytes in the first 2 KiB, and scattered random bytes."""
+    yield data[: rng.randrange(1, max(2, len(data)))]
+    b = bytearray(data)
+    at = rng.randrange(0, max(1, min(len(b) - 4, 2048)))
+    b[at : at + 4] = b"\xff\xff\xff\xff"
+    yield bytes(b)
+    b = bytearray(data)
+    for _ in range(16):
+        b[rng.randrange(len(b))] = rng.randrange(256)
+    yield bytes(b)
+
+
+def test_malformed_files_of_every_format_never_answer_5xx(
+    server: ServerProcess, tmp_path: Path
+) -> None:
+    """Damaged files of every supported format through the upload paths: each answer is a
+    result or a 4xx naming the file, every accepted job ends, the server stays up."""
+    sim, viewer, pos = watched_session(server.ws_url, server.view_url, "calm")
+    rng = random.Random(21)
+    structures = {
+        "pdb": PDB_small,
+        "pqr": PQR,
+        "crd": CRD,
+        "mol2": mol2_molecule,
+        "pdbx": PDBX,
+        "xyz": XYZ_mini,
+        "psf": PSF,
+    }
+    answers: dict[int, int] = {}
+    with httpx.Client(base_url=server.url, timeout=120) as c:
+        for fmt, path in structures.items():
+            for mutant in _mutants(Path(path).read_bytes(), rng):
+                r = c.post(
+                    "/api/render",
+                    headers=AUTH,
+                    files={"file": (f"damaged.{fmt}", mutant)},
+                    data={"width": "32", "height": "24"},
+                )
+                answers[r.status_code] = answers.get(r.status_code, 0) + 1
+                assert r.status_code in (200, 422), (fmt, r.status_code, r.text)
+                if r.status_code == 422:
+                    assert "damaged" in r.json()["detail"] or fmt in r.json()["detail"]
+        trajectories = _small_trajectories(tmp_path)
+        trajectories["psf-dcd"] = Path(DCD)
+        jobs = []
+        for fmt, path in trajectories.items():
+            topology = PSF if fmt == "psf-dcd" else PDB_small
+            suffix = "dcd" if fmt == "psf-dcd" else fmt
+            for mutant in _mutants(path.read_bytes(), rng):
+                r = c.post(
+                    "/api/jobs",
+                    headers=AUTH,
+                    files=[
+                        ("topology", (Path(topology).name, Path(topology).read_bytes())),
+                        ("trajectory", (f"damaged.{suffix}", mutant)),
+                    ],
+                    data={"width": "32", "height": "24", "stop": "2"},
+                )
+                answers[r.status_code] = answers.get(r.status_code, 0) + 1
+                assert r.status_code in (202, 422), (fmt, r.status_code, r.text)
+                if r.status_code == 202:
+                    jobs.append(r.json()["id"])
+        for job_id in jobs:
+            info = wait_job(c, job_id)
+            assert info["state"] in ("done", "failed"), info
+            assert "internal" not in str(info["error"]), info
+        assert c.get("/healthz").status_code == 200
+    assert server.alive() and answers.get(422, 0) > 0
+    still_serving(sim, viewer, pos, 9)
+    sim.close()
+    viewer.close()
+
+
+def test_a_gzip_bomb_through_the_viewer_link_is_refused_before_it_is_parsed(
+    server: ServerProcess,
+) -> None:
+    """Item 2: 1,000,000 ATOM lines in a few hundred kB of gzip cost 83 s of server CPU."""
+    line = b"ATOM      1  CA  ALA A   1      11.104  13.207   2.100  1.00  0.00           C\n"
+    bomb = gzip.compress(line * 1_000_000, 9)
+    assert len(bomb) < 400_000
+    rss = server.rss_bytes()
+    started = time.monotonic()
+    with httpx.Client(base_url=server.url, timeout=120) as c:
+        r = c.post(
+            "/api/render",
+            headers=VIEWER,
+            files={"file": ("bomb.pdb.gz", bomb)},
+            data={"width": "32", "height": "24"},
+        )
+        assert r.status_code == 422, r.text
+        assert "more than 500000 atoms" in r.json()["detail"]
+        assert time.monotonic() - started < 20
+        assert server.rss_bytes() - rss < 100 * 2**20
+        # renders for the read-only link are rate-limited, and say when to come back
+        codes = [
+            c.post("/api/render", headers=VIEWER, data={"dataset": "none.pdb"}).status_code
+            for _ in range(12)
+        ]
+        assert 429 in codes
+        r = c.post("/api/render", headers=VIEWER, data={"dataset": "none.pdb"})
+        assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1
+        assert "a minute" in r.json()["detail"]
+        # the server token is not held to the viewers' budget
+        with open(PDB_small, "rb") as fh:
+            r = c.post("/api/render", headers=AUTH, files={"file": ("a.pdb", fh)})
+        assert r.status_code == 200
+
+
+# ---------------------------------------------------------------- REST (item 8)
+
+
+def test_rest_input_that_answered_500_is_a_named_4xx(live_server: LiveServer) -> None:
+    auth = {"Authorization": "Bearer test-token"}
+    deep = "[" * 2000
+    digits = "9" * 5000
+    with httpx.Client(base_url=live_server.url, timeout=60) as c:
+        for name in ("a\x00b.pdb", "x" * 5000):
+            r = c.post("/api/render", headers=auth, data={"dataset": name})
+            assert r.status_code in (404, 422), (name[:20], r.status_code)
+        for field in ("params", "camera"):
+            r = c.post("/api/render", headers=auth, data={"session": "default", field: deep})
+            assert r.status_code == 422 and field in r.json()["detail"], r.text
+            r = c.post("/api/jobs", headers=auth, data={"dataset": "a.pdb", field: deep})
+            assert r.status_code == 422 and field in r.json()["detail"], r.text
+        r = c.post(
+            "/api/render",
+            headers=auth,
+            data={"session": "default", "params": '{"sigma_A": ' + digits + "}"},
+        )
+        assert r.status_code == 422 and "params" in r.json()["detail"]
+        r = c.post("/api/render", headers=auth, data={"session": "default", "width": digits})
+        assert r.status_code == 422
+        r = c.post(
+            "/api/render", headers=auth, data={"session": "default", "params": '{"sigma": 2}'}
+        )
+        assert r.status_code == 422 and "params.sigma" in r.json()["detail"]
+        r = c.post(
+            "/api/render",
+            headers=auth,
+            data={"session": "default", "params": '{"lighting": {"ambiant": 0.2}}'},
+        )
+        assert r.status_code == 422 and "params.lighting.ambiant" in r.json()["detail"]
+        with open(PDB_small, "rb") as fh:
+            r = c.post(
+                "/api/render",
+                headers=auth,
+                files={"file": ("n" * 300 + ".pdb", fh)},
+                data={"width": "32", "height": "24"},
+            )
+        assert r.status_code == 200, r.text
+
+
+# ---------------------------------------------------------------- jobs across restarts (10)
+
+
+def _submit(c: httpx.Client, frames: int, size: int) -> str:
+    with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+        r = c.post(
+            "/api/jobs",
+            headers=AUTH,
+            files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+            data={"width": str(size), "height": str(size), "stop": str(frames)},
+        )
+    assert r.status_code == 202, r.text
+    job_id: str = r.json()["id"]
+    return job_id
+
+
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGTERM], ids=["kill-9", "sigterm"])
+def test_jobs_survive_a_restart(tmp_path: Path, how: int) -> None:
+    """Item 10: jobs were lost on restart; ids were guessable; a viewer could download any."""
+    server = ServerProcess(tmp_path / "state")
+    try:
+        with httpx.Client(base_url=server.url, timeout=120) as c:
+            finished = _submit(c, 2, 32)
+            assert wait_job(c, finished)["state"] == "done"
+            running = _submit(c, 98, 160)
+            deadline = time.monotonic() + 60
+            while c.get(f"/api/jobs/{running}", headers=AUTH).json()["progress"]["done"] < 2:
+                assert time.monotonic() < deadline
+                time.sleep(0.1)
+            assert len(finished) == 23 and finished[0] == "j" and finished != running
+            for path in (f"/api/jobs/{finished}", f"/api/jobs/{finished}/result"):
+                assert c.get(path, headers=VIEWER).status_code == 403
+        server.stop(how)
+        server = server.restart()
+        with httpx.Client(base_url=server.url, timeout=120) as c:
+            info = c.get(f"/api/jobs/{finished}", headers=AUTH).json()
+            assert info["state"] == "done"
+            result = c.get(f"/api/jobs/{finished}/result", headers=AUTH)
+            assert result.status_code == 200 and result.content[:2] == b"PK"
+            again = c.get(f"/api/jobs/{running}", headers=AUTH).json()
+            assert again["state"] in ("queued", "running", "done") and again["restarts"] == 1
+            assert wait_job(c, running, 300)["state"] == "done"
+        jobs_dir = server.state_dir / "jobs"
+        assert not list(jobs_dir.glob("*.part*"))
+        assert not any((server.state_dir / "uploads").iterdir())
+    finally:
+        server.stop()
+
+
+# ---------------------------------------------------------------- WebSocket values (3, 7)
+
+
+def test_invalid_values_are_named_and_change_nothing(live_server: LiveServer) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "values")
+    topo, pos = molecule(12)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    steerer = Peer(live_server.view_url, "steerer", live_server.token, "values")
+    steerer.expect(p.Image, 60)
+    bad: list[tuple[dict[str, object], str]] = [
+        ({"sigma_A": 0}, "sigma_A"),
+        ({"sigma_A": -1}, "sigma_A"),
+        ({"sigma_A": 1e9}, "sigma_A"),
+        ({"sigma_A": math.nan}, "sigma_A"),
+        ({"iso_level": 0}, "iso_level"),
+        ({"quality": 100}, "quality"),
+        ({"jpeg_quality": 0}, "jpeg_quality"),
+        ({"transfer_function": [[i / 64, 0, 0, 0, 0.5] for i in range(65)]}, "transfer_function"),
+    ]
+    for params, field in bad:
+        steerer.send_raw(msgpack.packb({"type": "render_params", "seq": 900, "params": params}))
+        err = steerer.expect(p.Error, where=lambda m: m.ref == 900)
+        assert err.code == "invalid_message" and field in (err.path or ""), (params, err)
+    steerer.send_raw(
+        msgpack.packb({"type": "pull", "seq": 901, "atom": 0, "target": [1.7e308, 0, 0]})
+    )
+    err = steerer.expect(p.Error, where=lambda m: m.ref == 901)
+    assert err.code == "invalid_message" and "pull.target" in (err.path or "")
+    # a huge force is scaled to the cap, never to zero or NaN
+    steerer.send(p.Pull(atom=1, force=(1e200, 0.0, 0.0), max_force=500.0))
+    forces = sim.expect(p.Forces)
+    vectors = forces.forces.to_numpy().reshape(-1, 3)
+    assert np.isfinite(vectors).all()
+    assert np.allclose(vectors[0], (500.0, 0.0, 0.0))
+    sim.send(frame(pos, 3))
+    steerer.expect(p.Image, 60, where=lambda m: m.step == 3)
+    sim.close()
+    steerer.close()
+
+
+# ---------------------------------------------------------------- pre-hello size (item 6)
+
+
+def test_a_big_frame_before_hello_is_refused_from_its_header(live_server: LiveServer) -> None:
+    """Item 6: 60 MiB frames before hello were buffered whole; the header alone now refuses."""
+
+    async def attempt() -> tuple[int | None, float]:
+        async with websockets.connect(live_server.ws_url, max_size=None) as ws:
+            transport = ws.transport
+            header = bytes([0x82, 0xFF]) + (60 * 2**20).to_bytes(8, "big") + b"\x00" * 4
+            started = time.monotonic()
+            transport.write(header + b"\x00" * 65536)  # the start of a 60 MiB payload
+            try:
+                await asyncio.wait_for(ws.recv(), 10)
+            except websockets.ConnectionClosed as closed:
+                return (closed.rcvd.code if closed.rcvd else None), time.monotonic() - started
+            return None, time.monotonic() - started
+
+    code, seconds = run_async(attempt())
+    assert code == 1009 and seconds < 5
+
+
+# ---------------------------------------------------------------- storms and floods (5, 12)
+
+
+def test_a_connection_storm_leaves_the_server_responsive(tmp_path: Path) -> None:
+    """Item 5: 500 connections stalled the server; every join sent everyone the whole list."""
+    server = start_server(make_settings(tmp_path, max_connections_per_token=200))
+    try:
+        sim = Peer(server.ws_url, "simulation", server.token, "storm")
+        topo, pos = molecule(16)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        observer = Peer(server.view_url, "steerer", server.token, "storm")
+        observer.expect(p.Image, 60)
+
+        async def storm() -> tuple[int, int, list[float]]:
+            opened: list[websockets.ClientConnection] = []
+            refused = 0
+            rtts: list[float] = []
+
+            async def join(i: int) -> None:
+                nonlocal refused
+                try:
+                    ws = await websockets.connect(server.view_url, open_timeout=30)
+                    hello = p.Hello(role="viewer", token="viewer-token", session="storm")
+                    await ws.send(p.encode(hello))
+                    first = p.decode(await asyncio.wait_for(ws.recv(), 30))
+                    if isinstance(first, p.Welcome):
+                        opened.append(ws)
+                    else:
+                        refused += 1
+                        await ws.close()
+                except (websockets.ConnectionClosed, OSError, TimeoutError):
+                    refused += 1
+
+            async def probe() -> None:
+                for _ in range(20):
+                    sent = time.monotonic()
+                    await asyncio.to_thread(observer.send, p.Ping(client_time=time.time()))
+                    await asyncio.to_thread(observer.expect, p.Pong, 10)
+                    rtts.append(time.monotonic() - sent)
+                    await asyncio.sleep(0.05)
+
+            await asyncio.gather(probe(), *(join(i) for i in range(300)))
+            count = len(opened)
+            await asyncio.gather(*(ws.close() for ws in opened), return_exceptions=True)
+            return count, refused, rtts
+
+        drained_before = len(observer.drain(0.3))
+        opened, refused, rtts = run_async(storm())
+        assert opened == 200 and refused == 100  # the per-token cap
+        assert max(rtts) < 2.0, rtts
+        # roster changes arrive as small coalesced deltas, not the whole list per join
+        received = observer.drain(1.0)
+        roster = [m for m in received if isinstance(m, p.State) and (m.joined or m.left)]
+        assert all(m.clients is None for m in roster)
+        assert len(roster) < 150, (len(roster), drained_before)
+        # the simulation was never dropped
+        sim.send(frame(pos, 5))
+        observer.expect(p.Image, 60, where=lambda m: m.step == 5)
+        sim.close()
+        observer.close()
+    finally:
+        server.stop()
+
+
+def test_a_ping_burst_from_a_reading_viewer_is_answered_without_dropping_it(
+    live_server: LiveServer,
+) -> None:
+    """Item 12: a viewer that kept reading was dropped after 519 pongs of a 2,000-ping burst."""
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token)
+    raw = [p.encode(p.Ping(seq=i + 1, client_time=0.0)) for i in range(2000)]
+    for data in raw:
+        viewer.send_raw(data)
+    pongs = sum(isinstance(m, p.Pong) for m in viewer.drain(3.0))
+    assert pongs > 0
+    viewer.send(p.Ping(client_time=1.0))
+    assert viewer.expect(p.Pong, 10).client_time == 1.0  # still connected, still answered
+    viewer.close()
+
+
+def test_a_roster_message_is_a_delta_and_the_newcomer_gets_the_whole_list(
+    live_server: LiveServer,
+) -> None:
+    first = Peer(live_server.view_url, "steerer", live_server.token, "roster")
+    me = first.welcome.client_id  # type: ignore[union-attr]
+    whole = first.expect(p.State, where=lambda m: m.clients is not None)
+    assert [c.client_id for c in whole.clients or []] == [me]
+    second = Peer(live_server.view_url, "viewer", live_server.viewer_token, "roster")
+    other = second.welcome.client_id  # type: ignore[union-attr]
+    whole = second.expect(p.State, where=lambda m: m.clients is not None)
+    assert {c.client_id for c in whole.clients or []} == {me, other}
+    joined = first.expect(
+        p.State, where=lambda m: m.joined and other in {c.client_id for c in m.joined}
+    )
+    assert joined.clients is None
+    second.close()
+    left = first.expect(p.State, where=lambda m: m.left is not None)
+    assert left.left == [other] and left.clients is None
+    first.close()
+
+
+def test_a_huge_view_on_the_cpu_device_gets_a_smaller_image_fast(live_server: LiveServer) -> None:
+    """Item 13: a 4096x2025 view cost 31 s per render on the CPU and held every session."""
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "huge")
+    topo, pos = molecule(16)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "huge")
+    viewer.expect(p.Image, 60)
+    started = time.monotonic()
+    seq = viewer.send(p.View(width=4096, height=2025))
+    image = viewer.expect(p.Image, 60, where=lambda m: m.ref == seq)
+    cap = live_server.settings.cpu_max_live_pixels
+    assert image.width * image.height <= cap and image.width / image.height == pytest.approx(
+        4096 / 2025, rel=0.01
+    )
+    assert time.monotonic() - started < 10
+    with httpx.Client(base_url=live_server.url, timeout=60) as c:
+        r = c.post(
+            "/api/render",
+            headers={"Authorization": "Bearer test-token"},
+            data={"session": "huge", "width": "4096", "height": "2025"},
+        )
+    assert r.status_code == 422 and "CPU" in r.json()["detail"]
+    sim.close()
+    viewer.close()
