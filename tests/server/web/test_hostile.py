@@ -120,7 +120,7 @@ def test_a_file_that_kills_the_reader_fails_the_request_not_the_server(
 
 
 def _small_trajectories(directory: Path) -> dict[str, Path]:
-    """DCD, XTC and TRR files of the 3341-atom PDB_small, three frames each."""
+    """GRO, DCD, XTC and TRR files of the 3341-atom PDB_small (three frames each)."""
     import warnings
 
     import MDAnalysis as mda
@@ -129,7 +129,7 @@ def _small_trajectories(directory: Path) -> dict[str, Path]:
         warnings.simplefilter("ignore")
         u = mda.Universe(PDB_small)
     out = {}
-    for fmt in ("dcd", "xtc", "trr"):
+    for fmt in ("gro", "dcd", "xtc", "trr"):
         path = directory / f"small.{fmt}"
         with warnings.catch_warnings(), mda.Writer(str(path), u.atoms.n_atoms) as w:
             warnings.simplefilter("ignore")
@@ -184,6 +184,15 @@ def test_malformed_files_of_every_format_never_answer_5xx(
                 if r.status_code == 422:
                     assert "damaged" in r.json()["detail"] or fmt in r.json()["detail"]
         trajectories = _small_trajectories(tmp_path)
+        for mutant in _mutants(trajectories.pop("gro").read_bytes(), rng):
+            r = c.post(
+                "/api/render",
+                headers=AUTH,
+                files={"file": ("damaged.gro", mutant)},
+                data={"width": "32", "height": "24"},
+            )
+            answers[r.status_code] = answers.get(r.status_code, 0) + 1
+            assert r.status_code in (200, 422), ("gro", r.status_code, r.text)
         trajectories["psf-dcd"] = Path(DCD)
         jobs = []
         for fmt, path in trajectories.items():
