@@ -78,6 +78,13 @@ class ServerSettings:
     interactive_idle_s: float = 0.15
     interactive_scale: float = 0.5
     interactive_jpeg_quality: int = 60
+    frame_budget_ms: float = 80.0
+    """Render time a live image may take: images shrink to what renders in it on this device
+    (nothing shrinks on a GPU; on 2 CPU cores villin renders at about 40k pixels)."""
+    refine_budget_ms: float = 250.0
+    """Render time of the refined image that follows once a reduced image stays unchanged."""
+    refine_after_s: float = 0.3
+    """How long a budget-reduced image must stay unchanged before it is refined."""
     frame_wait_s: float = 0.25
     """Longest a simulation's next big frame (over 1 MiB) waits to be read until a render took
     the last one."""

@@ -38,12 +38,17 @@ def topology_message(
         names=[a.name[:8] for a in atoms],
         residue_ids=WireArray.from_numpy(resids, "<i4"),
         residue_names=[a.residue.name[:8] for a in atoms],
-        chain_ids=[str(a.residue.chain.id)[:4] for a in atoms],
+        chain_ids=[_chain_name(a.residue.chain) for a in atoms],
         bonds=WireArray.from_numpy(bonds, "<i4"),
         charges=WireArray.from_numpy(charges, "<f4") if charges is not None else None,
         title=title[:256],
         engine=f"openmm-{openmm.__version__}"[:64],
     )
+
+
+def _chain_name(chain: app.Chain) -> str:
+    """The chain's id, or a letter by its position when the file left it blank."""
+    return str(chain.id).strip()[:4] or chr(ord("A") + chain.index % 26)
 
 
 def _charges(system: openmm.System, n: int) -> npt.NDArray[np.float32] | None:

@@ -7,12 +7,18 @@ images are rendered smaller and encoded at a lower JPEG quality; a full-quality 
 once the interaction has paused for `interactive_idle_s`. Bursts coalesce: the scheduler is
 asked what is due, never told to render each change. Time comes in as an argument, so the
 policy is tested without sleeping.
+
+A frame-time budget keeps slow devices interactive: the scheduler learns what a pixel costs on
+this session's device and shrinks every image to what renders in `frame_budget_ms` (the browser
+scales it up). When what a reduced image shows stays unchanged for `refine_after_s`, a refined
+image follows, within the larger `refine_budget_ms` (progressive refinement). On a GPU the
+budget is far above a full-size frame and nothing shrinks.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import protocol as p
 from server.session.clients import Client
@@ -21,6 +27,8 @@ from server.settings import ServerSettings
 MAX_REMEMBERED = 256
 """View groups whose last rendered version is remembered (older ones just render again)."""
 HISTOGRAM_INTERVAL_S = 1.0
+MIN_BUDGET_PIXELS = 160 * 90
+"""The budget never shrinks an image below this (a coarse image still shows the molecule)."""
 
 
 @dataclass(frozen=True)
@@ -31,6 +39,8 @@ class ViewKey:
     width: int
     height: int
     interactive: bool
+    refine: bool = False
+    """A refinement of a budget-reduced image: rendered within the refine budget."""
 
     @property
     def camera(self) -> p.Camera:
@@ -46,11 +56,40 @@ class Plan:
 
 
 @dataclass
+class FrameCost:
+    """What one pixel costs to render on this device (an exponential moving average of
+    measured renders), and so how many pixels fit in a time budget."""
+
+    ms_per_px: float | None = None
+    weight: float = 0.3
+
+    def note(self, pixels: int, ms: float) -> None:
+        if pixels < 1024 or not ms > 0:  # tiny renders are dominated by fixed costs
+            return
+        sample = ms / pixels
+        self.ms_per_px = (
+            sample
+            if self.ms_per_px is None
+            else (1 - self.weight) * self.ms_per_px + self.weight * sample
+        )
+
+    def pixels_within(self, budget_ms: float) -> int | None:
+        """Pixels that render in `budget_ms`; None while nothing was measured."""
+        if self.ms_per_px is None or budget_ms <= 0:
+            return None
+        return max(1, int(budget_ms / self.ms_per_px))
+
+
+@dataclass
 class RenderScheduler:
     settings: ServerSettings
     _rendered: dict[ViewKey, int] = field(default_factory=dict)
     _interactive_until: float = 0.0
     _last_histogram: float = float("-inf")
+    cost: FrameCost = field(default_factory=FrameCost)
+    _quality: float = 1.0
+    _reduced: dict[ViewKey, tuple[int, float]] = field(default_factory=dict)
+    """Groups whose last image was shrunk by the budget: (version, when)."""
 
     def interacting(self, now: float) -> None:
         """Shared render parameters changed: every view is interactive for a moment."""
@@ -85,38 +124,86 @@ class RenderScheduler:
         arrives during the render marks its client again)."""
         due: list[tuple[ViewKey, list[Client]]] = []
         interactive = False
+        refine_in: float | None = None
         for key, members in self.groups(clients, now, default_camera).items():
             interactive = interactive or key.interactive
             if self._rendered.get(key) == version and not any(c.needs_image for c in members):
+                reduced = self._reduced.get(key)
+                if reduced is None or reduced[0] != version or key.interactive:
+                    continue
+                wait = self.settings.refine_after_s - (now - reduced[1])
+                if wait > 0:  # not yet: come back when it is due
+                    refine_in = wait if refine_in is None else min(refine_in, wait)
+                    continue
+                del self._reduced[key]
+                due.append((replace(key, refine=True), members))
                 continue
             for c in members:
                 c.needs_image = False
             due.append((key, members))
         come_back = self.settings.interactive_idle_s + 0.01 if interactive else None
+        if refine_in is not None:
+            come_back = min(come_back or refine_in, refine_in) + 0.01
         return Plan(due, come_back)
 
     def rendered(self, key: ViewKey, version: int) -> None:
         if len(self._rendered) >= MAX_REMEMBERED:
             self._rendered.clear()
-        self._rendered[key] = version
+        self._rendered[replace(key, refine=False)] = version
+
+    def note_render(
+        self, key: ViewKey, version: int, size: tuple[int, int], ms: float, now: float
+    ) -> bool:
+        """Learn from a render; True when its size was shrunk by the budget (a refinement
+        is then due once the group's image stays unchanged for `refine_after_s`)."""
+        self.cost.note(size[0] * size[1], ms)
+        base = replace(key, refine=False)
+        wanted = self._wanted_size(key)
+        if not key.refine and size[0] * size[1] < wanted[0] * wanted[1]:
+            if len(self._reduced) >= MAX_REMEMBERED:
+                self._reduced.clear()
+            self._reduced[base] = (version, now)
+            return True
+        self._reduced.pop(base, None)
+        return False
 
     def forget(self, key: ViewKey) -> None:
         """Render this group again on the next pass (its image was lost)."""
         self._rendered.pop(key, None)
 
+    def _wanted_size(self, key: ViewKey, quality: float | None = None) -> tuple[int, int]:
+        if quality is None:
+            quality = self._quality
+        scale = quality * (self.settings.interactive_scale if key.interactive else 1.0)
+        return max(1, round(key.width * scale)), max(1, round(key.height * scale))
+
     def image_size(self, key: ViewKey, quality: float, on_cpu: bool = False) -> tuple[int, int]:
         """Pixels to render for a group: its canvas times the quality (halved, by default,
-        while interacting), shrunk to the server's image limits, and on the CPU device to
+        while interacting), shrunk to the server's image limits, on the CPU device to
         `cpu_max_live_pixels` (one huge canvas must not hold every session's renders for
-        seconds; the browser scales the image up)."""
-        scale = quality * (self.settings.interactive_scale if key.interactive else 1.0)
-        rw, rh = max(1, round(key.width * scale)), max(1, round(key.height * scale))
+        seconds), and to what the frame-time budget affords (the refine budget for a
+        refinement). The browser scales the image up to the canvas."""
+        self._quality = quality
+        rw, rh = self._wanted_size(key, quality)
         lim = self.settings.limits
         pixels = lim.max_image_pixels
         if on_cpu:
             pixels = min(pixels, self.settings.cpu_max_live_pixels)
+        budget = self.settings.refine_budget_ms if key.refine else self.settings.frame_budget_ms
+        affordable = self.cost.pixels_within(budget)
+        if affordable is not None:
+            pixels = min(pixels, max(affordable, MIN_BUDGET_PIXELS))
         shrink = min(1.0, lim.max_image_side / max(rw, rh), (pixels / (rw * rh)) ** 0.5)
         return max(1, int(rw * shrink)), max(1, int(rh * shrink))
+
+    def pick_size(self, width: int, height: int) -> tuple[int, int]:
+        """The size a pick renders at: the view's, shrunk to what the frame budget affords,
+        so picking answers as fast as a frame renders."""
+        affordable = self.cost.pixels_within(self.settings.frame_budget_ms)
+        if affordable is None or width * height <= affordable:
+            return width, height
+        shrink = (max(affordable, MIN_BUDGET_PIXELS) / (width * height)) ** 0.5
+        return max(1, int(width * shrink)), max(1, int(height * shrink))
 
     def jpeg_quality(self, key: ViewKey, params: p.RenderParams) -> int:
         return self.settings.interactive_jpeg_quality if key.interactive else params.jpeg_quality

@@ -487,6 +487,10 @@ class Session:
             client.interacting_until = time.monotonic() + self.settings.interactive_idle_s
         self.mark_dirty()
 
+    def mark_dirty_later(self, delay_s: float) -> None:
+        """Look for due renders again after `delay_s` (a refinement coming due)."""
+        asyncio.get_running_loop().call_later(delay_s, self.mark_dirty)
+
     def mark_dirty(self) -> None:
         self._dirty.set()
 
@@ -584,6 +588,11 @@ class Session:
             histogram=self.scheduler.histogram_due(key, now),
         )
         out: RenderOutput = await self.services.backend.render(request)
+        reduced = self.scheduler.note_render(
+            key, snap.version, (width, height), out.timings.get("total", 0.0), time.monotonic()
+        )
+        if reduced:
+            self.mark_dirty_later(self.settings.refine_after_s + 0.01)
         if out.histogram is not None:
             self.histogram = out.histogram
         self.render_count += 1
@@ -594,7 +603,13 @@ class Session:
         metrics.render_ms.observe(out.timings.get("total", 0.0))
         quality = self.scheduler.jpeg_quality(key, params)
         return Rendered(
-            out, next(self._image_ids), snap.step, width, height, quality, not key.interactive
+            out,
+            next(self._image_ids),
+            snap.step,
+            width,
+            height,
+            quality,
+            not key.interactive and not reduced,
         )
 
     async def pick(self, client: Client, pick: p.Pick) -> p.Picked:
@@ -609,8 +624,10 @@ class Session:
                 "pick.x",
                 pick.seq,
             )
-        request = RenderRequest(self.slot, snap, self.render_params, camera, w, h)
-        atom, depth = await self.services.backend.pick(request, pick.x, pick.y)
+        pw, ph = self.scheduler.pick_size(w, h)
+        request = RenderRequest(self.slot, snap, self.render_params, camera, pw, ph)
+        x, y = min(pw - 1, pick.x * pw // w), min(ph - 1, pick.y * ph // h)
+        atom, depth = await self.services.backend.pick(request, x, y)
         if atom is None:
             return p.Picked(ref=pick.seq)
         topo, positions = snap.topology, snap.positions

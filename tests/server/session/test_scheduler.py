@@ -91,3 +91,46 @@ def test_the_histogram_comes_with_stills_at_most_once_a_second() -> None:
     s.interacting(7.0)
     ((moving, _),) = s.plan([a], 7.01, 2, None).groups
     assert not s.histogram_due(moving, 8.5)
+
+
+def test_the_frame_budget_shrinks_images_on_a_slow_device_and_refines_them_when_still() -> None:
+    settings = replace(
+        SETTINGS,
+        default_size=(800, 600),
+        frame_budget_ms=80.0,
+        refine_budget_ms=240.0,
+        refine_after_s=0.3,
+    )
+    s = RenderScheduler(settings)
+    a = viewer("a", p.Camera(distance=30.0), (800, 600))
+    ((key, _),) = s.plan([a], 10.0, 1, None).groups
+    assert s.image_size(key, 1.0) == (800, 600)  # nothing measured yet: the full size
+    # 2 us a pixel (a CPU): 800x600 took 960 ms; 80 ms afford 40,000 pixels
+    assert s.note_render(key, 1, (800, 600), 960.0, now=10.0) is False
+    s.rendered(key, 1)
+    ((key, _),) = s.plan([a], 10.1, 2, None).groups
+    w, h = s.image_size(key, 1.0)
+    assert 38_000 < w * h <= 40_000 and abs(w / h - 800 / 600) < 0.02
+    assert s.note_render(key, 2, (w, h), 80.0, now=10.2) is True
+    s.rendered(key, 2)
+    plan = s.plan([a], 10.3, 2, None)  # unchanged, but not for long enough yet
+    assert plan.groups == [] and plan.come_back_in is not None and plan.come_back_in < 0.25
+    ((refine, _),) = s.plan([a], 10.55, 2, None).groups
+    assert refine.refine
+    rw, rh = s.image_size(refine, 1.0)
+    assert 115_000 < rw * rh <= 120_000  # the refine budget: three times the pixels
+    assert s.note_render(refine, 2, (rw, rh), 240.0, now=10.8) is False
+    s.rendered(refine, 2)
+    assert s.plan([a], 11.5, 2, None).groups == []  # refined once, then quiet
+    # a new frame renders within the budget again
+    ((key, _),) = s.plan([a], 11.6, 3, None).groups
+    assert not key.refine and s.image_size(key, 1.0)[0] < 800
+
+
+def test_on_a_fast_device_the_budget_shrinks_nothing() -> None:
+    s = RenderScheduler(replace(SETTINGS, frame_budget_ms=80.0))
+    a = viewer("a", p.Camera(distance=30.0), (1920, 1080))
+    ((key, _),) = s.plan([a], 10.0, 1, None).groups
+    assert s.note_render(key, 1, (1920, 1080), 4.0, now=10.0) is False  # a GPU: 4 ms
+    assert s.image_size(key, 1.0) == (1920, 1080)
+    assert s.pick_size(1920, 1080) == (1920, 1080)
