@@ -21,6 +21,31 @@ def default_encode_workers() -> int:
     return max(1, min(8, os.cpu_count() or 1))
 
 
+def persistent_tokens(state_dir: Path, renew: bool = False) -> tuple[str, str]:
+    """The server and viewer tokens kept in `<state_dir>/tokens.json` (created, readable by the
+    owner only, on first use; `renew` draws new ones), so links copied from the dashboard keep
+    working across restarts."""
+    import json
+
+    path = state_dir / "tokens.json"
+    if not renew:
+        try:
+            saved = json.loads(path.read_text(encoding="utf-8"))
+            token, viewer = str(saved["token"]), str(saved["viewer_token"])
+            if token and viewer:
+                return token, viewer
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    token, viewer = secrets.token_urlsafe(18), secrets.token_urlsafe(18)
+    state_dir.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        json.dump({"token": token, "viewer_token": viewer}, fh)
+    os.replace(tmp, path)
+    return token, viewer
+
+
 def is_loopback(host: str) -> bool:
     if host == "localhost":
         return True

@@ -117,6 +117,7 @@ class SimulationConnection:
         lossless_depth: int = 8,
         backoff_initial: float = 0.2,
         backoff_max: float = 10.0,
+        give_up_after: float | None = None,
         welcome_timeout: float = 10.0,
         takeover: bool = False,
     ) -> None:
@@ -147,6 +148,9 @@ class SimulationConnection:
         self._lossless_depth = max(1, lossless_depth)
         self._backoff_initial = backoff_initial
         self._backoff_max = backoff_max
+        self.give_up_after = give_up_after
+        """Seconds of failed attempts after which the connection stops trying (`FAILED`);
+        None retries for ever."""
         self._welcome_timeout = welcome_timeout
         self._loopback = parts.hostname in ("127.0.0.1", "localhost", "::1")
 
@@ -383,9 +387,12 @@ class SimulationConnection:
             self._stop.set()
         ready.set()
         delay = self._backoff_initial
+        failing_since: float | None = None
+        attempt = 0
         while not self._stop.is_set():
             self._set_state(ConnectionState.CONNECTING)
             welcomed = False
+            problem = ""
             try:
                 welcomed = await self._connect_once()
             except (_FatalError, InvalidURI) as exc:
@@ -394,14 +401,40 @@ class SimulationConnection:
                 self._set_state(ConnectionState.FAILED)
                 break
             except (TimeoutError, OSError, WebSocketException, ProtocolError) as exc:
-                log.info("scalesteer: connection to %s failed: %s", self.url, _describe(exc))
+                problem = _describe(exc)
             if self._stop.is_set():
                 break
+            now = time.monotonic()
             if welcomed:
                 log.warning("scalesteer: lost the connection to %s; reconnecting", self.url)
-                delay = self._backoff_initial
-            self._set_state(ConnectionState.BACKOFF)
+                delay, failing_since, attempt = self._backoff_initial, now, 0
+            elif failing_since is None:
+                failing_since = now
+            attempt += 1
             jittered = delay * random.uniform(0.8, 1.2)
+            waited = now - failing_since
+            if self.give_up_after is not None and waited + jittered > self.give_up_after:
+                self.error = (
+                    f"could not reach {self.url} for {waited:.0f} s ({problem or 'lost'}); "
+                    "giving up"
+                )
+                log.error("scalesteer: %s", self.error)
+                self._set_state(ConnectionState.FAILED)
+                break
+            left = (
+                ""
+                if self.give_up_after is None
+                else f", giving up in {self.give_up_after - waited:.0f} s"
+            )
+            log.warning(
+                "scalesteer: %s: %s; retry %d in %.1f s%s",
+                self.url,
+                problem or "disconnected",
+                attempt,
+                jittered,
+                left,
+            )
+            self._set_state(ConnectionState.BACKOFF)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._stop.wait(), jittered)
             delay = min(delay * 2.0, self._backoff_max)

@@ -40,7 +40,7 @@ from protocol import (
 )
 from protocol.forces import cap_forces
 from protocol.messages import ControlAction
-from simulation_adapters.cli_support import configure_logging, parse
+from simulation_adapters.cli_support import add_retry, configure_logging, parse
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from simulation_adapters.imd_session import (
     EngineFrame,
@@ -122,6 +122,7 @@ class IMDBridge:
         runaway_K: float | None = None,
         connect_timeout: float = 30.0,
         handshake_timeout: float = 30.0,
+        give_up_after: float | None = None,
     ) -> None:
         if units != "auto" and units not in UNITS:
             raise ValueError(f"unknown units {units!r}; one of auto, {', '.join(UNITS)}")
@@ -150,6 +151,7 @@ class IMDBridge:
             lossless=lossless,
             on_steer=self._on_steer,
             takeover=takeover,
+            give_up_after=give_up_after,
         )
         self.imd: IMDSession | None = None
         self.error: Exception | None = None
@@ -491,6 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-force", type=float, default=50.0, help="cap per atom, kJ/mol/A (default 50)"
     )
     ap.add_argument("--connect-timeout", type=float, default=30.0, help="seconds to keep trying")
+    add_retry(ap)
     ap.add_argument("-v", "--verbose", action="store_true")
     return ap
 
@@ -517,6 +520,7 @@ def main(argv: list[str] | None = None) -> int:
             max_force=args.max_force,
             connect_timeout=args.connect_timeout,
             takeover=args.takeover,
+            give_up_after=args.retry,
         )
     except (StructureError, ValueError) as exc:
         print(f"scalesteer imd: error: {exc}", file=sys.stderr)

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from protocol import Control, EngineInfo, Frame, Message, ParamRange, SimParams, WireArray
-from simulation_adapters.cli_support import configure_logging, parse
+from simulation_adapters.cli_support import add_retry, configure_logging, parse
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from structures.reader import Structure, StructureError, load
 
@@ -56,6 +56,7 @@ class TrajectoryReplay:
         start_paused: bool = False,
         exit_at_end: bool = False,
         takeover: bool = False,
+        give_up_after: float | None = None,
     ) -> None:
         if not fps > 0:
             raise ValueError("fps must be positive")
@@ -83,7 +84,9 @@ class TrajectoryReplay:
             client="scalesteer-replay",
             lossless=lossless,
             on_steer=self._on_steer,
+            on_state=self._on_connection,
             takeover=takeover,
+            give_up_after=give_up_after,
         )
 
     # ------------------------------------------------------------------ lifecycle
@@ -146,11 +149,12 @@ class TrajectoryReplay:
                 at_end = self.index >= self.n_frames
                 if at_end and self.loop:
                     self.index, at_end = 0, False
-                if at_end and self.exit_at_end and not self.paused:
-                    self._flush()
-                    return
+                finished = at_end and self.exit_at_end and not self.paused
                 waiting = at_end or (self.paused and self._budget == 0)
                 seen = self._wakeups
+            if finished:  # outside the lock: closing reports states that take it
+                self._flush()
+                return
             if waiting:
                 with self._cond:
                     self._cond.wait_for(functools.partial(self._woken, seen))
@@ -201,6 +205,11 @@ class TrajectoryReplay:
 
     def _woken(self, seen: int) -> bool:
         return self._wakeups != seen or self._stopped
+
+    def _on_connection(self, _state: ConnectionState) -> None:  # connection I/O thread
+        with self._cond:  # a failed connection must wake a replay idling at its end
+            self._wakeups += 1
+            self._cond.notify_all()
 
     def _on_steer(self, _msg: Message) -> None:  # connection I/O thread
         with self._cond:
@@ -339,6 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--drop-frames", action="store_true", help="latest wins when the server is slow"
     )
     ap.add_argument("--no-guess-bonds", action="store_true", help="do not guess missing bonds")
+    add_retry(ap)
     ap.add_argument("-v", "--verbose", action="store_true")
     return ap
 
@@ -365,6 +375,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             start_paused=args.paused,
             exit_at_end=args.exit_at_end,
             takeover=args.takeover,
+            give_up_after=args.retry,
         )
     except (StructureError, ValueError) as exc:
         print(f"scalesteer replay: error: {exc}", file=sys.stderr)

@@ -146,6 +146,12 @@ def load(
                 f"unsupported trajectory format {_fmt(t)!r} ({os.path.basename(t)}); "
                 f"use one of {', '.join(TRAJECTORY_FORMATS)}"
             )
+    from structures.textcheck import CHECKS
+
+    for path in (topology, *trajectories):
+        check = CHECKS.get(_fmt(path))
+        if check is not None and not path.lower().endswith((".gz", ".bz2")):
+            check(path)
     kwargs: dict[str, Any] = {}
     if fmt == "pdbx":
         kwargs["topology_format"] = "MMCIF"

@@ -13,7 +13,7 @@ export const ConnState = Object.freeze({
 });
 
 /** Errors after which retrying cannot help. */
-const FATAL_CODES = new Set(["unauthorized", "version_mismatch"]);
+const FATAL_CODES = new Set(["unauthorized", "version_mismatch", "not_found"]);
 const REPLY_TYPES = new Set(["picked", "params_ack", "pong", "error"]);
 
 /** Reconnect delay (ms) before attempt `n` (1, 2, ...): 0.5 s doubling up to 8 s, +-20% jitter. */

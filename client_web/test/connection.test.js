@@ -139,6 +139,17 @@ test("a refused steerer token falls back to viewer once", () => {
   assert.equal(FakeSocket.all.length, 3);
 });
 
+test("a viewer of a session the server does not have is told so, and does not retry", () => {
+  const { conn, timers, socket } = setup("viewer");
+  socket().open();
+  socket().deliver({ type: "error", code: "not_found", message: "no session named 's1'", path: "hello.session" });
+  socket().close(1008, "not_found");
+  timers.advance(60000);
+  assert.equal(conn.state, ConnState.CLOSED);
+  assert.match(conn.reason, /no session named/);
+  assert.equal(FakeSocket.all.length, 1);
+});
+
 test("a lost connection reconnects with growing delays, then numbers afresh", () => {
   const { conn, timers, socket } = setup();
   socket().open();

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from protocol import RenderParams
 from server.commands.serve import ServerThread, dashboard_urls
-from server.settings import ServerSettings
+from server.settings import ServerSettings, persistent_tokens
 
 
 def _has_cuda() -> bool:
@@ -35,7 +35,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--platform", default=None, help="OpenMM platform (default: CUDA if present, else CPU)"
     )
-    ap.add_argument("--token", default=None, help="server token (default: random, printed)")
+    ap.add_argument(
+        "--token",
+        default=None,
+        help="server token (default: a random one kept in the state directory, printed)",
+    )
     ap.add_argument("--interval", type=int, default=50, help="MD steps between frames (2 fs steps)")
     ap.add_argument(
         "--duration",
@@ -63,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
         default_size=(800, 600) if gpu else (400, 300),
         render_defaults=RenderParams(sigma_A=1.5, quality=1.0 if gpu else 0.45),
     )
-    if args.token:
-        settings = replace(settings, token=args.token)
+    token, viewer_token = persistent_tokens(args.state_dir)
+    settings = replace(settings, token=args.token or token, viewer_token=viewer_token)
     print("scalesteer demo: preparing the villin headpiece (implicit solvent)...", flush=True)
     simulation = build_villin_simulation(platform=args.platform)
     server = ServerThread(settings)

@@ -11,7 +11,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from server.settings import ServerSettings, is_loopback
+from server.settings import ServerSettings, is_loopback, persistent_tokens
 
 
 def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
@@ -20,13 +20,25 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
     ap.add_argument("--port", type=int, default=8000)
     ap.add_argument("--device", default="auto", help="auto | cpu | cuda:N")
     auth = ap.add_mutually_exclusive_group()
-    auth.add_argument("--token", help="server token (default: a random one, printed)")
+    auth.add_argument(
+        "--token",
+        help="server token (default: a random one, kept in <state-dir>/tokens.json so links "
+        "survive restarts; printed)",
+    )
     auth.add_argument(
         "--no-token-on-loopback-only",
         action="store_true",
         help="no token needed; only allowed when bound to a loopback address",
     )
-    ap.add_argument("--viewer-token", help="read-only token (default: a random one, printed)")
+    ap.add_argument(
+        "--viewer-token",
+        help="read-only token (default: a random one kept in the state directory, printed)",
+    )
+    ap.add_argument(
+        "--new-tokens",
+        action="store_true",
+        help="draw new random tokens (old links stop working)",
+    )
     ap.add_argument(
         "--data-dir", type=Path, help="directory of server-side datasets for the REST API"
     )
@@ -79,7 +91,8 @@ def _overrides(pairs: list[str]) -> dict[str, object]:
         try:
             value = tunable[name](raw)
         except ValueError:
-            raise ValueError(f"--set {name}: {raw!r} is not a {tunable[name].__name__}") from None
+            kind = "an integer" if tunable[name] is int else "a number"
+            raise ValueError(f"--set {name}: {raw!r} is not {kind}") from None
         if value <= 0:
             raise ValueError(f"--set {name}: must be positive, got {raw}")
         out[name] = value
@@ -96,13 +109,12 @@ def settings_from(args: argparse.Namespace) -> ServerSettings:
         "state_dir": args.state_dir,
         "allowed_origins": tuple(args.allow_origin),
     }
-    if args.token:
-        kwargs["token"] = args.token
+    saved_token, saved_viewer = persistent_tokens(args.state_dir, renew=args.new_tokens)
+    kwargs["token"] = args.token or saved_token
+    kwargs["viewer_token"] = args.viewer_token or saved_viewer
     if args.no_token_on_loopback_only:
         kwargs["token"] = None
         kwargs["viewer_token"] = None
-    if args.viewer_token:
-        kwargs["viewer_token"] = args.viewer_token
     if args.encode_workers is not None:
         kwargs["encode_workers"] = args.encode_workers
     kwargs.update(_overrides(args.set))

@@ -20,6 +20,7 @@ from server.session.session import Session
 from server.session.steering_log import SteeringLog
 from server.settings import ServerSettings
 from server.web import ws as ws_endpoints
+from server.web.apidocs import add_docs
 from server.web.auth import RateLimiter
 from server.web.middleware import HostCheck, UploadLimit
 from server.web.rest import router
@@ -106,8 +107,11 @@ def create_app(settings: ServerSettings) -> FastAPI:
         description="Interactive multiscale visualization and steering of molecular simulations.",
         version="0.1.0",
         lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
     )
     app.include_router(router)
+    add_docs(app, settings.client_dir)
 
     @app.websocket("/ws/sim")
     async def ws_sim(websocket: WebSocket) -> None:

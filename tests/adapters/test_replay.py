@@ -141,3 +141,20 @@ def test_cli_bad_token_exits_with_the_servers_reason(
     argv = [PDB_multiframe, "--exit-at-end", "--url", peer.ws_url, "--token", "wrong"]
     assert replay.main(argv) == 1
     assert "unauthorized" in capsys.readouterr().err
+
+
+def test_cli_against_no_server_says_each_retry_and_gives_up(
+    capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    import socket
+    import time
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    started = time.monotonic()
+    code = replay.main([PDB_multiframe, "--url", f"ws://127.0.0.1:{port}/ws/sim", "--retry", "1.5"])
+    assert code == 1 and time.monotonic() - started < 15
+    assert "retry 1 in" in caplog.text and "giving up" in caplog.text
+    assert "could not reach" in capsys.readouterr().err
+    assert replay.build_parser().parse_args([PSF, "--retry", "forever"]).retry is None

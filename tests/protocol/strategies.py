@@ -249,9 +249,7 @@ MESSAGES: dict[str, st.SearchStrategy[Any]] = {
         ),
         unavailable=st.dictionaries(name, st.text(max_size=40), max_size=3),
         pull=st.none()
-        | st.builds(
-            p.PullLimits, max_force=st.floats(0.1, 1e5), max_spring_k=st.floats(0.1, 1e4)
-        ),
+        | st.builds(p.PullLimits, max_force=st.floats(0.1, 1e5), max_spring_k=st.floats(0.1, 1e4)),
         n_frames=st.none() | st.integers(0, 10**6),
     ),
     "event": st.builds(

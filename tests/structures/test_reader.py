@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import pytest
@@ -69,3 +70,43 @@ def test_a_bare_topology_is_enough_for_the_imd_bridge() -> None:
     s = load(PSF, require_coordinates=False)
     assert s.n_frames == 0 and s.topology.n_atoms == 3341
     assert s.topology.bonds.shape[0] == 3365  # from the PSF, nothing guessed
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "says"),
+    [
+        (
+            "coords.pdb",
+            "HEADER x\nATOM      1  N   ALA A   1      1x.000  2.000   3.000  1.00  0.00\n",
+            "coords.pdb, line 2: x (columns 31-38) is not a number",
+        ),
+        ("prose.pdb", "hello world\nthis is not a pdb\n", "no ATOM or HETATM records"),
+        (
+            "short.gro",
+            "t\n  2\n    1ALA      N    1   0.1   0.2   0.3\n",
+            "declares 2 atoms on line 2 but has 1",
+        ),
+        (
+            "letters.gro",
+            "t\n  1\n    1ALA      N    1   0.1   abc   0.3\n 1 1 1\n",
+            "letters.gro, line 3: an atom line without numeric x, y, z",
+        ),
+        (
+            "count.xyz",
+            "three\ncomment\nC 0 0 0\n",
+            "count.xyz, line 1: line 1 should be the number",
+        ),
+        (
+            "atom.xyz",
+            "2\ncomment\nC 0 0 0\nN 1 x 0\n",
+            "atom.xyz, line 4: an atom line should read",
+        ),
+    ],
+)
+def test_damaged_text_files_name_the_file_the_line_and_the_problem(
+    tmp_path: Path, name: str, text: str, says: str
+) -> None:
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(StructureError, match=re.escape(says)):
+        load(str(path))

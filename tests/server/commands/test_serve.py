@@ -1,0 +1,37 @@
+"""`scalesteer serve` options: tokens that survive restarts, limits set from the command line."""
+
+from __future__ import annotations
+
+import stat
+from pathlib import Path
+
+import pytest
+
+from server.commands.serve import build_parser, settings_from
+
+
+def settings(*argv: str):  # type: ignore[no-untyped-def]
+    return settings_from(build_parser().parse_args(list(argv)))
+
+
+def test_generated_tokens_are_kept_so_copied_links_survive_a_restart(tmp_path: Path) -> None:
+    state = str(tmp_path / "state")
+    first = settings("--state-dir", state)
+    again = settings("--state-dir", state)
+    assert first.token and first.viewer_token and first.token != first.viewer_token
+    assert (again.token, again.viewer_token) == (first.token, first.viewer_token)
+    mode = stat.S_IMODE((tmp_path / "state" / "tokens.json").stat().st_mode)
+    assert mode == 0o600
+    renewed = settings("--state-dir", state, "--new-tokens")
+    assert renewed.token != first.token
+    assert settings("--state-dir", state, "--token", "mine").token == "mine"
+
+
+def test_limits_are_set_by_name_and_bad_ones_are_named(tmp_path: Path) -> None:
+    state = str(tmp_path / "state")
+    s = settings("--state-dir", state, "--set", "max_connections=5", "--set", "frame_budget_ms=40")
+    assert s.max_connections == 5 and s.frame_budget_ms == 40.0
+    with pytest.raises(ValueError, match="bogus"):
+        settings("--state-dir", state, "--set", "bogus=1")
+    with pytest.raises(ValueError, match="not an integer"):
+        settings("--state-dir", state, "--set", "max_connections=lots")
