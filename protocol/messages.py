@@ -308,6 +308,8 @@ class View(Message):
     height: Annotated[int, Field(ge=1)] = 480
     device_pixel_ratio: Annotated[float, Field(gt=0, le=8, allow_inf_nan=False)] = 1.0
     interacting: bool = False
+    track: list[Annotated[int, Field(ge=0)]] = Field(default_factory=list, max_length=32)
+    """Atoms whose positions this viewer wants with each new frame (`tracked` messages)."""
 
 
 class TFPoint(Model):
@@ -450,6 +452,33 @@ class SimStatus(Model):
     observables: dict[Name, FiniteFloat] = Field(default_factory=dict)
 
 
+class LegendEntry(Model):
+    label: Annotated[str, Field(max_length=64)]
+    color: RGB
+
+
+class Legend(Model):
+    """What the colours of the current `color_by` mean: named swatches, or a ramp from `low` to
+    `high` (in `unit`)."""
+
+    color_by: ColorBy
+    entries: list[LegendEntry] = Field(default_factory=list, max_length=64)
+    ramp: list[RGB] = Field(default_factory=list, max_length=16)
+    low: FiniteFloat | None = None
+    high: FiniteFloat | None = None
+    unit: Annotated[str, Field(max_length=16)] = ""
+
+
+class Tracked(Message):
+    """*->V: where the atoms a viewer tracks (`view.track`) are, at `step`; sent with new frames,
+    at most every `state_interval_s`, so markers, labels and measurements follow the atoms."""
+
+    type: Literal["tracked"] = "tracked"
+    step: Annotated[int, Field(ge=0)] | None = None
+    atoms: list[Annotated[int, Field(ge=0)]] = Field(default_factory=list, max_length=32)
+    positions: list[Point] = Field(default_factory=list, max_length=32)
+
+
 class State(Message):
     """*->V: changed parts of the shared session state; absent fields did not change."""
 
@@ -466,6 +495,8 @@ class State(Message):
     pulling: list[Pull] | None = None
     engine: EngineInfo | None = None
     """What the session's simulation can be steered with (see `EngineInfo`)."""
+    legend: Legend | None = None
+    """What the colours mean (sent when the topology or the colouring changes)."""
     camera: Camera | None = None
     """The session's default camera (framing the molecule), for viewers without their own."""
 
@@ -530,7 +561,8 @@ AnyMessage = Annotated[
     | Pong
     | Error
     | EngineInfo
-    | Event,
+    | Event
+    | Tracked,
     Field(discriminator="type"),
 ]
 
@@ -558,5 +590,6 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Error,
         EngineInfo,
         Event,
+        Tracked,
     )
 }

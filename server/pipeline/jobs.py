@@ -28,7 +28,7 @@ import time
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 import protocol as p
 from server.metrics import Metrics
@@ -71,10 +71,13 @@ class JobSpec:
     stride: int = 1
     fps: float = 30.0
     workdir: Path | None = None  # uploaded files live here; removed with the job
+    session: str | None = None
+    """A recording of this live session (no input files): its next `stop` frames."""
 
     def record(self) -> dict[str, Any]:
         """A JSON-able form, to survive restarts."""
         return {
+            "session": self.session,
             "topology": str(self.topology),
             "trajectories": [str(t) for t in self.trajectories],
             "params": self.params.model_dump(mode="json"),
@@ -106,6 +109,7 @@ class JobSpec:
             stride=int(raw["stride"]),
             fps=float(raw["fps"]),
             workdir=Path(workdir) if workdir else None,
+            session=raw.get("session"),
         )
 
 
@@ -124,6 +128,7 @@ class Job:
     restarts: int = 0
     """How many server restarts found this job unfinished (each started it again)."""
     cancel: threading.Event = field(default_factory=threading.Event)
+    finish: asyncio.Event = field(default_factory=asyncio.Event)
     task: asyncio.Task[None] | None = None
 
     def record(self) -> dict[str, Any]:
@@ -169,12 +174,22 @@ class Job:
             "eta_s": eta,
             "error": self.error,
             "output": self.spec.output,
+            "session": self.spec.session,
             "created": self.created,
             "started": self.started,
             "finished": self.finished,
             "restarts": self.restarts,
             "result": f"/api/jobs/{self.id}/result" if self.state is JobState.DONE else None,
         }
+
+
+class LiveSource(Protocol):
+    """A live session as a recording sees it: its frames as they arrive, and how it renders."""
+
+    @property
+    def render_params(self) -> p.RenderParams: ...
+
+    async def next_frame(self, after: int, timeout: float) -> Snapshot | None: ...
 
 
 class JobError(Exception):
@@ -237,7 +252,11 @@ class JobManager:
             if job.state in FINAL:
                 continue
             inputs = [job.spec.topology, *job.spec.trajectories]
-            if job.restarts >= self.MAX_RESTARTS:
+            if job.spec.session is not None:
+                self._fail_on_restart(
+                    job, "the server restarted during this recording of a live session"
+                )
+            elif job.restarts >= self.MAX_RESTARTS:
                 self._fail_on_restart(
                     job,
                     f"the server restarted {job.restarts + 1} times "
@@ -343,6 +362,23 @@ class JobManager:
         job.task = asyncio.create_task(self._run(job), name=f"job-{job.id}")
         return job
 
+    def record(self, source: LiveSource, spec: JobSpec) -> Job:
+        """Start recording a live session to an MP4: each new frame, rendered with the
+        session's render parameters as they are at that moment and the spec's camera, until
+        `spec.stop` frames or `finish`."""
+        if spec.session is None or spec.output != "mp4" or spec.camera is None:
+            raise ValueError("a recording needs a session, a camera and MP4 output")
+        self.reap()
+        job = Job(id=f"j{secrets.token_urlsafe(16)}", spec=spec)
+        self.jobs[job.id] = job
+        self._save(job)
+        job.task = asyncio.create_task(self._record(job, source), name=f"recording-{job.id}")
+        return job
+
+    def finish(self, job: Job) -> None:
+        """End a recording now, keeping what it recorded (`cancel` discards it)."""
+        job.finish.set()
+
     def cancel(self, job: Job) -> None:
         job.cancel.set()
         if job.state is JobState.QUEUED:
@@ -443,6 +479,72 @@ class JobManager:
             await asyncio.to_thread(shutil.rmtree, spec.workdir, True)
         # the outcome is published in one step, with no await in between
         job.state, job.error, job.result = outcome, error, result
+        job.finished = time.time()
+        self.metrics.jobs.labels(job.state.value).inc()
+        self._save(job)
+        self.reap()
+
+    async def _record(self, job: Job, source: LiveSource) -> None:
+        spec = job.spec
+        assert spec.camera is not None
+        slot = f"job:{job.id}"
+        loop = asyncio.get_running_loop()
+        job.state, job.started = JobState.RUNNING, time.time()
+        job.total = spec.stop or 0
+        self._save(job)
+        final = self.directory / f"{job.id}.mp4"
+        writer: Mp4Writer | None = None
+        outcome, error, result = JobState.DONE, None, None
+        try:
+            writer = await loop.run_in_executor(
+                self.encoders, Mp4Writer, final, spec.fps, spec.width, spec.height
+            )
+            after = -1
+            while not job.finish.is_set() and (spec.stop is None or job.done < spec.stop):
+                if job.cancel.is_set():
+                    outcome = JobState.CANCELLED
+                    break
+                waiter = asyncio.ensure_future(source.next_frame(after, 1.0))
+                finish = asyncio.ensure_future(job.finish.wait())
+                done, _ = await asyncio.wait({waiter, finish}, return_when=asyncio.FIRST_COMPLETED)
+                finish.cancel()
+                if waiter not in done:
+                    waiter.cancel()
+                    break
+                snapshot = waiter.result()
+                if snapshot is None:
+                    continue
+                after = snapshot.positions_id
+                out = await self.gpu.render(
+                    RenderRequest(
+                        slot, snapshot, source.render_params, spec.camera, spec.width, spec.height
+                    )
+                )
+                await loop.run_in_executor(self.encoders, writer.add, snapshot.step, out.rgba, None)
+                job.done += 1
+            if outcome is JobState.DONE and job.done == 0:
+                raise JobError("the session sent no frame while recording")
+            if outcome is JobState.DONE:
+                await loop.run_in_executor(self.encoders, writer.close)
+                result = final
+        except JobError as exc:
+            outcome, error = JobState.FAILED, str(exc)
+        except asyncio.CancelledError:
+            if writer is not None:
+                with contextlib.suppress(Exception):
+                    writer.abort()
+            raise
+        except Exception as exc:
+            log.exception("recording %s failed", job.id)
+            outcome = JobState.FAILED
+            error = f"internal error ({type(exc).__name__}); see the server log"
+        if outcome is not JobState.DONE and writer is not None:
+            with contextlib.suppress(Exception):
+                writer.abort()
+        with contextlib.suppress(Exception):
+            await self.gpu.release(slot)
+        job.state, job.error, job.result = outcome, error, result
+        job.total = job.done
         job.finished = time.time()
         self.metrics.jobs.labels(job.state.value).inc()
         self._save(job)

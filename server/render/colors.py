@@ -7,16 +7,17 @@ atom; the ray caster blends them by each atom's Gaussian contribution at the hit
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from protocol import Topology
-
-ColorBy = Literal["element", "residue", "chain", "uniform", "bfactor", "charge"]
+from protocol.messages import ColorBy, Legend, LegendEntry
 
 RGB = tuple[float, float, float]
+MAX_LEGEND = 24
+"""Swatches a categorical legend lists at most (the most common first)."""
 
 R_REF = 1.7
 """Reference radius (carbon, angstrom): in `vdw` mode an atom's width is sigma * r / R_REF."""
@@ -209,15 +210,66 @@ def atom_rgb(
         return chain_rgb
     if color_by == "bfactor" and topology.bfactors is not None:
         b = topology.bfactors.to_numpy().astype(np.float64)
-        lo, hi = np.percentile(b, [2.0, 98.0])
-        scale = hi - lo if hi > lo else 1.0
-        return _ramp((b - lo) / scale, _BLUE_WHITE_RED)
+        lo, hi = _bfactor_range(b)
+        return _ramp((b - lo) / (hi - lo), _BLUE_WHITE_RED)
     if color_by == "charge" and topology.charges is not None:
         q = topology.charges.to_numpy().astype(np.float64)
-        qmax = float(np.percentile(np.abs(q), 98.0))
-        qmax = qmax if qmax > 0 else 1.0
+        qmax = _charge_range(q)
         return _ramp(0.5 + 0.5 * q / qmax, _RED_WHITE_BLUE)
     return np.tile(np.asarray(uniform, dtype=np.float64), (n, 1))
+
+
+def _bfactor_range(b: npt.NDArray[np.float64]) -> tuple[float, float]:
+    lo, hi = (float(v) for v in np.percentile(b, [2.0, 98.0]))
+    return lo, hi if hi > lo else lo + 1.0
+
+
+def _charge_range(q: npt.NDArray[np.float64]) -> float:
+    qmax = float(np.percentile(np.abs(q), 98.0))
+    return qmax if qmax > 0 else 1.0
+
+
+def legend(topology: Topology, color_by: ColorBy, uniform: RGB = (0.85, 0.85, 0.9)) -> Legend:
+    """What the colours of `atom_rgb` mean, for the dashboard's legend: named swatches for the
+    categorical schemes (those present in this topology, most atoms first), a ramp with its
+    value range for the continuous ones."""
+    if color_by == "element":
+        names, counts = np.unique(np.asarray(topology.elements, dtype=str), return_counts=True)
+        order = np.argsort(-counts, kind="stable")
+        entries = [
+            LegendEntry(
+                label=_element_key(str(names[i])) or "?",
+                color=ELEMENT_COLORS.get(_element_key(str(names[i])), UNKNOWN_ELEMENT),
+            )
+            for i in order[:MAX_LEGEND]
+        ]
+        return Legend(color_by=color_by, entries=entries)
+    if color_by == "residue":
+        classes = _per_value(topology.residue_names, residue_class)
+        present, counts = np.unique(classes, return_counts=True)
+        order = np.argsort(-counts, kind="stable")
+        entries = [
+            LegendEntry(label=str(present[i]), color=RESIDUE_CLASS_COLORS[str(present[i])])
+            for i in order
+        ]
+        return Legend(color_by=color_by, entries=entries)
+    if color_by == "chain":
+        chains = np.asarray(topology.chain_ids, dtype=str)
+        uniq, first = np.unique(chains, return_index=True)
+        in_order = [str(uniq[i]) for i in np.argsort(first, kind="stable")]
+        entries = [
+            LegendEntry(label=name or "?", color=CHAIN_PALETTE[k % len(CHAIN_PALETTE)])
+            for k, name in enumerate(in_order[:MAX_LEGEND])
+        ]
+        return Legend(color_by=color_by, entries=entries)
+    if color_by == "bfactor" and topology.bfactors is not None:
+        lo, hi = _bfactor_range(topology.bfactors.to_numpy().astype(np.float64))
+        return Legend(color_by=color_by, ramp=list(_BLUE_WHITE_RED), low=lo, high=hi, unit="Å²")
+    if color_by == "charge" and topology.charges is not None:
+        qmax = _charge_range(topology.charges.to_numpy().astype(np.float64))
+        return Legend(color_by=color_by, ramp=list(_RED_WHITE_BLUE), low=-qmax, high=qmax, unit="e")
+    label = "uniform" if color_by == "uniform" else f"uniform (no {color_by} in this topology)"
+    return Legend(color_by=color_by, entries=[LegendEntry(label=label, color=uniform)])
 
 
 def atom_colors(

@@ -88,6 +88,7 @@ class Session:
         """When the last client and the simulation left (None while anyone is connected)."""
         self.roster = Roster()
         self.topology: p.Topology | None = None
+        self.legend: p.Legend | None = None
         self.engine: p.EngineInfo | None = None
         """What the simulation declared it can be steered with (kept until a new one says)."""
         self.topology_id = 0
@@ -106,6 +107,7 @@ class Session:
         """Counts every change to what the session draws (positions, render parameters)."""
         self._image_ids = itertools.count(1)
         self._roster_flush: asyncio.TimerHandle | None = None
+        self._frame_arrived = asyncio.Event()
         self._step_rate = StepRate()
         self._dirty = asyncio.Event()
         self._closed = False
@@ -203,6 +205,7 @@ class Session:
             clients=self.roster.infos(),
             pulling=self.forces.pulling(),
             engine=self.engine,
+            legend=self.legend,
             camera=self.camera,
         )
 
@@ -223,6 +226,7 @@ class Session:
             update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": "running"}
         )
         self.broadcast(p.State(sim=self.status))
+        self._legend_changed()
 
     def on_engine(self, info: p.EngineInfo) -> None:
         self.engine = info
@@ -263,6 +267,8 @@ class Session:
         rate = self._step_rate.add(now, frame.step)
         self.positions = frame.positions.to_numpy()
         self.positions_id += 1
+        self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
+        self._frame_arrived = asyncio.Event()
         if self.camera is None:
             from server.render.camera import fit_camera
 
@@ -288,7 +294,35 @@ class Session:
         if now - self._last_state_sent >= self.settings.state_interval_s:
             self._last_state_sent = now
             self.broadcast(p.State(sim=self.status))
+            self._send_tracked()
         self.mark_dirty()
+
+    def _send_tracked(self, only: Client | None = None) -> None:
+        """Where each viewer's tracked atoms are now (markers and measurements follow them)."""
+        positions = self.positions
+        if positions is None:
+            return
+        for client in [only] if only is not None else list(self.clients.values()):
+            atoms = client.view.track if client.view is not None else []
+            if not atoms:
+                continue
+            xyz = positions[np.asarray(atoms, dtype=np.int64)].astype(float)
+            client.send(
+                p.Tracked(
+                    step=self.status.step,
+                    atoms=list(atoms),
+                    positions=[(float(a), float(b), float(c)) for a, b, c in xyz],
+                )
+            )
+
+    def _legend_changed(self) -> None:
+        if self.topology is None:
+            return
+        from server.render.colors import legend
+
+        rp = self.render_params
+        self.legend = legend(self.topology, rp.color_by, rp.uniform_color)
+        self.broadcast(p.State(legend=self.legend))
 
     def on_ack(self, ack: p.ParamsAck) -> None:
         pending = self.acks.take(ack.ref)
@@ -395,6 +429,8 @@ class Session:
         self.render_params = merged
         self._log({"event": "render_params", **who, "changes": changes})
         self.broadcast(p.State(render_params=merged))
+        if "color_by" in changes or "uniform_color" in changes:
+            self._legend_changed()
         self.version += 1
         self.scheduler.interacting(time.monotonic())
         self.mark_dirty()
@@ -480,9 +516,14 @@ class Session:
                 "view.width",
                 view.seq,
             )
+        if view.track:
+            self._check_atoms(np.asarray(view.track), "view.track", view.seq)
+        tracking_changed = client.view is None or client.view.track != view.track
         client.view = view
         client.view_ref = view.seq
         client.needs_image = True
+        if tracking_changed and view.track:
+            self._send_tracked(only=client)
         if view.interacting:
             client.interacting_until = time.monotonic() + self.settings.interactive_idle_s
         self.mark_dirty()
@@ -493,6 +534,20 @@ class Session:
 
     def mark_dirty(self) -> None:
         self._dirty.set()
+
+    async def next_frame(self, after: int, timeout: float) -> Snapshot | None:
+        """The first snapshot whose `positions_id` is above `after`, waiting up to `timeout`
+        seconds for the simulation to send it (None if it does not)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            snap = self.snapshot()
+            if snap is not None and snap.positions_id > after:
+                return snap
+            left = deadline - time.monotonic()
+            if left <= 0 or self._closed:
+                return None
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._frame_arrived.wait(), left)
 
     def snapshot(self) -> Snapshot | None:
         """The molecule as it is now, for one render pass."""

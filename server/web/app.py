@@ -23,6 +23,7 @@ from server.web import ws as ws_endpoints
 from server.web.apidocs import add_docs
 from server.web.auth import RateLimiter
 from server.web.middleware import HostCheck, UploadLimit
+from server.web.replays import router as replays_router
 from server.web.rest import router
 from server.web.state import AppState, SessionRegistry
 
@@ -96,6 +97,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             yield
         finally:
             reaping.cancel()
+            await asyncio.to_thread(state.replays.close)
             await state.jobs.close()
             await state.sessions.close()
             await asyncio.to_thread(gpu.close)
@@ -111,6 +113,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         redoc_url=None,
     )
     app.include_router(router)
+    app.include_router(replays_router)
     add_docs(app, settings.client_dir)
 
     @app.websocket("/ws/sim")

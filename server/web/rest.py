@@ -123,7 +123,7 @@ def _dataset(state: AppState, name: str) -> Path:
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
 
 
-async def _save_upload(upload: UploadFile, directory: Path, limit: int, index: int = 0) -> Path:
+async def save_upload(upload: UploadFile, directory: Path, limit: int, index: int = 0) -> Path:
     """Stream an upload to `directory` under a unique, safe name that keeps its extension."""
     name = _UNSAFE.sub("_", Path(upload.filename or "upload").name).lstrip(".")
     if not name:
@@ -236,7 +236,7 @@ async def render_image(
         workdir = Path(tempfile.mkdtemp(prefix="render-", dir=state.upload_dir))
         try:
             path = (
-                await _save_upload(file, workdir, state.settings.max_upload_bytes)
+                await save_upload(file, workdir, state.settings.max_upload_bytes)
                 if file
                 else _dataset(state, dataset or "")
             )
@@ -291,9 +291,9 @@ async def create_job(
     try:
         limit = state.settings.max_upload_bytes
         if topology is not None:
-            top = await _save_upload(topology, workdir, limit)
+            top = await save_upload(topology, workdir, limit)
             trajs = [
-                await _save_upload(t, workdir, limit, i + 1) for i, t in enumerate(trajectory or [])
+                await save_upload(t, workdir, limit, i + 1) for i, t in enumerate(trajectory or [])
             ]
         else:
             top = _dataset(state, dataset or "")
@@ -361,7 +361,10 @@ async def get_job_result(
     return FileResponse(job.result, media_type=media, filename=job.result.name)
 
 
-@router.delete("/api/jobs/{job_id}", summary="Cancel a job (or delete a finished one's output)")
+@router.delete(
+    "/api/jobs/{job_id}",
+    summary="Cancel a job, end a recording (keeping it), or delete a finished job's output",
+)
 async def delete_job(
     job_id: str, state: State, _role: Annotated[p.Role, Depends(steerer_access)]
 ) -> dict[str, Any]:
@@ -369,6 +372,9 @@ async def delete_job(
     if job.state in FINAL:
         state.jobs.forget(job)
         return {"id": job_id, "deleted": True}
+    if job.spec.session is not None and job.state is JobState.RUNNING:
+        state.jobs.finish(job)  # a recording ends here and keeps its movie
+        return {"id": job_id, "finishing": True}
     state.jobs.cancel(job)
     described: dict[str, Any] = job.describe()
     return described
@@ -420,3 +426,48 @@ async def healthz(state: State) -> dict[str, Any]:
 async def metrics(state: State) -> Response:
     state.metrics.sessions.set(len(state.sessions.all()))
     return Response(state.metrics.text(), media_type="text/plain; version=0.0.4")
+
+
+@router.post(
+    "/api/sessions/{session_id}/recordings",
+    status_code=202,
+    summary="Record a live session to an MP4 (a job; DELETE /api/jobs/{id} ends it)",
+)
+async def record_session(
+    session_id: str,
+    state: State,
+    _role: Annotated[p.Role, Depends(steerer_access)],
+    camera: Annotated[
+        str | None, Form(description="Camera as JSON; default the session's camera")
+    ] = None,
+    width: Annotated[int, Form()] = 640,
+    height: Annotated[int, Form()] = 480,
+    fps: Annotated[float, Form(gt=0, le=120)] = 30.0,
+    max_frames: Annotated[int, Form(ge=1, le=100_000)] = 1800,
+) -> JSONResponse:
+    """Each frame the simulation sends from now on, drawn with the session's render
+    parameters of that moment (what the dashboard shows) and this camera; the movie ends after
+    `max_frames` frames or when `DELETE /api/jobs/{id}` finishes it (the movie is kept)."""
+    _check_size(state, width, height)
+    live = state.sessions.get(session_id)
+    if live is None:
+        raise HTTPException(404, f"no session named {session_id!r}")
+    cam = _model(p.Camera, camera, "camera") or live.camera
+    if cam is None:
+        raise HTTPException(409, f"session {session_id!r} has no frame yet to frame a camera on")
+    spec = JobSpec(
+        topology=Path(),
+        trajectories=[],
+        params=live.render_params,
+        camera=cam,
+        width=width,
+        height=height,
+        output="mp4",
+        stop=max_frames,
+        fps=fps,
+        session=session_id,
+    )
+    job = state.jobs.record(live, spec)
+    return JSONResponse(
+        job.describe(), status_code=202, headers={"Location": f"/api/jobs/{job.id}"}
+    )

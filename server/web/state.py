@@ -25,6 +25,7 @@ from server.session.session import Session
 from server.session.steering_log import SteeringLog
 from server.settings import ServerSettings
 from server.web.auth import RateLimiter
+from server.web.children import ReplayManager
 
 _SESSION_NAME = re.compile(SESSION_NAME)
 
@@ -107,6 +108,8 @@ class AppState:
     viewer_renders: RateLimiter
     """`/api/render` calls by viewer-token holders, together."""
     connections: Connections = field(default_factory=Connections)
+    replays: ReplayManager = field(default_factory=ReplayManager)
+    """Replays opened from the dashboard (child processes)."""
 
     @property
     def metrics(self) -> Metrics:

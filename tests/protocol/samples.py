@@ -127,6 +127,9 @@ def samples() -> dict[str, p.Message]:
             pull=p.PullLimits(max_force=50.0, max_spring_k=10.0),
             guard="roll back, release the pulls, pause",
         ),
+        "tracked": p.Tracked(
+            seq=22, step=1200, atoms=[3, 17], positions=[(1.0, 2.0, 3.0), (-4.5, 0.25, 9.0)]
+        ),
         "event": p.Event(
             seq=21, level="error", code="guard", message="blew up; rolled back", step=1200
         ),

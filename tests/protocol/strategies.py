@@ -252,6 +252,13 @@ MESSAGES: dict[str, st.SearchStrategy[Any]] = {
         | st.builds(p.PullLimits, max_force=st.floats(0.1, 1e5), max_spring_k=st.floats(0.1, 1e4)),
         n_frames=st.none() | st.integers(0, 10**6),
     ),
+    "tracked": st.builds(
+        p.Tracked,
+        seq=seq,
+        step=st.none() | st.integers(0, 10**9),
+        atoms=st.lists(st.integers(0, 10**6), max_size=4),
+        positions=st.lists(st.tuples(finite, finite, finite), max_size=4),
+    ),
     "event": st.builds(
         p.Event,
         seq=seq,

@@ -1,0 +1,109 @@
+"""Replays started from the dashboard, each a `scalesteer replay` child process.
+
+The files were saved into the server's data directory and checked by the isolated reader before
+a child starts; the child plays them into this server's `/ws/sim` with the server token (passed
+in its environment, not on its command line). A child ends with its session's `stop` control,
+`ReplayManager.stop`, or the server.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@dataclass
+class ReplayProcess:
+    session: str
+    files: list[str]
+    process: subprocess.Popen[bytes]
+    log_path: Path
+    started: float = field(default_factory=time.time)
+
+    def describe(self) -> dict[str, Any]:
+        code = self.process.poll()
+        return {
+            "session": self.session,
+            "files": self.files,
+            "running": code is None,
+            "exit_code": code,
+            "started": self.started,
+            "dashboard": f"/?session={self.session}",
+        }
+
+    def last_words(self) -> str:
+        """The end of the child's output (why it stopped), for the API's answer."""
+        try:
+            return self.log_path.read_text(errors="replace").strip().splitlines()[-1][:300]
+        except (OSError, IndexError):
+            return ""
+
+
+@dataclass
+class ReplayManager:
+    """The replay children of one server, by session."""
+
+    processes: dict[str, ReplayProcess] = field(default_factory=dict)
+
+    def start(
+        self,
+        session: str,
+        files: list[Path],
+        port: int,
+        token: str | None,
+        fps: float,
+        loop: bool,
+        log_dir: Path,
+    ) -> ReplayProcess:
+        log_dir.mkdir(parents=True, exist_ok=True)
+        log_path = log_dir / f"replay-{session}.log"
+        command = [
+            sys.executable,
+            "-m",
+            "simulation_adapters.replay",
+            *[str(f) for f in files],
+            "--url",
+            f"ws://127.0.0.1:{port}/ws/sim",
+            "--session",
+            session,
+            "--fps",
+            str(fps),
+            "--retry",
+            "30",
+            *(["--loop"] if loop else []),
+        ]
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+        if token is not None:
+            env["SCALESTEER_TOKEN"] = token  # not on the command line, where `ps` shows it
+        with open(log_path, "wb") as out:
+            process = subprocess.Popen(
+                command, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT
+            )
+        replay = ReplayProcess(session, [f.name for f in files], process, log_path)
+        self.processes[session] = replay
+        return replay
+
+    def stop(self, session: str, timeout: float = 5.0) -> bool:
+        replay = self.processes.get(session)
+        if replay is None:
+            return False
+        if replay.process.poll() is None:
+            replay.process.terminate()
+            try:
+                replay.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                replay.process.kill()
+                replay.process.wait()
+        return True
+
+    def close(self) -> None:
+        for session in list(self.processes):
+            self.stop(session)

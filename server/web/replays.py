@@ -1,0 +1,117 @@
+"""REST routes for replays started from the dashboard: files opened in the browser become a
+replay session (the children themselves: `server.web.children`).
+
+The files are saved into the server's data directory (`--data-dir`, or `<state-dir>/data`),
+checked by the isolated reader, then played by `scalesteer replay` in a child process of its own
+(a damaged file can never take the server down) that connects back to this server's `/ws/sim`
+with the server token. The child is stopped with its session's `stop` control, by
+`DELETE /api/replays/{session}`, or when the server stops.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import re
+import shutil
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
+
+import protocol as p
+from protocol.messages import SESSION_NAME
+from server.web.children import ReplayManager
+from server.web.rest import State, save_upload, steerer_access, viewer_access
+from server.web.state import AppState
+from structures.isolated import IsolatedStructure
+from structures.reader import StructureError
+
+router = APIRouter()
+_SAFE = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+def _library(state: AppState) -> Path:
+    """Where opened files are kept: the data directory, so they become datasets too."""
+    root = state.settings.data_dir or state.settings.state_dir / "data"
+    return root / "opened"
+
+
+@router.post("/api/replays", status_code=201, summary="Open files as a replay session")
+async def open_replay(
+    request: Request,
+    state: State,
+    _role: Annotated[p.Role, Depends(steerer_access)],
+    topology: Annotated[UploadFile, File(description="structure or topology file")],
+    trajectory: Annotated[
+        list[UploadFile] | None, File(description="trajectory files (DCD, XTC, TRR, ...)")
+    ] = None,
+    session: Annotated[str | None, Form(description="session name (default from the file)")] = None,
+    fps: Annotated[float, Form(gt=0, le=240)] = 30.0,
+    loop: Annotated[bool, Form()] = False,
+) -> dict[str, Any]:
+    manager: ReplayManager = state.replays
+    name = session or "replay-" + _SAFE.sub("-", Path(topology.filename or "upload").stem)[:40]
+    if not re.match(SESSION_NAME, name):
+        raise HTTPException(422, f"session: {name!r} is not a usable session name")
+    running = manager.processes.get(name)
+    live = state.sessions.get(name)
+    if (running is not None and running.process.poll() is None) or (
+        live is not None and live.sim is not None
+    ):
+        raise HTTPException(409, f"session {name!r} already has a simulation; pick another name")
+    folder = _library(state) / f"{name}-{int(time.time())}"
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        limit = state.settings.max_upload_bytes
+        files = [await save_upload(topology, folder, limit)]
+        files += [
+            await save_upload(t, folder, limit, i + 1) for i, t in enumerate(trajectory or [])
+        ]
+        async with state.readers:
+            try:
+                checked = await asyncio.to_thread(
+                    IsolatedStructure,
+                    str(files[0]),
+                    [str(f) for f in files[1:]],
+                    state.settings.read_limits(),
+                )
+            except StructureError as exc:
+                raise HTTPException(422, str(exc)) from None
+            n_frames = checked.n_frames
+            await asyncio.to_thread(checked.close)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    port = int(request.scope["server"][1])
+    replay = manager.start(
+        name, files, port, state.settings.token, fps, loop, state.settings.state_dir / "replays"
+    )
+    await asyncio.sleep(0)
+    described = replay.describe()
+    described["n_frames"] = n_frames
+    return described
+
+
+@router.get("/api/replays", summary="Replays opened from the dashboard")
+async def list_replays(
+    state: State, _role: Annotated[p.Role, Depends(viewer_access)]
+) -> list[dict[str, Any]]:
+    out = []
+    for replay in state.replays.processes.values():
+        described = replay.describe()
+        if not described["running"]:
+            described["last_words"] = replay.last_words()
+        out.append(described)
+    return out
+
+
+@router.delete("/api/replays/{session}", summary="Stop a replay opened from the dashboard")
+async def stop_replay(
+    session: str, state: State, _role: Annotated[p.Role, Depends(steerer_access)]
+) -> dict[str, Any]:
+    with contextlib.suppress(KeyError):
+        if await asyncio.to_thread(state.replays.stop, session):
+            return state.replays.processes[session].describe()
+    raise HTTPException(404, f"no replay for session {session!r}")

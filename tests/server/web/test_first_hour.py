@@ -1,0 +1,148 @@
+"""What a newcomer's dashboard needs from the server: legends, atoms that markers follow, a
+trajectory opened from the browser as a replay session, and a movie of the live session."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+import protocol as p
+from tests.conftest import LiveServer
+from tests.server.peers import Peer, frame, molecule
+
+pytest.importorskip("MDAnalysisTests")
+from MDAnalysisTests.datafiles import DCD, PSF
+
+AUTH = {"Authorization": "Bearer test-token"}
+
+
+def test_the_legend_follows_the_colouring(live_server: LiveServer) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "legend")
+    topo, pos = molecule(12)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    steerer = Peer(live_server.view_url, "steerer", live_server.token, "legend")
+    first = steerer.expect(p.State, where=lambda m: m.legend is not None)
+    assert first.legend is not None and first.legend.color_by == "element"
+    labels = {e.label for e in first.legend.entries}
+    assert labels == {e.capitalize() for e in topo.elements}
+    steerer.send(p.SetRenderParams(params={"color_by": "chain"}))
+    chain = steerer.expect(p.State, where=lambda m: m.legend and m.legend.color_by == "chain")
+    assert [e.label for e in chain.legend.entries] == sorted(set(topo.chain_ids))  # type: ignore[union-attr]
+    sim.close()
+    steerer.close()
+
+
+def test_tracked_atoms_follow_the_frames(live_server: LiveServer) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "track")
+    topo, pos = molecule(12)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "track")
+    viewer.expect(p.Image, 60)
+    viewer.send(p.View(track=[2, 5]))
+    now = viewer.expect(p.Tracked)
+    assert now.atoms == [2, 5] and np.allclose(now.positions, pos[[2, 5]], atol=1e-4)
+    moved = pos + np.float32(3.0)
+    time.sleep(0.15)
+    sim.send(frame(moved, 7))
+    later = viewer.expect(p.Tracked, where=lambda m: m.step == 7)
+    assert np.allclose(later.positions, moved[[2, 5]], atol=1e-4)
+    viewer.send_raw(p.encode(p.View(seq=99, track=[500])))
+    err = viewer.expect(p.Error, where=lambda m: m.ref == 99)
+    assert err.path == "view.track"
+    sim.close()
+    viewer.close()
+
+
+def test_a_recording_of_the_live_session_is_a_movie_of_its_frames(live_server: LiveServer) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "film")
+    topo, pos = molecule(12)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    watcher = Peer(live_server.view_url, "viewer", live_server.viewer_token, "film")
+    watcher.expect(p.Image, 60)
+    with httpx.Client(base_url=live_server.url, timeout=60) as c:
+        r = c.post(
+            "/api/sessions/film/recordings",
+            headers=AUTH,
+            data={"width": "64", "height": "48", "max_frames": "100"},
+        )
+        assert r.status_code == 202, r.text
+        job = r.json()["id"]
+
+        def recorded() -> int:
+            done: int = c.get(f"/api/jobs/{job}", headers=AUTH).json()["progress"]["done"]
+            return done
+
+        for step in range(1, 6):  # one frame at a time: each is recorded before the next
+            sim.send(frame(pos + np.float32(0.2 * step), step))
+            deadline = time.monotonic() + 30
+            while recorded() < step:
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+        assert c.delete(f"/api/jobs/{job}", headers=AUTH).json()["finishing"]
+        while (info := c.get(f"/api/jobs/{job}", headers=AUTH).json())["state"] == "running":
+            time.sleep(0.1)
+        assert info["state"] == "done" and info["session"] == "film", info
+        movie = c.get(f"/api/jobs/{job}/result", headers=AUTH)
+        assert movie.status_code == 200 and movie.headers["content-type"] == "video/mp4"
+        import av
+
+        with av.open(Path(_write(movie.content))) as container:
+            frames = sum(1 for _ in container.decode(video=0))
+        assert frames == info["progress"]["done"] >= 5
+        r = c.post("/api/sessions/nobody/recordings", headers=AUTH, data={})
+        assert r.status_code == 404
+    sim.close()
+    watcher.close()
+
+
+def _write(data: bytes) -> str:
+    import tempfile
+
+    with tempfile.NamedTemporaryFile(suffix=".mp4", delete=False) as fh:
+        fh.write(data)
+        return fh.name
+
+
+def test_files_opened_in_the_browser_become_a_replay_session(live_server: LiveServer) -> None:
+    with httpx.Client(base_url=live_server.url, timeout=120) as c:
+        with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+            r = c.post(
+                "/api/replays",
+                headers=AUTH,
+                files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                data={"fps": "20"},
+            )
+        assert r.status_code == 201, r.text
+        opened = r.json()
+        assert opened["session"] == "replay-adk" and opened["n_frames"] == 98
+        deadline = time.monotonic() + 60  # the child connects once it has read the files
+        while c.get("/api/sessions/replay-adk", headers=AUTH).status_code != 200:
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "replay-adk")
+        state = viewer.expect(p.State, 60, where=lambda m: m.engine is not None)
+        assert state.engine is not None and state.engine.kind == "replay"
+        assert state.engine.n_frames == 98
+        viewer.expect(p.Image, 60)
+        assert (live_server.settings.state_dir / "data" / "opened").is_dir()
+        with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+            again = c.post(
+                "/api/replays",
+                headers=AUTH,
+                files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+            )
+        assert again.status_code == 409
+        bad = c.post("/api/replays", headers=AUTH, files={"topology": ("x.pdb", b"junk\n")})
+        assert bad.status_code == 422 and "x.pdb" in bad.json()["detail"]
+        listed = c.get("/api/replays", headers=AUTH).json()
+        assert [r["session"] for r in listed] == ["replay-adk"] and listed[0]["running"]
+        assert c.delete("/api/replays/replay-adk", headers=AUTH).status_code == 200
+        assert not c.get("/api/replays", headers=AUTH).json()[0]["running"]
+        viewer.close()
