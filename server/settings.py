@@ -82,6 +82,8 @@ class ServerSettings:
     """How long a finished job's output stays downloadable."""
     job_max_bytes: int = 2 << 30
     """Disk the outputs of finished jobs may take together; the oldest go first beyond it."""
+    recording_max_bytes: int = 2 << 30
+    """Size at which a recording's trajectory stops growing (the recording ends `capped`)."""
     max_running_jobs: int = 2
     """Jobs that read and render at once; later ones wait `queued`."""
     max_readers: int = 2
@@ -105,11 +107,14 @@ class ServerSettings:
     interactive_jpeg_quality: int = 60
     frame_budget_ms: float = 80.0
     """Render time a live image may take: images shrink to what renders in it on this device
-    (nothing shrinks on a GPU; on 2 CPU cores villin renders at about 40k pixels)."""
+    (nothing shrinks on a GPU; on 2 CPU cores villin renders at about 40k pixels); 0 turns
+    the budget off."""
     refine_budget_ms: float = 250.0
     """Render time of the refined image that follows once a reduced image stays unchanged."""
     refine_after_s: float = 0.3
     """How long a budget-reduced image must stay unchanged before it is refined."""
+    final_after_s: float = 1.5
+    """How long a refined image must stay unchanged before the full-size image follows."""
     frame_wait_s: float = 0.25
     """Longest a simulation's next big frame (over 1 MiB) waits to be read until a render took
     the last one."""

@@ -2,10 +2,13 @@
 // Pure logic lives in the other modules; this one holds the session state and the DOM wiring.
 
 import { DEFAULT_CAMERA, lookAlong, normalizeCamera, project, setProjection, unprojectToPlane } from "./camera.js";
+import { apiFetch, finishRecording, openReplay, startRecording } from "./api.js";
 import { ConnState, Connection, viewUrl } from "./connection.js";
 import { $, downloadBlob, el, setText, throttle } from "./dom.js";
 import { integer, milliseconds, nanoseconds, position, sig } from "./format.js";
 import { LatencyTracker, RateMeter, clockSample } from "./latency.js";
+import { showLegend } from "./legend.js";
+import { Picks, atomLabel, measurement } from "./measure.js";
 import { Notices } from "./notices.js";
 import { RENDER_DEFAULTS, SIGMA_SLIDER, clamp, diffRender, mergeRender } from "./params.js";
 import { Plots } from "./plots.js";
@@ -13,11 +16,14 @@ import { applyRoster } from "./roster.js";
 import { RenderPanel } from "./renderpanel.js";
 import { requestScreenshot, screenshotName } from "./screenshot.js";
 import { Shortcuts } from "./shortcuts.js";
+import { Recordings } from "./recordings.js";
+import { Timeline } from "./timeline.js";
 import { SimPanel } from "./simpanel.js";
 import { AckTracker } from "./steering.js";
 import { TransferEditor } from "./tfeditor.js";
 import { histogramRange, normalizePoints, presetPoints } from "./transfer.js";
 import { decodeHash, encodeHash, readQuery } from "./urlstate.js";
+import { readViewFile, viewFile, viewFileName } from "./viewfile.js";
 import { Viewport } from "./viewport.js";
 
 const RENDER_SEND_MS = 50;
@@ -52,6 +58,9 @@ class Dashboard {
     this.lastImage = null;
     this.viewFrame = null;
     this.screenshotBusy = false;
+    this.picks = new Picks();
+    this.engine = null;
+    this.recording = null; // {job, started, timer} while recording a movie
 
     this.flushRenderSoon = throttle(() => this.flushRender(), RENDER_SEND_MS);
     this.sendPullSoon = throttle(() => this.sendPull(), PULL_SEND_MS);
@@ -83,6 +92,20 @@ class Dashboard {
       onParam: (key, value) => this.simParam(key, value),
       onInvalid: (text) => this.notices.notify({ level: "warning", code: "input", message: text }),
     });
+    this.timeline = new Timeline({
+      onControl: (action, extra, label) => this.control(action, extra, label),
+      onApplyRender: (changes) => this.steerRender(changes, true),
+    });
+    this.recordings = new Recordings({
+      token: this.token,
+      session: () => this.welcome?.session_id ?? this.sessionName,
+      viewSize: () => {
+        const { viewW, viewH } = this.viewport.size;
+        const scale = Math.min(1, 1920 / viewW, 1080 / viewH);
+        return { width: 2 * Math.round((viewW * scale) / 2), height: 2 * Math.round((viewH * scale) / 2) };
+      },
+      notify: (n) => this.notices.notify(n),
+    });
     this.viewport = new Viewport({
       container: $("viewport"),
       canvas: $("view"),
@@ -93,7 +116,7 @@ class Dashboard {
       pullWithoutModifier: () => $("pull-mode").checked,
       onResize: (size) => this.resized(size),
       onCamera: (cam, interacting) => this.setCamera(cam, interacting),
-      onClick: (x, y) => this.pick(x, y),
+      onClick: (x, y, how) => this.pick(x, y, how),
       onPullStart: (x, y) => this.pullStart(x, y),
       onPullMove: (x, y) => this.pullMove(x, y),
       onPullEnd: () => this.pullEnd(),
@@ -148,6 +171,7 @@ class Dashboard {
         this.plots.pushStats(m, this.shownRate.rate(performance.now()));
         return this.showSession();
       case "params_ack": {
+        if (m.applied) this.timeline.acknowledged(m.applied);
         const r = this.acks.ack(m);
         if (r) this.simPanel.showAck(r.key, r.status, r.key === "control" ? r.status.label : "");
         return undefined;
@@ -158,6 +182,9 @@ class Dashboard {
         this.notices.serverError(m);
         return undefined;
       }
+      case "tracked":
+        if (this.picks.track(m)) this.showPicks();
+        return undefined;
       case "event":
         this.notices.notify({
           level: m.level,
@@ -181,6 +208,7 @@ class Dashboard {
     this.viewport.setLimits(m.limits);
     this.latency.reset();
     this.applyRole(m.role, true);
+    if (m.role === "steerer") this.recordings.refresh();
     if (this.camera) this.sendView(false);
     this.showSession();
   }
@@ -202,6 +230,7 @@ class Dashboard {
       if (m.sim.n_atoms) this.nAtoms = m.sim.n_atoms;
       this.sim = m.sim;
       this.simPanel.updateStatus(m.sim);
+      this.timeline.update(m.sim);
       if (!this.lastImage) {
         setText(
           $("view-placeholder"),
@@ -224,8 +253,11 @@ class Dashboard {
     if (m.engine) {
       this.engine = m.engine;
       this.simPanel.setEngine(m.engine);
+      this.timeline.setEngine(m.engine);
       this.showPullLimits();
+      if (m.engine.kind === "replay") this.loadMarks();
     }
+    if (m.legend) showLegend($("legend"), m.legend);
     if (m.camera) {
       this.sessionCamera = normalizeCamera(m.camera);
       if (!this.camera || !this.cameraCustom) {
@@ -305,9 +337,26 @@ class Dashboard {
     this.renderPanel.setDisabled(!steering);
     this.simPanel.setDisabled(!steering);
     $("pull-release-all").disabled = !steering;
+    this.timeline.setDisabled(!steering);
+    for (const id of ["btn-record", "btn-record-run", "btn-open-files"]) {
+      $(id).disabled = !steering;
+      $(id).title = steering ? $(id).title : "needs the steering link (the server token)";
+    }
     const badge = $("role-badge");
     badge.dataset.role = role;
     setText(badge, granted ? (steering ? "steerer" : "viewer (read-only)") : `${role}…`);
+  }
+
+  /** A replay of a recorded run: its steering marks go on the timeline. */
+  async loadMarks() {
+    const session = this.welcome?.session_id ?? this.sessionName;
+    try {
+      const response = await apiFetch(`/api/replays/${encodeURIComponent(session)}`, { token: this.token });
+      const replay = await response.json();
+      if (replay.marks) this.timeline.setMarks(replay.marks);
+    } catch (err) {
+      if (err.status !== 404) this.notices.notify({ level: "warning", code: "replay", message: err.message });
+    }
   }
 
   // ------------------------------------------------------------------ steering
@@ -343,7 +392,8 @@ class Dashboard {
   showTransferFunction() {
     this.tfEditor.setPoints(this.transferPoints());
     const preset = $("tf-preset");
-    if (document.activeElement !== preset) preset.value = this.render.tf_preset;
+    const edited = normalizePoints(this.render.transfer_function).length > 0;
+    if (document.activeElement !== preset) preset.value = edited ? "custom" : this.render.tf_preset;
   }
 
   simParam(key, value) {
@@ -408,6 +458,7 @@ class Dashboard {
       height: viewH,
       device_pixel_ratio: clamp(dpr, 0.1, 8),
       interacting,
+      track: this.picks.indices,
     });
     if (seq !== null) this.latency.sent(seq, "view", performance.now());
   }
@@ -453,7 +504,7 @@ class Dashboard {
 
   // ------------------------------------------------------------------ picking and pulling
 
-  async pick(x, y) {
+  async pick(x, y, how = {}) {
     if (!this.connection.ready) return;
     let reply;
     try {
@@ -462,7 +513,33 @@ class Dashboard {
       this.notices.notify({ level: "warning", code: "pick", message: err.message });
       return;
     }
-    if (reply.type === "picked") this.showPicked(reply);
+    if (reply.type !== "picked") return;
+    if (how.add) this.picks.extend(reply);
+    else this.picks.pick(reply);
+    this.showPicks();
+    this.sendView(false); // track the picked atoms: markers and measurements follow them
+  }
+
+  /** The picked atoms: details of the last, labels and the measurement on the view. */
+  showPicks() {
+    const atoms = this.picks.atoms;
+    const last = atoms.at(-1) ?? { atom: null };
+    this.showPicked(last);
+    const m = measurement(atoms);
+    const text = m ? `${m.kind} ${sig(m.value, 4)} ${m.unit}` : "";
+    const details = $("pick-details");
+    details.dataset.measure = m ? `${m.kind}:${m.value}` : "";
+    setText(
+      $("pick-measure"),
+      m
+        ? `${text} (atoms ${atoms.map((a) => a.atom).join(", ")})`
+        : "Shift-click more atoms: two give a distance, three an angle, four a dihedral",
+    );
+    this.viewport.setMarker(null);
+    this.viewport.setAnnotations(
+      atoms.map((a) => ({ position: a.position, label: atomLabel(a) })),
+      m ? { kind: m.kind, text } : null,
+    );
   }
 
   showPicked(p) {
@@ -481,12 +558,13 @@ class Dashboard {
     setText($("pick-residue"), `${p.residue_name || "?"} ${p.residue_id ?? ""}`.trim());
     setText($("pick-chain"), p.chain || "–");
     setText($("pick-position"), position(p.position));
-    this.viewport.setMarker(p.position ?? null);
   }
 
   clearSelection() {
-    this.showPicked({ atom: null });
+    this.picks.clear();
+    this.showPicks();
     setText($("pick-atom"), "click an atom");
+    this.sendView(false);
   }
 
   /** The engine's pull limits beside the pull fields; pulling off where it takes no forces. */
@@ -518,14 +596,17 @@ class Dashboard {
     }
     const pull = { state: "picking", pointer: [x, y], atom: null, position: null };
     this.pull = pull;
+    this.viewport.setPending([x, y]);
     let reply;
     try {
       ({ reply } = await this.connection.request({ type: "pick", x, y }));
     } catch (err) {
+      this.viewport.setPending(null);
       this.notices.notify({ level: "warning", code: "pull", message: err.message });
       if (this.pull === pull) this.pull = null;
       return;
     }
+    this.viewport.setPending(null);
     if (this.pull !== pull || reply.type !== "picked") return; // released meanwhile, or refused
     if (reply.atom === null || reply.atom === undefined || !reply.position) {
       this.notices.notify({ level: "info", code: "pull", message: "no atom under the pointer to pull" });
@@ -576,6 +657,7 @@ class Dashboard {
     this.sendPullSoon.cancel();
     $("pull-hint").hidden = true;
     this.viewport.setPullLine(null);
+    this.viewport.setPending(null);
     if (pull?.state === "active" && !silent) this.connection.send({ type: "pull", atom: pull.atom, release: true });
   }
 
@@ -719,6 +801,12 @@ class Dashboard {
     $("btn-export-csv").addEventListener("click", () => this.exportCsv());
     $("btn-clear-plots").addEventListener("click", () => this.plots.clear());
     $("btn-reconnect").addEventListener("click", () => this.connection.reconnectNow());
+    $("btn-save-view").addEventListener("click", () => this.saveView());
+    $("btn-open-view").addEventListener("click", () => $("open-view-file").click());
+    $("open-view-file").addEventListener("change", (e) => this.openView(e.target));
+    $("btn-record").addEventListener("click", () => this.toggleRecording());
+    $("btn-open-files").addEventListener("click", () => $("open-files").click());
+    $("open-files").addEventListener("change", (e) => this.openFiles(e.target));
     $("plot-window").addEventListener("change", (e) => this.plots.setWindow(Number(e.target.value)));
     $("resolution").addEventListener("change", (e) => this.viewport.setResolution(Number(e.target.value)));
     $("pull-release-all").addEventListener("click", () => this.releaseAll());
@@ -726,8 +814,111 @@ class Dashboard {
       this.steerRender({ tf_preset: e.target.value, transfer_function: [] }, true),
     );
     $("tf-reset").addEventListener("click", () =>
-      this.steerRender({ tf_preset: $("tf-preset").value, transfer_function: [] }, true),
+      this.steerRender({ tf_preset: this.render.tf_preset, transfer_function: [] }, true),
     );
+  }
+
+  saveView() {
+    const session = this.welcome?.session_id ?? this.sessionName;
+    const data = viewFile({ session, camera: this.camera, render: this.render, atoms: this.picks.indices });
+    downloadBlob(new Blob([JSON.stringify(data, null, 2)], { type: "application/json" }), viewFileName(session));
+    this.notices.notify({ level: "info", code: "view", message: "view saved" });
+  }
+
+  async openView(input) {
+    const file = input.files?.[0];
+    input.value = "";
+    if (!file) return;
+    let view;
+    try {
+      view = readViewFile(await file.text());
+    } catch (err) {
+      this.notices.notify({ level: "error", code: "view", message: `${file.name}: ${err.message}` });
+      return;
+    }
+    if (view.camera) this.setCamera(normalizeCamera(view.camera), false);
+    if (view.render) {
+      if (this.role === "steerer") {
+        const patch = diffRender(this.render, mergeRender(RENDER_DEFAULTS, view.render));
+        if (Object.keys(patch).length) this.steerRender(patch, true);
+        this.renderPanel.update(this.render);
+      } else {
+        this.notices.notify({
+          level: "info",
+          code: "view",
+          message: "the view's render settings need the steering token; only its camera was applied",
+        });
+      }
+    }
+    this.picks.atoms = view.atoms.map((atom) => ({ atom, name: `#${atom}` }));
+    this.showPicks();
+    this.sendView(false);
+    this.notices.notify({ level: "info", code: "view", message: `opened ${file.name}` });
+  }
+
+  async toggleRecording() {
+    const button = $("btn-record");
+    const session = this.welcome?.session_id ?? this.sessionName;
+    if (!this.recording) {
+      const { viewW, viewH } = this.viewport.size;
+      const scale = Math.min(1, 1920 / viewW, 1080 / viewH);
+      try {
+        const job = await startRecording({
+          token: this.token,
+          session,
+          camera: this.camera,
+          width: 2 * Math.round((viewW * scale) / 2),
+          height: 2 * Math.round((viewH * scale) / 2),
+        });
+        const started = performance.now();
+        const timer = setInterval(() => {
+          const secs = Math.round((performance.now() - started) / 1000);
+          setText(button, `Stop recording ${Math.floor(secs / 60)}:${String(secs % 60).padStart(2, "0")}`);
+        }, 500);
+        this.recording = { job: job.id, timer };
+        button.setAttribute("aria-pressed", "true");
+        setText(button, "Stop recording 0:00");
+        this.notices.notify({ level: "info", code: "record", message: "recording this view on the server" });
+      } catch (err) {
+        this.notices.notify({ level: "error", code: "record", message: err.message });
+      }
+      return;
+    }
+    const { job, timer } = this.recording;
+    this.recording = null;
+    clearInterval(timer);
+    button.setAttribute("aria-pressed", "false");
+    button.disabled = true;
+    setText(button, "Saving…");
+    try {
+      const blob = await finishRecording({ token: this.token, job });
+      downloadBlob(blob, `scalesteer-${session}-${job}.mp4`);
+      this.notices.notify({ level: "info", code: "record", message: "movie downloaded" });
+    } catch (err) {
+      this.notices.notify({ level: "error", code: "record", message: err.message });
+    } finally {
+      button.disabled = this.role !== "steerer";
+      setText(button, "Record movie");
+    }
+  }
+
+  async openFiles(input) {
+    const files = [...(input.files ?? [])];
+    input.value = "";
+    if (!files.length) return;
+    // the structure first: a trajectory format cannot carry a topology on its own
+    const trajectory = /\.(dcd|xtc|trr|nc|ncdf|lammpstrj)$/i;
+    files.sort((a, b) => Number(trajectory.test(a.name)) - Number(trajectory.test(b.name)));
+    this.notices.notify({ level: "info", code: "open", message: `uploading ${files.map((f) => f.name).join(", ")}…` });
+    try {
+      const opened = await openReplay({ token: this.token, files });
+      const url = new URL(window.location.href);
+      url.searchParams.set("session", opened.session);
+      url.hash = "";
+      window.location.assign(url.toString());
+    } catch (err) {
+      this.notices.notify({ level: "error", code: "open", message: err.message });
+    }
   }
 
   bindings() {

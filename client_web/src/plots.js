@@ -21,11 +21,11 @@ const PLOTS = [
   },
   {
     id: "plot-energy",
-    columns: ["potential_kJmol", "kinetic_kJmol"],
-    labels: ["potential (kJ/mol)", "kinetic (kJ/mol)"],
-    keys: ["potential", "kinetic"],
-    colors: ["#5b9bd5", "#7fd1a6"],
-    dash: [null, null],
+    columns: ["potential_kJmol"],
+    labels: ["potential (kJ/mol)"],
+    keys: ["potential"],
+    colors: ["#5b9bd5"],
+    dash: [null],
     unit: "kJ/mol",
   },
   {
@@ -144,8 +144,8 @@ export class Plots {
     if (Number.isFinite(obs.temperature_K)) {
       this.push("plot-temperature", t, { temperature_K: obs.temperature_K, target_temperature_K: targetTemperature });
     }
-    if (Number.isFinite(obs.potential_kJmol) || Number.isFinite(obs.kinetic_kJmol)) {
-      this.push("plot-energy", t, { potential_kJmol: obs.potential_kJmol, kinetic_kJmol: obs.kinetic_kJmol });
+    if (Number.isFinite(obs.potential_kJmol)) {
+      this.push("plot-energy", t, { potential_kJmol: obs.potential_kJmol });
     }
   }
 

@@ -1,29 +1,19 @@
 // Full-resolution screenshots through the REST API: POST /api/render renders the session's
 // latest frame with the given camera and render parameters and returns a PNG.
 
+import { apiFetch, formOf } from "./api.js";
+
 /** Request a PNG; resolves to a Blob or throws an Error naming the server's reason. */
 export async function requestScreenshot({ token, session, width, height, params, camera, fetchImpl = fetch }) {
-  const form = new FormData();
-  form.append("session", session);
-  form.append("width", String(Math.round(width)));
-  form.append("height", String(Math.round(height)));
-  form.append("format", "png");
-  if (params) form.append("params", JSON.stringify(params));
-  if (camera) form.append("camera", JSON.stringify(camera));
-  const headers = token ? { Authorization: `Bearer ${token}` } : {};
-  const response = await fetchImpl("/api/render", { method: "POST", body: form, headers });
-  if (!response.ok) {
-    let detail = response.statusText;
-    try {
-      const body = await response.json();
-      detail = typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail ?? body);
-    } catch {
-      /* not JSON: keep the status text */
-    }
-    const err = new Error(`HTTP ${response.status}: ${detail}`);
-    err.status = response.status;
-    throw err;
-  }
+  const form = formOf({
+    session,
+    width: Math.round(width),
+    height: Math.round(height),
+    format: "png",
+    params,
+    camera,
+  });
+  const response = await apiFetch("/api/render", { token, method: "POST", form, fetchImpl });
   return response.blob();
 }
 

@@ -54,14 +54,17 @@ export class Shortcuts {
     if (e.defaultPrevented || e.altKey || e.ctrlKey || e.metaKey) return;
     if (typingTarget(e.target)) return;
     if (this.dialog.open && e.key !== "?") return; // the dialog handles Escape itself
+    const onControl = e.target?.closest?.("button, a, summary, input, select, label");
     for (const b of this.bindings) {
       if (!b.keys.includes(e.key)) continue;
       if (b.when && !b.when()) continue;
       // Space keeps its meaning on buttons, links, summaries and form controls
-      if (b.keys.includes(" ") && e.target?.closest?.("button, a, summary, input, select, label")) continue;
+      if (b.keys.includes(" ") && onControl) continue;
       e.preventDefault();
       b.run(e);
       return;
     }
+    // a space nobody took must not scroll the dashboard away (a viewer cannot pause)
+    if (e.key === " " && !onControl) e.preventDefault();
   }
 }

@@ -181,8 +181,22 @@ export class Viewport {
     this.drawOverlay();
   }
 
+  /** Labelled atoms and the measurement joining them: [{position, label}], {kind, text}. */
+  setAnnotations(atoms, measured) {
+    this.annotations = atoms;
+    this.measured = measured;
+    this.drawOverlay();
+  }
+
   setPullLine(line) {
     this.pullLine = line;
+    this.drawOverlay();
+  }
+
+  /** A dashed ring at view pixel [x, y] while a pick is on its way (null clears it): the pull
+   * shows at mouse-down, before the server has said which atom is under the pointer. */
+  setPending(point) {
+    this.pending = point;
     this.drawOverlay();
   }
 
@@ -209,6 +223,43 @@ export class Viewport {
         g.arc(p[0], p[1], 9 * dpr, 0, 2 * Math.PI);
         g.stroke();
       }
+    }
+    const shown = (this.annotations ?? []).map((a) => ({ ...a, at: a.position ? this.toOverlay(a.position) : null }));
+    if (shown.length > 1 && shown.every((a) => a.at)) {
+      g.save();
+      g.strokeStyle = "#7fd1a6";
+      g.lineWidth = 2 * dpr;
+      g.setLineDash([6 * dpr, 4 * dpr]);
+      g.beginPath();
+      shown.forEach((a, i) => (i ? g.lineTo(a.at[0], a.at[1]) : g.moveTo(a.at[0], a.at[1])));
+      g.stroke();
+      g.restore();
+      if (this.measured) {
+        const mid = shown.length === 2 ? midpoint(shown[0].at, shown[1].at) : shown[1].at;
+        drawLabel(g, mid, this.measured.text, dpr, "#7fd1a6");
+      }
+    }
+    shown.forEach((a, i) => {
+      if (!a.at) return;
+      g.save();
+      g.strokeStyle = "#ffd166";
+      g.lineWidth = 2 * dpr;
+      g.beginPath();
+      g.arc(a.at[0], a.at[1], 7 * dpr, 0, 2 * Math.PI);
+      g.stroke();
+      g.restore();
+      drawLabel(g, [a.at[0] + 10 * dpr, a.at[1] - 10 * dpr], shown.length > 1 ? `${i + 1} ${a.label}` : a.label, dpr);
+    });
+    if (this.pending) {
+      const { viewW, viewH } = this.size;
+      g.save();
+      g.strokeStyle = "#ef476f";
+      g.lineWidth = 2 * dpr;
+      g.setLineDash([4 * dpr, 3 * dpr]);
+      g.beginPath();
+      g.arc((this.pending[0] / viewW) * this.overlay.width, (this.pending[1] / viewH) * this.overlay.height, 11 * dpr, 0, 2 * Math.PI);
+      g.stroke();
+      g.restore();
     }
     if (this.pullLine) {
       const a = this.toOverlay(this.pullLine.from);
@@ -260,7 +311,15 @@ export class Viewport {
     let kind = "orbit";
     if (wantsPull && this.canPull()) kind = "pull";
     else if (e.button === 2 || e.button === 1 || e.shiftKey) kind = "pan";
-    this.gesture = { kind, start: at, last: at, camera: this.getCamera(), moved: false, button: e.button };
+    this.gesture = {
+      kind,
+      start: at,
+      last: at,
+      camera: this.getCamera(),
+      moved: false,
+      button: e.button,
+      shift: e.shiftKey,
+    };
     if (kind === "pull") {
       e.preventDefault();
       this.canvas.classList.add("pulling");
@@ -326,8 +385,8 @@ export class Viewport {
     }
     if (g.moved) {
       this.onCamera(g.latest ?? this.getCamera(), false);
-    } else if (!cancelled && g.button === 0 && g.kind === "orbit") {
-      this.onClick(g.start.x, g.start.y);
+    } else if (!cancelled && g.button === 0 && (g.kind === "orbit" || (g.kind === "pan" && g.shift))) {
+      this.onClick(g.start.x, g.start.y, { add: g.shift });
     }
   }
 
@@ -372,6 +431,23 @@ export class Viewport {
       this.onCamera(next, false);
     }
   }
+}
+
+function midpoint(a, b) {
+  return [(a[0] + b[0]) / 2, (a[1] + b[1]) / 2];
+}
+
+function drawLabel(g, at, text, dpr, color = "#ffd166") {
+  if (!text) return;
+  g.save();
+  g.font = `${12 * dpr}px system-ui, sans-serif`;
+  const w = g.measureText(text).width + 8 * dpr;
+  const h = 16 * dpr;
+  g.fillStyle = "rgba(10, 12, 14, 0.75)";
+  g.fillRect(at[0], at[1] - h + 4 * dpr, w, h);
+  g.fillStyle = color;
+  g.fillText(text, at[0] + 4 * dpr, at[1]);
+  g.restore();
 }
 
 function drawArrow(g, a, b, dpr) {

@@ -35,6 +35,7 @@ from server.metrics import Metrics
 from server.pipeline.encoder import encode_image
 from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
+from server.pipeline.overlay import draw_overlay
 from structures.isolated import IsolatedStructure, ReadLimits
 from structures.reader import StructureError
 
@@ -73,6 +74,8 @@ class JobSpec:
     workdir: Path | None = None  # uploaded files live here; removed with the job
     session: str | None = None
     """A recording of this live session (no input files): its next `stop` frames."""
+    overlay: dict[str, Any] | None = None
+    """Steering drawn on the frames (`server.pipeline.overlay`): marks, pulls, hold_frames."""
 
     def record(self) -> dict[str, Any]:
         """A JSON-able form, to survive restarts."""
@@ -90,6 +93,7 @@ class JobSpec:
             "stride": self.stride,
             "fps": self.fps,
             "workdir": str(self.workdir) if self.workdir else None,
+            "overlay": self.overlay,
         }
 
     @classmethod
@@ -110,6 +114,7 @@ class JobSpec:
             fps=float(raw["fps"]),
             workdir=Path(workdir) if workdir else None,
             session=raw.get("session"),
+            overlay=raw.get("overlay"),
         )
 
 
@@ -444,12 +449,15 @@ class JobManager:
                 out = await self.gpu.render(
                     RenderRequest(slot, snapshot, spec.params, camera, spec.width, spec.height)
                 )
+                rgba = out.rgba
+                if spec.overlay is not None:
+                    rgba = await loop.run_in_executor(
+                        self.encoders, draw_overlay, rgba, index, spec.overlay, camera, positions
+                    )
                 png = None
                 if isinstance(writer, ZipWriter):
-                    png, _ms = await loop.run_in_executor(
-                        self.encoders, encode_image, out.rgba, "png"
-                    )
-                await loop.run_in_executor(self.encoders, writer.add, index, out.rgba, png)
+                    png, _ms = await loop.run_in_executor(self.encoders, encode_image, rgba, "png")
+                await loop.run_in_executor(self.encoders, writer.add, index, rgba, png)
                 job.done = n + 1
             if outcome is JobState.DONE:
                 await loop.run_in_executor(self.encoders, writer.close)

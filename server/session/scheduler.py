@@ -11,8 +11,10 @@ policy is tested without sleeping.
 A frame-time budget keeps slow devices interactive: the scheduler learns what a pixel costs on
 this session's device and shrinks every image to what renders in `frame_budget_ms` (the browser
 scales it up). When what a reduced image shows stays unchanged for `refine_after_s`, a refined
-image follows, within the larger `refine_budget_ms` (progressive refinement). On a GPU the
-budget is far above a full-size frame and nothing shrinks.
+image follows, within the larger `refine_budget_ms`; when that one stays unchanged for
+`final_after_s`, the full-size image follows whatever it costs (progressive refinement: a
+paused simulation on a laptop ends at full quality). On a GPU the budget is far above a
+full-size frame and nothing shrinks.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ from server.settings import ServerSettings
 MAX_REMEMBERED = 256
 """View groups whose last rendered version is remembered (older ones just render again)."""
 HISTOGRAM_INTERVAL_S = 1.0
+FINAL = 2
+"""The last refinement level: the full-size image, whatever it costs."""
 MIN_BUDGET_PIXELS = 160 * 90
 """The budget never shrinks an image below this (a coarse image still shows the molecule)."""
 
@@ -39,8 +43,9 @@ class ViewKey:
     width: int
     height: int
     interactive: bool
-    refine: bool = False
-    """A refinement of a budget-reduced image: rendered within the refine budget."""
+    refine: int = 0
+    """Refinement level of a budget-reduced image: 0 none, 1 within the refine budget,
+    `FINAL` at full size."""
 
     @property
     def camera(self) -> p.Camera:
@@ -88,8 +93,8 @@ class RenderScheduler:
     _last_histogram: float = float("-inf")
     cost: FrameCost = field(default_factory=FrameCost)
     _quality: float = 1.0
-    _reduced: dict[ViewKey, tuple[int, float]] = field(default_factory=dict)
-    """Groups whose last image was shrunk by the budget: (version, when)."""
+    _reduced: dict[ViewKey, tuple[int, float, int]] = field(default_factory=dict)
+    """Groups whose last image was shrunk by the budget: (version, when, refinement level)."""
 
     def interacting(self, now: float) -> None:
         """Shared render parameters changed: every view is interactive for a moment."""
@@ -131,12 +136,15 @@ class RenderScheduler:
                 reduced = self._reduced.get(key)
                 if reduced is None or reduced[0] != version or key.interactive:
                     continue
-                wait = self.settings.refine_after_s - (now - reduced[1])
+                after = (
+                    self.settings.refine_after_s if reduced[2] == 0 else self.settings.final_after_s
+                )
+                wait = after - (now - reduced[1])
                 if wait > 0:  # not yet: come back when it is due
                     refine_in = wait if refine_in is None else min(refine_in, wait)
                     continue
                 del self._reduced[key]
-                due.append((replace(key, refine=True), members))
+                due.append((replace(key, refine=reduced[2] + 1), members))
                 continue
             for c in members:
                 c.needs_image = False
@@ -149,20 +157,20 @@ class RenderScheduler:
     def rendered(self, key: ViewKey, version: int) -> None:
         if len(self._rendered) >= MAX_REMEMBERED:
             self._rendered.clear()
-        self._rendered[replace(key, refine=False)] = version
+        self._rendered[replace(key, refine=0)] = version
 
     def note_render(
         self, key: ViewKey, version: int, size: tuple[int, int], ms: float, now: float
     ) -> bool:
-        """Learn from a render; True when its size was shrunk by the budget (a refinement
-        is then due once the group's image stays unchanged for `refine_after_s`)."""
+        """Learn from a render; True when its size was shrunk by the budget (the next
+        refinement is then due once the group's image stays unchanged for a while)."""
         self.cost.note(size[0] * size[1], ms)
-        base = replace(key, refine=False)
+        base = replace(key, refine=0)
         wanted = self._wanted_size(key)
-        if not key.refine and size[0] * size[1] < wanted[0] * wanted[1]:
+        if key.refine < FINAL and size[0] * size[1] < wanted[0] * wanted[1]:
             if len(self._reduced) >= MAX_REMEMBERED:
                 self._reduced.clear()
-            self._reduced[base] = (version, now)
+            self._reduced[base] = (version, now, key.refine)
             return True
         self._reduced.pop(base, None)
         return False
@@ -190,7 +198,7 @@ class RenderScheduler:
         if on_cpu:
             pixels = min(pixels, self.settings.cpu_max_live_pixels)
         budget = self.settings.refine_budget_ms if key.refine else self.settings.frame_budget_ms
-        affordable = self.cost.pixels_within(budget)
+        affordable = None if key.refine >= FINAL else self.cost.pixels_within(budget)
         if affordable is not None:
             pixels = min(pixels, max(affordable, MIN_BUDGET_PIXELS))
         shrink = min(1.0, lim.max_image_side / max(rw, rh), (pixels / (rw * rh)) ** 0.5)

@@ -19,6 +19,8 @@ import itertools
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future
 from typing import Any
 
 import numpy as np
@@ -46,6 +48,10 @@ from server.settings import ServerSettings
 log = logging.getLogger("scalesteer.session")
 
 RATE_WINDOW_S = 3.0
+
+
+FrameSink = Callable[[int, float, "npt.NDArray[np.float32]", "npt.NDArray[Any] | None"], None]
+"""(step, time_ps, positions, box) of one frame."""
 
 
 class StepRate:
@@ -100,6 +106,8 @@ class Session:
         """What the simulation has confirmed (a change shows here once acknowledged)."""
         self.camera: p.Camera | None = None
         self.forces = ForceBook()
+        self.frame_sinks: list[FrameSink] = []
+        """Called with every frame the simulation sends (recordings): they must only queue."""
         self.acks = AckBook()
         self.scheduler = RenderScheduler(settings)
         self.delivery = Delivery(session_id, services)
@@ -107,6 +115,7 @@ class Session:
         """Counts every change to what the session draws (positions, render parameters)."""
         self._image_ids = itertools.count(1)
         self._roster_flush: asyncio.TimerHandle | None = None
+        self._status_flush: asyncio.TimerHandle | None = None
         self._frame_arrived = asyncio.Event()
         self._step_rate = StepRate()
         self._dirty = asyncio.Event()
@@ -267,6 +276,10 @@ class Session:
         rate = self._step_rate.add(now, frame.step)
         self.positions = frame.positions.to_numpy()
         self.positions_id += 1
+        if self.frame_sinks:
+            box = None if frame.box is None else frame.box.to_numpy()
+            for sink in list(self.frame_sinks):
+                sink(frame.step, frame.time_ps, self.positions, box)
         self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
         self._frame_arrived = asyncio.Event()
         if self.camera is None:
@@ -291,11 +304,21 @@ class Session:
             self._frame_taken.clear()
         if self.forces.springs:
             self._send_forces()
-        if now - self._last_state_sent >= self.settings.state_interval_s:
-            self._last_state_sent = now
-            self.broadcast(p.State(sim=self.status))
-            self._send_tracked()
+        wait = self.settings.state_interval_s - (now - self._last_state_sent)
+        if wait <= 0:
+            self._send_status()
+        elif self._status_flush is None:  # the last frame of a burst is reported too
+            self._status_flush = asyncio.get_running_loop().call_later(wait, self._send_status)
         self.mark_dirty()
+
+    def _send_status(self) -> None:
+        """The simulation's status and the tracked atoms, at most every `state_interval_s`."""
+        if self._status_flush is not None:
+            self._status_flush.cancel()
+            self._status_flush = None
+        self._last_state_sent = time.monotonic()
+        self.broadcast(p.State(sim=self.status))
+        self._send_tracked()
 
     def _send_tracked(self, only: Client | None = None) -> None:
         """Where each viewer's tracked atoms are now (markers and measurements follow them)."""
@@ -361,11 +384,16 @@ class Session:
     # ------------------------------------------------------------------ steering
 
     def _log(self, entry: dict[str, Any]) -> int:
+        return self.log_event(entry)[0]
+
+    def log_event(self, entry: dict[str, Any]) -> tuple[int, Future[None]]:
+        """Append `entry` to the session's steering log with a new id and the current step;
+        the future resolves once it is on disk."""
         log_id = self.services.steering_log.next_id(self.id)
-        self.services.steering_log.append(
+        done = self.services.steering_log.append(
             self.id, {"id": log_id, "sim_step": self.status.step, **entry}
         )
-        return log_id
+        return log_id, done
 
     def _forward(self, message: p.Message, pending: Pending) -> None:
         """Send a steering message to the simulation; the ack comes back through `on_ack`."""
@@ -647,7 +675,8 @@ class Session:
             key, snap.version, (width, height), out.timings.get("total", 0.0), time.monotonic()
         )
         if reduced:
-            self.mark_dirty_later(self.settings.refine_after_s + 0.01)
+            after = self.settings.refine_after_s if key.refine == 0 else self.settings.final_after_s
+            self.mark_dirty_later(after + 0.01)
         if out.histogram is not None:
             self.histogram = out.histogram
         self.render_count += 1
@@ -750,6 +779,8 @@ class Session:
         self._closed = True
         if self._roster_flush is not None:
             self._roster_flush.cancel()
+        if self._status_flush is not None:
+            self._status_flush.cancel()
         self._frame_taken.set()
         tasks = [*self._tasks, *self.delivery.in_flight()]
         for task in tasks:

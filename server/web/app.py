@@ -15,6 +15,7 @@ from server.metrics import Metrics
 from server.pipeline.encoder import select_encoder
 from server.pipeline.gpu import GpuQueue
 from server.pipeline.jobs import JobManager
+from server.pipeline.recordings import RecordingStore
 from server.session.services import Services
 from server.session.session import Session
 from server.session.steering_log import SteeringLog
@@ -23,6 +24,7 @@ from server.web import ws as ws_endpoints
 from server.web.apidocs import add_docs
 from server.web.auth import RateLimiter
 from server.web.middleware import HostCheck, UploadLimit
+from server.web.recordings import router as recordings_router
 from server.web.replays import router as replays_router
 from server.web.rest import router
 from server.web.state import AppState, SessionRegistry
@@ -74,6 +76,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
                 max_running=settings.max_running_jobs,
                 upload_dir=upload_dir,
             ),
+            recordings=RecordingStore(state_dir / "recordings", steering_log.read),
             upload_dir=upload_dir,
             readers=asyncio.Semaphore(settings.max_readers),
             viewer_renders=RateLimiter(
@@ -82,6 +85,9 @@ def create_app(settings: ServerSettings) -> FastAPI:
             ),
         )
         app.state.scalesteer = state
+        interrupted = await asyncio.to_thread(state.recordings.restore)
+        for rec in interrupted:
+            log.warning("recording %s was interrupted; kept %d frame(s)", rec.id, rec.frames)
         resumed = state.jobs.restore()
         if resumed:
             log.info("started again %d job(s) a previous run left unfinished", len(resumed))
@@ -98,6 +104,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         finally:
             reaping.cancel()
             await asyncio.to_thread(state.replays.close)
+            await asyncio.to_thread(state.recordings.close)
             await state.jobs.close()
             await state.sessions.close()
             await asyncio.to_thread(gpu.close)
@@ -114,6 +121,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
     )
     app.include_router(router)
     app.include_router(replays_router)
+    app.include_router(recordings_router)
     add_docs(app, settings.client_dir)
 
     @app.websocket("/ws/sim")

@@ -26,6 +26,8 @@ class ReplayProcess:
     process: subprocess.Popen[bytes]
     log_path: Path
     started: float = field(default_factory=time.time)
+    recording: str | None = None
+    """The recording this replay plays (its steering marks belong on the timeline)."""
 
     def describe(self) -> dict[str, Any]:
         code = self.process.poll()
@@ -36,6 +38,7 @@ class ReplayProcess:
             "exit_code": code,
             "started": self.started,
             "dashboard": f"/?session={self.session}",
+            "recording": self.recording,
         }
 
     def last_words(self) -> str:
@@ -61,6 +64,7 @@ class ReplayManager:
         fps: float,
         loop: bool,
         log_dir: Path,
+        recording: str | None = None,
     ) -> ReplayProcess:
         log_dir.mkdir(parents=True, exist_ok=True)
         log_path = log_dir / f"replay-{session}.log"
@@ -87,7 +91,9 @@ class ReplayManager:
             process = subprocess.Popen(
                 command, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT
             )
-        replay = ReplayProcess(session, [f.name for f in files], process, log_path)
+        replay = ReplayProcess(
+            session, [f.name for f in files], process, log_path, recording=recording
+        )
         self.processes[session] = replay
         return replay
 

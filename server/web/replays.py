@@ -107,6 +107,20 @@ async def list_replays(
     return out
 
 
+@router.get("/api/replays/{session}", summary="One replay opened from the dashboard")
+async def get_replay(
+    session: str, state: State, _role: Annotated[p.Role, Depends(viewer_access)]
+) -> dict[str, Any]:
+    replay = state.replays.processes.get(session)
+    if replay is None:
+        raise HTTPException(404, f"no replay for session {session!r}")
+    described = replay.describe()
+    rec = state.recordings.get(replay.recording) if replay.recording else None
+    if rec is not None:  # the timeline's steering marks, for viewers too
+        described["marks"] = rec.marks()
+    return described
+
+
 @router.delete("/api/replays/{session}", summary="Stop a replay opened from the dashboard")
 async def stop_replay(
     session: str, state: State, _role: Annotated[p.Role, Depends(steerer_access)]

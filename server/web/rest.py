@@ -168,7 +168,7 @@ async def _read_frame(
     return structure.topology, positions
 
 
-def _check_size(state: AppState, width: int, height: int) -> None:
+def check_size(state: AppState, width: int, height: int) -> None:
     lim = state.settings.limits
     if width < 1 or height < 1:
         raise HTTPException(422, f"image size {width}x{height}: width and height must be >= 1")
@@ -209,7 +209,7 @@ async def render_image(
     height: Annotated[int, Form()] = 600,
     format: Annotated[Literal["png", "jpeg"], Form()] = "png",
 ) -> Response:
-    _check_size(state, width, height)
+    check_size(state, width, height)
     if role == "viewer" and not state.viewer_renders.allow():
         wait = state.viewer_renders.wait_s()
         raise HTTPException(
@@ -282,7 +282,7 @@ async def create_job(
     output: Annotated[Literal["zip", "mp4"], Form()] = "zip",
     fps: Annotated[float, Form(gt=0, le=240)] = 30.0,
 ) -> JSONResponse:
-    _check_size(state, width, height)
+    check_size(state, width, height)
     if (topology is None) == (dataset is None):
         raise HTTPException(422, "give exactly one of topology (upload) or dataset")
     render_params = _model(p.RenderParams, params, "params") or p.RenderParams()
@@ -429,9 +429,9 @@ async def metrics(state: State) -> Response:
 
 
 @router.post(
-    "/api/sessions/{session_id}/recordings",
+    "/api/sessions/{session_id}/movies",
     status_code=202,
-    summary="Record a live session to an MP4 (a job; DELETE /api/jobs/{id} ends it)",
+    summary="Film a live session to an MP4 (a job; DELETE /api/jobs/{id} ends it)",
 )
 async def record_session(
     session_id: str,
@@ -448,7 +448,7 @@ async def record_session(
     """Each frame the simulation sends from now on, drawn with the session's render
     parameters of that moment (what the dashboard shows) and this camera; the movie ends after
     `max_frames` frames or when `DELETE /api/jobs/{id}` finishes it (the movie is kept)."""
-    _check_size(state, width, height)
+    check_size(state, width, height)
     live = state.sessions.get(session_id)
     if live is None:
         raise HTTPException(404, f"no session named {session_id!r}")

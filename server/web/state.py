@@ -20,6 +20,7 @@ from server.metrics import Metrics
 from server.pipeline.encoder import ImageEncoder
 from server.pipeline.gpu import GpuQueue
 from server.pipeline.jobs import JobManager
+from server.pipeline.recordings import RecordingStore
 from server.session.services import Services
 from server.session.session import Session
 from server.session.steering_log import SteeringLog
@@ -102,6 +103,8 @@ class AppState:
     """What every session shares (the GPU queue as its render backend, encoders, log)."""
     sessions: SessionRegistry
     jobs: JobManager
+    recordings: RecordingStore
+    """Recordings of live sessions (frames, topology and steering log of a span)."""
     upload_dir: Path
     readers: asyncio.Semaphore
     """Untrusted files read at once (each read is a child process)."""

@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from tests.browser.simulation import OpenMMSimulation
-from tests.conftest import LiveServer
+from tests.conftest import LiveServer, make_settings, start_server
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -58,6 +58,16 @@ def chromium() -> Iterator[Any]:
         )
         yield browser
         browser.close()
+
+
+@pytest.fixture
+def live_server(tmp_path: Path) -> Iterator[LiveServer]:
+    """A server without the frame-time budget: the budget sizes images by how fast this
+    machine renders, and these tests check what the page shows at its own view size (the
+    budget has its own tests, in tests/server/session/test_scheduler.py)."""
+    server = start_server(make_settings(tmp_path, frame_budget_ms=0.0))
+    yield server
+    server.stop()
 
 
 @pytest.fixture

@@ -530,7 +530,6 @@ def test_plots_receive_points_and_export_csv(
         "temperature_K",
         "target_temperature_K",
         "potential_kJmol",
-        "kinetic_kJmol",
         "render_fps",
         "shown_fps",
         "latency_ms",
@@ -539,7 +538,7 @@ def test_plots_receive_points_and_export_csv(
         expect(page.locator("#plot-temperature .plot-last")).to_have_text(re.compile(r"^[\d.]+ K$"))
         temperatures = [float(r[1]) for r in rows[1:] if r[1]]
         assert len(temperatures) >= 3 and all(t > 0 for t in temperatures)
-    latencies = [float(r[7]) for r in rows[1:] if r[7]]
+    latencies = [float(r[6]) for r in rows[1:] if r[6]]
     assert latencies and all(v >= 0 for v in latencies)
 
 

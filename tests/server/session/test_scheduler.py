@@ -100,6 +100,7 @@ def test_the_frame_budget_shrinks_images_on_a_slow_device_and_refines_them_when_
         frame_budget_ms=80.0,
         refine_budget_ms=240.0,
         refine_after_s=0.3,
+        final_after_s=1.5,
     )
     s = RenderScheduler(settings)
     a = viewer("a", p.Camera(distance=30.0), (800, 600))
@@ -119,11 +120,17 @@ def test_the_frame_budget_shrinks_images_on_a_slow_device_and_refines_them_when_
     assert refine.refine
     rw, rh = s.image_size(refine, 1.0)
     assert 115_000 < rw * rh <= 120_000  # the refine budget: three times the pixels
-    assert s.note_render(refine, 2, (rw, rh), 240.0, now=10.8) is False
+    assert s.note_render(refine, 2, (rw, rh), 240.0, now=10.8) is True  # still not full size
     s.rendered(refine, 2)
-    assert s.plan([a], 11.5, 2, None).groups == []  # refined once, then quiet
+    plan = s.plan([a], 11.5, 2, None)  # the final level waits for final_after_s
+    assert plan.groups == [] and plan.come_back_in is not None
+    ((final, _),) = s.plan([a], 12.4, 2, None).groups
+    assert final.refine == 2 and s.image_size(final, 1.0) == (800, 600)  # whatever it costs
+    assert s.note_render(final, 2, (800, 600), 960.0, now=13.4) is False
+    s.rendered(final, 2)
+    assert s.plan([a], 20.0, 2, None).groups == []  # at full size, then quiet
     # a new frame renders within the budget again
-    ((key, _),) = s.plan([a], 11.6, 3, None).groups
+    ((key, _),) = s.plan([a], 20.1, 3, None).groups
     assert not key.refine and s.image_size(key, 1.0)[0] < 800
 
 

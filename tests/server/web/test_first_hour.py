@@ -68,7 +68,7 @@ def test_a_recording_of_the_live_session_is_a_movie_of_its_frames(live_server: L
     watcher.expect(p.Image, 60)
     with httpx.Client(base_url=live_server.url, timeout=60) as c:
         r = c.post(
-            "/api/sessions/film/recordings",
+            "/api/sessions/film/movies",
             headers=AUTH,
             data={"width": "64", "height": "48", "max_frames": "100"},
         )
@@ -96,7 +96,7 @@ def test_a_recording_of_the_live_session_is_a_movie_of_its_frames(live_server: L
         with av.open(Path(_write(movie.content))) as container:
             frames = sum(1 for _ in container.decode(video=0))
         assert frames == info["progress"]["done"] >= 5
-        r = c.post("/api/sessions/nobody/recordings", headers=AUTH, data={})
+        r = c.post("/api/sessions/nobody/movies", headers=AUTH, data={})
         assert r.status_code == 404
     sim.close()
     watcher.close()

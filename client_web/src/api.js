@@ -1,0 +1,79 @@
+// The REST API from the dashboard: every call carries the page's token, and a refusal becomes an
+// Error naming the server's reason (its `detail`).
+
+/** fetch `path` with the token; resolves to the Response, throws with the server's reason. */
+export async function apiFetch(path, { token, method = "GET", form = null, json = undefined, fetchImpl = fetch } = {}) {
+  const headers = token ? { Authorization: `Bearer ${token}` } : {};
+  let body = form ?? undefined;
+  if (json !== undefined) {
+    headers["Content-Type"] = "application/json";
+    body = JSON.stringify(json);
+  }
+  const response = await fetchImpl(path, { method, body, headers });
+  if (!response.ok) {
+    let detail = response.statusText;
+    try {
+      const body = await response.json();
+      detail = typeof body.detail === "string" ? body.detail : JSON.stringify(body.detail ?? body);
+    } catch {
+      /* not JSON: keep the status text */
+    }
+    const err = new Error(`HTTP ${response.status}: ${detail}`);
+    err.status = response.status;
+    throw err;
+  }
+  return response;
+}
+
+/** A FormData of plain values (objects as JSON), skipping null and undefined. */
+export function formOf(fields) {
+  const form = new FormData();
+  for (const [k, v] of Object.entries(fields)) {
+    if (v === null || v === undefined) continue;
+    if (Array.isArray(v) && v.length && v[0] instanceof Blob) for (const b of v) form.append(k, b, b.name);
+    else if (v instanceof Blob) form.append(k, v, v.name);
+    else form.append(k, typeof v === "object" ? JSON.stringify(v) : String(v));
+  }
+  return form;
+}
+
+/** Open files as a replay session: the first is the structure, the rest trajectories. */
+export async function openReplay({ token, files, fps = 30, fetchImpl = fetch }) {
+  const [topology, ...trajectory] = files;
+  const form = formOf({ topology, trajectory, fps });
+  const response = await apiFetch("/api/replays", { token, method: "POST", form, fetchImpl });
+  return response.json();
+}
+
+/** Start recording a session's frames to an MP4 with this camera and size; resolves to the job. */
+export async function startRecording({ token, session, camera, width, height, fps = 30, fetchImpl = fetch }) {
+  const form = formOf({ camera, width: Math.round(width), height: Math.round(height), fps });
+  const path = `/api/sessions/${encodeURIComponent(session)}/movies`;
+  const response = await apiFetch(path, { token, method: "POST", form, fetchImpl });
+  return response.json();
+}
+
+/** End a recording (the movie is kept), wait for it to be written, resolve to its Blob. */
+export async function finishRecording({ token, job, fetchImpl = fetch, sleep = (ms) => new Promise((r) => setTimeout(r, ms)) }) {
+  const path = `/api/jobs/${encodeURIComponent(job)}`;
+  await apiFetch(path, { token, method: "DELETE", fetchImpl });
+  for (;;) {
+    const info = await (await apiFetch(path, { token, fetchImpl })).json();
+    if (info.state === "done") break;
+    if (!["queued", "running"].includes(info.state)) throw new Error(`the recording ${info.state}: ${info.error ?? ""}`);
+    await sleep(200);
+  }
+  return (await apiFetch(`${path}/result`, { token, fetchImpl })).blob();
+}
+
+/** Wait for a job to finish and resolve to its output as a Blob (throws with its failure). */
+export async function jobResult({ token, job, fetchImpl = fetch, sleep = (ms) => new Promise((r) => setTimeout(r, ms)) }) {
+  const path = `/api/jobs/${encodeURIComponent(job)}`;
+  for (;;) {
+    const info = await (await apiFetch(path, { token, fetchImpl })).json();
+    if (info.state === "done") break;
+    if (!["queued", "running"].includes(info.state)) throw new Error(`the job ${info.state}: ${info.error ?? ""}`);
+    await sleep(300);
+  }
+  return (await apiFetch(`${path}/result`, { token, fetchImpl })).blob();
+}

@@ -1,0 +1,112 @@
+// The trajectory timeline of a replay session: frame counter, scrub bar, play/pause, speed and
+// loop. It shows only when the session's engine is a replay (`engine.kind`), and sends the
+// replay controls the protocol has (seek, speed, loop, pause, resume).
+
+import { $, setText, throttle } from "./dom.js";
+
+const SEEK_MS = 120;
+
+/** Render-change marks passed when the replay moved from frame `from` to `to` (playing forward). */
+export function crossedRenderMarks(marks, from, to) {
+  if (from === null || to <= from || to - from > 50) return []; // a seek, not playback
+  return marks.filter((m) => m.kind === "render" && m.changes && m.frame > from && m.frame <= to);
+}
+
+export class Timeline {
+  constructor({ onControl, onApplyRender = () => {} }) {
+    this.onControl = onControl;
+    this.onApplyRender = onApplyRender;
+    this.marks = [];
+    this.lastFrame = null;
+    this.markBox = $("tl-marks");
+    this.apply = $("tl-apply");
+    this.root = $("timeline");
+    this.scrub = $("tl-scrub");
+    this.play = $("tl-play");
+    this.frame = $("tl-frame");
+    this.speed = $("tl-speed");
+    this.loop = $("tl-loop");
+    this.nFrames = 0;
+    this.paused = false;
+    this.scrubbing = false;
+    this.seekSoon = throttle(() => this.seek(), SEEK_MS);
+    this.scrub.addEventListener("input", () => {
+      this.scrubbing = true;
+      this.showFrame(Number(this.scrub.value));
+      this.seekSoon();
+    });
+    this.scrub.addEventListener("change", () => {
+      this.seekSoon.cancel();
+      this.seek();
+      this.scrubbing = false;
+    });
+    this.play.addEventListener("click", () => this.onControl(this.paused ? "resume" : "pause", {}, "play"));
+    this.speed.addEventListener("change", () => this.onControl("speed", { speed: Number(this.speed.value) }, "speed"));
+    this.loop.addEventListener("change", () => this.onControl("loop", { loop: this.loop.checked }, "loop"));
+  }
+
+  seek() {
+    this.onControl("seek", { frame: Number(this.scrub.value) }, `seek ${this.scrub.value}`);
+  }
+
+  /** Show the timeline for a replay engine, hide it for anything else. */
+  setEngine(engine) {
+    const replay = engine?.kind === "replay" && engine.n_frames > 0;
+    this.root.hidden = !replay;
+    document.body.classList.toggle("has-timeline", replay);
+    if (!replay) return;
+    this.nFrames = engine.n_frames;
+    this.scrub.max = String(Math.max(0, this.nFrames - 1));
+  }
+
+  /** Steering marks of a recorded run: one button per action at its frame; a click seeks there. */
+  setMarks(marks) {
+    this.marks = marks ?? [];
+    const last = Math.max(1, this.nFrames - 1);
+    this.markBox.replaceChildren(
+      ...this.marks.map((m) => {
+        const b = document.createElement("button");
+        b.type = "button";
+        b.className = `tl-mark tl-mark-${m.kind}`;
+        b.style.left = `${(100 * Math.min(m.frame, last)) / last}%`;
+        b.dataset.frame = String(m.frame);
+        b.title = `step ${m.step}: ${m.text}`;
+        b.setAttribute("aria-label", `frame ${m.frame + 1}, step ${m.step}: ${m.text}`);
+        b.addEventListener("click", () => this.onControl("seek", { frame: m.frame }, `seek to ${m.text}`));
+        return b;
+      }),
+    );
+    this.apply.parentElement.hidden = !this.marks.some((m) => m.kind === "render");
+  }
+
+  /** The session's simulation status: a replay's step is its frame index. */
+  update(sim) {
+    const frame = sim.step ?? 0;
+    if (this.apply.checked && sim.state !== "paused") {
+      for (const m of crossedRenderMarks(this.marks, this.lastFrame, frame)) this.onApplyRender(m.changes);
+    }
+    this.lastFrame = frame;
+    this.paused = sim.state === "paused";
+    setText(this.play, this.paused ? "Play" : "Pause");
+    this.play.setAttribute("aria-pressed", String(!this.paused));
+    if (!this.scrubbing) {
+      this.scrub.value = String(sim.step ?? 0);
+      this.showFrame(sim.step ?? 0);
+    }
+  }
+
+  /** An acknowledged replay control: keep speed and loop as the replay has them. */
+  acknowledged(applied) {
+    if (applied?.speed !== undefined) this.speed.value = String(applied.speed);
+    if (applied?.loop !== undefined) this.loop.checked = Boolean(applied.loop);
+  }
+
+  showFrame(index) {
+    setText(this.frame, `frame ${index + 1} / ${this.nFrames}`);
+  }
+
+  setDisabled(disabled) {
+    for (const node of [this.scrub, this.play, this.speed, this.loop, this.apply]) node.disabled = disabled;
+    for (const node of this.markBox.children) node.disabled = disabled;
+  }
+}

@@ -1,0 +1,430 @@
+"""Recordings of live sessions: the frames as an XTC trajectory, the topology as a PDB beside it,
+and the steering log of the span, in one folder per recording.
+
+A recording takes every frame the session receives (or every `stride`-th) from the event loop
+into a queue; a writer thread encodes them with MDAnalysis's XTC writer in chunks and appends
+each chunk to `frames.xtc` with one write, flushed and fsync'd. XTC frames are self-contained,
+so the file is a valid trajectory after every chunk: a crash or a kill loses at most the frames
+of the chunk being gathered (`FLUSH_S`), never the file. Positions keep XTC's precision
+(0.001 nm, so within 0.005 Å of what the simulation sent).
+
+On disk, `<state_dir>/recordings/<id>/`: `recording.json` (the manifest, replaced atomically),
+`topology.pdb`, `frames.xtc`, and, once it ends, `steering.jsonl` (the session's log entries
+between its start and stop marks) and `marks.json` (those entries as timeline marks,
+`server.pipeline.marks`). A recording the server did not end (a crash) is found `interrupted`
+at the next start and finished from what is on disk.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import queue
+import re
+import secrets
+import shutil
+import tempfile
+import threading
+import time
+import warnings
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+import protocol as p
+from server.pipeline.marks import steering_marks
+
+log = logging.getLogger(__name__)
+
+RECORDING_ID = re.compile(r"^r[A-Za-z0-9_-]{22}$")
+FLUSH_S = 0.5
+"""Longest time a received frame waits before it is on disk."""
+FLUSH_FRAMES = 64
+FILES = ("recording.json", "topology.pdb", "frames.xtc", "steering.jsonl", "marks.json")
+"""What a recording's folder may hold (and what may be downloaded of it)."""
+
+
+@dataclass
+class Recording:
+    """One recording: its manifest fields, and while it runs, its writer."""
+
+    id: str
+    session: str
+    directory: Path
+    n_atoms: int
+    stride: int
+    max_bytes: int
+    render_params: dict[str, Any]
+    camera: dict[str, Any] | None
+    first_log_id: int
+    started: float = field(default_factory=time.time)
+    state: str = "recording"
+    """recording, finished, capped (stopped at its size limit), interrupted (by a crash)."""
+    stopped: float | None = None
+    last_log_id: int | None = None
+    frames: int = 0
+    bytes: int = 0
+    steps: list[int] = field(default_factory=list)
+    error: str | None = None
+    received: int = 0
+    detach: Callable[[], tuple[int, Future[None]]] | None = None
+    """Unhooks the recording from its session's frames (set by whoever hooked it)."""
+    _queue: queue.Queue[tuple[int, float, Any, Any] | None] = field(default_factory=queue.Queue)
+    _thread: threading.Thread | None = None
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def running(self) -> bool:
+        return self.state == "recording"
+
+    def manifest(self) -> dict[str, Any]:
+        return {
+            "scalesteer_recording": 1,
+            "id": self.id,
+            "session": self.session,
+            "n_atoms": self.n_atoms,
+            "stride": self.stride,
+            "max_bytes": self.max_bytes,
+            "render_params": self.render_params,
+            "camera": self.camera,
+            "first_log_id": self.first_log_id,
+            "last_log_id": self.last_log_id,
+            "started": self.started,
+            "stopped": self.stopped,
+            "state": self.state,
+            "frames": self.frames,
+            "bytes": self.bytes,
+            "error": self.error,
+        }
+
+    def describe(self) -> dict[str, Any]:
+        base = f"/api/recordings/{self.id}"
+        out = {k: v for k, v in self.manifest().items() if k != "scalesteer_recording"}
+        out["files"] = {n: f"{base}/files/{n}" for n in FILES if (self.directory / n).exists()}
+        out["download"] = f"{base}/download"
+        return out
+
+    def steering(self) -> list[dict[str, Any]]:
+        """The steering log entries of the recorded span."""
+        path = self.directory / "steering.jsonl"
+        if not path.exists():
+            return []
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+    def frame_steps(self) -> list[int]:
+        """The step of every recorded frame (read from the trajectory once after a restart)."""
+        if not self.steps and self.frames:
+            self.steps = xtc_steps(self.directory / "frames.xtc", self.n_atoms)
+        return self.steps
+
+    def marks(self) -> list[dict[str, Any]]:
+        path = self.directory / "marks.json"
+        if not path.exists():
+            return []
+        marks: list[dict[str, Any]] = json.loads(path.read_text())
+        return marks
+
+    @classmethod
+    def load(cls, directory: Path) -> Recording:
+        raw = json.loads((directory / "recording.json").read_text())
+        return cls(
+            id=raw["id"],
+            session=raw["session"],
+            directory=directory,
+            n_atoms=int(raw["n_atoms"]),
+            stride=int(raw["stride"]),
+            max_bytes=int(raw["max_bytes"]),
+            render_params=raw["render_params"],
+            camera=raw.get("camera"),
+            first_log_id=int(raw["first_log_id"]),
+            started=float(raw["started"]),
+            state=raw["state"],
+            stopped=raw.get("stopped"),
+            last_log_id=raw.get("last_log_id"),
+            frames=int(raw["frames"]),
+            bytes=int(raw["bytes"]),
+            error=raw.get("error"),
+        )
+
+
+def write_topology_pdb(path: Path, topology: p.Topology, positions: npt.NDArray[Any]) -> None:
+    """The session's topology as a PDB (names, residues, chains, elements, bonds as CONECT),
+    with the first recorded frame's positions."""
+    import MDAnalysis as mda
+
+    n = topology.n_atoms
+    resids = np.asarray(topology.residue_ids.to_numpy(), dtype=np.int64)
+    keys = list(zip(topology.chain_ids, resids.tolist(), topology.residue_names, strict=True))
+    starts = [0] + [i for i in range(1, n) if keys[i] != keys[i - 1]]
+    atom_res = np.zeros(n, dtype=np.int64)
+    for r, s in enumerate(starts):
+        atom_res[s:] = r
+    chains = sorted(set(topology.chain_ids)) or [""]
+    res_chain = [chains.index(keys[s][0]) for s in starts]
+    u = mda.Universe.empty(
+        n,
+        n_residues=len(starts),
+        n_segments=len(chains),
+        atom_resindex=atom_res,
+        residue_segindex=res_chain,
+        trajectory=True,
+    )
+    u.add_TopologyAttr("names", topology.names)
+    u.add_TopologyAttr("elements", [e.capitalize() for e in topology.elements])
+    u.add_TopologyAttr("types", topology.elements)
+    u.add_TopologyAttr("resnames", [keys[s][2] for s in starts])
+    u.add_TopologyAttr("resids", [keys[s][1] for s in starts])
+    u.add_TopologyAttr("chainIDs", topology.chain_ids)
+    u.add_TopologyAttr("segids", [c or "SYS" for c in chains])
+    if topology.bfactors is not None:
+        u.add_TopologyAttr("tempfactors", topology.bfactors.to_numpy())
+    if topology.bonds.count:
+        u.add_TopologyAttr("bonds", [tuple(b) for b in topology.bonds.to_numpy().tolist()])
+    u.atoms.positions = positions
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # missing optional PDB fields (occupancy, altLocs...)
+        u.atoms.write(str(path), bonds="conect" if topology.bonds.count else None)
+
+
+class _XtcAppender:
+    """Appends frames to one XTC file in whole chunks (see the module's docstring)."""
+
+    def __init__(self, path: Path, n_atoms: int) -> None:
+        import MDAnalysis as mda
+
+        self.path = path
+        self.n_atoms = n_atoms
+        self.universe = mda.Universe.empty(n_atoms, trajectory=True)
+        self.chunk = Path(tempfile.mkstemp(suffix=".xtc", dir=path.parent)[1])
+
+    def append(self, frames: list[tuple[int, float, Any, Any]]) -> int:
+        """Write `frames` (step, time_ps, positions A, box A or None); the bytes appended."""
+        from MDAnalysis.coordinates.XTC import XTCWriter
+        from MDAnalysis.lib.mdamath import triclinic_box
+
+        u = self.universe
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with XTCWriter(str(self.chunk), self.n_atoms) as writer:
+                for step, time_ps, positions, box in frames:
+                    u.atoms.positions = positions
+                    ts = u.trajectory.ts
+                    ts.time = time_ps
+                    ts.data["step"] = step
+                    ts.dimensions = (
+                        None if box is None else triclinic_box(*np.asarray(box, dtype=np.float64))
+                    )
+                    writer.write(u.atoms)
+        data = self.chunk.read_bytes()
+        with open(self.path, "ab") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        return len(data)
+
+    def close(self) -> None:
+        self.chunk.unlink(missing_ok=True)
+
+
+class RecordingStore:
+    """The recordings of one server: start, feed, stop, list, restore after a crash."""
+
+    def __init__(self, directory: Path, read_log: Callable[[str], list[dict[str, Any]]]) -> None:
+        self.directory = directory
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.read_log = read_log
+        self.recordings: dict[str, Recording] = {}
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def restore(self) -> list[Recording]:
+        """Load every recording on disk; those a crash left running are finished as
+        `interrupted` from the frames that reached the disk."""
+        interrupted = []
+        for folder in sorted(self.directory.iterdir()):
+            if not RECORDING_ID.match(folder.name) or not (folder / "recording.json").is_file():
+                continue
+            try:
+                rec = Recording.load(folder)
+            except (OSError, ValueError, KeyError) as exc:
+                log.warning("recording %s is unreadable (%s); left alone", folder.name, exc)
+                continue
+            self.recordings[rec.id] = rec
+            if rec.running:
+                rec.steps = xtc_steps(folder / "frames.xtc", rec.n_atoms)
+                rec.frames = len(rec.steps)
+                rec.bytes = _size(folder / "frames.xtc")
+                self._end(rec, "interrupted", None)
+                interrupted.append(rec)
+        return interrupted
+
+    def start(
+        self,
+        session: str,
+        topology: p.Topology,
+        render_params: p.RenderParams,
+        camera: p.Camera | None,
+        first_log_id: int,
+        stride: int,
+        max_bytes: int,
+    ) -> Recording:
+        rec_id = f"r{secrets.token_urlsafe(16)}"
+        folder = self.directory / rec_id
+        folder.mkdir(parents=True)
+        rec = Recording(
+            id=rec_id,
+            session=session,
+            directory=folder,
+            n_atoms=topology.n_atoms,
+            stride=stride,
+            max_bytes=max_bytes,
+            render_params=render_params.model_dump(mode="json"),
+            camera=camera.model_dump(mode="json") if camera is not None else None,
+            first_log_id=first_log_id,
+        )
+        self._save(rec)
+        rec._thread = threading.Thread(
+            target=self._write_loop, args=(rec, topology), name=f"recording-{rec_id}", daemon=True
+        )
+        rec._thread.start()
+        self.recordings[rec_id] = rec
+        return rec
+
+    def add(
+        self,
+        rec: Recording,
+        step: int,
+        time_ps: float,
+        positions: npt.NDArray[Any],
+        box: npt.NDArray[Any] | None,
+    ) -> None:
+        """Take one frame of the session (called on the event loop: only queues it)."""
+        if not rec.running or positions.shape[0] != rec.n_atoms:
+            return
+        rec.received += 1
+        if (rec.received - 1) % rec.stride == 0:
+            rec._queue.put((step, time_ps, positions, box))
+
+    def stop(self, rec: Recording, last_log_id: int | None) -> None:
+        """End a recording: the queued frames are written, then the steering span and its
+        marks (blocking: call it from a worker thread)."""
+        if rec._thread is not None:
+            rec._queue.put(None)
+            rec._thread.join()
+        with rec._lock:
+            if rec.running:
+                self._end(rec, "finished", last_log_id)
+
+    def delete(self, rec: Recording) -> None:
+        if rec.running:
+            self.stop(rec, None)
+        self.recordings.pop(rec.id, None)
+        shutil.rmtree(rec.directory, ignore_errors=True)
+
+    def close(self) -> None:
+        """The server stops: every running recording ends as finished."""
+        for rec in list(self.recordings.values()):
+            if rec.running:
+                self.stop(rec, None)
+
+    def get(self, rec_id: str) -> Recording | None:
+        return self.recordings.get(rec_id) if RECORDING_ID.match(rec_id) else None
+
+    # ------------------------------------------------------------------ internals
+
+    def _write_loop(self, rec: Recording, topology: p.Topology) -> None:
+        appender: _XtcAppender | None = None
+        pending: list[tuple[int, float, Any, Any]] = []
+        last_flush = time.monotonic()
+        try:
+            while True:
+                timeout = max(0.0, FLUSH_S - (time.monotonic() - last_flush))
+                ending = False
+                try:
+                    item = rec._queue.get(timeout=timeout)
+                    ending = item is None
+                except queue.Empty:
+                    item = None
+                if item is not None:
+                    if appender is None:
+                        write_topology_pdb(rec.directory / "topology.pdb", topology, item[2])
+                        appender = _XtcAppender(rec.directory / "frames.xtc", rec.n_atoms)
+                    pending.append(item)
+                due = time.monotonic() - last_flush >= FLUSH_S or len(pending) >= FLUSH_FRAMES
+                if pending and (ending or due):
+                    assert appender is not None
+                    written = appender.append(pending)
+                    with rec._lock:
+                        rec.frames += len(pending)
+                        rec.bytes += written
+                        rec.steps.extend(f[0] for f in pending)
+                        pending = []
+                        if rec.bytes >= rec.max_bytes and rec.running:
+                            self._end(rec, "capped", None)
+                        else:
+                            self._save(rec)
+                if due or ending:
+                    last_flush = time.monotonic()
+                if ending or not rec.running:
+                    return
+        except Exception as exc:  # a full disk, say: the recording ends with the reason
+            log.exception("recording %s failed", rec.id)
+            with rec._lock:
+                rec.error = f"{type(exc).__name__}: {exc}"
+                if rec.running:
+                    self._end(rec, "finished", None)
+        finally:
+            if appender is not None:
+                appender.close()
+
+    def _end(self, rec: Recording, state: str, last_log_id: int | None) -> None:
+        """Write the steering span and its marks, then the final manifest."""
+        entries = [
+            e
+            for e in self.read_log(rec.session)
+            if isinstance(e.get("id"), int)
+            and e["id"] > rec.first_log_id
+            and (last_log_id is None or e["id"] < last_log_id)
+        ]
+        if last_log_id is None and entries:
+            last_log_id = max(e["id"] for e in entries) + 1
+        with open(rec.directory / "steering.jsonl", "w", encoding="utf-8") as fh:
+            for e in entries:
+                fh.write(json.dumps(e, separators=(",", ":")) + "\n")
+        marks = steering_marks(entries, rec.steps)
+        (rec.directory / "marks.json").write_text(json.dumps(marks))
+        rec.state = state
+        rec.stopped = time.time()
+        rec.last_log_id = last_log_id
+        self._save(rec)
+
+    def _save(self, rec: Recording) -> None:
+        tmp = rec.directory / "recording.json.tmp"
+        tmp.write_text(json.dumps(rec.manifest(), indent=1))
+        os.replace(tmp, rec.directory / "recording.json")
+
+
+def _size(path: Path) -> int:
+    with contextlib.suppress(OSError):
+        return path.stat().st_size
+    return 0
+
+
+def xtc_steps(path: Path, n_atoms: int) -> list[int]:
+    """The steps of the frames in an XTC file (empty when there is none)."""
+    if not path.exists() or path.stat().st_size == 0:
+        return []
+    import MDAnalysis as mda
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        u = mda.Universe.empty(n_atoms, trajectory=True)
+        u.load_new(str(path))
+        return [int(ts.data.get("step", ts.frame)) for ts in u.trajectory]
