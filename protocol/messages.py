@@ -15,7 +15,7 @@ from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
 from protocol.limits import Limits
 
-PROTOCOL_VERSION = "1.2"
+PROTOCOL_VERSION = "1.3"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -330,7 +330,7 @@ class Lighting(Model):
     depth_cue: Unit = 0.0
 
 
-ColorBy = Literal["element", "residue", "chain", "uniform", "bfactor", "charge"]
+ColorBy = Literal["element", "residue", "chain", "uniform", "bfactor", "charge", "motion"]
 TFPreset = Literal["cloud", "shells", "iso-like"]
 
 
@@ -361,6 +361,20 @@ class RenderParams(Model):
     warp_strength: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 1.0
     density_weights: Literal["uniform", "electrons"] = "uniform"
     level_scale: Literal["mean", "absolute"] = "mean"
+    time_smoothing: Literal["off", "classical", "warped"] = "off"
+    """Temporal scale: each atom's path smoothed over the last `time_window` frames with a
+    Gaussian of `tau_frames`, in frames (`classical`) or in the arclength of the atom's path
+    (`warped`, eq. 3.3), which keeps sudden moves sharp."""
+    tau_frames: Annotated[float, Field(ge=0.1, le=32, allow_inf_nan=False)] = 3.0
+    time_window: Annotated[int, Field(ge=1, le=64)] = 16
+    time_warp_per_A: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 1.0
+    """Warp strength: how many frames of warped time one angstrom of motion counts as."""
+    time_kernel: Literal["auto", "causal", "centred"] = "auto"
+    """`causal` uses past frames only (the newest frame shown); `centred` frames on both sides
+    (shown `(time_window - 1) // 2` frames late); `auto`: centred for replays, else causal."""
+    rigid_fit: bool = False
+    """Remove the molecule's rigid-body motion before smoothing (a tumbling molecule is not
+    smeared): each frame is fitted onto the window's first on its heavy atoms."""
 
 
 def _partial(model: type[Model], name: str) -> type[Model]:

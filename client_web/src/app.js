@@ -14,6 +14,7 @@ import { RENDER_DEFAULTS, SIGMA_SLIDER, clamp, diffRender, mergeRender } from ".
 import { Plots } from "./plots.js";
 import { applyRoster } from "./roster.js";
 import { RenderPanel } from "./renderpanel.js";
+import { TimePanel } from "./timepanel.js";
 import { requestScreenshot, screenshotName } from "./screenshot.js";
 import { Shortcuts } from "./shortcuts.js";
 import { Recordings } from "./recordings.js";
@@ -79,6 +80,10 @@ class Dashboard {
     this.acks = new AckTracker();
     this.plots = new Plots({ windowS: Number($("plot-window").value) });
     this.renderPanel = new RenderPanel({ onChange: (patch, final) => this.steerRender(patch, final) });
+    this.timePanel = new TimePanel({
+      onChange: (patch, final) => this.steerRender(patch, final),
+      replay: () => this.engine?.kind === "replay",
+    });
     this.tfEditor = new TransferEditor({
       svgRoot: $("tf-editor"),
       colorInput: $("tf-color"),
@@ -218,6 +223,7 @@ class Dashboard {
       this.render = mergeRender(RENDER_DEFAULTS, m.render_params);
       if (this.hashRender) this.applyLinkRender();
       this.renderPanel.update(this.render);
+      this.timePanel.update(this.render);
       this.showTransferFunction();
       this.writeHashSoon();
     }
@@ -366,6 +372,7 @@ class Dashboard {
     this.render = mergeRender(this.render, patch);
     Object.assign(this.pendingRender, patch);
     if (patch.transfer_function !== undefined || patch.tf_preset !== undefined) this.showTransferFunction();
+    if (patch.color_by !== undefined) this.timePanel.update(this.render);
     this.writeHashSoon();
     if (final) {
       this.flushRenderSoon.cancel();
@@ -842,6 +849,7 @@ class Dashboard {
         const patch = diffRender(this.render, mergeRender(RENDER_DEFAULTS, view.render));
         if (Object.keys(patch).length) this.steerRender(patch, true);
         this.renderPanel.update(this.render);
+        this.timePanel.update(this.render);
       } else {
         this.notices.notify({
           level: "info",

@@ -30,17 +30,25 @@ export const RENDER_DEFAULTS = Object.freeze({
   warp_strength: 1.0,
   density_weights: "uniform",
   level_scale: "mean",
+  time_smoothing: "off",
+  tau_frames: 3.0,
+  time_window: 16,
+  time_warp_per_A: 1.0,
+  time_kernel: "auto",
+  rigid_fit: false,
 });
 
 export const ENUMS = Object.freeze({
   mode: ["iso", "volume"],
   radius_mode: ["uniform", "vdw"],
   tf_preset: ["cloud", "shells", "iso-like"],
-  color_by: ["element", "residue", "chain", "uniform", "bfactor", "charge"],
+  color_by: ["element", "residue", "chain", "uniform", "bfactor", "charge", "motion"],
   projection: ["perspective", "orthographic"],
   scale_space: ["classical", "warped"],
   density_weights: ["uniform", "electrons"],
   level_scale: ["mean", "absolute"],
+  time_smoothing: ["off", "classical", "warped"],
+  time_kernel: ["auto", "causal", "centred"],
 });
 
 /** Numeric ranges [min, max] (inclusive where the protocol allows; open ends nudged in). */
@@ -52,6 +60,9 @@ export const RANGES = Object.freeze({
   quality: [0.1, 2],
   jpeg_quality: [10, 100],
   warp_strength: [0, 1],
+  tau_frames: [0.1, 32],
+  time_window: [1, 64],
+  time_warp_per_A: [0, 100],
   "lighting.ambient": [0, 1],
   "lighting.diffuse": [0, 1],
   "lighting.specular": [0, 1],
@@ -76,7 +87,7 @@ export function clampParam(key, value) {
   if (!Number.isFinite(v)) return null;
   const range = RANGES[key];
   const out = range ? clamp(v, range[0], range[1]) : v;
-  return key === "jpeg_quality" || key === "frame_interval" ? Math.round(out) : out;
+  return ["jpeg_quality", "frame_interval", "time_window"].includes(key) ? Math.round(out) : out;
 }
 
 /** Slider position t in [0, 1] -> sigma (log scale) and back. */

@@ -34,6 +34,12 @@ const FIELDS = [
   ["warp", "warp_strength", "num"],
   ["weights", "density_weights", "enum"],
   ["levels", "level_scale", "enum"],
+  ["ts", "time_smoothing", "enum"],
+  ["tau", "tau_frames", "num"],
+  ["tw", "time_window", "num"],
+  ["twarp", "time_warp_per_A", "num"],
+  ["tk", "time_kernel", "enum"],
+  ["fit", "rigid_fit", "bool"],
 ];
 
 /** A number in at most `digits` significant digits, without trailing zeros. */

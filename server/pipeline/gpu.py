@@ -40,6 +40,14 @@ class Snapshot:
     positions_id: int = 1
     step: int = 0
     version: int = 0
+    history: tuple[tuple[int, npt.NDArray[np.float32]], ...] = ()
+    """Recent frames (positions_id, positions), oldest first, for temporal smoothing."""
+    history_epoch: int = 0
+    """Changes when the history starts again (a replay seeked)."""
+    live: bool = True
+    """A live simulation (the causal kernel by default), not a replay."""
+    lag: int | None = None
+    """Frames between the shown frame and the newest of `history` (None: the kernel's own)."""
 
 
 @dataclass(frozen=True)
@@ -120,6 +128,10 @@ class GpuQueue:
             slot.renderer.set_positions(snap.positions, check_finite=False)
             slot.positions_id = snap.positions_id
         renderer = slot.renderer
+        if snap.history:
+            renderer.set_history(
+                snap.history, snap.history_epoch, request.params, live=snap.live, lag=snap.lag
+            )
         renderer.render(request.params, request.camera, request.width, request.height)
         return renderer
 

@@ -25,6 +25,7 @@ import secrets
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -186,6 +187,41 @@ class Job:
             "restarts": self.restarts,
             "result": f"/api/jobs/{self.id}/result" if self.state is JobState.DONE else None,
         }
+
+
+class _FrameCache:
+    """Trajectory frames read once each (a temporal filter needs its neighbours too)."""
+
+    def __init__(self, structure: IsolatedStructure) -> None:
+        self.structure = structure
+        self.frames: dict[int, Any] = {}
+
+    async def get(self, index: int) -> Any:
+        if index not in self.frames:
+            try:
+                self.frames[index] = await asyncio.to_thread(self.structure.positions, index)
+            except StructureError as exc:
+                raise JobError(str(exc)) from None
+        return self.frames[index]
+
+    def forget_before(self, first: int) -> None:
+        for i in [i for i in self.frames if i < first]:
+            del self.frames[i]
+
+
+def _time_window(params: p.RenderParams, n_frames: int) -> Callable[[int], tuple[int, int]] | None:
+    """For temporal smoothing: the trajectory frames around output frame `i` its filter
+    sees (the causal kernel: the window before it; otherwise centred on it, as the file holds
+    the future too), or None without smoothing."""
+    from server.render.temporal import wanted
+
+    if not wanted(params):
+        return None
+    w = params.time_window
+    if params.time_kernel == "causal":
+        return lambda i: (max(0, i - w + 1), i)
+    half = (w - 1) // 2
+    return lambda i: (max(0, i - half), min(n_frames - 1, i + half))
 
 
 class LiveSource(Protocol):
@@ -433,19 +469,33 @@ class JobManager:
                     self.encoders, Mp4Writer, final, spec.fps, spec.width, spec.height
                 )
             topology = structure.topology
+            frames = _FrameCache(structure)
+            window = _time_window(spec.params, structure.n_frames)
             for n, index in enumerate(indices):
                 if job.cancel.is_set():
                     outcome = JobState.CANCELLED
                     break
-                try:
-                    positions = await asyncio.to_thread(structure.positions, index)
-                except StructureError as exc:
-                    raise JobError(str(exc)) from None
+                positions = await frames.get(index)
                 if camera is None:
                     from server.render.camera import fit_camera
 
                     camera = fit_camera(positions, spec.width, spec.height)
-                snapshot = Snapshot(topology, positions, positions_id=n + 1, step=index)
+                history: tuple[tuple[int, Any], ...] = ()
+                lag = None
+                if window is not None:
+                    first, last = window(index)
+                    history = tuple([(i + 1, await frames.get(i)) for i in range(first, last + 1)])
+                    lag = last - index
+                    frames.forget_before(first)
+                snapshot = Snapshot(
+                    topology,
+                    positions,
+                    positions_id=n + 1,
+                    step=index,
+                    history=history,
+                    live=False,
+                    lag=lag,
+                )
                 out = await self.gpu.render(
                     RenderRequest(slot, snapshot, spec.params, camera, spec.width, spec.height)
                 )

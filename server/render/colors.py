@@ -178,6 +178,10 @@ def _ramp(values: npt.NDArray[np.float64], stops: Sequence[RGB]) -> npt.NDArray[
 
 _BLUE_WHITE_RED: tuple[RGB, ...] = ((0.23, 0.3, 0.75), (0.95, 0.95, 0.95), (0.7, 0.02, 0.15))
 _RED_WHITE_BLUE: tuple[RGB, ...] = ((0.85, 0.12, 0.12), (0.95, 0.95, 0.95), (0.15, 0.3, 0.9))
+MOTION_RAMP = _BLUE_WHITE_RED
+MOTION_RANGE = (1.0, 3.0)
+"""Warp rates the motion colours span: 1 (at rest, blue) to 3 (fast, red); computed on the
+device each frame (`server.render.temporal`)."""
 
 
 def atom_rgb(
@@ -268,6 +272,9 @@ def legend(topology: Topology, color_by: ColorBy, uniform: RGB = (0.85, 0.85, 0.
     if color_by == "charge" and topology.charges is not None:
         qmax = _charge_range(topology.charges.to_numpy().astype(np.float64))
         return Legend(color_by=color_by, ramp=list(_RED_WHITE_BLUE), low=-qmax, high=qmax, unit="e")
+    if color_by == "motion":
+        low, high = MOTION_RANGE
+        return Legend(color_by=color_by, ramp=list(MOTION_RAMP), low=low, high=high, unit="γ′")
     label = "uniform" if color_by == "uniform" else f"uniform (no {color_by} in this topology)"
     return Legend(color_by=color_by, entries=[LegendEntry(label=label, color=uniform)])
 

@@ -14,7 +14,7 @@ import logging
 import math
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,7 +23,7 @@ import numpy.typing as npt
 import warp
 
 from protocol import Camera, RenderParams, Topology
-from server.render import colors, raycast, transfer, warped
+from server.render import colors, raycast, temporal, transfer, warped
 from server.render import device as devmod
 from server.render.camera import CameraFrame, camera_frame
 from server.render.density import (
@@ -199,6 +199,10 @@ class Renderer:
         self._skeleton: Skeleton | None = None
         self._skel: _SkeletonBuffers | None = None
         self._ref_positions: npt.NDArray[np.float32] | None = None
+        self._temporal: temporal.TemporalState | None = None
+        self._smoothed = False
+        self._raw_source: Any = None
+        self._pos_is_raw = False
         if self._cuda:
             self._staging = wp.zeros(m, dtype=wp.vec3, device="cpu", pinned=True)
         else:
@@ -268,6 +272,8 @@ class Renderer:
         self._skeleton = None
         self._skel = None
         self._ref_positions = None
+        self._temporal = None
+        self._smoothed = False
         if n:
             radii = colors.atom_radii(topology)
             self._r_min = float(radii.min())
@@ -320,12 +326,58 @@ class Renderer:
             else:
                 wp.copy(self._pos, src, count=n)
         self._upload_ms = (time.perf_counter() - t0) * 1e3
+        self._raw_source = positions  # the frame `_pos` holds, until smoothing overwrites it
+        self._pos_is_raw = True
         if self._ref_positions is None:
             # bonds keep their lengths (the warped density's graph tables use these)
             self._ref_positions = np.array(arr[:n], dtype=np.float32)
         self._uploaded = True
         self._have_positions = True
         self._positions_version += 1
+
+    def set_history(
+        self,
+        frames: Sequence[tuple[int, npt.NDArray[np.float32]]],
+        epoch: int,
+        params: RenderParams,
+        *,
+        live: bool = True,
+        lag: int | None = None,
+    ) -> None:
+        """Recent frames (id, positions), oldest first, for temporal smoothing and motion
+        colours; those not seen yet join the ring buffer. A new `epoch` (a seek) starts it
+        again. `live` picks the causal kernel for `time_kernel="auto"` (else centred); `lag`
+        overrides the centred kernel's display lag (a batch job near a trajectory's end)."""
+        if self._topology is None:
+            raise RenderError("set_topology must come before set_history")
+        if not temporal.wanted(params):
+            return
+        if self._temporal is None:
+            heavy = np.asarray([e.upper() not in ("H", "D") for e in self._topology.elements])
+            self._temporal = temporal.TemporalState(self.device, self._n, heavy)
+        raw = self._raw_source if self._pos_is_raw else None
+        try:
+            self._temporal.feed(frames, epoch, params, live, lag, raw, self._pos)
+        except ValueError as exc:
+            raise RenderError(str(exc)) from None
+
+    def _apply_temporal(self, params: RenderParams) -> None:
+        """Smooth the positions over time (or put the raw newest frame back when smoothing
+        was just turned off); a changed frame rebuilds the grid."""
+        state = self._temporal
+        if state is None or not self._n:
+            return
+        wanted = params.time_smoothing != "off" or params.color_by == "motion"
+        if wanted and state.apply(self._pos, params):
+            self._smoothed = True
+            self._pos_is_raw = False
+            self._positions_version += 1
+            return
+        if self._smoothed and params.time_smoothing == "off":
+            state.newest(self._pos)
+            state.shown_key = None
+            self._smoothed = False
+            self._positions_version += 1
 
     # ------------------------------------------------------------------ checks
 
@@ -489,6 +541,10 @@ class Renderer:
 
     def _update_colors(self, p: RenderParams) -> None:
         assert self._topology is not None
+        motion = p.color_by == "motion" and self._temporal is not None
+        if motion and self._temporal is not None and self._temporal.colors(self._colors):
+            self._color_key = ("motion",)
+            return
         key = (p.color_by, tuple(p.uniform_color))
         if key != self._color_key and self._n:
             c = colors.atom_colors(self._topology, p.color_by, p.uniform_color)
@@ -705,6 +761,7 @@ class Renderer:
         d = self._derive(params)
         if params.mode == "volume":
             self._update_tf(params)
+        self._apply_temporal(params)
         if self._n:
             self._update_colors(params)
             self._update_weights(d)
@@ -794,6 +851,7 @@ class Renderer:
         d = self._derive(params)
         if params.mode == "volume":
             self._update_tf(params)
+        self._apply_temporal(params)
         if self._n:
             self._update_colors(params)
             self._update_weights(d)

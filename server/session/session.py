@@ -54,6 +54,12 @@ FrameSink = Callable[[int, float, "npt.NDArray[np.float32]", "npt.NDArray[Any] |
 """(step, time_ps, positions, box) of one frame."""
 
 
+def is_jump(last_step: int, delta: int, step: int) -> bool:
+    """Whether `step` does not continue a run whose steps grew by `delta`: it goes back (a
+    replay seeked or a simulation was reset) or skips ahead by more than 4 usual increments."""
+    return step <= last_step or (delta > 0 and step - last_step > 4 * delta)
+
+
 class StepRate:
     """Simulation steps per second over the frames of the last few seconds."""
 
@@ -106,6 +112,11 @@ class Session:
         """What the simulation has confirmed (a change shows here once acknowledged)."""
         self.camera: p.Camera | None = None
         self.forces = ForceBook()
+        self._history: deque[tuple[int, npt.NDArray[np.float32]]] = deque(maxlen=1)
+        """The last frames (positions_id, positions) for temporal smoothing."""
+        self._history_epoch = 0
+        self._last_step: int | None = None
+        self._step_delta = 0
         self.frame_sinks: list[FrameSink] = []
         """Called with every frame the simulation sends (recordings): they must only queue."""
         self.acks = AckBook()
@@ -276,6 +287,7 @@ class Session:
         rate = self._step_rate.add(now, frame.step)
         self.positions = frame.positions.to_numpy()
         self.positions_id += 1
+        self._remember(frame.step)
         if self.frame_sinks:
             box = None if frame.box is None else frame.box.to_numpy()
             for sink in list(self.frame_sinks):
@@ -310,6 +322,27 @@ class Session:
         elif self._status_flush is None:  # the last frame of a burst is reported too
             self._status_flush = asyncio.get_running_loop().call_later(wait, self._send_status)
         self.mark_dirty()
+
+    def _remember(self, step: int) -> None:
+        """Keep the last `time_window` frames while the render parameters smooth over time
+        (or colour by motion); a jump in the steps (a replay seeked) starts them again."""
+        from server.render.temporal import wanted
+
+        params = self.render_params
+        if not wanted(params):
+            self._history.clear()
+            self._last_step = None
+            return
+        if self._history.maxlen != params.time_window:
+            self._history = deque(self._history, maxlen=params.time_window)
+        if self._last_step is not None and is_jump(self._last_step, self._step_delta, step):
+            self._history.clear()
+            self._history_epoch += 1
+        elif self._last_step is not None:
+            self._step_delta = step - self._last_step
+        self._last_step = step
+        assert self.positions is not None
+        self._history.append((self.positions_id, self.positions))
 
     def _send_status(self) -> None:
         """The simulation's status and the tracked atoms, at most every `state_interval_s`."""
@@ -588,6 +621,9 @@ class Session:
             positions_id=self.positions_id,
             step=self.status.step,
             version=self.version,
+            history=tuple(self._history),
+            history_epoch=self._history_epoch,
+            live=self.engine is None or self.engine.kind != "replay",
         )
 
     async def _render_loop(self) -> None:

@@ -85,7 +85,9 @@ def test_seek_step_speed_loop_and_stop(peer: SimPeer, replays: list[TrajectoryRe
     peer.send(SimParams(frame_interval=5))
     peer.send(Control(action="resume"))
     # after the last frame it starts again at 0: a wrap-around shows up as a decrease
-    peer.wait_for(lambda: any(b.step < a.step for a, b in itertools.pairwise(peer.frames)))
+    peer.wait_for(
+        lambda: any(b.step < a.step for a, b in itertools.pairwise(peer.frames)), timeout=30
+    )
     steps = [f.step for f in peer.frames]
     wrap = next(i for i in range(1, len(steps)) if steps[i] < steps[i - 1])
     assert steps[wrap] == 0 and all(b - a == 5 for a, b in itertools.pairwise(steps[3:wrap]))

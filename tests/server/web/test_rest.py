@@ -9,6 +9,7 @@ import zipfile
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from PIL import Image
 
@@ -244,3 +245,43 @@ def test_finished_job_outputs_are_reaped_by_age_and_disk_cap(tmp_path: Path) -> 
         assert all(j.state.value == "expired" for j in jobs.jobs.values())
     finally:
         server.stop()
+
+
+def test_a_trajectory_job_smooths_over_time(live_server: LiveServer) -> None:
+    """The temporal settings reach batch jobs: a warped-smoothed movie of adk differs from the
+    raw one frame by frame, and a window the protocol does not allow is refused by name."""
+    frames = {}
+    with client(live_server) as c:
+        for name, params in (
+            ("raw", {}),
+            ("smooth", {"time_smoothing": "warped", "tau_frames": 2.0, "time_window": 9}),
+            ("bad", {"time_smoothing": "warped", "time_window": 65}),
+        ):
+            with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+                r = c.post(
+                    "/api/jobs",
+                    headers=AUTH,
+                    files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                    data={
+                        "width": "48",
+                        "height": "36",
+                        "output": "zip",
+                        "start": "20",
+                        "stop": "26",
+                        "params": json.dumps(params),
+                    },
+                )
+            if name == "bad":
+                assert r.status_code == 422 and "time_window" in r.text
+                continue
+            assert r.status_code == 202, r.text
+            info, _ = wait_job(c, r.json()["id"])
+            assert info["state"] == "done", info
+            z = zipfile.ZipFile(io.BytesIO(c.get(info["result"], headers=AUTH).content))
+            frames[name] = [
+                np.asarray(Image.open(io.BytesIO(z.read(n))), dtype=np.int32)
+                for n in sorted(z.namelist())
+            ]
+    assert len(frames["raw"]) == len(frames["smooth"]) == 6
+    for raw, smooth in zip(frames["raw"], frames["smooth"], strict=True):
+        assert np.abs(raw - smooth).mean() > 0.2

@@ -1,0 +1,54 @@
+"""The frames a session keeps for temporal smoothing: while asked for, up to the window, and
+started again when a replay seeks."""
+
+from __future__ import annotations
+
+import time
+
+import protocol as p
+from server.session.session import is_jump
+from tests.conftest import LiveServer
+from tests.server.peers import Peer, frame, molecule
+
+
+def test_steps_that_go_back_or_skip_far_ahead_are_jumps() -> None:
+    assert not is_jump(100, 10, 110)
+    assert not is_jump(100, 10, 140)
+    assert is_jump(100, 10, 141)  # more than 4 increments: a seek ahead
+    assert is_jump(100, 10, 90)  # back: a seek or a reset
+    assert is_jump(5, 1, 5)
+    assert not is_jump(0, 0, 500)  # the second frame sets the increment
+
+
+def wait(condition: object, what: str) -> None:
+    deadline = time.monotonic() + 20
+    while not condition():  # type: ignore[operator]
+        assert time.monotonic() < deadline, what
+        time.sleep(0.02)
+
+
+def test_the_history_fills_to_the_window_and_restarts_on_a_seek(live_server: LiveServer) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "hist")
+    topo, pos = molecule()
+    sim.send(topo)
+    steerer = Peer(live_server.view_url, "steerer", live_server.token, "hist")
+    live = live_server.app_state.sessions.get("hist")
+    try:
+        sim.send(frame(pos, 0))
+        wait(lambda: live.positions is not None, "a frame")
+        assert live.snapshot().history == ()  # smoothing off: nothing kept
+        steerer.send(p.SetRenderParams(params={"time_smoothing": "warped", "time_window": 4}))
+        wait(lambda: live.render_params.time_smoothing == "warped", "smoothing on")
+        for k in range(1, 7):
+            sim.send(frame(pos + k, k * 10))
+        wait(lambda: live.status.step == 60, "six frames")
+        snap = live.snapshot()
+        assert len(snap.history) == 4 and snap.history[-1][0] == snap.positions_id
+        assert snap.live and snap.history_epoch == 0
+        sim.send(frame(pos, 20))  # a replay seeked back
+        wait(lambda: live.status.step == 20, "the seek")
+        snap = live.snapshot()
+        assert snap.history_epoch == 1 and len(snap.history) == 1
+    finally:
+        sim.close()
+        steerer.close()
