@@ -8,8 +8,9 @@ COPY pyproject.toml README.md ./
 COPY protocol protocol
 COPY server server
 COPY simulation_adapters simulation_adapters
+COPY structures structures
 COPY client_web client_web
-RUN python3 -m venv /opt/venv && /opt/venv/bin/pip install ".[server,openmm,replay,imd,movies]" \
+RUN python3 -m venv /opt/venv && /opt/venv/bin/pip install ".[server,openmm,replay,imd,movies,ray]" \
     && if [ -f client_web/package.json ]; then cd client_web && npm ci --omit=dev; fi
 ENV PATH=/opt/venv/bin:$PATH
 EXPOSE 8000

@@ -35,6 +35,9 @@ class Metrics:
         )
         self.clients = Gauge("scalesteer_clients", "Connected clients", ["role"], registry=r)
         self.sessions = Gauge("scalesteer_sessions", "Live sessions", registry=r)
+        self.batch_workers = Gauge(
+            "scalesteer_batch_workers", "Ray render workers alive (0: jobs render here)", registry=r
+        )
         self.jobs = Counter("scalesteer_jobs", "Batch jobs by final state", ["state"], registry=r)
 
     def text(self) -> bytes:

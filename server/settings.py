@@ -7,6 +7,7 @@ import os
 import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 from protocol import DEFAULT_LIMITS, Limits, RenderParams
 from structures.isolated import ReadLimits
@@ -84,6 +85,12 @@ class ServerSettings:
     """Disk the outputs of finished jobs may take together; the oldest go first beyond it."""
     recording_max_bytes: int = 2 << 30
     """Size at which a recording's trajectory stops growing (the recording ends `capped`)."""
+    batch_engine: Literal["auto", "ray", "local"] = "auto"
+    """Where trajectory jobs render: on Ray (`auto`: when it is installed) or in this process."""
+    ray_address: str | None = None
+    """The Ray cluster to join (`ray start --head` prints it); None starts a local instance."""
+    ray_workers: int | None = None
+    """Ray render actors at most (default: one per GPU of the cluster, else one per CPU)."""
     max_running_jobs: int = 2
     """Jobs that read and render at once; later ones wait `queued`."""
     max_readers: int = 2

@@ -55,6 +55,7 @@ def make_settings(tmp_path: Path, **overrides: object) -> ServerSettings:
         state_dir=tmp_path / "state",
         default_size=(64, 48),
         stats_interval_s=0.5,
+        batch_engine="local",  # the Ray tests ask for Ray (tests/server/pipeline/test_ray.py)
     )
     return replace(base, **overrides)  # type: ignore[arg-type]
 

@@ -16,6 +16,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "serve": ("server.commands.serve", "run the render server"),
     "render": ("server.commands.render", "render one structure to an image file"),
+    "batch": (
+        "server.commands.batch",
+        "render a trajectory to an MP4 or PNG zip (Ray if installed)",
+    ),
     "replay": ("simulation_adapters.replay", "stream a trajectory file to a render server"),
     "imd": ("simulation_adapters.imd", "bridge an MD engine speaking IMD to a render server"),
     "thesis": ("server.commands.thesis", "regenerate the thesis reproduction report"),

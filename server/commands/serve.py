@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import threading
 import time
@@ -62,6 +63,19 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
         help="any numeric server limit, e.g. --set max_connections=256 "
         "(names and defaults: docs/server.md)",
     )
+    ap.add_argument(
+        "--batch-engine",
+        choices=["auto", "ray", "local"],
+        default="auto",
+        help="where trajectory jobs render: Ray (auto: when installed) or this process",
+    )
+    ap.add_argument(
+        "--ray-address",
+        default=os.environ.get("SCALESTEER_RAY_ADDRESS"),
+        help="a Ray cluster to join, e.g. HOST:6379 (env SCALESTEER_RAY_ADDRESS; default: "
+        "a local instance on the first job)",
+    )
+    ap.add_argument("--ray-workers", type=int, help="Ray render actors at most")
     ap.add_argument("--log-level", default="info")
     return ap
 
@@ -117,6 +131,9 @@ def settings_from(args: argparse.Namespace) -> ServerSettings:
         kwargs["viewer_token"] = None
     if args.encode_workers is not None:
         kwargs["encode_workers"] = args.encode_workers
+    kwargs["batch_engine"] = args.batch_engine
+    kwargs["ray_address"] = args.ray_address or None
+    kwargs["ray_workers"] = args.ray_workers
     kwargs.update(_overrides(args.set))
     return ServerSettings(**kwargs)  # type: ignore[arg-type]
 

@@ -29,7 +29,7 @@ from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import protocol as p
 from server.metrics import Metrics
@@ -38,6 +38,9 @@ from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
 from server.pipeline.overlay import draw_overlay
 from structures.isolated import IsolatedStructure, ReadLimits
+
+if TYPE_CHECKING:
+    from server.pipeline.distributed import RayBatch
 from structures.reader import StructureError
 
 log = logging.getLogger("scalesteer.jobs")
@@ -209,7 +212,7 @@ class _FrameCache:
             del self.frames[i]
 
 
-def _time_window(params: p.RenderParams, n_frames: int) -> Callable[[int], tuple[int, int]] | None:
+def time_window(params: p.RenderParams, n_frames: int) -> Callable[[int], tuple[int, int]] | None:
     """For temporal smoothing: the trajectory frames around output frame `i` its filter
     sees (the causal kernel: the window before it; otherwise centred on it, as the file holds
     the future too), or None without smoothing."""
@@ -237,6 +240,10 @@ class JobError(Exception):
     """A job input problem reported to the user as the job's failure reason."""
 
 
+class _Finished(Exception):  # noqa: N818 - control flow: the Ray path wrote the whole output
+    pass
+
+
 class JobManager:
     MAX_RESTARTS = 2
     """A job found unfinished after this many restarts fails instead of starting again (its
@@ -254,6 +261,7 @@ class JobManager:
         max_bytes: int = 2 << 30,
         max_running: int = 2,
         upload_dir: Path | None = None,
+        batch: RayBatch | None = None,
     ) -> None:
         """Outputs of finished jobs are kept `retention_s` seconds, and the newest of them
         together at most `max_bytes` (older outputs are removed first). At most `max_running`
@@ -267,6 +275,8 @@ class JobManager:
         self.metrics = metrics
         self.read_limits = read_limits
         self.upload_dir = upload_dir
+        self.batch = batch
+        """Trajectory jobs render on this Ray pool when given, else in this process."""
         self.jobs: dict[str, Job] = {}
         self._running = asyncio.Semaphore(max_running)
 
@@ -468,9 +478,16 @@ class JobManager:
                 writer = await loop.run_in_executor(
                     self.encoders, Mp4Writer, final, spec.fps, spec.width, spec.height
                 )
+            if self.batch is not None:
+                if not await self._render_on_ray(job, structure, indices, writer):
+                    outcome = JobState.CANCELLED
+                else:
+                    await loop.run_in_executor(self.encoders, writer.close)
+                    result = final
+                raise _Finished
             topology = structure.topology
             frames = _FrameCache(structure)
-            window = _time_window(spec.params, structure.n_frames)
+            window = time_window(spec.params, structure.n_frames)
             for n, index in enumerate(indices):
                 if job.cancel.is_set():
                     outcome = JobState.CANCELLED
@@ -493,6 +510,7 @@ class JobManager:
                     positions_id=n + 1,
                     step=index,
                     history=history,
+                    history_epoch=index,  # each frame its own window: chunks render the same
                     live=False,
                     lag=lag,
                 )
@@ -512,6 +530,8 @@ class JobManager:
             if outcome is JobState.DONE:
                 await loop.run_in_executor(self.encoders, writer.close)
                 result = final
+        except _Finished:
+            pass
         except JobError as exc:
             outcome, error = JobState.FAILED, str(exc)
         except asyncio.CancelledError:
@@ -541,6 +561,54 @@ class JobManager:
         self.metrics.jobs.labels(job.state.value).inc()
         self._save(job)
         self.reap()
+
+    async def _render_on_ray(
+        self, job: Job, structure: IsolatedStructure, indices: list[int], writer: FrameWriter
+    ) -> bool:
+        """The frames of `job` rendered by the Ray pool and written here in order; False when
+        the job was cancelled."""
+        from server.pipeline.distributed import ChunkInputs, upload_refs
+
+        assert self.batch is not None
+        spec = job.spec
+        loop = asyncio.get_running_loop()
+        camera = spec.camera
+        if camera is None:
+            from server.render.camera import fit_camera
+
+            try:
+                first = await asyncio.to_thread(structure.positions, indices[0])
+            except StructureError as exc:
+                raise JobError(str(exc)) from None
+            camera = fit_camera(first, spec.width, spec.height)
+        files = [spec.topology, *spec.trajectories]
+        if spec.workdir is not None:  # uploads: through the object store
+            await self.batch.ensure()
+            refs: list[Any] = await asyncio.to_thread(upload_refs, files)
+        else:
+            refs = [str(f) for f in files]
+        inputs = ChunkInputs(
+            job=job.id,
+            topology=refs[0],
+            trajectories=tuple(refs[1:]),
+            params=spec.params.model_dump(mode="json"),
+            camera=camera.model_dump(mode="json"),
+            width=spec.width,
+            height=spec.height,
+            png=spec.output == "zip",
+            n_frames=structure.n_frames,
+            reference=indices[0],
+            overlay=spec.overlay,
+        )
+
+        async def write(index: int, rgba: Any, png: bytes | None) -> None:
+            await loop.run_in_executor(self.encoders, writer.add, index, rgba, png)
+            job.done += 1
+
+        try:
+            return await self.batch.render(inputs, indices, write, job.cancel)
+        except RuntimeError as exc:
+            raise JobError(str(exc)) from None
 
     async def _record(self, job: Job, source: LiveSource) -> None:
         spec = job.spec

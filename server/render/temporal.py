@@ -291,6 +291,7 @@ class TemporalState:
         self.smoother: TemporalSmoother | None = None
         self.fit: RigidFit | None = None
         self.key: tuple[Any, ...] | None = None
+        self.epoch: int | None = None
         self.last_id = -1
         self.version = 0
         """Counts frames pushed; the shown frame is recomputed when it or the filter changes."""
@@ -319,11 +320,15 @@ class TemporalState:
         `uploaded` (the same object) is copied from `device_copy` on the device instead of
         being sent again."""
         self.live, self.lag = live, lag
-        key = (epoch, params.time_window, params.rigid_fit)
+        key = (params.time_window, params.rigid_fit)
         if key != self.key or self.smoother is None:
             self.smoother = TemporalSmoother(self.device, self.n, params.time_window)
-            self.fit = RigidFit(self.heavy, params.time_window) if params.rigid_fit else None
             self.key = key
+            self.epoch = None
+        if epoch != self.epoch:  # the ring starts again, keeping its memory
+            self.smoother.reset()
+            self.fit = RigidFit(self.heavy, params.time_window) if params.rigid_fit else None
+            self.epoch = epoch
             self.last_id = -1
             self.shown_key = None
         for frame_id, positions in frames:

@@ -7,6 +7,7 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 from fastapi import FastAPI, WebSocket
 from fastapi.staticfiles import StaticFiles
@@ -15,6 +16,9 @@ from server.metrics import Metrics
 from server.pipeline.encoder import select_encoder
 from server.pipeline.gpu import GpuQueue
 from server.pipeline.jobs import JobManager
+
+if TYPE_CHECKING:
+    from server.pipeline.distributed import RayBatch
 from server.pipeline.recordings import RecordingStore
 from server.session.services import Services
 from server.session.session import Session
@@ -30,6 +34,19 @@ from server.web.rest import router
 from server.web.state import AppState, SessionRegistry
 
 log = logging.getLogger("scalesteer.app")
+
+
+def batch_engine(settings: ServerSettings) -> RayBatch | None:
+    """The Ray pool for trajectory jobs, or None to render them in this process."""
+    if settings.batch_engine == "local":
+        return None
+    from server.pipeline.distributed import RayBatch, available
+
+    if available():
+        return RayBatch(address=settings.ray_address, workers=settings.ray_workers)
+    if settings.batch_engine == "ray":
+        raise RuntimeError("--batch-engine ray needs Ray: pip install 'scalesteer[ray]'")
+    return None
 
 
 def create_app(settings: ServerSettings) -> FastAPI:
@@ -56,6 +73,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         upload_dir.mkdir(parents=True, exist_ok=True)
 
         services = Services(gpu, encoders, encoder, encode_slots, metrics, steering_log)
+        batch = batch_engine(settings)
 
         def new_session(name: str) -> Session:
             return Session(name, settings, services)
@@ -75,6 +93,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
                 max_bytes=settings.job_max_bytes,
                 max_running=settings.max_running_jobs,
                 upload_dir=upload_dir,
+                batch=batch,
             ),
             recordings=RecordingStore(state_dir / "recordings", steering_log.read),
             upload_dir=upload_dir,
@@ -106,6 +125,8 @@ def create_app(settings: ServerSettings) -> FastAPI:
             await asyncio.to_thread(state.replays.close)
             await asyncio.to_thread(state.recordings.close)
             await state.jobs.close()
+            if batch is not None:
+                await asyncio.to_thread(batch.close)
             await state.sessions.close()
             await asyncio.to_thread(gpu.close)
             encoders.shutdown(wait=True)

@@ -72,7 +72,7 @@ def _model(cls: type[BaseModel], raw: str | None, field: str) -> Any:
         raise HTTPException(422, f"{field}: nested too deeply") from None
     except ValueError as exc:  # an integer of thousands of digits
         raise HTTPException(422, f"{field}: {str(exc)[:120]}") from None
-    unknown = _unknown_keys(cls, data, field)
+    unknown = unknown_keys(cls, data, field)
     if unknown:
         raise HTTPException(422, f"{unknown}: unknown field")
     try:
@@ -85,7 +85,7 @@ def _model(cls: type[BaseModel], raw: str | None, field: str) -> Any:
         ) from None
 
 
-def _unknown_keys(cls: type[BaseModel], data: Any, where: str) -> str | None:
+def unknown_keys(cls: type[BaseModel], data: Any, where: str) -> str | None:
     """The path of the first key in `data` that `cls` (or a model nested in it) has no field
     for, or None."""
     if not isinstance(data, dict):
@@ -97,7 +97,7 @@ def _unknown_keys(cls: type[BaseModel], data: Any, where: str) -> str | None:
         nested = info.annotation
         for candidate in (nested, *getattr(nested, "__args__", ())):
             if isinstance(candidate, type) and issubclass(candidate, BaseModel):
-                found = _unknown_keys(candidate, value, f"{where}.{key}")
+                found = unknown_keys(candidate, value, f"{where}.{key}")
                 if found:
                     return found
     return None
@@ -419,12 +419,25 @@ async def healthz(state: State) -> dict[str, Any]:
         "device": state.gpu.actual_device or state.settings.device,
         "encoder": state.encoder.describe(),
         "sessions": len(state.sessions.all()),
+        "batch": await _batch_info(state),
     }
+
+
+async def _batch_info(state: AppState) -> dict[str, Any]:
+    """Where jobs render: this process, or the Ray cluster with its workers."""
+    batch = state.jobs.batch
+    if batch is None:
+        return {"engine": "local"}
+    info: dict[str, Any] = await asyncio.to_thread(batch.describe)
+    workers = [w for w in info.get("workers", []) if w.get("alive", True)]
+    state.metrics.batch_workers.set(len(workers))
+    return info
 
 
 @router.get("/metrics", summary="Prometheus metrics")
 async def metrics(state: State) -> Response:
     state.metrics.sessions.set(len(state.sessions.all()))
+    await _batch_info(state)
     return Response(state.metrics.text(), media_type="text/plain; version=0.0.4")
 
 

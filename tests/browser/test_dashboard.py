@@ -405,8 +405,8 @@ def test_transfer_function_editor_steers_the_session(
     points = page.locator("#tf-editor circle.point")
     expect(points).to_have_count(len(PRESETS["cloud"]))
     page.locator("#tf-editor").scroll_into_view_if_needed()
-    box = points.nth(3).bounding_box()
-    assert box is not None
+    # the editor redraws its points when the session's state arrives: take a settled one
+    box = wait_until(lambda: points.nth(3).bounding_box(), "the fourth point on screen")
     x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     page.mouse.move(x, y)
     page.mouse.down()

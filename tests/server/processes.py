@@ -36,7 +36,8 @@ class ServerProcess:
             sys.executable, "-m", "server.commands.cli", "serve",
             "--port", str(self.port), "--device", "cpu",
             "--token", TOKEN, "--viewer-token", VIEWER_TOKEN,
-            "--state-dir", str(state_dir), "--log-level", "warning", *extra,
+            "--state-dir", str(state_dir), "--log-level", "warning",
+            "--batch-engine", "local", *extra,
         ]  # fmt: skip
         with open(self.log, "ab") as out:
             self.process = subprocess.Popen(command, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)

@@ -1,0 +1,135 @@
+"""`scalesteer batch`: render a trajectory to an MP4 or a zip of PNGs, without a server.
+
+    scalesteer batch adk.psf adk.dcd -o adk.mp4 --size 1920x1080 --ray-address HEAD:6379
+
+The job runs exactly as `POST /api/jobs` runs it (`server.pipeline.jobs`): on Ray when it is
+installed (a local instance by default, a cluster with `--ray-address` or
+`SCALESTEER_RAY_ADDRESS`), else in this process (`--engine local` forces that).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from server.commands.render import _size
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="scalesteer batch",
+        description="Render a trajectory to an MP4 or a zip of PNGs (on Ray when installed).",
+    )
+    ap.add_argument("topology", help="structure or topology file (pdb, psf, gro, ...)")
+    ap.add_argument("trajectory", nargs="*", help="trajectory files (dcd, xtc, trr, ...)")
+    ap.add_argument("-o", "--output", required=True, type=Path, help="out.mp4 or out.zip")
+    ap.add_argument("--size", type=_size, default=(1280, 720), help="WxH (default 1280x720)")
+    ap.add_argument("--start", type=int, default=0)
+    ap.add_argument("--stop", type=int, default=None)
+    ap.add_argument("--stride", type=int, default=1)
+    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--params", default="{}", help="render parameters as JSON")
+    ap.add_argument("--camera", default=None, help="camera as JSON (default: fit the first frame)")
+    ap.add_argument("--device", default="auto", help="render device of the in-process engine")
+    ap.add_argument("--engine", choices=["auto", "ray", "local"], default="auto")
+    ap.add_argument("--ray-address", default=os.environ.get("SCALESTEER_RAY_ADDRESS"))
+    ap.add_argument("--ray-workers", type=int, default=None)
+    return ap
+
+
+async def run(args: argparse.Namespace) -> int:
+    import protocol as p
+    from server.metrics import Metrics
+    from server.pipeline.gpu import GpuQueue
+    from server.pipeline.jobs import JobManager, JobSpec, JobState
+    from server.settings import ServerSettings
+    from server.web.app import batch_engine
+    from server.web.rest import unknown_keys
+
+    suffix = args.output.suffix.lower()
+    if suffix not in (".mp4", ".zip"):
+        print(
+            f"scalesteer batch: {args.output}: the output must end in .mp4 or .zip", file=sys.stderr
+        )
+        return 2
+    try:
+        raw = json.loads(args.params)
+        unknown = unknown_keys(p.RenderParams, raw, "params")
+        if unknown:
+            raise ValueError(f"{unknown}: unknown field")
+        params = p.RenderParams.model_validate(raw)
+        camera = p.Camera.model_validate(json.loads(args.camera)) if args.camera else None
+    except ValueError as exc:  # JSON errors and validation errors are ValueErrors
+        print(f"scalesteer batch: {exc}", file=sys.stderr)
+        return 2
+    settings = ServerSettings(
+        device=args.device,
+        batch_engine=args.engine,
+        ray_address=args.ray_address,
+        ray_workers=args.ray_workers,
+    )
+    batch = batch_engine(settings)
+    gpu = GpuQueue(device=args.device)
+    work = Path(tempfile.mkdtemp(prefix="scalesteer-batch-"))
+    encoders = ThreadPoolExecutor(max_workers=4, thread_name_prefix="encode")
+    jobs = JobManager(
+        work, gpu, encoders, Metrics(), settings.read_limits(), batch=batch, max_running=1
+    )
+    spec = JobSpec(
+        topology=Path(args.topology).resolve(),
+        trajectories=[Path(t).resolve() for t in args.trajectory],
+        params=params,
+        camera=camera,
+        width=args.size[0],
+        height=args.size[1],
+        output="mp4" if suffix == ".mp4" else "zip",
+        start=args.start,
+        stop=args.stop,
+        stride=args.stride,
+        fps=args.fps,
+    )
+    engine = "Ray" if batch is not None else f"this process ({args.device})"
+    print(f"scalesteer batch: rendering on {engine}", flush=True)
+    job = jobs.submit(spec)
+    last = 0.0
+    try:
+        while job.state in (JobState.QUEUED, JobState.RUNNING):
+            await asyncio.sleep(0.2)
+            if time.monotonic() - last > 2 and job.total:
+                last = time.monotonic()
+                eta = job.describe().get("eta_s")
+                tail = f", about {eta:.0f} s left" if eta else ""
+                print(f"  {job.done}/{job.total} frames{tail}", flush=True)
+    except (KeyboardInterrupt, asyncio.CancelledError):
+        jobs.cancel(job)
+        raise
+    finally:
+        if batch is not None:
+            await asyncio.to_thread(batch.close)
+        await asyncio.to_thread(gpu.close)
+        encoders.shutdown(wait=True)
+    if job.state is not JobState.DONE or job.result is None:
+        print(f"scalesteer batch: {job.state.value}: {job.error or ''}", file=sys.stderr)
+        shutil.rmtree(work, ignore_errors=True)
+        return 1
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    shutil.move(str(job.result), args.output)
+    shutil.rmtree(work, ignore_errors=True)
+    print(f"scalesteer batch: {job.done} frames -> {args.output}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        return asyncio.run(run(args))
+    except KeyboardInterrupt:
+        return 130
