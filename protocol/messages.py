@@ -528,6 +528,8 @@ class Stats(Message):
     frames_dropped: int = 0
     sim_frames: int = 0
     device: str = ""
+    device_ms: dict[Name, NonNegFloat] = Field(default_factory=dict, max_length=16)
+    """Render time of each device when one image is rendered across several."""
 
 
 class Ping(Message):

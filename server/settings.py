@@ -85,6 +85,8 @@ class ServerSettings:
     """Disk the outputs of finished jobs may take together; the oldest go first beyond it."""
     recording_max_bytes: int = 2 << 30
     """Size at which a recording's trajectory stops growing (the recording ends `capped`)."""
+    gpus: str | None = None
+    """Render each session's images across several devices: 'all', '0,1', 'cpu,cpu'."""
     batch_engine: Literal["auto", "ray", "local"] = "auto"
     """Where trajectory jobs render: on Ray (`auto`: when it is installed) or in this process."""
     ray_address: str | None = None

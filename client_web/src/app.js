@@ -717,10 +717,13 @@ class Dashboard {
     setText($("session-conn"), conn);
     setText($("session-id"), this.welcome?.session_id ?? this.sessionName);
     setText($("session-you"), this.welcome ? `${this.welcome.client_id}, ${this.role}` : "–");
+    const perDevice = Object.entries(this.stats?.device_ms ?? {})
+      .map(([name, ms]) => `${name} ${milliseconds(ms)}`)
+      .join(", ");
     setText(
       $("session-server"),
       this.stats?.device
-        ? `${this.welcome?.server ?? "scalesteer"} on ${this.stats.device}`
+        ? `${this.welcome?.server ?? "scalesteer"} on ${this.stats.device}${perDevice ? ` (${perDevice})` : ""}`
         : (this.welcome?.server ?? "–"),
     );
     setText($("session-rtt"), this.rtt === null ? "–" : milliseconds(this.rtt));

@@ -64,6 +64,11 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
         "(names and defaults: docs/server.md)",
     )
     ap.add_argument(
+        "--gpus",
+        help="render each session's images across several devices: all | 0,1,... "
+        "(sort-first bands; docs/rendering.md)",
+    )
+    ap.add_argument(
         "--batch-engine",
         choices=["auto", "ray", "local"],
         default="auto",
@@ -131,6 +136,7 @@ def settings_from(args: argparse.Namespace) -> ServerSettings:
         kwargs["viewer_token"] = None
     if args.encode_workers is not None:
         kwargs["encode_workers"] = args.encode_workers
+    kwargs["gpus"] = args.gpus
     kwargs["batch_engine"] = args.batch_engine
     kwargs["ray_address"] = args.ray_address or None
     kwargs["ray_workers"] = args.ray_workers

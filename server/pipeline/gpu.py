@@ -22,6 +22,7 @@ import protocol as p
 
 if TYPE_CHECKING:
     from server.render import Renderer
+    from server.render.multi import MultiRenderer
 
 T = TypeVar("T")
 
@@ -73,7 +74,7 @@ class RenderOutput:
 
 @dataclass
 class _Slot:
-    renderer: Renderer
+    renderer: Renderer | MultiRenderer
     topology_id: int = -1
     positions_id: int = -1
 
@@ -83,6 +84,8 @@ class GpuQueue:
     """Serialises device work on one thread; methods named `*_sync` run on that thread."""
 
     device: str = "auto"
+    devices: tuple[str, ...] = ()
+    """Several devices: each session's images are rendered across them (sort-first)."""
     max_atoms: int = 4_000_000
     max_pixels: int = 3840 * 2160
     _pool: ThreadPoolExecutor = field(
@@ -109,14 +112,23 @@ class GpuQueue:
         if slot is None:
             from server.render import Renderer
 
-            renderer = Renderer(
-                device=self.device, max_atoms=self.max_atoms, max_pixels=self.max_pixels
-            )
+            renderer: Renderer | MultiRenderer
+            if len(self.devices) > 1 and key.startswith("session:"):
+                from server.render.multi import MultiRenderer
+
+                renderer = MultiRenderer(
+                    self.devices, max_atoms=self.max_atoms, max_pixels=self.max_pixels
+                )
+            else:
+                device = self.devices[0] if self.devices else self.device
+                renderer = Renderer(
+                    device=device, max_atoms=self.max_atoms, max_pixels=self.max_pixels
+                )
             self.actual_device = renderer.device
             slot = self._slots[key] = _Slot(renderer)
         return slot
 
-    def _prepare(self, request: RenderRequest) -> Renderer:
+    def _prepare(self, request: RenderRequest) -> Renderer | MultiRenderer:
         slot = self._slot(request.slot)
         snap = request.snapshot
         if slot.topology_id != snap.topology_id:

@@ -38,4 +38,25 @@ def resolve(device: str) -> str:
         raise RenderError(f"unknown device {device!r}: {exc}") from None
 
 
+def resolve_many(spec: str) -> tuple[str, ...]:
+    """`--gpus`: 'all' (every CUDA device), CUDA indices '0,1', or device names ('cpu,cpu'
+    stands two CPU devices in for two GPUs, for tests and for the CPU's cores)."""
+    init()
+    if spec.strip() == "all":
+        n = cuda_count()
+        if n == 0:
+            raise RenderError("--gpus all: no CUDA device is available")
+        return tuple(f"cuda:{i}" for i in range(n))
+    names = [part.strip() for part in spec.split(",") if part.strip()]
+    if not names:
+        raise RenderError(f"--gpus {spec!r}: name at least one device")
+    out = []
+    for name in names:
+        device = f"cuda:{name}" if name.isdigit() else name
+        if device.startswith("cuda:") and int(device[5:]) >= cuda_count():
+            raise RenderError(f"--gpus: {device} does not exist ({cuda_count()} CUDA devices)")
+        out.append(resolve(device))
+    return tuple(out)
+
+
 init()

@@ -73,6 +73,10 @@ class CameraData:
     width: int
     height: int
     tiles_x: int
+    x0: int
+    y0: int
+    full_width: int
+    full_height: int
 
 
 @wp.struct
@@ -128,8 +132,10 @@ def pixel_of(cam: CameraData, tid: int):
 @wp.func
 @no_type_check
 def camera_ray(cam: CameraData, x: int, y: int):
-    u = (2.0 * (float(x) + 0.5) / float(cam.width) - 1.0) * cam.aspect * cam.scale
-    v = (1.0 - 2.0 * (float(y) + 0.5) / float(cam.height)) * cam.scale
+    """The ray of pixel (x, y) of the image (or tile: `x0`, `y0` place it in the full image,
+    whose rays it computes with the same arithmetic, so tiles join into the same picture)."""
+    u = (2.0 * (float(x + cam.x0) + 0.5) / float(cam.full_width) - 1.0) * cam.aspect * cam.scale
+    v = (1.0 - 2.0 * (float(y + cam.y0) + 0.5) / float(cam.full_height)) * cam.scale
     if cam.ortho != 0:
         return cam.eye + cam.right * u + cam.up * v, cam.forward
     return cam.eye, wp.normalize(cam.forward + cam.right * u + cam.up * v)
@@ -914,7 +920,7 @@ def _make(
         t0, t1 = clip_box(o, d, g.origin, g.box_hi)
         if g.valid != 0 and t0 < t1:
             dt = m.dt
-            jit = pixel_jitter(x, y)
+            jit = pixel_jitter(x + cam.x0, y + cam.y0)  # the whole image's pixel
             k = int(wp.ceil(t0 / dt - jit))
             cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left = walk_start(o, d, t0, g)
             active = wp.int32(1)
@@ -1027,8 +1033,10 @@ def kernels_for(
     return k
 
 
-def camera_data(frame: CameraFrame) -> CameraData:
-    """The device struct of a numpy camera frame."""
+def camera_data(frame: CameraFrame, tile: tuple[int, int, int, int] | None = None) -> CameraData:
+    """The device struct of a numpy camera frame; `tile` (x0, y0, width, height) casts only
+    that rectangle of the frame's image."""
+    x0, y0, w, h = tile if tile is not None else (0, 0, frame.width, frame.height)
     c = CameraData()
     c.eye = wp.vec3(*(float(v) for v in frame.eye))
     c.right = wp.vec3(*(float(v) for v in frame.right))
@@ -1037,9 +1045,13 @@ def camera_data(frame: CameraFrame) -> CameraData:
     c.scale = float(frame.scale)
     c.aspect = float(frame.aspect)
     c.ortho = int(frame.ortho)
-    c.width = int(frame.width)
-    c.height = int(frame.height)
-    c.tiles_x = tiles(frame.width, frame.height)[0]
+    c.width = int(w)
+    c.height = int(h)
+    c.tiles_x = tiles(w, h)[0]
+    c.x0 = int(x0)
+    c.y0 = int(y0)
+    c.full_width = int(frame.width)
+    c.full_height = int(frame.height)
     return c
 
 

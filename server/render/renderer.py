@@ -638,6 +638,7 @@ class Renderer:
         stop: float,
         frame: CameraFrame,
         build: bool,
+        tile: tuple[int, int, int, int] | None = None,
     ) -> float:
         """Every device operation of one frame after the upload, in order: the same calls run
         eagerly or into a graph capture. Returns the host time at the grid/cast boundary."""
@@ -648,8 +649,8 @@ class Renderer:
         if self._cuda:
             self._stream.record_event(self._events[3])
         t_cast = time.perf_counter()
-        w, h = frame.width, frame.height
-        cam = raycast.camera_data(frame)
+        w, h = (tile[2], tile[3]) if tile is not None else (frame.width, frame.height)
+        cam = raycast.camera_data(frame, tile)
         m = raycast.March()
         m.iso = d.iso
         m.dt = d.dt
@@ -741,12 +742,26 @@ class Renderer:
         self._last_launch = None
         self._recent.clear()
 
-    def render(self, params: RenderParams, camera: Camera, width: int, height: int) -> None:
+    def render(
+        self,
+        params: RenderParams,
+        camera: Camera,
+        width: int,
+        height: int,
+        tile: tuple[int, int, int, int] | None = None,
+    ) -> None:
         """Render one image; it stays on the device (read it with `read_rgba` and friends).
+        `tile` (x0, y0, w, h) renders only that rectangle of the width x height image, exactly
+        as the whole image would have it (the outputs are then w x h).
 
         Raises RenderError for invalid input before launching anything."""
         t_start = time.perf_counter()
         w, h = self._check_size(width, height)
+        if tile is not None:
+            x0, y0, tw, th = (int(v) for v in tile)
+            if tw < 1 or th < 1 or x0 < 0 or y0 < 0 or x0 + tw > w or y0 + th > h:
+                raise RenderError(f"tile {tile} is not inside the {w}x{h} image")
+            tile = (x0, y0, tw, th)
         seen = self._params_seen
         if seen is None or seen[0] is not params:
             self._check_params(params)
@@ -765,7 +780,8 @@ class Renderer:
         if self._n:
             self._update_colors(params)
             self._update_weights(d)
-        self._alloc_pixels(w * h)
+        pw, ph = (tile[2], tile[3]) if tile is not None else (w, h)
+        self._alloc_pixels(pw * ph)
         stop = self._stop_level(params, d)
         f = self._field(d)
         ev = self._events if self._cuda else None
@@ -778,10 +794,10 @@ class Renderer:
             self._stream.record_event(ev[2])
         t_grid = time.perf_counter()
         launch = functools.partial(
-            self._launch_frame, params, d, f, stop, frame, grid_key is not None
+            self._launch_frame, params, d, f, stop, frame, grid_key is not None, tile
         )
         if self._graphs is not None:
-            key = (grid_key is not None, self._n, d, stop, seen[1], cam_seen[4])
+            key = (grid_key is not None, self._n, d, stop, seen[1], cam_seen[4], tile)
             t_cast = self._replay_or_launch(key, launch)
         else:
             t_cast = launch()
@@ -802,7 +818,7 @@ class Renderer:
             total = up_ms + (t_end - t_start) * 1e3
         self.timings = {"upload": up_ms, "grid": grid_ms, "raycast": cast_ms, "total": total}
         self._uploaded = False
-        self._image = (w, h)
+        self._image = (pw, ph)
         self._last = (params, d)
 
     # ------------------------------------------------------------------ outputs

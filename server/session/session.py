@@ -786,6 +786,11 @@ class Session:
                         frames_dropped=client.frames_dropped,
                         sim_frames=self.positions_id,
                         device=self.services.backend.actual_device,
+                        device_ms={
+                            k.removeprefix("device:"): v
+                            for k, v in t.items()
+                            if k.startswith("device:")
+                        },
                     )
                 )
 

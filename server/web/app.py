@@ -57,8 +57,14 @@ def create_app(settings: ServerSettings) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         metrics = Metrics()
+        devices: tuple[str, ...] = ()
+        if settings.gpus:
+            from server.render.device import resolve_many
+
+            devices = resolve_many(settings.gpus)
         gpu = GpuQueue(
             device=settings.device,
+            devices=devices,
             max_atoms=settings.limits.max_atoms,
             max_pixels=settings.limits.max_image_pixels,
         )
