@@ -54,16 +54,9 @@ export async function startRecording({ token, session, camera, width, height, fp
 }
 
 /** End a recording (the movie is kept), wait for it to be written, resolve to its Blob. */
-export async function finishRecording({ token, job, fetchImpl = fetch, sleep = (ms) => new Promise((r) => setTimeout(r, ms)) }) {
-  const path = `/api/jobs/${encodeURIComponent(job)}`;
-  await apiFetch(path, { token, method: "DELETE", fetchImpl });
-  for (;;) {
-    const info = await (await apiFetch(path, { token, fetchImpl })).json();
-    if (info.state === "done") break;
-    if (!["queued", "running"].includes(info.state)) throw new Error(`the recording ${info.state}: ${info.error ?? ""}`);
-    await sleep(200);
-  }
-  return (await apiFetch(`${path}/result`, { token, fetchImpl })).blob();
+export async function finishRecording({ token, job, fetchImpl = fetch, sleep = undefined }) {
+  await apiFetch(`/api/jobs/${encodeURIComponent(job)}`, { token, method: "DELETE", fetchImpl });
+  return jobResult({ token, job, fetchImpl, ...(sleep ? { sleep } : {}) });
 }
 
 /** Wait for a job to finish and resolve to its output as a Blob (throws with its failure). */
