@@ -242,6 +242,9 @@ class Session:
             self.positions = None
             self.camera = None
             self.forces.clear()
+            self._history.clear()  # frames of another system: the window starts again
+            self._history_epoch += 1
+            self._last_step = None
         self.status = self.status.model_copy(
             update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": "running"}
         )

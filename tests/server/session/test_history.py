@@ -44,11 +44,37 @@ def test_the_history_fills_to_the_window_and_restarts_on_a_seek(live_server: Liv
         wait(lambda: live.status.step == 60, "six frames")
         snap = live.snapshot()
         assert len(snap.history) == 4 and snap.history[-1][0] == snap.positions_id
-        assert snap.live and snap.history_epoch == 0
+        assert snap.live
+        epoch = snap.history_epoch
         sim.send(frame(pos, 20))  # a replay seeked back
         wait(lambda: live.status.step == 20, "the seek")
         snap = live.snapshot()
-        assert snap.history_epoch == 1 and len(snap.history) == 1
+        assert snap.history_epoch == epoch + 1 and len(snap.history) == 1
+    finally:
+        sim.close()
+        steerer.close()
+
+
+def test_a_new_topology_starts_the_window_again(live_server: LiveServer) -> None:
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "retopo")
+    topo, pos = molecule()
+    sim.send(topo)
+    steerer = Peer(live_server.view_url, "steerer", live_server.token, "retopo")
+    live = live_server.app_state.sessions.get("retopo")
+    try:
+        steerer.send(p.SetRenderParams(params={"time_smoothing": "classical", "time_window": 4}))
+        wait(lambda: live.render_params.time_smoothing == "classical", "smoothing on")
+        for k in range(3):
+            sim.send(frame(pos + k, k * 10))
+        wait(lambda: live.snapshot() and len(live.snapshot().history) == 3, "three frames")
+        small, small_pos = molecule(n=12)
+        sim.send(small)
+        sim.send(frame(small_pos, 40))
+        wait(lambda: live.positions is not None and len(live.positions) == 12, "the new system")
+        snap = live.snapshot()
+        assert len(snap.history) == 1 and snap.history[0][1].shape == (12, 3)
+        image = steerer.expect(p.Image, where=lambda m: m.still is not False)
+        assert image.data  # the smoothed render of the new system
     finally:
         sim.close()
         steerer.close()
