@@ -13,7 +13,9 @@ a dashboard stand-in in a process of its own, holding an 800x600 canvas:
 
 Each configuration runs in the same invocation: `baseline` renders every image at the size the
 canvas asks for (no frame budget), `budget` is the default (images shrink to what renders in
-`frame_budget_ms`, refined when still). Ratios are budget / baseline.
+`frame_budget_ms`, refined when still), `two_devices` is the budget with each image rendered
+across two CPU devices (`serve --gpus cpu,cpu`, two bands on two threads). Ratios are budget /
+baseline, and two_devices / budget.
 
     python benchmarks/cpu_interactive_bench.py            # writes results/cpu_interactive_*.json
 """
@@ -134,7 +136,7 @@ def run(config: str, seconds: float) -> dict[str, Any]:
     from simulation_adapters.openmm_reporter import SteeringReporter, run_steered
     from simulation_adapters.openmm_systems import build_villin_simulation
 
-    budget = config == "budget"
+    budget = config in ("budget", "two_devices")
     defaults = ServerSettings(token="bench")
     with tempfile.TemporaryDirectory() as tmp:
         settings = ServerSettings(
@@ -147,6 +149,7 @@ def run(config: str, seconds: float) -> dict[str, Any]:
             frame_budget_ms=defaults.frame_budget_ms if budget else 0.0,
             refine_budget_ms=defaults.refine_budget_ms if budget else 0.0,
             stats_interval_s=5.0,
+            gpus="cpu,cpu" if config == "two_devices" else None,
         )
         server = ServerThread(settings)
         simulation = build_villin_simulation(platform="CPU", properties={"Threads": "1"})
@@ -187,8 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=15.0, help="frame-rate window")
     ap.add_argument("--out", type=Path, default=RESULTS / "cpu_interactive_2core.json")
     args = ap.parse_args(argv)
-    rows = [run(config, args.seconds) for config in ("baseline", "budget")]
-    base, new = rows
+    rows = [run(config, args.seconds) for config in ("baseline", "budget", "two_devices")]
+    base, new, two = rows
     ratios = {
         "fps": new["fps"] / base["fps"],
         **{k: new[k]["median"] / base[k]["median"] for k in ("steer", "pick", "pull")},
@@ -199,13 +202,17 @@ def main(argv: list[str] | None = None) -> int:
         "system": "villin headpiece (582 atoms), OpenMM CPU platform, frames every 50 steps",
         "rows": rows,
         "ratios_budget_over_baseline": ratios,
+        "ratios_two_devices_over_budget": {
+            "fps": two["fps"] / new["fps"],
+            **{k: two[k]["median"] / new[k]["median"] for k in ("steer", "pick", "pull")},
+        },
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2))
-    print(f"{'config':<10}{'fps':>7}{'steer ms':>10}{'pick ms':>9}{'pull ms':>9}{'ack ms':>8}")
+    print(f"{'config':<12}{'fps':>7}{'steer ms':>10}{'pick ms':>9}{'pull ms':>9}{'ack ms':>8}")
     for r in rows:
         print(
-            f"{r['config']:<10}{r['fps']:>7.1f}{r['steer']['median']:>10.0f}"
+            f"{r['config']:<12}{r['fps']:>7.1f}{r['steer']['median']:>10.0f}"
             f"{r['pick']['median']:>9.0f}{r['pull']['median']:>9.0f}{r['pull_ack']['median']:>8.0f}"
         )
     print("ratios (budget / baseline):", {k: round(v, 2) for k, v in ratios.items()})
