@@ -28,9 +28,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-async def run_job(engine: Any, device: str, size: tuple[int, int], repeat: int) -> dict[str, Any]:
-    from MDAnalysisTests.datafiles import DCD, PSF
-
+async def run_job(
+    engine: Any, device: str, size: tuple[int, int], repeat: int, files: tuple[str, str]
+) -> dict[str, Any]:
     import protocol as p
     from server.metrics import Metrics
     from server.pipeline.gpu import GpuQueue
@@ -43,8 +43,8 @@ async def run_job(engine: Any, device: str, size: tuple[int, int], repeat: int) 
         limits = ServerSettings().read_limits()
         jobs = JobManager(Path(work), gpu, encoders, Metrics(), limits, batch=engine)
         spec = JobSpec(
-            topology=Path(PSF),
-            trajectories=[Path(DCD)] * repeat,
+            topology=Path(files[0]),
+            trajectories=[Path(files[1])] * repeat,
             params=p.RenderParams(),
             camera=None,
             width=size[0],
@@ -70,7 +70,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--workers", default="1,2")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument(
+        "--files", nargs=2, metavar=("PSF", "DCD"), help="default: MDAnalysisTests' adk"
+    )
     args = ap.parse_args(argv)
+    if args.files is None:
+        from MDAnalysisTests.datafiles import DCD, PSF
+
+        args.files = (PSF, DCD)
+    files = (str(args.files[0]), str(args.files[1]))
     import ray
 
     from server.pipeline.distributed import RayBatch
@@ -89,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
 
         wp.init()
         result["gpu"] = wp.get_device(args.device).name
-    base = asyncio.run(run_job(None, args.device, size, args.repeat))
+    base = asyncio.run(run_job(None, args.device, size, args.repeat, files))
     result["runs"].append({"engine": "in-process", **base})
     print(json.dumps(result["runs"][-1]), flush=True)
     ray.init(include_dashboard=False, log_to_driver=False)
@@ -97,8 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         engine = RayBatch(workers=n)
 
         async def warm_then_time(engine: Any = engine) -> dict[str, Any]:
-            await run_job(engine, args.device, size, 1)  # start the actors, warm them
-            return await run_job(engine, args.device, size, args.repeat)
+            await run_job(engine, args.device, size, 1, files)  # start the actors, warm them
+            return await run_job(engine, args.device, size, args.repeat, files)
 
         run = asyncio.run(warm_then_time())
         engine.close()

@@ -41,6 +41,7 @@ CHUNK_FRAMES = 8
 MAX_RESTARTS = 2
 """Times Ray restarts a dead actor (and retries its task) before the chunk moves elsewhere."""
 MAX_CHUNK_TRIES = 3
+IN_FLIGHT = 2
 
 
 def available() -> bool:
@@ -239,19 +240,24 @@ class RayBatch:
         chunks = [list(indices[i : i + CHUNK_FRAMES]) for i in range(0, len(indices), CHUNK_FRAMES)]
         pending = list(range(len(chunks)))
         tries = [0] * len(chunks)
-        idle = list(self._actors)
+        # two chunks in flight per actor: it renders the next while this process encodes
+        idle = [a for a in self._actors for _ in range(IN_FLIGHT)]
         running: dict[asyncio.Future[Any], tuple[int, Any, Any]] = {}
         done: dict[int, Any] = {}
         next_chunk = 0
         shape = (inputs.height, inputs.width, 4)
+
+        def dispatch() -> None:
+            while pending and idle:
+                c = pending.pop(0)
+                actor = idle.pop(0)
+                tries[c] += 1
+                ref = actor.render.remote(inputs, chunks[c])
+                running[asyncio.wrap_future(ref.future())] = (c, actor, ref)
+
         try:
             while next_chunk < len(chunks):
-                while pending and idle:
-                    c = pending.pop(0)
-                    actor = idle.pop(0)
-                    tries[c] += 1
-                    ref = actor.render.remote(inputs, chunks[c])
-                    running[asyncio.wrap_future(ref.future())] = (c, actor, ref)
+                dispatch()
                 if cancel.is_set():
                     return False
                 finished, _ = await asyncio.wait(
@@ -274,6 +280,7 @@ class RayBatch:
                         raise RuntimeError(
                             f"frames {chunks[c][0]}-{chunks[c][-1]}: {exc.cause!r}"
                         ) from None
+                dispatch()  # before writing: the actors work while this process encodes
                 while next_chunk in done:
                     for index, rgba, png in done.pop(next_chunk):
                         image = (
