@@ -149,15 +149,22 @@ def _local(ref: Any, job: str) -> str:
 def _worker_class() -> Any:
     import ray
 
-    @ray.remote(max_restarts=MAX_RESTARTS, max_task_retries=MAX_RESTARTS)
+    # `info` has a thread of its own, so /healthz answers while the actor renders a chunk
+    @ray.remote(  # type: ignore[call-overload]
+        max_restarts=MAX_RESTARTS,
+        max_task_retries=MAX_RESTARTS,
+        concurrency_groups={"info": 1, "render": 1},
+    )
     class RenderWorker:
         def __init__(self) -> None:
             self.state: dict[str, Any] = {}
 
+        @ray.method(concurrency_group="info")
         def info(self) -> dict[str, Any]:
             ctx = ray.get_runtime_context()
             return {"pid": os.getpid(), "node": ctx.get_node_id(), "device": state_device_name()}
 
+        @ray.method(concurrency_group="render")
         def render(self, inputs: ChunkInputs, indices: list[int]) -> Any:
             return _render_chunk_impl(self.state, inputs, indices)
 
@@ -214,7 +221,7 @@ class RayBatch:
         infos = []
         for actor in self._actors:
             try:
-                infos.append(ray.get(actor.info.remote(), timeout=5))
+                infos.append(ray.get(actor.info.remote(), timeout=2))
             except Exception as exc:  # a dead or restarting actor
                 infos.append({"alive": False, "error": type(exc).__name__})
         out.update(started=True, workers=infos, nodes=len(ray.nodes()))  # type: ignore[no-untyped-call]

@@ -34,9 +34,13 @@ def ray_cluster() -> Iterator[None]:
     ray.shutdown()
 
 
-@pytest.fixture
-def servers(tmp_path: Path, ray_cluster: None) -> Iterator[tuple[LiveServer, LiveServer]]:
-    """The same server twice: jobs on Ray, and jobs in its own process."""
+@pytest.fixture(scope="module")
+def servers(
+    tmp_path_factory: pytest.TempPathFactory, ray_cluster: None
+) -> Iterator[tuple[LiveServer, LiveServer]]:
+    """The same server twice: jobs on Ray, and jobs in its own process (one pair for the
+    module: its Ray actors hold the cluster's two CPUs)."""
+    tmp_path = tmp_path_factory.mktemp("ray")
     data = tmp_path / "data"
     data.mkdir()
     for src in (PSF, DCD):
@@ -107,6 +111,13 @@ def test_cancel_frees_the_workers_and_bad_input_fails_with_its_reason(
     on_ray, _local = servers
     job = submit(on_ray, width="320", height="240")
     wait(on_ray, job, ("running",))
+    deadline = time.monotonic() + 120
+    while httpx.get(f"{on_ray.url}/api/jobs/{job}", headers=AUTH).json()["progress"]["done"] < 1:
+        assert time.monotonic() < deadline, "no frame rendered"
+        time.sleep(0.1)
+    t0 = time.monotonic()  # the workers are busy rendering: /healthz still answers at once
+    health = httpx.get(f"{on_ray.url}/healthz", timeout=10).json()["batch"]
+    assert time.monotonic() - t0 < 3.0 and len(health["workers"]) == 2
     r = httpx.delete(f"{on_ray.url}/api/jobs/{job}", headers=AUTH, timeout=30)
     assert r.status_code == 200
     assert wait(on_ray, job, ("cancelled", "failed", "done"))["state"] == "cancelled"
