@@ -168,10 +168,11 @@ def test_slow_viewer_does_not_slow_others(live_server: LiveServer) -> None:
         return delivered
 
     window(1.0)  # warm-up
-    alone = window(5.0)
+    # the median of three windows each: a burst of other work on the machine moves one window
+    alone = sorted(window(2.0) for _ in range(3))[1]
     slow = Peer(live_server.view_url, "viewer", live_server.viewer_token, max_queue=1)
-    together = window(5.0)
-    assert alone >= 20
+    together = sorted(window(2.0) for _ in range(3))[1]
+    assert alone >= 8
     assert together >= 0.9 * alone, (alone, together)
     assert len(live_server.app_state.sessions.get("default").clients) == 2
     sim.close()
