@@ -15,7 +15,7 @@ from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
 from protocol.limits import Limits
 
-PROTOCOL_VERSION = "1.3"
+PROTOCOL_VERSION = "1.4"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -31,6 +31,9 @@ Seq = Annotated[int, Field(ge=0, lt=2**53)]
 Name = Annotated[str, Field(max_length=64)]
 
 Role = Literal["simulation", "steerer", "viewer"]
+VideoCodec = Literal["h264", "h264-baseline", "av1", "vp9"]
+"""Video codecs a viewer may decode: H.264 High and Constrained Baseline, AV1, VP9 profile 0."""
+ImageFormat = Literal["jpeg", "png", "h264", "av1", "vp9"]
 SESSION_NAME = r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$"
 """Session names: letters, digits, '_', '-', '.', not starting with '.' (they name log files)."""
 
@@ -310,6 +313,10 @@ class View(Message):
     interacting: bool = False
     track: list[Annotated[int, Field(ge=0)]] = Field(default_factory=list, max_length=32)
     """Atoms whose positions this viewer wants with each new frame (`tracked` messages)."""
+    video: list[VideoCodec] = Field(default_factory=list, max_length=8)
+    """Video codecs this viewer decodes at this size (WebCodecs `isConfigSupported`), best
+    first by its own taste; empty: JPEG images only. The server streams the best codec it can
+    encode and acknowledges nothing: the viewer learns the choice from `image.format`."""
 
 
 class TFPoint(Model):
@@ -439,7 +446,7 @@ class Image(Message):
     ref: Seq | None = None
     frame_id: Annotated[int, Field(ge=0)]
     step: Annotated[int, Field(ge=0)] | None = None
-    format: Literal["jpeg", "png"]
+    format: ImageFormat
     data: bytes
     width: Annotated[int, Field(ge=1)]
     height: Annotated[int, Field(ge=1)]
@@ -448,6 +455,27 @@ class Image(Message):
     encode_ms: NonNegFloat = 0.0
     server_time: FiniteFloat = 0.0
     histogram: Floats | None = None
+    codec: Annotated[str, Field(max_length=64)] | None = None
+    """Video only: the WebCodecs codec string of the stream (`avc1.640033`, `av01.0.13M.08`,
+    ...); H.264 is Annex B with its parameter sets in every keyframe."""
+    key: bool | None = None
+    """Video only: a keyframe (the viewer's decoder can start here)."""
+    stream: Annotated[int, Field(ge=0)] | None = None
+    """Video only: which stream this frame belongs to; a new stream starts with a keyframe and
+    the viewer configures a fresh decoder for it."""
+    bitrate_kbps: NonNegFloat | None = None
+    """Video only: the bit rate the stream is encoded at (adapted to this viewer's link)."""
+    encoder: Annotated[str, Field(max_length=64)] | None = None
+    """Video only: the encoder (`libx264`, `h264_nvenc`, ...)."""
+
+
+class FrameAck(Message):
+    """V->*: a video frame was decoded and drawn. The server measures each viewer's link with
+    these (round trip, frames and bytes in flight) and adapts its bit rate and frame rate."""
+
+    type: Literal["frame_ack"] = "frame_ack"
+    frame_id: Annotated[int, Field(ge=0)]
+    decode_ms: NonNegFloat = 0.0
 
 
 class ClientInfo(Model):
@@ -571,6 +599,7 @@ AnyMessage = Annotated[
     | Pick
     | Picked
     | Image
+    | FrameAck
     | State
     | Stats
     | Ping
@@ -599,6 +628,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Pick,
         Picked,
         Image,
+        FrameAck,
         State,
         Stats,
         Ping,

@@ -114,6 +114,18 @@ class ServerSettings:
     interactive_idle_s: float = 0.15
     interactive_scale: float = 0.5
     interactive_jpeg_quality: int = 60
+    video_codecs: tuple[str, ...] = ("h264", "av1", "vp9", "h264-baseline")
+    """Video codecs the server streams to viewers that decode them, best first; empty: JPEG
+    only. Each is encoded by NVENC where the GPU has it, else in software (server/pipeline/
+    video.py)."""
+    video_kbps_per_mpixel: float = 4500.0
+    """A stream's bit rate when the link allows it: per million pixels of canvas at 60 fps
+    (1920x1080: 9.3 Mbit/s)."""
+    video_min_kbps: float = 350.0
+    rest_jpeg_quality: int = 95
+    """Quality of the JPEG still that replaces a video viewer's last frame once the view rests
+    (nothing changed for `rest_after_s`)."""
+    rest_after_s: float = 0.4
     frame_budget_ms: float = 80.0
     """Render time a live image may take: images shrink to what renders in it on this device
     (nothing shrinks on a GPU; on 2 CPU cores villin renders at about 40k pixels); 0 turns

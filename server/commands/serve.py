@@ -81,6 +81,12 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
         "a local instance on the first job)",
     )
     ap.add_argument("--ray-workers", type=int, help="Ray render actors at most")
+    ap.add_argument(
+        "--video-codecs",
+        default="h264,av1,vp9,h264-baseline",
+        help="video codecs streamed to browsers that decode them, best first "
+        "(h264, av1, vp9, h264-baseline); 'none': JPEG images only",
+    )
     ap.add_argument("--log-level", default="info")
     return ap
 
@@ -118,6 +124,21 @@ def _overrides(pairs: list[str]) -> dict[str, object]:
     return out
 
 
+def video_codecs(text: str) -> tuple[str, ...]:
+    """`--video-codecs`: a comma-separated list of known codecs, or 'none'."""
+    from server.pipeline.video import CANDIDATES
+
+    if text.strip().lower() in ("", "none"):
+        return ()
+    codecs = tuple(c.strip() for c in text.split(",") if c.strip())
+    unknown = [c for c in codecs if c not in CANDIDATES]
+    if unknown:
+        raise ValueError(
+            f"--video-codecs: unknown {', '.join(unknown)}; known: {', '.join(CANDIDATES)}"
+        )
+    return codecs
+
+
 def settings_from(args: argparse.Namespace) -> ServerSettings:
     kwargs: dict[str, object] = {
         "host": args.host,
@@ -140,6 +161,7 @@ def settings_from(args: argparse.Namespace) -> ServerSettings:
     kwargs["batch_engine"] = args.batch_engine
     kwargs["ray_address"] = args.ray_address or None
     kwargs["ray_workers"] = args.ray_workers
+    kwargs["video_codecs"] = video_codecs(args.video_codecs)
     kwargs.update(_overrides(args.set))
     return ServerSettings(**kwargs)  # type: ignore[arg-type]
 

@@ -12,16 +12,20 @@ import asyncio
 import contextlib
 import enum
 import logging
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import protocol as p
+from server.session.link import LinkEstimate
 
 log = logging.getLogger("scalesteer.clients")
 
 MAX_QUEUED_CONTROL = 1024
+MAX_QUEUED_VIDEO = 4
+"""Video frames a client may have waiting to be sent; more and it starts over at a keyframe."""
 
 
 class Transport(Protocol):
@@ -46,6 +50,10 @@ class ImageOffer(enum.Enum):
     """Taken, and an unsent older image was dropped for it."""
     STALE = "stale"
     """Dropped: a newer image had already been offered."""
+    WAITING = "waiting"
+    """Video: dropped, the client waits for a keyframe of its stream."""
+    OVERFLOW = "overflow"
+    """Video: the client's queue was full; it lost its frames and waits for a keyframe."""
     CLOSED = "closed"
 
 
@@ -68,8 +76,16 @@ class Client:
     newest_frame: int = 0
     """`frame_id` of the newest image offered; an older one arriving later is stale."""
     state: ClientState = ClientState.CONNECTED
+    link: LinkEstimate = field(default_factory=LinkEstimate)
+    """Video only: what this client's link takes (from its `frame_ack`s)."""
+    force_jpeg: bool = False
+    """Video failed for this client (its encoder could not run): JPEG from now on."""
+    video_stream: int | None = None
+    """The video stream this client is on (None: JPEG)."""
+    awaiting_key: bool = True
     _control: deque[bytes] = field(default_factory=deque)
     _image: bytes | None = None
+    _video: deque[tuple[int, bytes]] = field(default_factory=deque)
     _wake: asyncio.Event = field(default_factory=asyncio.Event)
 
     def info(self) -> p.ClientInfo:
@@ -126,6 +142,42 @@ class Client:
         self._wake.set()
         return ImageOffer.REPLACED if replaced else ImageOffer.TAKEN
 
+    def join_stream(self, stream_id: int) -> None:
+        """Switch to another video stream: what is queued of the old one goes, and nothing of
+        the new one is taken before its keyframe."""
+        self.video_stream = stream_id
+        self.awaiting_key = True
+        self._video.clear()
+        self.link.forget_in_flight()
+
+    def leave_video(self) -> None:
+        self.video_stream = None
+        self.awaiting_key = True
+        self._video.clear()
+
+    def offer_video(self, stream_id: int, frame_id: int, data: bytes, key: bool) -> ImageOffer:
+        """Queue a frame of a video stream; every frame goes, in order (each depends on the
+        last), so a client that cannot keep up loses its queue and restarts at a keyframe."""
+        if self.state is not ClientState.CONNECTED:
+            return ImageOffer.CLOSED
+        if stream_id != self.video_stream or (self.awaiting_key and not key):
+            self.frames_dropped += 1
+            return ImageOffer.WAITING
+        if len(self._video) >= MAX_QUEUED_VIDEO:
+            self.frames_dropped += len(self._video) + 1
+            self._video.clear()
+            self.awaiting_key = True
+            return ImageOffer.OVERFLOW
+        self.awaiting_key = False
+        self.newest_frame = max(self.newest_frame, frame_id)
+        self._video.append((frame_id, data))
+        self._wake.set()
+        return ImageOffer.TAKEN
+
+    @property
+    def video_queued(self) -> int:
+        return len(self._video)
+
     def _is(self, state: ClientState) -> bool:
         """The state now (other tasks change it while the sender awaits)."""
         return self.state is state
@@ -140,6 +192,18 @@ class Client:
                     await self.ws.send_bytes(self._control.popleft())
                 if self._is(ClientState.CLOSING):
                     break  # what was queued is out; now close
+                while self._video and self.state is ClientState.CONNECTED:
+                    frame_id, data = self._video.popleft()
+                    self.link.on_sent(frame_id, len(data), time.monotonic())
+                    await self.ws.send_bytes(data)
+                    self.frames_sent += 1
+                    if on_image_sent is not None:
+                        on_image_sent()
+                    if self._control:
+                        break  # control first, then the rest of the video queue
+                if self._video or self._control:
+                    self._wake.set()
+                    continue
                 if self._image is not None and self.state is ClientState.CONNECTED:
                     data, self._image = self._image, None
                     await self.ws.send_bytes(data)

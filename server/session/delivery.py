@@ -4,6 +4,11 @@ Renders and encodes overlap: a render hands its pixels here and the next render 
 Each encode holds one of the shared encode slots (taken before its render), so encodes in flight
 never outnumber the encoder threads. Clients keep only their newest image (`Client.offer_encoded`),
 so an image whose encode finishes after a newer one's is dropped as stale.
+
+Viewers that decode video get frames of a video stream instead (`streams.VideoStreams`): each
+stream encodes in a task of its own, started in render order and serialised by the stream's
+lock, so its encoder sees frames in order. A stream encodes a frame only when one of its viewers
+is ready for it (`LinkEstimate.ready`): a slow link gets fewer frames, not a queue.
 """
 
 from __future__ import annotations
@@ -11,13 +16,16 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
+from typing import Any
 
 import protocol as p
 from server.pipeline.gpu import RenderOutput
+from server.pipeline.video import FORMAT, WEBCODECS
 from server.session.clients import Client, ImageOffer
 from server.session.services import Services
+from server.session.streams import VideoStream, VideoStreams
 
 log = logging.getLogger("scalesteer.session")
 
@@ -33,6 +41,12 @@ class Rendered:
     height: int
     jpeg_quality: int
     still: bool
+    camera_json: str = ""
+    stream_size: tuple[int, int] = (0, 0)
+    """The size video streams of this view encode at: the full image size, whatever the
+    frame budget or an interaction made of this render (scaled up to it)."""
+    rest: bool = False
+    """The view rests: video viewers get this one as a near-lossless JPEG still."""
 
 
 class Delivery:
@@ -42,6 +56,9 @@ class Delivery:
         self.session_id = session_id
         self.services = services
         self.last_encode_ms = 0.0
+        self.streams = VideoStreams(
+            services.video, services.video_kbps_per_mpixel, services.video_min_kbps
+        )
         self._tasks: set[asyncio.Task[None]] = set()
 
     def start(
@@ -51,17 +68,136 @@ class Delivery:
         refs: dict[str, int | None],
         on_failure: Callable[[], None],
     ) -> None:
-        """Encode and offer in a task of its own; the caller's encode slot is released when it
-        ends. `on_failure` runs when the encode fails (the view must render again)."""
-        task = asyncio.create_task(
-            self._encode_and_offer(rendered, members, refs, on_failure),
-            name=f"encode-{self.session_id}-{rendered.image_id}",
+        """Encode and offer in tasks of their own; the caller's encode slot is released when
+        they end. `on_failure` runs when the encode fails (the view must render again)."""
+        now = time.monotonic()
+        stills: list[Client] = []
+        by_stream: dict[VideoStream, list[Client]] = {}
+        for client in members:
+            codec = self.streams.codec_for(client)
+            if codec is None:
+                if client.video_stream is not None:
+                    client.leave_video()
+                    self.streams.leave(client.client_id)
+                if not rendered.rest:  # a JPEG viewer has this picture already
+                    stills.append(client)
+            elif rendered.rest:
+                stills.append(client)
+            else:
+                stream = self.streams.stream_for(client, codec, rendered.camera_json, now)
+                by_stream.setdefault(stream, []).append(client)
+        self.streams.reap(now)
+        # created here, in render order: each takes its stream's lock before any other await
+        video = []
+        for stream, clients in by_stream.items():
+            stream.newest = max(stream.newest, rendered.image_id)
+            coro = self._encode_video(rendered, stream, clients, refs)
+            video.append(self._spawn(coro, f"video-{stream.stream_id}-{rendered.image_id}"))
+        quality = self.services.rest_jpeg_quality if rendered.rest else rendered.jpeg_quality
+        self._spawn(
+            self._encode_and_offer(rendered, stills, refs, on_failure, quality, video),
+            f"encode-{rendered.image_id}",
         )
+
+    def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
+        task = asyncio.create_task(coro, name=f"{name}-{self.session_id}")
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
+        return task
 
     def in_flight(self) -> list[asyncio.Task[None]]:
         return list(self._tasks)
+
+    def leave(self, client: Client) -> None:
+        self.streams.leave(client.client_id)
+
+    def _base(self, rendered: Rendered, fmt: str, data: bytes, encode_ms: float) -> p.Image:
+        out = rendered.out
+        hist = p.WireArray.from_numpy(out.histogram, "<f4") if out.histogram is not None else None
+        return p.Image(
+            frame_id=rendered.image_id,
+            step=rendered.step,
+            format=fmt,
+            data=data,
+            width=rendered.width,
+            height=rendered.height,
+            still=rendered.still,
+            render_ms=out.timings.get("total", 0.0),
+            encode_ms=encode_ms,
+            server_time=time.time(),
+            histogram=hist,
+        )
+
+    async def _encode_video(
+        self,
+        rendered: Rendered,
+        stream: VideoStream,
+        clients: list[Client],
+        refs: dict[str, int | None],
+    ) -> None:
+        services = self.services
+        async with stream.lock:
+            if rendered.image_id < stream.newest:
+                # a newer render waits behind this one: encode that (each encode would
+                # otherwise queue behind the last and every frame would arrive later)
+                services.metrics.frames_dropped.inc()
+                return
+            now = time.monotonic()
+            # frame rate follows the links: skip when none of the stream's viewers is ready
+            takers = [c for c in clients if c.link.ready(now) or c.link.stalled(now)]
+            if not takers and not stream.want_key:
+                for client in clients:  # drawn once the link is ready again (`on_frame_ack`)
+                    client.needs_image = True
+                    services.metrics.frames_dropped.inc()
+                return
+            loop = asyncio.get_running_loop()
+            kbps = self.streams.kbps(stream)
+            try:
+                frame = await loop.run_in_executor(
+                    services.encoders, stream.encode, rendered.out.rgba, kbps, rendered.stream_size
+                )
+            except Exception as exc:
+                log.warning(
+                    "video encoder %s failed in session %s (%s: %s); its viewers get JPEG",
+                    stream.encoder_name,
+                    self.session_id,
+                    type(exc).__name__,
+                    exc,
+                )
+                stream.close()
+                for client in clients:
+                    client.force_jpeg = True
+                    client.leave_video()
+                    client.needs_image = True
+                    self.streams.leave(client.client_id)
+                return
+        services.metrics.encode_ms.observe(frame.encode_ms)
+        self.last_encode_ms = frame.encode_ms
+        base = self._base(rendered, FORMAT[stream.codec], frame.data, frame.encode_ms)
+        base = base.model_copy(
+            update={
+                "width": rendered.stream_size[0],
+                "height": rendered.stream_size[1],
+                "codec": WEBCODECS[stream.codec],
+                "key": frame.key,
+                "stream": stream.stream_id,
+                "bitrate_kbps": kbps,
+                "encoder": stream.encoder_name,
+            }
+        )
+        packed: dict[int | None, bytes] = {}
+        for client in clients:
+            ref = refs.get(client.client_id)
+            if ref not in packed:
+                packed[ref] = p.encode(base.model_copy(update={"ref": ref}))
+            offer = client.offer_video(stream.stream_id, rendered.image_id, packed[ref], frame.key)
+            if offer is ImageOffer.OVERFLOW:
+                # a link that cannot keep up: a lower rung (a stream of its own) or a keyframe
+                client.link.overflowed(time.monotonic())
+                stream.want_key = True
+                services.metrics.frames_dropped.inc()
+            elif offer is ImageOffer.WAITING:
+                services.metrics.frames_dropped.inc()
 
     async def _encode_and_offer(
         self,
@@ -69,17 +205,35 @@ class Delivery:
         members: list[Client],
         refs: dict[str, int | None],
         on_failure: Callable[[], None],
+        quality: int,
+        video: list[asyncio.Task[None]],
     ) -> None:
         services = self.services
-        out = rendered.out
+        try:
+            if members:
+                await self._encode_jpeg(rendered, members, refs, on_failure, quality)
+            if video:
+                await asyncio.gather(*video, return_exceptions=True)
+        finally:
+            services.encode_slots.release()
+
+    async def _encode_jpeg(
+        self,
+        rendered: Rendered,
+        members: list[Client],
+        refs: dict[str, int | None],
+        on_failure: Callable[[], None],
+        quality: int,
+    ) -> None:
+        services = self.services
         loop = asyncio.get_running_loop()
         try:
             data, encode_ms = await loop.run_in_executor(
                 services.encoders,
                 services.encoder.encode,
-                out.rgba,
+                rendered.out.rgba,
                 "jpeg",
-                rendered.jpeg_quality,
+                quality,
             )
         except Exception:
             log.exception("encoding failed in session %s", self.session_id)
@@ -91,24 +245,9 @@ class Delivery:
                     )
                 )
             return
-        finally:
-            services.encode_slots.release()
         self.last_encode_ms = encode_ms
         services.metrics.encode_ms.observe(encode_ms)
-        hist = p.WireArray.from_numpy(out.histogram, "<f4") if out.histogram is not None else None
-        base = p.Image(
-            frame_id=rendered.image_id,
-            step=rendered.step,
-            format="jpeg",
-            data=data,
-            width=rendered.width,
-            height=rendered.height,
-            still=rendered.still,
-            render_ms=out.timings.get("total", 0.0),
-            encode_ms=encode_ms,
-            server_time=time.time(),
-            histogram=hist,
-        )
+        base = self._base(rendered, "jpeg", data, encode_ms)
         packed: dict[int | None, bytes] = {}  # viewers that echo the same ref share the bytes
         for client in members:
             ref = refs.get(client.client_id)

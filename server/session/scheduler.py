@@ -15,6 +15,10 @@ image follows, within the larger `refine_budget_ms`; when that one stays unchang
 `final_after_s`, the full-size image follows whatever it costs (progressive refinement: a
 paused simulation on a laptop ends at full quality). On a GPU the budget is far above a
 full-size frame and nothing shrinks.
+
+Video viewers see frames of a stream tuned for motion; when their view rests (what it shows
+unchanged for `rest_after_s`) a *rest* render follows, sent to them as a near-lossless JPEG
+still, so a picture that stops moving ends sharp.
 """
 
 from __future__ import annotations
@@ -46,6 +50,8 @@ class ViewKey:
     refine: int = 0
     """Refinement level of a budget-reduced image: 0 none, 1 within the refine budget,
     `FINAL` at full size."""
+    rest: bool = False
+    """The still that ends a resting video view (sent as a high-quality JPEG)."""
 
     @property
     def camera(self) -> p.Camera:
@@ -95,6 +101,9 @@ class RenderScheduler:
     _quality: float = 1.0
     _reduced: dict[ViewKey, tuple[int, float, int]] = field(default_factory=dict)
     """Groups whose last image was shrunk by the budget: (version, when, refinement level)."""
+    _video: dict[ViewKey, tuple[int, float, int]] = field(default_factory=dict)
+    """Groups whose last full image went to video viewers: (version, when, refinement level),
+    until their rest still is rendered."""
 
     def interacting(self, now: float) -> None:
         """Shared render parameters changed: every view is interactive for a moment."""
@@ -135,6 +144,15 @@ class RenderScheduler:
             if self._rendered.get(key) == version and not any(c.needs_image for c in members):
                 reduced = self._reduced.get(key)
                 if reduced is None or reduced[0] != version or key.interactive:
+                    shown = self._video.get(key)
+                    if shown is None or shown[0] != version or key.interactive:
+                        continue
+                    wait = self.settings.rest_after_s - (now - shown[1])
+                    if wait > 0:
+                        refine_in = wait if refine_in is None else min(refine_in, wait)
+                        continue
+                    del self._video[key]
+                    due.append((replace(key, refine=shown[2], rest=True), members))
                     continue
                 after = (
                     self.settings.refine_after_s if reduced[2] == 0 else self.settings.final_after_s
@@ -157,7 +175,18 @@ class RenderScheduler:
     def rendered(self, key: ViewKey, version: int) -> None:
         if len(self._rendered) >= MAX_REMEMBERED:
             self._rendered.clear()
-        self._rendered[replace(key, refine=0)] = version
+        self._rendered[replace(key, refine=0, rest=False)] = version
+
+    def video_shown(self, key: ViewKey, version: int, now: float) -> None:
+        """A group's image went to video viewers: once it rests, its still is due. Images
+        still to be refined (and the rest still itself) wait for nothing."""
+        base = replace(key, refine=0, rest=False)
+        if key.rest or key.interactive or base in self._reduced:
+            self._video.pop(base, None)
+            return
+        if len(self._video) >= MAX_REMEMBERED:
+            self._video.clear()
+        self._video[base] = (version, now, key.refine)
 
     def note_render(
         self, key: ViewKey, version: int, size: tuple[int, int], ms: float, now: float
@@ -165,7 +194,7 @@ class RenderScheduler:
         """Learn from a render; True when its size was shrunk by the budget (the next
         refinement is then due once the group's image stays unchanged for a while)."""
         self.cost.note(size[0] * size[1], ms)
-        base = replace(key, refine=0)
+        base = replace(key, refine=0, rest=False)
         wanted = self._wanted_size(key)
         if key.refine < FINAL and size[0] * size[1] < wanted[0] * wanted[1]:
             if len(self._reduced) >= MAX_REMEMBERED:
@@ -185,6 +214,23 @@ class RenderScheduler:
         scale = quality * (self.settings.interactive_scale if key.interactive else 1.0)
         return max(1, round(key.width * scale)), max(1, round(key.height * scale))
 
+    def _limited(self, rw: int, rh: int, pixels: int) -> tuple[int, int]:
+        shrink = min(
+            1.0, self.settings.limits.max_image_side / max(rw, rh), (pixels / (rw * rh)) ** 0.5
+        )
+        return max(1, int(rw * shrink)), max(1, int(rh * shrink))
+
+    def stream_size(self, key: ViewKey, quality: float, on_cpu: bool = False) -> tuple[int, int]:
+        """The size a video stream of this group encodes at: the canvas times the quality
+        within the server's limits, never shrunk by an interaction or the frame budget (a
+        stream changes size only with a keyframe)."""
+        base = replace(key, interactive=False)
+        rw, rh = self._wanted_size(base, quality)
+        pixels = self.settings.limits.max_image_pixels
+        if on_cpu:
+            pixels = min(pixels, self.settings.cpu_max_live_pixels)
+        return self._limited(rw, rh, pixels)
+
     def image_size(self, key: ViewKey, quality: float, on_cpu: bool = False) -> tuple[int, int]:
         """Pixels to render for a group: its canvas times the quality (halved, by default,
         while interacting), shrunk to the server's image limits, on the CPU device to
@@ -201,8 +247,7 @@ class RenderScheduler:
         affordable = None if key.refine >= FINAL else self.cost.pixels_within(budget)
         if affordable is not None:
             pixels = min(pixels, max(affordable, MIN_BUDGET_PIXELS))
-        shrink = min(1.0, lim.max_image_side / max(rw, rh), (pixels / (rw * rh)) ** 0.5)
-        return max(1, int(rw * shrink)), max(1, int(rh * shrink))
+        return self._limited(rw, rh, pixels)
 
     def pick_size(self, width: int, height: int) -> tuple[int, int]:
         """The size a pick renders at: the view's, shrunk to what the frame budget affords,

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import asyncio
 from concurrent.futures import Executor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 from server.metrics import Metrics
 from server.pipeline.encoder import ImageEncoder
 from server.pipeline.gpu import RenderOutput, RenderRequest
+from server.pipeline.video import VideoEncoders
 from server.session.steering_log import SteeringLog
 
 
@@ -41,3 +42,8 @@ class Services:
     """Taken before a render, given back when its encode ends: bounds encodes in flight."""
     metrics: Metrics
     steering_log: SteeringLog
+    video: VideoEncoders = field(default_factory=lambda: VideoEncoders(("h264",)))
+    """Which video encoders this server has (probed on first use)."""
+    video_kbps_per_mpixel: float = 4500.0
+    video_min_kbps: float = 350.0
+    rest_jpeg_quality: int = 95

@@ -198,6 +198,7 @@ class Session:
             self._fail_pending("simulation disconnected")
             self.broadcast(p.State(sim=self.status))
         elif client.role != "simulation":
+            self.delivery.leave(client)
             if not self.clients:
                 self._frame_taken.set()
             if self.forces.drop_client(client.client_id):
@@ -583,6 +584,8 @@ class Session:
         if view.track:
             self._check_atoms(np.asarray(view.track), "view.track", view.seq)
         tracking_changed = client.view is None or client.view.track != view.track
+        if client.view is None or client.view.video != view.video:
+            client.force_jpeg = False  # a new offer of decoders: video may work again
         client.view = view
         client.view_ref = view.seq
         client.needs_image = True
@@ -591,6 +594,13 @@ class Session:
         if view.interacting:
             client.interacting_until = time.monotonic() + self.settings.interactive_idle_s
         self.mark_dirty()
+
+    def on_frame_ack(self, client: Client, ack: p.FrameAck) -> None:
+        """A video frame reached `client`'s screen: its link estimate learns from it, and a
+        view that skipped frames for the link renders again if it is behind."""
+        client.link.on_ack(ack.frame_id, time.monotonic())
+        if client.needs_image:  # it skipped the newest picture while its link was busy
+            self.mark_dirty()
 
     def mark_dirty_later(self, delay_s: float) -> None:
         """Look for due renders again after `delay_s` (a refinement coming due)."""
@@ -656,6 +666,10 @@ class Session:
             version = await self._render_group(key, members, refs, taken)
             if version is not None:
                 self.scheduler.rendered(key, version)
+                if any(c.video_stream is not None for c in members):
+                    self.scheduler.video_shown(key, version, time.monotonic())
+                    if not key.rest:  # its rest still is due if nothing changes until then
+                        self.mark_dirty_later(self.settings.rest_after_s + 0.01)
         if plan.come_back_in is not None:  # the full-quality still once the interaction pauses
             asyncio.get_running_loop().call_later(plan.come_back_in, self.mark_dirty)
 
@@ -698,7 +712,8 @@ class Session:
             return None
         params = self.render_params
         device = self.services.backend.actual_device or self.settings.device
-        width, height = self.scheduler.image_size(key, params.quality, device.startswith("cpu"))
+        on_cpu = device.startswith("cpu")
+        width, height = self.scheduler.image_size(key, params.quality, on_cpu)
         now = time.monotonic()
         request = RenderRequest(
             slot=self.slot,
@@ -733,6 +748,9 @@ class Session:
             height,
             quality,
             not key.interactive and not reduced,
+            camera_json=key.camera_json,
+            stream_size=self.scheduler.stream_size(key, params.quality, on_cpu),
+            rest=key.rest,
         )
 
     async def pick(self, client: Client, pick: p.Pick) -> p.Picked:

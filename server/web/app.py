@@ -16,6 +16,7 @@ from server.metrics import Metrics
 from server.pipeline.encoder import select_encoder
 from server.pipeline.gpu import GpuQueue
 from server.pipeline.jobs import JobManager
+from server.pipeline.video import VideoEncoders
 
 if TYPE_CHECKING:
     from server.pipeline.distributed import RayBatch
@@ -78,7 +79,20 @@ def create_app(settings: ServerSettings) -> FastAPI:
         upload_dir = state_dir / "uploads"
         upload_dir.mkdir(parents=True, exist_ok=True)
 
-        services = Services(gpu, encoders, encoder, encode_slots, metrics, steering_log)
+        video = VideoEncoders(settings.video_codecs)
+        await asyncio.to_thread(video.chosen)  # probe once, before the first viewer waits on it
+        services = Services(
+            gpu,
+            encoders,
+            encoder,
+            encode_slots,
+            metrics,
+            steering_log,
+            video=video,
+            video_kbps_per_mpixel=settings.video_kbps_per_mpixel,
+            video_min_kbps=settings.video_min_kbps,
+            rest_jpeg_quality=settings.rest_jpeg_quality,
+        )
         batch = batch_engine(settings)
 
         def new_session(name: str) -> Session:

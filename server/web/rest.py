@@ -418,6 +418,7 @@ async def healthz(state: State) -> dict[str, Any]:
         "status": "ok",
         "device": state.gpu.actual_device or state.settings.device,
         "encoder": state.encoder.describe(),
+        "video": state.services.video.describe(),
         "sessions": len(state.sessions.all()),
         "batch": await _batch_info(state),
     }

@@ -355,6 +355,8 @@ async def _dispatch(session: Session, client: Client, guard: Guard, message: p.M
             session.on_event(message)
         case p.View():
             session.set_view(client, message)
+        case p.FrameAck():
+            session.on_frame_ack(client, message)
         case p.Pick():
             client.send(await session.pick(client, message))
         case p.Ping():

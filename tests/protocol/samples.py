@@ -97,6 +97,7 @@ def samples() -> dict[str, p.Message]:
             encode_ms=1.25,
             server_time=1.7e9,
         ),
+        "frame_ack": p.FrameAck(seq=15, frame_id=7, decode_ms=1.5),
         "state": p.State(
             seq=15,
             render_params=p.RenderParams(sigma_A=2.0),

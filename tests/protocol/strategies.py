@@ -181,6 +181,7 @@ MESSAGES: dict[str, st.SearchStrategy[Any]] = {
         height=st.integers(1, 4096),
         device_pixel_ratio=st.floats(0.5, 4),
         interacting=st.booleans(),
+        video=st.lists(st.sampled_from(["h264", "h264-baseline", "av1", "vp9"]), max_size=4),
     ),
     "render_params": render_patch(),
     "pick": st.builds(p.Pick, seq=seq, x=st.integers(0, 4096), y=st.integers(0, 4096)),
@@ -196,12 +197,19 @@ MESSAGES: dict[str, st.SearchStrategy[Any]] = {
         p.Image,
         seq=seq,
         frame_id=st.integers(0, 2**40),
-        format=st.sampled_from(["jpeg", "png"]),
+        format=st.sampled_from(["jpeg", "png", "h264", "av1", "vp9"]),
         data=st.binary(max_size=64),
         width=st.integers(1, 4096),
         height=st.integers(1, 4096),
         render_ms=st.floats(0, 1e3),
         histogram=st.none() | wire("<f4", (8,)),
+        codec=st.none() | st.sampled_from(["avc1.640033", "vp09.00.51.08"]),
+        key=st.none() | st.booleans(),
+        stream=st.none() | st.integers(0, 2**31),
+        bitrate_kbps=st.none() | st.floats(0, 1e5),
+    ),
+    "frame_ack": st.builds(
+        p.FrameAck, seq=seq, frame_id=st.integers(0, 2**40), decode_ms=st.floats(0, 1e3)
     ),
     "state": st.builds(
         p.State,

@@ -119,3 +119,78 @@ def frame(positions: np.ndarray, step: int, **observables: float) -> p.Frame:
         positions=p.WireArray.from_numpy(positions, "<f4"),
         observables=observables,
     )
+
+
+class VideoViewer:
+    """A viewer that decodes what it is sent, as the browser does: video frames with FFmpeg's
+    decoders (one decoder per stream, started at its keyframe) and acknowledged once decoded,
+    JPEG stills with Pillow. `frames` keeps (image message, RGB pixels) in arrival order."""
+
+    def __init__(
+        self,
+        url: str,
+        token: str | None,
+        role: p.Role = "viewer",
+        session: str = "default",
+        *,
+        video: tuple[str, ...] = ("h264",),
+        size: tuple[int, int] = (320, 240),
+        camera: p.Camera | None = None,
+        ack: bool = True,
+    ) -> None:
+        self.peer = Peer(url, role, token, session)
+        self.ack = ack
+        self.frames: list[tuple[p.Image, np.ndarray]] = []
+        self._decoder: Any = None
+        self._stream: int | None = None
+        self.view(size, video, camera)
+
+    def view(
+        self,
+        size: tuple[int, int],
+        video: tuple[str, ...] = ("h264",),
+        camera: p.Camera | None = None,
+    ) -> None:
+        self.peer.send(
+            p.View(width=size[0], height=size[1], video=list(video), camera=camera or p.Camera())
+        )
+
+    def _decode(self, msg: p.Image) -> np.ndarray:
+        import io
+
+        import av
+        from PIL import Image as PILImage
+
+        if msg.format in ("jpeg", "png"):
+            return np.asarray(PILImage.open(io.BytesIO(msg.data)).convert("RGB"))
+        if msg.stream != self._stream:
+            assert msg.key, "a new stream must start at a keyframe"
+            name = {"h264": "h264", "vp9": "vp9", "av1": "libdav1d"}[msg.format]
+            self._decoder = av.CodecContext.create(name, "r")
+            self._stream = msg.stream
+        out = [
+            f.reformat(format="rgb24", src_colorspace="ITU709").to_ndarray()
+            for f in self._decoder.decode(av.Packet(msg.data))
+        ]
+        assert len(out) == 1, "one frame in, one frame out"
+        return out[0][: msg.height, : msg.width]
+
+    def next(self, timeout: float = 30.0, where: Any = None) -> tuple[p.Image, np.ndarray]:
+        """The next image (decoded), skipping other messages and images `where` refuses."""
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"no image within {timeout} s")
+            msg = self.peer.recv(left)
+            if not isinstance(msg, p.Image):
+                continue
+            pixels = self._decode(msg)
+            self.frames.append((msg, pixels))
+            if self.ack and msg.format not in ("jpeg", "png"):
+                self.peer.send(p.FrameAck(frame_id=msg.frame_id))
+            if where is None or where(msg):
+                return msg, pixels
+
+    def close(self) -> None:
+        self.peer.close()

@@ -35,3 +35,15 @@ def test_limits_are_set_by_name_and_bad_ones_are_named(tmp_path: Path) -> None:
         settings("--state-dir", state, "--set", "bogus=1")
     with pytest.raises(ValueError, match="not an integer"):
         settings("--state-dir", state, "--set", "max_connections=lots")
+
+
+def test_video_codecs_are_chosen_by_name_or_turned_off(tmp_path: Path) -> None:
+    state = str(tmp_path / "state")
+    assert settings("--state-dir", state).video_codecs == ("h264", "av1", "vp9", "h264-baseline")
+    assert settings("--state-dir", state, "--video-codecs", "vp9, h264").video_codecs == (
+        "vp9",
+        "h264",
+    )
+    assert settings("--state-dir", state, "--video-codecs", "none").video_codecs == ()
+    with pytest.raises(ValueError, match="unknown hevc"):
+        settings("--state-dir", state, "--video-codecs", "h264,hevc")

@@ -1,0 +1,152 @@
+"""A session's video streams: who shares which encoder.
+
+Viewers that see the same view (camera and canvas), decode the same codec and whose links sit on
+the same bit-rate rung share one stream: one encode serves them all. A viewer whose link is
+slower lands on a lower rung and so on a stream of its own; a viewer with its own camera has its
+own. A viewer that joins a stream (it connected, its rung or view changed) gets a keyframe on
+that stream's next frame, and nothing of the stream before it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from server.pipeline.video import EncodedFrame, VideoEncoder, VideoEncoders
+from server.session.clients import Client
+from server.session.link import rung
+
+log = logging.getLogger("scalesteer.video")
+
+StreamKey = tuple[str, int, int, str, int]
+"""(camera JSON, canvas width, canvas height, codec, rung in kbit/s)."""
+
+IDLE_S = 10.0
+"""A stream no frame went to for this long is closed (its encoder freed)."""
+
+
+@dataclass(eq=False)
+class VideoStream:
+    """One encoder's output and the viewers it goes to."""
+
+    stream_id: int
+    key: StreamKey
+    codec: str
+    encoder_name: str
+    kbps: float
+    members: set[str] = field(default_factory=set)
+    """Clients that got this stream's last keyframe (or joined and wait for the next one)."""
+    want_key: bool = True
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    """Held while a frame encodes: frames go into the encoder in the order they rendered."""
+    last_used: float = 0.0
+    newest: int = 0
+    """The newest render offered to this stream: an older one still waiting for the lock is
+    skipped (the encoder takes the newest picture, as a JPEG viewer's slot does)."""
+    _encoder: VideoEncoder | None = None
+
+    def encode(
+        self, rgba: npt.NDArray[np.uint8], kbps: float, size: tuple[int, int]
+    ) -> EncodedFrame:
+        """Encode one frame at `size` (runs in an encoder thread, under `lock`); a new size or
+        bit rate opens a new encoder, which starts with a keyframe."""
+        w, h = size
+        enc = self._encoder
+        if enc is None or (enc.width, enc.height) != (w, h) or enc.kbps != kbps:
+            if enc is not None:
+                enc.close()
+            enc = self._encoder = VideoEncoder(self.codec, self.encoder_name, w, h, kbps)
+            self.kbps = kbps
+            self.want_key = True
+        key, self.want_key = self.want_key, False
+        return enc.encode(rgba, key=key)
+
+    def close(self) -> None:
+        if self._encoder is not None:
+            self._encoder.close()
+            self._encoder = None
+
+
+class VideoStreams:
+    """The streams of one session, by `StreamKey`."""
+
+    def __init__(self, encoders: VideoEncoders, kbps_per_mpixel: float, min_kbps: float) -> None:
+        self.encoders = encoders
+        self.kbps_per_mpixel = kbps_per_mpixel
+        self.min_kbps = min_kbps
+        self._streams: dict[StreamKey, VideoStream] = {}
+        self._ids = itertools.count(1)
+
+    def cap_kbps(self, width: int, height: int) -> float:
+        """The bit rate a picture of this size needs at 60 fps for a near-transparent image;
+        more would be wasted on a link that has it."""
+        return max(self.min_kbps, self.kbps_per_mpixel * width * height / 1e6)
+
+    def codec_for(self, client: Client) -> str | None:
+        if client.view is None or not client.view.video or client.force_jpeg:
+            return None
+        return self.encoders.pick(client.view.video)
+
+    def stream_for(self, client: Client, codec: str, camera_json: str, now: float) -> VideoStream:
+        """The stream `client` gets its next frame from (joining it when that is new)."""
+        view = client.view
+        assert view is not None
+        cap = self.cap_kbps(view.width, view.height)
+        key: StreamKey = (
+            camera_json,
+            view.width,
+            view.height,
+            codec,
+            rung(min(client.link.target_kbps, cap)),
+        )
+        stream = self._streams.get(key)
+        if stream is None:
+            encoder = self.encoders.chosen()[codec]
+            stream = VideoStream(next(self._ids), key, codec, encoder, 0.0)
+            stream.kbps = self.kbps(stream)
+            self._streams[key] = stream
+        if client.client_id not in stream.members:
+            for other in self._streams.values():
+                other.members.discard(client.client_id)
+            stream.members.add(client.client_id)
+            stream.want_key = True
+            client.join_stream(stream.stream_id)
+        stream.last_used = now
+        return stream
+
+    def kbps(self, stream: VideoStream) -> float:
+        """What the stream encodes at: what its canvas needs when the links of its viewers
+        allow that (their rung is the cap's own), else their rung."""
+        _, w, h, _, r = stream.key
+        cap = self.cap_kbps(w, h)
+        return cap if r >= rung(cap) else float(r)
+
+    def leave(self, client_id: str) -> None:
+        for stream in self._streams.values():
+            stream.members.discard(client_id)
+
+    def reap(self, now: float) -> None:
+        for key, stream in list(self._streams.items()):
+            if (not stream.members or now - stream.last_used > IDLE_S) and not stream.lock.locked():
+                stream.close()
+                del self._streams[key]
+
+    def __len__(self) -> int:
+        return len(self._streams)
+
+    def describe(self) -> list[dict[str, object]]:
+        return [
+            {
+                "stream": s.stream_id,
+                "codec": s.codec,
+                "encoder": s.encoder_name,
+                "kbps": s.kbps,
+                "viewers": len(s.members),
+            }
+            for s in self._streams.values()
+        ]

@@ -1,0 +1,116 @@
+"""Video encoders: selection with automatic fallback, low-latency behaviour (one frame in, one
+packet out, keyframes on demand), scaling to the stream's size, and what a decoder gets back."""
+
+from __future__ import annotations
+
+import logging
+
+import av
+import numpy as np
+import pytest
+
+from server.pipeline.video import CANDIDATES, WEBCODECS, VideoEncoder, VideoEncoders
+
+
+def picture(w: int, h: int, shift: int = 0) -> np.ndarray:
+    yy, xx = np.mgrid[0:h, 0:w]
+    r = np.hypot(xx - w / 2 - shift, yy - h / 2)
+    img = np.zeros((h, w, 4), np.uint8)
+    img[..., 0] = np.clip(250 - r, 0, 255)
+    img[..., 1] = np.clip(180 - r / 2, 0, 255)
+    img[..., 2] = 60
+    img[..., 3] = 255
+    return img
+
+
+def decode(codec: str, packets: list[bytes]) -> list[np.ndarray]:
+    name = {"h264": "h264", "h264-baseline": "h264", "vp9": "vp9", "av1": "libdav1d"}[codec]
+    dec = av.CodecContext.create(name, "r")
+    out = []
+    for data in packets:
+        for f in dec.decode(av.Packet(data)):
+            out.append(f.reformat(format="rgb24", src_colorspace="ITU709").to_ndarray())
+    return out
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(float) - b.astype(float)) ** 2))
+    return 10 * np.log10(255**2 / max(mse, 1e-9))
+
+
+def test_without_nvenc_h264_falls_back_to_libx264_and_says_why(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """This machine has no NVIDIA driver: NVENC cannot open, so libx264 serves H.264."""
+    caplog.set_level(logging.INFO, "scalesteer.video")
+    encoders = VideoEncoders(("h264", "vp9"))
+    assert encoders.chosen() == {"h264": "libx264", "vp9": "libvpx-vp9"}
+    why = encoders.describe()["unavailable"]
+    assert "h264/h264_nvenc" in why
+    assert any("h264_nvenc unavailable" in r.message for r in caplog.records)
+
+
+def test_the_server_preference_decides_among_what_the_viewer_decodes() -> None:
+    encoders = VideoEncoders(("h264", "vp9"))
+    assert encoders.pick(["vp9", "h264"]) == "h264"
+    assert encoders.pick(["vp9"]) == "vp9"
+    assert encoders.pick(["av1"]) is None  # not offered by this server: JPEG
+    assert encoders.pick([]) is None
+
+
+def test_unknown_codecs_are_refused_by_name() -> None:
+    with pytest.raises(ValueError, match=r"unknown video codec.*'hevc'"):
+        VideoEncoders(("h264", "hevc"))
+
+
+@pytest.mark.parametrize("codec", ["h264", "h264-baseline", "vp9"])
+def test_one_frame_in_one_packet_out_and_keyframes_on_demand(codec: str) -> None:
+    encoder = CANDIDATES[codec][-1]
+    enc = VideoEncoder(codec, encoder, 160, 120, 800)
+    frames = [enc.encode(picture(160, 120, k)) for k in range(5)]
+    forced = enc.encode(picture(160, 120, 5), key=True)
+    assert [f.key for f in frames] == [True, False, False, False, False]
+    assert forced.key
+    decoded = decode(codec, [f.data for f in [*frames, forced]])
+    assert len(decoded) == 6  # nothing held back: every frame decodes as it arrives
+    for k, img in enumerate(decoded):
+        assert psnr(img, picture(160, 120, k)[..., :3]) > 30
+    # a decoder that starts at the forced keyframe decodes it alone
+    assert len(decode(codec, [forced.data])) == 1
+
+
+def test_h264_is_annex_b_with_parameter_sets_in_every_keyframe() -> None:
+    enc = VideoEncoder("h264", "libx264", 64, 48, 500)
+    first = enc.encode(picture(64, 48)).data
+    enc.encode(picture(64, 48, 1))
+    later = enc.encode(picture(64, 48, 2), key=True).data
+    for data in (first, later):
+        assert data.startswith(b"\x00\x00\x00\x01")
+        starts = [i + 3 for i in range(len(data) - 3) if data[i : i + 3] == b"\x00\x00\x01"]
+        assert {7, 8, 5} <= {data[i] & 0x1F for i in starts}  # SPS, PPS, IDR slice
+    assert WEBCODECS["h264"].startswith("avc1.64")
+
+
+def test_odd_sizes_and_smaller_renders_are_scaled_into_the_stream() -> None:
+    enc = VideoEncoder("h264", "libx264", 161, 121, 800)
+    full = enc.encode(picture(161, 121), key=True)
+    small = enc.encode(picture(80, 60))  # a render shrunk by the frame budget
+    out = decode("h264", [full.data, small.data])
+    assert [o.shape for o in out] == [(122, 162, 3), (122, 162, 3)]  # padded to even sides
+    assert psnr(out[0][:121, :161], picture(161, 121)[..., :3]) > 30
+    assert psnr(out[1][:121, :161], picture(161, 121)[..., :3]) > 20  # upscaled, softer
+
+
+def test_the_rate_follows_the_setting() -> None:
+    rng = np.random.default_rng(0)
+    sizes = {}
+    for kbps in (300, 3000):
+        enc = VideoEncoder("h264", "libx264", 320, 240, kbps)
+        total = 0
+        for k in range(60):
+            img = picture(320, 240, k)
+            img[..., :3] = np.clip(img[..., :3] + rng.integers(0, 40, img[..., :3].shape), 0, 255)
+            total += len(enc.encode(img, pts_ms=round(k * 1000 / 60)).data)
+        sizes[kbps] = total * 8 / 1000  # kbit in one second of video
+    assert sizes[300] < 0.5 * sizes[3000]
+    assert sizes[300] < 2 * 300  # near the rate asked for, within the VBV buffer

@@ -1,0 +1,65 @@
+"""Who shares which video stream: same view, codec and bit-rate rung share one encoder; a
+joiner gets a keyframe; a slower link gets a stream of its own."""
+
+from __future__ import annotations
+
+import protocol as p
+from server.pipeline.video import VideoEncoders
+from server.session.clients import Client
+from server.session.streams import VideoStreams
+from tests.server.session.fakes import client
+
+ENCODERS = VideoEncoders(("h264",))
+
+
+def viewer(
+    cid: str, size: tuple[int, int] = (640, 480), video: tuple[p.VideoCodec, ...] = ("h264",)
+) -> Client:
+    c = client(cid, "viewer")
+    c.view = p.View(width=size[0], height=size[1], video=list(video))
+    return c
+
+
+def test_viewers_of_one_view_share_a_stream_and_a_joiner_forces_a_keyframe() -> None:
+    streams = VideoStreams(ENCODERS, 4500.0, 350.0)
+    a, b = viewer("a"), viewer("b")
+    cam = p.Camera().model_dump_json()
+    sa = streams.stream_for(a, "h264", cam, 0.0)
+    sa.want_key = False  # its first keyframe went out
+    sb = streams.stream_for(b, "h264", cam, 0.1)
+    assert sb is sa and sa.members == {"a", "b"} and sa.want_key
+    assert b.video_stream == sa.stream_id and b.awaiting_key
+    sa.want_key = False
+    assert streams.stream_for(a, "h264", cam, 0.2) is sa and not sa.want_key  # no rejoin
+
+
+def test_own_camera_own_size_or_slower_link_means_own_stream() -> None:
+    streams = VideoStreams(ENCODERS, 4500.0, 350.0)
+    cam = p.Camera().model_dump_json()
+    other_cam = p.Camera(distance=80.0).model_dump_json()
+    a, b, c, d = viewer("a"), viewer("b"), viewer("c", (800, 600)), viewer("d")
+    d.link.target_kbps = 400
+    sa = streams.stream_for(a, "h264", cam, 0)
+    assert streams.stream_for(b, "h264", other_cam, 0) is not sa
+    assert streams.stream_for(c, "h264", cam, 0) is not sa
+    sd = streams.stream_for(d, "h264", cam, 0)
+    assert sd is not sa and streams.kbps(sd) == 350
+    assert len(streams) == 4
+    # d's link recovers: it moves to the shared stream, and leaves its own
+    d.link.target_kbps = 10_000
+    assert streams.stream_for(d, "h264", cam, 1) is sa and "d" not in sd.members
+    streams.reap(2.0)
+    assert len(streams) == 3
+
+
+def test_the_rate_is_what_the_canvas_needs_when_the_link_allows() -> None:
+    streams = VideoStreams(ENCODERS, 4500.0, 350.0)
+    full_hd = viewer("a", (1920, 1080))
+    s = streams.stream_for(full_hd, "h264", "{}", 0)
+    assert abs(streams.kbps(s) - 4500 * 1920 * 1080 / 1e6) < 1e-6
+    tiny = viewer("b", (64, 48))
+    assert streams.kbps(streams.stream_for(tiny, "h264", "{}", 0)) == 350
+    assert streams.codec_for(viewer("c", video=())) is None
+    jpeg_only = viewer("d")
+    jpeg_only.force_jpeg = True
+    assert streams.codec_for(jpeg_only) is None
