@@ -25,6 +25,7 @@ import { TransferEditor } from "./tfeditor.js";
 import { histogramRange, normalizePoints, presetPoints } from "./transfer.js";
 import { decodeHash, encodeHash, readQuery } from "./urlstate.js";
 import { readViewFile, viewFile, viewFileName } from "./viewfile.js";
+import { DeliveryMeter, decodableCodecs, describeStream } from "./video.js";
 import { Viewport } from "./viewport.js";
 
 const RENDER_SEND_MS = 50;
@@ -67,6 +68,14 @@ class Dashboard {
     this.sendPullSoon = throttle(() => this.sendPull(), PULL_SEND_MS);
     this.writeHashSoon = throttle(() => this.writeHash(), HASH_WRITE_MS);
     this.sendViewSoon = throttle(() => this.sendView(false), 120);
+    // video: what this browser decodes at the view's size, and whether the user or a decoder
+    // failure asked for JPEG (`?transport=jpeg` in the address does too)
+    this.transport = new URLSearchParams(window.location.search).get("transport") === "jpeg" ? "jpeg" : "auto";
+    this.videoCodecs = [];
+    this.videoSize = "";
+    this.videoFailed = false;
+    this.codecCache = new Map();
+    this.meter = new DeliveryMeter();
     this.notices = new Notices($("notices"));
     if (fromHash.invalid.length) {
       this.notices.notify({
@@ -126,6 +135,8 @@ class Dashboard {
       onPullMove: (x, y) => this.pullMove(x, y),
       onPullEnd: () => this.pullEnd(),
       onDrawn: (msg, t) => this.drawn(msg, t),
+      onVideoDecoded: (msg, decodeMs) => this.videoDecoded(msg, decodeMs),
+      onVideoError: (message) => this.videoError(message),
       onDecodeError: (err, msg) =>
         this.notices.notify({
           level: "error",
@@ -168,6 +179,7 @@ class Dashboard {
       case "state":
         return this.state(m);
       case "image":
+        this.meter.add(performance.now(), m.data.byteLength);
         if (m.histogram)
           this.tfEditor.setHistogram(m.histogram.values, histogramRange(this.render.mode, this.transferPoints()));
         return this.viewport.show(m);
@@ -210,6 +222,7 @@ class Dashboard {
   welcomed(m) {
     this.welcome = m;
     this.viewport.resetFrames();
+    this.viewport.resetVideo();
     this.viewport.setLimits(m.limits);
     this.latency.reset();
     this.applyRole(m.role, true);
@@ -425,7 +438,51 @@ class Dashboard {
 
   resized(size) {
     setText($("hud-size"), `${size.viewW}×${size.viewH}`);
+    this.probeVideo(size.viewW, size.viewH);
     this.sendViewSoon();
+  }
+
+  /** Ask WebCodecs what it decodes at this size; a changed answer goes to the server. */
+  async probeVideo(width, height) {
+    const key = `${width}x${height}`;
+    this.videoSize = key;
+    const codecs = await decodableCodecs(width, height, globalThis.VideoDecoder, this.codecCache);
+    if (this.videoSize !== key) return; // the view was resized again meanwhile
+    if (codecs.join() !== this.videoCodecs.join()) {
+      this.videoCodecs = codecs;
+      this.sendViewSoon();
+    }
+    document.body.dataset.videoCodecs = codecs.join(" ");
+  }
+
+  /** The codecs to offer the server: none when JPEG is chosen or video failed here. */
+  offeredVideo() {
+    return this.transport === "jpeg" || this.videoFailed ? [] : this.videoCodecs;
+  }
+
+  setTransport(value) {
+    this.transport = value === "jpeg" ? "jpeg" : "auto";
+    if (this.transport === "auto" && this.videoFailed) {
+      this.videoFailed = false; // the user asks to try again
+      this.viewport.resetVideo();
+    }
+    this.sendView(false);
+  }
+
+  videoDecoded(msg, decodeMs) {
+    this.connection.send({ type: "frame_ack", frame_id: msg.frame_id, decode_ms: Math.max(0, decodeMs) });
+  }
+
+  videoError(message) {
+    if (this.videoFailed) return;
+    this.videoFailed = true;
+    document.body.dataset.videoFailed = "true";
+    this.notices.notify({
+      level: "warning",
+      code: "video",
+      message: `video decoding failed (${message}); showing JPEG images instead`,
+    });
+    this.sendView(false);
   }
 
   setCamera(cam, interacting) {
@@ -466,6 +523,7 @@ class Dashboard {
       device_pixel_ratio: clamp(dpr, 0.1, 8),
       interacting,
       track: this.picks.indices,
+      video: this.offeredVideo(),
     });
     if (seq !== null) this.latency.sent(seq, "view", performance.now());
   }
@@ -506,6 +564,8 @@ class Dashboard {
     vp.dataset.imageSize = `${msg.width}x${msg.height}`;
     setText($("hud-step"), `step ${integer(msg.step)}`);
     setText($("hud-fps"), `${sig(this.shownRate.rate(t), 3)} fps`);
+    setText($("hud-stream"), describeStream(msg, this.meter.rate(t)));
+    vp.dataset.format = msg.format;
     this.viewport.drawOverlay();
   }
 
@@ -740,6 +800,7 @@ class Dashboard {
     this.showSession();
     const t = performance.now();
     setText($("hud-fps"), `${sig(this.shownRate.rate(t), 3)} fps`);
+    if (this.lastImage) setText($("hud-stream"), describeStream(this.lastImage, this.meter.rate(t)));
   }
 
   // ------------------------------------------------------------------ buttons and shortcuts
@@ -819,6 +880,8 @@ class Dashboard {
     $("open-files").addEventListener("change", (e) => this.openFiles(e.target));
     $("plot-window").addEventListener("change", (e) => this.plots.setWindow(Number(e.target.value)));
     $("resolution").addEventListener("change", (e) => this.viewport.setResolution(Number(e.target.value)));
+    $("transport").value = this.transport;
+    $("transport").addEventListener("change", (e) => this.setTransport(e.target.value));
     $("pull-release-all").addEventListener("click", () => this.releaseAll());
     $("tf-preset").addEventListener("change", (e) =>
       this.steerRender({ tf_preset: e.target.value, transfer_function: [] }, true),

@@ -3,6 +3,7 @@
 // arrow, and the pointer, wheel, touch and keyboard gestures that move the camera.
 
 import { orbit, pan, project, zoom } from "./camera.js";
+import { VIDEO_FORMATS, VideoPipe } from "./video.js";
 
 const CLICK_SLOP_PX = 4;
 const WHEEL_END_MS = 180;
@@ -26,9 +27,14 @@ export class Viewport {
     onPullEnd = () => {},
     onDrawn = () => {},
     onDecodeError = () => {},
+    onVideoDecoded = () => {},
+    onVideoError = () => {},
+    makeVideoPipe = (handlers) => new VideoPipe(handlers),
   }) {
     Object.assign(this, { container, canvas, overlay, placeholder, getCamera, canPull, pullWithoutModifier });
     Object.assign(this, { onResize, onCamera, onClick, onPullStart, onPullMove, onPullEnd, onDrawn, onDecodeError });
+    Object.assign(this, { onVideoDecoded, onVideoError, makeVideoPipe });
+    this.video = null; // the decoder pipe, made with the first video frame
     this.ctx = canvas.getContext("2d", { alpha: false });
     this.octx = overlay.getContext("2d");
     this.resolution = 1;
@@ -116,8 +122,20 @@ export class Viewport {
     this.queued = null;
   }
 
-  /** Decode and draw an image message; older frames than the one on screen are skipped. */
+  /** Decode and draw an image message; older frames than the one on screen are skipped.
+   * Video frames all go to the decoder (each depends on the last) and are drawn when
+   * decoded, unless a newer image was drawn meanwhile. */
   async show(msg) {
+    if (VIDEO_FORMATS.has(msg.format)) {
+      if (!this.video) {
+        this.video = this.makeVideoPipe({
+          onFrame: (frame, m, decodeMs) => this.showVideoFrame(frame, m, decodeMs),
+          onError: (message) => this.onVideoError(message),
+        });
+      }
+      this.video.push(msg);
+      return;
+    }
     if (msg.frame_id <= this.drawnId) {
       this.skipped += 1;
       return;
@@ -154,11 +172,34 @@ export class Viewport {
     if (next) await this.show(next);
   }
 
+  showVideoFrame(frame, msg, decodeMs) {
+    this.onVideoDecoded(msg, decodeMs);
+    if (msg.frame_id <= this.drawnId) {
+      frame.close();
+      this.skipped += 1;
+      return;
+    }
+    this.drawnId = msg.frame_id;
+    this.bitmap?.close();
+    this.bitmap = frame;
+    this.redraw();
+    this.drawn += 1;
+    this.placeholder.hidden = true;
+    this.onDrawn(msg, performance.now());
+  }
+
+  /** Start the video decoder over (a new connection, or back from a failure). */
+  resetVideo() {
+    this.video?.reset();
+  }
+
   /** Draw the latest image over the canvas (letterboxed if its shape is not the view's). */
   redraw() {
     if (!this.bitmap) return;
     const { width: cw, height: ch } = this.canvas;
-    const { width: iw, height: ih } = this.bitmap;
+    // an ImageBitmap (JPEG) or a VideoFrame (video)
+    const iw = this.bitmap.displayWidth ?? this.bitmap.width;
+    const ih = this.bitmap.displayHeight ?? this.bitmap.height;
     const g = this.ctx;
     g.imageSmoothingEnabled = true;
     g.imageSmoothingQuality = "high";

@@ -81,10 +81,14 @@ def test_shift_clicking_atoms_measures_and_the_markers_follow_them(
     page.mouse.click(x2, y2)
     page.keyboard.up("Shift")
     expect(page.locator("#pick-measure")).to_have_text(re.compile(r"^distance [\d.]+ Å"))
-    picks = dash.evaluate("() => window.scalesteer.picks.atoms.map(a => [a.atom, a.position])")
+    # read together: the positions move with every tracked frame
+    picks, measure = dash.evaluate(
+        """() => [window.scalesteer.picks.atoms.map(a => [a.atom, a.position]),
+                  document.getElementById('pick-details').dataset.measure]"""
+    )
     (a, pa), (b, pb) = picks
     assert a != b
-    shown = float(page.locator("#pick-details").get_attribute("data-measure").split(":")[1])
+    shown = float(measure.split(":")[1])
     assert shown == pytest.approx(float(np.linalg.norm(np.subtract(pa, pb))), rel=1e-6)
     # the positions follow the simulation (tracked by the server with every frame)
     wait_until(

@@ -1,0 +1,78 @@
+// The video decoder, off the main thread: one WebCodecs VideoDecoder per stream, configured for
+// latency, fed the server's frames in order; decoded VideoFrames go back to the page (moved,
+// not copied), each tagged with its frame_id and the time its decode took.
+
+let decoder = null;
+let stream = null;
+const started = new Map(); // frame_id -> performance.now() when it went into the decoder
+
+function fail(message) {
+  try {
+    decoder?.close();
+  } catch {
+    // already closed by the error
+  }
+  decoder = null;
+  stream = null;
+  started.clear();
+  self.postMessage({ type: "error", message });
+}
+
+function open(m) {
+  try {
+    decoder?.close();
+  } catch {
+    // a decoder closed by an error
+  }
+  started.clear();
+  decoder = new VideoDecoder({
+    output(frame) {
+      const frameId = frame.timestamp;
+      const t0 = started.get(frameId);
+      started.delete(frameId);
+      const decodeMs = t0 === undefined ? 0 : performance.now() - t0;
+      self.postMessage({ type: "frame", frame, frameId, decodeMs }, [frame]);
+    },
+    error(err) {
+      fail(`${err.name}: ${err.message}`);
+    },
+  });
+  decoder.configure({
+    codec: m.codec,
+    codedWidth: m.width + (m.width % 2),
+    codedHeight: m.height + (m.height % 2),
+    optimizeForLatency: true,
+  });
+  stream = m.stream;
+}
+
+self.onmessage = (e) => {
+  const m = e.data;
+  if (m.type === "reset") {
+    try {
+      decoder?.close();
+    } catch {
+      // closed already
+    }
+    decoder = null;
+    stream = null;
+    started.clear();
+    return;
+  }
+  if (m.type !== "chunk") return;
+  if (m.stream !== stream || !decoder) {
+    if (!m.key) return; // a stream is joined at its keyframe
+    try {
+      open(m);
+    } catch (err) {
+      fail(`${err.name}: ${err.message}`);
+      return;
+    }
+  }
+  started.set(m.frameId, performance.now());
+  try {
+    decoder.decode(new EncodedVideoChunk({ type: m.key ? "key" : "delta", timestamp: m.frameId, data: m.data }));
+  } catch (err) {
+    fail(`${err.name}: ${err.message}`);
+  }
+};

@@ -1,0 +1,135 @@
+"""Video streaming in real Chromium: the dashboard asks WebCodecs what it decodes, the server
+streams H.264 (libx264 here: this machine has no NVENC), a Worker decodes it, and the page falls
+back to JPEG when asked or when its decoder fails, without a reload."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from playwright.sync_api import expect
+
+from tests.browser.conftest import OpenDashboard
+from tests.browser.simulation import OpenMMSimulation
+from tests.browser.test_dashboard import snapshot, wait_for_frame
+from tests.conftest import LiveServer
+
+pytestmark = pytest.mark.browser
+
+BROKEN_WORKER = """
+self.onmessage = (e) => {
+  if (e.data.type === "chunk") {
+    self.postMessage({ type: "error", message: "EncodingError: broken" });
+  }
+};
+"""
+
+
+def wait_format(dash: object, fmt: str, timeout_ms: int = 90_000) -> None:
+    dash.page.wait_for_function(  # type: ignore[attr-defined]
+        "(fmt) => document.getElementById('viewport').dataset.format === fmt",
+        arg=fmt,
+        timeout=timeout_ms,
+    )
+
+
+def test_video_frames_are_decoded_drawn_and_follow_the_simulation(
+    open_dashboard: OpenDashboard,
+    simulation: OpenMMSimulation,
+    live_server: LiveServer,
+    artifacts: Path,
+) -> None:
+    dash = open_dashboard()
+    assert "h264" in dash.evaluate("() => document.body.dataset.videoCodecs").split()
+    wait_format(dash, "h264")
+    first = wait_for_frame(dash)
+    before = snapshot(dash)
+    assert before.std() > 5, "the decoded frame shows the molecule"
+    later = wait_for_frame(dash, first + 5)
+    after = snapshot(dash)
+    assert later > first and np.abs(after - before).mean() > 0.2, "the picture moves"
+    expect(dash.page.locator("#hud-stream")).to_contain_text("H.264 (libx264)")
+    expect(dash.page.locator("#hud-stream")).to_contain_text("fps")
+    dash.page.screenshot(path=str(artifacts / "dashboard-video.png"))
+    streams = live_server.app_state.sessions.get("default").delivery.streams.describe()
+    assert [s["codec"] for s in streams] == ["h264"]
+
+
+def test_a_resize_mid_stream_keeps_the_video_going(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation
+) -> None:
+    dash = open_dashboard()
+    wait_format(dash, "h264")
+    first = wait_for_frame(dash)
+    size = dash.page.locator("#viewport").get_attribute("data-image-size")
+    dash.page.set_viewport_size({"width": 1100, "height": 720})
+    dash.page.wait_for_function(
+        """([size, after]) => {
+          const v = document.getElementById('viewport').dataset;
+          return v.imageSize !== size && Number(v.frame) > after && v.format === 'h264';
+        }""",
+        arg=[size, first],
+        timeout=90_000,
+    )
+    assert snapshot(dash).std() > 5
+
+
+def test_a_second_viewer_joining_mid_stream_gets_a_picture(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
+) -> None:
+    steerer = open_dashboard()
+    wait_format(steerer, "h264")
+    wait_for_frame(steerer)
+    time.sleep(1.0)  # the stream runs on
+    viewer = open_dashboard("viewer")
+    t0 = time.monotonic()
+    wait_format(viewer, "h264")
+    wait_for_frame(viewer, still=False)
+    assert time.monotonic() - t0 < 30
+    assert snapshot(viewer).std() > 5
+    streams = live_server.app_state.sessions.get("default").delivery.streams.describe()
+    assert sum(int(s["viewers"]) for s in streams) == 2  # type: ignore[call-overload]
+
+
+def test_choosing_jpeg_switches_the_stream_without_a_reload(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation
+) -> None:
+    dash = open_dashboard()
+    wait_format(dash, "h264")
+    dash.page.evaluate("() => { window.__sameDocument = true; }")
+    dash.page.select_option("#transport", "jpeg")
+    wait_format(dash, "jpeg")
+    dash.page.select_option("#transport", "auto")
+    wait_format(dash, "h264")
+    assert dash.page.evaluate("() => window.__sameDocument === true")
+
+
+def test_a_decoder_error_falls_back_to_jpeg_without_a_reload(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, chromium: object
+) -> None:
+    dash = open_dashboard(wait_connected=False, allow=("video decoding failed",))
+    dash.page.route(
+        "**/video.worker.js",
+        lambda route: route.fulfill(body=BROKEN_WORKER, content_type="text/javascript"),
+    )
+    dash.page.reload()
+    dash.page.evaluate("() => { window.__sameDocument = true; }")
+    wait_format(dash, "jpeg")
+    first = wait_for_frame(dash)
+    assert dash.page.evaluate("() => document.body.dataset.videoFailed") == "true"
+    expect(dash.page.locator("#notices")).to_contain_text("video decoding failed")
+    assert wait_for_frame(dash, first) > first
+    assert dash.page.evaluate("() => window.__sameDocument === true")
+
+
+def test_jpeg_from_the_address(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
+) -> None:
+    dash = open_dashboard(wait_connected=False)
+    dash.page.goto(f"{live_server.url}/?token={live_server.token}&transport=jpeg")
+    first = wait_for_frame(dash)
+    wait_for_frame(dash, first)
+    assert dash.page.locator("#viewport").get_attribute("data-format") == "jpeg"
+    assert dash.page.locator("#transport").input_value() == "jpeg"
