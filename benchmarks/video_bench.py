@@ -1,0 +1,436 @@
+"""JPEG against video for the live stream, side by side in one run: bit rate, encode time and CPU,
+image quality against the raw render, and steer-to-photon latency on loopback and through an
+emulated 50 Mbit/s link with 40 ms round trip (`linkemu.py`, a throttling proxy on loopback).
+
+Two systems: villin (a recorded OpenMM trajectory of the demo's villin headpiece, 582 atoms,
+`data/villin_traj.npz`, made by `--record-villin`) and a 1,000,000-atom protein-like system
+whose atoms move smoothly (0.3 A breathing, 120 frames per cycle). Frames come at 60 per second.
+
+- **quality**: 120 consecutive frames rendered at the stream size; each encoded as the server
+  would (JPEG at the default quality 85; H.264 at the bit rate the server gives a 1080p canvas,
+  frames stamped at 60 fps), decoded, and compared with the raw render (PSNR over RGB). Encode
+  time per frame and CPU cores used while encoding (process CPU time / wall time).
+- **live**: the real server (its process holds nothing else), a simulation streaming 60 frames/s
+  and a steerer that decodes every image (PyAV, Pillow), acknowledges video frames as the
+  dashboard does, and changes the iso level 4 times a second, timing each change to the decoded
+  image that shows it. Delivered bit rate and frames/s over the window; the server's CPU.
+
+    python benchmarks/video_bench.py --device cuda:0            # GPU run, results JSON + table
+    python benchmarks/video_bench.py --quick --device cpu       # smoke test
+    python benchmarks/video_bench.py --record-villin            # (re)make the villin frames
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import multiprocessing as mp
+import platform
+import socket
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
+
+from linkemu import run as run_link
+from render_bench import build_system, topology_of
+
+import protocol as p
+from server.commands.serve import ServerThread
+from server.settings import ServerSettings
+from tests.server.peers import Peer, frame
+
+RESULTS = ROOT / "benchmarks" / "results"
+VILLIN = ROOT / "benchmarks" / "data" / "villin_traj.npz"
+CYCLE = 120
+
+
+def percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q)) if values else float("nan")
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return float(10 * np.log10(255.0**2 / max(mse, 1e-12)))
+
+
+# ---------------------------------------------------------------- systems
+
+
+def record_villin(frames: int = CYCLE, steps: int = 25) -> None:
+    """A real villin trajectory from the demo's OpenMM system: `frames` frames `steps` steps
+    apart (50 fs), after a short equilibration."""
+    from simulation_adapters.openmm_systems import build_villin_simulation
+    from simulation_adapters.openmm_topology import topology_message
+
+    sim = build_villin_simulation(platform="CPU")
+    sim.step(500)
+    out = []
+    for _ in range(frames):
+        sim.step(steps)
+        state = sim.context.getState(getPositions=True)
+        out.append(np.asarray(state.getPositions(asNumpy=True)._value, np.float32) * 10.0)
+    topo = topology_message(sim.topology, sim.system)
+    np.savez_compressed(
+        VILLIN,
+        positions=np.stack(out),
+        elements=np.asarray(topo.elements),
+        bonds=topo.bonds.to_numpy().astype(np.int32),
+    )
+    print(f"wrote {VILLIN}: {len(out)} frames of {out[0].shape[0]} atoms")
+
+
+class System:
+    """Frames of one benchmark system, k = 0, 1, ... (cyclic, smooth across the wrap)."""
+
+    def __init__(self, name: str, n_atoms: int = 1_000_000) -> None:
+        self.name = name
+        if name == "villin":
+            data = np.load(VILLIN)
+            self.traj = data["positions"]
+            # there and back: no jump where the cycle wraps
+            self.traj = np.concatenate([self.traj, self.traj[::-1]])
+            self.elements = data["elements"]
+            self.bonds = data["bonds"]
+            self.base = self.traj[0]
+        else:
+            self.base, self.elements, self.bonds = build_system(n_atoms)
+            rng = np.random.default_rng(1)
+            self.phase = rng.uniform(0, 2 * np.pi, len(self.base)).astype(np.float32)
+            d = rng.normal(size=self.base.shape).astype(np.float32)
+            self.direction = 0.3 * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    @property
+    def n_atoms(self) -> int:
+        return len(self.base)
+
+    def topology(self) -> p.Topology:
+        return topology_of(self.elements, self.bonds)
+
+    def positions(self, k: int) -> np.ndarray:
+        if self.name == "villin":
+            return self.traj[k % len(self.traj)]
+        s = np.sin(self.phase + np.float32(2 * np.pi * k / CYCLE))
+        return self.base + self.direction * s[:, None]
+
+
+# ---------------------------------------------------------------- quality and encode cost
+
+
+def quality(system: System, device: str, size: tuple[int, int], frames: int) -> dict[str, Any]:
+    """Encode `frames` raw renders both ways and compare the decoded images with them."""
+    import av
+
+    from protocol import RenderParams
+    from server.pipeline.encoder import select_encoder
+    from server.pipeline.video import VideoEncoder, VideoEncoders
+    from server.render import Renderer
+    from server.render.camera import fit_camera
+    from server.settings import ServerSettings as S
+
+    renderer = Renderer(device)
+    renderer.set_topology(system.topology())
+    cam = fit_camera(system.base, *size)
+    jpeg = select_encoder(device)
+    codec_name = VideoEncoders(("h264",)).chosen()["h264"]
+    kbps = max(S.video_min_kbps, S.video_kbps_per_mpixel * size[0] * size[1] / 1e6)
+    variants = [(None, None)]  # the server's own choice first
+    if codec_name == "libx264":
+        variants += [(pr, th) for pr in ("superfast", "veryfast", "faster") for th in (8, 16)]
+        variants += [("ultrafast", 8)]
+    videos = {
+        "h264" if pr is None else f"h264-{pr}-{th}t": VideoEncoder(
+            "h264", codec_name, *size, kbps, preset=pr, threads=th
+        )
+        for pr, th in variants
+    }
+    decoders: dict[str, Any] = {k: av.CodecContext.create("h264", "r") for k in videos}
+    rows: dict[str, dict[str, list[float]]] = {
+        k: {"bytes": [], "ms": [], "psnr": [], "cpu": [], "wall": []} for k in ["jpeg", *videos]
+    }
+    from PIL import Image
+
+    for k in range(frames):
+        renderer.set_positions(system.positions(k), check_finite=False)
+        renderer.render(RenderParams(), cam, *size)
+        rgba = renderer.read_rgba()
+        raw = rgba[..., :3]
+        c0, w0 = time.process_time(), time.perf_counter()
+        data, _ = jpeg.encode(rgba, "jpeg", 85)
+        c1, w1 = time.process_time(), time.perf_counter()
+        r = rows["jpeg"]
+        r["bytes"].append(len(data))
+        r["ms"].append((w1 - w0) * 1e3)
+        r["cpu"].append(c1 - c0)
+        r["wall"].append(w1 - w0)
+        r["psnr"].append(psnr(np.asarray(Image.open(io.BytesIO(data)).convert("RGB")), raw))
+        for name, video in videos.items():
+            c0, w0 = time.process_time(), time.perf_counter()
+            enc = video.encode(rgba, pts_ms=round(k * 1000 / 60))
+            c1, w1 = time.process_time(), time.perf_counter()
+            r = rows[name]
+            r["bytes"].append(len(enc.data))
+            r["ms"].append((w1 - w0) * 1e3)
+            r["cpu"].append(c1 - c0)
+            r["wall"].append(w1 - w0)
+            (decoded,) = decoders[name].decode(av.Packet(enc.data))
+            rgb = decoded.reformat(format="rgb24", src_colorspace="ITU709").to_ndarray()
+            r["psnr"].append(psnr(rgb[: size[1], : size[0]], raw))
+    out: dict[str, Any] = {"frames": frames, "size": list(size), "h264_encoder": codec_name,
+                           "jpeg_encoder": jpeg.describe(), "h264_target_kbps": kbps}  # fmt: skip
+    for name, r in rows.items():
+        out[name] = {
+            "mbit_per_s_at_60fps": sum(r["bytes"]) * 8 / (frames / 60) / 1e6,
+            "bytes_per_frame_mean": float(np.mean(r["bytes"])),
+            "encode_ms_p50": percentile(r["ms"], 50),
+            "encode_ms_p99": percentile(r["ms"], 99),
+            "cores_while_encoding": sum(r["cpu"]) / sum(r["wall"]),
+            "psnr_db_mean": float(np.mean(r["psnr"])),
+            "psnr_db_min": float(np.min(r["psnr"])),
+        }
+    return out
+
+
+# ---------------------------------------------------------------- live stream
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _simulate(
+    url: str, system_name: str, n_atoms: int, session: str, ready: Any, stop: Any
+) -> None:
+    """Child process: a simulation sending 60 frames/s."""
+    system = System(system_name, n_atoms)
+    # encoded beforehand, as a fast adapter would: the benchmark measures the server's stream
+    cycle = len(system.traj) if system_name == "villin" else CYCLE
+    raw = [p.encode(frame(system.positions(k), k)) for k in range(cycle)]
+    sim = Peer(f"{url}/ws/sim", "simulation", "bench", session)
+    sim.send(system.topology())
+    sim.send_raw(raw[0])
+    ready.set()
+    k = 0
+    t0 = time.monotonic()
+    while not stop.is_set():
+        k += 1
+        sim.send_raw(raw[k % cycle])
+        wait = t0 + k / 60 - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+    sim.close()
+
+
+def _steer(
+    url: str, session: str, video: bool, size: tuple[int, int], seconds: float, out: Any
+) -> None:
+    """Child process: a steerer decoding every image (and acknowledging video frames), timing
+    iso-level changes to the decoded image that shows them."""
+    import av
+    from PIL import Image
+
+    peer = Peer(f"{url}/ws/view", "steerer", "bench", session)
+    peer.send(p.View(width=size[0], height=size[1], video=["h264"] if video else []))
+    decoder: Any = None
+    stream = None
+    pending: dict[int, float] = {}
+    latencies: list[float] = []
+    decode_ms: list[float] = []
+    encode_ms: list[float] = []
+    got_bytes = 0
+    got_frames = 0
+    formats: set[str] = set()
+    kbps: list[float] = []
+    start = time.monotonic()
+    measure_from = start + 3.0
+    end = measure_from + seconds
+    next_change = start + 0.5  # changes from the start: the first ones warm every path up
+    k = 0
+    while (now := time.monotonic()) < end:
+        if now >= next_change:
+            k += 1
+            seq = peer.send(p.SetRenderParams(params={"iso_level": 0.25 + 0.01 * (k % 2)}))
+            if now >= measure_from:
+                pending[seq] = time.perf_counter()
+            next_change += 0.25
+        try:
+            msg = peer.recv(0.05)
+        except TimeoutError:
+            continue
+        if not isinstance(msg, p.Image):
+            continue
+        t0 = time.perf_counter()
+        if msg.format == "jpeg":
+            Image.open(io.BytesIO(msg.data)).convert("RGB")
+        else:
+            if msg.stream != stream:
+                decoder = av.CodecContext.create("h264", "r")
+                stream = msg.stream
+            for f in decoder.decode(av.Packet(msg.data)):
+                f.to_ndarray(format="rgb24")
+            peer.send(p.FrameAck(frame_id=msg.frame_id))
+        t1 = time.perf_counter()
+        if time.monotonic() < measure_from:
+            continue
+        got_frames += 1
+        got_bytes += len(msg.data)
+        formats.add(msg.format)
+        decode_ms.append((t1 - t0) * 1e3)
+        encode_ms.append(msg.encode_ms)
+        if msg.bitrate_kbps:
+            kbps.append(msg.bitrate_kbps)
+        if msg.ref in pending:
+            latencies.append((t1 - pending.pop(msg.ref)) * 1e3)
+            for s in [s for s in pending if s < (msg.ref or 0)]:
+                pending.pop(s)  # superseded before it was shown: not a photon of its own
+    peer.close()
+    out.put(
+        {
+            "formats": sorted(formats),
+            "delivered_fps": got_frames / seconds,
+            "delivered_mbit_per_s": got_bytes * 8 / seconds / 1e6,
+            "stream_target_kbps_median": percentile(kbps, 50) if kbps else None,
+            "encode_ms_p50": percentile(encode_ms, 50),
+            "client_decode_ms_p50": percentile(decode_ms, 50),
+            "steer_to_photon_ms_p50": percentile(latencies, 50),
+            "steer_to_photon_ms_p99": percentile(latencies, 99),
+            "changes_timed": len(latencies),
+        }
+    )
+
+
+def live(
+    server: ServerThread,
+    system_name: str,
+    n_atoms: int,
+    video: bool,
+    link: str,
+    size: tuple[int, int],
+    seconds: float,
+) -> dict[str, Any]:
+    ctx = mp.get_context("spawn")
+    session = f"{system_name}-{'video' if video else 'jpeg'}-{link}"
+    ready, stop, out, link_ready = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Event()
+    direct = f"ws://127.0.0.1:{server.port}"
+    sim = ctx.Process(target=_simulate, args=(direct, system_name, n_atoms, session, ready, stop))
+    sim.start()
+    proxy = None
+    url = direct
+    if link == "emulated":
+        port = _free_port()
+        proxy = ctx.Process(target=run_link, args=(port, server.port, 50.0, 40.0, link_ready))
+        proxy.start()
+        link_ready.wait(30)
+        url = f"ws://127.0.0.1:{port}"
+    try:
+        if not ready.wait(600):
+            raise TimeoutError("the simulation did not start")
+        steerer = ctx.Process(target=_steer, args=(url, session, video, size, seconds, out))
+        steerer.start()
+        time.sleep(3.0)
+        c0, w0 = time.process_time(), time.perf_counter()
+        row: dict[str, Any] = out.get(timeout=600)
+        cores = (time.process_time() - c0) / (time.perf_counter() - w0)
+        steerer.join(30)
+    finally:
+        stop.set()
+        sim.join(30)
+        for proc in (sim, proxy):
+            if proc is not None and proc.is_alive():
+                proc.terminate()
+    row.update(
+        {
+            "system": system_name,
+            "transport": "h264" if video else "jpeg",
+            "link": link,
+            "server_cores": cores,
+        }
+    )
+    return row
+
+
+def gpu_name(device: str) -> str:
+    if not device.startswith("cuda"):
+        return f"CPU ({platform.processor() or platform.machine()})"
+    import warp as wp
+
+    return str(wp.get_device(device).name)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--size", default="1920x1080")
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--frames", type=int, default=CYCLE)
+    ap.add_argument("--systems", default="villin,1m")
+    ap.add_argument("--quick", action="store_true", help="small sizes and short windows")
+    ap.add_argument("--record-villin", action="store_true")
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    if args.record_villin:
+        record_villin()
+        return 0
+    size = (640, 360) if args.quick else tuple(int(v) for v in args.size.split("x"))
+    seconds = 3.0 if args.quick else args.seconds
+    frames = 12 if args.quick else args.frames
+    systems = args.systems.split(",")
+    result: dict[str, Any] = {
+        "benchmark": "video",
+        "device": gpu_name(args.device),
+        "host_cpus": mp.cpu_count(),
+        "size": list(size),
+        "link": "throttling proxy on loopback (benchmarks/linkemu.py): 50 Mbit/s each way, "
+        "20 ms each way, 1.5 MB queue",
+        "quality": {},
+        "live": [],
+    }
+    from server.pipeline.video import VideoEncoders
+
+    result["video_encoders"] = VideoEncoders(ServerSettings.video_codecs).describe()
+    print(json.dumps(result["video_encoders"]), flush=True)
+    n_big = 20_000 if args.quick else 1_000_000
+    for name in systems:
+        system = System(name, n_big)
+        result["quality"][name] = quality(system, args.device, size, frames)  # type: ignore[arg-type]
+        print(json.dumps({name: result["quality"][name]}, indent=1), flush=True)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        settings = ServerSettings(
+            port=0,
+            device=args.device,
+            token="bench",
+            viewer_token="bench-view",
+            state_dir=Path(tmp),
+            default_size=size,  # type: ignore[arg-type]
+            limits=p.Limits(max_message_bytes=512 << 20, max_atoms=2_000_000, max_steer_per_s=1000),
+            stats_interval_s=5.0,
+            frame_budget_ms=0.0,
+        )
+        server = ServerThread(settings)
+        try:
+            for name in systems:
+                for link in ("loopback", "emulated"):
+                    for video in (False, True):
+                        row = live(server, name, n_big, video, link, size, seconds)  # type: ignore[arg-type]
+                        result["live"].append(row)
+                        print(json.dumps(row), flush=True)
+        finally:
+            server.stop()
+    out = args.out or RESULTS / ("video_quick.json" if args.quick else "video.json")
+    out.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
