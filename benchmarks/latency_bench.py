@@ -147,6 +147,19 @@ def latency(server: ServerThread, n_atoms: int, changes: int) -> dict[str, Any]:
     return result
 
 
+def send_cycle(sim: Peer, raw: list[bytes], stop: Any, fps: float | None = None) -> int:
+    """Send the encoded frames `raw` round and round until `stop` is set, as fast as the
+    server reads them or at `fps`; returns how many were sent."""
+    k = 0
+    t0 = time.monotonic()
+    while not stop.is_set():
+        k += 1
+        sim.send_raw(raw[k % len(raw)])
+        if fps is not None and (wait := t0 + k / fps - time.monotonic()) > 0:
+            time.sleep(wait)
+    return k
+
+
 def _stream(url: str, session: str, n_atoms: int, ready: Any, stop: Any, rate: Any) -> None:
     """Child process: a simulation sending frames of an N-atom system as fast as the server
     takes them (messages encoded once beforehand, as a fast adapter would)."""
@@ -160,11 +173,8 @@ def _stream(url: str, session: str, n_atoms: int, ready: Any, stop: Any, rate: A
     ]
     sim.send_raw(raw[0])
     ready.set()
-    k = 0
     t0 = time.monotonic()
-    while not stop.is_set():
-        k += 1
-        sim.send_raw(raw[k % len(raw)])
+    k = send_cycle(sim, raw, stop)
     rate.put(k / (time.monotonic() - t0))
     sim.close()
 

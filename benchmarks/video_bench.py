@@ -38,6 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
+from latency_bench import send_cycle
 from linkemu import run as run_link
 from render_bench import build_system, topology_of
 
@@ -218,14 +219,7 @@ def _simulate(
     sim.send(system.topology())
     sim.send_raw(raw[0])
     ready.set()
-    k = 0
-    t0 = time.monotonic()
-    while not stop.is_set():
-        k += 1
-        sim.send_raw(raw[k % cycle])
-        wait = t0 + k / 60 - time.monotonic()
-        if wait > 0:
-            time.sleep(wait)
+    send_cycle(sim, raw, stop, fps=60.0)
     sim.close()
 
 

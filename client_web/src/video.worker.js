@@ -6,25 +6,25 @@ let decoder = null;
 let stream = null;
 const started = new Map(); // frame_id -> performance.now() when it went into the decoder
 
-function fail(message) {
+/** Drop the decoder (an error may have closed it already) and what was in it. */
+function closeDecoder() {
   try {
     decoder?.close();
   } catch {
-    // already closed by the error
+    // closed by an error
   }
   decoder = null;
   stream = null;
   started.clear();
+}
+
+function fail(message) {
+  closeDecoder();
   self.postMessage({ type: "error", message });
 }
 
 function open(m) {
-  try {
-    decoder?.close();
-  } catch {
-    // a decoder closed by an error
-  }
-  started.clear();
+  closeDecoder();
   decoder = new VideoDecoder({
     output(frame) {
       const frameId = frame.timestamp;
@@ -49,14 +49,7 @@ function open(m) {
 self.onmessage = (e) => {
   const m = e.data;
   if (m.type === "reset") {
-    try {
-      decoder?.close();
-    } catch {
-      // closed already
-    }
-    decoder = null;
-    stream = null;
-    started.clear();
+    closeDecoder();
     return;
   }
   if (m.type !== "chunk") return;

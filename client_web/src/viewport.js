@@ -153,20 +153,7 @@ export class Viewport {
       this.onDecodeError(err, msg);
     }
     this.decoding = false;
-    if (bitmap) {
-      if (msg.frame_id > this.drawnId) {
-        this.drawnId = msg.frame_id;
-        this.bitmap?.close();
-        this.bitmap = bitmap;
-        this.redraw();
-        this.drawn += 1;
-        this.placeholder.hidden = true;
-        this.onDrawn(msg, performance.now());
-      } else {
-        bitmap.close();
-        this.skipped += 1;
-      }
-    }
+    if (bitmap) this.present(bitmap, msg);
     const next = this.queued;
     this.queued = null;
     if (next) await this.show(next);
@@ -174,14 +161,20 @@ export class Viewport {
 
   showVideoFrame(frame, msg, decodeMs) {
     this.onVideoDecoded(msg, decodeMs);
+    this.present(frame, msg);
+  }
+
+  /** Put a decoded picture (ImageBitmap or VideoFrame) on screen, unless a newer one is
+   * there already; the one it replaces, or itself when it is older, is closed. */
+  present(picture, msg) {
     if (msg.frame_id <= this.drawnId) {
-      frame.close();
+      picture.close();
       this.skipped += 1;
       return;
     }
     this.drawnId = msg.frame_id;
     this.bitmap?.close();
-    this.bitmap = frame;
+    this.bitmap = picture;
     this.redraw();
     this.drawn += 1;
     this.placeholder.hidden = true;

@@ -116,10 +116,12 @@ def test_a_decoder_error_falls_back_to_jpeg_without_a_reload(
     )
     dash.page.reload()
     dash.page.evaluate("() => { window.__sameDocument = true; }")
+    dash.page.wait_for_function(
+        "() => document.body.dataset.videoFailed === 'true'", timeout=90_000
+    )
+    expect(dash.page.locator("#notices")).to_contain_text("video decoding failed")
     wait_format(dash, "jpeg")
     first = wait_for_frame(dash)
-    assert dash.page.evaluate("() => document.body.dataset.videoFailed") == "true"
-    expect(dash.page.locator("#notices")).to_contain_text("video decoding failed")
     assert wait_for_frame(dash, first) > first
     assert dash.page.evaluate("() => window.__sameDocument === true")
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import time
+from collections.abc import Callable
 
 import numpy as np
 from PIL import Image
@@ -145,33 +146,45 @@ def test_pick_answers_with_atom_details(live_server: LiveServer) -> None:
     viewer.close()
 
 
-def test_slow_viewer_does_not_slow_others(live_server: LiveServer) -> None:
-    """Frames go out in lock step with the fast viewer, so a window's count is the delivered rate;
-    a viewer that never reads (client queue of one, socket left unread) must not lower it."""
-    sim, pos = start_sim(live_server)
-    fast = Peer(live_server.view_url, "viewer", live_server.viewer_token)
-    still(fast)
-    step = 0
+class LockStep:
+    """A simulation sending a frame as soon as the watched viewer has the last one, so a
+    window's count is the rate delivered to that viewer."""
 
-    def window(seconds: float) -> int:
-        nonlocal step
+    def __init__(self, sim: Peer, pos: np.ndarray, wait_for_step: Callable[[int], object]) -> None:
+        self.sim, self.pos, self.wait_for_step = sim, pos, wait_for_step
+        self.step = 0
+
+    def window(self, seconds: float) -> int:
         delivered = 0
         end = time.monotonic() + seconds
         while time.monotonic() < end:
-            step += 1
-            sim.send(frame(pos + np.float32(0.05 * (step % 7)), step))
+            self.step += 1
+            self.sim.send(frame(self.pos + np.float32(0.05 * (self.step % 7)), self.step))
             try:
-                fast.expect(p.Image, 2.0, where=lambda m, want=step: m.step == want)
+                self.wait_for_step(self.step)
                 delivered += 1
             except TimeoutError:
                 pass
         return delivered
 
-    window(1.0)  # warm-up
-    # the median of three windows each: a burst of other work on the machine moves one window
-    alone = sorted(window(2.0) for _ in range(3))[1]
+    def median(self, windows: int = 3, seconds: float = 2.0) -> int:
+        """The median of several windows: a burst of other work on the machine moves one."""
+        return sorted(self.window(seconds) for _ in range(windows))[windows // 2]
+
+
+def test_slow_viewer_does_not_slow_others(live_server: LiveServer) -> None:
+    """A viewer that never reads (client queue of one, socket left unread) must not lower the
+    rate delivered to another."""
+    sim, pos = start_sim(live_server)
+    fast = Peer(live_server.view_url, "viewer", live_server.viewer_token)
+    still(fast)
+    lock = LockStep(
+        sim, pos, lambda step: fast.expect(p.Image, 2.0, where=lambda m: m.step == step)
+    )
+    lock.window(1.0)  # warm-up
+    alone = lock.median()
     slow = Peer(live_server.view_url, "viewer", live_server.viewer_token, max_queue=1)
-    together = sorted(window(2.0) for _ in range(3))[1]
+    together = lock.median()
     assert alone >= 8
     assert together >= 0.9 * alone, (alone, together)
     assert len(live_server.app_state.sessions.get("default").clients) == 2

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import itertools
-import time
 
 import httpx
 import numpy as np
@@ -12,7 +11,7 @@ import numpy as np
 import protocol as p
 from tests.conftest import LiveServer
 from tests.server.peers import Peer, VideoViewer, frame
-from tests.server.web.test_streaming import start_sim
+from tests.server.web.test_streaming import LockStep, start_sim
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -164,27 +163,12 @@ def test_slow_video_viewer_does_not_slow_the_steerer(live_server: LiveServer) ->
     sim, pos = start_sim(live_server)
     fast = VideoViewer(live_server.view_url, live_server.token, role="steerer")
     video_frame(fast)
-    step = 0
-
-    def window(seconds: float) -> int:
-        nonlocal step
-        delivered = 0
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            step += 1
-            sim.send(frame(pos + np.float32(0.05 * (step % 7)), step))
-            try:
-                video_frame(fast, 2.0, step=step)
-                delivered += 1
-            except TimeoutError:
-                pass
-        return delivered
-
-    window(1.0)
-    alone = sorted(window(2.0) for _ in range(3))[1]
+    lock = LockStep(sim, pos, lambda step: video_frame(fast, 2.0, step=step))
+    lock.window(1.0)  # warm-up
+    alone = lock.median()
     slow = Peer(live_server.view_url, "viewer", live_server.viewer_token, max_queue=1)
     slow.send(p.View(width=320, height=240, video=["h264"]))
-    together = sorted(window(2.0) for _ in range(3))[1]
+    together = lock.median()
     assert alone >= 8
     assert together >= 0.9 * alone, (alone, together)
     session = live_server.app_state.sessions.get("default")
