@@ -19,7 +19,7 @@ import itertools
 import logging
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Future
 from typing import Any
 
@@ -118,6 +118,9 @@ class Session:
         self._last_step: int | None = None
         self._step_delta = 0
         self.frame_sinks: list[FrameSink] = []
+        self.close_hooks: list[Callable[[], Awaitable[None]]] = []
+        """Run (in order, each once) when the session closes: reaped, or the server stops.
+        A recording hooks its stop here, so it never stays "recording" without a session."""
         """Called with every frame the simulation sends (recordings): they must only queue."""
         self.acks = AckBook()
         self.scheduler = RenderScheduler(settings)
@@ -838,6 +841,12 @@ class Session:
             await asyncio.wait_for(self._frame_taken.wait(), timeout)
 
     async def close(self) -> None:
+        hooks, self.close_hooks = self.close_hooks, []
+        for hook in hooks:
+            try:
+                await hook()
+            except Exception:
+                log.exception("a close hook of session %s failed", self.id)
         self._closed = True
         if self._roster_flush is not None:
             self._roster_flush.cancel()

@@ -98,13 +98,20 @@ async def start_recording(
         if not rec.running and sink in live.frame_sinks:  # capped
             live.frame_sinks.remove(sink)
 
+    async def session_closed() -> None:
+        if rec.running:  # (the server's shutdown may have ended it already)
+            await _stop(state, rec)
+
     def detach() -> tuple[int, Future[None]]:
         if sink in live.frame_sinks:
             live.frame_sinks.remove(sink)
+        if session_closed in live.close_hooks:
+            live.close_hooks.remove(session_closed)
         return live.log_event({"event": "recording_stopped", "recording": rec.id})
 
     rec.detach = detach
     live.frame_sinks.append(sink)
+    live.close_hooks.append(session_closed)  # a reaped session ends its recording
     return JSONResponse(
         rec.describe(), status_code=201, headers={"Location": f"/api/recordings/{rec.id}"}
     )

@@ -218,3 +218,38 @@ def test_bad_recording_requests_are_refused_by_name(live_server: LiveServer, bod
     r = httpx.post(f"{live_server.url}/api/sessions/default/recordings", json=body, headers=AUTH)
     assert r.status_code == 422
     assert next(iter(body)) in r.text
+
+
+def test_a_recording_ends_when_its_session_is_reaped(tmp_path: Path) -> None:
+    from tests.conftest import make_settings, start_server
+    from tests.server.peers import frame, molecule
+
+    server = start_server(make_settings(tmp_path, session_idle_s=0.4))
+    try:
+        sim = Peer(server.ws_url, "simulation", server.token, "brief")
+        topo, pos = molecule(12)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        client = httpx.Client(base_url=server.url, headers=AUTH, timeout=30)
+        wait_for(lambda: server.app_state.sessions.get("brief").topology is not None, "topology")
+        rec_id = client.post("/api/sessions/brief/recordings").json()["id"]
+        for step in range(1, 4):
+            sim.send(frame(pos + np.float32(0.1 * step), step))
+        wait_for(lambda: client.get(f"/api/recordings/{rec_id}").json()["frames"] >= 3, "frames")
+        sim.close()  # nobody left: the session is reaped
+        wait_for(lambda: server.app_state.sessions.get("brief") is None, "the reaper", 20)
+        got = wait_for(
+            lambda: (
+                (r := client.get(f"/api/recordings/{rec_id}").json())["state"] != "recording" and r
+            ),
+            "the recording to end",
+            20,
+        )
+        assert got["state"] == "finished" and got["frames"] >= 3
+        folder = server.settings.state_dir / "recordings" / rec_id
+        steps, positions = read_xtc(folder, 12)
+        assert steps[:3] == [1, 2, 3] or steps[:4] == [0, 1, 2, 3]
+        assert np.isfinite(positions).all()
+        client.close()
+    finally:
+        server.stop()
