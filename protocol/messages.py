@@ -383,6 +383,10 @@ class RenderParams(Model):
     """Remove the molecule's rigid-body motion before smoothing (a tumbling molecule is not
     smeared): each frame is fitted onto the window's first on its heavy atoms."""
 
+    def needs_history(self) -> bool:
+        """Whether a render needs the last frames too (smoothing over time, motion colours)."""
+        return self.time_smoothing != "off" or self.color_by == "motion"
+
 
 def _partial(model: type[Model], name: str) -> type[Model]:
     """`model` with every field optional (None: not set), keeping each field's constraints;

@@ -216,9 +216,7 @@ def time_window(params: p.RenderParams, n_frames: int) -> Callable[[int], tuple[
     """For temporal smoothing: the trajectory frames around output frame `i` its filter
     sees (the causal kernel: the window before it; otherwise centred on it, as the file holds
     the future too), or None without smoothing."""
-    from server.render.temporal import wanted
-
-    if not wanted(params):
+    if not params.needs_history():
         return None
     w = params.time_window
     if params.time_kernel == "causal":

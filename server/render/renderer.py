@@ -350,7 +350,7 @@ class Renderer:
         overrides the centred kernel's display lag (a batch job near a trajectory's end)."""
         if self._topology is None:
             raise RenderError("set_topology must come before set_history")
-        if not temporal.wanted(params):
+        if not params.needs_history():
             return
         if self._temporal is None:
             heavy = np.asarray([e.upper() not in ("H", "D") for e in self._topology.elements])

@@ -275,11 +275,6 @@ def motion_color_kernel(
     colors[i] = r | (g << wp.uint32(8)) | (b << wp.uint32(16)) | (wp.uint32(255) << wp.uint32(24))  # type: ignore[operator]
 
 
-def wanted(params: RenderParams) -> bool:
-    """Whether these render parameters need the frame history (smoothing or motion colours)."""
-    return params.time_smoothing != "off" or params.color_by == "motion"
-
-
 class TemporalState:
     """A renderer's temporal scale: the ring of recent frames it was fed, the filter that
     writes the shown frame into the renderer's positions, and the motion colours."""

@@ -333,10 +333,8 @@ class Session:
     def _remember(self, step: int) -> None:
         """Keep the last `time_window` frames while the render parameters smooth over time
         (or colour by motion); a jump in the steps (a replay seeked) starts them again."""
-        from server.render.temporal import wanted
-
         params = self.render_params
-        if not wanted(params):
+        if not params.needs_history():
             self._history.clear()
             self._last_step = None
             return
