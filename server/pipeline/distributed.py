@@ -25,6 +25,7 @@ import contextlib
 import logging
 import os
 import tempfile
+import threading
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -140,7 +141,9 @@ def _local(ref: Any, job: str) -> str:
     path = folder / name
     if not path.exists():
         data = ray.get(obj)
-        tmp = path.with_suffix(path.suffix + ".part")
+        # a name of its own: two actors of one host may fetch the same upload at once, and
+        # the one that renames second must not find its file gone
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.part")
         tmp.write_bytes(data)
         os.replace(tmp, path)
     return str(path)
@@ -297,7 +300,8 @@ class RayBatch:
                     next_chunk += 1
             return True
         finally:
-            for _c, _actor, ref in running.values():
+            for fut, (_c, _actor, ref) in running.items():
+                fut.add_done_callback(_consume)  # the outcome of a chunk nobody waits for
                 with contextlib.suppress(Exception):
                     ray.cancel(ref)
 
@@ -311,6 +315,11 @@ class RayBatch:
                 ray.kill(actor)
         self._actors = []
         self._started = False
+
+
+def _consume(fut: asyncio.Future[Any]) -> None:
+    if not fut.cancelled():
+        fut.exception()
 
 
 def upload_refs(paths: Sequence[Path]) -> list[Any]:

@@ -112,7 +112,10 @@ def test_cancel_frees_the_workers_and_bad_input_fails_with_its_reason(
     job = submit(on_ray, width="320", height="240")
     wait(on_ray, job, ("running",))
     deadline = time.monotonic() + 120
-    while httpx.get(f"{on_ray.url}/api/jobs/{job}", headers=AUTH).json()["progress"]["done"] < 1:
+    while (info := httpx.get(f"{on_ray.url}/api/jobs/{job}", headers=AUTH).json())["progress"][
+        "done"
+    ] < 1:
+        assert info["state"] == "running", info  # a failure says why at once
         assert time.monotonic() < deadline, "no frame rendered"
         time.sleep(0.1)
     t0 = time.monotonic()  # the workers are busy rendering: /healthz still answers at once
