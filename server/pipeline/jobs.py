@@ -238,10 +238,6 @@ class JobError(Exception):
     """A job input problem reported to the user as the job's failure reason."""
 
 
-class _Finished(Exception):  # noqa: N818 - control flow: the Ray path wrote the whole output
-    pass
-
-
 class JobManager:
     MAX_RESTARTS = 2
     """A job found unfinished after this many restarts fails instead of starting again (its
@@ -439,6 +435,62 @@ class JobManager:
         async with self._running:
             await self._render(job)
 
+    async def _render_here(
+        self,
+        job: Job,
+        structure: IsolatedStructure,
+        indices: list[int],
+        writer: FrameWriter,
+    ) -> bool:
+        """Render the frames on this server's GPU queue, in order, into `writer`; False when
+        the job was cancelled before the last frame."""
+        spec = job.spec
+        slot = f"job:{job.id}"
+        loop = asyncio.get_running_loop()
+        camera = spec.camera
+        topology = structure.topology
+        frames = _FrameCache(structure)
+        window = time_window(spec.params, structure.n_frames)
+        for n, index in enumerate(indices):
+            if job.cancel.is_set():
+                return False
+            positions = await frames.get(index)
+            if camera is None:
+                from server.render.camera import fit_camera
+
+                camera = fit_camera(positions, spec.width, spec.height)
+            history: tuple[tuple[int, Any], ...] = ()
+            lag = None
+            if window is not None:
+                first, last = window(index)
+                history = tuple([(i + 1, await frames.get(i)) for i in range(first, last + 1)])
+                lag = last - index
+                frames.forget_before(first)
+            snapshot = Snapshot(
+                topology,
+                positions,
+                positions_id=n + 1,
+                step=index,
+                history=history,
+                history_epoch=index,  # each frame its own window: chunks render the same
+                live=False,
+                lag=lag,
+            )
+            out = await self.gpu.render(
+                RenderRequest(slot, snapshot, spec.params, camera, spec.width, spec.height)
+            )
+            rgba = out.rgba
+            if spec.overlay is not None:
+                rgba = await loop.run_in_executor(
+                    self.encoders, draw_overlay, rgba, index, spec.overlay, camera, positions
+                )
+            png = None
+            if isinstance(writer, ZipWriter):
+                png, _ms = await loop.run_in_executor(self.encoders, encode_image, rgba, "png")
+            await loop.run_in_executor(self.encoders, writer.add, index, rgba, png)
+            job.done = n + 1
+        return True
+
     async def _render(self, job: Job) -> None:
         spec = job.spec
         slot = f"job:{job.id}"
@@ -467,7 +519,6 @@ class JobManager:
                     f"the frame range selects no frames (the trajectory has {structure.n_frames})"
                 )
             job.total = len(indices)
-            camera = spec.camera
             suffix = "zip" if spec.output == "zip" else "mp4"
             final = self.directory / f"{job.id}.{suffix}"
             if spec.output == "zip":
@@ -477,59 +528,14 @@ class JobManager:
                     self.encoders, Mp4Writer, final, spec.fps, spec.width, spec.height
                 )
             if self.batch is not None:
-                if not await self._render_on_ray(job, structure, indices, writer):
-                    outcome = JobState.CANCELLED
-                else:
-                    await loop.run_in_executor(self.encoders, writer.close)
-                    result = final
-                raise _Finished
-            topology = structure.topology
-            frames = _FrameCache(structure)
-            window = time_window(spec.params, structure.n_frames)
-            for n, index in enumerate(indices):
-                if job.cancel.is_set():
-                    outcome = JobState.CANCELLED
-                    break
-                positions = await frames.get(index)
-                if camera is None:
-                    from server.render.camera import fit_camera
-
-                    camera = fit_camera(positions, spec.width, spec.height)
-                history: tuple[tuple[int, Any], ...] = ()
-                lag = None
-                if window is not None:
-                    first, last = window(index)
-                    history = tuple([(i + 1, await frames.get(i)) for i in range(first, last + 1)])
-                    lag = last - index
-                    frames.forget_before(first)
-                snapshot = Snapshot(
-                    topology,
-                    positions,
-                    positions_id=n + 1,
-                    step=index,
-                    history=history,
-                    history_epoch=index,  # each frame its own window: chunks render the same
-                    live=False,
-                    lag=lag,
-                )
-                out = await self.gpu.render(
-                    RenderRequest(slot, snapshot, spec.params, camera, spec.width, spec.height)
-                )
-                rgba = out.rgba
-                if spec.overlay is not None:
-                    rgba = await loop.run_in_executor(
-                        self.encoders, draw_overlay, rgba, index, spec.overlay, camera, positions
-                    )
-                png = None
-                if isinstance(writer, ZipWriter):
-                    png, _ms = await loop.run_in_executor(self.encoders, encode_image, rgba, "png")
-                await loop.run_in_executor(self.encoders, writer.add, index, rgba, png)
-                job.done = n + 1
-            if outcome is JobState.DONE:
+                completed = await self._render_on_ray(job, structure, indices, writer)
+            else:
+                completed = await self._render_here(job, structure, indices, writer)
+            if completed:
                 await loop.run_in_executor(self.encoders, writer.close)
                 result = final
-        except _Finished:
-            pass
+            else:
+                outcome = JobState.CANCELLED
         except JobError as exc:
             outcome, error = JobState.FAILED, str(exc)
         except asyncio.CancelledError:
