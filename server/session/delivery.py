@@ -143,18 +143,26 @@ class Delivery:
                 services.metrics.frames_dropped.inc()
                 return
             now = time.monotonic()
-            # frame rate follows the links: skip when none of the stream's viewers is ready
-            takers = [c for c in clients if c.link.ready(now) or c.link.stalled(now)]
-            if not takers and not stream.want_key:
+            # frame rate follows the links: encode only for viewers ready for a frame (nothing
+            # waiting in their send queue, their link not full), else skip this render
+            takers = [c for c in clients if c.video_queued == 0 and c.link.ready(now)]
+            if not takers:
                 for client in clients:  # drawn once the link is ready again (`on_frame_ack`)
                     client.needs_image = True
                     services.metrics.frames_dropped.inc()
                 return
+            # a keyframe when a ready viewer waits for one (it joined, or lost frames)
+            key = any(c.awaiting_key for c in takers)
             loop = asyncio.get_running_loop()
             kbps = self.streams.kbps(stream)
             try:
                 frame = await loop.run_in_executor(
-                    services.encoders, stream.encode, rendered.out.rgba, kbps, rendered.stream_size
+                    services.encoders,
+                    stream.encode,
+                    rendered.out.rgba,
+                    kbps,
+                    rendered.stream_size,
+                    key,
                 )
             except Exception as exc:
                 log.warning(
@@ -192,9 +200,9 @@ class Delivery:
                 packed[ref] = p.encode(base.model_copy(update={"ref": ref}))
             offer = client.offer_video(stream.stream_id, rendered.image_id, packed[ref], frame.key)
             if offer is ImageOffer.OVERFLOW:
-                # a link that cannot keep up: a lower rung (a stream of its own) or a keyframe
+                # a link that cannot keep up: a lower rung (a stream of its own), and a
+                # keyframe once it is ready again
                 client.link.overflowed(time.monotonic())
-                stream.want_key = True
                 services.metrics.frames_dropped.inc()
             elif offer is ImageOffer.WAITING:
                 services.metrics.frames_dropped.inc()

@@ -48,6 +48,7 @@ class LinkEstimate:
     _last_cut: float = float("-inf")
     _last_raise: float = float("-inf")
     _clean_since: float | None = None
+    _last_probe: float = float("-inf")
     _late: int = 0
     """Acks in a row whose round trip showed a queue (one alone may be a hiccup)."""
     acked: int = 0
@@ -56,6 +57,8 @@ class LinkEstimate:
     # ---------------------------------------------------------------- events
 
     def on_sent(self, frame_id: int, nbytes: int, now: float) -> None:
+        if len(self._in_flight) >= 64:  # acks that never come (a stalled viewer) are forgotten
+            del self._in_flight[min(self._in_flight)]
         self._in_flight[frame_id] = (now, nbytes)
         self.sent += 1
         if self._clean_since is None:
@@ -106,8 +109,14 @@ class LinkEstimate:
         return max((now - t for t, _ in self._in_flight.values()), default=0.0)
 
     def ready(self, now: float) -> bool:
-        """Whether another frame may go now (else the viewer skips this one)."""
+        """Whether another frame may go now (else the viewer skips this one). A viewer whose
+        acks stopped (a stalled link, a script that does not ack) gets one a second."""
         if not self._in_flight:
+            return True
+        if self.stalled(now):
+            if now - self._last_probe < 1.0:
+                return False
+            self._last_probe = now
             return True
         if len(self._in_flight) >= self.max_in_flight:
             self._cut(now)
@@ -118,8 +127,7 @@ class LinkEstimate:
         return True
 
     def stalled(self, now: float, after_s: float = 2.0) -> bool:
-        """Nothing acknowledged for `after_s` while frames are out: a viewer that does not ack
-        (an old script) is not throttled forever; its frames flow as the socket takes them."""
+        """Nothing acknowledged for `after_s` while frames are out."""
         return bool(self._in_flight) and self.oldest_age(now) > after_s
 
     def overflowed(self, now: float) -> None:

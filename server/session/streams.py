@@ -4,7 +4,7 @@ Viewers that see the same view (camera and canvas), decode the same codec and wh
 the same bit-rate rung share one stream: one encode serves them all. A viewer whose link is
 slower lands on a lower rung and so on a stream of its own; a viewer with its own camera has its
 own. A viewer that joins a stream (it connected, its rung or view changed) gets a keyframe on
-that stream's next frame, and nothing of the stream before it.
+that stream's next frame it is ready for, and nothing of the stream before it.
 """
 
 from __future__ import annotations
@@ -41,7 +41,6 @@ class VideoStream:
     kbps: float
     members: set[str] = field(default_factory=set)
     """Clients that got this stream's last keyframe (or joined and wait for the next one)."""
-    want_key: bool = True
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     """Held while a frame encodes: frames go into the encoder in the order they rendered."""
     last_used: float = 0.0
@@ -51,10 +50,10 @@ class VideoStream:
     _encoder: VideoEncoder | None = None
 
     def encode(
-        self, rgba: npt.NDArray[np.uint8], kbps: float, size: tuple[int, int]
+        self, rgba: npt.NDArray[np.uint8], kbps: float, size: tuple[int, int], key: bool
     ) -> EncodedFrame:
-        """Encode one frame at `size` (runs in an encoder thread, under `lock`); a new size or
-        bit rate opens a new encoder, which starts with a keyframe."""
+        """Encode one frame at `size` (runs in an encoder thread, under `lock`); `key` asks for
+        a keyframe. A new size or bit rate opens a new encoder, which starts with one."""
         w, h = size
         enc = self._encoder
         if enc is None or (enc.width, enc.height) != (w, h) or enc.kbps != kbps:
@@ -62,8 +61,6 @@ class VideoStream:
                 enc.close()
             enc = self._encoder = VideoEncoder(self.codec, self.encoder_name, w, h, kbps)
             self.kbps = kbps
-            self.want_key = True
-        key, self.want_key = self.want_key, False
         return enc.encode(rgba, key=key)
 
     def close(self) -> None:
@@ -114,8 +111,7 @@ class VideoStreams:
             for other in self._streams.values():
                 other.members.discard(client.client_id)
             stream.members.add(client.client_id)
-            stream.want_key = True
-            client.join_stream(stream.stream_id)
+            client.join_stream(stream.stream_id)  # it waits for a keyframe
         stream.last_used = now
         return stream
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections import deque
 from typing import Any, TypeVar
 
 import numpy as np
@@ -124,7 +125,7 @@ def frame(positions: np.ndarray, step: int, **observables: float) -> p.Frame:
 class VideoViewer:
     """A viewer that decodes what it is sent, as the browser does: video frames with FFmpeg's
     decoders (one decoder per stream, started at its keyframe) and acknowledged once decoded,
-    JPEG stills with Pillow. `frames` keeps (image message, RGB pixels) in arrival order."""
+    JPEG stills with Pillow. `frames` keeps the last 64 (image message, RGB pixels)."""
 
     def __init__(
         self,
@@ -140,7 +141,7 @@ class VideoViewer:
     ) -> None:
         self.peer = Peer(url, role, token, session)
         self.ack = ack
-        self.frames: list[tuple[p.Image, np.ndarray]] = []
+        self.frames: deque[tuple[p.Image, np.ndarray]] = deque(maxlen=64)
         self._decoder: Any = None
         self._stream: int | None = None
         self.view(size, video, camera)

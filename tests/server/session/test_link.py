@@ -88,7 +88,10 @@ def test_overflow_halves_and_a_silent_viewer_is_not_throttled_for_ever() -> None
         link.on_sent(i, 1000, 0.01 * i)
     assert not link.ready(0.1)
     assert not link.stalled(1.0)
-    assert link.stalled(2.5)
+    # acks stopped: one frame a second still goes (a probe), no more
+    assert link.stalled(2.5) and link.ready(2.5)
+    assert not link.ready(3.0)
+    assert link.ready(3.6)
     link.forget_in_flight()
     assert link.ready(2.5) and link.in_flight() == 0
 

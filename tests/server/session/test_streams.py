@@ -25,12 +25,12 @@ def test_viewers_of_one_view_share_a_stream_and_a_joiner_forces_a_keyframe() -> 
     a, b = viewer("a"), viewer("b")
     cam = p.Camera().model_dump_json()
     sa = streams.stream_for(a, "h264", cam, 0.0)
-    sa.want_key = False  # its first keyframe went out
+    assert a.awaiting_key
+    a.awaiting_key = False  # its first keyframe went out
     sb = streams.stream_for(b, "h264", cam, 0.1)
-    assert sb is sa and sa.members == {"a", "b"} and sa.want_key
-    assert b.video_stream == sa.stream_id and b.awaiting_key
-    sa.want_key = False
-    assert streams.stream_for(a, "h264", cam, 0.2) is sa and not sa.want_key  # no rejoin
+    assert sb is sa and sa.members == {"a", "b"}
+    assert b.video_stream == sa.stream_id and b.awaiting_key  # the next frame it takes: a key
+    assert streams.stream_for(a, "h264", cam, 0.2) is sa and not a.awaiting_key  # no rejoin
 
 
 def test_own_camera_own_size_or_slower_link_means_own_stream() -> None:
