@@ -143,9 +143,11 @@ class Delivery:
                 services.metrics.frames_dropped.inc()
                 return
             now = time.monotonic()
-            # frame rate follows the links: encode only for viewers ready for a frame (nothing
-            # waiting in their send queue, their link not full), else skip this render
-            takers = [c for c in clients if c.video_queued == 0 and c.link.ready(now)]
+            # frame rate follows the links: encode only for viewers ready for a frame (at most
+            # the last one still waiting to be written, their link not full), else skip this
+            # render. (The last frame's offer may not have reached its socket yet: its sender
+            # runs after this task, so one queued frame is no sign of a slow viewer.)
+            takers = [c for c in clients if c.video_queued <= 1 and c.link.ready(now)]
             if not takers:
                 for client in clients:  # drawn once the link is ready again (`on_frame_ack`)
                     client.needs_image = True
