@@ -3,7 +3,9 @@
 Control messages (state, acks, errors) are queued in order; images go through a slot of depth
 one where the newest replaces an unsent older one, so a slow client only loses its own frames
 and never holds anyone else up. Images are encoded in parallel and may finish out of order, so
-the slot refuses an image older than one the client already got.
+the slot refuses an image older than one the client already got. Video frames go through a
+short queue instead (each depends on the one before): every frame of the client's stream, in
+order, and a client that lets 4 pile up loses them and restarts at a keyframe.
 """
 
 from __future__ import annotations

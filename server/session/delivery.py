@@ -111,22 +111,35 @@ class Delivery:
     def leave(self, client: Client) -> None:
         self.streams.leave(client.client_id)
 
-    def _base(self, rendered: Rendered, fmt: str, data: bytes, encode_ms: float) -> p.Image:
+    def _packer(
+        self, rendered: Rendered, fmt: str, data: bytes, encode_ms: float, **video: Any
+    ) -> Callable[[int | None], bytes]:
+        """The image message of an encode, packed once per `ref` it is sent with (viewers that
+        echo the same ref share the bytes). `video` adds a video frame's fields."""
         out = rendered.out
         hist = p.WireArray.from_numpy(out.histogram, "<f4") if out.histogram is not None else None
-        return p.Image(
-            frame_id=rendered.image_id,
-            step=rendered.step,
-            format=fmt,
-            data=data,
-            width=rendered.width,
-            height=rendered.height,
-            still=rendered.still,
-            render_ms=out.timings.get("total", 0.0),
-            encode_ms=encode_ms,
-            server_time=time.time(),
-            histogram=hist,
-        )
+        fields: dict[str, Any] = {
+            "frame_id": rendered.image_id,
+            "step": rendered.step,
+            "format": fmt,
+            "data": data,
+            "width": rendered.width,
+            "height": rendered.height,
+            "still": rendered.still,
+            "render_ms": out.timings.get("total", 0.0),
+            "encode_ms": encode_ms,
+            "server_time": time.time(),
+            "histogram": hist,
+            **video,
+        }
+        packed: dict[int | None, bytes] = {}
+
+        def pack(ref: int | None) -> bytes:
+            if ref not in packed:
+                packed[ref] = p.encode(p.Image(ref=ref, **fields))
+            return packed[ref]
+
+        return pack
 
     async def _encode_video(
         self,
@@ -183,24 +196,22 @@ class Delivery:
                 return
         services.metrics.encode_ms.observe(frame.encode_ms)
         self.last_encode_ms = frame.encode_ms
-        base = self._base(rendered, FORMAT[stream.codec], frame.data, frame.encode_ms)
-        base = base.model_copy(
-            update={
-                "width": rendered.stream_size[0],
-                "height": rendered.stream_size[1],
-                "codec": WEBCODECS[stream.codec],
-                "key": frame.key,
-                "stream": stream.stream_id,
-                "bitrate_kbps": kbps,
-                "encoder": stream.encoder_name,
-            }
+        pack = self._packer(
+            rendered,
+            FORMAT[stream.codec],
+            frame.data,
+            frame.encode_ms,
+            width=rendered.stream_size[0],
+            height=rendered.stream_size[1],
+            codec=WEBCODECS[stream.codec],
+            key=frame.key,
+            stream=stream.stream_id,
+            bitrate_kbps=kbps,
+            encoder=stream.encoder_name,
         )
-        packed: dict[int | None, bytes] = {}
         for client in clients:
-            ref = refs.get(client.client_id)
-            if ref not in packed:
-                packed[ref] = p.encode(base.model_copy(update={"ref": ref}))
-            offer = client.offer_video(stream.stream_id, rendered.image_id, packed[ref], frame.key)
+            data = pack(refs.get(client.client_id))
+            offer = client.offer_video(stream.stream_id, rendered.image_id, data, frame.key)
             if offer is ImageOffer.OVERFLOW:
                 # a link that cannot keep up: a lower rung (a stream of its own), and a
                 # keyframe once it is ready again
@@ -257,13 +268,9 @@ class Delivery:
             return
         self.last_encode_ms = encode_ms
         services.metrics.encode_ms.observe(encode_ms)
-        base = self._base(rendered, "jpeg", data, encode_ms)
-        packed: dict[int | None, bytes] = {}  # viewers that echo the same ref share the bytes
+        pack = self._packer(rendered, "jpeg", data, encode_ms)
         for client in members:
-            ref = refs.get(client.client_id)
-            if ref not in packed:
-                packed[ref] = p.encode(base.model_copy(update={"ref": ref}))
-            match client.offer_encoded(rendered.image_id, packed[ref]):
+            match client.offer_encoded(rendered.image_id, pack(refs.get(client.client_id))):
                 case ImageOffer.REPLACED:
                     services.metrics.frames_dropped.inc()
                 case ImageOffer.STALE:
