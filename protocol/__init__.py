@@ -8,6 +8,7 @@ from protocol.codec import decode, encode, error_message, unpack, validate
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import (
+    MAX_LAYERS,
     MESSAGE_TYPES,
     PROTOCOL_VERSION,
     AnyMessage,
@@ -22,6 +23,7 @@ from protocol.messages import (
     FrameAck,
     Hello,
     Image,
+    Layer,
     Legend,
     LegendEntry,
     Lighting,
@@ -36,6 +38,8 @@ from protocol.messages import (
     PullLimits,
     RenderParams,
     Role,
+    Select,
+    Selected,
     SetRenderParams,
     SimParams,
     SimStatus,
@@ -51,6 +55,7 @@ from protocol.messages import (
 
 __all__ = [
     "DEFAULT_LIMITS",
+    "MAX_LAYERS",
     "MESSAGE_TYPES",
     "PROTOCOL_VERSION",
     "AnyMessage",
@@ -66,6 +71,7 @@ __all__ = [
     "FrameAck",
     "Hello",
     "Image",
+    "Layer",
     "Legend",
     "LegendEntry",
     "Lighting",
@@ -82,6 +88,8 @@ __all__ = [
     "PullLimits",
     "RenderParams",
     "Role",
+    "Select",
+    "Selected",
     "SetRenderParams",
     "SimParams",
     "SimStatus",

@@ -15,7 +15,7 @@ from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
 from protocol.limits import Limits
 
-PROTOCOL_VERSION = "1.4"
+PROTOCOL_VERSION = "1.5"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -341,6 +341,37 @@ ColorBy = Literal["element", "residue", "chain", "uniform", "bfactor", "charge",
 TFPreset = Literal["cloud", "shells", "iso-like"]
 
 
+MAX_LAYERS = 8
+LAYER_OVERRIDES = (
+    "mode", "sigma_A", "iso_level", "scale_space", "color_by", "uniform_color", "tf_preset",
+)  # fmt: skip
+SelectionText = Annotated[str, Field(min_length=1, max_length=2048)]
+
+
+class Layer(Model):
+    """One part of the system drawn its own way: the atoms `selection` names (MDAnalysis
+    selection language, evaluated on the server against the session's topology) at their own
+    scale. A field left None takes the session's value (`RenderParams`), so a client that
+    only knows the single-layer fields still steers every layer that does not set its own."""
+
+    name: Annotated[str, Field(max_length=64)] = ""
+    selection: SelectionText = "all"
+    visible: bool = True
+    mode: Literal["iso", "volume"] | None = None
+    sigma_A: Annotated[float, Field(ge=0.05, le=50, allow_inf_nan=False)] | None = None
+    iso_level: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] | None = None
+    scale_space: Literal["classical", "warped"] | None = None
+    color_by: ColorBy | None = None
+    uniform_color: RGB | None = None
+    tf_preset: TFPreset | None = None
+    opacity: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 1.0
+    """Below 1 the layer is translucent: it blends over what lies behind it, in depth order."""
+
+    def overrides(self) -> dict[str, Any]:
+        """The session fields this layer sets for itself."""
+        return {k: getattr(self, k) for k in LAYER_OVERRIDES if getattr(self, k) is not None}
+
+
 class RenderParams(Model):
     """How the density is built and shown; shared by every viewer of a session.
 
@@ -382,6 +413,10 @@ class RenderParams(Model):
     rigid_fit: bool = False
     """Remove the molecule's rigid-body motion before smoothing (a tumbling molecule is not
     smeared): each frame is fitted onto the window's first on its heavy atoms."""
+    layers: list[Layer] = Field(default_factory=list, max_length=MAX_LAYERS)
+    """Parts of the system each drawn at its own scale, in one image (surfaces occlude each
+    other, translucent layers blend in depth order); empty: every atom, with the fields above.
+    A patch that names `layers` replaces the whole list."""
 
     def needs_history(self) -> bool:
         """Whether a render needs the last frames too (smoothing over time, motion colours)."""
@@ -441,6 +476,29 @@ class Picked(Message):
     chain: str = ""
     position: Vec3 | None = None
     depth: FiniteFloat | None = None
+    layer: Annotated[str, Field(max_length=64)] = ""
+    """The name of the layer the atom was picked in (empty without layers)."""
+
+
+class Select(Message):
+    """V->*: how many atoms does `text` select now? (Checked as a layer would be; nothing
+    changes.) Answered by `selected`."""
+
+    type: Literal["select"] = "select"
+    text: Annotated[str, Field(max_length=2048)]
+
+
+class Selected(Message):
+    """*->V: the answer to `select` (`ref`): the atom count, or why the text is invalid and
+    where (`position`, a 0-based character offset)."""
+
+    type: Literal["selected"] = "selected"
+    ref: Seq | None = None
+    text: Annotated[str, Field(max_length=2048)] = ""
+    count: Annotated[int, Field(ge=0)] | None = None
+    error: Annotated[str, Field(max_length=1024)] = ""
+    position: Annotated[int, Field(ge=0)] | None = None
+    dynamic: bool = False
 
 
 class Image(Message):
@@ -602,6 +660,8 @@ AnyMessage = Annotated[
     | SetRenderParams
     | Pick
     | Picked
+    | Select
+    | Selected
     | Image
     | FrameAck
     | State
@@ -631,6 +691,8 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         SetRenderParams,
         Pick,
         Picked,
+        Select,
+        Selected,
         Image,
         FrameAck,
         State,

@@ -78,19 +78,26 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
     from server.pipeline.encoder import encode_image
     from server.pipeline.jobs import time_window
     from server.pipeline.overlay import draw_overlay
+    from server.pipeline.selections import FrameLayers
     from server.render import Renderer
+    from server.render.layers import LayeredRenderer
     from structures.reader import load
 
     if state.get("job") != inputs.job:
         state.clear()
         files = [_local(f, inputs.job) for f in (inputs.topology, *inputs.trajectories)]
         structure = load(files[0], files[1:])
-        renderer = Renderer(state_device_name())
+        device = state_device_name()
+        renderer = Renderer(device)
         renderer.set_topology(structure.topology)
         renderer.set_positions(structure.positions(inputs.reference))
-        state.update(job=inputs.job, structure=structure, renderer=renderer, cache={})
+        layered = LayeredRenderer(lambda: Renderer(device))
+        state.update(
+            job=inputs.job, structure=structure, renderer=renderer, layered=layered, cache={}
+        )
     structure, renderer, cache = state["structure"], state["renderer"], state["cache"]
     params = p.RenderParams.model_validate(inputs.params)
+    layers = FrameLayers(params, structure.topology)
     camera = p.Camera.model_validate(inputs.camera)
     window = time_window(params, inputs.n_frames)
 
@@ -104,13 +111,26 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
     out: list[tuple[int, bytes | None, bytes | None]] = []
     for index in indices:
         positions = frame(index)
-        renderer.set_positions(positions, check_finite=False)
+        history: list[tuple[int, Any]] = []
+        lag = None
         if window is not None:
             first, last = window(index)
             history = [(i + 1, frame(i)) for i in range(first, last + 1)]
-            renderer.set_history(history, index, params, live=False, lag=last - index)
-        renderer.render(params, camera, inputs.width, inputs.height)
-        rgba = renderer.read_rgba()
+            lag = last - index
+        plans = layers.plans(positions, index)
+        if plans is not None:
+            layered = state["layered"]
+            layered.render(
+                plans, structure.topology, 1, positions, index + 1, camera, inputs.width,
+                inputs.height, history=history, history_epoch=index, live=False, lag=lag,
+            )  # fmt: skip
+            rgba = layered.read_rgba()
+        else:
+            renderer.set_positions(positions, check_finite=False)
+            if history:
+                renderer.set_history(history, index, params, live=False, lag=lag)
+            renderer.render(params, camera, inputs.width, inputs.height)
+            rgba = renderer.read_rgba()
         if inputs.overlay is not None:
             rgba = draw_overlay(rgba, index, inputs.overlay, camera, positions)
         if inputs.png:

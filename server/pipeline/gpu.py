@@ -22,6 +22,8 @@ import protocol as p
 
 if TYPE_CHECKING:
     from server.render import Renderer
+    from server.render.layerplan import LayerPlan
+    from server.render.layers import LayeredRenderer
     from server.render.multi import MultiRenderer
 
 T = TypeVar("T")
@@ -63,6 +65,9 @@ class RenderRequest:
     width: int
     height: int
     histogram: bool = False
+    layers: tuple[LayerPlan, ...] | None = None
+    """The visible layers, their selections evaluated (None: every atom, drawn the single way
+    `params` says)."""
 
 
 @dataclass
@@ -77,6 +82,7 @@ class _Slot:
     renderer: Renderer | MultiRenderer
     topology_id: int = -1
     positions_id: int = -1
+    layered: LayeredRenderer | None = None
 
 
 @dataclass
@@ -100,8 +106,10 @@ class GpuQueue:
     async def render(self, request: RenderRequest) -> RenderOutput:
         return await self.call(self.render_sync, request)
 
-    async def pick(self, request: RenderRequest, x: int, y: int) -> tuple[int | None, float | None]:
-        """The atom and depth at pixel (x, y) of the image `request` draws."""
+    async def pick(
+        self, request: RenderRequest, x: int, y: int
+    ) -> tuple[int | None, float | None, str | None]:
+        """The atom, depth and layer name at pixel (x, y) of the image `request` draws."""
         return await self.call(self.pick_sync, request, x, y)
 
     async def release(self, slot: str) -> None:
@@ -128,9 +136,11 @@ class GpuQueue:
             slot = self._slots[key] = _Slot(renderer)
         return slot
 
-    def _prepare(self, request: RenderRequest) -> Renderer | MultiRenderer:
+    def _prepare(self, request: RenderRequest) -> Renderer | MultiRenderer | LayeredRenderer:
         slot = self._slot(request.slot)
         snap = request.snapshot
+        if request.layers is not None:
+            return self._prepare_layers(slot, request)
         if slot.topology_id != snap.topology_id:
             slot.renderer.set_topology(snap.topology)
             slot.topology_id = snap.topology_id
@@ -147,6 +157,36 @@ class GpuQueue:
         renderer.render(request.params, request.camera, request.width, request.height)
         return renderer
 
+    def _prepare_layers(self, slot: _Slot, request: RenderRequest) -> LayeredRenderer:
+        """Draw `request`'s layers, each with a renderer of its own on the slot's device."""
+        assert request.layers is not None
+        if slot.layered is None:
+            from server.render import Renderer
+            from server.render.layers import LayeredRenderer
+
+            device = self.devices[0] if self.devices else self.device
+            slot.layered = LayeredRenderer(
+                lambda: Renderer(
+                    device=device, max_atoms=self.max_atoms, max_pixels=self.max_pixels
+                )
+            )
+        snap = request.snapshot
+        slot.layered.render(
+            request.layers,
+            snap.topology,
+            snap.topology_id,
+            snap.positions,
+            snap.positions_id,
+            request.camera,
+            request.width,
+            request.height,
+            history=snap.history,
+            history_epoch=snap.history_epoch,
+            live=snap.live,
+            lag=snap.lag,
+        )
+        return slot.layered
+
     def render_sync(self, request: RenderRequest) -> RenderOutput:
         renderer = self._prepare(request)
         rgba = renderer.read_rgba()
@@ -156,8 +196,13 @@ class GpuQueue:
             hist = np.asarray(counts, dtype=np.float32)
         return RenderOutput(rgba=rgba, timings=dict(renderer.timings), histogram=hist)
 
-    def pick_sync(self, request: RenderRequest, x: int, y: int) -> tuple[int | None, float | None]:
-        return self._prepare(request).pick(x, y)
+    def pick_sync(
+        self, request: RenderRequest, x: int, y: int
+    ) -> tuple[int | None, float | None, str | None]:
+        if request.layers is not None:
+            return self._prepare_layers(self._slot(request.slot), request).pick_layer(x, y)
+        atom, depth = self._prepare(request).pick(x, y)
+        return atom, depth, None
 
     def release_sync(self, slot: str) -> None:
         self._slots.pop(slot, None)

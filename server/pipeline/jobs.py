@@ -37,11 +37,13 @@ from server.pipeline.encoder import encode_image
 from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
 from server.pipeline.overlay import draw_overlay
+from server.pipeline.selections import FrameLayers
 from structures.isolated import IsolatedStructure, ReadLimits
 
 if TYPE_CHECKING:
     from server.pipeline.distributed import RayBatch
 from structures.reader import StructureError
+from structures.selection import SelectionError
 
 log = logging.getLogger("scalesteer.jobs")
 
@@ -451,14 +453,22 @@ class JobManager:
         topology = structure.topology
         frames = _FrameCache(structure)
         window = time_window(spec.params, structure.n_frames)
+        layers = FrameLayers(spec.params, topology)
         for n, index in enumerate(indices):
             if job.cancel.is_set():
                 return False
             positions = await frames.get(index)
+            try:
+                plans = layers.plans(positions, index)
+            except SelectionError as exc:
+                raise JobError(f"params.layers: {exc}") from None
             if camera is None:
                 from server.render.camera import fit_camera
+                from server.render.layerplan import visible_atoms
 
-                camera = fit_camera(positions, spec.width, spec.height)
+                shown = visible_atoms(plans, topology.n_atoms)
+                fit = positions[shown] if len(shown) else positions
+                camera = fit_camera(fit, spec.width, spec.height)
             history: tuple[tuple[int, Any], ...] = ()
             lag = None
             if window is not None:
@@ -477,7 +487,9 @@ class JobManager:
                 lag=lag,
             )
             out = await self.gpu.render(
-                RenderRequest(slot, snapshot, spec.params, camera, spec.width, spec.height)
+                RenderRequest(
+                    slot, snapshot, spec.params, camera, spec.width, spec.height, layers=plans
+                )
             )
             rgba = out.rgba
             if spec.overlay is not None:
@@ -579,12 +591,15 @@ class JobManager:
         camera = spec.camera
         if camera is None:
             from server.render.camera import fit_camera
+            from server.render.layerplan import visible_atoms
 
             try:
                 first = await asyncio.to_thread(structure.positions, indices[0])
-            except StructureError as exc:
+                plans = FrameLayers(spec.params, structure.topology).plans(first, indices[0])
+            except (StructureError, SelectionError) as exc:
                 raise JobError(str(exc)) from None
-            camera = fit_camera(first, spec.width, spec.height)
+            shown = visible_atoms(plans, structure.topology.n_atoms)
+            camera = fit_camera(first[shown] if len(shown) else first, spec.width, spec.height)
         files = [spec.topology, *spec.trajectories]
         if spec.workdir is not None:  # uploads: through the object store
             await self.batch.ensure()

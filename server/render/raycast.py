@@ -94,6 +94,9 @@ class Shading:
     ao_step: float
     iso: float
     depth_cue: float
+    coverage: int
+    """1: write coverage to the alpha byte over no background (premultiplied colour), for
+    images that are composited with others (layers); 0: an opaque image over the background."""
 
 
 @wp.struct
@@ -277,6 +280,14 @@ def pack_rgba(c: wp.vec3) -> wp.uint32:
     g = wp.uint32(wp.clamp(c[1], 0.0, 1.0) * 255.0 + 0.5)
     b = wp.uint32(wp.clamp(c[2], 0.0, 1.0) * 255.0 + 0.5)
     return r | (g << wp.uint32(8)) | (b << wp.uint32(16)) | (wp.uint32(255) << wp.uint32(24))
+
+
+@wp.func
+@no_type_check
+def pack_premultiplied(c: wp.vec3, a: float) -> wp.uint32:
+    """A premultiplied colour with its coverage `a` in the alpha byte."""
+    rgb = pack_rgba(c) & wp.uint32(0x00FFFFFF)
+    return rgb | (wp.uint32(wp.clamp(a, 0.0, 1.0) * 255.0 + 0.5) << wp.uint32(24))
 
 
 @wp.func
@@ -855,6 +866,8 @@ def _make(
         s_hit = hit_k[pix]
         if s_hit == _NO_HIT:
             rgba[pix] = pack_rgba(sh.background)
+            if sh.coverage != 0:
+                rgba[pix] = wp.uint32(0)
             depth[pix] = wp.inf
             ids[pix] = -1
             return
@@ -979,7 +992,10 @@ def _make(
                                 if alpha >= _STOP_ALPHA:
                                     active = 0
                     k += 4
-        rgba[pix] = pack_rgba(acc + sh.background * (1.0 - alpha))
+        if sh.coverage != 0:
+            rgba[pix] = pack_premultiplied(acc, alpha)
+        else:
+            rgba[pix] = pack_rgba(acc + sh.background * (1.0 - alpha))
         depth[pix] = t_depth
         atom = wp.int32(-1)
         if t_depth < wp.inf:

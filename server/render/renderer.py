@@ -139,6 +139,8 @@ class Renderer:
         self.empty_space_skipping = bool(empty_space_skipping)
         self.march_budget = march_budget
         self.split_lanes = int(split_lanes)
+        self.coverage = False
+        """Write coverage alpha over no background (a layer composited with others)."""
         self._dev = wp.get_device(self.device)
         self._cuda = bool(self._dev.is_cuda)
         if density.field is not GaussianField:
@@ -628,6 +630,7 @@ class Renderer:
         sh.ao_step = AO_STEP_SIGMAS * d.sigma
         sh.iso = d.iso
         sh.depth_cue = float(light.depth_cue)
+        sh.coverage = int(self.coverage)
         return sh
 
     def _launch_frame(
@@ -827,6 +830,12 @@ class Renderer:
         if self._image is None:
             raise RenderError("nothing rendered yet")
         return self._image
+
+    def device_outputs(self) -> tuple[wp.array, wp.array, wp.array, int]:
+        """The last image's device buffers (packed RGBA, depth, atom ids) and its pixel count,
+        for kernels that combine images without a trip through the host."""
+        w, h = self._need_image()
+        return self._rgba, self._depth, self._ids, w * h
 
     def read_rgba(self) -> npt.NDArray[np.uint8]:
         """(height, width, 4) uint8, row 0 at the top."""

@@ -29,10 +29,12 @@ from pydantic import ValidationError
 
 import protocol as p
 from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
+from server.render.layerplan import LayerPlan, visible_atoms
 from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
 from server.session.engine_limits import check_control, check_pull, check_sim_params
 from server.session.forces import ForceBook
+from server.session.layers import LayerBook
 from server.session.roster import Roster
 from server.session.scheduler import RenderScheduler, ViewKey
 from server.session.services import Services
@@ -44,6 +46,7 @@ from server.session.steering import (
     sim_params_changes,
 )
 from server.settings import ServerSettings
+from structures.selection import SelectionError, is_dynamic
 
 log = logging.getLogger("scalesteer.session")
 
@@ -106,6 +109,7 @@ class Session:
         self.topology_id = 0
         self.positions: npt.NDArray[np.float32] | None = None
         self.positions_id = 0
+        self._box: npt.NDArray[np.float32] | None = None
         self.status = p.SimStatus(state="waiting")
         self.render_params = settings.render_defaults
         self.sim_params = p.SimParams()
@@ -123,6 +127,7 @@ class Session:
         A recording hooks its stop here, so it never stays "recording" without a session."""
         """Called with every frame the simulation sends (recordings): they must only queue."""
         self.acks = AckBook()
+        self.layers = LayerBook(self._selection_moved)
         self.scheduler = RenderScheduler(settings)
         self.delivery = Delivery(session_id, services)
         self.version = 0
@@ -242,6 +247,9 @@ class Session:
         changed = self.topology is None or self.topology.n_atoms != topology.n_atoms
         self.topology = topology
         self.topology_id += 1
+        self.layers.topology(topology, self.topology_id)
+        if self.layers.auto:
+            self._default_layers(topology)
         if changed:
             self.positions = None
             self.camera = None
@@ -254,6 +262,52 @@ class Session:
         )
         self.broadcast(p.State(sim=self.status))
         self._legend_changed()
+
+    def _default_layers(self, topology: p.Topology) -> None:
+        """Open a system on what matters: solvent and ions hidden, a ligand at a finer scale
+        (until a steerer sets layers of their own)."""
+        try:
+            layers = self.layers.defaults(topology, self.render_params.sigma_A)
+        except Exception:
+            log.exception("default layers of session %s", self.id)
+            return
+        if layers == self.render_params.layers:
+            return
+        self.render_params = self.render_params.model_copy(update={"layers": layers})
+        self.broadcast(p.State(render_params=self.render_params))
+        self.version += 1
+
+    def _selection_moved(self) -> None:
+        """A distance-based layer selection took in or let go of atoms."""
+        self.version += 1
+        self.mark_dirty()
+
+    def _layer_plans(self, snap: Snapshot) -> tuple[LayerPlan, ...] | None:
+        return self.layers.plans(
+            self.render_params, snap.topology.n_atoms, snap.positions, snap.positions_id
+        )
+
+    def select(self, client: Client, message: p.Select) -> p.Selected:
+        """Count the atoms a selection takes now (nothing changes)."""
+        if self.topology is None:
+            raise p.ProtocolError(
+                p.ErrorCode.NOT_READY, "no topology to select from yet", "select", message.seq
+            )
+        try:
+            atoms = self.layers.select(message.text, self.positions, self._box)
+        except SelectionError as exc:
+            return p.Selected(
+                ref=message.seq,
+                text=message.text,
+                error=exc.reason[:1024],
+                position=exc.position,
+            )
+        return p.Selected(
+            ref=message.seq,
+            text=message.text,
+            count=len(atoms),
+            dynamic=is_dynamic(message.text),
+        )
 
     def on_engine(self, info: p.EngineInfo) -> None:
         self.engine = info
@@ -294,18 +348,20 @@ class Session:
         rate = self._step_rate.add(now, frame.step)
         self.positions = frame.positions.to_numpy()
         self.positions_id += 1
+        self._box = None if frame.box is None else frame.box.to_numpy()
         self._remember(frame.step)
         if self.frame_sinks:
-            box = None if frame.box is None else frame.box.to_numpy()
             for sink in list(self.frame_sinks):
-                sink(frame.step, frame.time_ps, self.positions, box)
+                sink(frame.step, frame.time_ps, self.positions, self._box)
         self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
         self._frame_arrived = asyncio.Event()
         if self.camera is None:
             from server.render.camera import fit_camera
 
             w, h = self.settings.default_size
-            self.camera = fit_camera(self.positions, w, h)
+            plans = self.layers.plans(self.render_params, n, self.positions, self.positions_id)
+            shown = visible_atoms(plans, n)
+            self.camera = fit_camera(self.positions[shown] if len(shown) else self.positions, w, h)
             self.broadcast(p.State(camera=self.camera))
         paused = self.status.state == "paused"
         self.status = p.SimStatus(
@@ -489,6 +545,9 @@ class Session:
             merged, changes = merge_patch(self.render_params, message.changes())
         except ValidationError as exc:
             raise _invalid(exc, "render_params.params", message.seq) from None
+        if "layers" in changes:
+            self._check_layers(merged, message.seq)
+            self.layers.auto = False
         client.view_ref = message.seq
         if not changes:
             return
@@ -500,6 +559,22 @@ class Session:
         self.version += 1
         self.scheduler.interacting(time.monotonic())
         self.mark_dirty()
+
+    def _check_layers(self, params: p.RenderParams, seq: int | None) -> None:
+        """Every layer's selection must parse (and evaluate) on this topology; the first
+        that does not is named with the position of what is wrong, and nothing changes."""
+        if self.topology is None:
+            return  # checked when the topology arrives: an invalid one then draws nothing
+        for i, layer in enumerate(params.layers):
+            try:
+                self.layers.select(layer.selection, self.positions, self._box)
+            except SelectionError as exc:
+                raise p.ProtocolError(
+                    p.ErrorCode.INVALID_MESSAGE,
+                    f"layer {i + 1} ({layer.name or 'unnamed'}): {exc}",
+                    f"render_params.params.layers.{i}.selection",
+                    seq,
+                ) from None
 
     def _script_forces(self, client: Client, message: p.Forces, who: dict[str, str]) -> None:
         limit = self.settings.limits.max_forces
@@ -724,6 +799,7 @@ class Session:
             width=width,
             height=height,
             histogram=self.scheduler.histogram_due(key, now),
+            layers=self._layer_plans(snap),
         )
         out: RenderOutput = await self.services.backend.render(request)
         reduced = self.scheduler.note_render(
@@ -767,9 +843,10 @@ class Session:
                 pick.seq,
             )
         pw, ph = self.scheduler.pick_size(w, h)
-        request = RenderRequest(self.slot, snap, self.render_params, camera, pw, ph)
+        layers = self._layer_plans(snap)
+        request = RenderRequest(self.slot, snap, self.render_params, camera, pw, ph, layers=layers)
         x, y = min(pw - 1, pick.x * pw // w), min(ph - 1, pick.y * ph // h)
-        atom, depth = await self.services.backend.pick(request, x, y)
+        atom, depth, layer = await self.services.backend.pick(request, x, y)
         if atom is None:
             return p.Picked(ref=pick.seq)
         topo, positions = snap.topology, snap.positions
@@ -787,6 +864,7 @@ class Session:
                 float(positions[atom, 2]),
             ),
             depth=depth,
+            layer=layer or "",
         )
 
     async def _stats_loop(self) -> None:

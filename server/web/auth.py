@@ -12,7 +12,7 @@ from server.settings import ServerSettings, is_loopback
 
 STEERING_TYPES = frozenset({"sim_params", "control", "forces", "pull", "render_params"})
 SIMULATION_TYPES = frozenset({"topology", "frame", "params_ack", "engine", "event"})
-VIEWER_TYPES = frozenset({"view", "pick", "ping", "pong", "error", "frame_ack"})
+VIEWER_TYPES = frozenset({"view", "pick", "select", "ping", "pong", "error", "frame_ack"})
 
 
 def _same(a: str | None, b: str | None) -> bool:

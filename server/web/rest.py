@@ -22,10 +22,12 @@ from pydantic import BaseModel, ValidationError
 import protocol as p
 from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
+from server.pipeline.selections import FrameLayers, check_layers
 from server.web.auth import token_role
 from server.web.state import AppState
 from structures.isolated import IsolatedStructure
 from structures.reader import StructureError
+from structures.selection import SelectionError
 
 router = APIRouter()
 
@@ -57,6 +59,14 @@ def steerer_access(request: Request) -> p.Role:
 
 
 State = Annotated[AppState, Depends(app_state)]
+
+
+def _check_layers(params: p.RenderParams, field: str) -> None:
+    """Every layer selection must parse: a 422 naming the layer and the position."""
+    try:
+        check_layers(params)
+    except ValueError as exc:
+        raise HTTPException(422, f"{field}.{exc}") from None
 
 
 def _model(cls: type[BaseModel], raw: str | None, field: str) -> Any:
@@ -222,6 +232,8 @@ async def render_image(
     if len(given) != 1:
         raise HTTPException(422, "give exactly one of file, dataset or session")
     render_params = _model(p.RenderParams, params, "params")
+    if render_params is not None:
+        _check_layers(render_params, "params")
     cam = _model(p.Camera, camera, "camera")
     if session is not None:
         live = state.sessions.get(session)
@@ -243,13 +255,25 @@ async def render_image(
             topology, positions = await _read_frame(state, path, frame, role)
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
-    render_params = render_params or p.RenderParams()
+    if render_params is None:  # a file opens on its molecule, as a session does
+        from structures.selection import default_layers
+
+        defaults = await asyncio.to_thread(default_layers, topology, p.RenderParams().sigma_A)
+        render_params = p.RenderParams(layers=[p.Layer(**f) for f in defaults])
+    try:
+        plans = await asyncio.to_thread(FrameLayers(render_params, topology).plans, positions, 0)
+    except SelectionError as exc:
+        raise HTTPException(422, f"params.layers: {exc}") from None
     if cam is None:
         from server.render.camera import fit_camera
+        from server.render.layerplan import visible_atoms
 
-        cam = fit_camera(positions, width, height)
+        shown = visible_atoms(plans, topology.n_atoms)
+        cam = fit_camera(positions[shown] if len(shown) else positions, width, height)
     slot = f"rest:{uuid.uuid4().hex}"
-    request = RenderRequest(slot, Snapshot(topology, positions), render_params, cam, width, height)
+    request = RenderRequest(
+        slot, Snapshot(topology, positions), render_params, cam, width, height, layers=plans
+    )
     try:
         out = await state.gpu.render(request)
     finally:
@@ -286,6 +310,7 @@ async def create_job(
     if (topology is None) == (dataset is None):
         raise HTTPException(422, "give exactly one of topology (upload) or dataset")
     render_params = _model(p.RenderParams, params, "params") or p.RenderParams()
+    _check_layers(render_params, "params")
     cam = _model(p.Camera, camera, "camera")
     workdir = Path(tempfile.mkdtemp(prefix="job-", dir=state.upload_dir))
     try:

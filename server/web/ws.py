@@ -359,6 +359,8 @@ async def _dispatch(session: Session, client: Client, guard: Guard, message: p.M
             session.on_frame_ack(client, message)
         case p.Pick():
             client.send(await session.pick(client, message))
+        case p.Select():
+            client.send(session.select(client, message))
         case p.Ping():
             # pings are latency probes: under a flood, answer only while the peer keeps up
             if client.backlog < PONG_BACKLOG:

@@ -71,6 +71,10 @@ def samples() -> dict[str, p.Message]:
         ),
         "render_params": p.SetRenderParams(seq=11, params={"sigma_A": 2.5, "mode": "volume"}),
         "pick": p.Pick(seq=12, x=10, y=20),
+        "select": p.Select(seq=18, text="protein and not name H*"),
+        "selected": p.Selected(
+            seq=19, ref=18, text="protein and", error="ended too soon", position=11
+        ),
         "picked": p.Picked(
             seq=13,
             ref=12,
@@ -82,6 +86,7 @@ def samples() -> dict[str, p.Message]:
             chain="A",
             position=(3.0, 4.0, 5.0),
             depth=42.5,
+            layer="ligand",
         ),
         "image": p.Image(
             seq=14,
@@ -100,7 +105,13 @@ def samples() -> dict[str, p.Message]:
         "frame_ack": p.FrameAck(seq=15, frame_id=7, decode_ms=1.5),
         "state": p.State(
             seq=15,
-            render_params=p.RenderParams(sigma_A=2.0),
+            render_params=p.RenderParams(
+                sigma_A=2.0,
+                layers=[
+                    p.Layer(name="protein", selection="protein"),
+                    p.Layer(name="ligand", selection="resname LIG", sigma_A=0.7, opacity=0.5),
+                ],
+            ),
             sim=p.SimStatus(state="running", step=1000, time_ps=2.0, n_atoms=3),
             clients=[p.ClientInfo(client_id="c1", role="steerer", client="golden")],
         ),

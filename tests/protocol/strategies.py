@@ -115,6 +115,17 @@ render_params = st.builds(
     color_by=st.sampled_from(["element", "residue", "chain", "uniform", "bfactor", "charge"]),
     background=rgb,
     jpeg_quality=st.integers(10, 100),
+    layers=st.lists(
+        st.builds(
+            p.Layer,
+            name=st.text(max_size=12),
+            selection=st.text(min_size=1, max_size=40),
+            visible=st.booleans(),
+            sigma_A=st.none() | st.floats(0.05, 50),
+            opacity=unit,
+        ),
+        max_size=3,
+    ),
 )
 
 
@@ -185,6 +196,15 @@ MESSAGES: dict[str, st.SearchStrategy[Any]] = {
     ),
     "render_params": render_patch(),
     "pick": st.builds(p.Pick, seq=seq, x=st.integers(0, 4096), y=st.integers(0, 4096)),
+    "select": st.builds(p.Select, seq=seq, text=st.text(max_size=60)),
+    "selected": st.builds(
+        p.Selected,
+        seq=seq,
+        ref=seq,
+        text=st.text(max_size=60),
+        count=st.none() | st.integers(0, 10**7),
+        position=st.none() | st.integers(0, 60),
+    ),
     "picked": st.builds(
         p.Picked,
         seq=seq,

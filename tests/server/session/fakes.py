@@ -57,9 +57,11 @@ class PaintBackend:
         hist = np.ones(64, np.float32) if request.histogram else None
         return RenderOutput(rgba, {"total": 1.0, "grid": 0.5, "upload": 0.1}, hist)
 
-    async def pick(self, request: RenderRequest, x: int, y: int) -> tuple[int | None, float | None]:
+    async def pick(
+        self, request: RenderRequest, x: int, y: int
+    ) -> tuple[int | None, float | None, str | None]:
         self.requests.append(request)
-        return 0, 1.0
+        return 0, 1.0, None
 
     async def release(self, slot: str) -> None:
         self.released.append(slot)

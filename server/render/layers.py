@@ -1,0 +1,329 @@
+"""Layers: parts of one system, each drawn at its own scale, combined into one image.
+
+A layer is a set of atoms (the server evaluates its selection) and the parameters it is drawn
+with. Each layer is ray-cast by a `Renderer` of its own that holds only the layer's atoms, so
+hidden atoms (solvent in a water box) cost their upload from the simulation and nothing in
+the grid or the march. Every layer image keeps its depth and coverage (`Renderer.coverage`);
+one compositing kernel then orders the layers per pixel by depth and blends front to back:
+an opaque surface hides every layer behind it (two overlapping iso layers give the nearer hit),
+translucent layers blend over what lies behind them, and the pick buffer holds the front
+layer's atom as an index into the whole system, with the layer beside it.
+
+A translucent *volume* layer is ordered by the depth where its opacity first reaches the
+caster's depth threshold: a cloud that a surface cuts through blends over that surface as a
+whole (the part of the cloud behind the surface is not cut away).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, no_type_check
+
+import numpy as np
+import numpy.typing as npt
+import warp
+
+from protocol import MAX_LAYERS, Camera, RenderParams, Topology
+from server.render.errors import RenderError
+from server.render.layerplan import LayerPlan, subset_topology
+from server.render.renderer import Renderer
+
+wp: Any = warp
+
+_HISTORY_KEEP = 80
+"""Per layer, the gathered history frames kept for reuse (the longest smoothing window + a
+margin)."""
+
+
+@wp.kernel(enable_backward=False)
+@no_type_check
+def composite_kernel(
+    rgba: wp.array2d(dtype=wp.uint32),
+    depth: wp.array2d(dtype=float),
+    ids: wp.array2d(dtype=wp.int32),
+    opacity: wp.array(dtype=float),
+    offsets: wp.array(dtype=wp.int32),
+    index_map: wp.array(dtype=wp.int32),
+    layers: int,
+    background: wp.vec3,
+    out_rgba: wp.array(dtype=wp.uint32),
+    out_depth: wp.array(dtype=float),
+    out_ids: wp.array(dtype=wp.int32),
+    out_layer: wp.array(dtype=wp.int32),
+):
+    """Blend one pixel's layers front to back in depth order (premultiplied colours)."""
+    pix = wp.tid()
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    alpha = float(0.0)
+    used = wp.int32(0)  # bit mask of the layers blended so far
+    front = wp.int32(-1)
+    for _ in range(layers):
+        # the nearest layer not blended yet (ties: the earlier layer)
+        best = wp.int32(-1)
+        best_t = float(wp.inf)
+        for k in range(layers):
+            if (used & (wp.int32(1) << k)) == 0:
+                t = depth[k, pix]
+                if best < 0 or t < best_t:
+                    best = k
+                    best_t = t
+        used = used | (wp.int32(1) << best)
+        c = rgba[best, pix]
+        a = float((c >> wp.uint32(24)) & wp.uint32(255)) / 255.0 * opacity[best]
+        if a > 0.0:
+            col = wp.vec3(
+                float(c & wp.uint32(255)),
+                float((c >> wp.uint32(8)) & wp.uint32(255)),
+                float((c >> wp.uint32(16)) & wp.uint32(255)),
+            ) * (opacity[best] / 255.0)
+            acc += col * (1.0 - alpha)
+            if front < 0 and best_t < wp.inf:
+                front = best
+            alpha += a * (1.0 - alpha)
+    acc += background * (1.0 - alpha)
+    r = wp.uint32(wp.clamp(acc[0], 0.0, 1.0) * 255.0 + 0.5)
+    g = wp.uint32(wp.clamp(acc[1], 0.0, 1.0) * 255.0 + 0.5)
+    b = wp.uint32(wp.clamp(acc[2], 0.0, 1.0) * 255.0 + 0.5)
+    out_rgba[pix] = (
+        r | (g << wp.uint32(8)) | (b << wp.uint32(16)) | (wp.uint32(255) << wp.uint32(24))
+    )
+    out_layer[pix] = front
+    if front < 0:
+        out_depth[pix] = wp.inf
+        out_ids[pix] = -1
+    else:
+        out_depth[pix] = depth[front, pix]
+        local = ids[front, pix]
+        atom = local
+        base = offsets[front]
+        if local >= 0 and base >= 0:
+            atom = index_map[base + local]
+        out_ids[pix] = atom
+
+
+@dataclass
+class _Child:
+    renderer: Renderer
+    atoms_key: Any = None
+    topology_id: int = -1
+    positions_id: int = -1
+    gathered: dict[int, npt.NDArray[np.float32]] = field(default_factory=dict)
+
+
+class LayeredRenderer:
+    """Renders a list of `LayerPlan`s into one image (one `Renderer` per layer position,
+    kept with its atoms and buffers between frames) and answers like a `Renderer`:
+    `read_rgba`, `read_depth`, `read_atom_ids`, `read_layers`, `pick`, `timings`."""
+
+    def __init__(self, make: Callable[[], Renderer]) -> None:
+        self._make = make
+        self._children: list[_Child] = []
+        self.device = ""
+        self.timings: dict[str, float] = {}
+        self._image: tuple[int, int] | None = None
+        self._pixels = 0
+        self._plans: tuple[LayerPlan, ...] = ()
+        self._map_key: tuple[Any, ...] | None = None
+
+    def _child(self, k: int) -> _Child:
+        while len(self._children) <= k:
+            r = self._make()
+            r.coverage = True
+            self.device = r.device
+            self._children.append(_Child(r))
+        return self._children[k]
+
+    def _alloc(self, layers: int, pixels: int) -> None:
+        dev = self.device
+        if pixels > self._pixels or not hasattr(self, "_out_rgba"):
+            self._pixels = max(pixels, 1)
+            self._out_rgba = wp.zeros(self._pixels, dtype=wp.uint32, device=dev)
+            self._out_depth = wp.zeros(self._pixels, dtype=float, device=dev)
+            self._out_ids = wp.zeros(self._pixels, dtype=wp.int32, device=dev)
+            self._out_layer = wp.zeros(self._pixels, dtype=wp.int32, device=dev)
+            self._stack_shape = (0, 0)
+        shape = (max(layers, 1), self._pixels)
+        if self._stack_shape != shape:
+            self._stack_rgba = wp.zeros(shape, dtype=wp.uint32, device=dev)
+            self._stack_depth = wp.full(shape, float("inf"), dtype=float, device=dev)
+            self._stack_ids = wp.full(shape, -1, dtype=wp.int32, device=dev)
+            self._stack_shape = shape
+
+    def _index_map(self, plans: Sequence[LayerPlan]) -> None:
+        key = tuple(id(p.atoms) if p.atoms is not None else None for p in plans)
+        if key == self._map_key:
+            return
+        offsets: list[int] = []
+        parts: list[npt.NDArray[np.int32]] = []
+        at = 0
+        for plan in plans:
+            if plan.atoms is None:
+                offsets.append(-1)
+            else:
+                offsets.append(at)
+                parts.append(plan.atoms)
+                at += len(plan.atoms)
+        flat = np.concatenate(parts).astype(np.int32) if parts else np.zeros(1, np.int32)
+        self._offsets = wp.array(np.asarray(offsets or [-1], np.int32), device=self.device)
+        self._map = wp.array(flat, dtype=wp.int32, device=self.device)
+        self._map_key = key
+        self._map_plans = tuple(plans)  # keeps the arrays the key names alive
+
+    def render(
+        self,
+        plans: Sequence[LayerPlan],
+        topology: Topology,
+        topology_id: int,
+        positions: npt.NDArray[np.float32],
+        positions_id: int,
+        camera: Camera,
+        width: int,
+        height: int,
+        history: Sequence[tuple[int, npt.NDArray[np.float32]]] = (),
+        history_epoch: int = 0,
+        live: bool = True,
+        lag: int | None = None,
+    ) -> None:
+        """Render every layer of `plans` and composite them (the image stays on the device)."""
+        if len(plans) > MAX_LAYERS:
+            raise RenderError(f"{len(plans)} layers, at most {MAX_LAYERS} are drawn")
+        t0 = time.perf_counter()
+        totals = {"upload": 0.0, "grid": 0.0, "raycast": 0.0}
+        self._child(0)  # the device, even with nothing to draw
+        for k, plan in enumerate(plans):
+            child = self._child(k)
+            r = child.renderer
+            if child.atoms_key != plan.atoms_key or child.topology_id != topology_id:
+                sub = topology if plan.atoms is None else subset_topology(topology, plan.atoms)
+                r.set_topology(sub)
+                child.atoms_key = plan.atoms_key
+                child.topology_id = topology_id
+                child.positions_id = -1
+                child.gathered.clear()
+            if child.positions_id != positions_id:
+                r.set_positions(
+                    self._gather(child, plan, positions_id, positions), check_finite=False
+                )
+                child.positions_id = positions_id
+            if history and plan.params.needs_history():
+                frames = [(i, self._gather(child, plan, i, pos)) for i, pos in history]
+                r.set_history(frames, history_epoch, plan.params, live=live, lag=lag)
+            r.render(plan.params, camera, width, height)
+            for key in totals:
+                totals[key] += r.timings.get(key, 0.0)
+        pixels = int(width) * int(height)
+        self._alloc(len(plans), pixels)
+        t_comp = time.perf_counter()
+        for k, _plan in enumerate(plans):
+            rgba, depth, ids, count = self._children[k].renderer.device_outputs()
+            wp.copy(self._stack_rgba, rgba, dest_offset=k * self._pixels, count=count)
+            wp.copy(self._stack_depth, depth, dest_offset=k * self._pixels, count=count)
+            wp.copy(self._stack_ids, ids, dest_offset=k * self._pixels, count=count)
+        self._index_map(plans)
+        opacity = np.asarray([p.opacity for p in plans] or [0.0], dtype=np.float32)
+        bg = plans[0].params.background if plans else RenderParams().background
+        wp.launch(
+            composite_kernel,
+            pixels,
+            (
+                self._stack_rgba,
+                self._stack_depth,
+                self._stack_ids,
+                wp.array(opacity, dtype=float, device=self.device),
+                self._offsets,
+                self._map,
+                len(plans),
+                wp.vec3(*(float(v) for v in bg)),
+                self._out_rgba,
+                self._out_depth,
+                self._out_ids,
+                self._out_layer,
+            ),
+            device=self.device,
+        )
+        wp.synchronize_device(self.device)
+        t_end = time.perf_counter()
+        totals["composite"] = (t_end - t_comp) * 1e3
+        totals["total"] = (t_end - t0) * 1e3 + totals["upload"]
+        self.timings = totals
+        self._image = (int(width), int(height))
+        self._plans = tuple(plans)
+        for child in self._children[len(plans) :]:
+            child.atoms_key = None  # a layer position no longer drawn frees nothing but is redone
+
+    @staticmethod
+    def _gather(
+        child: _Child, plan: LayerPlan, frame_id: int, positions: npt.NDArray[np.float32]
+    ) -> npt.NDArray[np.float32]:
+        """This layer's atoms of one frame (kept for the frames smoothing will ask for again)."""
+        if plan.atoms is None:
+            return positions
+        got = child.gathered.get(frame_id)
+        if got is None:
+            got = np.ascontiguousarray(positions[plan.atoms], dtype=np.float32)
+            child.gathered[frame_id] = got
+            while len(child.gathered) > _HISTORY_KEEP:
+                child.gathered.pop(next(iter(child.gathered)))
+        return got
+
+    # ------------------------------------------------------------------ outputs
+
+    def _need_image(self) -> tuple[int, int]:
+        if self._image is None:
+            raise RenderError("nothing rendered yet")
+        return self._image
+
+    def read_rgba(self) -> npt.NDArray[np.uint8]:
+        """(height, width, 4) uint8, row 0 at the top."""
+        w, h = self._need_image()
+        a: npt.NDArray[np.uint8] = self._out_rgba[: w * h].numpy().view(np.uint8)
+        return a.reshape(h, w, 4).copy()
+
+    def read_depth(self) -> npt.NDArray[np.float32]:
+        """(height, width) distance along each ray to the front layer's hit; inf elsewhere."""
+        w, h = self._need_image()
+        d: npt.NDArray[np.float32] = self._out_depth[: w * h].numpy().reshape(h, w)
+        return d.astype(np.float32, copy=True)
+
+    def read_atom_ids(self) -> npt.NDArray[np.int32]:
+        """(height, width) index (in the whole system) of the front layer's atom; -1 none."""
+        w, h = self._need_image()
+        ids: npt.NDArray[np.int32] = self._out_ids[: w * h].numpy().reshape(h, w)
+        return ids.astype(np.int32, copy=True)
+
+    def read_layers(self) -> npt.NDArray[np.int32]:
+        """(height, width) position in the plan list of the front layer; -1 none."""
+        w, h = self._need_image()
+        layer: npt.NDArray[np.int32] = self._out_layer[: w * h].numpy().reshape(h, w)
+        return layer.astype(np.int32, copy=True)
+
+    def pick(self, x: int, y: int) -> tuple[int | None, float | None]:
+        """Atom (index in the whole system) and depth at pixel (x, y) of the last image."""
+        atom, depth, _layer = self.pick_layer(x, y)
+        return atom, depth
+
+    def pick_layer(self, x: int, y: int) -> tuple[int | None, float | None, str | None]:
+        """Atom, depth and the name of its layer at pixel (x, y)."""
+        w, h = self._need_image()
+        if not (0 <= int(x) < w and 0 <= int(y) < h):
+            raise RenderError(f"pixel ({x}, {y}) outside the {w}x{h} image")
+        i = int(y) * w + int(x)
+        atom = int(self._out_ids[i : i + 1].numpy()[0])
+        layer = int(self._out_layer[i : i + 1].numpy()[0])
+        if atom < 0 or layer < 0:
+            return None, None, None
+        depth = float(self._out_depth[i : i + 1].numpy()[0])
+        return atom, depth, self._plans[layer].name
+
+    def density_histogram(
+        self, bins: int = 64
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]:
+        """The density histogram of the first volume layer (else the first layer), for the
+        transfer-function editor."""
+        if not self._plans:
+            edges = np.linspace(0.0, 1.0, bins + 1)
+            return np.zeros(bins, dtype=np.int64), edges
+        k = next((i for i, p in enumerate(self._plans) if p.params.mode == "volume"), 0)
+        return self._children[k].renderer.density_histogram(bins)

@@ -1,0 +1,150 @@
+"""A session's layers: selections evaluated on its topology, kept current as frames arrive.
+
+Static selections are evaluated once per topology. Distance-based ones (`around 5 resname LIG`)
+are re-evaluated on the positions at most `REFRESH_S` apart, in a worker thread, while the last
+result keeps being drawn; the first evaluation of one runs at once. The plans handed to the GPU
+are rebuilt only when the parameters or an atom set change, so a renderer sees the same
+parameter objects frame after frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+import protocol as p
+from server.render.layerplan import LayerPlan, plan_layers
+from structures.selection import SelectionError, Selector, default_layers, is_dynamic
+
+log = logging.getLogger("scalesteer.session")
+
+REFRESH_S = 0.1
+"""Distance-based selections follow the simulation at up to 10 evaluations a second."""
+
+
+@dataclass
+class _Dynamic:
+    atoms: npt.NDArray[np.int32]
+    positions_id: int
+    evaluated: float
+    count: int = 0
+    running: bool = False
+
+
+class LayerBook:
+    """Selections of one session's topology and the layer plans built from them."""
+
+    def __init__(self, on_refresh: Callable[[], None]) -> None:
+        self._on_refresh = on_refresh
+        self._selector: Selector | None = None
+        self._topology_id = -1
+        self._lock = threading.Lock()
+        self._dynamic: dict[str, _Dynamic] = {}
+        self._plans: tuple[Any, tuple[LayerPlan, ...] | None] | None = None
+        self.auto = True
+        """Layers still follow the topology's defaults (no steerer has set them)."""
+
+    def topology(self, topology: p.Topology, topology_id: int) -> None:
+        """A new topology: earlier selection results no longer apply."""
+        with self._lock:
+            self._selector = Selector(topology)
+            self._topology_id = topology_id
+            self._dynamic.clear()
+            self._plans = None
+
+    def defaults(self, topology: p.Topology, sigma_A: float) -> list[p.Layer]:
+        """The layers this topology opens with (structures.selection.default_layers)."""
+        return [p.Layer(**fields) for fields in default_layers(topology, sigma_A)]
+
+    def select(
+        self,
+        text: str,
+        positions: npt.NDArray[np.float32] | None,
+        box: npt.NDArray[np.float32] | None = None,
+    ) -> npt.NDArray[np.int32]:
+        """Evaluate `text` now (raises SelectionError); for checks and counts."""
+        if self._selector is None:
+            raise SelectionError(text, "no topology yet", 0)
+        with self._lock:
+            return self._selector.select(text, positions, box)
+
+    def _current(
+        self, text: str, positions: npt.NDArray[np.float32], positions_id: int
+    ) -> tuple[npt.NDArray[np.int32], Any]:
+        """A selection's atoms for drawing and a key that changes when they do; an invalid
+        one draws nothing (it was refused when set, so only a new topology gets here)."""
+        try:
+            if not is_dynamic(text):
+                return self.select(text, None), (self._topology_id, text)
+            entry = self._dynamic.get(text)
+            if entry is None:
+                atoms = self.select(text, positions)
+                entry = self._dynamic[text] = _Dynamic(atoms, positions_id, time.monotonic())
+            elif (
+                not entry.running
+                and entry.positions_id != positions_id
+                and time.monotonic() - entry.evaluated >= REFRESH_S
+            ):
+                self._refresh(text, entry, positions, positions_id)
+            return entry.atoms, (self._topology_id, text, entry.count)
+        except SelectionError as exc:
+            log.warning("layer not drawn: %s", exc)
+            return np.zeros(0, dtype=np.int32), (self._topology_id, text, "invalid")
+
+    def _refresh(
+        self, text: str, entry: _Dynamic, positions: npt.NDArray[np.float32], positions_id: int
+    ) -> None:
+        entry.running = True
+        topology_id = self._topology_id
+        loop = asyncio.get_running_loop()
+
+        def done(future: asyncio.Future[npt.NDArray[np.int32]]) -> None:
+            entry.running = False
+            entry.evaluated = time.monotonic()
+            if future.cancelled() or future.exception() is not None:
+                log.warning("re-evaluating %r failed: %s", text, future.exception())
+                return
+            if topology_id != self._topology_id:
+                return
+            atoms = future.result()
+            entry.positions_id = positions_id
+            if not np.array_equal(atoms, entry.atoms):
+                entry.atoms = atoms
+                entry.count += 1
+                self._on_refresh()
+
+        future = loop.run_in_executor(None, self.select, text, positions)
+        future.add_done_callback(done)
+
+    def plans(
+        self,
+        params: p.RenderParams,
+        n_atoms: int,
+        positions: npt.NDArray[np.float32] | None,
+        positions_id: int,
+    ) -> tuple[LayerPlan, ...] | None:
+        """The visible layers of `params` with their atoms (None: no layers)."""
+        if not params.layers or self._selector is None or positions is None:
+            return None
+        chosen: dict[str, tuple[npt.NDArray[np.int32], Any]] = {}
+
+        def select(text: str) -> tuple[npt.NDArray[np.int32], Any]:
+            if text not in chosen:
+                chosen[text] = self._current(text, positions, positions_id)
+            return chosen[text]
+
+        keys = tuple(select(layer.selection)[1] for layer in params.layers if layer.visible)
+        cached = self._plans
+        if cached is not None and cached[0][0] is params and cached[0][1] == keys:
+            return cached[1]
+        plans = plan_layers(params, n_atoms, select)
+        self._plans = ((params, keys), plans)
+        return plans

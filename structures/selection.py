@@ -1,0 +1,274 @@
+"""Atom selections in MDAnalysis's selection language, evaluated on a protocol topology.
+
+The server knows a system only through its `topology` message, so a selection runs against an
+MDAnalysis universe built from that message: names, residue names and numbers, chain ids
+(as both `segid` and `chainID`), elements, masses from the elements, charges where the engine
+sent them, and the bonds. Selections that read coordinates (`around`, `point`, `prop x`, ...)
+are *dynamic*: `Selector.select` evaluates them on the positions it is given.
+
+The default layers follow what every molecular viewer does: solvent and ions hidden, the polymer
+(protein or nucleic acid) at the session's scale, and any other residues, ligands, at a finer
+scale of their own.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from protocol import Topology
+
+SOLVENT_RESNAMES = (
+    "SOL", "WAT", "HOH", "H2O", "TIP", "TIP3", "TIP3P", "TIP4", "TIP4P", "TIP5", "TIP5P", "T3P",
+    "T4P", "T4E", "SPC", "SPCE", "OPC", "OPC3", "DOD",
+)  # fmt: skip
+"""Water, by the residue names of the common force fields (matched in any letter case)."""
+ION_RESNAMES = (
+    "NA", "NA+", "SOD", "CL", "CL-", "CLA", "K", "K+", "POT", "MG", "MG2", "CA", "CAL", "CA2",
+    "ZN", "ZN2", "LI", "LI+", "RB", "CS", "CES", "F", "BR", "BR-", "I", "IOD",
+)  # fmt: skip
+
+POLYMER_SELECTION = "protein or nucleic"
+DYNAMIC_KEYWORDS = frozenset(
+    ["around", "sphzone", "sphlayer", "cyzone", "cylayer", "point", "prop", "isolayer"]
+)
+"""Selection keywords whose result depends on the coordinates."""
+
+LIGAND_SIGMA_FACTOR = 0.5
+"""A ligand's default layer shows it at half the session's scale (its chemistry, not its blob)."""
+
+_TOKEN = re.compile(r"\(|\)|[^\s()]+")
+_MASS = {"H": 1.008, "C": 12.011, "N": 14.007, "O": 15.999, "P": 30.974, "S": 32.06}
+
+
+class SelectionError(ValueError):
+    """A selection MDAnalysis could not parse; `position` is the 0-based character offset of
+    the offending token in the text (its length when the text ended too soon)."""
+
+    def __init__(self, text: str, reason: str, position: int) -> None:
+        self.text = text
+        self.reason = reason
+        self.position = position
+        super().__init__(f"selection {text!r} at character {position + 1}: {reason}")
+
+
+def is_dynamic(text: str) -> bool:
+    """Whether `text` reads coordinates (its atoms change as the system moves)."""
+    return any(t.lower() in DYNAMIC_KEYWORDS for t in _TOKEN.findall(text))
+
+
+def _position_of(text: str, reason: str) -> int:
+    """Where MDAnalysis's complaint points in `text`: the token it names, or the end."""
+    value = re.search(r"value: (\S+?)'?$", reason)
+    quoted = [value.group(1)] if value else re.findall(r"'([^']*)'", reason)
+    spans = [(m.group(), m.start()) for m in _TOKEN.finditer(text)]
+    if not quoted or "end of the text" in reason:
+        return len(text.rstrip())
+    word = quoted[0]
+    if "end of selection" in reason:
+        hits = [s for t, s in spans if t == word]
+        return hits[-1] if hits else len(text)
+    for t, s in spans:
+        if t == word:
+            return s
+    at = text.find(word)
+    return at if at >= 0 else len(text.rstrip())
+
+
+def universe_of(topology: Topology) -> Any:
+    """An MDAnalysis universe with the attributes of `topology` (no coordinates yet)."""
+    import MDAnalysis as mda
+
+    n = int(topology.n_atoms)
+    chains = np.asarray(topology.chain_ids, dtype=object)
+    resids = topology.residue_ids.to_numpy().astype(np.int64)
+    resnames = np.asarray(topology.residue_names, dtype=object)
+    if n:
+        new = np.ones(n, dtype=bool)
+        new[1:] = (chains[1:] != chains[:-1]) | (resids[1:] != resids[:-1])
+        new[1:] |= resnames[1:] != resnames[:-1]
+        atom_res = np.cumsum(new) - 1
+        first = np.flatnonzero(new)
+        seg_names, res_seg = np.unique(chains[first].astype(str), return_inverse=True)
+    else:
+        atom_res = np.zeros(0, dtype=np.int64)
+        first = np.zeros(0, dtype=np.int64)
+        seg_names, res_seg = np.array(["A"]), np.zeros(0, dtype=np.int64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        u = mda.Universe.empty(
+            n,
+            n_residues=max(len(first), 1) if n else 1,
+            n_segments=max(len(seg_names), 1),
+            atom_resindex=atom_res if n else None,
+            residue_segindex=res_seg if n else None,
+            trajectory=True,
+        )
+    elements = np.asarray([e.capitalize() for e in topology.elements], dtype=object)
+    u.add_TopologyAttr("names", np.asarray(topology.names, dtype=object))
+    u.add_TopologyAttr("types", np.asarray(topology.names, dtype=object))
+    u.add_TopologyAttr("elements", elements)
+    u.add_TopologyAttr("masses", np.array([_MASS.get(str(e), 12.0) for e in elements]))
+    u.add_TopologyAttr("chainIDs", chains)
+    u.add_TopologyAttr("resids", resids[first] if n else np.ones(1, dtype=np.int64))
+    u.add_TopologyAttr("resnums", resids[first] if n else np.ones(1, dtype=np.int64))
+    u.add_TopologyAttr("resnames", resnames[first] if n else np.array(["UNK"], dtype=object))
+    u.add_TopologyAttr("segids", seg_names.astype(object))
+    if topology.charges is not None:
+        u.add_TopologyAttr("charges", topology.charges.to_numpy().astype(np.float64))
+    bonds = topology.bonds.to_numpy().reshape(-1, 2)
+    u.add_TopologyAttr("bonds", [tuple(int(i) for i in b) for b in bonds])
+    return u
+
+
+@dataclass
+class Selector:
+    """Selections on one topology; static results are cached by their text."""
+
+    topology: Topology
+
+    def __post_init__(self) -> None:
+        self._universe: Any = None
+        self._static: dict[str, npt.NDArray[np.int32]] = {}
+
+    @property
+    def universe(self) -> Any:
+        if self._universe is None:
+            self._universe = universe_of(self.topology)
+        return self._universe
+
+    def select(
+        self,
+        text: str,
+        positions: npt.ArrayLike | None = None,
+        box: npt.ArrayLike | None = None,
+    ) -> npt.NDArray[np.int32]:
+        """Sorted indices of the atoms `text` selects. A dynamic selection needs `positions`
+        (n, 3 angstrom), and measures distances through the periodic `box` (3x3 vectors,
+        angstrom) when there is one; raises SelectionError naming the position of what is
+        wrong."""
+        text = text.strip()
+        if not text:
+            raise SelectionError(text, "the selection is empty (use 'all' for every atom)", 0)
+        dynamic = is_dynamic(text)
+        if not dynamic and text in self._static:
+            return self._static[text]
+        u = self.universe
+        if dynamic:
+            if positions is None:
+                raise SelectionError(text, "this selection needs positions", 0)
+            if self.topology.n_atoms:
+                u.atoms.positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+            u.dimensions = _dimensions(box)
+        from MDAnalysis.exceptions import SelectionError as MDASelectionError
+
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                group = u.select_atoms(text)
+        except MDASelectionError as exc:
+            reason = str(exc).replace("'None'", "the end of the text")
+            if "'within'" in reason:
+                reason += (
+                    " (VMD's `within D of sel` is `around D sel` here, or `sel or around D sel`)"
+                )
+            raise SelectionError(text, reason, _position_of(text, reason)) from None
+        except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
+            reason = f"{type(exc).__name__}: {exc}"
+            raise SelectionError(text, reason, _position_of(text, reason)) from None
+        indices = np.asarray(group.indices, dtype=np.int32)
+        if not dynamic:
+            if len(self._static) > 256:
+                self._static.clear()
+            self._static[text] = indices
+        return indices
+
+    def count(
+        self, text: str, positions: npt.ArrayLike | None = None, box: npt.ArrayLike | None = None
+    ) -> int:
+        return len(self.select(text, positions, box))
+
+
+def _dimensions(box: npt.ArrayLike | None) -> npt.NDArray[np.float32] | None:
+    """MDAnalysis's [a, b, c, alpha, beta, gamma] of box vectors; None without a usable box."""
+    if box is None:
+        return None
+    vectors = np.asarray(box, dtype=np.float64).reshape(3, 3)
+    if not np.isfinite(vectors).all() or abs(np.linalg.det(vectors)) < 1e-6:
+        return None
+    from MDAnalysis.lib.mdamath import triclinic_box
+
+    dims: npt.NDArray[np.float32] = triclinic_box(*vectors).astype(np.float32)
+    return dims
+
+
+def solvent_atoms(topology: Topology) -> npt.NDArray[np.int32]:
+    """Water and ion atoms, by residue name in any letter case (`Cl`, `NA+`, `HOH`)."""
+    known = {r.upper() for r in (*SOLVENT_RESNAMES, *ION_RESNAMES)}
+    names = np.asarray(topology.residue_names, dtype=object)
+    kinds = {r for r in set(topology.residue_names) if r.upper() in known}
+    return np.flatnonzero(np.isin(names, list(kinds))).astype(np.int32)
+
+
+def default_layers(topology: Topology, sigma_A: float) -> list[dict[str, Any]]:
+    """The layers a system opens with, as `protocol.Layer` fields: [] (every atom, the
+    session's parameters) when nothing is solvent, ion or ligand; else the polymer, and each
+    kind of other residue (a ligand) as a finer layer of its own. Solvent is left out (hidden);
+    a system that is nothing but solvent stays whole."""
+    sel = Selector(topology)
+    n = topology.n_atoms
+    if not n:
+        return []
+    solvent = solvent_atoms(topology)
+    polymer = sel.select(POLYMER_SELECTION)
+    rest = np.setdiff1d(np.arange(n, dtype=np.int32), np.union1d(solvent, polymer))
+    if len(solvent) == 0 and len(rest) == 0:
+        return []
+    if len(solvent) == n:
+        return []
+    layers: list[dict[str, Any]] = []
+    if len(polymer):
+        layers.append({"name": "polymer", "selection": POLYMER_SELECTION})
+    if len(rest):
+        names = sorted({topology.residue_names[int(i)] for i in rest})
+        ligand = f"not ({POLYMER_SELECTION})"
+        if len(names) <= 8:
+            ligand = "resname " + " ".join(names)
+        elif len(solvent):
+            waters = sorted({topology.residue_names[int(i)] for i in solvent})
+            ligand += " and not resname " + " ".join(waters)
+        fine = round(max(0.3, sigma_A * LIGAND_SIGMA_FACTOR), 3) if len(polymer) else None
+        layer: dict[str, Any] = {"name": "ligand" if len(polymer) else "molecules"}
+        layer["selection"] = ligand
+        if fine is not None:
+            layer["sigma_A"] = fine
+        layers.append(layer)
+    return layers
+
+
+_PROBE: Selector | None = None
+
+
+def check_syntax(text: str) -> None:
+    """Raise SelectionError when `text` does not parse, before any topology is at hand (a
+    one-atom system answers every keyword; what a selection finds is not checked)."""
+    global _PROBE
+    if _PROBE is None:
+        from protocol import WireArray
+
+        probe = Topology(
+            n_atoms=1,
+            elements=["C"],
+            names=["CA"],
+            residue_ids=WireArray.from_numpy(np.ones(1), "<i4"),
+            residue_names=["ALA"],
+            chain_ids=["A"],
+            bonds=WireArray.from_numpy(np.zeros((0, 2)), "<i4"),
+        )
+        _PROBE = Selector(probe)
+    _PROBE.select(text, np.zeros((1, 3), dtype=np.float32))
