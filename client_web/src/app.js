@@ -11,6 +11,7 @@ import { showLegend } from "./legend.js";
 import { Picks, atomLabel, measurement } from "./measure.js";
 import { Notices } from "./notices.js";
 import { RENDER_DEFAULTS, SIGMA_SLIDER, clamp, diffRender, mergeRender } from "./params.js";
+import { LayersPanel } from "./layers.js";
 import { Plots } from "./plots.js";
 import { applyRoster } from "./roster.js";
 import { RenderPanel } from "./renderpanel.js";
@@ -89,6 +90,10 @@ class Dashboard {
     this.acks = new AckTracker();
     this.plots = new Plots({ windowS: Number($("plot-window").value) });
     this.renderPanel = new RenderPanel({ onChange: (patch, final) => this.steerRender(patch, final) });
+    this.layersPanel = new LayersPanel({
+      onChange: (layers) => this.steerRender({ layers }, true),
+      select: (text) => this.connection.request({ type: "select", text }),
+    });
     this.timePanel = new TimePanel({
       onChange: (patch, final) => this.steerRender(patch, final),
       replay: () => this.engine?.kind === "replay",
@@ -215,7 +220,7 @@ class Dashboard {
         return this.showSession();
       }
       default:
-        return undefined; // picked is answered through request(); other types are not for us
+        return undefined; // picked and selected are answered through request(); other types are not for us
     }
   }
 
@@ -236,6 +241,7 @@ class Dashboard {
       this.render = mergeRender(RENDER_DEFAULTS, m.render_params);
       if (this.hashRender) this.applyLinkRender();
       this.renderPanel.update(this.render);
+      this.layersPanel.update(this.render.layers);
       this.timePanel.update(this.render);
       this.showTransferFunction();
       this.writeHashSoon();
@@ -354,6 +360,7 @@ class Dashboard {
     }
     this.tfEditor.setEnabled(steering);
     this.renderPanel.setDisabled(!steering);
+    this.layersPanel.setDisabled(!steering);
     this.simPanel.setDisabled(!steering);
     $("pull-release-all").disabled = !steering;
     this.timeline.setDisabled(!steering);
@@ -614,7 +621,7 @@ class Dashboard {
     details.dataset.atom = p.atom ?? "";
     if (p.atom === null || p.atom === undefined) {
       setText($("pick-atom"), "background (no atom here)");
-      for (const id of ["pick-element", "pick-name", "pick-residue", "pick-chain", "pick-position"])
+      for (const id of ["pick-element", "pick-name", "pick-residue", "pick-chain", "pick-layer", "pick-position"])
         setText($(id), "–");
       this.viewport.setMarker(null);
       return;
@@ -624,6 +631,7 @@ class Dashboard {
     setText($("pick-name"), p.name || "–");
     setText($("pick-residue"), `${p.residue_name || "?"} ${p.residue_id ?? ""}`.trim());
     setText($("pick-chain"), p.chain || "–");
+    setText($("pick-layer"), p.layer || "–");
     setText($("pick-position"), position(p.position));
   }
 

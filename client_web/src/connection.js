@@ -14,7 +14,7 @@ export const ConnState = Object.freeze({
 
 /** Errors after which retrying cannot help. */
 const FATAL_CODES = new Set(["unauthorized", "version_mismatch", "not_found"]);
-const REPLY_TYPES = new Set(["picked", "params_ack", "pong", "error"]);
+const REPLY_TYPES = new Set(["picked", "selected", "params_ack", "pong", "error"]);
 
 /** Reconnect delay (ms) before attempt `n` (1, 2, ...): 0.5 s doubling up to 8 s, +-20% jitter. */
 export function backoff(n, random = Math.random) {
@@ -270,7 +270,7 @@ export class Connection {
     return this.sendRaw({ ...message, seq }) ? seq : null;
   }
 
-  /** Send and wait for the reply that carries ref = its seq (picked, params_ack, pong, error). */
+  /** Send and wait for the reply that carries ref = its seq (picked, selected, params_ack, pong, error). */
   request(message, timeoutMs = 10000) {
     const seq = this.send(message);
     if (seq === null) return Promise.reject(new Error("not connected"));

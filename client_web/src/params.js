@@ -36,6 +36,7 @@ export const RENDER_DEFAULTS = Object.freeze({
   time_warp_per_A: 1.0,
   time_kernel: "auto",
   rigid_fit: false,
+  layers: Object.freeze([]),
 });
 
 export const ENUMS = Object.freeze({

@@ -4,6 +4,7 @@
 
 import { normalizeCamera } from "./camera.js";
 import { ENUMS, RENDER_DEFAULTS, clampParam, mergeRender } from "./params.js";
+import { normalizeLayers } from "./layers.js";
 import { hexToRgb, normalizePoints, rgbToHex } from "./transfer.js";
 
 export const HASH_VERSION = "1";
@@ -40,6 +41,7 @@ const FIELDS = [
   ["twarp", "time_warp_per_A", "num"],
   ["tk", "time_kernel", "enum"],
   ["fit", "rigid_fit", "bool"],
+  ["layers", "layers", "layers"],
 ];
 
 /** A number in at most `digits` significant digits, without trailing zeros. */
@@ -66,6 +68,8 @@ function encodeValue(kind, value) {
       return value
         .map((p) => `${shortNumber(p.x, 4)}:${rgbToHex(p.color).slice(1)}:${shortNumber(p.alpha, 3)}`)
         .join(",");
+    case "layers":
+      return encodeURIComponent(JSON.stringify(normalizeLayers(value) ?? []));
     default:
       return String(value);
   }
@@ -89,6 +93,13 @@ function decodeValue(kind, path, text) {
         return color ? { x: Number(x), color, alpha: Number(alpha) } : null;
       });
       return points.includes(null) ? null : normalizePoints(points);
+    }
+    case "layers": {
+      try {
+        return normalizeLayers(JSON.parse(text));
+      } catch {
+        return null;
+      }
     }
     default:
       return null;
