@@ -357,7 +357,11 @@ class Layer(Model):
     name: Annotated[str, Field(max_length=64)] = ""
     selection: SelectionText = "all"
     visible: bool = True
-    mode: Literal["iso", "volume"] | None = None
+    mode: Literal["iso", "volume", "licorice", "tube"] | None = None
+    """`licorice`: atoms and bonds as sticks; `tube`: a tube through the CA / P trace; both
+    drawn as solid shapes in the same image as the density layers."""
+    radius_A: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] | None = None
+    """The stick (licorice, default 0.25 A) or tube (default 0.6 A) radius."""
     sigma_A: Annotated[float, Field(ge=0.05, le=50, allow_inf_nan=False)] | None = None
     iso_level: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] | None = None
     scale_space: Literal["classical", "warped"] | None = None
@@ -368,8 +372,11 @@ class Layer(Model):
     """Below 1 the layer is translucent: it blends over what lies behind it, in depth order."""
 
     def overrides(self) -> dict[str, Any]:
-        """The session fields this layer sets for itself."""
-        return {k: getattr(self, k) for k in LAYER_OVERRIDES if getattr(self, k) is not None}
+        """The session fields this layer sets for itself (a shape mode is not a density's)."""
+        out = {k: getattr(self, k) for k in LAYER_OVERRIDES if getattr(self, k) is not None}
+        if out.get("mode") not in (None, "iso", "volume"):
+            del out["mode"]
+        return out
 
 
 class RenderParams(Model):

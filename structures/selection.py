@@ -67,7 +67,7 @@ def _position_of(text: str, reason: str) -> int:
     value = re.search(r"value: (\S+?)'?$", reason)
     quoted = [value.group(1)] if value else re.findall(r"'([^']*)'", reason)
     spans = [(m.group(), m.start()) for m in _TOKEN.finditer(text)]
-    if not quoted or "end of the text" in reason:
+    if not quoted or quoted[0] == "None":
         return len(text.rstrip())
     word = quoted[0]
     if "end of selection" in reason:
@@ -172,12 +172,12 @@ class Selector:
                 warnings.simplefilter("ignore")
                 group = u.select_atoms(text)
         except MDASelectionError as exc:
-            reason = str(exc).replace("'None'", "the end of the text")
+            raw = str(exc)
+            reason = raw.replace("Unknown selection token: 'None'", "the text ends too soon")
+            reason = reason.replace("Unexpected token: 'None'", "the text ends too soon.")
             if "'within'" in reason:
-                reason += (
-                    " (VMD's `within D of sel` is `around D sel` here, or `sel or around D sel`)"
-                )
-            raise SelectionError(text, reason, _position_of(text, reason)) from None
+                reason += " (VMD's `within D of sel` is `sel or around D sel` here)"
+            raise SelectionError(text, reason, _position_of(text, raw)) from None
         except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
             reason = f"{type(exc).__name__}: {exc}"
             raise SelectionError(text, reason, _position_of(text, reason)) from None

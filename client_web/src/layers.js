@@ -7,7 +7,7 @@ import { $, el } from "./dom.js";
 import { RANGES, clamp } from "./params.js";
 
 export const MAX_LAYERS = 8;
-const MODES = ["iso", "volume"];
+const MODES = ["iso", "volume", "licorice", "tube"];
 const CHECK_MS = 250;
 
 /** A protocol Layer with only the fields it sets (defaults dropped), or null if invalid. */
@@ -22,6 +22,11 @@ export function normalizeLayer(raw) {
     const s = Number(raw.sigma_A);
     if (!Number.isFinite(s)) return null;
     out.sigma_A = clamp(s, RANGES.sigma_A[0], RANGES.sigma_A[1]);
+  }
+  if (raw.radius_A !== undefined && raw.radius_A !== null) {
+    const r = Number(raw.radius_A);
+    if (!Number.isFinite(r) || r <= 0) return null;
+    out.radius_A = Math.min(r, 10);
   }
   if (raw.iso_level !== undefined && raw.iso_level !== null) {
     const v = Number(raw.iso_level);
@@ -198,9 +203,28 @@ export class LayersPanel {
       el("option", { value: "", text: "session mode" }),
       el("option", { value: "iso", text: "surface" }),
       el("option", { value: "volume", text: "cloud" }),
+      el("option", { value: "licorice", text: "sticks" }),
+      el("option", { value: "tube", text: "backbone tube" }),
     ]);
     mode.value = layer.mode ?? "";
     mode.addEventListener("change", () => this.change(i, { mode: mode.value || undefined }));
+    const shape = layer.mode === "licorice" || layer.mode === "tube";
+    const radius = el("input", {
+      type: "number",
+      id: `${id}-radius`,
+      min: 0.05,
+      max: 10,
+      step: 0.05,
+      placeholder: layer.mode === "tube" ? "0.6" : "0.25",
+      value: layer.radius_A ?? "",
+      "aria-label": "Stick or tube radius in ångström",
+      className: "num",
+    });
+    radius.addEventListener("change", () => {
+      const v = radius.value.trim() === "" ? undefined : Number(radius.value);
+      if (v !== undefined && !(Number.isFinite(v) && v > 0)) return;
+      this.change(i, { radius_A: v });
+    });
     const opacity = el("input", {
       type: "range",
       id: `${id}-opacity`,
@@ -228,8 +252,8 @@ export class LayersPanel {
       selection,
       status,
       el("div", { className: "row layer-opts" }, [
-        el("label", { for: `${id}-sigma`, text: "σ" }),
-        sigma,
+        el("label", { for: shape ? `${id}-radius` : `${id}-sigma`, text: shape ? "r" : "σ" }),
+        shape ? radius : sigma,
         mode,
         el("label", { for: `${id}-opacity`, text: "opacity" }),
         opacity,

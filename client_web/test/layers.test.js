@@ -17,6 +17,13 @@ test("a layer keeps only the fields it sets, clamped to the protocol's ranges", 
     mode: "volume",
     opacity: 0.4,
   });
+  assert.deepEqual(normalizeLayer({ selection: "name CA", mode: "tube", radius_A: 0.8 }), {
+    name: "",
+    selection: "name CA",
+    mode: "tube",
+    radius_A: 0.8,
+  });
+  assert.equal(normalizeLayer({ selection: "all", radius_A: -1 }), null);
   assert.equal(normalizeLayer({ selection: "" }), null);
   assert.equal(normalizeLayer({ selection: "all", sigma_A: "wide" }), null);
   assert.equal(normalizeLayers(Array.from({ length: MAX_LAYERS + 1 }, () => ({ selection: "all" }))), null);

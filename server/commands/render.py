@@ -6,6 +6,7 @@ scalesteer render structure.pdb -o out.png --sigma 1.5 --mode iso --size 800x600
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 import warnings
@@ -75,6 +76,22 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--tf-preset", choices=("cloud", "shells", "iso-like"), default="cloud")
     p.add_argument("--projection", choices=("perspective", "orthographic"), default="perspective")
     p.add_argument("--ao", action="store_true", help="density-based ambient occlusion")
+    p.add_argument(
+        "--select",
+        metavar="SELECTION",
+        help="draw only these atoms (MDAnalysis selection syntax, e.g. 'protein and not name H*')",
+    )
+    p.add_argument(
+        "--layers",
+        metavar="JSON",
+        help='a JSON list of layers, e.g. \'[{"selection": "protein", "opacity": 0.5}, '
+        '{"selection": "resname LIG", "mode": "licorice"}]\'',
+    )
+    p.add_argument(
+        "--all-atoms",
+        action="store_true",
+        help="draw every atom (by default solvent and ions are hidden and a ligand is finer)",
+    )
     p.add_argument("--device", default="auto", help="auto, cpu or cuda:N")
     p.add_argument("--frame", type=int, default=0, help="trajectory frame index")
     return p
@@ -93,12 +110,28 @@ def main(argv: list[str] | None = None) -> int:
 
     from pydantic import ValidationError
 
-    from protocol import Lighting, RenderParams
+    from protocol import Layer, Lighting, RenderParams
+    from server.pipeline.selections import check_layers
     from server.render.camera import fit_camera
     from structures.reader import StructureError, load
+    from structures.selection import default_layers
 
+    if sum(x is not None for x in (args.select, args.layers)) + args.all_atoms > 1:
+        return _fail("give at most one of --select, --layers and --all-atoms")
     try:
+        layers: list[Layer] = []
+        if args.select is not None:
+            layers = [Layer(name="selection", selection=args.select)]
+        elif args.layers is not None:
+            try:
+                raw = json.loads(args.layers)
+            except json.JSONDecodeError as exc:
+                return _fail(f"--layers is not valid JSON: {exc.msg}")
+            if not isinstance(raw, list):
+                return _fail("--layers must be a JSON list of layers")
+            layers = [Layer.model_validate(item) for item in raw]
         params = RenderParams(
+            layers=layers,
             mode=args.mode,
             sigma_A=args.sigma,
             iso_level=args.iso,
@@ -116,15 +149,26 @@ def main(argv: list[str] | None = None) -> int:
         where = ".".join(str(x) for x in first["loc"])
         return _fail(f"invalid {where}: {first['msg']}")
     try:
+        check_layers(params)
+    except ValueError as exc:
+        return _fail(str(exc))
+    try:
         structure = load(args.structure, args.trajectory)
     except StructureError as exc:
         return _fail(str(exc))
+    if not params.layers and not args.all_atoms:  # open on the molecule, as a session does
+        defaults = default_layers(structure.topology, params.sigma_A)
+        params = params.model_copy(update={"layers": [Layer(**f) for f in defaults]})
     if not 0 <= args.frame < structure.n_frames:
         return _fail(f"frame {args.frame} out of range: the input has {structure.n_frames} frames")
 
     from PIL import Image
 
+    from server.pipeline.selections import FrameLayers
+    from server.render.layerplan import visible_atoms
+    from server.render.layers import LayeredRenderer
     from server.render.renderer import Renderer
+    from structures.selection import SelectionError
 
     width, height = args.size
     try:
@@ -132,23 +176,36 @@ def main(argv: list[str] | None = None) -> int:
             # re-reading a frame repeats the reader's format notes (e.g. placeholder CRYST1)
             warnings.simplefilter("ignore")
             positions = structure.positions(args.frame)
-        renderer = Renderer(args.device, max_atoms=max(structure.topology.n_atoms, 1))
-        renderer.set_topology(structure.topology)
-        renderer.set_positions(positions)
-        camera = fit_camera(positions, width, height, args.projection)
+        topology = structure.topology
+        n = topology.n_atoms
+        plans = FrameLayers(params, topology).plans(positions, args.frame)
+        shown = visible_atoms(plans, n)
+        if not len(shown):
+            return _fail("the selection takes no atoms: nothing to draw")
+        camera = fit_camera(positions[shown], width, height, args.projection)
+        renderer = Renderer(args.device, max_atoms=max(n, 1))
         t0 = time.perf_counter()
-        renderer.render(params, camera, width, height)
-        rgba = renderer.read_rgba()
+        if plans is None:
+            renderer.set_topology(topology)
+            renderer.set_positions(positions)
+            renderer.render(params, camera, width, height)
+            rgba = renderer.read_rgba()
+        else:
+            layered = LayeredRenderer(lambda: Renderer(args.device, max_atoms=max(n, 1)))
+            layered.render(plans, topology, 1, positions, 1, camera, width, height)
+            rgba = layered.read_rgba()
         ms = (time.perf_counter() - t0) * 1e3
     except RenderError as exc:
+        return _fail(str(exc))
+    except SelectionError as exc:
         return _fail(str(exc))
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(rgba[..., :3]).save(out)
     except OSError as exc:
         return _fail(f"cannot write {args.output}: {exc}")
-    n = structure.topology.n_atoms
-    print(f"{out}: {width}x{height}, {n} atoms, {args.mode}, {renderer.device}, {ms:.1f} ms")
+    drawn = f"{len(shown)} of {n} atoms" if len(shown) < n else f"{n} atoms"
+    print(f"{out}: {width}x{height}, {drawn}, {args.mode}, {renderer.device}, {ms:.1f} ms")
     return 0
 
 

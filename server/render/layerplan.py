@@ -24,6 +24,9 @@ class LayerPlan:
     params: RenderParams
     opacity: float = 1.0
     atoms_key: Any = None
+    style: str = "density"
+    """`density` (the parameters' iso or volume), `licorice` or `tube`."""
+    radius_A: float | None = None
 
 
 def layer_params(base: RenderParams, layer: Layer) -> RenderParams:
@@ -56,6 +59,8 @@ def plan_layers(
                 params=layer_params(params, layer),
                 opacity=float(layer.opacity),
                 atoms_key="all" if whole else key,
+                style=layer.mode if layer.mode in ("licorice", "tube") else "density",
+                radius_A=layer.radius_A,
             )
         )
     return tuple(plans)

@@ -27,6 +27,7 @@ import warp
 
 from protocol import MAX_LAYERS, Camera, RenderParams, Topology
 from server.render.errors import RenderError
+from server.render.geometry import GeometryRenderer
 from server.render.layerplan import LayerPlan, subset_topology
 from server.render.renderer import Renderer
 
@@ -105,7 +106,8 @@ def composite_kernel(
 
 @dataclass
 class _Child:
-    renderer: Renderer
+    renderer: Renderer | GeometryRenderer
+    style: str = "density"
     atoms_key: Any = None
     topology_id: int = -1
     positions_id: int = -1
@@ -127,13 +129,23 @@ class LayeredRenderer:
         self._plans: tuple[LayerPlan, ...] = ()
         self._map_key: tuple[Any, ...] | None = None
 
-    def _child(self, k: int) -> _Child:
+    def _child(self, k: int, style: str = "density") -> _Child:
+        """The renderer of layer position `k`, of the kind `style` draws with."""
         while len(self._children) <= k:
             r = self._make()
             r.coverage = True
             self.device = r.device
             self._children.append(_Child(r))
-        return self._children[k]
+        child = self._children[k]
+        if child.style != style:
+            made: Renderer | GeometryRenderer
+            if style == "density":
+                made = self._make()
+            else:
+                made = GeometryRenderer(self.device, "tube" if style == "tube" else "licorice")
+            made.coverage = True
+            child = self._children[k] = _Child(made, style)
+        return child
 
     def _alloc(self, layers: int, pixels: int) -> None:
         dev = self.device
@@ -193,7 +205,7 @@ class LayeredRenderer:
         totals = {"upload": 0.0, "grid": 0.0, "raycast": 0.0}
         self._child(0)  # the device, even with nothing to draw
         for k, plan in enumerate(plans):
-            child = self._child(k)
+            child = self._child(k, plan.style)
             r = child.renderer
             if child.atoms_key != plan.atoms_key or child.topology_id != topology_id:
                 sub = topology if plan.atoms is None else subset_topology(topology, plan.atoms)
@@ -207,10 +219,13 @@ class LayeredRenderer:
                     self._gather(child, plan, positions_id, positions), check_finite=False
                 )
                 child.positions_id = positions_id
-            if history and plan.params.needs_history():
+            if history and plan.style == "density" and plan.params.needs_history():
                 frames = [(i, self._gather(child, plan, i, pos)) for i, pos in history]
                 r.set_history(frames, history_epoch, plan.params, live=live, lag=lag)
-            r.render(plan.params, camera, width, height)
+            if isinstance(r, GeometryRenderer):
+                r.render(plan.params, camera, width, height, plan.radius_A)
+            else:
+                r.render(plan.params, camera, width, height)
             for key in totals:
                 totals[key] += r.timings.get(key, 0.0)
         pixels = int(width) * int(height)
@@ -325,5 +340,10 @@ class LayeredRenderer:
         if not self._plans:
             edges = np.linspace(0.0, 1.0, bins + 1)
             return np.zeros(bins, dtype=np.int64), edges
-        k = next((i for i, p in enumerate(self._plans) if p.params.mode == "volume"), 0)
-        return self._children[k].renderer.density_histogram(bins)
+        density = [i for i, p in enumerate(self._plans) if p.style == "density"]
+        if not density:
+            return np.zeros(bins, dtype=np.int64), np.linspace(0.0, 1.0, bins + 1)
+        k = next((i for i in density if self._plans[i].params.mode == "volume"), density[0])
+        renderer = self._children[k].renderer
+        assert isinstance(renderer, Renderer)
+        return renderer.density_histogram(bins)

@@ -92,8 +92,8 @@ def test_villin_demo_selections_equal_mdanalysis() -> None:
     ("text", "where", "says"),
     [
         ("protien or name CA", 0, "protien"),
-        ("name CA and (resid 4", 20, "end of the text"),
-        ("name CA or", 10, "end of the text"),
+        ("name CA and (resid 4", 20, "ends too soon. Expected: ')'"),
+        ("name CA or", 10, "ends too soon"),
         ("name CA)", 7, ")"),
         ("resid 1- and name CA", 6, "1-"),
         ("around 5 foo", 9, "foo"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -81,3 +82,26 @@ def test_the_warped_density_renders_and_differs(
         images[space] = np.asarray(Image.open(out), dtype=np.float64)
     assert np.abs(images["classical"] - images["warped"]).mean() > 2.0
     assert len(np.unique(images["warped"].reshape(-1, 3), axis=0)) > 10
+
+
+def test_a_solvated_file_opens_on_its_protein_and_layers_steer_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    base = [GRO, "--size", "64x48", "--device", "cpu"]
+    assert main([*base, "-o", str(tmp_path / "default.png")]) == 0
+    assert "3341 of 47681 atoms" in capsys.readouterr().out  # water and ions hidden
+    assert main([*base, "-o", str(tmp_path / "all.png"), "--all-atoms"]) == 0
+    assert "47681 atoms" in capsys.readouterr().out
+    layers = json.dumps(
+        [{"selection": "protein", "opacity": 0.4}, {"selection": "resname ARG", "mode": "licorice"}]
+    )
+    assert main([*base, "-o", str(tmp_path / "layers.png"), "--layers", layers]) == 0
+    capsys.readouterr()
+    images = [np.asarray(Image.open(tmp_path / f"{n}.png")) for n in ("default", "all", "layers")]
+    assert not np.array_equal(images[0], images[1]) and not np.array_equal(images[0], images[2])
+    assert main([*base, "-o", str(tmp_path / "x.png"), "--select", "name CA and ("]) == 2
+    err = capsys.readouterr().err
+    assert "layers.0.selection" in err and "character 14" in err
+    assert main([*base, "-o", str(tmp_path / "x.png"), "--select", "resname NONE"]) == 2
+    assert "takes no atoms" in capsys.readouterr().err
+    assert main([*base, "-o", str(tmp_path / "x.png"), "--select", "all", "--all-atoms"]) == 2

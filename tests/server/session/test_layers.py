@@ -4,7 +4,10 @@ the frames (at most every REFRESH_S, off the event loop), plans reused while not
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
+from collections.abc import Callable, Coroutine
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,6 +17,25 @@ from server.session.layers import REFRESH_S, LayerBook
 from tests.server.peers import molecule
 
 pytest.importorskip("MDAnalysis")
+
+
+def run(main: Callable[[], Coroutine[Any, Any, None]]) -> None:
+    """`main` on an event loop of its own thread (another test's framework may hold this
+    thread's loop)."""
+    errors: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            asyncio.run(main())
+        except BaseException as exc:
+            errors.append(exc)
+
+    thread = threading.Thread(target=target)
+    thread.start()
+    thread.join(60)
+    assert not thread.is_alive(), "the test hung"
+    if errors:
+        raise errors[0]
 
 
 def test_distance_selections_follow_the_frames() -> None:
@@ -53,7 +75,7 @@ def test_distance_selections_follow_the_frames() -> None:
         assert np.array_equal(again[1].atoms, np.flatnonzero((d < 3) & (d > 0)))
         assert again[0].atoms_key == first[0].atoms_key  # the static layer did not change
 
-    asyncio.run(main())
+    run(main)
 
 
 def test_a_new_topology_forgets_old_results() -> None:
@@ -70,4 +92,4 @@ def test_a_new_topology_forgets_old_results() -> None:
         plans = book.plans(params, small.n_atoms, small_pos, 1)
         assert plans is not None and plans[0].atoms is None  # every atom of the smaller system
 
-    asyncio.run(main())
+    run(main)
