@@ -9,9 +9,11 @@ an opaque surface hides every layer behind it (two overlapping iso layers give t
 translucent layers blend over what lies behind them, and the pick buffer holds the front
 layer's atom as an index into the whole system, with the layer beside it.
 
-A translucent *volume* layer is ordered by the depth where its opacity first reaches the
-caster's depth threshold: a cloud that a surface cuts through blends over that surface as a
-whole (the part of the cloud behind the surface is not cut away).
+Clouds (volume layers) are cast last: each stops at the nearest opaque surface of the other
+layers, so a cloud around a surface shows only its part in front of it, blended over the
+surface. A cloud is then placed by the depth where its opacity first reaches the caster's
+depth threshold; two clouds, or a cloud and a translucent surface, that interleave along a ray
+blend as wholes in that order.
 """
 
 from __future__ import annotations
@@ -104,6 +106,18 @@ def composite_kernel(
         out_ids[pix] = atom
 
 
+@wp.kernel(enable_backward=False)
+@no_type_check
+def nearer_kernel(depth: wp.array(dtype=float), limit: wp.array(dtype=float)):
+    """limit = min(limit, depth): the nearest opaque surface so far, per pixel."""
+    i = wp.tid()
+    limit[i] = wp.min(limit[i], depth[i])
+
+
+def _is_cloud(plan: LayerPlan) -> bool:
+    return plan.style == "density" and plan.params.mode == "volume"
+
+
 @dataclass
 class _Child:
     renderer: Renderer | GeometryRenderer
@@ -151,6 +165,7 @@ class LayeredRenderer:
         dev = self.device
         if pixels > self._pixels or not hasattr(self, "_out_rgba"):
             self._pixels = max(pixels, 1)
+            self._limit = wp.zeros(self._pixels, dtype=float, device=dev)
             self._out_rgba = wp.zeros(self._pixels, dtype=wp.uint32, device=dev)
             self._out_depth = wp.zeros(self._pixels, dtype=float, device=dev)
             self._out_ids = wp.zeros(self._pixels, dtype=wp.int32, device=dev)
@@ -204,7 +219,13 @@ class LayeredRenderer:
         t0 = time.perf_counter()
         totals = {"upload": 0.0, "grid": 0.0, "raycast": 0.0}
         self._child(0)  # the device, even with nothing to draw
-        for k, plan in enumerate(plans):
+        pixels = int(width) * int(height)
+        self._alloc(len(plans), pixels)
+        self._limit.fill_(float("inf"))
+        opaque = False
+        # clouds last: they stop at the nearest opaque surface of the layers drawn before
+        for k in sorted(range(len(plans)), key=lambda i: _is_cloud(plans[i])):
+            plan = plans[k]
             child = self._child(k, plan.style)
             r = child.renderer
             if child.atoms_key != plan.atoms_key or child.topology_id != topology_id:
@@ -225,11 +246,14 @@ class LayeredRenderer:
             if isinstance(r, GeometryRenderer):
                 r.render(plan.params, camera, width, height, plan.radius_A)
             else:
+                r.depth_limit = self._limit if opaque and _is_cloud(plan) else None
                 r.render(plan.params, camera, width, height)
             for key in totals:
                 totals[key] += r.timings.get(key, 0.0)
-        pixels = int(width) * int(height)
-        self._alloc(len(plans), pixels)
+            if not _is_cloud(plan) and plan.opacity >= 1.0:
+                _rgba, depth, _ids, count = r.device_outputs()
+                wp.launch(nearer_kernel, count, (depth, self._limit), device=self.device)
+                opaque = True
         t_comp = time.perf_counter()
         for k, _plan in enumerate(plans):
             rgba, depth, ids, count = self._children[k].renderer.device_outputs()

@@ -116,6 +116,10 @@ class Volume:
     dt_ref: float
     clear_level: float
     shade: int
+    limit: wp.array[float]
+    """Per pixel, where the march stops (`clip` = 1): the nearest opaque surface of another
+    layer, so a cloud around a surface is drawn only in front of it."""
+    clip: int
 
 
 @wp.func
@@ -931,6 +935,8 @@ def _make(
         g = f.info[0]
         o, d = camera_ray(cam, x, y)
         t0, t1 = clip_box(o, d, g.origin, g.box_hi)
+        if vol.clip != 0:
+            t1 = wp.min(t1, vol.limit[pix])
         if g.valid != 0 and t0 < t1:
             dt = m.dt
             jit = pixel_jitter(x + cam.x0, y + cam.y0)  # the whole image's pixel

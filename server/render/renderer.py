@@ -141,6 +141,10 @@ class Renderer:
         self.split_lanes = int(split_lanes)
         self.coverage = False
         """Write coverage alpha over no background (a layer composited with others)."""
+        self.depth_limit: Any = None
+        """A device array of per-pixel distances where volume rays stop (None: the grid's
+        end); set by the layer compositor to the nearest opaque surface of the other layers."""
+        self._no_limit = wp.zeros(1, dtype=float, device=self.device)
         self._dev = wp.get_device(self.device)
         self._cuda = bool(self._dev.is_cuda)
         if density.field is not GaussianField:
@@ -691,6 +695,8 @@ class Renderer:
             vol.clear_level = stop
             lt = params.lighting
             vol.shade = int(lt.diffuse > 0 or lt.specular > 0)
+            vol.clip = int(self.depth_limit is not None)
+            vol.limit = self._no_limit if self.depth_limit is None else self.depth_limit
             wp.launch(
                 k.volume,
                 threads,
@@ -800,7 +806,8 @@ class Renderer:
             self._launch_frame, params, d, f, stop, frame, grid_key is not None, tile
         )
         if self._graphs is not None:
-            key = (grid_key is not None, self._n, d, stop, seen[1], cam_seen[4], tile)
+            limit = id(self.depth_limit) if params.mode == "volume" else None
+            key = (grid_key is not None, self._n, d, stop, seen[1], cam_seen[4], tile, limit)
             t_cast = self._replay_or_launch(key, launch)
         else:
             t_cast = launch()
