@@ -121,8 +121,8 @@ def universe_of(topology: Topology) -> Any:
     u.add_TopologyAttr("segids", seg_names.astype(object))
     if topology.charges is not None:
         u.add_TopologyAttr("charges", topology.charges.to_numpy().astype(np.float64))
-    bonds = topology.bonds.to_numpy().reshape(-1, 2)
-    u.add_TopologyAttr("bonds", [tuple(int(i) for i in b) for b in bonds])
+    bonds = topology.bonds.to_numpy().reshape(-1, 2).astype(np.int64)
+    u.add_TopologyAttr("bonds", bonds)
     return u
 
 
@@ -207,12 +207,27 @@ def _dimensions(box: npt.ArrayLike | None) -> npt.NDArray[np.float32] | None:
     return dims
 
 
+def _residue_mask(topology: Topology, kinds: set[str]) -> npt.NDArray[np.bool_]:
+    """Atoms whose residue name is one of `kinds` (a dict lookup per atom: fast at 1M atoms,
+    where numpy's set operations on strings are not)."""
+    flag = {r: r in kinds for r in set(topology.residue_names)}
+    return np.fromiter((flag[r] for r in topology.residue_names), bool, topology.n_atoms)
+
+
+def polymer_atoms(topology: Topology) -> npt.NDArray[np.int32]:
+    """The atoms `protein or nucleic` selects: MDAnalysis's own residue names, read here
+    without building a universe (a default is wanted the moment a large system arrives)."""
+    from MDAnalysis.core.selection import NucleicSelection, ProteinSelection
+
+    known = set(ProteinSelection.prot_res) | set(NucleicSelection.nucl_res)
+    return np.flatnonzero(_residue_mask(topology, known)).astype(np.int32)
+
+
 def solvent_atoms(topology: Topology) -> npt.NDArray[np.int32]:
     """Water and ion atoms, by residue name in any letter case (`Cl`, `NA+`, `HOH`)."""
     known = {r.upper() for r in (*SOLVENT_RESNAMES, *ION_RESNAMES)}
-    names = np.asarray(topology.residue_names, dtype=object)
     kinds = {r for r in set(topology.residue_names) if r.upper() in known}
-    return np.flatnonzero(np.isin(names, list(kinds))).astype(np.int32)
+    return np.flatnonzero(_residue_mask(topology, kinds)).astype(np.int32)
 
 
 def default_layers(topology: Topology, sigma_A: float) -> list[dict[str, Any]]:
@@ -220,13 +235,15 @@ def default_layers(topology: Topology, sigma_A: float) -> list[dict[str, Any]]:
     session's parameters) when nothing is solvent, ion or ligand; else the polymer, and each
     kind of other residue (a ligand) as a finer layer of its own. Solvent is left out (hidden);
     a system that is nothing but solvent stays whole."""
-    sel = Selector(topology)
     n = topology.n_atoms
     if not n:
         return []
     solvent = solvent_atoms(topology)
-    polymer = sel.select(POLYMER_SELECTION)
-    rest = np.setdiff1d(np.arange(n, dtype=np.int32), np.union1d(solvent, polymer))
+    polymer = polymer_atoms(topology)
+    others = np.ones(n, dtype=bool)
+    others[solvent] = False
+    others[polymer] = False
+    rest = np.flatnonzero(others)
     if len(solvent) == 0 and len(rest) == 0:
         return []
     if len(solvent) == n:

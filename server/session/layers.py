@@ -28,6 +28,11 @@ log = logging.getLogger("scalesteer.session")
 
 REFRESH_S = 0.1
 """Distance-based selections follow the simulation at up to 10 evaluations a second."""
+BUILD_AWAY_ATOMS = 100_000
+"""From this size the selection universe (about a second per million atoms) is built in a
+worker thread; the session draws nothing until it is ready rather than stall every session."""
+PENDING: tuple[LayerPlan, ...] = ()
+"""`plans` while the universe of a large topology is still being built (compare with `is`)."""
 
 
 @dataclass
@@ -44,6 +49,7 @@ class LayerBook:
 
     def __init__(self, on_refresh: Callable[[], None]) -> None:
         self._on_refresh = on_refresh
+        self._ready = True
         self._selector: Selector | None = None
         self._topology_id = -1
         self._lock = threading.Lock()
@@ -55,10 +61,29 @@ class LayerBook:
     def topology(self, topology: p.Topology, topology_id: int) -> None:
         """A new topology: earlier selection results no longer apply."""
         with self._lock:
-            self._selector = Selector(topology)
+            selector = self._selector = Selector(topology)
             self._topology_id = topology_id
             self._dynamic.clear()
             self._plans = None
+            self._ready = topology.n_atoms < BUILD_AWAY_ATOMS
+        if self._ready:
+            return
+
+        def build() -> None:
+            with self._lock:
+                selector.universe  # noqa: B018 (built once, here)
+
+        def done(future: asyncio.Future[None]) -> None:
+            if selector is not self._selector:
+                return  # another topology arrived meanwhile
+            if future.exception() is not None:
+                log.error(
+                    "selections of a %d-atom topology: %s", topology.n_atoms, future.exception()
+                )
+            self._ready = True
+            self._on_refresh()
+
+        asyncio.get_running_loop().run_in_executor(None, build).add_done_callback(done)
 
     def defaults(self, topology: p.Topology, sigma_A: float) -> list[p.Layer]:
         """The layers this topology opens with (structures.selection.default_layers)."""
@@ -134,6 +159,8 @@ class LayerBook:
         """The visible layers of `params` with their atoms (None: no layers)."""
         if not params.layers or self._selector is None or positions is None:
             return None
+        if not self._ready:
+            return PENDING
         chosen: dict[str, tuple[npt.NDArray[np.int32], Any]] = {}
 
         def select(text: str) -> tuple[npt.NDArray[np.int32], Any]:

@@ -34,7 +34,7 @@ from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
 from server.session.engine_limits import check_control, check_pull, check_sim_params
 from server.session.forces import ForceBook
-from server.session.layers import LayerBook
+from server.session.layers import PENDING, LayerBook
 from server.session.roster import Roster
 from server.session.scheduler import RenderScheduler, ViewKey
 from server.session.services import Services
@@ -278,9 +278,27 @@ class Session:
         self.version += 1
 
     def _selection_moved(self) -> None:
-        """A distance-based layer selection took in or let go of atoms."""
+        """A distance-based layer selection took in or let go of atoms (or the selections of
+        a large system became ready)."""
+        if self.camera is None:
+            self._fit_camera()
         self.version += 1
         self.mark_dirty()
+
+    def _fit_camera(self) -> None:
+        """Frame what the layers show (once their selections are ready)."""
+        if self.positions is None or self.topology is None:
+            return
+        n = self.topology.n_atoms
+        plans = self.layers.plans(self.render_params, n, self.positions, self.positions_id)
+        if plans is PENDING:
+            return
+        from server.render.camera import fit_camera
+
+        shown = visible_atoms(plans, n)
+        w, h = self.settings.default_size
+        self.camera = fit_camera(self.positions[shown] if len(shown) else self.positions, w, h)
+        self.broadcast(p.State(camera=self.camera))
 
     def _layer_plans(self, snap: Snapshot) -> tuple[LayerPlan, ...] | None:
         return self.layers.plans(
@@ -356,13 +374,7 @@ class Session:
         self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
         self._frame_arrived = asyncio.Event()
         if self.camera is None:
-            from server.render.camera import fit_camera
-
-            w, h = self.settings.default_size
-            plans = self.layers.plans(self.render_params, n, self.positions, self.positions_id)
-            shown = visible_atoms(plans, n)
-            self.camera = fit_camera(self.positions[shown] if len(shown) else self.positions, w, h)
-            self.broadcast(p.State(camera=self.camera))
+            self._fit_camera()
         paused = self.status.state == "paused"
         self.status = p.SimStatus(
             state="paused" if paused else "running",
@@ -786,6 +798,9 @@ class Session:
         snapshot was taken (the next pass renders that one)."""
         if snap.topology_id != self.topology_id:
             return None
+        layers = self._layer_plans(snap)
+        if layers is PENDING:
+            return None  # the selections of a large system are still being prepared
         params = self.render_params
         device = self.services.backend.actual_device or self.settings.device
         on_cpu = device.startswith("cpu")
@@ -799,7 +814,7 @@ class Session:
             width=width,
             height=height,
             histogram=self.scheduler.histogram_due(key, now),
-            layers=self._layer_plans(snap),
+            layers=layers,
         )
         out: RenderOutput = await self.services.backend.render(request)
         reduced = self.scheduler.note_render(
@@ -844,6 +859,10 @@ class Session:
             )
         pw, ph = self.scheduler.pick_size(w, h)
         layers = self._layer_plans(snap)
+        if layers is PENDING:
+            raise p.ProtocolError(
+                p.ErrorCode.NOT_READY, "the layers are still being prepared", "pick", pick.seq
+            )
         request = RenderRequest(self.slot, snap, self.render_params, camera, pw, ph, layers=layers)
         x, y = min(pw - 1, pick.x * pw // w), min(ph - 1, pick.y * ph // h)
         atom, depth, layer = await self.services.backend.pick(request, x, y)

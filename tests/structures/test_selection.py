@@ -16,6 +16,7 @@ from structures.selection import (
     check_syntax,
     default_layers,
     is_dynamic,
+    polymer_atoms,
     solvent_atoms,
 )
 
@@ -143,6 +144,14 @@ def test_default_layers_hide_solvent_and_single_out_a_ligand() -> None:
     hidden = solvent_atoms(with_ligand)
     assert len(np.intersect1d(shown, hidden)) == 0
     assert len(shown) + len(hidden) == topo.n_atoms
+
+
+def test_polymer_atoms_are_mdanalysis_protein_or_nucleic() -> None:
+    for files in [(GRO,), (PSF,)]:
+        u = _universe(*files)
+        topo = topology_of(u, guess_bonds=False)
+        want = u.select_atoms("protein or nucleic").indices  # type: ignore[attr-defined]
+        assert np.array_equal(polymer_atoms(topo), want)
 
 
 def test_a_box_of_water_alone_stays_whole() -> None:

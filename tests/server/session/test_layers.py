@@ -93,3 +93,30 @@ def test_a_new_topology_forgets_old_results() -> None:
         assert plans is not None and plans[0].atoms is None  # every atom of the smaller system
 
     run(main)
+
+
+def test_a_large_topology_prepares_its_selections_off_the_loop(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import server.session.layers as layers
+
+    monkeypatch.setattr(layers, "BUILD_AWAY_ATOMS", 10)
+    topo, pos = molecule(24)
+    ready: list[bool] = []
+
+    async def main() -> None:
+        book = LayerBook(lambda: ready.append(True))
+        book.topology(topo, 1)
+        params = p.RenderParams(layers=[p.Layer(selection="index 0:4")])
+        assert book.plans(params, topo.n_atoms, pos, 1) is layers.PENDING
+        for _ in range(200):
+            if ready:
+                break
+            await asyncio.sleep(0.01)
+        assert ready, "the universe was never reported ready"
+        plans = book.plans(params, topo.n_atoms, pos, 1)
+        assert plans is not layers.PENDING and plans is not None
+        assert plans[0].atoms is not None and len(plans[0].atoms) == 5
+        assert book.plans(p.RenderParams(), topo.n_atoms, pos, 1) is None  # no layers
+
+    run(main)
