@@ -188,6 +188,36 @@ class Selector:
             self._static[text] = indices
         return indices
 
+    def secondary(self, positions: npt.ArrayLike) -> npt.NDArray[np.uint8]:
+        """Per atom, the secondary structure of its residue by MDAnalysis's DSSP at these
+        positions: 0 coil (or not protein), 1 helix, 2 strand. Residues without a complete
+        backbone (N, CA, C, O) count as coil."""
+        from MDAnalysis.analysis.dssp import DSSP
+
+        n = self.topology.n_atoms
+        codes = np.zeros(n, dtype=np.uint8)
+        if not n:
+            return codes
+        u = self.universe
+        u.atoms.positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+        protein = u.select_atoms("protein")
+        complete = [
+            r for r in protein.residues if {"N", "CA", "C", "O"} <= set(r.atoms.names.tolist())
+        ]
+        if len(complete) < 3:
+            return codes
+        group = sum(complete[1:], complete[0]).atoms
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                found = DSSP(group, guess_hydrogens=True).run(stop=1).results.dssp[0]
+        except (ValueError, IndexError, KeyError) as exc:
+            raise SelectionError("secondary structure", f"DSSP failed: {exc}", 0) from None
+        per_residue = np.array([{"H": 1, "E": 2}.get(str(c), 0) for c in found], np.uint8)
+        for residue, code in zip(complete, per_residue, strict=True):
+            codes[residue.atoms.indices] = code
+        return codes
+
     def count(
         self, text: str, positions: npt.ArrayLike | None = None, box: npt.ArrayLike | None = None
     ) -> int:

@@ -32,6 +32,7 @@ class FrameLayers:
         self.params = params
         self.topology = topology
         self._selector = Selector(topology) if params.layers else None
+        self._codes: npt.NDArray[np.uint8] | None = None
 
     def plans(
         self,
@@ -48,4 +49,9 @@ class FrameLayers:
             atoms = selector.select(text, positions, box)
             return atoms, ((text, frame_key) if is_dynamic(text) else text)
 
-        return plan_layers(self.params, self.topology.n_atoms, select)
+        def secondary() -> npt.NDArray[np.uint8]:
+            if self._codes is None:  # assigned at the first frame, kept for the job
+                self._codes = selector.secondary(positions)
+            return self._codes
+
+        return plan_layers(self.params, self.topology.n_atoms, select, secondary)

@@ -1,6 +1,7 @@
 """Atoms and bonds as solid shapes, for layers beside the density: licorice (a capsule along
 each half bond, coloured by its atom, and a sphere at each atom without bonds) and a backbone
-tube (capsules along a Catmull-Rom spline through the CA / P trace of each chain).
+tube (capsules along a Catmull-Rom spline through the CA / P trace of each chain; with
+secondary structure, helices as wide cylinders along their axes and strands wider).
 
 A capsule (a segment with a radius; a sphere when both ends meet) is hit analytically. The
 capsules sit in a BVH over their boxes, refitted on the device every frame (a new topology
@@ -33,6 +34,13 @@ STICK_RADIUS_A = 0.25
 TUBE_RADIUS_A = 0.6
 TUBE_SUBDIVISIONS = 4
 """Spline pieces per residue step: enough for a round tube at dashboard sizes."""
+HELIX_SCALE = 3.5
+"""A helix is a cylinder along its axis, 3.5 tube radii wide (2.1 A at the default radius)."""
+STRAND_SCALE = 1.6
+SECONDARY = {"-": 0, "H": 1, "E": 2}
+"""Secondary-structure codes per atom, as MDAnalysis's DSSP names them (coil, helix, strand)."""
+HELIX_MIN = 4
+"""Residues a helix needs before it is drawn as a cylinder (its axis: the mean of four CA)."""
 TRACE_BREAK_A = {"CA": 4.6, "P": 8.5}
 """Consecutive trace atoms further apart than this (at the first frame) start a new piece."""
 
@@ -119,11 +127,13 @@ def bounds_kernel(
     p0: wp.array(dtype=wp.vec3),
     p1: wp.array(dtype=wp.vec3),
     r: float,
+    scale: wp.array(dtype=float),
     lowers: wp.array(dtype=wp.vec3),
     uppers: wp.array(dtype=wp.vec3),
 ):
     k = wp.tid()
-    pad = wp.vec3(r, r, r)
+    rk = r * scale[k]
+    pad = wp.vec3(rk, rk, rk)
     lowers[k] = wp.min(p0[k], p1[k]) - pad
     uppers[k] = wp.max(p0[k], p1[k]) + pad
 
@@ -135,6 +145,7 @@ def capsule_kernel(
     p0: wp.array(dtype=wp.vec3),
     p1: wp.array(dtype=wp.vec3),
     r: float,
+    scale: wp.array(dtype=float),
     color: wp.array(dtype=wp.uint32),
     atom: wp.array(dtype=wp.int32),
     cam: raycast.CameraData,
@@ -155,7 +166,7 @@ def capsule_kernel(
     hit = wp.int32(-1)
     k = wp.int32(0)
     while wp.bvh_query_next(query, k, best):
-        t = ray_capsule(o, d, p0[k], p1[k], r)
+        t = ray_capsule(o, d, p0[k], p1[k], r * scale[k])
         if t >= 0.0 and t < best:
             best = t
             hit = k
@@ -245,6 +256,75 @@ def catmull_rom(points: npt.NDArray[np.float64], pieces: int) -> npt.NDArray[np.
     return np.concatenate(out)
 
 
+def _runs(codes: npt.NDArray[np.uint8]) -> list[tuple[int, int, int]]:
+    """(start, stop, code) of each run of equal codes."""
+    if not len(codes):
+        return []
+    cuts = np.flatnonzero(np.diff(codes.astype(np.int16))) + 1
+    starts = np.concatenate([[0], cuts])
+    stops = np.concatenate([cuts, [len(codes)]])
+    return [(int(a), int(b), int(codes[a])) for a, b in zip(starts, stops, strict=True)]
+
+
+def tube_spans(
+    pieces: list[npt.NDArray[np.int32]],
+    positions: npt.NDArray[np.float32],
+    codes: npt.NDArray[np.uint8] | None = None,
+) -> tuple[
+    npt.NDArray[np.float64],
+    npt.NDArray[np.float64],
+    npt.NDArray[np.int32],
+    npt.NDArray[np.float64],
+]:
+    """Capsules (p0, p1, owner atom, radius scale) of a backbone tube: a Catmull-Rom spline
+    through each piece's trace atoms; with secondary structure (`codes` per atom), a helix of
+    `HELIX_MIN` residues or more becomes a wide cylinder along its axis (the running mean of
+    four consecutive CA, which lies on a helix's axis) and a strand a wider tube. Each coil or
+    strand run reaches to its neighbours' first and last atoms, so the tube stays joined."""
+    p0: list[npt.NDArray[np.float64]] = []
+    p1: list[npt.NDArray[np.float64]] = []
+    owner: list[npt.NDArray[np.int32]] = []
+    scale: list[npt.NDArray[np.float64]] = []
+
+    def spline(idx: npt.NDArray[np.int32], factor: float) -> None:
+        if len(idx) < 2:
+            return
+        curve = catmull_rom(positions[idx].astype(np.float64), TUBE_SUBDIVISIONS)
+        span = np.arange(len(curve) - 1)
+        nearer = np.minimum((span + TUBE_SUBDIVISIONS // 2) // TUBE_SUBDIVISIONS, len(idx) - 1)
+        p0.append(curve[:-1])
+        p1.append(curve[1:])
+        owner.append(idx[nearer])
+        scale.append(np.full(len(span), factor))
+
+    for piece in pieces:
+        kinds = np.zeros(len(piece), np.uint8) if codes is None else codes[piece].astype(np.uint8)
+        for start, stop, code in _runs(kinds):
+            if code == SECONDARY["H"] and stop - start >= HELIX_MIN:
+                ca = positions[piece[start:stop]].astype(np.float64)
+                axis = np.stack([ca[i : i + 4].mean(axis=0) for i in range(len(ca) - 3)])
+                if len(axis) == 1:  # four residues: one axis point, a short cylinder
+                    direction = ca[-1] - ca[0]
+                    direction /= max(float(np.linalg.norm(direction)), 1e-9)
+                    axis = np.stack([axis[0] - 2.25 * direction, axis[0] + 2.25 * direction])
+                p0.append(axis[:-1])
+                p1.append(axis[1:])
+                owner.append(piece[start + 1 : start + len(axis)].astype(np.int32))
+                scale.append(np.full(len(axis) - 1, HELIX_SCALE))
+            else:
+                lo, hi = max(start - 1, 0), min(stop + 1, len(piece))
+                spline(piece[lo:hi], STRAND_SCALE if code == SECONDARY["E"] else 1.0)
+    if not p0:
+        empty = np.zeros((0, 3))
+        return empty, empty, np.zeros(0, np.int32), np.zeros(0)
+    return (
+        np.concatenate(p0),
+        np.concatenate(p1),
+        np.concatenate(owner).astype(np.int32),
+        np.concatenate(scale),
+    )
+
+
 class GeometryRenderer:
     """Ray-casts one layer's atoms as licorice or as a backbone tube (see the module)."""
 
@@ -273,6 +353,7 @@ class GeometryRenderer:
 
     def set_topology(self, topology: Topology) -> None:
         self._topology = topology
+        self._secondary: npt.NDArray[np.uint8] | None = None
         self._positions = None
         self._pieces = None
         self._bvh = None
@@ -292,6 +373,7 @@ class GeometryRenderer:
             self._lowers = wp.zeros(m, dtype=wp.vec3, device=self.device)
             self._uppers = wp.zeros(m, dtype=wp.vec3, device=self.device)
             self._colors = wp.zeros(m, dtype=wp.uint32, device=self.device)
+            self._scale = wp.full(m, 1.0, dtype=float, device=self.device)
             self._bvh = None
             self._color_key = None
         self._count = count
@@ -321,38 +403,27 @@ class GeometryRenderer:
             self._tube(arr)
         self._upload_ms = (time.perf_counter() - t0) * 1e3
 
+    def set_secondary(self, codes: npt.NDArray[np.uint8] | None) -> None:
+        """Per atom of this layer: 0 coil, 1 helix, 2 strand (`SECONDARY`); None: all coil.
+        The tube draws helices as wide cylinders along their axis and strands wider."""
+        self._secondary = None if codes is None else np.asarray(codes, dtype=np.uint8)
+
     def _tube(self, positions: npt.NDArray[np.float32]) -> None:
-        """Spline points of every trace piece, each span a capsule owned by its nearer atom."""
+        """Capsules along every trace piece (`tube_spans`)."""
         assert self._topology is not None
         if self._pieces is None:
             self._pieces = trace_pieces(self._topology, positions)
-        p0: list[npt.NDArray[np.float64]] = []
-        p1: list[npt.NDArray[np.float64]] = []
-        owner: list[npt.NDArray[np.int32]] = []
-        for piece in self._pieces:
-            curve = catmull_rom(positions[piece].astype(np.float64), TUBE_SUBDIVISIONS)
-            p0.append(curve[:-1])
-            p1.append(curve[1:])
-            span = np.arange(len(curve) - 1)
-            nearer = np.minimum(
-                (span + TUBE_SUBDIVISIONS // 2) // TUBE_SUBDIVISIONS, len(piece) - 1
-            )
-            owner.append(piece[nearer])
-        count = sum(len(a) for a in p0)
+        p0, p1, owner, scale = tube_spans(self._pieces, positions, self._secondary)
+        count = len(p0)
         self._alloc_capsules(count)
         if not count:
             self._atom_host = np.zeros(0, np.int32)
             return
-        self._atom_host = np.concatenate(owner).astype(np.int32)
-        self._atom = wp.array(self._atom_host, dtype=wp.int32, device=self.device)
-        wp.copy(
-            self._p0,
-            wp.array(np.concatenate(p0).astype(np.float32), dtype=wp.vec3, device=self.device),
-        )
-        wp.copy(
-            self._p1,
-            wp.array(np.concatenate(p1).astype(np.float32), dtype=wp.vec3, device=self.device),
-        )
+        self._atom_host = owner
+        self._atom = wp.array(owner, dtype=wp.int32, device=self.device)
+        for dest, host, kind in ((self._p0, p0, wp.vec3), (self._p1, p1, wp.vec3)):
+            wp.copy(dest, wp.array(host.astype(np.float32), dtype=kind, device=self.device))
+        wp.copy(self._scale, wp.array(scale.astype(np.float32), dtype=float, device=self.device))
 
     def set_history(self, *args: Any, **kwargs: Any) -> None:
         """Shapes are drawn at the newest frame (time smoothing applies to densities)."""
@@ -386,7 +457,7 @@ class GeometryRenderer:
         t_grid = time.perf_counter()
         bvh_id = 0
         if self._count:
-            args = (self._p0, self._p1, r, self._lowers, self._uppers)
+            args = (self._p0, self._p1, r, self._scale, self._lowers, self._uppers)
             wp.launch(bounds_kernel, self._count, args, device=dev)
             if self._bvh is None:  # the arrays hold exactly the capsules
                 self._bvh = wp.Bvh(self._lowers, self._uppers)
@@ -410,14 +481,15 @@ class GeometryRenderer:
         sh.iso = 0.0
         sh.depth_cue = float(light.depth_cue)
         sh.coverage = int(self.coverage)
-        near, far = self._fog_range(frame.eye, frame.forward, r)
+        near, far = self._fog_range(frame.eye, frame.forward, r * HELIX_SCALE)
         cam = raycast.camera_data(frame)
         if self._count:
             wp.launch(
                 capsule_kernel,
                 raycast.launch_size(w, h),
                 (
-                    bvh_id, self._p0, self._p1, r, self._colors, self._atom, cam, sh, near, far,
+                    bvh_id, self._p0, self._p1, r, self._scale, self._colors, self._atom, cam,
+                    sh, near, far,
                     self._rgba, self._depth, self._ids,
                 ),
                 device=dev,

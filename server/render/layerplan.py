@@ -27,6 +27,8 @@ class LayerPlan:
     style: str = "density"
     """`density` (the parameters' iso or volume), `licorice` or `tube`."""
     radius_A: float | None = None
+    secondary: npt.NDArray[np.uint8] | None = None
+    """For a tube: each of the layer's atoms' secondary structure (0 coil, 1 helix, 2 strand)."""
 
 
 def layer_params(base: RenderParams, layer: Layer) -> RenderParams:
@@ -38,10 +40,12 @@ def plan_layers(
     params: RenderParams,
     n_atoms: int,
     select: Callable[[str], tuple[npt.NDArray[np.int32], Any]],
+    secondary: Callable[[], npt.NDArray[np.uint8] | None] | None = None,
 ) -> tuple[LayerPlan, ...] | None:
     """The visible layers of `params` in order (None: no layers, draw every atom the single
     way). `select(text)` returns a selection's sorted atom indices and a key that changes
-    when they do; it raises for an invalid selection."""
+    when they do; it raises for an invalid selection. `secondary()` gives every atom's
+    secondary structure, asked for only when a tube layer is drawn."""
     if not params.layers:
         return None
     plans: list[LayerPlan] = []
@@ -52,6 +56,9 @@ def plan_layers(
         if len(atoms) == 0:
             continue
         whole = len(atoms) == n_atoms
+        codes = secondary() if secondary is not None and layer.mode == "tube" else None
+        if codes is not None and not whole:
+            codes = codes[atoms]
         plans.append(
             LayerPlan(
                 name=layer.name,
@@ -61,6 +68,7 @@ def plan_layers(
                 atoms_key="all" if whole else key,
                 style=layer.mode if layer.mode in ("licorice", "tube") else "density",
                 radius_A=layer.radius_A,
+                secondary=codes,
             )
         )
     return tuple(plans)

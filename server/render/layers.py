@@ -114,6 +114,10 @@ def nearer_kernel(depth: wp.array(dtype=float), limit: wp.array(dtype=float)):
     limit[i] = wp.min(limit[i], depth[i])
 
 
+def _same_codes(a: npt.NDArray[np.uint8] | None, b: npt.NDArray[np.uint8] | None) -> bool:
+    return a is b or (a is not None and b is not None and np.array_equal(a, b))
+
+
 def _is_cloud(plan: LayerPlan) -> bool:
     return plan.style == "density" and plan.params.mode == "volume"
 
@@ -122,6 +126,7 @@ def _is_cloud(plan: LayerPlan) -> bool:
 class _Child:
     renderer: Renderer | GeometryRenderer
     style: str = "density"
+    secondary: Any = None
     atoms_key: Any = None
     topology_id: int = -1
     positions_id: int = -1
@@ -234,6 +239,7 @@ class LayeredRenderer:
                 child.atoms_key = plan.atoms_key
                 child.topology_id = topology_id
                 child.positions_id = -1
+                child.secondary = None
                 child.gathered.clear()
             if child.positions_id != positions_id:
                 r.set_positions(
@@ -244,6 +250,12 @@ class LayeredRenderer:
                 frames = [(i, self._gather(child, plan, i, pos)) for i, pos in history]
                 r.set_history(frames, history_epoch, plan.params, live=live, lag=lag)
             if isinstance(r, GeometryRenderer):
+                if r.style == "tube" and not _same_codes(plan.secondary, child.secondary):
+                    r.set_secondary(plan.secondary)
+                    child.secondary = plan.secondary
+                    child.positions_id = -1  # the spans change with the codes
+                    r.set_positions(self._gather(child, plan, positions_id, positions))
+                    child.positions_id = positions_id
                 r.render(plan.params, camera, width, height, plan.radius_A)
             else:
                 r.depth_limit = self._limit if opaque and _is_cloud(plan) else None

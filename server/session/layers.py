@@ -50,6 +50,7 @@ class LayerBook:
     def __init__(self, on_refresh: Callable[[], None]) -> None:
         self._on_refresh = on_refresh
         self._ready = True
+        self._codes: npt.NDArray[np.uint8] | None = None
         self._selector: Selector | None = None
         self._topology_id = -1
         self._lock = threading.Lock()
@@ -65,6 +66,7 @@ class LayerBook:
             self._topology_id = topology_id
             self._dynamic.clear()
             self._plans = None
+            self._codes = None
             self._ready = topology.n_atoms < BUILD_AWAY_ATOMS
         if self._ready:
             return
@@ -172,6 +174,24 @@ class LayerBook:
         cached = self._plans
         if cached is not None and cached[0][0] is params and cached[0][1] == keys:
             return cached[1]
-        plans = plan_layers(params, n_atoms, select)
+
+        def secondary() -> npt.NDArray[np.uint8]:
+            return self._secondary(positions)
+
+        plans = plan_layers(params, n_atoms, select, secondary)
         self._plans = ((params, keys), plans)
         return plans
+
+    def _secondary(self, positions: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
+        """Every atom's secondary structure, assigned once per topology (at the first frame a
+        tube layer draws); all coil when DSSP cannot say."""
+        if self._codes is None:
+            assert self._selector is not None
+            try:
+                with self._lock:
+                    self._codes = self._selector.secondary(positions)
+            except SelectionError as exc:
+                log.warning("tube layers drawn without secondary structure: %s", exc)
+                self._codes = np.zeros(self._selector.topology.n_atoms, dtype=np.uint8)
+        codes: npt.NDArray[np.uint8] = self._codes
+        return codes

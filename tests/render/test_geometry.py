@@ -11,7 +11,13 @@ from PIL import Image
 
 from protocol import Layer, RenderParams, Topology, WireArray
 from server.render.camera import camera_frame, fit_camera, image_rays, orbit
-from server.render.geometry import GeometryRenderer, catmull_rom, trace_pieces
+from server.render.geometry import (
+    HELIX_SCALE,
+    GeometryRenderer,
+    catmull_rom,
+    trace_pieces,
+    tube_spans,
+)
 from server.render.layerplan import plan_layers
 from server.render.layers import LayeredRenderer
 from server.render.renderer import Renderer
@@ -173,3 +179,73 @@ def test_golden_shapes(device: str, name: str, regen_golden: bool) -> None:
     want = np.asarray(Image.open(path).convert("RGB"))
     assert_image_approx_equal(got, want, name)
     assert (lr.read_atom_ids() >= 0).mean() > 0.05
+
+
+def _ideal_helix(n: int) -> np.ndarray:
+    """CA positions of an ideal alpha helix along z: radius 2.3 A, 100 degrees and 1.5 A a
+    residue."""
+    k = np.arange(n)
+    a = np.radians(100.0) * k
+    return np.stack([2.3 * np.cos(a), 2.3 * np.sin(a), 1.5 * k], axis=1).astype(np.float32)
+
+
+def test_a_helix_is_a_cylinder_along_its_axis_and_the_coil_joins_it() -> None:
+    helix = _ideal_helix(12)
+    coil = helix[-1] + np.array([[3.8 * (i + 1), 0.0, 0.0] for i in range(4)], np.float32)
+    pos = np.concatenate([helix, coil])
+    codes = np.array([1] * 12 + [0] * 4, np.uint8)
+    piece = np.arange(len(pos), dtype=np.int32)
+    p0, p1, owner, scale = tube_spans([piece], pos, codes)
+    cyl = scale == HELIX_SCALE
+    assert cyl.sum() == 12 - 4  # one capsule between consecutive axis points
+    ends = np.concatenate([p0[cyl], p1[cyl]])
+    # on the helix's own axis (z) within 0.3 A: four residues turn 400 degrees, not 360
+    assert np.linalg.norm(ends[:, :2], axis=1).max() < 0.3
+    assert np.all(np.diff(p0[cyl][:, 2]) > 0)
+    # the coil runs from the helix's last CA through the coil atoms, at the plain radius
+    plain = scale == 1.0
+    assert np.allclose(p0[plain][0], helix[-1]) and np.allclose(p1[plain][-1], coil[-1])
+    assert set(owner[cyl]) <= set(range(12)) and set(owner[plain]) <= set(range(11, 16))
+    # without codes: one spline through every atom
+    q0, _q1, _o, s = tube_spans([piece], pos, None)
+    assert (s == 1.0).all() and len(q0) == (len(pos) - 1) * 4
+
+
+def test_villin_secondary_structure_tube(device: str, regen_golden: bool) -> None:
+    """Villin's three helices as cylinders, the loops as a thin tube (DSSP by MDAnalysis)."""
+    pytest.importorskip("MDAnalysis")
+    from structures.selection import Selector
+
+    d = np.load(Path(__file__).parent / "data" / "villin.npz")
+    pos = d["positions"].astype(np.float32)
+    top = make_topology(
+        len(pos),
+        elements=[str(e) for e in d["elements"]],
+        residues=[str(r) for r in d["residues"]],
+        chains=["A"] * len(pos),
+        bonds=d["bonds"],
+    ).model_copy(
+        update={
+            "names": [str(x) for x in d["names"]],
+            "residue_ids": WireArray.from_numpy(d["residue_ids"], "<i4"),
+        }
+    )
+    codes = Selector(top).secondary(pos)
+    ca = np.array([str(x) == "CA" for x in d["names"]])
+    assert (codes[ca] == 1).sum() >= 15  # three short helices
+    n = top.n_atoms
+    params = RenderParams(
+        color_by="residue",
+        layers=[Layer(name="cartoon", selection="all", mode="tube")],
+    )
+    plans = plan_layers(params, n, lambda t: (np.arange(n, dtype=np.int32), t), lambda: codes)
+    assert plans is not None and plans[0].secondary is not None
+    lr = LayeredRenderer(lambda: Renderer(device))
+    cam = orbit(fit_camera(pos, W, H, margin=1.5), 20.0, 10.0)
+    lr.render(plans, top, 1, pos, 1, cam, W, H)
+    got = lr.read_rgba()[..., :3]
+    path: Path = GOLDEN_DIR / "layers_tube_secondary.png"
+    if regen_golden and device == "cpu":
+        Image.fromarray(got).save(path)
+    want = np.asarray(Image.open(path).convert("RGB"))
+    assert_image_approx_equal(got, want, "layers_tube_secondary")

@@ -159,3 +159,20 @@ def test_a_box_of_water_alone_stays_whole() -> None:
     water = u.select_atoms("water")  # type: ignore[attr-defined]
     topo = topology_of(mda.Merge(water), guess_bonds=False)
     assert default_layers(topo, 1.5) == []
+
+
+def test_secondary_structure_is_mdanalysis_dssp_per_atom() -> None:
+    from MDAnalysis.analysis.dssp import DSSP
+
+    u = _universe(PSF, DCD)
+    topo = topology_of(u, guess_bonds=False)
+    codes = Selector(topo).secondary(u.atoms.positions)  # type: ignore[attr-defined]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        found = DSSP(u).run(stop=1).results.dssp[0]
+    want = np.array([{"H": 1, "E": 2}.get(str(c), 0) for c in found], np.uint8)
+    residues = u.select_atoms("protein").residues  # type: ignore[attr-defined]
+    assert len(residues) == len(want)
+    for residue, code in zip(residues, want, strict=True):
+        assert (codes[residue.atoms.indices] == code).all()
+    assert (want == 1).sum() > 50 and (want == 2).sum() > 20  # adk: helices and a sheet
