@@ -46,6 +46,15 @@ _TOKEN = re.compile(r"\(|\)|[^\s()]+")
 _MASS = {"H": 1.008, "C": 12.011, "N": 14.007, "O": 15.999, "P": 30.974, "S": 32.06}
 
 
+SECONDARY_CODES = {"H": 1, "E": 2}
+"""DSSP's helix and strand as per-atom codes (0: coil or not protein)."""
+
+
+def _backbone(names: set[str]) -> bool:
+    """N, CA, C and an oxygen as DSSP reads them (O, or OC1 / OT1 at a C terminus)."""
+    return {"N", "CA", "C"} <= names and bool(names & {"O", "OC1", "OT1"})
+
+
 class SelectionError(ValueError):
     """A selection MDAnalysis could not parse; `position` is the 0-based character offset of
     the offending token in the text (its length when the text ended too soon)."""
@@ -200,22 +209,28 @@ class Selector:
             return codes
         u = self.universe
         u.atoms.positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
-        protein = u.select_atoms("protein")
-        complete = [
-            r for r in protein.residues if {"N", "CA", "C", "O"} <= set(r.atoms.names.tolist())
-        ]
-        if len(complete) < 3:
+        residues = list(u.select_atoms("protein").residues)
+        if len(residues) < 3:
             return codes
-        group = sum(complete[1:], complete[0]).atoms
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                found = DSSP(group, guess_hydrogens=True).run(stop=1).results.dssp[0]
-        except (ValueError, IndexError, KeyError) as exc:
-            raise SelectionError("secondary structure", f"DSSP failed: {exc}", 0) from None
-        per_residue = np.array([{"H": 1, "E": 2}.get(str(c), 0) for c in found], np.uint8)
-        for residue, code in zip(complete, per_residue, strict=True):
-            codes[residue.atoms.indices] = code
+        found = None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:  # as MDAnalysis assigns it: every protein residue
+                found = DSSP(u, guess_hydrogens=True).run(stop=1).results.dssp[0]
+            except (ValueError, IndexError, KeyError):
+                # a residue without its backbone atoms: assign the complete ones only
+                names = ({str(x) for x in r.atoms.names} for r in residues)
+                residues = [r for r, have in zip(residues, names, strict=True) if _backbone(have)]
+                if len(residues) >= 3:
+                    group = sum(residues[1:], residues[0]).atoms
+                    try:
+                        found = DSSP(group, guess_hydrogens=True).run(stop=1).results.dssp[0]
+                    except (ValueError, IndexError, KeyError) as exc:
+                        raise SelectionError("secondary structure", f"DSSP: {exc}", 0) from None
+        if found is None or len(found) != len(residues):
+            return codes
+        for residue, c in zip(residues, found, strict=True):
+            codes[residue.atoms.indices] = SECONDARY_CODES.get(str(c), 0)
         return codes
 
     def count(
