@@ -183,21 +183,11 @@ export class LayersPanel {
     selection.addEventListener("keydown", (e) => {
       if (e.key === "Enter") apply();
     });
-    const sigma = el("input", {
-      type: "number",
+    const sigma = this.lengthField(i, layer, "sigma_A", {
       id: `${id}-sigma`,
-      min: 0.05,
       max: 50,
-      step: 0.05,
       placeholder: "as above",
-      value: layer.sigma_A ?? "",
-      "aria-label": "Layer scale σ in ångström (empty: the session's)",
-      className: "num",
-    });
-    sigma.addEventListener("change", () => {
-      const v = sigma.value.trim() === "" ? undefined : Number(sigma.value);
-      if (v !== undefined && !(Number.isFinite(v) && v > 0)) return;
-      this.change(i, { sigma_A: v });
+      label: "Layer scale σ in ångström (empty: the session's)",
     });
     const mode = el("select", { id: `${id}-mode`, "aria-label": "Layer mode" }, [
       el("option", { value: "", text: "session mode" }),
@@ -209,21 +199,11 @@ export class LayersPanel {
     mode.value = layer.mode ?? "";
     mode.addEventListener("change", () => this.change(i, { mode: mode.value || undefined }));
     const shape = layer.mode === "licorice" || layer.mode === "tube";
-    const radius = el("input", {
-      type: "number",
+    const radius = this.lengthField(i, layer, "radius_A", {
       id: `${id}-radius`,
-      min: 0.05,
       max: 10,
-      step: 0.05,
       placeholder: layer.mode === "tube" ? "0.6" : "0.25",
-      value: layer.radius_A ?? "",
-      "aria-label": "Stick or tube radius in ångström",
-      className: "num",
-    });
-    radius.addEventListener("change", () => {
-      const v = radius.value.trim() === "" ? undefined : Number(radius.value);
-      if (v !== undefined && !(Number.isFinite(v) && v > 0)) return;
-      this.change(i, { radius_A: v });
+      label: "Stick or tube radius in ångström",
     });
     const opacity = el("input", {
       type: "range",
@@ -261,6 +241,27 @@ export class LayersPanel {
     ]);
     check();
     return item;
+  }
+
+  /** A length in ångström that the layer may leave empty (then the default applies). */
+  lengthField(i, layer, key, { id, max, placeholder, label }) {
+    const input = el("input", {
+      type: "number",
+      id,
+      min: 0.05,
+      max,
+      step: 0.05,
+      placeholder,
+      value: layer[key] ?? "",
+      "aria-label": label,
+      className: "num",
+    });
+    input.addEventListener("change", () => {
+      const v = input.value.trim() === "" ? undefined : Number(input.value);
+      if (v !== undefined && !(Number.isFinite(v) && v > 0)) return;
+      this.change(i, { [key]: v });
+    });
+    return input;
   }
 
   /** The count, or the error with the text marked where it goes wrong. */

@@ -26,6 +26,7 @@ from server.render import colors, raycast
 from server.render import device as devmod
 from server.render.camera import camera_frame
 from server.render.errors import RenderError
+from server.render.outputs import ImageOutputs
 
 wp: Any = warp
 
@@ -325,7 +326,7 @@ def tube_spans(
     )
 
 
-class GeometryRenderer:
+class GeometryRenderer(ImageOutputs):
     """Ray-casts one layer's atoms as licorice or as a backbone tube (see the module)."""
 
     def __init__(self, device: str = "auto", style: Style = "licorice") -> None:
@@ -523,26 +524,5 @@ class GeometryRenderer:
 
     # ------------------------------------------------------------------ outputs
 
-    def _need_image(self) -> tuple[int, int]:
-        if self._image is None:
-            raise RenderError("nothing rendered yet")
-        return self._image
-
-    def device_outputs(self) -> tuple[Any, Any, Any, int]:
-        w, h = self._need_image()
-        return self._rgba, self._depth, self._ids, w * h
-
-    def read_rgba(self) -> npt.NDArray[np.uint8]:
-        w, h = self._need_image()
-        a: npt.NDArray[np.uint8] = self._rgba[: w * h].numpy().view(np.uint8).reshape(h, w, 4)
-        return a.copy()
-
-    def read_depth(self) -> npt.NDArray[np.float32]:
-        w, h = self._need_image()
-        d: npt.NDArray[np.float32] = self._depth[: w * h].numpy().reshape(h, w)
-        return d.astype(np.float32, copy=True)
-
-    def read_atom_ids(self) -> npt.NDArray[np.int32]:
-        w, h = self._need_image()
-        ids: npt.NDArray[np.int32] = self._ids[: w * h].numpy().reshape(h, w)
-        return ids.astype(np.int32, copy=True)
+    def _outputs(self) -> tuple[Any, Any, Any]:
+        return self._rgba, self._depth, self._ids

@@ -31,6 +31,7 @@ from protocol import MAX_LAYERS, Camera, RenderParams, Topology
 from server.render.errors import RenderError
 from server.render.geometry import GeometryRenderer
 from server.render.layerplan import LayerPlan, subset_topology
+from server.render.outputs import ImageOutputs
 from server.render.renderer import Renderer
 
 wp: Any = warp
@@ -133,7 +134,7 @@ class _Child:
     gathered: dict[int, npt.NDArray[np.float32]] = field(default_factory=dict)
 
 
-class LayeredRenderer:
+class LayeredRenderer(ImageOutputs):
     """Renders a list of `LayerPlan`s into one image (one `Renderer` per layer position,
     kept with its atoms and buffers between frames) and answers like a `Renderer`:
     `read_rgba`, `read_depth`, `read_atom_ids`, `read_layers`, `pick`, `timings`."""
@@ -321,34 +322,14 @@ class LayeredRenderer:
 
     # ------------------------------------------------------------------ outputs
 
-    def _need_image(self) -> tuple[int, int]:
-        if self._image is None:
-            raise RenderError("nothing rendered yet")
-        return self._image
-
-    def read_rgba(self) -> npt.NDArray[np.uint8]:
-        """(height, width, 4) uint8, row 0 at the top."""
-        w, h = self._need_image()
-        a: npt.NDArray[np.uint8] = self._out_rgba[: w * h].numpy().view(np.uint8)
-        return a.reshape(h, w, 4).copy()
-
-    def read_depth(self) -> npt.NDArray[np.float32]:
-        """(height, width) distance along each ray to the front layer's hit; inf elsewhere."""
-        w, h = self._need_image()
-        d: npt.NDArray[np.float32] = self._out_depth[: w * h].numpy().reshape(h, w)
-        return d.astype(np.float32, copy=True)
-
-    def read_atom_ids(self) -> npt.NDArray[np.int32]:
-        """(height, width) index (in the whole system) of the front layer's atom; -1 none."""
-        w, h = self._need_image()
-        ids: npt.NDArray[np.int32] = self._out_ids[: w * h].numpy().reshape(h, w)
-        return ids.astype(np.int32, copy=True)
+    def _outputs(self) -> tuple[Any, Any, Any]:
+        """The composite: the front layer's atom as an index into the whole system."""
+        return self._out_rgba, self._out_depth, self._out_ids
 
     def read_layers(self) -> npt.NDArray[np.int32]:
         """(height, width) position in the plan list of the front layer; -1 none."""
-        w, h = self._need_image()
-        layer: npt.NDArray[np.int32] = self._out_layer[: w * h].numpy().reshape(h, w)
-        return layer.astype(np.int32, copy=True)
+        layer: npt.NDArray[np.int32] = self._read(self._out_layer).astype(np.int32)
+        return layer
 
     def pick(self, x: int, y: int) -> tuple[int | None, float | None]:
         """Atom (index in the whole system) and depth at pixel (x, y) of the last image."""

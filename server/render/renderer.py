@@ -38,6 +38,7 @@ from server.render.density import (
 )
 from server.render.errors import RenderError
 from server.render.grid import CellGrid
+from server.render.outputs import ImageOutputs
 from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
 
 wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
@@ -92,7 +93,7 @@ class Derived:
     warp: WarpScales | None
 
 
-class Renderer:
+class Renderer(ImageOutputs):
     """Ray-casting renderer of the Gaussian molecular density (see docs/rendering.md).
 
     `cells_per_cutoff` sets the grid cell to cutoff / cells_per_cutoff (1 = cell equals the
@@ -833,34 +834,8 @@ class Renderer:
 
     # ------------------------------------------------------------------ outputs
 
-    def _need_image(self) -> tuple[int, int]:
-        if self._image is None:
-            raise RenderError("nothing rendered yet")
-        return self._image
-
-    def device_outputs(self) -> tuple[wp.array, wp.array, wp.array, int]:
-        """The last image's device buffers (packed RGBA, depth, atom ids) and its pixel count,
-        for kernels that combine images without a trip through the host."""
-        w, h = self._need_image()
-        return self._rgba, self._depth, self._ids, w * h
-
-    def read_rgba(self) -> npt.NDArray[np.uint8]:
-        """(height, width, 4) uint8, row 0 at the top."""
-        w, h = self._need_image()
-        a: npt.NDArray[np.uint8] = self._rgba[: w * h].numpy().view(np.uint8).reshape(h, w, 4)
-        return a.copy()
-
-    def read_depth(self) -> npt.NDArray[np.float32]:
-        """(height, width) float32 distance along each ray; inf where nothing was hit."""
-        w, h = self._need_image()
-        d: npt.NDArray[np.float32] = self._depth[: w * h].numpy().reshape(h, w)
-        return d.astype(np.float32, copy=True)
-
-    def read_atom_ids(self) -> npt.NDArray[np.int32]:
-        """(height, width) int32 id of the atom contributing most at the hit; -1 background."""
-        w, h = self._need_image()
-        ids: npt.NDArray[np.int32] = self._ids[: w * h].numpy().reshape(h, w)
-        return ids.astype(np.int32, copy=True)
+    def _outputs(self) -> tuple[wp.array, wp.array, wp.array]:
+        return self._rgba, self._depth, self._ids
 
     def pick(self, x: int, y: int) -> tuple[int | None, float | None]:
         """Atom id and depth at pixel (x from the left, y from the top) of the last image."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -11,6 +12,7 @@ from protocol import Camera, RenderParams, Topology
 from server.render import colors
 from server.render.renderer import MEAN_SAMPLES, Renderer
 from server.render.skeleton import Skeleton, warped_density
+from tests.render import oracle
 from tests.render.oracle import Molecule, density
 
 
@@ -87,3 +89,29 @@ def warped_reference(
         return s / scale, g / scale
 
     return density_at
+
+
+def oracle_light(params: RenderParams, frame: Any, r: Renderer) -> oracle.Light:
+    """The oracle's lighting for `params` as the caster applies it to `frame` (the key light
+    fixed to the camera, the depth cue across the last grid's box)."""
+    from server.render import raycast
+
+    info = r.grid_info()
+    lo = np.asarray(info["origin"], dtype=np.float64)
+    hi = np.asarray(info["box_hi"], dtype=np.float64)
+    center, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+    dc = float((center - frame.eye) @ frame.forward)
+    light = params.lighting
+    return oracle.Light(
+        ambient=light.ambient,
+        diffuse=light.diffuse,
+        specular=light.specular,
+        shininess=light.shininess,
+        head_weight=0.6 if light.key_light else 1.0,
+        key_weight=0.55 if light.key_light else 0.0,
+        key_dir=raycast.key_light_direction(frame),
+        background=np.array(params.background),
+        depth_cue=light.depth_cue,
+        fog_near=max(dc - radius, 0.0),
+        fog_far=dc + radius,
+    )

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from protocol import Layer, RenderParams, Topology, WireArray
 from server.render.camera import camera_frame, fit_camera, image_rays, orbit
@@ -21,8 +20,8 @@ from server.render.geometry import (
 from server.render.layerplan import plan_layers
 from server.render.layers import LayeredRenderer
 from server.render.renderer import Renderer
-from tests.render.conftest import GOLDEN_DIR, bonds_by_distance, make_topology
-from tests.render.test_golden import H, W, assert_image_approx_equal
+from tests.render.conftest import make_topology
+from tests.render.golden_images import H, W, check_golden, gramicidin
 
 
 def _sphere_t(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float) -> np.ndarray:
@@ -128,22 +127,6 @@ def test_the_backbone_trace_breaks_at_chains_and_gaps() -> None:
     assert np.allclose(curve[::4], pos[:4])  # through every trace atom
 
 
-def _gramicidin() -> tuple[Topology, np.ndarray]:
-    d = np.load(Path(__file__).parent / "data" / "gramicidin_1grm.npz")
-    elements = [str(e) for e in d["elements"]]
-    pos = d["positions"].astype(np.float32)
-    top = make_topology(
-        len(pos),
-        elements=elements,
-        chains=[str(c) for c in d["chains"]],
-        residues=[str(r) for r in d["residues"]],
-        bonds=bonds_by_distance(pos, elements),
-    )
-    resids = WireArray.from_numpy(d["resids"], "<i4")
-    top = top.model_copy(update={"names": [str(x) for x in d["names"]], "residue_ids": resids})
-    return top, pos
-
-
 GOLDEN = {
     "layers_licorice": RenderParams(
         sigma_A=1.6,
@@ -165,19 +148,14 @@ GOLDEN = {
 
 @pytest.mark.parametrize("name", sorted(GOLDEN))
 def test_golden_shapes(device: str, name: str, regen_golden: bool) -> None:
-    top, pos = _gramicidin()
+    top, pos = gramicidin()
     n = top.n_atoms
     plans = plan_layers(GOLDEN[name], n, lambda t: (np.arange(n, dtype=np.int32), t))
     assert plans is not None
     lr = LayeredRenderer(lambda: Renderer(device))
     cam = orbit(fit_camera(pos, W, H, margin=2.0), 35.0, 20.0)
     lr.render(plans, top, 1, pos, 1, cam, W, H)
-    got = lr.read_rgba()[..., :3]
-    path: Path = GOLDEN_DIR / f"{name}.png"
-    if regen_golden and device == "cpu":
-        Image.fromarray(got).save(path)
-    want = np.asarray(Image.open(path).convert("RGB"))
-    assert_image_approx_equal(got, want, name)
+    check_golden(lr.read_rgba()[..., :3], name, device, regen_golden)
     assert (lr.read_atom_ids() >= 0).mean() > 0.05
 
 
@@ -243,9 +221,4 @@ def test_villin_secondary_structure_tube(device: str, regen_golden: bool) -> Non
     lr = LayeredRenderer(lambda: Renderer(device))
     cam = orbit(fit_camera(pos, W, H, margin=1.5), 20.0, 10.0)
     lr.render(plans, top, 1, pos, 1, cam, W, H)
-    got = lr.read_rgba()[..., :3]
-    path: Path = GOLDEN_DIR / "layers_tube_secondary.png"
-    if regen_golden and device == "cpu":
-        Image.fromarray(got).save(path)
-    want = np.asarray(Image.open(path).convert("RGB"))
-    assert_image_approx_equal(got, want, "layers_tube_secondary")
+    check_golden(lr.read_rgba()[..., :3], "layers_tube_secondary", device, regen_golden)

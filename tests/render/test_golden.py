@@ -6,18 +6,15 @@ Regenerate deliberately with `pytest tests/render --regen-golden` (then look at 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from PIL import Image
 
 from protocol import Lighting, RenderParams
 from server.render.camera import fit_camera, orbit
-from tests.render.conftest import GOLDEN_DIR, bonds_by_distance, make_topology
+from tests.render.conftest import GOLDEN_DIR
+from tests.render.golden_images import H, W, assert_image_approx_equal, check_golden, gramicidin
 from tests.render.helpers import render
-
-W, H = 160, 120
 
 CASES = {
     "iso_element": RenderParams(sigma_A=1.2, color_by="element"),
@@ -36,28 +33,9 @@ CASES = {
 }
 
 
-def assert_image_approx_equal(got: np.ndarray, want: np.ndarray, name: str) -> None:
-    """Small differences (float order on another device) pass; a changed picture does not."""
-    assert got.shape == want.shape, f"{name}: shape {got.shape} != {want.shape}"
-    diff = np.abs(got.astype(np.int32) - want.astype(np.int32)).max(axis=-1)
-    mean = float(diff.mean())
-    far = float((diff > 24).mean())
-    assert mean <= 1.0 and far <= 0.01, f"{name}: mean diff {mean:.2f}, {far:.2%} pixels off"
-
-
-@pytest.fixture(scope="module")
-def gramicidin() -> tuple[object, np.ndarray]:
-    d = np.load(Path(__file__).parent / "data" / "gramicidin_1grm.npz")
-    elements = [str(e) for e in d["elements"]]
-    top = make_topology(
-        len(d["positions"]),
-        elements=elements,
-        chains=[str(c) for c in d["chains"]],
-        residues=[str(r) for r in d["residues"]],
-        bfactors=d["bfactors"].astype(np.float32),
-        bonds=bonds_by_distance(d["positions"], elements),
-    )
-    return top, d["positions"].astype(np.float32)
+@pytest.fixture(scope="module", name="gramicidin")
+def gramicidin_fixture() -> tuple[object, np.ndarray]:
+    return gramicidin()
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
@@ -67,13 +45,7 @@ def test_golden(
     top, pos = gramicidin
     cam = orbit(fit_camera(pos, W, H, margin=2.0), 35.0, 20.0)
     r = render(device, top, pos, CASES[name], cam, W, H)  # type: ignore[arg-type]
-    got = r.read_rgba()[..., :3]
-    path: Path = GOLDEN_DIR / f"{name}.png"
-    if regen_golden and device == "cpu":
-        GOLDEN_DIR.mkdir(exist_ok=True)
-        Image.fromarray(got).save(path)
-    want = np.asarray(Image.open(path).convert("RGB"))
-    assert_image_approx_equal(got, want, name)
+    check_golden(r.read_rgba()[..., :3], name, device, regen_golden)
     # guard against a blank reference: the molecule fills a good part of the frame
     assert np.isfinite(r.read_depth()).mean() > 0.1
 

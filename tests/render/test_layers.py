@@ -4,11 +4,8 @@ system's atom indices with the layer; golden images of two and three layers."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
-from PIL import Image
 
 from protocol import Camera, Layer, RenderParams, Topology
 from server.render.camera import fit_camera, orbit
@@ -16,9 +13,9 @@ from server.render.layerplan import LayerPlan, plan_layers, subset_topology, vis
 from server.render.layers import LayeredRenderer
 from server.render.renderer import Renderer
 from tests.render import oracle
-from tests.render.conftest import GOLDEN_DIR, blob, bonds_by_distance, make_topology
-from tests.render.helpers import oracle_molecule
-from tests.render.test_golden import H, W, assert_image_approx_equal
+from tests.render.conftest import blob, make_topology
+from tests.render.golden_images import H, W, check_golden, gramicidin
+from tests.render.helpers import oracle_light, oracle_molecule
 
 
 def _plans(params: RenderParams, n: int, sets: dict[str, np.ndarray]) -> tuple[LayerPlan, ...]:
@@ -225,18 +222,9 @@ GOLDEN_LAYERS = {
 
 @pytest.mark.parametrize("name", sorted(GOLDEN_LAYERS))
 def test_golden_layers(device: str, name: str, regen_golden: bool) -> None:
-    d = np.load(Path(__file__).parent / "data" / "gramicidin_1grm.npz")
-    elements = [str(e) for e in d["elements"]]
-    chains = np.array([str(c) for c in d["chains"]])
-    residues = np.array([str(r) for r in d["residues"]])
-    pos = d["positions"].astype(np.float32)
-    top = make_topology(
-        len(pos),
-        elements=elements,
-        chains=list(chains),
-        residues=list(residues),
-        bonds=bonds_by_distance(pos, elements),
-    )
+    top, pos = gramicidin()
+    chains = np.asarray(top.chain_ids)
+    residues = np.asarray(top.residue_names)
     sets = {
         "A": np.flatnonzero(chains == chains[0]).astype(np.int32),
         "B": np.flatnonzero(chains != chains[0]).astype(np.int32),
@@ -246,12 +234,7 @@ def test_golden_layers(device: str, name: str, regen_golden: bool) -> None:
     plans = _plans(GOLDEN_LAYERS[name], top.n_atoms, sets)
     cam = orbit(fit_camera(pos, W, H, margin=2.0), 35.0, 20.0)
     lr = _layered(device, top, pos, plans, cam, W, H)
-    got = lr.read_rgba()[..., :3]
-    path: Path = GOLDEN_DIR / f"{name}.png"
-    if regen_golden and device == "cpu":
-        Image.fromarray(got).save(path)
-    want = np.asarray(Image.open(path).convert("RGB"))
-    assert_image_approx_equal(got, want, name)
+    check_golden(lr.read_rgba()[..., :3], name, device, regen_golden)
     # every layer is in front somewhere (the finer one behind the cloud in the third image)
     shown = set(np.unique(lr.read_layers()).tolist())
     assert ({0, 1} if len(plans) == 2 else {0, 2}) <= shown
@@ -262,7 +245,6 @@ def test_a_cloud_stops_at_the_nearest_opaque_surface(device: str) -> None:
     the limit; in a layered image the limit is the opaque layers' nearest depth."""
     import warp as wp
 
-    from server.render import raycast
     from server.render.camera import camera_frame, image_rays
     from server.render.transfer import build_table
 
@@ -289,25 +271,7 @@ def test_a_cloud_stops_at_the_nearest_opaque_surface(device: str) -> None:
     r.render(params, cam, w, h)
     img = r.read_rgba().astype(np.float64) / 255.0
     assert not np.array_equal(img, full.read_rgba().astype(np.float64) / 255.0)
-    light = params.lighting
-    info = r.grid_info()
-    lo = np.asarray(info["origin"], dtype=np.float64)
-    hi = np.asarray(info["box_hi"], dtype=np.float64)
-    center, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
-    dc = float((center - frame.eye) @ frame.forward)
-    lt = oracle.Light(
-        ambient=light.ambient,
-        diffuse=light.diffuse,
-        specular=light.specular,
-        shininess=light.shininess,
-        head_weight=0.6,
-        key_weight=0.55,
-        key_dir=raycast.key_light_direction(frame),
-        background=np.array(params.background),
-        depth_cue=light.depth_cue,
-        fog_near=max(dc - radius, 0.0),
-        fog_far=dc + radius,
-    )
+    lt = oracle_light(params, frame, r)
     table = build_table(params.transfer_function, params.tf_preset)
     mol = oracle_molecule(top, pos, params)
     dt = params.step_sigmas * params.sigma_A

@@ -15,7 +15,7 @@ from server.render.renderer import Renderer
 from server.render.transfer import build_table
 from tests.render import oracle
 from tests.render.conftest import blob, make_topology
-from tests.render.helpers import oracle_molecule, render
+from tests.render.helpers import oracle_light, oracle_molecule, render
 
 W, H = 64, 48
 
@@ -113,25 +113,7 @@ def test_volume_matches_numpy_compositor(
     depth = r.read_depth()
     frame = camera_frame(cam, w, h)
     origins, dirs = image_rays(frame)
-    info = r.grid_info()
-    lo = np.asarray(info["origin"], dtype=np.float64)
-    hi = np.asarray(info["box_hi"], dtype=np.float64)
-    center, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
-    dc = float((center - frame.eye) @ frame.forward)
-    kw = dict(light.model_dump())
-    lt = oracle.Light(
-        ambient=kw["ambient"],
-        diffuse=kw["diffuse"],
-        specular=kw["specular"],
-        shininess=kw["shininess"],
-        head_weight=0.6 if light.key_light else 1.0,
-        key_weight=0.55 if light.key_light else 0.0,
-        key_dir=raycast.key_light_direction(frame),
-        background=np.array(params.background),
-        depth_cue=light.depth_cue,
-        fog_near=max(dc - radius, 0.0),
-        fog_far=dc + radius,
-    )
+    lt = oracle_light(params, frame, r)
     table = build_table(params.transfer_function, params.tf_preset)
     mol = oracle_molecule(top, pos, params)
     dt = params.step_sigmas * params.sigma_A

@@ -5,9 +5,12 @@ keeps what is sent."""
 from __future__ import annotations
 
 import asyncio
+import threading
+from collections.abc import Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -88,3 +91,22 @@ def sent(c: Client) -> list[p.Message]:
     if c._image is not None:
         out.append(p.decode(c._image, p.Limits(max_message_bytes=1 << 30)))
     return out
+
+
+def run_on_own_loop(main: Callable[[], Coroutine[Any, Any, None]], timeout_s: float = 60) -> None:
+    """Run `main()` with asyncio in a thread of its own: another test's framework may hold
+    this thread's event loop."""
+    errors: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            asyncio.run(main())
+        except BaseException as exc:
+            errors.append(exc)
+
+    thread = threading.Thread(target=target)
+    thread.start()
+    thread.join(timeout_s)
+    assert not thread.is_alive(), "the test hung"
+    if errors:
+        raise errors[0]

@@ -4,10 +4,7 @@ the frames (at most every REFRESH_S, off the event loop), plans reused while not
 from __future__ import annotations
 
 import asyncio
-import threading
 import time
-from collections.abc import Callable, Coroutine
-from typing import Any
 
 import numpy as np
 import pytest
@@ -15,27 +12,9 @@ import pytest
 import protocol as p
 from server.session.layers import REFRESH_S, LayerBook
 from tests.server.peers import molecule
+from tests.server.session.fakes import run_on_own_loop
 
 pytest.importorskip("MDAnalysis")
-
-
-def run(main: Callable[[], Coroutine[Any, Any, None]]) -> None:
-    """`main` on an event loop of its own thread (another test's framework may hold this
-    thread's loop)."""
-    errors: list[BaseException] = []
-
-    def target() -> None:
-        try:
-            asyncio.run(main())
-        except BaseException as exc:
-            errors.append(exc)
-
-    thread = threading.Thread(target=target)
-    thread.start()
-    thread.join(60)
-    assert not thread.is_alive(), "the test hung"
-    if errors:
-        raise errors[0]
 
 
 def test_distance_selections_follow_the_frames() -> None:
@@ -75,7 +54,7 @@ def test_distance_selections_follow_the_frames() -> None:
         assert np.array_equal(again[1].atoms, np.flatnonzero((d < 3) & (d > 0)))
         assert again[0].atoms_key == first[0].atoms_key  # the static layer did not change
 
-    run(main)
+    run_on_own_loop(main)
 
 
 def test_a_new_topology_forgets_old_results() -> None:
@@ -92,7 +71,7 @@ def test_a_new_topology_forgets_old_results() -> None:
         plans = book.plans(params, small.n_atoms, small_pos, 1)
         assert plans is not None and plans[0].atoms is None  # every atom of the smaller system
 
-    run(main)
+    run_on_own_loop(main)
 
 
 def test_a_large_topology_prepares_its_selections_off_the_loop(
@@ -119,4 +98,4 @@ def test_a_large_topology_prepares_its_selections_off_the_loop(
         assert plans[0].atoms is not None and len(plans[0].atoms) == 5
         assert book.plans(p.RenderParams(), topo.n_atoms, pos, 1) is None  # no layers
 
-    run(main)
+    run_on_own_loop(main)

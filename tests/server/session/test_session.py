@@ -4,7 +4,6 @@ frames become images for every viewer, steering is confirmed by acks, forces mer
 from __future__ import annotations
 
 import asyncio
-import threading
 from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
@@ -16,7 +15,7 @@ import protocol as p
 from server.session.session import Session
 from server.settings import ServerSettings
 from tests.server.peers import frame, molecule
-from tests.server.session.fakes import PaintBackend, client, sent, services
+from tests.server.session.fakes import PaintBackend, client, run_on_own_loop, sent, services
 
 SETTINGS = ServerSettings(token="t", default_size=(40, 30), stats_interval_s=60.0)
 
@@ -31,21 +30,7 @@ def run(test: Callable[[Session, PaintBackend], Coroutine[Any, Any, None]], tmp:
             await session.close()
             session.services.steering_log.close()
 
-    # a thread of its own: another test's framework may hold this thread's event loop
-    errors: list[BaseException] = []
-
-    def target() -> None:
-        try:
-            asyncio.run(main())
-        except BaseException as exc:
-            errors.append(exc)
-
-    thread = threading.Thread(target=target)
-    thread.start()
-    thread.join(60)
-    assert not thread.is_alive(), "the session test hung"
-    if errors:
-        raise errors[0]
+    run_on_own_loop(main)
 
 
 async def settle(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
