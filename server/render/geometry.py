@@ -466,22 +466,7 @@ class GeometryRenderer(ImageOutputs):
                 self._bvh.refit()
             bvh_id = self._bvh.id
         t_cast = time.perf_counter()
-        sh = raycast.Shading()
-        light = params.lighting
-        sh.background = wp.vec3(*(float(v) for v in params.background))
-        sh.uniform_color = wp.vec3(*(float(v) for v in params.uniform_color))
-        sh.key_dir = wp.vec3(*(float(v) for v in raycast.key_light_direction(frame)))
-        sh.ambient = float(light.ambient)
-        sh.diffuse = float(light.diffuse)
-        sh.specular = float(light.specular)
-        sh.shininess = float(light.shininess)
-        sh.head_weight = 0.6 if light.key_light else 1.0
-        sh.key_weight = 0.55 if light.key_light else 0.0
-        sh.ao = 0
-        sh.ao_step = 0.0
-        sh.iso = 0.0
-        sh.depth_cue = float(light.depth_cue)
-        sh.coverage = int(self.coverage)
+        sh = raycast.shading(params, frame, coverage=self.coverage)  # no occlusion on shapes
         near, far = self._fog_range(frame.eye, frame.forward, r * HELIX_SCALE)
         cam = raycast.camera_data(frame)
         if self._count:

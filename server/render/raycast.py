@@ -34,6 +34,7 @@ from typing import Any, no_type_check
 import numpy as np
 import warp as wp
 
+from protocol import RenderParams
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
 from server.render.density import BRICK, GAUSSIAN, DensityModel, GridInfo
@@ -1085,6 +1086,35 @@ def launch_size(width: int, height: int) -> int:
     """Threads for an image: whole 8x4 tiles."""
     tx, ty = tiles(width, height)
     return tx * ty * TILE
+
+
+def shading(
+    params: RenderParams,
+    frame: CameraFrame,
+    *,
+    iso: float = 0.0,
+    ao_step: float = 0.0,
+    coverage: bool = False,
+) -> Shading:
+    """The device struct of the lighting: a headlight, the key light fixed to the camera,
+    ambient occlusion when `ao_step` > 0 asks for it, the depth cue, coverage output."""
+    light = params.lighting
+    sh = Shading()
+    sh.background = wp.vec3(*(float(v) for v in params.background))
+    sh.uniform_color = wp.vec3(*(float(v) for v in params.uniform_color))
+    sh.key_dir = wp.vec3(*(float(v) for v in key_light_direction(frame)))
+    sh.ambient = float(light.ambient)
+    sh.diffuse = float(light.diffuse)
+    sh.specular = float(light.specular)
+    sh.shininess = float(light.shininess)
+    sh.head_weight = 0.6 if light.key_light else 1.0
+    sh.key_weight = 0.55 if light.key_light else 0.0
+    sh.ao = int(light.ambient_occlusion and ao_step > 0.0)
+    sh.ao_step = float(ao_step)
+    sh.iso = float(iso)
+    sh.depth_cue = float(light.depth_cue)
+    sh.coverage = int(coverage)
+    return sh
 
 
 def key_light_direction(frame: CameraFrame) -> np.ndarray:

@@ -620,23 +620,8 @@ class Renderer(ImageOutputs):
         self._grid.build_bricks()
 
     def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:
-        light = p.lighting
-        sh = raycast.Shading()
-        sh.background = wp.vec3(*(float(v) for v in p.background))
-        sh.uniform_color = wp.vec3(*(float(v) for v in p.uniform_color))
-        sh.key_dir = wp.vec3(*(float(v) for v in raycast.key_light_direction(frame)))
-        sh.ambient = float(light.ambient)
-        sh.diffuse = float(light.diffuse)
-        sh.specular = float(light.specular)
-        sh.shininess = float(light.shininess)
-        sh.head_weight = 0.6 if light.key_light else 1.0
-        sh.key_weight = 0.55 if light.key_light else 0.0
-        sh.ao = int(light.ambient_occlusion)
-        sh.ao_step = AO_STEP_SIGMAS * d.sigma
-        sh.iso = d.iso
-        sh.depth_cue = float(light.depth_cue)
-        sh.coverage = int(self.coverage)
-        return sh
+        step = AO_STEP_SIGMAS * d.sigma
+        return raycast.shading(p, frame, iso=d.iso, ao_step=step, coverage=self.coverage)
 
     def _launch_frame(
         self,
