@@ -344,6 +344,7 @@ TFPreset = Literal["cloud", "shells", "iso-like"]
 MAX_LAYERS = 8
 LAYER_OVERRIDES = (
     "mode", "sigma_A", "iso_level", "scale_space", "color_by", "uniform_color", "tf_preset",
+    "transfer_function",
 )  # fmt: skip
 SelectionText = Annotated[str, Field(min_length=1, max_length=2048)]
 
@@ -368,6 +369,8 @@ class Layer(Model):
     color_by: ColorBy | None = None
     uniform_color: RGB | None = None
     tf_preset: TFPreset | None = None
+    transfer_function: Annotated[list[TFPoint], Field(max_length=64)] | None = None
+    """A cloud layer's own transfer function (control points as in `RenderParams`)."""
     opacity: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 1.0
     """Below 1 the layer is translucent: it blends over what lies behind it, in depth order."""
 

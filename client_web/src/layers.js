@@ -5,6 +5,7 @@
 
 import { $, el } from "./dom.js";
 import { RANGES, clamp } from "./params.js";
+import { normalizePoints } from "./transfer.js";
 
 export const MAX_LAYERS = 8;
 const MODES = ["iso", "volume", "licorice", "tube"];
@@ -37,6 +38,7 @@ export function normalizeLayer(raw) {
     if (typeof raw[key] === "string") out[key] = raw[key];
   }
   if (Array.isArray(raw.uniform_color) && raw.uniform_color.length === 3) out.uniform_color = raw.uniform_color.map(Number);
+  if (Array.isArray(raw.transfer_function)) out.transfer_function = normalizePoints(raw.transfer_function).slice(0, 64);
   if (raw.opacity !== undefined && raw.opacity !== null) {
     const a = Number(raw.opacity);
     if (!Number.isFinite(a)) return null;

@@ -24,6 +24,8 @@ test("a layer keeps only the fields it sets, clamped to the protocol's ranges", 
     radius_A: 0.8,
   });
   assert.equal(normalizeLayer({ selection: "all", radius_A: -1 }), null);
+  const cloud = normalizeLayer({ selection: "all", transfer_function: [{ x: 2, color: [1, 0, 0], alpha: 0.5 }] });
+  assert.deepEqual(cloud.transfer_function, [{ x: 2, color: [1, 0, 0], alpha: 0.5 }]); // kept through edits
   assert.equal(normalizeLayer({ selection: "" }), null);
   assert.equal(normalizeLayer({ selection: "all", sigma_A: "wide" }), null);
   assert.equal(normalizeLayers(Array.from({ length: MAX_LAYERS + 1 }, () => ({ selection: "all" }))), null);

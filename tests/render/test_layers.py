@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol import Camera, Layer, RenderParams, Topology
+from protocol import Camera, Layer, RenderParams, TFPoint, Topology
 from server.render.camera import fit_camera, orbit
 from server.render.layerplan import LayerPlan, plan_layers, subset_topology, visible_atoms
 from server.render.layers import LayeredRenderer
@@ -177,7 +177,13 @@ def test_plans_follow_visibility_and_whole_selections() -> None:
             Layer(name="whole", selection="all", iso_level=0.5),
             Layer(name="hidden", selection="few", visible=False),
             Layer(name="clear", selection="few", opacity=0.0),
-            Layer(name="few", selection="few", sigma_A=0.5, color_by="uniform"),
+            Layer(
+                name="few",
+                selection="few",
+                sigma_A=0.5,
+                color_by="uniform",
+                transfer_function=[TFPoint(x=0.5, alpha=0.3)],
+            ),
         ],
     )
     plans = _plans(params, n, sets)
@@ -186,6 +192,8 @@ def test_plans_follow_visibility_and_whole_selections() -> None:
     assert plans[0].params.iso_level == 0.5 and plans[0].params.sigma_A == 2.0
     assert plans[1].params.sigma_A == 0.5 and plans[1].params.iso_level == 0.3
     assert plans[1].params.color_by == "uniform" and plans[1].params.layers == []
+    assert plans[1].params.transfer_function == [TFPoint(x=0.5, alpha=0.3)]
+    assert plans[0].params.transfer_function == []
     assert np.array_equal(visible_atoms(plans, n), np.arange(n))
     assert np.array_equal(visible_atoms(plans[1:], n), [1, 3])
     assert plan_layers(RenderParams(), n, lambda t: (sets[t], t)) is None
