@@ -50,6 +50,12 @@ def batch_engine(settings: ServerSettings) -> RayBatch | None:
     return None
 
 
+def _load_selections() -> None:
+    # without MDAnalysis the layers' selections fail later with their own message
+    with contextlib.suppress(ImportError):
+        import MDAnalysis.core.selection  # noqa: F401
+
+
 def create_app(settings: ServerSettings) -> FastAPI:
     """Build the app; resources start with the app's lifespan and stop with it."""
     state_dir = settings.state_dir
@@ -81,6 +87,9 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
         video = VideoEncoders(settings.video_codecs)
         await asyncio.to_thread(video.chosen)  # probe once, before the first viewer waits on it
+        # the selection language loads while the server starts (not when the first topology
+        # arrives, on the event loop)
+        asyncio.get_running_loop().run_in_executor(None, _load_selections)
         services = Services(
             gpu,
             encoders,
