@@ -13,6 +13,7 @@ scale of their own.
 
 from __future__ import annotations
 
+import itertools
 import re
 import warnings
 from dataclasses import dataclass
@@ -67,8 +68,12 @@ class SelectionError(ValueError):
 
 
 def is_dynamic(text: str) -> bool:
-    """Whether `text` reads coordinates (its atoms change as the system moves)."""
-    return any(t.lower() in DYNAMIC_KEYWORDS for t in _TOKEN.findall(text))
+    """Whether `text` reads coordinates (its atoms change as the system moves): a distance
+    keyword, or `same x|y|z as ...`."""
+    tokens = [t.lower() for t in _TOKEN.findall(text)]
+    if any(t in DYNAMIC_KEYWORDS for t in tokens):
+        return True
+    return any(a == "same" and b in ("x", "y", "z") for a, b in itertools.pairwise(tokens))
 
 
 def _position_of(text: str, reason: str) -> int:
@@ -187,7 +192,9 @@ class Selector:
             if "'within'" in reason:
                 reason += " (VMD's `within D of sel` is `sel or around D sel` here)"
             raise SelectionError(text, reason, _position_of(text, raw)) from None
-        except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
+        except RecursionError:
+            raise SelectionError(text, "the selection is nested too deeply", 0) from None
+        except Exception as exc:  # e.g. ImportError: `smarts` without RDKit
             reason = f"{type(exc).__name__}: {exc}"
             raise SelectionError(text, reason, _position_of(text, reason)) from None
         indices = np.asarray(group.indices, dtype=np.int32)
@@ -232,6 +239,10 @@ class Selector:
         for residue, c in zip(residues, found, strict=True):
             codes[residue.atoms.indices] = SECONDARY_CODES.get(str(c), 0)
         return codes
+
+    def cached(self, text: str) -> npt.NDArray[np.int32] | None:
+        """A static selection's atoms if evaluated before (no universe work, no lock)."""
+        return self._static.get(text.strip())
 
     def count(
         self, text: str, positions: npt.ArrayLike | None = None, box: npt.ArrayLike | None = None

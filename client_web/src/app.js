@@ -44,6 +44,8 @@ class Dashboard {
     this.role = query.role;
     this.render = mergeRender(RENDER_DEFAULTS, {});
     this.hashRender = fromHash.render; // a shared link's render params, applied once as steerer
+    // layers belong to one system: a link that does not name them keeps the session's
+    this.hashHasLayers = new URLSearchParams(window.location.hash.replace(/^#/, "")).has("layers");
     this.camera = fromHash.camera;
     this.cameraCustom = Boolean(fromHash.camera);
     this.sessionCamera = null;
@@ -298,6 +300,7 @@ class Dashboard {
     const wanted = this.hashRender;
     this.hashRender = null;
     const patch = diffRender(this.render, wanted);
+    if (!this.hashHasLayers) delete patch.layers;
     if (!Object.keys(patch).length) return;
     if (this.role !== "steerer") {
       this.notices.notify({

@@ -113,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     from protocol import Layer, Lighting, RenderParams
     from server.pipeline.selections import check_layers
     from server.render.camera import fit_camera
+    from server.web.rest import unknown_keys
     from structures.reader import StructureError, load
     from structures.selection import default_layers
 
@@ -129,6 +130,10 @@ def main(argv: list[str] | None = None) -> int:
                 return _fail(f"--layers is not valid JSON: {exc.msg}")
             if not isinstance(raw, list):
                 return _fail("--layers must be a JSON list of layers")
+            for i, item in enumerate(raw):
+                unknown = unknown_keys(Layer, item, f"layers.{i}")
+                if unknown:
+                    return _fail(f"{unknown}: unknown field")
             layers = [Layer.model_validate(item) for item in raw]
         params = RenderParams(
             layers=layers,

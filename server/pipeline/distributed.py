@@ -97,7 +97,10 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
         )
     structure, renderer, cache = state["structure"], state["renderer"], state["cache"]
     params = p.RenderParams.model_validate(inputs.params)
-    layers = FrameLayers(params, structure.topology)
+    layers = state.get("layers")
+    if layers is None or layers.params != params:  # one per job: selections and helices kept
+        reference = structure.positions(inputs.reference)
+        layers = state["layers"] = FrameLayers(params, structure.topology, reference)
     camera = p.Camera.model_validate(inputs.camera)
     window = time_window(params, inputs.n_frames)
 

@@ -184,6 +184,7 @@ class GpuQueue:
             history_epoch=snap.history_epoch,
             live=snap.live,
             lag=snap.lag,
+            background=request.params.background,
         )
         return slot.layered
 

@@ -458,8 +458,8 @@ class JobManager:
             if job.cancel.is_set():
                 return False
             positions = await frames.get(index)
-            try:
-                plans = layers.plans(positions, index)
+            try:  # MDAnalysis work: off the event loop
+                plans = await asyncio.to_thread(layers.plans, positions, index)
             except SelectionError as exc:
                 raise JobError(f"params.layers: {exc}") from None
             if camera is None:
@@ -479,7 +479,7 @@ class JobManager:
             snapshot = Snapshot(
                 topology,
                 positions,
-                positions_id=n + 1,
+                positions_id=index + 1,  # the ids the history frames carry too
                 step=index,
                 history=history,
                 history_epoch=index,  # each frame its own window: chunks render the same

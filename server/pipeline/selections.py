@@ -28,10 +28,19 @@ def check_layers(params: p.RenderParams) -> None:
 class FrameLayers:
     """The layer plans of one parameter set on one topology, frame after frame."""
 
-    def __init__(self, params: p.RenderParams, topology: p.Topology) -> None:
+    def __init__(
+        self,
+        params: p.RenderParams,
+        topology: p.Topology,
+        reference: npt.NDArray[np.float32] | None = None,
+    ) -> None:
+        """`reference`: the positions secondary structure is assigned at (the job's reference
+        frame, so every chunk of a distributed job draws the same helices); else the first
+        frame asked for."""
         self.params = params
         self.topology = topology
         self._selector = Selector(topology) if params.layers else None
+        self._reference = reference
         self._codes: npt.NDArray[np.uint8] | None = None
 
     def plans(
@@ -50,8 +59,9 @@ class FrameLayers:
             return atoms, ((text, frame_key) if is_dynamic(text) else text)
 
         def secondary() -> npt.NDArray[np.uint8]:
-            if self._codes is None:  # assigned at the first frame, kept for the job
-                self._codes = selector.secondary(positions)
+            if self._codes is None:  # assigned once, kept for the job
+                at = positions if self._reference is None else self._reference
+                self._codes = selector.secondary(at)
             return self._codes
 
         return plan_layers(self.params, self.topology.n_atoms, select, secondary)

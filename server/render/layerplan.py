@@ -33,7 +33,10 @@ class LayerPlan:
 
 def layer_params(base: RenderParams, layer: Layer) -> RenderParams:
     """The parameters `layer` is drawn with: the session's, with the fields it sets itself."""
-    return base.model_copy(update={**layer.overrides(), "layers": []})
+    own = layer.overrides()
+    if "tf_preset" in own and "transfer_function" not in own:
+        own["transfer_function"] = []  # the layer's preset, not the session's own points
+    return base.model_copy(update={**own, "layers": []})
 
 
 def plan_layers(

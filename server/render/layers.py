@@ -218,8 +218,10 @@ class LayeredRenderer(ImageOutputs):
         history_epoch: int = 0,
         live: bool = True,
         lag: int | None = None,
+        background: tuple[float, float, float] | None = None,
     ) -> None:
-        """Render every layer of `plans` and composite them (the image stays on the device)."""
+        """Render every layer of `plans` and composite them over `background` (default: the
+        first layer's); the image stays on the device."""
         if len(plans) > MAX_LAYERS:
             raise RenderError(f"{len(plans)} layers, at most {MAX_LAYERS} are drawn")
         t0 = time.perf_counter()
@@ -275,7 +277,7 @@ class LayeredRenderer(ImageOutputs):
             wp.copy(self._stack_ids, ids, dest_offset=k * self._pixels, count=count)
         self._index_map(plans)
         opacity = np.asarray([p.opacity for p in plans] or [0.0], dtype=np.float32)
-        bg = plans[0].params.background if plans else RenderParams().background
+        bg = background or (plans[0].params.background if plans else RenderParams().background)
         wp.launch(
             composite_kernel,
             pixels,

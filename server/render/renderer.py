@@ -792,7 +792,8 @@ class Renderer(ImageOutputs):
             self._launch_frame, params, d, f, stop, frame, grid_key is not None, tile
         )
         if self._graphs is not None:
-            limit = id(self.depth_limit) if params.mode == "volume" else None
+            clipped = params.mode == "volume" and self.depth_limit is not None
+            limit = self.depth_limit.ptr if clipped else None
             key = (grid_key is not None, self._n, d, stop, seen[1], cam_seen[4], tile, limit)
             t_cast = self._replay_or_launch(key, launch)
         else:

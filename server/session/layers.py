@@ -31,8 +31,6 @@ REFRESH_S = 0.1
 BUILD_AWAY_ATOMS = 100_000
 """From this size the selection universe (about a second per million atoms) is built in a
 worker thread; the session draws nothing until it is ready rather than stall every session."""
-PENDING: tuple[LayerPlan, ...] = ()
-"""`plans` while the universe of a large topology is still being built (compare with `is`)."""
 
 
 @dataclass
@@ -50,6 +48,8 @@ class LayerBook:
     def __init__(self, on_refresh: Callable[[], None]) -> None:
         self._on_refresh = on_refresh
         self._ready = True
+        self._invalid: set[str] = set()
+        """Selections that failed on this topology (reported once, drawn as nothing)."""
         self._codes: npt.NDArray[np.uint8] | None = None
         self._selector: Selector | None = None
         self._topology_id = -1
@@ -65,6 +65,7 @@ class LayerBook:
             selector = self._selector = Selector(topology)
             self._topology_id = topology_id
             self._dynamic.clear()
+            self._invalid.clear()
             self._plans = None
             self._codes = None
             self._ready = topology.n_atoms < BUILD_AWAY_ATOMS
@@ -87,6 +88,11 @@ class LayerBook:
 
         asyncio.get_running_loop().run_in_executor(None, build).add_done_callback(done)
 
+    @property
+    def ready(self) -> bool:
+        """False while the selection universe of a large topology is still being built."""
+        return self._ready
+
     def defaults(self, topology: p.Topology, sigma_A: float) -> list[p.Layer]:
         """The layers this topology opens with (structures.selection.default_layers)."""
         return [p.Layer(**fields) for fields in default_layers(topology, sigma_A)]
@@ -97,37 +103,56 @@ class LayerBook:
         positions: npt.NDArray[np.float32] | None,
         box: npt.NDArray[np.float32] | None = None,
     ) -> npt.NDArray[np.int32]:
-        """Evaluate `text` now (raises SelectionError); for checks and counts."""
-        if self._selector is None:
+        """Evaluate `text` now (raises SelectionError); for checks and counts. A static
+        selection answered before is read without waiting for a worker's evaluation."""
+        selector = self._selector
+        if selector is None:
             raise SelectionError(text, "no topology yet", 0)
+        known = selector.cached(text)
+        if known is not None:
+            return known
+        if not self._ready:
+            raise SelectionError(text, "the system's selections are still being prepared", 0)
         with self._lock:
-            return self._selector.select(text, positions, box)
+            return selector.select(text, positions, box)
 
     def _current(
-        self, text: str, positions: npt.NDArray[np.float32], positions_id: int
+        self,
+        text: str,
+        positions: npt.NDArray[np.float32],
+        positions_id: int,
+        box: npt.NDArray[np.float32] | None,
     ) -> tuple[npt.NDArray[np.int32], Any]:
         """A selection's atoms for drawing and a key that changes when they do; an invalid
-        one draws nothing (it was refused when set, so only a new topology gets here)."""
+        one draws nothing and is reported once (a layer set before the topology arrived)."""
+        if text in self._invalid:
+            return np.zeros(0, dtype=np.int32), (self._topology_id, text, "invalid")
         try:
             if not is_dynamic(text):
                 return self.select(text, None), (self._topology_id, text)
             entry = self._dynamic.get(text)
             if entry is None:
-                atoms = self.select(text, positions)
+                atoms = self.select(text, positions, box)
                 entry = self._dynamic[text] = _Dynamic(atoms, positions_id, time.monotonic())
             elif (
                 not entry.running
                 and entry.positions_id != positions_id
                 and time.monotonic() - entry.evaluated >= REFRESH_S
             ):
-                self._refresh(text, entry, positions, positions_id)
+                self._refresh(text, entry, positions, positions_id, box)
             return entry.atoms, (self._topology_id, text, entry.count)
-        except SelectionError as exc:
-            log.warning("layer not drawn: %s", exc)
+        except Exception as exc:  # a layer that cannot be drawn must not stop the others
+            log.warning("layer %r not drawn: %s", text, exc)
+            self._invalid.add(text)
             return np.zeros(0, dtype=np.int32), (self._topology_id, text, "invalid")
 
     def _refresh(
-        self, text: str, entry: _Dynamic, positions: npt.NDArray[np.float32], positions_id: int
+        self,
+        text: str,
+        entry: _Dynamic,
+        positions: npt.NDArray[np.float32],
+        positions_id: int,
+        box: npt.NDArray[np.float32] | None,
     ) -> None:
         entry.running = True
         topology_id = self._topology_id
@@ -148,7 +173,7 @@ class LayerBook:
                 entry.count += 1
                 self._on_refresh()
 
-        future = loop.run_in_executor(None, self.select, text, positions)
+        future = loop.run_in_executor(None, self.select, text, positions, box)
         future.add_done_callback(done)
 
     def plans(
@@ -157,17 +182,17 @@ class LayerBook:
         n_atoms: int,
         positions: npt.NDArray[np.float32] | None,
         positions_id: int,
+        box: npt.NDArray[np.float32] | None = None,
     ) -> tuple[LayerPlan, ...] | None:
-        """The visible layers of `params` with their atoms (None: no layers)."""
-        if not params.layers or self._selector is None or positions is None:
+        """The visible layers of `params` with their atoms (None: no layers; ask `ready`
+        first: while a large topology's selections are prepared this also answers None)."""
+        if not params.layers or self._selector is None or positions is None or not self._ready:
             return None
-        if not self._ready:
-            return PENDING
         chosen: dict[str, tuple[npt.NDArray[np.int32], Any]] = {}
 
         def select(text: str) -> tuple[npt.NDArray[np.int32], Any]:
             if text not in chosen:
-                chosen[text] = self._current(text, positions, positions_id)
+                chosen[text] = self._current(text, positions, positions_id, box)
             return chosen[text]
 
         keys = tuple(select(layer.selection)[1] for layer in params.layers if layer.visible)
@@ -190,7 +215,7 @@ class LayerBook:
             try:
                 with self._lock:
                     self._codes = self._selector.secondary(positions)
-            except SelectionError as exc:
+            except Exception as exc:  # drawn as a plain tube rather than not at all
                 log.warning("tube layers drawn without secondary structure: %s", exc)
                 self._codes = np.zeros(self._selector.topology.n_atoms, dtype=np.uint8)
         codes: npt.NDArray[np.uint8] = self._codes

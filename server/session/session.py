@@ -34,7 +34,7 @@ from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
 from server.session.engine_limits import check_control, check_pull, check_sim_params
 from server.session.forces import ForceBook
-from server.session.layers import PENDING, LayerBook
+from server.session.layers import LayerBook
 from server.session.roster import Roster
 from server.session.scheduler import RenderScheduler, ViewKey
 from server.session.services import Services
@@ -46,7 +46,7 @@ from server.session.steering import (
     sim_params_changes,
 )
 from server.settings import ServerSettings
-from structures.selection import SelectionError, is_dynamic
+from structures.selection import SelectionError, check_syntax, is_dynamic
 
 log = logging.getLogger("scalesteer.session")
 
@@ -109,7 +109,8 @@ class Session:
         self.topology_id = 0
         self.positions: npt.NDArray[np.float32] | None = None
         self.positions_id = 0
-        self._box: npt.NDArray[np.float32] | None = None
+        self.box: npt.NDArray[np.float32] | None = None
+        """The last frame's periodic box vectors (3x3, angstrom), if it sent any."""
         self.status = p.SimStatus(state="waiting")
         self.render_params = settings.render_defaults
         self.sim_params = p.SimParams()
@@ -290,9 +291,11 @@ class Session:
         if self.positions is None or self.topology is None:
             return
         n = self.topology.n_atoms
-        plans = self.layers.plans(self.render_params, n, self.positions, self.positions_id)
-        if plans is PENDING:
+        if not self.layers.ready:
             return
+        plans = self.layers.plans(
+            self.render_params, n, self.positions, self.positions_id, self.box
+        )
         from server.render.camera import fit_camera
 
         shown = visible_atoms(plans, n)
@@ -302,7 +305,7 @@ class Session:
 
     def _layer_plans(self, snap: Snapshot) -> tuple[LayerPlan, ...] | None:
         return self.layers.plans(
-            self.render_params, snap.topology.n_atoms, snap.positions, snap.positions_id
+            self.render_params, snap.topology.n_atoms, snap.positions, snap.positions_id, self.box
         )
 
     def select(self, client: Client, message: p.Select) -> p.Selected:
@@ -312,7 +315,7 @@ class Session:
                 p.ErrorCode.NOT_READY, "no topology to select from yet", "select", message.seq
             )
         try:
-            atoms = self.layers.select(message.text, self.positions, self._box)
+            atoms = self.layers.select(message.text, self.positions, self.box)
         except SelectionError as exc:
             return p.Selected(
                 ref=message.seq,
@@ -366,11 +369,11 @@ class Session:
         rate = self._step_rate.add(now, frame.step)
         self.positions = frame.positions.to_numpy()
         self.positions_id += 1
-        self._box = None if frame.box is None else frame.box.to_numpy()
+        self.box = None if frame.box is None else frame.box.to_numpy()
         self._remember(frame.step)
         if self.frame_sinks:
             for sink in list(self.frame_sinks):
-                sink(frame.step, frame.time_ps, self.positions, self._box)
+                sink(frame.step, frame.time_ps, self.positions, self.box)
         self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
         self._frame_arrived = asyncio.Event()
         if self.camera is None:
@@ -575,11 +578,14 @@ class Session:
     def _check_layers(self, params: p.RenderParams, seq: int | None) -> None:
         """Every layer's selection must parse (and evaluate) on this topology; the first
         that does not is named with the position of what is wrong, and nothing changes."""
-        if self.topology is None:
-            return  # checked when the topology arrives: an invalid one then draws nothing
+        # before the topology (or while a large one is prepared) the text must at least parse
+        whole = self.topology is not None and self.layers.ready
         for i, layer in enumerate(params.layers):
             try:
-                self.layers.select(layer.selection, self.positions, self._box)
+                if whole and (self.positions is not None or not is_dynamic(layer.selection)):
+                    self.layers.select(layer.selection, self.positions, self.box)
+                else:
+                    check_syntax(layer.selection)
             except SelectionError as exc:
                 raise p.ProtocolError(
                     p.ErrorCode.INVALID_MESSAGE,
@@ -798,9 +804,9 @@ class Session:
         snapshot was taken (the next pass renders that one)."""
         if snap.topology_id != self.topology_id:
             return None
-        layers = self._layer_plans(snap)
-        if layers is PENDING:
+        if not self.layers.ready:
             return None  # the selections of a large system are still being prepared
+        layers = self._layer_plans(snap)
         params = self.render_params
         device = self.services.backend.actual_device or self.settings.device
         on_cpu = device.startswith("cpu")
@@ -859,7 +865,7 @@ class Session:
             )
         pw, ph = self.scheduler.pick_size(w, h)
         layers = self._layer_plans(snap)
-        if layers is PENDING:
+        if not self.layers.ready:
             raise p.ProtocolError(
                 p.ErrorCode.NOT_READY, "the layers are still being prepared", "pick", pick.seq
             )

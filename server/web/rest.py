@@ -11,6 +11,7 @@ import json
 import re
 import shutil
 import tempfile
+import typing
 import uuid
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -104,13 +105,21 @@ def unknown_keys(cls: type[BaseModel], data: Any, where: str) -> str | None:
         info = cls.model_fields.get(str(key))
         if info is None:
             return f"{where}.{key}"
-        nested = info.annotation
-        for candidate in (nested, *getattr(nested, "__args__", ())):
-            if isinstance(candidate, type) and issubclass(candidate, BaseModel):
-                found = unknown_keys(candidate, value, f"{where}.{key}")
+        for model in _models_in(info.annotation):
+            items = enumerate(value) if isinstance(value, list) else [(None, value)]
+            for i, item in items:
+                path = f"{where}.{key}" if i is None else f"{where}.{key}.{i}"
+                found = unknown_keys(model, item, path)
                 if found:
                     return found
     return None
+
+
+def _models_in(annotation: Any) -> list[type[BaseModel]]:
+    """The models an annotation holds: itself, or inside Optional, list[...], Annotated."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for arg in typing.get_args(annotation) for m in _models_in(arg)]
 
 
 def _dataset(state: AppState, name: str) -> Path:
@@ -241,7 +250,7 @@ async def render_image(
             raise HTTPException(404, f"no session named {session!r}")
         if live.topology is None or live.positions is None:
             raise HTTPException(409, f"session {session!r} has no frame yet")
-        topology, positions = live.topology, live.positions
+        topology, positions, box = live.topology, live.positions, live.box
         render_params = render_params or live.render_params
         cam = cam or live.camera
     else:
@@ -253,6 +262,7 @@ async def render_image(
                 else _dataset(state, dataset or "")
             )
             topology, positions = await _read_frame(state, path, frame, role)
+            box = None
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
     if render_params is None:  # a file opens on its molecule, as a session does
@@ -261,7 +271,8 @@ async def render_image(
         defaults = await asyncio.to_thread(default_layers, topology, p.RenderParams().sigma_A)
         render_params = p.RenderParams(layers=[p.Layer(**f) for f in defaults])
     try:
-        plans = await asyncio.to_thread(FrameLayers(render_params, topology).plans, positions, 0)
+        layers = FrameLayers(render_params, topology)
+        plans = await asyncio.to_thread(layers.plans, positions, 0, box)
     except SelectionError as exc:
         raise HTTPException(422, f"params.layers: {exc}") from None
     if cam is None:

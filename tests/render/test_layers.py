@@ -197,6 +197,13 @@ def test_plans_follow_visibility_and_whole_selections() -> None:
     assert np.array_equal(visible_atoms(plans, n), np.arange(n))
     assert np.array_equal(visible_atoms(plans[1:], n), [1, 3])
     assert plan_layers(RenderParams(), n, lambda t: (sets[t], t)) is None
+    # a layer's preset replaces the session's own transfer-function points
+    own = RenderParams(
+        transfer_function=[TFPoint(x=1.0, alpha=0.5)],
+        layers=[Layer(selection="few", tf_preset="shells")],
+    )
+    (shells,) = _plans(own, n, sets)
+    assert shells.params.tf_preset == "shells" and shells.params.transfer_function == []
 
 
 def test_subset_topology_renumbers_bonds() -> None:

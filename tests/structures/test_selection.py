@@ -63,7 +63,12 @@ def test_solvated_gro_selections_equal_mdanalysis_frame_by_frame() -> None:
     for text in [*STATIC, "water", "resname NA+"]:
         want = u.select_atoms(text).indices  # type: ignore[attr-defined]
         assert np.array_equal(sel.select(text), want), text
-    dynamic = ["byres around 4 protein", "around 3.5 resname NA+", "protein and prop z > 30"]
+    dynamic = [
+        "byres around 4 protein",
+        "around 3.5 resname NA+",
+        "protein and prop z > 30",
+        "same x as (resname NA+)",
+    ]
     for ts in u.trajectory[:3]:  # type: ignore[attr-defined]
         box = triclinic_vectors(ts.dimensions)
         for text in dynamic:
@@ -115,6 +120,8 @@ def test_a_bad_selection_names_its_position(text: str, where: int, says: str) ->
 def test_syntax_check_without_a_topology() -> None:
     for text in [*STATIC, "around 5 resname LIG", "byres (around 3 name CA)"]:
         check_syntax(text)
+    with pytest.raises(SelectionError, match="nested too deeply"):
+        check_syntax("(" * 600 + "name CA" + ")" * 600)
     with pytest.raises(SelectionError, match="or around D sel"):
         check_syntax("within 3 of resname LIG")  # VMD's form: the error says how to write it
 

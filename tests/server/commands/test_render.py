@@ -105,3 +105,7 @@ def test_a_solvated_file_opens_on_its_protein_and_layers_steer_it(
     assert main([*base, "-o", str(tmp_path / "x.png"), "--select", "resname NONE"]) == 2
     assert "takes no atoms" in capsys.readouterr().err
     assert main([*base, "-o", str(tmp_path / "x.png"), "--select", "all", "--all-atoms"]) == 2
+    capsys.readouterr()
+    typo = json.dumps([{"selection": "all", "sigma": 2}])
+    assert main([*base, "-o", str(tmp_path / "x.png"), "--layers", typo]) == 2
+    assert "layers.0.sigma: unknown field" in capsys.readouterr().err

@@ -87,15 +87,34 @@ def test_a_large_topology_prepares_its_selections_off_the_loop(
         book = LayerBook(lambda: ready.append(True))
         book.topology(topo, 1)
         params = p.RenderParams(layers=[p.Layer(selection="index 0:4")])
-        assert book.plans(params, topo.n_atoms, pos, 1) is layers.PENDING
+        assert not book.ready and book.plans(params, topo.n_atoms, pos, 1) is None
         for _ in range(200):
             if ready:
                 break
             await asyncio.sleep(0.01)
         assert ready, "the universe was never reported ready"
+        assert book.ready
         plans = book.plans(params, topo.n_atoms, pos, 1)
-        assert plans is not layers.PENDING and plans is not None
+        assert plans is not None
         assert plans[0].atoms is not None and len(plans[0].atoms) == 5
         assert book.plans(p.RenderParams(), topo.n_atoms, pos, 1) is None  # no layers
+
+    run_on_own_loop(main)
+
+
+def test_hiding_every_layer_draws_nothing_rather_than_waiting() -> None:
+    topo, pos = molecule(24)
+
+    async def main() -> None:
+        book = LayerBook(lambda: None)
+        book.topology(topo, 1)
+        hidden = p.RenderParams(layers=[p.Layer(selection="all", visible=False)])
+        assert book.ready and book.plans(hidden, topo.n_atoms, pos, 1) == ()
+        # a selection that fails on this topology is drawn as nothing, and the others still are
+        params = p.RenderParams(
+            layers=[p.Layer(selection="smarts c1ccccc1"), p.Layer(selection="index 0:3")]
+        )
+        plans = book.plans(params, topo.n_atoms, pos, 1)
+        assert plans is not None and len(plans) == 1 and len(plans[0].atoms) == 4  # type: ignore[arg-type]
 
     run_on_own_loop(main)

@@ -157,6 +157,12 @@ def test_rest_renders_and_jobs_check_layers(live_server: LiveServer) -> None:
         )
         assert bad.status_code == 422
         assert "layers.0.selection" in bad.json()["detail"]
+        typo = c.post(
+            "/api/render",
+            headers=AUTH,
+            data={**base, "params": json.dumps({"layers": [{"selection": "all", "sigma": 2}]})},
+        )
+        assert typo.status_code == 422 and "params.layers.0.sigma" in typo.json()["detail"]
         one = c.post(
             "/api/render",
             headers=AUTH,
