@@ -115,6 +115,41 @@ def nearer_kernel(depth: wp.array(dtype=float), limit: wp.array(dtype=float)):
     limit[i] = wp.min(limit[i], depth[i])
 
 
+MAX_RUNS = 512
+"""A selection in at most this many contiguous runs (a protein, a chain, a ligand: the usual)
+is gathered by slices; a scattered one by `np.take`."""
+
+
+def contiguous_runs(atoms: npt.NDArray[np.int32]) -> npt.NDArray[np.int64] | None:
+    """(k, 2) start/stop of the runs of consecutive indices in sorted `atoms`; None when
+    there are more than MAX_RUNS."""
+    if not len(atoms):
+        return np.zeros((0, 2), dtype=np.int64)
+    breaks = np.flatnonzero(np.diff(atoms) != 1) + 1
+    if len(breaks) + 1 > MAX_RUNS:
+        return None
+    starts = np.concatenate([[0], breaks])
+    stops = np.concatenate([breaks, [len(atoms)]])
+    return np.stack([atoms[starts], atoms[stops - 1] + 1], axis=1).astype(np.int64)
+
+
+def gather_into(
+    positions: npt.NDArray[np.float32],
+    atoms: npt.NDArray[np.int32],
+    runs: npt.NDArray[np.int64] | None,
+    out: npt.NDArray[np.float32],
+) -> None:
+    """out[:] = positions[atoms], by slices when the atoms lie in a few runs."""
+    if runs is None:
+        np.take(positions, atoms, axis=0, out=out)
+        return
+    at = 0
+    for start, stop in runs:
+        n = int(stop - start)
+        out[at : at + n] = positions[start:stop]
+        at += n
+
+
 def _same_codes(a: npt.NDArray[np.uint8] | None, b: npt.NDArray[np.uint8] | None) -> bool:
     return a is b or (a is not None and b is not None and np.array_equal(a, b))
 
@@ -128,6 +163,8 @@ class _Child:
     renderer: Renderer | GeometryRenderer
     style: str = "density"
     secondary: Any = None
+    runs: npt.NDArray[np.int64] | None = None
+    """The layer's atoms as contiguous runs (start, stop) in the frame, when there are few."""
     atoms_key: Any = None
     topology_id: int = -1
     positions_id: int = -1
@@ -244,12 +281,19 @@ class LayeredRenderer(ImageOutputs):
                 child.positions_id = -1
                 child.secondary = None
                 child.gathered.clear()
+                child.runs = None if plan.atoms is None else contiguous_runs(plan.atoms)
+            smoothing = bool(history) and plan.style == "density" and plan.params.needs_history()
             if child.positions_id != positions_id:
-                r.set_positions(
-                    self._gather(child, plan, positions_id, positions), check_finite=False
-                )
+                if plan.atoms is not None and isinstance(r, Renderer) and not smoothing:
+                    # straight into the renderer's page-locked buffer: an asynchronous upload
+                    staged = r.host_positions()
+                    gather_into(positions, plan.atoms, child.runs, staged)
+                    r.set_positions(staged, check_finite=False)
+                else:
+                    mine = self._gather(child, plan, positions_id, positions)
+                    r.set_positions(mine, check_finite=False)
                 child.positions_id = positions_id
-            if history and plan.style == "density" and plan.params.needs_history():
+            if smoothing:
                 frames = [(i, self._gather(child, plan, i, pos)) for i, pos in history]
                 r.set_history(frames, history_epoch, plan.params, live=live, lag=lag)
             if isinstance(r, GeometryRenderer):
@@ -316,7 +360,8 @@ class LayeredRenderer(ImageOutputs):
             return positions
         got = child.gathered.get(frame_id)
         if got is None:
-            got = np.ascontiguousarray(positions[plan.atoms], dtype=np.float32)
+            got = np.empty((len(plan.atoms), 3), dtype=np.float32)
+            gather_into(positions, plan.atoms, child.runs, got)
             child.gathered[frame_id] = got
             while len(child.gathered) > _HISTORY_KEEP:
                 child.gathered.pop(next(iter(child.gathered)))

@@ -339,3 +339,23 @@ def test_a_cloud_around_a_surface_is_cut_at_it(device: str) -> None:
     a_whole = cloud_alone(None).read_rgba()[..., 3].astype(int)
     assert (a_cut[hit] <= a_whole[hit]).all() and (a_cut[hit] < a_whole[hit]).any()
     assert np.array_equal(a_cut[~hit], a_whole[~hit])  # nothing to stop at: the whole cloud
+
+
+def test_gathering_a_layer_by_runs_or_by_take() -> None:
+    from server.render.layers import MAX_RUNS, contiguous_runs, gather_into
+
+    rng = np.random.default_rng(3)
+    pos = rng.normal(size=(5000, 3)).astype(np.float32)
+    protein_like = np.concatenate([np.arange(0, 1200), np.arange(1210, 1500), [4000]])
+    scattered = np.sort(rng.choice(5000, 2000, replace=False))
+    for atoms in (protein_like.astype(np.int32), scattered.astype(np.int32)):
+        runs = contiguous_runs(atoms)
+        out = np.empty((len(atoms), 3), np.float32)
+        gather_into(pos, atoms, runs, out)
+        assert np.array_equal(out, pos[atoms])
+    assert contiguous_runs(protein_like.astype(np.int32)).tolist() == [  # type: ignore[union-attr]
+        [0, 1200],
+        [1210, 1500],
+        [4000, 4001],
+    ]
+    assert contiguous_runs(np.arange(0, 4 * MAX_RUNS, 2, dtype=np.int32)) is None
