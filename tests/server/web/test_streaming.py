@@ -182,9 +182,9 @@ def test_slow_viewer_does_not_slow_others(live_server: LiveServer) -> None:
         sim, pos, lambda step: fast.expect(p.Image, 2.0, where=lambda m: m.step == step)
     )
     lock.window(1.0)  # warm-up
-    alone = lock.median()
+    alone = lock.median(windows=5)  # five windows: two cores also run the suite's other work
     slow = Peer(live_server.view_url, "viewer", live_server.viewer_token, max_queue=1)
-    together = lock.median()
+    together = lock.median(windows=5)
     assert alone >= 8
     assert together >= 0.9 * alone, (alone, together)
     assert len(live_server.app_state.sessions.get("default").clients) == 2
