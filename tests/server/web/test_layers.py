@@ -53,10 +53,9 @@ def test_a_solvated_replay_opens_on_the_protein(live_server: LiveServer) -> None
         layers = state.render_params.layers
         assert [(x.name, x.selection) for x in layers] == [("polymer", "protein or nucleic")]
         viewer.expect(p.Image, 120)
-        # the camera frames the protein (3,341 atoms), not the water box around it
-        cam = (
-            state.camera or viewer.expect(p.State, 30, where=lambda m: m.camera is not None).camera
-        )
+        # the camera (fitted before the first image) frames the protein (3,341 atoms), not the
+        # water box around it
+        cam = live_server.app_state.sessions.get(name).camera
         assert cam is not None and cam.distance < 180  # 149 A for the protein, 233 for all
 
         def share(params: str | None) -> float:
