@@ -601,6 +601,97 @@ class Bench:
         self.results["warped_quality"] = warped_quality()
         self.save()
 
+    # ---- cooperative (block-shared) neighbour walks against per-ray walks
+    def cooperative(self, cases: list[tuple[int, int, int, str]], margins: list[float]) -> None:
+        """Iso frames with per-ray walks (the renderer's default policy for the size) and with
+        the block-cooperative kernels at each group margin (lattice steps), same frames; the
+        image of every cooperative variant is compared with the per-ray one."""
+        for n, w, h, space in cases:
+            if self.clock.left() < 20:
+                self.results["notes"].append(f"cooperative section stopped before N={n}")
+                break
+            params = RenderParams(scale_space=space)  # type: ignore[arg-type]
+            row: dict[str, Any] = {"n_atoms": n, "width": w, "height": h, "scale_space": space}
+            ref = None
+            for margin in [-1.0, *margins]:
+                coop = margin >= 0
+                kw: dict[str, Any] = {"cooperative": coop}
+                if coop:
+                    kw["coop_margin_steps"] = margin
+                r, frames = self.renderer(n, **kw)
+                cam = fit_camera(frames[0], w, h)
+                s = self.timed(self.frame_step(r, frames, params, cam, w, h), self.args.frames)
+                # the same frame once more, for the image comparison
+                r.set_positions(frames[0])
+                r.render(params, cam, w, h)
+                img = (r.read_rgba(), r.read_depth(), r.read_atom_ids())
+                key = "per_ray" if not coop else f"coop_{margin:g}"
+                if ref is None:
+                    ref = img
+                else:
+                    s["rgba_equal"] = bool(np.array_equal(ref[0], img[0]))
+                    s["depth_max_diff"] = float(
+                        np.max(
+                            np.abs(
+                                np.nan_to_num(ref[1], posinf=0) - np.nan_to_num(img[1], posinf=0)
+                            )
+                        )
+                    )
+                    s["ids_equal"] = bool(np.array_equal(ref[2], img[2]))
+                row[key] = s
+                self.results.setdefault("cooperative", []).append(
+                    {
+                        "n_atoms": n,
+                        "width": w,
+                        "height": h,
+                        "scale_space": space,
+                        "variant": key,
+                        **s,
+                    }
+                )
+                self.save()
+                self.log(
+                    f"{key:9s} N={n:>9,} {w}x{h} {space}: {s['median_ms']:.3f} ms "
+                    f"{fmt_stages(s.get('stages_ms', {}))} "
+                    + ("" if not coop else f"equal={s['rgba_equal']}/{s['ids_equal']}")
+                )
+                del r
+
+    # ---- per-kernel times of one frame
+    def profile(self, cases: list[tuple[int, int, int, str, str]]) -> None:
+        """The device activities of one frame (launched one by one, not as a graph) with
+        their times (`wp.timing_begin`): where a frame's time goes, kernel by kernel."""
+        if not wp.get_device(self.device).is_cuda:
+            return
+        for n, w, h, space, variant in cases:
+            if self.clock.left() < 20:
+                return
+            coop = variant == "coop"
+            mode = "volume" if variant == "volume" else "iso"
+            r, frames = self.renderer(n, graphs=False, cooperative=coop)
+            cam = fit_camera(frames[0], w, h)
+            params = RenderParams(scale_space=space, mode=mode)  # type: ignore[arg-type]
+            step = self.frame_step(r, frames, params, cam, w, h)
+            for i in range(self.args.warmup):
+                step(i)
+            wp.timing_begin()
+            step(self.args.warmup)
+            results = wp.timing_end()
+            acts: dict[str, float] = {}
+            for t in results:
+                acts[t.name] = acts.get(t.name, 0.0) + float(t.elapsed)
+            self.results.setdefault("profile", []).append(
+                {"n_atoms": n, "width": w, "height": h, "scale_space": space, "variant": variant,
+                 "activities_ms": acts, "sum_ms": sum(acts.values())}
+            )  # fmt: skip
+            self.save()
+            top = sorted(acts.items(), key=lambda kv: -kv[1])[:8]
+            self.log(
+                f"profile {variant} N={n:,} {w}x{h} {space}: "
+                + ", ".join(f"{k.split(' ')[-1][:40]} {v:.3f}" for k, v in top)
+            )
+            del r
+
     # ---- grid build: dense grid vs wp.HashGrid
     def grid_build(self, n: int, r: Renderer, frames: list[np.ndarray]) -> None:
         """Dense grid rebuild vs wp.HashGrid.build on the same positions."""
@@ -1215,6 +1306,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--block-sizes", default="64,128,256", help="block sizes it tries")
     p.add_argument("--budget-cases", default="", help="N@WxH,... the budget section runs")
     p.add_argument("--warped-cases", default="", help="N@WxH,... the warped section runs")
+    p.add_argument("--coop-cases", default="", help="N@WxH@space,... the coop section runs")
+    p.add_argument("--coop-margins", default="2,4,8", help="group margins (steps) it tries")
+    p.add_argument("--profile-cases", default="", help="N@WxH@space@variant,... to profile")
     p.add_argument("--split-lanes", type=int, default=SPLIT_LANES, help="lanes per queued ray")
     p.add_argument(
         "--budgets", default="0,4,8,12,16", help="budget[:lanes] pairs the budget section tries"
@@ -1266,6 +1360,36 @@ def main(argv: list[str] | None = None) -> int:
                 for n, size in (c.split("@") for c in args.warped_cases.split(","))
             ]
         b.warped(cases)
+    if "coop" in sections:
+        coop_cases = [(496, 64, 48, "classical"), (496, 64, 48, "warped")] if args.quick else [
+            (1_000_000, 1920, 1080, "classical"),
+            (100_000, 1920, 1080, "classical"),
+            (1_000_000, 3840, 2160, "classical"),
+            (5_684, 500, 500, "classical"),
+            (1_000_000, 1920, 1080, "warped"),
+            (5_684, 500, 500, "warped"),
+        ]  # fmt: skip
+        if args.coop_cases:
+            coop_cases = [
+                (int(n), *(int(v) for v in size.split("x")), space)  # type: ignore[misc]
+                for n, size, space in (c.split("@") for c in args.coop_cases.split(","))
+            ]
+        b.cooperative(coop_cases, [float(v) for v in args.coop_margins.split(",")])
+    if "profile" in sections:
+        prof = [(496, 64, 48, "classical", "per_ray")] if args.quick else [
+            (1_000_000, 1920, 1080, "classical", "per_ray"),
+            (1_000_000, 1920, 1080, "classical", "coop"),
+            (1_000_000, 1920, 1080, "classical", "volume"),
+            (1_000_000, 1920, 1080, "warped", "per_ray"),
+            (1_000_000, 1920, 1080, "warped", "coop"),
+            (10_000_000, 1920, 1080, "classical", "per_ray"),
+        ]  # fmt: skip
+        if args.profile_cases:
+            prof = [
+                (int(n), *(int(v) for v in size.split("x")), space, variant)  # type: ignore[misc]
+                for n, size, space, variant in (c.split("@") for c in args.profile_cases.split(","))
+            ]
+        b.profile(prof)
     if "budgets" in sections:
         tries = [
             (

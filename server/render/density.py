@@ -25,28 +25,10 @@ from typing import Any, no_type_check
 import warp as wp
 
 from server.render import device as _device  # noqa: F401  (initialises warp)
+from server.render.cells import GridInfo, axis_span, interval_gap, row_span
+from server.render.cooperative import coop_rows
 
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.struct
-class GridInfo:
-    """The cell grid of one frame, computed on the device (no host round trip)."""
-
-    origin: wp.vec3
-    h: float
-    inv_h: float
-    dims: wp.vec3i
-    ncells: int
-    box_hi: wp.vec3
-    reach: float
-    valid: int
-    bdims: wp.vec3i  # bricks of BRICK^3 cells per axis
-    bricks: int  # 1 when the brick bounds exist for this grid
-
-
-BRICK = 4
-"""Cells per brick edge: the coarse level of empty-space skipping."""
 
 
 @wp.struct
@@ -76,37 +58,6 @@ class Sample:
     color: wp.vec3
     weight: float
     atom: int
-
-
-@wp.func
-@no_type_check
-def axis_span(a: float, b: float, origin: float, inv_h: float, n: int):
-    """Cells [lo, hi] along one axis that overlap [a, b] (clamped, possibly empty)."""
-    fa = wp.clamp((a - origin) * inv_h, -1.0, float(n))
-    fb = wp.clamp((b - origin) * inv_h, -1.0, float(n))
-    return wp.max(int(wp.floor(fa)), 0), wp.min(int(wp.floor(fb)), n - 1)
-
-
-@wp.func
-@no_type_check
-def row_span(g: GridInfo, lo_x: float, hi_x: float, dy: float, dz: float, r2: float):
-    """Cells [x0, x1] of the row at gaps (dy, dz) from the box [lo, hi] that hold atoms within
-    sqrt(r2) of a point of the box (empty when x1 < x0): the row's chord of the rounded box,
-    so no atom of a cutoff sphere is lost and rows near the rim load fewer atoms."""
-    rem = r2 - dy * dy - dz * dz
-    x0 = wp.int32(0)
-    x1 = wp.int32(-1)
-    if rem > 0.0:
-        hw = wp.sqrt(rem)
-        x0, x1 = axis_span(lo_x - hw, hi_x + hw, g.origin[0], g.inv_h, g.dims[0])
-    return x0, x1
-
-
-@wp.func
-@no_type_check
-def interval_gap(lo_a: float, hi_a: float, lo_b: float, hi_b: float) -> float:
-    """Distance between intervals [lo_a, hi_a] and [lo_b, hi_b] (0 when they overlap)."""
-    return wp.max(wp.max(lo_a - hi_b, lo_b - hi_a), 0.0)
 
 
 @wp.func
@@ -630,6 +581,137 @@ def rescale_kernel(atoms: wp.array[wp.vec4], partial: wp.array[float], samples: 
         atoms[j] = wp.vec4(a[0], a[1], a[2], a[3] * samples / t)
 
 
+# ---------------------------------------------------------------- block-cooperative forms
+
+
+@wp.func
+@no_type_check
+def load_atom(f: GaussianField, j: int):
+    """Atom j and, in vdw mode, its 1 / (2 s^2) in b[0]."""
+    c = f.inv2s2_uniform
+    if f.per_atom != 0:
+        c = f.inv2s2[j]
+    return f.atoms[j], wp.vec4(c, 0.0, 0.0, 0.0), j
+
+
+@wp.func
+@no_type_check
+def load_atom_colored(f: GaussianField, j: int):
+    """Atom j, its 1 / (2 s^2) and colour in b, and its original index."""
+    c = f.inv2s2_uniform
+    if f.per_atom != 0:
+        c = f.inv2s2[j]
+    oj = int(f.order[j])
+    rgb = unpack_rgb(f.colors[oj])
+    return f.atoms[j], wp.vec4(c, rgb[0], rgb[1], rgb[2]), oj
+
+
+@wp.func
+@no_type_check
+def consume_values4(
+    f: GaussianField, q: Span4, a: wp.vec4, b: wp.vec4, oj: int, v: wp.vec4
+) -> wp.vec4:
+    """One atom's terms at the four points of q, with `row_values4`'s uniform-mode reject."""
+    p0 = q.o + q.d * q.ts[0]
+    p3 = q.o + q.d * q.ts[3]
+    out = v
+    if f.per_atom != 0:
+        p1 = q.o + q.d * q.ts[1]
+        p2 = q.o + q.d * q.ts[2]
+        out = add_values4(v, a, b[0], f.half_k2, f.inv_half_k2, p0, p1, p2, p3)
+    elif wp.length_sq(wp.vec3(a[0], a[1], a[2]) - (p0 + p3) * 0.5) < q.lim2:
+        p1 = q.o + q.d * q.ts[1]
+        p2 = q.o + q.d * q.ts[2]
+        out = add_values4(v, a, f.inv2s2_uniform, f.half_k2, f.inv_half_k2, p0, p1, p2, p3)
+    return out
+
+
+@wp.func
+@no_type_check
+def consume_sample(
+    f: GaussianField, p: wp.vec3, a: wp.vec4, b: wp.vec4, oj: int, acc: Sample
+) -> Sample:
+    """One atom's share of `row_sample` at p: value, gradient, colour, largest contributor."""
+    out = acc
+    pa = wp.vec3(a[0], a[1], a[2])
+    c = b[0]
+    e = wp.length_sq(pa - p) * c
+    if e < f.half_k2:
+        k = kernel_slope(e, f.inv_half_k2) * a[3]
+        term = k[0]
+        out.value = out.value + term
+        out.grad = out.grad + (pa - p) * (2.0 * c * k[1])
+        out.color = out.color + wp.vec3(b[1], b[2], b[3]) * term
+        if term > out.weight or (term == out.weight and oj < out.atom):
+            out.weight = term
+            out.atom = oj
+    return out
+
+
+_coop_values4 = coop_rows(
+    "values4", load_atom, consume_values4, Span4, wp.vec4, GaussianField, False
+)
+_coop_values4_vdw = coop_rows(
+    "values4_vdw", load_atom, consume_values4, Span4, wp.vec4, GaussianField, True
+)
+_coop_sample = coop_rows(
+    "sample", load_atom_colored, consume_sample, wp.vec3, Sample, GaussianField, True
+)
+
+
+@wp.func
+@no_type_check
+def coop_gaussian_value4(
+    f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, want: int, lane: int, margin: float
+) -> wp.vec4:
+    """`gaussian_value4` for the rays of the block with `want` set (others get zeros)."""
+    pa = o + d * ts[0]
+    pb = o + d * ts[3]
+    lo = wp.min(pa, pb)
+    hi = wp.max(pa, pb)
+    q = span4(f, o, d, ts)
+    zero = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    # vdw mode needs each atom's own scale: a second shared row of items
+    out = zero
+    if f.per_atom != 0:
+        out = _coop_values4_vdw(f, lo, hi, q, zero, want, lane, margin)
+    else:
+        out = _coop_values4(f, lo, hi, q, zero, want, lane, margin)
+    return out
+
+
+@wp.func
+@no_type_check
+def coop_gaussian_sample(
+    f: GaussianField, p: wp.vec3, want: int, lane: int, margin: float
+) -> Sample:
+    """`gaussian_sample` for the rays of the block with `want` set."""
+    start = Sample()
+    start.value = 0.0
+    start.grad = wp.vec3(0.0, 0.0, 0.0)
+    start.color = wp.vec3(0.0, 0.0, 0.0)
+    start.weight = -1.0
+    start.atom = -1
+    s = _coop_sample(f, p, p, p, start, want, lane, margin)
+    s.weight = s.value
+    return s
+
+
+@wp.func
+@no_type_check
+def coop_gaussian_value4_level(
+    f: GaussianField,
+    o: wp.vec3,
+    d: wp.vec3,
+    ts: wp.vec4,
+    level: float,
+    want: int,
+    lane: int,
+    margin: float,
+) -> wp.vec4:
+    return coop_gaussian_value4(f, o, d, ts, want, lane, margin)
+
+
 @dataclass(frozen=True)
 class DensityModel:
     """A density the ray caster can draw.
@@ -645,6 +727,12 @@ class DensityModel:
     d, ts, level)` and `value_grad4_level(...)`, exact where a value may reach `level`, and any
     negative value (read "below, value unknown") where it cannot; the marching kernels only
     compare values with the level, so they use these.
+
+    Optional block-cooperative forms (cooperative.py), which every thread of a block of
+    `cooperative.COOP` rays calls together, rays without work passing `want = 0`:
+    `coop_value4(f, o, d, ts, want, lane, margin)`, `coop_value4_level(f, o, d, ts, level,
+    want, lane, margin)` and `coop_sample(f, p, want, lane, margin)`, with the results of
+    `value4`, `value4_level` and `sample`. A model with all three gets cooperative iso kernels.
     """
 
     name: str
@@ -657,6 +745,9 @@ class DensityModel:
     value_grad4: Any = None
     value4_level: Any = None
     value_grad4_level: Any = None
+    coop_value4: Any = None
+    coop_value4_level: Any = None
+    coop_sample: Any = None
 
 
 GAUSSIAN = DensityModel(
@@ -668,4 +759,7 @@ GAUSSIAN = DensityModel(
     box_bound=gaussian_box_bound,
     value4=gaussian_value4,
     value_grad4=gaussian_value_grad4,
+    coop_value4=coop_gaussian_value4,
+    coop_value4_level=coop_gaussian_value4_level,
+    coop_sample=coop_gaussian_sample,
 )

@@ -14,7 +14,7 @@ from typing import Any, no_type_check
 import warp
 
 from server.render import device as _device  # noqa: F401  (initialises warp)
-from server.render.density import BRICK, GridInfo
+from server.render.cells import BRICK, GridInfo
 
 wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
 
