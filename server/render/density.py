@@ -518,26 +518,54 @@ def gaussian_box_bound(f: GaussianField, lo: wp.vec3, hi: wp.vec3, stop_above: f
     return _walk_bound(f, lo, hi, q, wp.float32(0.0))
 
 
-@wp.kernel
+@wp.struct
+class UnsortedAtoms:
+    """The atoms in their original order, reached through the grid (`order`): what the mean
+    density is taken over before the atoms are gathered into cell order."""
+
+    positions: wp.array[wp.vec3]
+    weights: wp.array[float]
+    radii: wp.array[float]
+    order: wp.array[wp.int32]  # sorted slot -> original atom index
+    cell_start: wp.array[wp.int32]
+    info: wp.array[GridInfo]
+    inv2s2_uniform: float
+    sigma_per_radius: float
+    half_k2: float
+    inv_half_k2: float
+    per_atom: int
+
+
+@wp.func
 @no_type_check
-def gather_atoms_kernel(
-    positions: wp.array[wp.vec3],
-    weights: wp.array[float],
-    radii: wp.array[float],
-    order: wp.array[wp.int32],
-    sigma_per_radius: float,
-    per_atom: int,
-    atoms: wp.array[wp.vec4],
-    inv2s2: wp.array[float],
-):
-    """Copy atoms into cell order (x, y, z, w), with 1 / (2 s_i^2) in vdw mode."""
-    i = wp.tid()
-    j = order[i]
-    p = positions[j]
-    atoms[i] = wp.vec4(p[0], p[1], p[2], weights[j])
-    if per_atom != 0:
-        s = sigma_per_radius * radii[j]
-        inv2s2[i] = 0.5 / (s * s)
+def inv2s2_of(sigma_per_radius: float, radius: float) -> float:
+    """1 / (2 s^2) of an atom in vdw mode (s = sigma r / R_REF)."""
+    s = sigma_per_radius * radius
+    return 0.5 / (s * s)
+
+
+@wp.func
+@no_type_check
+def row_value_unsorted(f: UnsortedAtoms, p: wp.vec3, j0: int, j1: int, total: float) -> float:
+    """`row_value` over sorted slots [j0, j1), each atom read through `order`: the same terms
+    in the same order, so the same sum."""
+    s = total
+    for j in range(j0, j1):
+        i = f.order[j]
+        q = f.positions[i]
+        a = wp.vec4(q[0], q[1], q[2], f.weights[i])
+        c = f.inv2s2_uniform
+        if f.per_atom != 0:
+            c = inv2s2_of(f.sigma_per_radius, f.radii[i])
+        e = dist2(a, p) * c
+        if e < f.half_k2:
+            s += a[3] * kernel(e, f.inv_half_k2)
+    return s
+
+
+_walk_value_unsorted = cell_rows(
+    "value_unsorted", row_value_unsorted, wp.vec3, float, field=UnsortedAtoms
+)
 
 
 MEAN_LANES = 64
@@ -548,12 +576,11 @@ _LANES = wp.constant(MEAN_LANES)  # type: ignore[no-untyped-call]
 
 @wp.kernel
 @no_type_check
-def mean_density_kernel(
-    f: GaussianField, positions: wp.array[wp.vec3], stride: int, values: wp.array[float]
-):
+def mean_density_kernel(f: UnsortedAtoms, stride: int, values: wp.array[float]):
     """The density at every `stride`-th atom (the reference of relative iso levels)."""
     k = wp.tid()
-    values[k] = gaussian_value(f, positions[k * stride])
+    p = f.positions[k * stride]
+    values[k] = _walk_value_unsorted(f, p, p, p, wp.float32(0.0))
 
 
 @wp.kernel
@@ -570,15 +597,43 @@ def partial_sums_kernel(values: wp.array[float], count: int, partial: wp.array[f
 
 @wp.kernel
 @no_type_check
-def rescale_kernel(atoms: wp.array[wp.vec4], partial: wp.array[float], samples: float):
-    """Divide every sorted atom's weight by the mean density at the sampled atoms."""
-    j = wp.tid()
+def total_kernel(partial: wp.array[float], total: wp.array[float]):
+    """The sum of the partial sums, in lane order (one thread)."""
     t = float(0.0)
     for q in range(_LANES):
         t += partial[q]
-    if t > 0.0:
-        a = atoms[j]
-        atoms[j] = wp.vec4(a[0], a[1], a[2], a[3] * samples / t)
+    total[0] = t
+
+
+@wp.kernel
+@no_type_check
+def gather_atoms_kernel(
+    positions: wp.array[wp.vec3],
+    weights: wp.array[float],
+    radii: wp.array[float],
+    order: wp.array[wp.int32],
+    sigma_per_radius: float,
+    per_atom: int,
+    total: wp.array[float],
+    samples: float,
+    relative: int,
+    atoms: wp.array[wp.vec4],
+    inv2s2: wp.array[float],
+):
+    """Copy atoms into cell order (x, y, z, w), with 1 / (2 s_i^2) in vdw mode; for relative
+    levels every weight is divided by the mean density at the sampled atoms (`total` /
+    `samples`), so the levels are fractions of the density's own scale."""
+    i = wp.tid()
+    j = order[i]
+    p = positions[j]
+    w = weights[j]
+    if relative != 0:
+        t = total[0]
+        if t > 0.0:
+            w = w * samples / t
+    atoms[i] = wp.vec4(p[0], p[1], p[2], w)
+    if per_atom != 0:
+        inv2s2[i] = inv2s2_of(sigma_per_radius, radii[j])
 
 
 # ---------------------------------------------------------------- block-cooperative forms

@@ -22,7 +22,10 @@ wp.set_module_options({"enable_backward": False})
 
 MIN_CELLS = 1 << 15
 CELLS_PER_ATOM = 1.875
-MAX_REDUCE_THREADS = 1 << 14
+MAX_REDUCE_THREADS = 1 << 18
+REDUCE_BLOCK = 256
+"""The bounding box is reduced by up to MAX_REDUCE_THREADS threads in blocks of REDUCE_BLOCK
+(one atomic per axis and block)."""
 
 
 def cell_capacity(n_atoms: int) -> int:
@@ -46,8 +49,9 @@ def bbox_kernel(
     bmax: wp.array[float],
     bad: wp.array[wp.int32],
 ):
-    """Strided min/max per thread, then one atomic per axis: few atomics, exact result.
-    A non-finite coordinate flags the frame (it then draws background only)."""
+    """Strided min/max per thread, reduced over the block, then one atomic per axis and block:
+    enough threads to keep the memory busy, few atomics, exact result. A non-finite coordinate
+    flags the frame (it then draws background only)."""
     t = wp.tid()
     lo = wp.vec3(wp.inf, wp.inf, wp.inf)
     hi = wp.vec3(-wp.inf, -wp.inf, -wp.inf)
@@ -60,12 +64,24 @@ def bbox_kernel(
         lo = wp.min(lo, p)
         hi = wp.max(hi, p)
         i += stride
-    if finite == 0:
-        wp.atomic_max(bad, 0, 1)
-    if lo[0] <= hi[0]:
-        for k in range(3):
-            wp.atomic_min(bmin, k, lo[k])
-            wp.atomic_max(bmax, k, hi[k])
+    all_finite = wp.tile_min(wp.tile(finite))[0]
+    lo = wp.vec3(
+        wp.tile_min(wp.tile(lo[0]))[0],
+        wp.tile_min(wp.tile(lo[1]))[0],
+        wp.tile_min(wp.tile(lo[2]))[0],
+    )
+    hi = wp.vec3(
+        wp.tile_max(wp.tile(hi[0]))[0],
+        wp.tile_max(wp.tile(hi[1]))[0],
+        wp.tile_max(wp.tile(hi[2]))[0],
+    )
+    if t % wp.block_dim() == 0:
+        if all_finite == 0:
+            wp.atomic_max(bad, 0, 1)
+        if lo[0] <= hi[0]:
+            for k in range(3):
+                wp.atomic_min(bmin, k, lo[k])
+                wp.atomic_max(bmax, k, hi[k])
 
 
 @wp.kernel
@@ -231,12 +247,13 @@ class CellGrid:
             self.invalidate()
             return
         dev = self.device
-        threads = min(max(n // 8, 1), MAX_REDUCE_THREADS)
+        threads = min(-(-max(n // 8, 1) // REDUCE_BLOCK) * REDUCE_BLOCK, MAX_REDUCE_THREADS)
         wp.launch(
             bbox_kernel,
             threads,
             (positions, n, threads, self.bmin, self.bmax, self.bad),
             device=dev,
+            block_dim=REDUCE_BLOCK,
         )
         wp.launch(
             setup_kernel,

@@ -604,10 +604,19 @@ def _make(
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
-    def bound_kernel(f: Field, stop_above: float, out: wp.array[float]):
+    def bound_kernel(
+        f: Field, stop_above: float, cell_start: wp.array[wp.int32], out: wp.array[float]
+    ):
+        """An upper bound of the density in each cell (see `clear`). A cell that holds an atom
+        is given infinity without a walk: the density there reaches the level in all but
+        contrived cases (a lone atom lighter than the level), and these walks were 40 % of
+        the bound's work on a protein lattice."""
         c = wp.tid()
         g = f.info[0]
         if g.valid == 0 or c >= g.ncells:
+            return
+        if cell_start[c + 1] > cell_start[c]:
+            out[c] = wp.inf
             return
         ix = c % g.dims[0]
         iy = (c // g.dims[0]) % g.dims[1]

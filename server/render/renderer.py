@@ -32,10 +32,11 @@ from server.render.density import (
     MEAN_LANES,
     DensityModel,
     GaussianField,
+    UnsortedAtoms,
     gather_atoms_kernel,
     mean_density_kernel,
     partial_sums_kernel,
-    rescale_kernel,
+    total_kernel,
 )
 from server.render.errors import RenderError
 from server.render.grid import CellGrid
@@ -193,6 +194,7 @@ class Renderer(ImageOutputs):
         self._field_seen: tuple[Derived, Any] | None = None
         self._density_samples = wp.zeros(MEAN_SAMPLES, dtype=float, device=self.device)
         self._density_partial = wp.zeros(MEAN_LANES, dtype=float, device=self.device)
+        self._density_total = wp.zeros(1, dtype=float, device=self.device)
         if self._cuda:
             self._stream = wp.get_stream(self.device)
             self._events = [wp.Event(self.device, enable_timing=True) for _ in range(5)]
@@ -596,8 +598,28 @@ class Renderer(ImageOutputs):
         levels), the warped density's segments, cell bounds and brick bounds: launches only."""
         dev = self.device
         n = self._n
-        g = f.gauss if d.warp is not None else f
         self._grid.build(self._pos, n, d.reach, self.cells_per_cutoff)
+        samples = min(n, MEAN_SAMPLES)
+        if d.relative:
+            # the density's own scale, from the atoms in their original order through the
+            # grid, so the gather below writes the scaled weights in one pass
+            u = UnsortedAtoms()
+            u.positions = self._pos
+            u.weights = self._weights
+            u.radii = self._radii
+            u.order = self._grid.order
+            u.cell_start = self._grid.cell_start
+            u.info = self._grid.info
+            u.inv2s2_uniform = d.inv2s2
+            u.sigma_per_radius = d.sigma_per_radius
+            u.half_k2 = d.half_k2
+            u.inv_half_k2 = 1.0 / d.half_k2
+            u.per_atom = d.per_atom
+            mean = (u, n // samples, self._density_samples)
+            wp.launch(mean_density_kernel, samples, mean, device=dev)
+            partial = (self._density_samples, samples, self._density_partial)
+            wp.launch(partial_sums_kernel, MEAN_LANES, partial, device=dev)
+            wp.launch(total_kernel, 1, (self._density_partial, self._density_total), device=dev)
         wp.launch(
             gather_atoms_kernel,
             n,
@@ -608,23 +630,19 @@ class Renderer(ImageOutputs):
                 self._grid.order,
                 d.sigma_per_radius,
                 d.per_atom,
+                self._density_total,
+                float(samples),
+                int(d.relative),
                 self._sorted,
                 self._inv2s2,
             ),
             device=dev,
         )
-        if d.relative:
-            samples = min(n, MEAN_SAMPLES)
-            mean = (g, self._pos, n // samples, self._density_samples)
-            wp.launch(mean_density_kernel, samples, mean, device=dev)
-            partial = (self._density_samples, samples, self._density_partial)
-            wp.launch(partial_sums_kernel, MEAN_LANES, partial, device=dev)
-            rescale = (self._sorted, self._density_partial, float(samples))
-            wp.launch(rescale_kernel, n, rescale, device=dev)
         if d.warp is not None:
             self._skeleton_buffers().build(self._pos, d.warp.reach)
         kernels = self._kernels_of(d)
-        wp.launch(kernels.bound, self._grid.capacity, (f, stop, f.bound), device=dev)
+        bound = (f, stop, self._grid.cell_start, f.bound)
+        wp.launch(kernels.bound, self._grid.capacity, bound, device=dev)
         self._grid.build_bricks()
 
     def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:

@@ -305,3 +305,33 @@ def test_a_model_without_batched_forms_draws_the_same_image(device: str) -> None
         assert hit.mean() > (0.05 if mode == "iso" else 0.02), mode
         np.testing.assert_array_equal(hit, np.isfinite(b.read_depth()))
         np.testing.assert_allclose(a.read_depth()[hit], b.read_depth()[hit], atol=1e-4)
+
+
+@pytest.mark.parametrize("scale_space", ["classical", "warped"])
+def test_cell_bounds_hold_the_density(device: str, scale_space: str) -> None:
+    """Every cell's bound is at least the density anywhere in the cell (checked at points
+    spread through each cell), or above the level it is compared with (the walk stops there),
+    and a cell that holds an atom is unbounded without a walk."""
+    mol = make_topology(60), blob(60, 7)
+    top, pos = mol
+    params = RenderParams(scale_space=scale_space)  # type: ignore[arg-type]
+    r = render(device, top, pos, params, fit_camera(pos, 32, 24), 32, 24)
+    info = r.grid_info()
+    dims = np.asarray(info["dims"])
+    h = float(info["h"])
+    origin = np.asarray(info["origin"], dtype=np.float64)
+    cells = int(np.prod(dims))
+    bound = r._grid.cell_values.numpy()[:cells]
+    starts = r._grid.cell_start.numpy()[: cells + 1]
+    occupied = starts[1:] > starts[:-1]
+    assert occupied.any() and np.isinf(bound[occupied]).all()
+    rng = np.random.default_rng(3)
+    idx = np.arange(cells)
+    cell_xyz = np.stack(
+        [idx % dims[0], (idx // dims[0]) % dims[1], idx // (dims[0] * dims[1])], axis=1
+    )
+    points = (origin + (cell_xyz[:, None, :] + rng.uniform(0, 1, (cells, 6, 3))) * h).reshape(-1, 3)
+    values = r.evaluate(points)[0].reshape(cells, 6).max(axis=1)
+    assert (values > 0).sum() > 50, "the points must reach into the density"
+    assert ((bound >= values * (1 - 1e-5)) | (bound > params.iso_level)).all()
+    assert (bound < params.iso_level).sum() > 10, "some cells must be skippable"
