@@ -657,6 +657,114 @@ class Bench:
                 )
                 del r
 
+    # ---- large systems: cell size, and the next upload overlapped with the last render
+    def scale(self, sizes: list[int], cells_list: list[float], w: int, h: int) -> None:
+        """Iso frames of large systems for each cell size, one by one (set_positions, render)
+        and pipelined (render(wait=False), the next frame's set_positions, finish: the upload
+        of frame k+1 runs on its own stream while frame k renders). Two frames alternate, each
+        written once into one of the renderer's two page-locked buffers, so the timed loop is
+        the server's: upload, grid rebuild and cast of a new frame every time."""
+        for n in sizes:
+            if self.clock.left() < 60:
+                self.results["notes"].append(f"scale section stopped before N={n}")
+                return
+            t0 = time.perf_counter()
+            pos, el, bonds = self.system(n)
+            frames = jittered_frames(pos, 2)
+            top = topology_of(el, bonds if n <= 10_000_000 else None)
+            setup_s = time.perf_counter() - t0
+            for cells in cells_list:
+                if self.clock.left() < 30:
+                    return
+                r = Renderer(
+                    self.device,
+                    max_atoms=n,
+                    cells_per_cutoff=cells,
+                    max_registers=self.results["max_registers"],
+                    volume_max_registers=self.results["volume_max_registers"],
+                )
+                r.set_topology(top)
+                bufs = []
+                for f in frames:
+                    buf = r.host_positions()
+                    np.copyto(buf, f)
+                    r.set_positions(buf, check_finite=False)
+                    bufs.append(buf)
+                cam = fit_camera(frames[0], w, h)
+                params = RenderParams()
+                mem = r.memory_bytes()
+                for piped in (False, True):
+                    walls: list[float] = []
+                    stages: list[dict[str, float]] = []
+                    count = self.args.warmup + self.args.frames
+                    stop = time.perf_counter() + min(self.args.max_config_s, self.clock.left())
+                    r.set_positions(bufs[0], check_finite=False)
+                    r.render(params, cam, w, h, wait=not piped)
+                    last = time.perf_counter()
+                    for i in range(1, count + 1):
+                        if piped:
+                            r.set_positions(bufs[i % 2], check_finite=False)
+                            r.finish()
+                            stages.append(dict(r.timings))
+                            r.render(params, cam, w, h, wait=False)
+                        else:
+                            r.set_positions(bufs[i % 2], check_finite=False)
+                            r.render(params, cam, w, h)
+                            stages.append(dict(r.timings))
+                        now = time.perf_counter()
+                        if i > self.args.warmup:
+                            walls.append((now - last) * 1e3)
+                        last = now
+                        if now > stop and len(walls) >= 3:
+                            break
+                    r.finish()
+                    summary = summarize(walls, stages[self.args.warmup :])
+                    entry = {
+                        "n_atoms": n,
+                        "width": w,
+                        "height": h,
+                        "cells_per_cutoff": cells,
+                        "pipelined": piped,
+                        **summary,
+                        "bytes_per_atom": (mem["per_atom"] + mem["grid"] + mem["other"]) / n,
+                        "memory_bytes": mem,
+                        "setup_s": setup_s,
+                    }
+                    self.results.setdefault("scale", []).append(entry)
+                    self.save()
+                    self.log(
+                        f"scale N={n:,} cells/cutoff={cells:g} piped={piped}: "
+                        f"{summary['median_ms']:.2f} ms ({summary['fps']:.1f} fps) "
+                        f"{fmt_stages(summary.get('stages_ms', {}))}"
+                    )
+                del r
+
+    # ---- renderer options against each other
+    def variants(
+        self, cases: list[tuple[int, int, int]], params: RenderParams, tries: list[dict[str, Any]]
+    ) -> None:
+        """The same frames with each set of Renderer options (`--variants`, a JSON list of
+        keyword sets, each with a "label"), one after the other."""
+        for n, w, h in cases:
+            for t in tries:
+                if self.clock.left() < 20:
+                    return
+                kw = dict(t)
+                label = str(kw.pop("label", json.dumps(t)))
+                r, frames = self.renderer(n, **kw)
+                cam = fit_camera(frames[0], w, h)
+                st = self.timed(self.frame_step(r, frames, params, cam, w, h), self.args.frames)
+                self.results.setdefault("variants", []).append(
+                    {"n_atoms": n, "width": w, "height": h, "label": label, "options": kw,
+                     "params": params.model_dump(mode="json", exclude_defaults=True), **st}
+                )  # fmt: skip
+                self.save()
+                self.log(
+                    f"variant {label} N={n:,} {w}x{h}: {st['median_ms']:.3f} ms "
+                    f"{fmt_stages(st.get('stages_ms', {}))}"
+                )
+                del r
+
     # ---- per-kernel times of one frame
     def profile(self, cases: list[tuple[int, int, int, str, str]]) -> None:
         """The device activities of one frame (launched one by one, not as a graph) with
@@ -1309,6 +1417,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--coop-cases", default="", help="N@WxH@space,... the coop section runs")
     p.add_argument("--coop-margins", default="2,4,8", help="group margins (steps) it tries")
     p.add_argument("--profile-cases", default="", help="N@WxH@space@variant,... to profile")
+    p.add_argument("--scale-sizes", default="", help="atom counts of the scale section")
+    p.add_argument("--variant-cases", default="", help="N@WxH,... the variants section runs")
+    p.add_argument("--variant-params", default="{}", help="render parameters (JSON)")
+    p.add_argument("--variants", default="", help='JSON list of Renderer options with "label"')
+    p.add_argument("--scale-cells", default="2,1", help="cells per cutoff it tries")
     p.add_argument("--split-lanes", type=int, default=SPLIT_LANES, help="lanes per queued ray")
     p.add_argument(
         "--budgets", default="0,4,8,12,16", help="budget[:lanes] pairs the budget section tries"
@@ -1375,6 +1488,21 @@ def main(argv: list[str] | None = None) -> int:
                 for n, size, space in (c.split("@") for c in args.coop_cases.split(","))
             ]
         b.cooperative(coop_cases, [float(v) for v in args.coop_margins.split(",")])
+    if "variants" in sections:
+        cases = [(496, 64, 48)]
+        if args.variant_cases:
+            cases = [
+                (int(n), *(int(v) for v in size.split("x")))  # type: ignore[misc]
+                for n, size in (c.split("@") for c in args.variant_cases.split(","))
+            ]
+        tries = json.loads(args.variants) if args.variants else [{"label": "default"}]
+        b.variants(cases, RenderParams.model_validate(json.loads(args.variant_params)), tries)
+    if "scale" in sections:
+        scale_sizes = [3000] if args.quick else [1_000_000, 10_000_000, 100_000_000]
+        if args.scale_sizes:
+            scale_sizes = [int(v) for v in args.scale_sizes.split(",")]
+        w, h = (64, 48) if args.quick else (1920, 1080)
+        b.scale(scale_sizes, [float(v) for v in args.scale_cells.split(",")], w, h)
     if "profile" in sections:
         prof = [(496, 64, 48, "classical", "per_ray")] if args.quick else [
             (1_000_000, 1920, 1080, "classical", "per_ray"),

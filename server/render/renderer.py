@@ -195,9 +195,17 @@ class Renderer(ImageOutputs):
         self._density_samples = wp.zeros(MEAN_SAMPLES, dtype=float, device=self.device)
         self._density_partial = wp.zeros(MEAN_LANES, dtype=float, device=self.device)
         self._density_total = wp.zeros(1, dtype=float, device=self.device)
+        self._pending: tuple[float, float, float, bool, int] | None = None
         if self._cuda:
             self._stream = wp.get_stream(self.device)
             self._events = [wp.Event(self.device, enable_timing=True) for _ in range(5)]
+            # positions upload on a stream of their own, into the buffer no render is reading
+            self._copy_stream = wp.Stream(self.device)
+            self._release = [wp.Event(self.device) for _ in range(2)]
+            self._upload_events = [
+                [wp.Event(self.device, enable_timing=True) for _ in range(2)] for _ in range(2)
+            ]
+            self._released = [False, False]
 
     # ------------------------------------------------------------------ buffers
 
@@ -205,6 +213,16 @@ class Renderer(ImageOutputs):
         d = self.device
         m = max(n, 1)
         self._pos = wp.zeros(m, dtype=wp.vec3, device=d)
+        # CUDA: a second positions buffer and a second page-locked staging buffer, so the next
+        # frame uploads while the last one renders (`render(wait=False)`, then set_positions)
+        count = 2 if self._cuda else 1
+        self._pos_buffers = [self._pos] + [
+            wp.zeros(m, dtype=wp.vec3, device=d) for _ in range(count - 1)
+        ]
+        self._stagings = [
+            wp.zeros(m, dtype=wp.vec3, device="cpu", pinned=self._cuda) for _ in range(count)
+        ]
+        self._next_staging = 0
         self._weights = wp.zeros(m, dtype=float, device=d)
         self._radii = wp.zeros(m, dtype=float, device=d)
         self._colors = wp.zeros(m, dtype=wp.uint32, device=d)
@@ -221,9 +239,7 @@ class Renderer(ImageOutputs):
         self._raw_source: Any = None
         self._pos_is_raw = False
         if self._cuda:
-            self._staging = wp.zeros(m, dtype=wp.vec3, device="cpu", pinned=True)
-        else:
-            self._staging = wp.zeros(m, dtype=wp.vec3, device="cpu")
+            self._released = [False, False]
         self._atom_capacity = n
         self._field_seen = None
         self._drop_graphs()
@@ -259,7 +275,7 @@ class Renderer(ImageOutputs):
             self._found,
         )
         return {
-            "positions": int(self._pos.capacity),
+            "positions": sum(int(a.capacity) for a in self._pos_buffers),
             "per_atom": sum(int(a.capacity) for a in atom),
             "grid": int(self._grid.nbytes),
             "image": sum(int(a.capacity) for a in pix),
@@ -300,9 +316,12 @@ class Renderer(ImageOutputs):
 
     def host_positions(self) -> npt.NDArray[np.float32]:
         """A (n, 3) float32 host buffer (page-locked on CUDA devices): positions written here
-        and passed to `set_positions` upload asynchronously, without a host copy. Rewrite it
-        only after `render` returns."""
-        a: npt.NDArray[np.float32] = self._staging.numpy().view(np.float32).reshape(-1, 3)
+        and passed to `set_positions` upload asynchronously, without a host copy. On CUDA
+        devices it alternates between two buffers, so ask again for every frame: a frame can
+        then be written while the last one uploads. Rewrite a buffer only after the render
+        that followed its upload has finished."""
+        staging = self._stagings[self._next_staging]
+        a: npt.NDArray[np.float32] = staging.numpy().view(np.float32).reshape(-1, 3)
         return a[: self._n]
 
     def set_positions(self, positions: npt.ArrayLike, *, check_finite: bool = True) -> None:
@@ -332,14 +351,17 @@ class Renderer(ImageOutputs):
             raise RenderError("positions are too large (beyond ±1e30 angstrom)")
         t0 = time.perf_counter()
         if n:
-            staged = arr.__array_interface__["data"][0] == self._staging.ptr
+            address = arr.__array_interface__["data"][0]
+            staged = [i for i, b in enumerate(self._stagings) if b.ptr == address]
             src = (
-                self._staging if staged else wp.array(arr, dtype=wp.vec3, device="cpu", copy=False)
+                self._stagings[staged[0]]
+                if staged
+                else wp.array(arr, dtype=wp.vec3, device="cpu", copy=False)
             )
+            if staged:
+                self._next_staging = (staged[0] + 1) % len(self._stagings)
             if self._cuda:
-                self._stream.record_event(self._events[0])
-                wp.copy(self._pos, src, count=n)
-                self._stream.record_event(self._events[1])
+                self._upload(src, n)
             else:
                 wp.copy(self._pos, src, count=n)
         self._upload_ms = (time.perf_counter() - t0) * 1e3
@@ -351,6 +373,21 @@ class Renderer(ImageOutputs):
         self._uploaded = True
         self._have_positions = True
         self._positions_version += 1
+
+    def _upload(self, src: wp.array, n: int) -> None:
+        """Copy a frame into the positions buffer no queued render reads, on the upload
+        stream, and make it the current one: later work on the render stream waits for the
+        copy, a render already queued keeps reading the other buffer."""
+        spare = 1 if self._pos is self._pos_buffers[0] else 0
+        dest = self._pos_buffers[spare]
+        if self._released[spare]:
+            self._copy_stream.wait_event(self._release[spare])
+        start, end = self._upload_events[spare]
+        self._copy_stream.record_event(start)
+        wp.copy(dest, src, count=n, stream=self._copy_stream)
+        self._copy_stream.record_event(end)
+        self._stream.wait_event(end)
+        self._pos = dest
 
     def set_history(
         self,
@@ -782,12 +819,17 @@ class Renderer(ImageOutputs):
         width: int,
         height: int,
         tile: tuple[int, int, int, int] | None = None,
+        *,
+        wait: bool = True,
     ) -> None:
         """Render one image; it stays on the device (read it with `read_rgba` and friends).
         `tile` (x0, y0, w, h) renders only that rectangle of the width x height image, exactly
-        as the whole image would have it (the outputs are then w x h).
+        as the whole image would have it (the outputs are then w x h). `wait=False` returns
+        once the work is queued: the next frame's `set_positions` then uploads while this one
+        renders, and `finish` waits for it (reading an output waits too).
 
         Raises RenderError for invalid input before launching anything."""
+        self.finish()
         t_start = time.perf_counter()
         w, h = self._check_size(width, height)
         if tile is not None:
@@ -833,29 +875,47 @@ class Renderer(ImageOutputs):
             clipped = params.mode == "volume" and self.depth_limit is not None
             limit = self.depth_limit.ptr if clipped else None
             coop = (self.cooperative, self.coop_margin_steps)
-            key = (grid_key is not None, self._n, d, stop, seen[1], cam_seen[4], tile, limit, coop)
+            # graphs hold the address of the positions they read
+            key: tuple[Any, ...] = (grid_key is not None, self._n, d, stop, seen[1])
+            key = (*key, cam_seen[4], tile, limit, coop, self._pos.ptr)
             t_cast = self._replay_or_launch(key, launch)
         else:
             t_cast = launch()
         if grid_key is not None:
             self._grid_key = grid_key
+        front = 0 if self._pos is self._pos_buffers[0] else 1
         if ev is not None:
             self._stream.record_event(ev[4])
+            self._stream.record_event(self._release[front])
+            self._released[front] = True
+        self._pending = (t_start, t_grid, t_cast, self._uploaded, front)
+        self._uploaded = False
+        self._image = (pw, ph)
+        self._last = (params, d)
+        if wait:
+            self.finish()
+
+    def finish(self) -> None:
+        """Wait for the last `render` and take its stage times (`timings`)."""
+        if self._pending is None:
+            return
+        t_start, t_grid, t_cast, uploaded, front = self._pending
+        self._pending = None
+        if self._cuda:
+            ev = self._events
             wp.synchronize_event(ev[4])
             grid_ms = wp.get_event_elapsed_time(ev[2], ev[3])
             cast_ms = wp.get_event_elapsed_time(ev[3], ev[4])
-            up_ms = wp.get_event_elapsed_time(ev[0], ev[1]) if self._uploaded else 0.0
-            total = wp.get_event_elapsed_time(ev[0] if self._uploaded else ev[2], ev[4])
+            up0, up1 = self._upload_events[front]
+            up_ms = wp.get_event_elapsed_time(up0, up1) if uploaded else 0.0
+            total = wp.get_event_elapsed_time(up0 if uploaded else ev[2], ev[4])
         else:
             t_end = time.perf_counter()
             grid_ms = (t_cast - t_grid) * 1e3
             cast_ms = (t_end - t_cast) * 1e3
-            up_ms = self._upload_ms if self._uploaded else 0.0
+            up_ms = self._upload_ms if uploaded else 0.0
             total = up_ms + (t_end - t_start) * 1e3
         self.timings = {"upload": up_ms, "grid": grid_ms, "raycast": cast_ms, "total": total}
-        self._uploaded = False
-        self._image = (pw, ph)
-        self._last = (params, d)
 
     # ------------------------------------------------------------------ outputs
 

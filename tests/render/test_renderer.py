@@ -38,8 +38,9 @@ def test_buffers_are_reused_across_frames(device: str) -> None:
     cam = fit_camera(pos, 40, 30)
     r.set_positions(pos)
     r.render(RenderParams(), cam, 40, 30)
-    names = ("_pos", "_sorted", "_inv2s2", "_colors", "_hit_k", "_hit_v", "_rgba", "_depth", "_ids")
+    names = ("_sorted", "_inv2s2", "_colors", "_hit_k", "_hit_v", "_rgba", "_depth", "_ids")
     ptrs = {k: getattr(r, k).ptr for k in names}
+    positions = [b.ptr for b in r._pos_buffers]
     grid_ptrs = (r._grid.keys.ptr, r._grid.order.ptr, r._grid.cell_start.ptr)
     rng = np.random.default_rng(0)
     for i in range(3):
@@ -47,6 +48,7 @@ def test_buffers_are_reused_across_frames(device: str) -> None:
         r.render(RenderParams(mode="volume" if i % 2 else "iso"), cam, 40, 30)
         r.render(RenderParams(), cam, 20, 10)
     assert {k: getattr(r, k).ptr for k in names} == ptrs
+    assert [b.ptr for b in r._pos_buffers] == positions and r._pos.ptr in positions
     assert (r._grid.keys.ptr, r._grid.order.ptr, r._grid.cell_start.ptr) == grid_ptrs
 
 
@@ -64,6 +66,39 @@ def test_pinned_host_buffer_path(device: str) -> None:
     a.render(RenderParams(), cam, 32, 24)
     b = render(device, top, pos, RenderParams(), cam, 32, 24)
     np.testing.assert_array_equal(a.read_rgba(), b.read_rgba())
+
+
+def test_the_next_frame_uploads_while_the_last_renders(device: str) -> None:
+    """`render(wait=False)`, then the next frame's positions, then `finish`: the frames come out
+    as they do one by one, while each upload overlaps the render before it (on CUDA)."""
+    n = 80
+    top = make_topology(n)
+    rng = np.random.default_rng(5)
+    frames = [blob(n, seed=6) + rng.normal(size=(n, 3)).astype(np.float32) * 0.4 for _ in range(4)]
+    cam = fit_camera(frames[0], 40, 30)
+    params = RenderParams()
+    one_by_one = []
+    for f in frames:
+        r = render(device, top, f, params, cam, 40, 30)
+        one_by_one.append((r.read_rgba(), r.read_depth()))
+    r = Renderer(device)
+    r.set_topology(top)
+    r.set_positions(frames[0])
+    r.render(params, cam, 40, 30, wait=False)
+    piped = []
+    for f in [*frames[1:], None]:
+        if f is not None:
+            buf = r.host_positions()
+            buf[:] = f
+            r.set_positions(buf)
+        r.finish()
+        piped.append((r.read_rgba(), r.read_depth()))
+        assert r.timings["total"] > 0
+        if f is not None:
+            r.render(params, cam, 40, 30, wait=False)
+    for (a_rgba, a_depth), (b_rgba, b_depth) in zip(one_by_one, piped, strict=True):
+        np.testing.assert_array_equal(a_rgba, b_rgba)
+        np.testing.assert_array_equal(a_depth, b_depth)
 
 
 def test_timings_and_grid_reuse(device: str) -> None:
