@@ -1404,7 +1404,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ablation-image", default="", help="image size of the ablation, WxH")
     p.add_argument("--ablation-cells", default="1,2,3", help="cells per cutoff it tries")
     p.add_argument("--table", default="", help="print the markdown tables of a results file")
-    p.add_argument("--max-registers", type=int, default=80, help="iso; 0 = compiler's choice")
+    p.add_argument(
+        "--max-registers",
+        type=int,
+        default=None,
+        help="iso; 0 = compiler's choice; default: each density's own (MARCH_REGISTERS)",
+    )
     p.add_argument("--volume-max-registers", type=int, default=80, help="volume kernel")
     p.add_argument("--register-caps", default="0,128,80,64", help="caps the first section tries")
     p.add_argument("--register-sizes", default="100000,1000000", help="atom counts it tries")

@@ -605,18 +605,29 @@ def _make(
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
     def bound_kernel(
-        f: Field, stop_above: float, cell_start: wp.array[wp.int32], out: wp.array[float]
+        f: Field,
+        stop_above: float,
+        cell_start: wp.array[wp.int32],
+        coarse: wp.array[float],
+        out: wp.array[float],
     ):
-        """An upper bound of the density in each cell (see `clear`). A cell that holds an atom
-        is given infinity without a walk: the density there reaches the level in all but
-        contrived cases (a lone atom lighter than the level), and these walks were 40 % of
-        the bound's work on a protein lattice."""
+        """An upper bound of the density in each cell (see `clear`), walked only where that
+        can decide anything. A cell that holds an atom is given infinity: the density there
+        reaches the level in all but contrived cases (a lone atom lighter than the level). A
+        cell whose coarse bound (CellGrid.build_coarse, no walk) is already below the level
+        keeps it. Only the empty cells near the atoms walk their neighbours; on a protein
+        lattice these were 28 % of the cells, and the skipping decisions are those of walking
+        every cell."""
         c = wp.tid()
         g = f.info[0]
         if g.valid == 0 or c >= g.ncells:
             return
         if cell_start[c + 1] > cell_start[c]:
             out[c] = wp.inf
+            return
+        b = coarse[c]
+        if b < stop_above:
+            out[c] = b
             return
         ix = c % g.dims[0]
         iy = (c // g.dims[0]) % g.dims[1]

@@ -61,6 +61,17 @@ SPLIT_RAYS = 16384
 """The second marching kernel gives each queued ray SPLIT_LANES threads that march
 consecutive stretches of it at once (1: one thread continues the ray); it runs
 SPLIT_LANES * SPLIT_RAYS threads that stride over the queue."""
+MARCH_REGISTERS = {"gaussian": 80, "warped": 64}
+CELLS_PER_CUTOFF = {"gaussian": 2.0, "warped": 1.0}
+"""Per density model, the register cap of the iso marching kernels and the grid's cells per
+cutoff that measured fastest (`max_registers=None`, `cells_per_cutoff=None`; on an H100 at 1M
+atoms and 1920x1080: the warped density's Gaussian part has a reach of 0.6 sigma k, and its
+walks, with the segment walks beside them, want fewer registers and larger cells than the
+classical density's; benchmarks/README.md)."""
+PIPELINE_ATOMS = 1_000_000
+"""From this many atoms a CUDA renderer keeps two positions buffers (`double_buffer=None`):
+below it an upload takes well under a tenth of a millisecond and one buffer, with one graph
+per frame set-up, is the better choice."""
 MARCH_BLOCK = 256
 """Threads per block of the marching kernels."""
 COOP_MARGIN_STEPS = 4.0
@@ -102,11 +113,14 @@ class Renderer(ImageOutputs):
     """Ray-casting renderer of the Gaussian molecular density (see docs/rendering.md).
 
     `cells_per_cutoff` sets the grid cell to cutoff / cells_per_cutoff (1 = cell equals the
-    cutoff; the cell grows when memory caps the cell count); `empty_space_skipping=False`
-    marches every lattice sample (a baseline); `fast_math` picks CUDA's approximate
-    transcendentals; `max_registers` / `volume_max_registers` cap the iso / volume marching
-    kernels' registers on CUDA (0 leaves it to the compiler; the defaults were the fastest
-    measured, benchmarks/README.md); `density` is the model the ray caster evaluates (any model over
+    cutoff; the cell grows when memory caps the cell count; None: the density's own best,
+    `CELLS_PER_CUTOFF`); `empty_space_skipping=False` marches every lattice sample (a
+    baseline); `fast_math` picks CUDA's approximate transcendentals; `max_registers` /
+    `volume_max_registers` cap the iso / volume marching kernels' registers on CUDA (0 leaves
+    it to the compiler; None: the density's own best, `MARCH_REGISTERS`; the defaults were
+    the fastest measured, benchmarks/README.md); `double_buffer` keeps two positions
+    buffers so an upload overlaps the render before it (None: from `PIPELINE_ATOMS` atoms on
+    CUDA); `density` is the model the ray caster evaluates (any model over
     `GaussianField`, the sorted atoms and cell grid this class builds); `graphs` replays
     repeated frame set-ups as captured graphs (None: on CUDA devices only; True: also on the
     CPU, through warp's API capture); `march_budget` is the number of density passes an iso
@@ -120,10 +134,10 @@ class Renderer(ImageOutputs):
         max_atoms: int = 4_000_000,
         max_pixels: int = 3840 * 2160,
         *,
-        cells_per_cutoff: float = 2.0,
+        cells_per_cutoff: float | None = None,
         empty_space_skipping: bool = True,
         fast_math: bool = True,
-        max_registers: int = 80,
+        max_registers: int | None = None,
         volume_max_registers: int = 80,
         density: DensityModel = GAUSSIAN,
         graphs: bool | None = None,
@@ -131,6 +145,7 @@ class Renderer(ImageOutputs):
         split_lanes: int = SPLIT_LANES,
         cooperative: bool = False,
         coop_margin_steps: float = COOP_MARGIN_STEPS,
+        double_buffer: bool | None = None,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
@@ -138,15 +153,16 @@ class Renderer(ImageOutputs):
             raise RenderError(f"march_budget must be >= 0, got {march_budget}")
         if split_lanes < 1:
             raise RenderError(f"split_lanes must be >= 1, got {split_lanes}")
-        if not cells_per_cutoff >= 1.0:
+        if cells_per_cutoff is not None and not cells_per_cutoff >= 1.0:
             raise RenderError(f"cells_per_cutoff must be >= 1, got {cells_per_cutoff}")
         self.device: str = devmod.resolve(device)
         self.max_atoms = int(max_atoms)
         self.max_pixels = int(max_pixels)
-        self.cells_per_cutoff = float(cells_per_cutoff)
+        self.cells_per_cutoff = None if cells_per_cutoff is None else float(cells_per_cutoff)
         self.empty_space_skipping = bool(empty_space_skipping)
         self.march_budget = march_budget
         self.split_lanes = int(split_lanes)
+        self.double_buffer = double_buffer
         self.cooperative = bool(cooperative)
         self.coop_margin_steps = float(coop_margin_steps)
         self.coverage = False
@@ -159,8 +175,11 @@ class Renderer(ImageOutputs):
         self._cuda = bool(self._dev.is_cuda)
         if density.field is not GaussianField:
             raise RenderError(f"density {density.name!r} needs a GaussianField to draw with")
-        self._kernels = raycast.kernels_for(density, fast_math, max_registers, volume_max_registers)
-        self._kernel_options = (fast_math, max_registers, volume_max_registers)
+        self._max_registers = max_registers
+        own = MARCH_REGISTERS.get(density.name, MARCH_REGISTERS["gaussian"])
+        regs = own if max_registers is None else max_registers
+        self._kernels = raycast.kernels_for(density, fast_math, regs, volume_max_registers)
+        self._kernel_options = (fast_math, volume_max_registers)
         self._warped_kernels: raycast.RaycastKernels | None = None
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         self._graphs: OrderedDict[tuple[Any, ...], Any] | None = (
@@ -213,9 +232,11 @@ class Renderer(ImageOutputs):
         d = self.device
         m = max(n, 1)
         self._pos = wp.zeros(m, dtype=wp.vec3, device=d)
-        # CUDA: a second positions buffer and a second page-locked staging buffer, so the next
-        # frame uploads while the last one renders (`render(wait=False)`, then set_positions)
-        count = 2 if self._cuda else 1
+        # CUDA, large systems: a second positions buffer and a second page-locked staging
+        # buffer, so the next frame uploads while the last one renders (`render(wait=False)`,
+        # then set_positions); small systems keep one of each (one graph per frame set-up)
+        double = self.double_buffer if self.double_buffer is not None else n >= PIPELINE_ATOMS
+        count = 2 if self._cuda and double else 1
         self._pos_buffers = [self._pos] + [
             wp.zeros(m, dtype=wp.vec3, device=d) for _ in range(count - 1)
         ]
@@ -377,7 +398,14 @@ class Renderer(ImageOutputs):
     def _upload(self, src: wp.array, n: int) -> None:
         """Copy a frame into the positions buffer no queued render reads, on the upload
         stream, and make it the current one: later work on the render stream waits for the
-        copy, a render already queued keeps reading the other buffer."""
+        copy, a render already queued keeps reading the other buffer. With one buffer the
+        copy simply queues on the render stream."""
+        if len(self._pos_buffers) == 1:
+            start, end = self._upload_events[0]
+            self._stream.record_event(start)
+            wp.copy(self._pos, src, count=n)
+            self._stream.record_event(end)
+            return
         spare = 1 if self._pos is self._pos_buffers[0] else 0
         dest = self._pos_buffers[spare]
         if self._released[spare]:
@@ -564,7 +592,10 @@ class Renderer(ImageOutputs):
         if d.warp is None:
             return self._kernels
         if self._warped_kernels is None:
-            self._warped_kernels = raycast.kernels_for(warped.WARPED, *self._kernel_options)
+            fast, volume_regs = self._kernel_options
+            regs = self._max_registers
+            regs = MARCH_REGISTERS[warped.WARPED.name] if regs is None else regs
+            self._warped_kernels = raycast.kernels_for(warped.WARPED, fast, regs, volume_regs)
         return self._warped_kernels
 
     def _skeleton_buffers(self) -> _SkeletonBuffers:
@@ -625,9 +656,15 @@ class Renderer(ImageOutputs):
         c = self._tf.clear_below
         return -1.0 if c < 0 else (math.inf if math.isinf(c) else c * d.iso)
 
+    def _cells_for(self, d: Derived) -> float:
+        """Cells per cutoff of this frame's grid: the renderer's, else the density's best."""
+        if self.cells_per_cutoff is not None:
+            return self.cells_per_cutoff
+        return CELLS_PER_CUTOFF["warped" if d.warp is not None else "gaussian"]
+
     def _grid_key_for(self, d: Derived, stop: float) -> tuple[Any, ...] | None:
         """The key of the grid this frame needs, or None when the last one still holds."""
-        key = (self._positions_version, d, self.cells_per_cutoff, stop)
+        key = (self._positions_version, d, self._cells_for(d), stop)
         return None if key == self._grid_key else key
 
     def _build_grid(self, d: Derived, f: Any, stop: float) -> None:
@@ -635,7 +672,7 @@ class Renderer(ImageOutputs):
         levels), the warped density's segments, cell bounds and brick bounds: launches only."""
         dev = self.device
         n = self._n
-        self._grid.build(self._pos, n, d.reach, self.cells_per_cutoff)
+        self._grid.build(self._pos, n, d.reach, self._cells_for(d))
         samples = min(n, MEAN_SAMPLES)
         if d.relative:
             # the density's own scale, from the atoms in their original order through the
@@ -678,7 +715,9 @@ class Renderer(ImageOutputs):
         if d.warp is not None:
             self._skeleton_buffers().build(self._pos, d.warp.reach)
         kernels = self._kernels_of(d)
-        bound = (f, stop, self._grid.cell_start, f.bound)
+        # the widest atom's 1 / (2 s^2): reach = k s_max and half_k2 = k^2 / 2
+        self._grid.build_coarse(self._sorted, d.half_k2 / (d.reach * d.reach))
+        bound = (f, stop, self._grid.cell_start, self._grid.coarse, f.bound)
         wp.launch(kernels.bound, self._grid.capacity, bound, device=dev)
         self._grid.build_bricks()
 
