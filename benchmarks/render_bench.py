@@ -601,62 +601,6 @@ class Bench:
         self.results["warped_quality"] = warped_quality()
         self.save()
 
-    # ---- cooperative (block-shared) neighbour walks against per-ray walks
-    def cooperative(self, cases: list[tuple[int, int, int, str]], margins: list[float]) -> None:
-        """Iso frames with per-ray walks (the renderer's default policy for the size) and with
-        the block-cooperative kernels at each group margin (lattice steps), same frames; the
-        image of every cooperative variant is compared with the per-ray one."""
-        for n, w, h, space in cases:
-            if self.clock.left() < 20:
-                self.results["notes"].append(f"cooperative section stopped before N={n}")
-                break
-            params = RenderParams(scale_space=space)  # type: ignore[arg-type]
-            row: dict[str, Any] = {"n_atoms": n, "width": w, "height": h, "scale_space": space}
-            ref = None
-            for margin in [-1.0, *margins]:
-                coop = margin >= 0
-                kw: dict[str, Any] = {"cooperative": coop}
-                if coop:
-                    kw["coop_margin_steps"] = margin
-                r, frames = self.renderer(n, **kw)
-                cam = fit_camera(frames[0], w, h)
-                s = self.timed(self.frame_step(r, frames, params, cam, w, h), self.args.frames)
-                # the same frame once more, for the image comparison
-                r.set_positions(frames[0])
-                r.render(params, cam, w, h)
-                img = (r.read_rgba(), r.read_depth(), r.read_atom_ids())
-                key = "per_ray" if not coop else f"coop_{margin:g}"
-                if ref is None:
-                    ref = img
-                else:
-                    s["rgba_equal"] = bool(np.array_equal(ref[0], img[0]))
-                    s["depth_max_diff"] = float(
-                        np.max(
-                            np.abs(
-                                np.nan_to_num(ref[1], posinf=0) - np.nan_to_num(img[1], posinf=0)
-                            )
-                        )
-                    )
-                    s["ids_equal"] = bool(np.array_equal(ref[2], img[2]))
-                row[key] = s
-                self.results.setdefault("cooperative", []).append(
-                    {
-                        "n_atoms": n,
-                        "width": w,
-                        "height": h,
-                        "scale_space": space,
-                        "variant": key,
-                        **s,
-                    }
-                )
-                self.save()
-                self.log(
-                    f"{key:9s} N={n:>9,} {w}x{h} {space}: {s['median_ms']:.3f} ms "
-                    f"{fmt_stages(s.get('stages_ms', {}))} "
-                    + ("" if not coop else f"equal={s['rgba_equal']}/{s['ids_equal']}")
-                )
-                del r
-
     # ---- large systems: cell size, and the next upload overlapped with the last render
     def scale(self, sizes: list[int], cells_list: list[float], w: int, h: int) -> None:
         """Iso frames of large systems for each cell size, one by one (set_positions, render)
@@ -774,9 +718,8 @@ class Bench:
         for n, w, h, space, variant in cases:
             if self.clock.left() < 20:
                 return
-            coop = variant == "coop"
             mode = "volume" if variant == "volume" else "iso"
-            r, frames = self.renderer(n, graphs=False, cooperative=coop)
+            r, frames = self.renderer(n, graphs=False)
             cam = fit_camera(frames[0], w, h)
             params = RenderParams(scale_space=space, mode=mode)  # type: ignore[arg-type]
             step = self.frame_step(r, frames, params, cam, w, h)
@@ -1419,8 +1362,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--block-sizes", default="64,128,256", help="block sizes it tries")
     p.add_argument("--budget-cases", default="", help="N@WxH,... the budget section runs")
     p.add_argument("--warped-cases", default="", help="N@WxH,... the warped section runs")
-    p.add_argument("--coop-cases", default="", help="N@WxH@space,... the coop section runs")
-    p.add_argument("--coop-margins", default="2,4,8", help="group margins (steps) it tries")
     p.add_argument("--profile-cases", default="", help="N@WxH@space@variant,... to profile")
     p.add_argument("--scale-sizes", default="", help="atom counts of the scale section")
     p.add_argument("--variant-cases", default="", help="N@WxH,... the variants section runs")
@@ -1478,21 +1419,6 @@ def main(argv: list[str] | None = None) -> int:
                 for n, size in (c.split("@") for c in args.warped_cases.split(","))
             ]
         b.warped(cases)
-    if "coop" in sections:
-        coop_cases = [(496, 64, 48, "classical"), (496, 64, 48, "warped")] if args.quick else [
-            (1_000_000, 1920, 1080, "classical"),
-            (100_000, 1920, 1080, "classical"),
-            (1_000_000, 3840, 2160, "classical"),
-            (5_684, 500, 500, "classical"),
-            (1_000_000, 1920, 1080, "warped"),
-            (5_684, 500, 500, "warped"),
-        ]  # fmt: skip
-        if args.coop_cases:
-            coop_cases = [
-                (int(n), *(int(v) for v in size.split("x")), space)  # type: ignore[misc]
-                for n, size, space in (c.split("@") for c in args.coop_cases.split(","))
-            ]
-        b.cooperative(coop_cases, [float(v) for v in args.coop_margins.split(",")])
     if "variants" in sections:
         cases = [(496, 64, 48)]
         if args.variant_cases:
@@ -1509,13 +1435,11 @@ def main(argv: list[str] | None = None) -> int:
         w, h = (64, 48) if args.quick else (1920, 1080)
         b.scale(scale_sizes, [float(v) for v in args.scale_cells.split(",")], w, h)
     if "profile" in sections:
-        prof = [(496, 64, 48, "classical", "per_ray")] if args.quick else [
-            (1_000_000, 1920, 1080, "classical", "per_ray"),
-            (1_000_000, 1920, 1080, "classical", "coop"),
+        prof = [(496, 64, 48, "classical", "iso")] if args.quick else [
+            (1_000_000, 1920, 1080, "classical", "iso"),
             (1_000_000, 1920, 1080, "classical", "volume"),
-            (1_000_000, 1920, 1080, "warped", "per_ray"),
-            (1_000_000, 1920, 1080, "warped", "coop"),
-            (10_000_000, 1920, 1080, "classical", "per_ray"),
+            (1_000_000, 1920, 1080, "warped", "iso"),
+            (10_000_000, 1920, 1080, "classical", "iso"),
         ]  # fmt: skip
         if args.profile_cases:
             prof = [

@@ -1,8 +1,8 @@
 """The cell grid's layout and the rows of cells a walk around a box visits.
 
-The grid itself is built every frame by grid.py; the density walks (density.py, warped.py,
-cooperative.py) read its layout from `GridInfo` and visit the rows of cells within the cutoff
-reach of a box, each row trimmed to its chord of the reach (`row_span`).
+The grid itself is built every frame by grid.py; the density walks (density.py, warped.py)
+read its layout from `GridInfo` and visit the rows of cells within the cutoff reach of a box,
+each row trimmed to its chord of the reach (`row_span`).
 (No `from __future__ import annotations`: warp resolves function annotations eagerly.)
 """
 

@@ -26,7 +26,6 @@ import warp as wp
 
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.cells import GridInfo, axis_span, interval_gap, row_span
-from server.render.cooperative import coop_rows
 
 wp.set_module_options({"enable_backward": False})
 
@@ -636,137 +635,6 @@ def gather_atoms_kernel(
         inv2s2[i] = inv2s2_of(sigma_per_radius, radii[j])
 
 
-# ---------------------------------------------------------------- block-cooperative forms
-
-
-@wp.func
-@no_type_check
-def load_atom(f: GaussianField, j: int):
-    """Atom j and, in vdw mode, its 1 / (2 s^2) in b[0]."""
-    c = f.inv2s2_uniform
-    if f.per_atom != 0:
-        c = f.inv2s2[j]
-    return f.atoms[j], wp.vec4(c, 0.0, 0.0, 0.0), j
-
-
-@wp.func
-@no_type_check
-def load_atom_colored(f: GaussianField, j: int):
-    """Atom j, its 1 / (2 s^2) and colour in b, and its original index."""
-    c = f.inv2s2_uniform
-    if f.per_atom != 0:
-        c = f.inv2s2[j]
-    oj = int(f.order[j])
-    rgb = unpack_rgb(f.colors[oj])
-    return f.atoms[j], wp.vec4(c, rgb[0], rgb[1], rgb[2]), oj
-
-
-@wp.func
-@no_type_check
-def consume_values4(
-    f: GaussianField, q: Span4, a: wp.vec4, b: wp.vec4, oj: int, v: wp.vec4
-) -> wp.vec4:
-    """One atom's terms at the four points of q, with `row_values4`'s uniform-mode reject."""
-    p0 = q.o + q.d * q.ts[0]
-    p3 = q.o + q.d * q.ts[3]
-    out = v
-    if f.per_atom != 0:
-        p1 = q.o + q.d * q.ts[1]
-        p2 = q.o + q.d * q.ts[2]
-        out = add_values4(v, a, b[0], f.half_k2, f.inv_half_k2, p0, p1, p2, p3)
-    elif wp.length_sq(wp.vec3(a[0], a[1], a[2]) - (p0 + p3) * 0.5) < q.lim2:
-        p1 = q.o + q.d * q.ts[1]
-        p2 = q.o + q.d * q.ts[2]
-        out = add_values4(v, a, f.inv2s2_uniform, f.half_k2, f.inv_half_k2, p0, p1, p2, p3)
-    return out
-
-
-@wp.func
-@no_type_check
-def consume_sample(
-    f: GaussianField, p: wp.vec3, a: wp.vec4, b: wp.vec4, oj: int, acc: Sample
-) -> Sample:
-    """One atom's share of `row_sample` at p: value, gradient, colour, largest contributor."""
-    out = acc
-    pa = wp.vec3(a[0], a[1], a[2])
-    c = b[0]
-    e = wp.length_sq(pa - p) * c
-    if e < f.half_k2:
-        k = kernel_slope(e, f.inv_half_k2) * a[3]
-        term = k[0]
-        out.value = out.value + term
-        out.grad = out.grad + (pa - p) * (2.0 * c * k[1])
-        out.color = out.color + wp.vec3(b[1], b[2], b[3]) * term
-        if term > out.weight or (term == out.weight and oj < out.atom):
-            out.weight = term
-            out.atom = oj
-    return out
-
-
-_coop_values4 = coop_rows(
-    "values4", load_atom, consume_values4, Span4, wp.vec4, GaussianField, False
-)
-_coop_values4_vdw = coop_rows(
-    "values4_vdw", load_atom, consume_values4, Span4, wp.vec4, GaussianField, True
-)
-_coop_sample = coop_rows(
-    "sample", load_atom_colored, consume_sample, wp.vec3, Sample, GaussianField, True
-)
-
-
-@wp.func
-@no_type_check
-def coop_gaussian_value4(
-    f: GaussianField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, want: int, lane: int, margin: float
-) -> wp.vec4:
-    """`gaussian_value4` for the rays of the block with `want` set (others get zeros)."""
-    pa = o + d * ts[0]
-    pb = o + d * ts[3]
-    lo = wp.min(pa, pb)
-    hi = wp.max(pa, pb)
-    q = span4(f, o, d, ts)
-    zero = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    # vdw mode needs each atom's own scale: a second shared row of items
-    out = zero
-    if f.per_atom != 0:
-        out = _coop_values4_vdw(f, lo, hi, q, zero, want, lane, margin)
-    else:
-        out = _coop_values4(f, lo, hi, q, zero, want, lane, margin)
-    return out
-
-
-@wp.func
-@no_type_check
-def coop_gaussian_sample(
-    f: GaussianField, p: wp.vec3, want: int, lane: int, margin: float
-) -> Sample:
-    """`gaussian_sample` for the rays of the block with `want` set."""
-    start = Sample()
-    start.value = 0.0
-    start.grad = wp.vec3(0.0, 0.0, 0.0)
-    start.color = wp.vec3(0.0, 0.0, 0.0)
-    start.weight = -1.0
-    start.atom = -1
-    s = _coop_sample(f, p, p, p, start, want, lane, margin)
-    s.weight = s.value
-    return s
-
-
-@wp.func
-@no_type_check
-def coop_gaussian_value4_level(
-    f: GaussianField,
-    o: wp.vec3,
-    d: wp.vec3,
-    ts: wp.vec4,
-    level: float,
-    want: int,
-    lane: int,
-    margin: float,
-) -> wp.vec4:
-    return coop_gaussian_value4(f, o, d, ts, want, lane, margin)
-
-
 @dataclass(frozen=True)
 class DensityModel:
     """A density the ray caster can draw.
@@ -782,12 +650,6 @@ class DensityModel:
     d, ts, level)` and `value_grad4_level(...)`, exact where a value may reach `level`, and any
     negative value (read "below, value unknown") where it cannot; the marching kernels only
     compare values with the level, so they use these.
-
-    Optional block-cooperative forms (cooperative.py), which every thread of a block of
-    `cooperative.COOP` rays calls together, rays without work passing `want = 0`:
-    `coop_value4(f, o, d, ts, want, lane, margin)`, `coop_value4_level(f, o, d, ts, level,
-    want, lane, margin)` and `coop_sample(f, p, want, lane, margin)`, with the results of
-    `value4`, `value4_level` and `sample`. A model with all three gets cooperative iso kernels.
     """
 
     name: str
@@ -800,9 +662,6 @@ class DensityModel:
     value_grad4: Any = None
     value4_level: Any = None
     value_grad4_level: Any = None
-    coop_value4: Any = None
-    coop_value4_level: Any = None
-    coop_sample: Any = None
 
 
 GAUSSIAN = DensityModel(
@@ -814,7 +673,4 @@ GAUSSIAN = DensityModel(
     box_bound=gaussian_box_bound,
     value4=gaussian_value4,
     value_grad4=gaussian_value_grad4,
-    coop_value4=coop_gaussian_value4,
-    coop_value4_level=coop_gaussian_value4_level,
-    coop_sample=coop_gaussian_sample,
 )

@@ -38,7 +38,6 @@ from protocol import RenderParams
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
 from server.render.cells import BRICK, GridInfo
-from server.render.cooperative import block_any
 from server.render.density import GAUSSIAN, DensityModel
 
 wp.set_module_options({"enable_backward": False})
@@ -530,11 +529,6 @@ def _make(
             return value4(f, o, d, ts)
 
         value4_level = value4_exact
-    coop_value4 = model.coop_value4
-    coop_value4_level = model.coop_value4_level
-    coop_sample = model.coop_sample
-    cooperative = coop_value4 is not None and coop_value4_level is not None
-    cooperative = cooperative and coop_sample is not None
     value_grad4_level = model.value_grad4_level
     if value_grad4_level is None:
 
@@ -1036,212 +1030,6 @@ def _make(
             atom = sample(f, o + d * t_depth).atom
         ids[pix] = atom
 
-    iso_march_coop_kernel = None
-    iso_shade_coop_kernel = None
-    if cooperative:
-
-        @wp.func
-        @no_type_check
-        def refine_coop(
-            f: Field,
-            o: wp.vec3,
-            d: wp.vec3,
-            t_lo: float,
-            t_hi: float,
-            v_lo: float,
-            v_hi: float,
-            iso: float,
-            inside: int,
-            passes: int,
-            want: int,
-            lane: int,
-            margin: float,
-        ):
-            """`refine` for the block's rays with `want` set, each pass one shared walk."""
-            lo = float(t_lo)
-            hi = float(t_hi)
-            vlo = float(v_lo)
-            vhi = float(v_hi)
-            for _i in range(passes):
-                w = (hi - lo) * 0.2
-                ts = wp.vec4(lo + w, lo + 2.0 * w, lo + 3.0 * w, lo + 4.0 * w)
-                v4 = coop_value4(f, o, d, ts, want, lane, margin)
-                first = wp.int32(4)
-                for q in range(4):
-                    side = wp.int32(0)
-                    if v4[3 - q] >= iso:
-                        side = 1
-                    if side != inside:
-                        first = 3 - q
-                if first == 4:
-                    lo = lo + 4.0 * w
-                    vlo = v4[3]
-                else:
-                    hi = lo + float(first + 1) * w
-                    vhi = v4[first]
-                    if first > 0:
-                        vlo = v4[first - 1]
-                    lo = lo + float(first) * w
-            if want != 0 and vlo < 0.0:
-                vlo = value(f, o + d * lo)
-            u = wp.float32(0.5)
-            den = vhi - vlo
-            if wp.abs(den) > 1.0e-30:
-                u = wp.clamp((iso - vlo) / den, 0.0, 1.0)
-            return lo + (hi - lo) * u, lo, hi
-
-        @wp.kernel(
-            enable_backward=False,
-            module="unique",
-            module_options=options,
-            cuda_max_registers=regs,
-        )
-        @no_type_check
-        def iso_march_coop_kernel(
-            f: Field,
-            cam: CameraData,
-            m: March,
-            hit_k: wp.array[wp.int32],
-            hit_v: wp.array[wp.vec2],
-            margin: float,
-        ):
-            """`iso_march_kernel` (one phase, no budget) with the density passes of a block's
-            rays taken together (cooperative.py): each iteration every ray walks its cells to
-            its next sample that needs the density, then the block evaluates all of them."""
-            tid = wp.tid()
-            lane = tid % wp.block_dim()
-            g = f.info[0]
-            dt = m.dt
-            x, y, ok = pixel_of(cam, tid)
-            o, d = camera_ray(cam, wp.min(x, cam.width - 1), wp.min(y, cam.height - 1))
-            t0, t1 = clip_box(o, d, g.origin, g.box_hi)
-            active = wp.int32(0)
-            k = wp.int32(0)
-            if ok != 0 and g.valid != 0 and t0 < t1:
-                active = 1
-                k = int(wp.ceil(t0 / dt))
-            cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left = walk_start(o, d, t0, g)
-            first = wp.int32(1)
-            inside = wp.int32(0)
-            prev_v = float(-1.0)
-            s_hit = wp.int32(-1)
-            v_hi = float(-1.0)
-            going = wp.int32(1)
-            while going != 0:
-                if active != 0:
-                    k, cx, cy, cz, tx, ty, tz, left, jumped, active = walk(
-                        f.bound, f.brick_bound, g, o, d, t1, dt, 0.0, m.skip_below, 0,
-                        1 - inside, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
-                    )  # fmt: skip
-                    if jumped != 0:
-                        first = 0
-                        prev_v = -1.0
-                if block_any(active) == 0:
-                    going = 0
-                else:
-                    ts = wp.vec4(
-                        float(k) * dt, float(k + 1) * dt, float(k + 2) * dt, float(k + 3) * dt
-                    )
-                    v4 = coop_value4_level(f, o, d, ts, m.iso, active, lane, margin)
-                    if active != 0:
-                        q_from = wp.int32(0)
-                        if first == 1:
-                            first = 0
-                            inside = side_of(v4[0], m.iso)
-                            q_from = 1
-                        q_hit = side_change(v4, m.iso, inside, q_from)
-                        if q_hit >= 0:
-                            if q_hit > 0:
-                                prev_v = v4[q_hit - 1]
-                            s_hit = k + q_hit
-                            v_hi = v4[q_hit]
-                            active = 0
-                        else:
-                            prev_v = v4[3]
-                            k += 4
-            if ok != 0:
-                pix = y * cam.width + x
-                hit_k[pix] = _NO_HIT
-                if s_hit >= 0:
-                    hit_k[pix] = s_hit
-                hit_v[pix] = wp.vec2(prev_v, v_hi)
-
-        @wp.kernel(enable_backward=False, module="unique", module_options=options)
-        @no_type_check
-        def iso_shade_coop_kernel(
-            f: Field,
-            cam: CameraData,
-            m: March,
-            sh: Shading,
-            hit_k: wp.array[wp.int32],
-            hit_v: wp.array[wp.vec2],
-            rgba: wp.array[wp.uint32],
-            depth: wp.array[float],
-            ids: wp.array[wp.int32],
-            margin: float,
-        ):
-            """`iso_shade_kernel` with each density pass of the block's hit rays shared."""
-            tid = wp.tid()
-            lane = tid % wp.block_dim()
-            x, y, ok = pixel_of(cam, tid)
-            pix = wp.int32(0)
-            s_hit = _NO_HIT
-            if ok != 0:
-                pix = y * cam.width + x
-                s_hit = hit_k[pix]
-                if s_hit == _NO_HIT:
-                    rgba[pix] = pack_rgba(sh.background)
-                    if sh.coverage != 0:
-                        rgba[pix] = wp.uint32(0)
-                    depth[pix] = wp.inf
-                    ids[pix] = -1
-            hit = wp.int32(0)
-            if s_hit != _NO_HIT:
-                hit = 1
-            o, d = camera_ray(cam, wp.min(x, cam.width - 1), wp.min(y, cam.height - 1))
-            t_lo = float(s_hit - 1) * m.dt
-            t_hi = float(s_hit) * m.dt
-            v_lo = float(0.0)
-            v_hi = float(1.0)
-            if hit != 0:
-                v = hit_v[pix]
-                v_lo = v[0]
-                v_hi = v[1]
-            need = wp.int32(0)
-            if hit != 0 and v_hi < 0.0:
-                need = 1
-            ends = coop_value4(f, o, d, wp.vec4(t_lo, t_lo, t_hi, t_hi), need, lane, margin)
-            if need != 0:
-                v_lo = ends[0]
-                v_hi = ends[3]
-            inside = wp.int32(0)
-            if v_hi < m.iso:
-                inside = 1
-            t, b_lo, b_hi = refine_coop(
-                f, o, d, t_lo, t_hi, v_lo, v_hi, m.iso, inside, m.refine, hit, lane, margin
-            )
-            p = o + d * t
-            s = coop_sample(f, p, hit, lane, margin)
-            slope = wp.dot(s.grad, d)
-            if wp.abs(slope) > 1.0e-30:
-                t = wp.clamp(t + (m.iso - s.value) / slope, b_lo, b_hi)
-            n = facing(s.grad, d)
-            ao = wp.float32(1.0)
-            if sh.ao != 0:
-                a = sh.ao_step
-                ts = wp.vec4(a, 2.0 * a, 3.0 * a, 4.0 * a)
-                va = coop_value4(f, p, n, ts, hit, lane, margin) / sh.iso
-                occ = wp.min(va[0], 1.0) + wp.min(va[1], 1.0) + wp.min(va[2], 1.0)
-                ao = 1.0 - 0.8 * (occ + wp.min(va[3], 1.0)) * 0.25
-            if hit != 0:
-                base = sh.uniform_color
-                if s.weight > 0.0:
-                    base = s.color / s.weight
-                c = fog(sh, f.info[0], cam, t, lit(sh, base, n, -d, ao))
-                rgba[pix] = pack_rgba(c)
-                depth[pix] = t
-                ids[pix] = s.atom
-
     return RaycastKernels(
         model=model,
         bound=bound_kernel,
@@ -1251,8 +1039,6 @@ def _make(
         iso_split=iso_split_kernel,
         iso_shade=iso_shade_kernel,
         volume=volume_kernel,
-        iso_march_coop=iso_march_coop_kernel,
-        iso_shade_coop=iso_shade_coop_kernel,
     )
 
 
@@ -1268,10 +1054,6 @@ class RaycastKernels:
     iso_split: Any
     iso_shade: Any
     volume: Any
-    iso_march_coop: Any = None
-    iso_shade_coop: Any = None
-    """Block-cooperative iso march and shading (None when the model has no cooperative
-    forms); launched with `cooperative.COOP` threads per block."""
 
 
 _KERNELS: dict[tuple[str, bool, int, int], RaycastKernels] = {}

@@ -26,7 +26,6 @@ from protocol import Camera, RenderParams, Topology
 from server.render import colors, raycast, temporal, transfer, warped
 from server.render import device as devmod
 from server.render.camera import CameraFrame, camera_frame
-from server.render.cooperative import COOP
 from server.render.density import (
     GAUSSIAN,
     MEAN_LANES,
@@ -74,9 +73,6 @@ below it an upload takes well under a tenth of a millisecond and one buffer, wit
 per frame set-up, is the better choice."""
 MARCH_BLOCK = 256
 """Threads per block of the marching kernels."""
-COOP_MARGIN_STEPS = 4.0
-"""Cooperative iso kernels: a ray joins its block's shared walk when its query box lies within
-this many lattice steps of the leading ray's (cooperative.py)."""
 MEAN_SAMPLES = 4096
 """Atoms whose density sets the scale of relative levels (every n // 4096-th atom)."""
 SEGMENT_SLACK = 1.5
@@ -143,8 +139,6 @@ class Renderer(ImageOutputs):
         graphs: bool | None = None,
         march_budget: int | None = None,
         split_lanes: int = SPLIT_LANES,
-        cooperative: bool = False,
-        coop_margin_steps: float = COOP_MARGIN_STEPS,
         double_buffer: bool | None = None,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
@@ -163,8 +157,6 @@ class Renderer(ImageOutputs):
         self.march_budget = march_budget
         self.split_lanes = int(split_lanes)
         self.double_buffer = double_buffer
-        self.cooperative = bool(cooperative)
-        self.coop_margin_steps = float(coop_margin_steps)
         self.coverage = False
         """Write coverage alpha over no background (a layer composited with others)."""
         self.depth_limit: Any = None
@@ -760,18 +752,6 @@ class Renderer(ImageOutputs):
             if m.budget > 0:
                 self._queue_len.zero_()
             march = (f, cam, m, *queued)
-            if self.cooperative and m.budget == 0 and k.iso_march_coop is not None:
-                margin = self.coop_margin_steps * d.dt
-                wp.launch(
-                    k.iso_march_coop,
-                    threads,
-                    (f, cam, m, *hits, margin),
-                    device=dev,
-                    block_dim=COOP,
-                )
-                shade = (f, cam, m, sh, *hits, self._rgba, self._depth, self._ids, margin)
-                wp.launch(k.iso_shade_coop, threads, shade, device=dev, block_dim=COOP)
-                return t_cast
             wp.launch(k.iso_march, threads, (*march, 0), device=dev, block_dim=MARCH_BLOCK)
             if m.budget > 0 and self.split_lanes > 1:
                 lanes = self.split_lanes
@@ -913,10 +893,9 @@ class Renderer(ImageOutputs):
         if self._graphs is not None:
             clipped = params.mode == "volume" and self.depth_limit is not None
             limit = self.depth_limit.ptr if clipped else None
-            coop = (self.cooperative, self.coop_margin_steps)
             # graphs hold the address of the positions they read
             key: tuple[Any, ...] = (grid_key is not None, self._n, d, stop, seen[1])
-            key = (*key, cam_seen[4], tile, limit, coop, self._pos.ptr)
+            key = (*key, cam_seen[4], tile, limit, self._pos.ptr)
             t_cast = self._replay_or_launch(key, launch)
         else:
             t_cast = launch()

@@ -18,14 +18,11 @@ import warp as wp
 
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.cells import GridInfo
-from server.render.cooperative import block_any, coop_rows
 from server.render.density import (
     DensityModel,
     GaussianField,
     Sample,
     cell_rows,
-    coop_gaussian_sample,
-    coop_gaussian_value4,
     gaussian_box_bound,
     gaussian_sample,
     gaussian_value,
@@ -74,19 +71,14 @@ class WarpedField:
 
 @wp.func
 @no_type_check
-def segment_offset_of(a4: wp.vec4, b4: wp.vec4, p: wp.vec3) -> wp.vec3:
-    """p minus its nearest point on the segment (a4, b4) (as stored in seg_a, seg_b)."""
+def segment_offset(s: SkeletonField, j: int, p: wp.vec3) -> wp.vec3:
+    """p minus its nearest point on segment j."""
+    a4 = s.seg_a[j]
+    b4 = s.seg_b[j]
     a = wp.vec3(a4[0], a4[1], a4[2])
     ab = wp.vec3(b4[0], b4[1], b4[2])
     u = wp.clamp(wp.dot(p - a, ab) * b4[3], 0.0, 1.0)
     return p - (a + ab * u)
-
-
-@wp.func
-@no_type_check
-def segment_offset(s: SkeletonField, j: int, p: wp.vec3) -> wp.vec3:
-    """p minus its nearest point on segment j."""
-    return segment_offset_of(s.seg_a[j], s.seg_b[j], p)
 
 
 @wp.func
@@ -403,132 +395,6 @@ def warped_box_bound(f: WarpedField, lo: wp.vec3, hi: wp.vec3, stop_above: float
     return bound
 
 
-# ---------------------------------------------------------------- block-cooperative forms
-
-
-@wp.func
-@no_type_check
-def load_segment(s: SkeletonField, j: int):
-    return s.seg_a[j], s.seg_b[j], j
-
-
-@wp.func
-@no_type_check
-def consume_skeleton4(
-    s: SkeletonField, q: Points4, a: wp.vec4, b: wp.vec4, j: int, h: wp.vec4
-) -> wp.vec4:
-    out = h
-    out[0] = out[0] + skeleton_h(s.r2, segment_offset_of(a, b, q.p0))
-    out[1] = out[1] + skeleton_h(s.r2, segment_offset_of(a, b, q.p1))
-    out[2] = out[2] + skeleton_h(s.r2, segment_offset_of(a, b, q.p2))
-    out[3] = out[3] + skeleton_h(s.r2, segment_offset_of(a, b, q.p3))
-    return out
-
-
-@wp.func
-@no_type_check
-def consume_skeleton_grad(
-    s: SkeletonField, p: wp.vec3, a: wp.vec4, b: wp.vec4, j: int, acc: wp.vec4
-) -> wp.vec4:
-    off = segment_offset_of(a, b, p)
-    d2 = wp.dot(off, off)
-    out = acc
-    if d2 < s.r2:
-        t = skeleton_term(s.r2, d2)
-        g = off * (2.0 * t[1])
-        out = acc + wp.vec4(g[0], g[1], g[2], t[0])
-    return out
-
-
-_coop_h4 = coop_rows(
-    "skeleton4", load_segment, consume_skeleton4, Points4, wp.vec4, SkeletonField, True
-)
-_coop_hgrad = coop_rows(
-    "skeleton_grad", load_segment, consume_skeleton_grad, wp.vec3, wp.vec4, SkeletonField, True
-)
-
-
-@wp.func
-@no_type_check
-def coop_skeleton_h4(
-    s: SkeletonField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, want: int, lane: int, margin: float
-) -> wp.vec4:
-    pa = o + d * ts[0]
-    pb = o + d * ts[3]
-    zero = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    return _coop_h4(s, wp.min(pa, pb), wp.max(pa, pb), points4(o, d, ts), zero, want, lane, margin)
-
-
-@wp.func
-@no_type_check
-def coop_warped_value4(
-    f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, want: int, lane: int, margin: float
-) -> wp.vec4:
-    """`warped_value4` for the rays of the block with `want` set."""
-    v = coop_gaussian_value4(f.gauss, o, d, ts, want, lane, margin)
-    need = wp.int32(0)
-    if want != 0 and f.skel.atten > 0.0 and (v[0] > 0.0 or v[1] > 0.0 or v[2] > 0.0 or v[3] > 0.0):
-        need = 1
-    if block_any(need) != 0:
-        h = coop_skeleton_h4(f.skel, o, d, ts, need, lane, margin)
-        if need != 0:
-            for q in range(4):
-                v[q] = v[q] * attenuation(f.skel, h[q])
-    return v
-
-
-@wp.func
-@no_type_check
-def coop_warped_value4_level(
-    f: WarpedField,
-    o: wp.vec3,
-    d: wp.vec3,
-    ts: wp.vec4,
-    level: float,
-    want: int,
-    lane: int,
-    margin: float,
-) -> wp.vec4:
-    """`warped_value4_level` for the rays of the block with `want` set."""
-    v = coop_gaussian_value4(f.gauss, o, d, ts, want, lane, margin)
-    need = wp.int32(0)
-    if want != 0 and f.skel.atten > 0.0:
-        if v[0] >= level or v[1] >= level or v[2] >= level or v[3] >= level:
-            need = 1
-        else:
-            v = wp.vec4(-1.0, -1.0, -1.0, -1.0)
-    if block_any(need) != 0:
-        h = coop_skeleton_h4(f.skel, o, d, ts, need, lane, margin)
-        if need != 0:
-            for q in range(4):
-                if v[q] >= level:
-                    v[q] = v[q] * attenuation(f.skel, h[q])
-                else:
-                    v[q] = -1.0
-    return v
-
-
-@wp.func
-@no_type_check
-def coop_warped_sample(f: WarpedField, p: wp.vec3, want: int, lane: int, margin: float) -> Sample:
-    """`warped_sample` for the rays of the block with `want` set."""
-    s = coop_gaussian_sample(f.gauss, p, want, lane, margin)
-    need = wp.int32(0)
-    if want != 0 and s.value > 0.0 and f.skel.atten > 0.0:
-        need = 1
-    if block_any(need) != 0:
-        zero = wp.vec4(0.0, 0.0, 0.0, 0.0)
-        hg = _coop_hgrad(f.skel, p, p, p, zero, need, lane, margin)
-        if need != 0:
-            ag = attenuation_grad(f.skel, hg)
-            a = ag[3]
-            s.grad = s.grad * a + wp.vec3(ag[0], ag[1], ag[2]) * s.value
-            s.value = s.value * a
-            s.color = s.color * a
-            s.weight = s.weight * a
-    return s
-
-
 WARPED = DensityModel(
     name="warped",
     field=WarpedField,
@@ -540,9 +406,6 @@ WARPED = DensityModel(
     value_grad4=warped_value_grad4,
     value4_level=warped_value4_level,
     value_grad4_level=warped_value_grad4_level,
-    coop_value4=coop_warped_value4,
-    coop_value4_level=coop_warped_value4_level,
-    coop_sample=coop_warped_sample,
 )
 
 
