@@ -315,6 +315,26 @@ def grid_march_kernel(
 # ----------------------------------------------------------------------------- timing
 
 
+def profile_frame(
+    r: Renderer, positions: np.ndarray, params: RenderParams, cam: Camera, w: int, h: int
+) -> dict[str, float]:
+    """The device activities of one frame (upload, grid kernels, sort, cast) and their times
+    in ms (`wp.timing_begin`; a frame launched one by one, not replayed as a graph)."""
+    graphs = r._graphs
+    r._graphs = None
+    try:
+        r.set_positions(positions, check_finite=False)
+        wp.timing_begin()
+        r.render(params, cam, w, h)
+        results = wp.timing_end()
+    finally:
+        r._graphs = graphs
+    acts: dict[str, float] = {}
+    for t in results:
+        acts[t.name] = acts.get(t.name, 0.0) + float(t.elapsed)
+    return acts
+
+
 def summarize(walls: list[float], stages: list[dict[str, float]]) -> dict[str, Any]:
     w = np.asarray(walls)
     out: dict[str, Any] = {
@@ -663,6 +683,8 @@ class Bench:
                             break
                     r.finish()
                     summary = summarize(walls, stages[self.args.warmup :])
+                    if piped and wp.get_device(self.device).is_cuda:
+                        summary["activities_ms"] = profile_frame(r, bufs[0], params, cam, w, h)
                     entry = {
                         "n_atoms": n,
                         "width": w,
@@ -719,18 +741,13 @@ class Bench:
             if self.clock.left() < 20:
                 return
             mode = "volume" if variant == "volume" else "iso"
-            r, frames = self.renderer(n, graphs=False)
+            r, frames = self.renderer(n)
             cam = fit_camera(frames[0], w, h)
             params = RenderParams(scale_space=space, mode=mode)  # type: ignore[arg-type]
             step = self.frame_step(r, frames, params, cam, w, h)
             for i in range(self.args.warmup):
                 step(i)
-            wp.timing_begin()
-            step(self.args.warmup)
-            results = wp.timing_end()
-            acts: dict[str, float] = {}
-            for t in results:
-                acts[t.name] = acts.get(t.name, 0.0) + float(t.elapsed)
+            acts = profile_frame(r, frames[0], params, cam, w, h)
             self.results.setdefault("profile", []).append(
                 {"n_atoms": n, "width": w, "height": h, "scale_space": space, "variant": variant,
                  "activities_ms": acts, "sum_ms": sum(acts.values())}
