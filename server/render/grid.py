@@ -276,6 +276,16 @@ class CellGrid:
             device=device,
             copy=False,
         )
+        # the second half of the sort's values is free once it is done: the cells the bound
+        # walks are listed there
+        self.work = wp.array(
+            ptr=self.order.ptr + 4 * self.n_atoms,
+            dtype=wp.int32,
+            shape=(max(self.n_atoms, 1),),
+            device=device,
+            copy=False,
+        )
+        self.work_count = wp.zeros(1, dtype=wp.int32, device=device)
         self.coarse = wp.array(
             ptr=self.keys.ptr, dtype=float, shape=(self.capacity + 1,), device=device, copy=False
         )

@@ -596,22 +596,36 @@ def _make(
         occ = wp.min(v[0], 1.0) + wp.min(v[1], 1.0) + wp.min(v[2], 1.0) + wp.min(v[3], 1.0)
         return 1.0 - 0.8 * occ * 0.25
 
+    @wp.func
+    @no_type_check
+    def walked_bound(f: Field, c: int, stop_above: float) -> float:
+        """The bound of cell c from a walk over the atoms within reach of it."""
+        g = f.info[0]
+        ix = c % g.dims[0]
+        iy = (c // g.dims[0]) % g.dims[1]
+        iz = c // (g.dims[0] * g.dims[1])
+        lo = g.origin + wp.vec3(float(ix), float(iy), float(iz)) * g.h
+        hi = lo + wp.vec3(g.h, g.h, g.h)
+        return box_bound(f, lo, hi, stop_above)
+
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
-    def bound_kernel(
+    def bound_settle_kernel(
         f: Field,
         stop_above: float,
         cell_start: wp.array[wp.int32],
         coarse: wp.array[float],
         out: wp.array[float],
+        work: wp.array[wp.int32],
+        work_count: wp.array[wp.int32],
     ):
         """An upper bound of the density in each cell (see `clear`), walked only where that
         can decide anything. A cell that holds an atom is given infinity: the density there
         reaches the level in all but contrived cases (a lone atom lighter than the level). A
         cell whose coarse bound (CellGrid.build_coarse, no walk) is already below the level
-        keeps it. Only the empty cells near the atoms walk their neighbours; on a protein
-        lattice these were 28 % of the cells, and the skipping decisions are those of walking
-        every cell."""
+        keeps it. The other cells, empty ones near the atoms, are listed in `work` for
+        `bound_kernel` to walk in full warps (walked here only when the list is full): the
+        skipping decisions are those of walking every cell."""
         c = wp.tid()
         g = f.info[0]
         if g.valid == 0 or c >= g.ncells:
@@ -623,12 +637,27 @@ def _make(
         if b < stop_above:
             out[c] = b
             return
-        ix = c % g.dims[0]
-        iy = (c // g.dims[0]) % g.dims[1]
-        iz = c // (g.dims[0] * g.dims[1])
-        lo = g.origin + wp.vec3(float(ix), float(iy), float(iz)) * g.h
-        hi = lo + wp.vec3(g.h, g.h, g.h)
-        out[c] = box_bound(f, lo, hi, stop_above)
+        slot = wp.atomic_add(work_count, 0, 1)
+        if slot < work.shape[0]:
+            work[slot] = c
+        else:
+            out[c] = walked_bound(f, c, stop_above)
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @no_type_check
+    def bound_kernel(
+        f: Field,
+        stop_above: float,
+        work: wp.array[wp.int32],
+        work_count: wp.array[wp.int32],
+        out: wp.array[float],
+    ):
+        """Walk the cells `bound_settle_kernel` listed (threads past the list return)."""
+        i = wp.tid()
+        if i >= wp.min(work_count[0], work.shape[0]):
+            return
+        c = work[i]
+        out[c] = walked_bound(f, c, stop_above)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
@@ -1032,6 +1061,7 @@ def _make(
 
     return RaycastKernels(
         model=model,
+        bound_settle=bound_settle_kernel,
         bound=bound_kernel,
         evaluate=evaluate_kernel,
         histogram=histogram_kernel,
@@ -1047,6 +1077,7 @@ class RaycastKernels:
     """The kernels generated for one density model."""
 
     model: DensityModel
+    bound_settle: Any
     bound: Any
     evaluate: Any
     histogram: Any

@@ -388,17 +388,21 @@ class Renderer(ImageOutputs):
         self._positions_version += 1
 
     def _upload(self, src: wp.array, n: int) -> None:
-        """Copy a frame into the positions buffer no queued render reads, on the upload
-        stream, and make it the current one: later work on the render stream waits for the
-        copy, a render already queued keeps reading the other buffer. With one buffer the
-        copy simply queues on the render stream."""
-        if len(self._pos_buffers) == 1:
-            start, end = self._upload_events[0]
+        """Copy a frame to the device. While a render is still queued (`render(wait=False)`)
+        and a second buffer exists, the copy goes on the upload stream into the buffer that
+        render does not read, which becomes the current one: later work on the render stream
+        waits for the copy, the queued render keeps its buffer. Otherwise (the last render has
+        finished, or must finish first) the frame replaces the current buffer in order on the
+        render stream, so blocking callers keep one buffer and one graph per frame set-up."""
+        front = 0 if self._pos is self._pos_buffers[0] else 1
+        if self._pending is None or len(self._pos_buffers) == 1:
+            self.finish()
+            start, end = self._upload_events[front]
             self._stream.record_event(start)
             wp.copy(self._pos, src, count=n)
             self._stream.record_event(end)
             return
-        spare = 1 if self._pos is self._pos_buffers[0] else 0
+        spare = 1 - front
         dest = self._pos_buffers[spare]
         if self._released[spare]:
             self._copy_stream.wait_event(self._release[spare])
@@ -709,8 +713,12 @@ class Renderer(ImageOutputs):
         kernels = self._kernels_of(d)
         # the widest atom's 1 / (2 s^2): reach = k s_max and half_k2 = k^2 / 2
         self._grid.build_coarse(self._sorted, d.half_k2 / (d.reach * d.reach))
-        bound = (f, stop, self._grid.cell_start, self._grid.coarse, f.bound)
-        wp.launch(kernels.bound, self._grid.capacity, bound, device=dev)
+        grid = self._grid
+        grid.work_count.zero_()
+        settle = (f, stop, grid.cell_start, grid.coarse, f.bound, grid.work, grid.work_count)
+        wp.launch(kernels.bound_settle, grid.capacity, settle, device=dev)
+        walk = (f, stop, grid.work, grid.work_count, f.bound)
+        wp.launch(kernels.bound, grid.capacity, walk, device=dev)
         self._grid.build_bricks()
 
     def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:

@@ -68,9 +68,13 @@ def test_pinned_host_buffer_path(device: str) -> None:
     np.testing.assert_array_equal(a.read_rgba(), b.read_rgba())
 
 
-def test_the_next_frame_uploads_while_the_last_renders(device: str) -> None:
+@pytest.mark.parametrize("double_buffer", [None, True])
+def test_the_next_frame_uploads_while_the_last_renders(
+    device: str, double_buffer: bool | None
+) -> None:
     """`render(wait=False)`, then the next frame's positions, then `finish`: the frames come out
-    as they do one by one, while each upload overlaps the render before it (on CUDA)."""
+    as they do one by one, while each upload overlaps the render before it (two buffers on
+    CUDA; one buffer waits for the render first)."""
     n = 80
     top = make_topology(n)
     rng = np.random.default_rng(5)
@@ -81,7 +85,7 @@ def test_the_next_frame_uploads_while_the_last_renders(device: str) -> None:
     for f in frames:
         r = render(device, top, f, params, cam, 40, 30)
         one_by_one.append((r.read_rgba(), r.read_depth()))
-    r = Renderer(device)
+    r = Renderer(device, double_buffer=double_buffer)
     r.set_topology(top)
     r.set_positions(frames[0])
     r.render(params, cam, 40, 30, wait=False)
