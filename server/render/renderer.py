@@ -67,6 +67,10 @@ cutoff that measured fastest (`max_registers=None`, `cells_per_cutoff=None`; on 
 atoms and 1920x1080: the warped density's Gaussian part has a reach of 0.6 sigma k, and its
 walks, with the segment walks beside them, want fewer registers and larger cells than the
 classical density's; benchmarks/README.md)."""
+LARGE_ATOMS = 30_000_000
+"""From this many atoms the grid has one cell per cutoff for every density: the bound of 1.4
+cells per atom costs more than finer skipping saves (on an H100 at 1920x1080, 100M atoms:
+69.7 ms a frame against 94.8 with two cells per cutoff; 10M atoms: 23.4 against 20.9)."""
 PIPELINE_ATOMS = 1_000_000
 """From this many atoms a CUDA renderer keeps two positions buffers (`double_buffer=None`):
 below it an upload takes well under a tenth of a millisecond and one buffer, with one graph
@@ -110,18 +114,19 @@ class Renderer(ImageOutputs):
 
     `cells_per_cutoff` sets the grid cell to cutoff / cells_per_cutoff (1 = cell equals the
     cutoff; the cell grows when memory caps the cell count; None: the density's own best,
-    `CELLS_PER_CUTOFF`); `empty_space_skipping=False` marches every lattice sample (a
-    baseline); `fast_math` picks CUDA's approximate transcendentals; `max_registers` /
-    `volume_max_registers` cap the iso / volume marching kernels' registers on CUDA (0 leaves
-    it to the compiler; None: the density's own best, `MARCH_REGISTERS`; the defaults were
-    the fastest measured, benchmarks/README.md); `double_buffer` keeps two positions
-    buffers so an upload overlaps the render before it (None: from `PIPELINE_ATOMS` atoms on
-    CUDA); `density` is the model the ray caster evaluates (any model over
-    `GaussianField`, the sorted atoms and cell grid this class builds); `graphs` replays
-    repeated frame set-ups as captured graphs (None: on CUDA devices only; True: also on the
-    CPU, through warp's API capture); `march_budget` is the number of density passes an iso
-    ray takes before it is queued for `split_lanes` threads to finish (0: never split; None:
-    split small images of larger molecules on CUDA, see `SPLIT_MIN_ATOMS`).
+    `CELLS_PER_CUTOFF`, and 1 from `LARGE_ATOMS` atoms); `empty_space_skipping=False`
+    marches every lattice sample (a baseline); `fast_math` picks CUDA's approximate
+    transcendentals; `max_registers` / `volume_max_registers` cap the iso / volume marching
+    kernels' registers on CUDA (0 leaves it to the compiler; None: the density's own best,
+    `MARCH_REGISTERS`; the defaults were the fastest measured, benchmarks/README.md);
+    `double_buffer` keeps two positions buffers so an upload overlaps the render before it
+    (None: from `PIPELINE_ATOMS` atoms on CUDA); `density` is the model the ray caster
+    evaluates (any model over `GaussianField`, the sorted atoms and cell grid this class
+    builds); `graphs` replays repeated frame set-ups as captured graphs (None: on CUDA devices
+    only; True: also on the CPU, through warp's API capture); `march_budget` is the number of
+    density passes an iso ray takes before it is queued for `split_lanes` threads to finish
+    (0: never split; None: split small images of larger molecules on CUDA, see
+    `SPLIT_MIN_ATOMS`).
     """
 
     def __init__(
@@ -656,6 +661,8 @@ class Renderer(ImageOutputs):
         """Cells per cutoff of this frame's grid: the renderer's, else the density's best."""
         if self.cells_per_cutoff is not None:
             return self.cells_per_cutoff
+        if self._n >= LARGE_ATOMS:
+            return 1.0
         return CELLS_PER_CUTOFF["warped" if d.warp is not None else "gaussian"]
 
     def _grid_key_for(self, d: Derived, stop: float) -> tuple[Any, ...] | None:
