@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import warp
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -60,14 +61,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     devices = resolve_many(args.devices)
-    runs = []
+    names = [str(warp.get_device(d).name) for d in devices]
+    runs: list[dict[str, Any]] = []
     for n in [int(a) for a in args.atoms.split(",")]:
         pos, elements, bonds = build_system(n)
         topo = topology_of(elements, bonds)
         for text in args.sizes.split(","):
             size = tuple(int(v) for v in text.split("x"))
-            one = frame_ms(Renderer(devices[0]), pos, topo, size, args.frames)  # type: ignore[arg-type]
-            multi = MultiRenderer(devices)
+            cap = max(n, 1)
+            one = frame_ms(Renderer(devices[0], max_atoms=cap), pos, topo, size, args.frames)
+            multi = MultiRenderer(devices, max_atoms=cap)
             many = frame_ms(multi, pos, topo, size, args.frames)  # type: ignore[arg-type]
             row = {
                 "atoms": n,
@@ -80,9 +83,9 @@ def main(argv: list[str] | None = None) -> int:
             multi.close()
             runs.append(row)
             print(json.dumps(row), flush=True)
-    out = {"benchmark": "multi_device", "devices": list(devices), "host": platform.node(),
-           "runs": runs}  # fmt: skip
-    args.out.write_text(json.dumps(out, indent=1))
+            out = {"benchmark": "multi_device", "devices": list(devices), "gpus": names,
+                   "host": platform.node(), "runs": runs}  # fmt: skip
+            args.out.write_text(json.dumps(out, indent=1))
     return 0
 
 
