@@ -214,14 +214,14 @@ class Renderer(ImageOutputs):
         self._pending: tuple[float, float, float, bool, int] | None = None
         if self._cuda:
             self._stream = wp.get_stream(self.device)
-            self._events = [wp.Event(self.device, enable_timing=True) for _ in range(5)]
+            # a frame's stages on the render stream: grid start, cast start, end
+            self._events = [wp.Event(self.device, enable_timing=True) for _ in range(3)]
             # positions upload on a stream of their own, into the buffer no render is reading
             self._copy_stream = wp.Stream(self.device)
             self._release = [wp.Event(self.device) for _ in range(2)]
             self._upload_events = [
                 [wp.Event(self.device, enable_timing=True) for _ in range(2)] for _ in range(2)
             ]
-            self._released = [False, False]
 
     # ------------------------------------------------------------------ buffers
 
@@ -749,7 +749,7 @@ class Renderer(ImageOutputs):
         if build:
             self._build_grid(d, f, stop)
         if self._cuda:
-            self._stream.record_event(self._events[3])
+            self._stream.record_event(self._events[1])
         t_cast = time.perf_counter()
         w, h = (tile[2], tile[3]) if tile is not None else (frame.width, frame.height)
         cam = raycast.camera_data(frame, tile)
@@ -900,7 +900,7 @@ class Renderer(ImageOutputs):
             self._grid_key = None
 
         if ev is not None:
-            self._stream.record_event(ev[2])
+            self._stream.record_event(ev[0])
         t_grid = time.perf_counter()
         launch = functools.partial(
             self._launch_frame, params, d, f, stop, frame, grid_key is not None, tile
@@ -918,7 +918,7 @@ class Renderer(ImageOutputs):
             self._grid_key = grid_key
         front = 0 if self._pos is self._pos_buffers[0] else 1
         if ev is not None:
-            self._stream.record_event(ev[4])
+            self._stream.record_event(ev[2])
             self._stream.record_event(self._release[front])
             self._released[front] = True
         self._pending = (t_start, t_grid, t_cast, self._uploaded, front)
@@ -936,12 +936,12 @@ class Renderer(ImageOutputs):
         self._pending = None
         if self._cuda:
             ev = self._events
-            wp.synchronize_event(ev[4])
-            grid_ms = wp.get_event_elapsed_time(ev[2], ev[3])
-            cast_ms = wp.get_event_elapsed_time(ev[3], ev[4])
+            wp.synchronize_event(ev[2])
+            grid_ms = wp.get_event_elapsed_time(ev[0], ev[1])
+            cast_ms = wp.get_event_elapsed_time(ev[1], ev[2])
             up0, up1 = self._upload_events[front]
             up_ms = wp.get_event_elapsed_time(up0, up1) if uploaded else 0.0
-            total = wp.get_event_elapsed_time(up0 if uploaded else ev[2], ev[4])
+            total = wp.get_event_elapsed_time(up0 if uploaded else ev[0], ev[2])
         else:
             t_end = time.perf_counter()
             grid_ms = (t_cast - t_grid) * 1e3
