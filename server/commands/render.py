@@ -156,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_layers(params)
     except ValueError as exc:
-        return _fail(str(exc))
+        # --select is drawn as the one layer: say which option the text came from
+        return _fail(f"--select: {exc}" if args.select is not None else str(exc))
     try:
         structure = load(args.structure, args.trajectory)
     except StructureError as exc:

@@ -102,6 +102,7 @@ def test_a_solvated_file_opens_on_its_protein_and_layers_steer_it(
     assert main([*base, "-o", str(tmp_path / "x.png"), "--select", "name CA and ("]) == 2
     err = capsys.readouterr().err
     assert "layers.0.selection" in err and "character 14" in err
+    assert err.split("error: ", 1)[1].startswith("--select: ")
     assert main([*base, "-o", str(tmp_path / "x.png"), "--select", "resname NONE"]) == 2
     assert "takes no atoms" in capsys.readouterr().err
     assert main([*base, "-o", str(tmp_path / "x.png"), "--select", "all", "--all-atoms"]) == 2
