@@ -23,6 +23,7 @@ whose atoms move smoothly (0.3 A breathing, 120 frames per cycle). Frames come a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
 import multiprocessing as mp
@@ -30,6 +31,7 @@ import platform
 import socket
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -122,6 +124,21 @@ class System:
 
 
 # ---------------------------------------------------------------- quality and encode cost
+
+
+def warm_kernels(system: System, device: str, size: tuple[int, int]) -> None:
+    """Render the system once at the stream size and at the interactive size, so that the
+    live rows never wait for a kernel to compile (the quality section does this otherwise)."""
+    from protocol import RenderParams
+    from server.render import Renderer
+    from server.render.camera import fit_camera
+
+    renderer = Renderer(device, max_atoms=max(system.n_atoms, 1))
+    renderer.set_topology(system.topology())
+    renderer.set_positions(system.positions(0))
+    for w, h in (size, (size[0] // 2, size[1] // 2)):
+        renderer.render(RenderParams(), fit_camera(system.base, w, h), w, h)
+        renderer.read_rgba()
 
 
 def quality(system: System, device: str, size: tuple[int, int], frames: int) -> dict[str, Any]:
@@ -232,11 +249,22 @@ def _steer(
     from PIL import Image
 
     peer = Peer(f"{url}/ws/view", "steerer", "bench", session)
-    peer.send(p.View(width=size[0], height=size[1], video=["h264"] if video else []))
+    # the session's camera, which frames the molecule, as the dashboard takes it on joining
+    camera = None
+    deadline = time.monotonic() + 60
+    while camera is None and time.monotonic() < deadline:
+        with contextlib.suppress(TimeoutError):
+            got = peer.recv(0.5)
+            if isinstance(got, p.State) and got.camera is not None:
+                camera = got.camera
+    if camera is None:
+        raise RuntimeError("the session sent no camera")
+    peer.send(p.View(camera=camera, width=size[0], height=size[1], video=["h264"] if video else []))
     decoder: Any = None
     stream = None
-    pending: dict[int, float] = {}
+    pending: dict[int, tuple[float, float]] = {}
     latencies: list[float] = []
+    changes: list[tuple[Any, ...]] = []
     decode_ms: list[float] = []
     encode_ms: list[float] = []
     got_bytes = 0
@@ -253,7 +281,7 @@ def _steer(
             k += 1
             seq = peer.send(p.SetRenderParams(params={"iso_level": 0.25 + 0.01 * (k % 2)}))
             if now >= measure_from:
-                pending[seq] = time.perf_counter()
+                pending[seq] = (time.perf_counter(), time.time())
             next_change += 0.25
         try:
             msg = peer.recv(0.05)
@@ -261,7 +289,7 @@ def _steer(
             continue
         if not isinstance(msg, p.Image):
             continue
-        t0 = time.perf_counter()
+        t0, arrived = time.perf_counter(), time.time()
         if msg.format == "jpeg":
             Image.open(io.BytesIO(msg.data)).convert("RGB")
         else:
@@ -282,7 +310,12 @@ def _steer(
         if msg.bitrate_kbps:
             kbps.append(msg.bitrate_kbps)
         if msg.ref in pending:
-            latencies.append((t1 - pending.pop(msg.ref)) * 1e3)
+            sent, sent_wall = pending.pop(msg.ref)
+            latencies.append((t1 - sent) * 1e3)
+            # the image is stamped when packed, after its encode (one host, one clock)
+            changes.append(
+                (msg.ref, sent_wall, msg.frame_id, msg.server_time, msg.encode_ms, arrived, t1 - t0)
+            )
             for s in [s for s in pending if s < (msg.ref or 0)]:
                 pending.pop(s)  # superseded before it was shown: not a photon of its own
     peer.close()
@@ -297,6 +330,7 @@ def _steer(
             "steer_to_photon_ms_p50": percentile(latencies, 50),
             "steer_to_photon_ms_p99": percentile(latencies, 99),
             "changes_timed": len(latencies),
+            "changes": changes,
         }
     )
 
@@ -309,6 +343,7 @@ def live(
     link: str,
     size: tuple[int, int],
     seconds: float,
+    trace: Trace | None = None,
 ) -> dict[str, Any]:
     ctx = mp.get_context("spawn")
     session = f"{system_name}-{'video' if video else 'jpeg'}-{link}"
@@ -340,6 +375,10 @@ def live(
         for proc in (sim, proxy):
             if proc is not None and proc.is_alive():
                 proc.terminate()
+    changes = row.pop("changes")
+    if trace is not None:
+        row["stages_ms"] = trace.breakdown(session, changes)
+        row["timeline"] = trace.timeline(session, changes)
     row.update(
         {
             "system": system_name,
@@ -349,6 +388,134 @@ def live(
         }
     )
     return row
+
+
+class Trace:
+    """Server-side stamps (wall clock) of each timed change, for the latency breakdown: when
+    the steer message was handled, and when the render that drew it was asked for and done.
+    The server runs in this process, so its session methods are wrapped here."""
+
+    def __init__(self) -> None:
+        from server.pipeline.gpu import GpuQueue
+        from server.session.session import Session
+
+        self.steered: dict[tuple[str, int], float] = {}
+        self.renders: dict[tuple[str, int], tuple[float, float, dict[str, float], int]] = {}
+        self.device_calls: list[tuple[float, float]] = []
+        self.last_request: Any = None
+        steer, render, render_sync = Session.steer, Session._render, GpuQueue.render_sync
+        render_group = Session._render_group
+        self.groups: list[float] = []
+        trace = self
+
+        async def traced_group(session: Any, *args: Any) -> Any:
+            trace.groups.append(time.time())
+            return await render_group(session, *args)
+
+        def traced_sync(queue: Any, request: Any) -> Any:
+            t0 = time.time()
+            out = render_sync(queue, request)
+            trace.device_calls.append((t0, time.time()))
+            trace.last_request = request
+            return out
+
+        def traced_steer(session: Any, client: Any, message: Any) -> None:
+            if message.seq is not None:
+                trace.steered[(session.id, message.seq)] = time.time()
+            steer(session, client, message)
+
+        async def traced_render(session: Any, key: Any, snap: Any) -> Any:
+            t0 = time.time()
+            out = await render(session, key, snap)
+            if out is not None:
+                span = (t0, time.time(), dict(out.out.timings), out.width * out.height)
+                trace.renders[(session.id, out.image_id)] = span
+            return out
+
+        Session.steer = traced_steer  # type: ignore[method-assign,assignment]
+        Session._render = traced_render  # type: ignore[method-assign,assignment]
+        GpuQueue.render_sync = traced_sync  # type: ignore[method-assign]
+        Session._render_group = traced_group  # type: ignore[method-assign]
+
+    def breakdown(self, session: str, changes: list[tuple[Any, ...]]) -> dict[str, Any]:
+        """Each change's path in ms, p50 and p99 per stage: up (the link and the event loop
+        until the steer is handled), queued (until its render is asked for: the render in
+        progress), render (the device queue, upload, render and read-back), encoder (waiting
+        for the stream's encoder), encode, down (packing, sending, the link), decode. The
+        render splits into to_device (until the device thread starts it), device_call (its
+        call there: upload, render, read-back, and any wait for the interpreter lock), of
+        which device_ms is the device's own time, and back (until the event loop has it)."""
+        names = ("up", "queued", "render", "encoder", "encode", "down", "decode")
+        more = (
+            "to_device",
+            "device_call",
+            "device_ms",
+            "back",
+            "upload_ms",
+            "grid_ms",
+            "raycast_ms",
+        )
+        more += ("pixels", "loop_busy", "slot_wait")
+        stages: dict[str, list[float]] = {k: [] for k in names + more}
+        for seq, sent, image_id, packed, encode_ms, arrived, decode_s in changes:
+            handled = self.steered.get((session, seq))
+            span = self.renders.get((session, image_id))
+            if handled is None or span is None:
+                continue
+            encode_start = packed - encode_ms / 1e3
+            for k, v in (
+                ("up", handled - sent),
+                ("queued", span[0] - handled),
+                ("render", span[1] - span[0]),
+                ("encoder", encode_start - span[1]),
+                ("encode", encode_ms / 1e3),
+                ("down", arrived - packed),
+                ("decode", decode_s),
+            ):
+                stages[k].append(v * 1e3)
+            calls = [c for c in self.device_calls if span[0] <= c[0] and c[1] <= span[1]]
+            if calls:
+                call = calls[-1]
+                stages["to_device"].append((call[0] - span[0]) * 1e3)
+                stages["device_call"].append((call[1] - call[0]) * 1e3)
+                stages["back"].append((span[1] - call[1]) * 1e3)
+            stages["device_ms"].append(span[2].get("total", 0.0))
+            stages["upload_ms"].append(span[2].get("upload", 0.0))
+            stages["grid_ms"].append(span[2].get("grid", 0.0))
+            stages["raycast_ms"].append(span[2].get("raycast", 0.0))
+            stages["pixels"].append(span[3])
+            starts = [g for g in self.groups if handled <= g <= span[0]]
+            if starts:  # the render loop took up the change, then waited for an encode slot
+                stages["loop_busy"].append((starts[0] - handled) * 1e3)
+                stages["slot_wait"].append((span[0] - starts[-1]) * 1e3)
+        return {k: {"p50": percentile(v, 50), "p99": percentile(v, 99)} for k, v in stages.items()}
+
+    def timeline(self, session: str, changes: list[tuple[Any, ...]]) -> list[dict[str, Any]]:
+        """Each timed change with what the server did around it, in ms from its handling:
+        render-loop passes, device calls and the render that drew it."""
+        out = []
+        for seq, sent, image_id, packed, encode_ms, arrived, _decode in changes:
+            handled = self.steered.get((session, seq))
+            span = self.renders.get((session, image_id))
+            if handled is None or span is None:
+                continue
+
+            def ms(t: float, at: float = handled) -> float:
+                return round((t - at) * 1e3, 2)
+
+            lo, hi = handled - 0.05, arrived
+            out.append(
+                {
+                    "sent": ms(sent),
+                    "render": [ms(span[0]), ms(span[1])],
+                    "encode_start": ms(packed - encode_ms / 1e3),
+                    "packed": ms(packed),
+                    "arrived": ms(arrived),
+                    "passes": [ms(g) for g in self.groups if lo <= g <= hi],
+                    "device_calls": [[ms(a), ms(b)] for a, b in self.device_calls if lo <= a <= hi],
+                }
+            )
+        return out
 
 
 def gpu_name(device: str) -> str:
@@ -367,6 +534,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=CYCLE)
     ap.add_argument("--systems", default="villin,1m")
     ap.add_argument("--quick", action="store_true", help="small sizes and short windows")
+    ap.add_argument("--live-only", action="store_true", help="skip the quality section")
+    ap.add_argument("--links", default="loopback,emulated")
+    ap.add_argument("--transports", default="jpeg,h264")
+    ap.add_argument(
+        "--encode-every-frame",
+        action="store_true",
+        help="the baseline: video streams encode frames that show a waiting viewer nothing new",
+    )
+    ap.add_argument(
+        "--switch-interval",
+        type=float,
+        help="the interpreter's thread switch interval in seconds for the server (a variant)",
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="a server setting for a variant run (repeatable), e.g. encode_workers=2",
+    )
     ap.add_argument("--record-villin", action="store_true")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
@@ -392,7 +579,9 @@ def main(argv: list[str] | None = None) -> int:
     result["video_encoders"] = VideoEncoders(ServerSettings.video_codecs).describe()
     print(json.dumps(result["video_encoders"]), flush=True)
     n_big = 20_000 if args.quick else 1_000_000
-    for name in systems:
+    for name in systems if args.live_only else []:
+        warm_kernels(System(name, n_big), args.device, size)
+    for name in [] if args.live_only else systems:
         system = System(name, n_big)
         result["quality"][name] = quality(system, args.device, size, frames)  # type: ignore[arg-type]
         print(json.dumps({name: result["quality"][name]}, indent=1), flush=True)
@@ -410,14 +599,40 @@ def main(argv: list[str] | None = None) -> int:
             stats_interval_s=5.0,
             frame_budget_ms=0.0,
         )
+        overrides = {}
+        for item in args.set:
+            name, _, value = item.partition("=")
+            overrides[name] = type(getattr(settings, name))(value)
+        settings = replace(settings, **overrides)
+        result["settings_changed"] = overrides
+        if args.encode_every_frame:
+            from server.session.delivery import Delivery
+
+            Delivery._nothing_new = staticmethod(lambda *_: False)  # type: ignore[method-assign]
+            result["encode_every_frame"] = True
+        if args.switch_interval:
+            sys.setswitchinterval(args.switch_interval)
+            result["switch_interval_s"] = args.switch_interval
+        trace = Trace()
         server = ServerThread(settings)
         try:
             for name in systems:
-                for link in ("loopback", "emulated"):
-                    for video in (False, True):
-                        row = live(server, name, n_big, video, link, size, seconds)  # type: ignore[arg-type]
+                for link in args.links.split(","):
+                    for video in [t == "h264" for t in args.transports.split(",")]:
+                        row = live(server, name, n_big, video, link, size, seconds, trace)  # type: ignore[arg-type]
                         result["live"].append(row)
                         print(json.dumps(row), flush=True)
+                        req = trace.last_request
+                        if req is not None and args.live_only:
+                            print(
+                                "last request",
+                                req.width,
+                                req.height,
+                                req.layers is not None,
+                                req.params.model_dump_json(exclude_defaults=True),
+                                req.camera.model_dump_json(),
+                                flush=True,
+                            )
         finally:
             server.stop()
     out = args.out or RESULTS / ("video_quick.json" if args.quick else "video.json")
