@@ -47,6 +47,10 @@ class VideoStream:
     newest: int = 0
     """The newest render offered to this stream: an older one still waiting for the lock is
     skipped (the encoder takes the newest picture, as a JPEG viewer's slot does)."""
+    shown_refs: dict[str, int | None] = field(default_factory=dict)
+    """Per viewer, the last change (`view_ref`) its last encoded frame showed."""
+    last_encoded: float = float("-inf")
+    """When the last frame went into the encoder (monotonic seconds)."""
     _encoder: VideoEncoder | None = None
 
     def encode(
