@@ -30,6 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", default="1920x1080")
     p.add_argument("--mode", default="iso", choices=["iso", "volume"])
     p.add_argument("--frames", type=int, default=4)
+    p.add_argument("--scale-space", default="classical", choices=["classical", "warped"])
     p.add_argument("--device", default="cuda:0")
     p.add_argument("--budget", type=int, default=None, help="first marching kernel's passes")
     p.add_argument("--lanes", type=int, default=None, help="threads per queued ray")
@@ -44,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     r = Renderer(args.device, max_atoms=args.atoms, graphs=False, **kw)
     r.set_topology(topology_of(el, bonds))
     cam = fit_camera(pos, w, h)
-    params = RenderParams(mode=args.mode)  # type: ignore[arg-type]
+    params = RenderParams(mode=args.mode, scale_space=args.scale_space)  # type: ignore[arg-type]
     for i, frame in enumerate(jittered_frames(pos, args.frames)):
         r.set_positions(frame)
         r.render(params, cam, w, h)
