@@ -142,7 +142,8 @@ class Dashboard {
       onPullMove: (x, y) => this.pullMove(x, y),
       onPullEnd: () => this.pullEnd(),
       onDrawn: (msg, t) => this.drawn(msg, t),
-      onVideoDecoded: (msg, decodeMs) => this.videoDecoded(msg, decodeMs),
+      onVideoDecoded: (msg, decodeMs) => this.acknowledge(msg, decodeMs),
+      onImageDecoded: (msg, decodeMs) => this.acknowledge(msg, decodeMs),
       onVideoError: (message) => this.videoError(message),
       onDecodeError: (err, msg) =>
         this.notices.notify({
@@ -479,7 +480,8 @@ class Dashboard {
     this.sendView(false);
   }
 
-  videoDecoded(msg, decodeMs) {
+  /** A video frame or image is on screen: acknowledge it (the server paces both by these). */
+  acknowledge(msg, decodeMs) {
     this.connection.send({ type: "frame_ack", frame_id: msg.frame_id, decode_ms: Math.max(0, decodeMs) });
   }
 

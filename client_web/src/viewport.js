@@ -28,12 +28,13 @@ export class Viewport {
     onDrawn = () => {},
     onDecodeError = () => {},
     onVideoDecoded = () => {},
+    onImageDecoded = () => {},
     onVideoError = () => {},
     makeVideoPipe = (handlers) => new VideoPipe(handlers),
   }) {
     Object.assign(this, { container, canvas, overlay, placeholder, getCamera, canPull, pullWithoutModifier });
     Object.assign(this, { onResize, onCamera, onClick, onPullStart, onPullMove, onPullEnd, onDrawn, onDecodeError });
-    Object.assign(this, { onVideoDecoded, onVideoError, makeVideoPipe });
+    Object.assign(this, { onVideoDecoded, onImageDecoded, onVideoError, makeVideoPipe });
     this.video = null; // the decoder pipe, made with the first video frame
     this.ctx = canvas.getContext("2d", { alpha: false });
     this.octx = overlay.getContext("2d");
@@ -147,13 +148,18 @@ export class Viewport {
     }
     this.decoding = true;
     let bitmap = null;
+    const t0 = performance.now();
     try {
       bitmap = await createImageBitmap(new Blob([msg.data], { type: `image/${msg.format}` }));
     } catch (err) {
       this.onDecodeError(err, msg);
     }
     this.decoding = false;
-    if (bitmap) this.present(bitmap, msg);
+    if (bitmap) {
+      this.present(bitmap, msg);
+      // acknowledged as video frames are: the server paces images by the link
+      this.onImageDecoded(msg, performance.now() - t0);
+    }
     const next = this.queued;
     this.queued = null;
     if (next) await this.show(next);

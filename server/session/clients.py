@@ -85,8 +85,11 @@ class Client:
     video_stream: int | None = None
     """The video stream this client is on (None: JPEG)."""
     awaiting_key: bool = True
+    paced_images: bool = False
+    """It acknowledges its JPEG images too (the dashboard does): they then go only while its
+    link is ready, as video frames do, so a slow link shows fewer images instead of old ones."""
     _control: deque[bytes] = field(default_factory=deque)
-    _image: bytes | None = None
+    _image: tuple[int, bytes] | None = None
     _video: deque[tuple[int, bytes]] = field(default_factory=deque)
     _wake: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -140,7 +143,7 @@ class Client:
         replaced = self._image is not None
         if replaced:
             self.frames_dropped += 1
-        self._image = data
+        self._image = (frame_id, data)
         self._wake.set()
         return ImageOffer.REPLACED if replaced else ImageOffer.TAKEN
 
@@ -207,7 +210,8 @@ class Client:
                     self._wake.set()
                     continue
                 if self._image is not None and self.state is ClientState.CONNECTED:
-                    data, self._image = self._image, None
+                    (frame_id, data), self._image = self._image, None
+                    self.link.on_sent(frame_id, len(data), time.monotonic())
                     await self.ws.send_bytes(data)
                     self.frames_sent += 1
                     if on_image_sent is not None:

@@ -298,7 +298,13 @@ class Delivery:
         self.last_encode_ms = encode_ms
         services.metrics.encode_ms.observe(encode_ms)
         pack = self._packer(rendered, "jpeg", data, encode_ms)
+        now = time.monotonic()
         for client in members:
+            if client.paced_images and not client.link.ready(now):
+                # its link still carries older images: drawn once it acknowledges them
+                client.needs_image = True
+                services.metrics.frames_dropped.inc()
+                continue
             match client.offer_encoded(rendered.image_id, pack(refs.get(client.client_id))):
                 case ImageOffer.REPLACED:
                     services.metrics.frames_dropped.inc()

@@ -690,9 +690,11 @@ class Session:
         self.mark_dirty()
 
     def on_frame_ack(self, client: Client, ack: p.FrameAck) -> None:
-        """A video frame reached `client`'s screen: its link estimate learns from it, and a
-        view that skipped frames for the link renders again if it is behind."""
+        """A video frame or image reached `client`'s screen: its link estimate learns from it,
+        and a view that skipped frames for the link renders again if it is behind."""
         client.link.on_ack(ack.frame_id, time.monotonic())
+        if client.video_stream is None:
+            client.paced_images = True  # it acknowledges its JPEG images: pace them too
         if client.needs_image:  # it skipped the newest picture while its link was busy
             self.mark_dirty()
 

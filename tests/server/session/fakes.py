@@ -89,7 +89,7 @@ def sent(c: Client) -> list[p.Message]:
     """What has been queued for a client (control messages, then its unsent image)."""
     out = [p.decode(raw, p.Limits(max_message_bytes=1 << 30)) for raw in c._control]
     if c._image is not None:
-        out.append(p.decode(c._image, p.Limits(max_message_bytes=1 << 30)))
+        out.append(p.decode(c._image[1], p.Limits(max_message_bytes=1 << 30)))
     return out
 
 

@@ -1,5 +1,6 @@
-"""Delivery of video frames around a viewer's change: a frame that shows the viewer nothing new
-is left out while its change is on the way, so the change's frame does not wait behind it."""
+"""Delivery of images by the links they go over: a video frame that shows a waiting viewer
+nothing new is left out while its change is on the way (the change's frame does not wait behind
+it), and JPEG images go to a viewer that acknowledges them only while its link is ready."""
 
 from __future__ import annotations
 
@@ -96,5 +97,33 @@ def test_a_pending_change_never_holds_a_stream_longer_than_the_hold(tmp_path: Pa
         c.view_ref = 2
         await deliver(delivery, 2, c, refs_before)
         assert shown(c, seen) == [1, 2]
+
+    run_on_own_loop(main)
+
+
+def test_jpeg_images_wait_for_the_link_of_a_viewer_that_acknowledges_them(
+    tmp_path: Path,
+) -> None:
+    async def main() -> None:
+        delivery = Delivery("s", services(tmp_path))
+        paced, plain = client("paced"), client("plain")
+        for c in (paced, plain):
+            c.view = p.View(width=SIZE[0], height=SIZE[1])  # no video: JPEG
+        paced.paced_images = True
+        # an image sent to each 0.5 s ago and not acknowledged yet: a link with a queue
+        for c in (paced, plain):
+            c.link.on_sent(0, 50_000, time.monotonic() - 0.5)
+        await delivery.services.encode_slots.acquire()
+        delivery.start(rendered(1), [paced, plain], {}, lambda: None)
+        while tasks := delivery.in_flight():
+            await asyncio.gather(*tasks)
+        assert paced._image is None and paced.needs_image  # held back, drawn after the ack
+        assert plain._image is not None and plain._image[0] == 1  # scripts get every image
+        paced.link.on_ack(0, time.monotonic())
+        await delivery.services.encode_slots.acquire()
+        delivery.start(rendered(2), [paced], {}, lambda: None)
+        while tasks := delivery.in_flight():
+            await asyncio.gather(*tasks)
+        assert paced._image is not None and paced._image[0] == 2
 
     run_on_own_loop(main)

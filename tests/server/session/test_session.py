@@ -174,3 +174,22 @@ def test_a_pick_answers_with_the_atom_and_where_it_is(tmp_path: Path) -> None:
             await session.pick(a, p.Pick(x=40, y=0))
 
     run(body, tmp_path)
+
+
+def test_a_viewer_that_acknowledges_its_jpeg_images_gets_them_paced(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        jpeg, video = client("j", "viewer"), client("v", "viewer")
+        session.attach(jpeg)
+        session.attach(video)
+        session.on_topology(topo)
+        session.on_frame(frame(pos, 1))
+        await settle(lambda: bool(images(jpeg)))
+        assert not jpeg.paced_images  # a script that never acknowledges gets every image
+        shown = images(jpeg)[0].frame_id
+        video.video_stream = 1  # on a video stream: its acks pace that stream already
+        session.on_frame_ack(jpeg, p.FrameAck(frame_id=shown))
+        session.on_frame_ack(video, p.FrameAck(frame_id=shown))
+        assert jpeg.paced_images and not video.paced_images
+
+    run(body, tmp_path)
