@@ -11,8 +11,8 @@ whose atoms move smoothly (0.3 A breathing, 120 frames per cycle). Frames come a
   frames stamped at 60 fps), decoded, and compared with the raw render (PSNR over RGB). Encode
   time per frame and CPU cores used while encoding (process CPU time / wall time).
 - **live**: the real server (its process holds nothing else), a simulation streaming 60 frames/s
-  and a steerer that decodes every image (PyAV, Pillow), acknowledges video frames as the
-  dashboard does, and changes the iso level 4 times a second, timing each change to the decoded
+  and a steerer that decodes every image (PyAV, Pillow), acknowledges each as the dashboard
+  does, and changes the iso level 4 times a second, timing each change to the decoded
   image that shows it. Delivered bit rate and frames/s over the window; the server's CPU.
 
     python benchmarks/video_bench.py --device cuda:0            # GPU run, results JSON + table
@@ -243,7 +243,7 @@ def _simulate(
 def _steer(
     url: str, session: str, video: bool, size: tuple[int, int], seconds: float, out: Any
 ) -> None:
-    """Child process: a steerer decoding every image (and acknowledging video frames), timing
+    """Child process: a steerer decoding every image (and acknowledging each), timing
     iso-level changes to the decoded image that shows them."""
     import av
     from PIL import Image
@@ -292,6 +292,7 @@ def _steer(
         t0, arrived = time.perf_counter(), time.time()
         if msg.format == "jpeg":
             Image.open(io.BytesIO(msg.data)).convert("RGB")
+            peer.send(p.FrameAck(frame_id=msg.frame_id))  # the dashboard acknowledges images too
         else:
             if msg.stream != stream:
                 decoder = av.CodecContext.create("h264", "r")
