@@ -15,7 +15,7 @@ from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
 from protocol.limits import Limits
 
-PROTOCOL_VERSION = "1.5"
+PROTOCOL_VERSION = "1.6"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -306,7 +306,9 @@ class View(Message):
     """V->*: this viewer's camera and canvas size; `interacting` lowers quality while moving."""
 
     type: Literal["view"] = "view"
-    camera: Camera = Camera()
+    camera: Camera | None = None
+    """This viewer's own camera; None: the session's (`state.camera`, which frames the
+    molecule, and follows it when the session refits)."""
     width: Annotated[int, Field(ge=1)] = 640
     height: Annotated[int, Field(ge=1)] = 480
     device_pixel_ratio: Annotated[float, Field(gt=0, le=8, allow_inf_nan=False)] = 1.0

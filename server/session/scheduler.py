@@ -110,10 +110,11 @@ class RenderScheduler:
         self._interactive_until = now + self.settings.interactive_idle_s
 
     def view_of(self, client: Client, default_camera: p.Camera | None) -> tuple[p.Camera, int, int]:
+        camera = default_camera or p.Camera()
         if client.view is not None:
-            return client.view.camera, client.view.width, client.view.height
+            return client.view.camera or camera, client.view.width, client.view.height
         w, h = self.settings.default_size
-        return default_camera or p.Camera(), w, h
+        return camera, w, h
 
     def groups(
         self, clients: Iterable[Client], now: float, default_camera: p.Camera | None

@@ -152,9 +152,7 @@ class VideoViewer:
         video: tuple[str, ...] = ("h264",),
         camera: p.Camera | None = None,
     ) -> None:
-        self.peer.send(
-            p.View(width=size[0], height=size[1], video=list(video), camera=camera or p.Camera())
-        )
+        self.peer.send(p.View(width=size[0], height=size[1], video=list(video), camera=camera))
 
     def _decode(self, msg: p.Image) -> np.ndarray:
         import io

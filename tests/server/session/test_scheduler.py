@@ -31,6 +31,17 @@ def test_viewers_with_the_same_view_share_one_render() -> None:
     assert plan.come_back_in is None
 
 
+def test_a_view_without_a_camera_shares_the_sessions_camera() -> None:
+    s = RenderScheduler(SETTINGS)
+    session_camera = p.Camera(distance=720.0)
+    a = client("a", "viewer")
+    a.view = p.View(width=200, height=100)  # a script that names only its canvas
+    b = viewer("b", session_camera)
+    ((key, members),) = s.plan([a, b], 10.0, 1, default_camera=session_camera).groups
+    assert key.camera == session_camera and len(members) == 2  # one render for both
+    assert s.view_of(a, session_camera)[0] == session_camera
+
+
 def test_a_group_renders_a_version_once_unless_a_member_asks_again() -> None:
     s = RenderScheduler(SETTINGS)
     a = viewer("a")
