@@ -284,7 +284,9 @@ def _steer(
                 pending[seq] = (time.perf_counter(), time.time())
             next_change += 0.25
         try:
-            msg = peer.recv(0.05)
+            # wait no longer than the next change: a change goes when it is due, not when an
+            # image happens to arrive (that would tie every change to the server's passes)
+            msg = peer.recv(max(0.0005, min(0.05, next_change - time.monotonic())))
         except TimeoutError:
             continue
         if not isinstance(msg, p.Image):
