@@ -14,6 +14,7 @@ use (shown by /healthz).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -204,7 +205,12 @@ class VideoEncoder:
         return EncodedFrame(data, is_key, (time.perf_counter() - t0) * 1000.0)
 
     def close(self) -> None:
-        self._ctx = None
+        """End the stream (an end-of-stream to the encoder, which some, SVT-AV1 among them,
+        expect before they are freed) and drop the encoder."""
+        ctx, self._ctx = self._ctx, None
+        if ctx is not None:
+            with contextlib.suppress(Exception):  # a failed encoder may refuse the flush too
+                ctx.encode(None)
 
 
 def _probe(codec: str, encoder: str) -> str | None:

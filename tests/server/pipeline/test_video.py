@@ -114,3 +114,22 @@ def test_the_rate_follows_the_setting() -> None:
         sizes[kbps] = total * 8 / 1000  # kbit in one second of video
     assert sizes[300] < 0.5 * sizes[3000]
     assert sizes[300] < 2 * 300  # near the rate asked for, within the VBV buffer
+
+
+@pytest.mark.parametrize("codec", ["h264", "av1", "vp9"])
+def test_closing_an_encoder_ends_its_stream_quietly(
+    codec: str, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """An encoder is told its stream ended before it is freed (SVT-AV1 printed an error on
+    every server start, from the start-up probe, when it was not); closing twice is harmless."""
+    encoder = VideoEncoders((codec,)).chosen().get(codec)
+    if encoder is None:
+        pytest.skip(f"no {codec} encoder here")
+    capfd.readouterr()
+    enc = VideoEncoder(codec, encoder, 320, 240, 500.0)  # SVT-AV1 opens no smaller stream
+    enc.encode(picture(320, 240), key=True)
+    enc.encode(picture(320, 240, shift=3))
+    enc.close()
+    enc.close()
+    err = capfd.readouterr().err
+    assert "error" not in err.lower(), err
