@@ -211,7 +211,8 @@ class Client:
                     continue
                 if self._image is not None and self.state is ClientState.CONNECTED:
                     (frame_id, data), self._image = self._image, None
-                    self.link.on_sent(frame_id, len(data), time.monotonic())
+                    if self.paced_images:  # only a client that acknowledges images is paced
+                        self.link.on_sent(frame_id, len(data), time.monotonic())
                     await self.ws.send_bytes(data)
                     self.frames_sent += 1
                     if on_image_sent is not None:

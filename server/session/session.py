@@ -758,7 +758,7 @@ class Session:
         )
         taken: list[Snapshot] = []  # the snapshot of this pass, taken when its first render starts
         for key, members in plan.groups:
-            planned = {c.client_id: c.view_ref for c in members}
+            planned = {c.client_id: (c.view, c.view_ref) for c in members}
             version = await self._render_group(key, members, planned, taken)
             if version is not None:
                 self.scheduler.rendered(key, version)
@@ -773,7 +773,7 @@ class Session:
         self,
         key: ViewKey,
         members: list[Client],
-        planned: dict[str, int | None],
+        planned: dict[str, tuple[p.View | None, int | None]],
         taken: list[Snapshot],
     ) -> int | None:
         """Render one view group, then leave its encoding and delivery to a task of its own.
@@ -785,7 +785,15 @@ class Session:
         """
         slots = self.services.encode_slots
         await slots.acquire()
-        refs = self._refs(key, members, planned)
+        # the change each image shows: the render parameters are read as the render starts,
+        # right after this, so a steer since the plan counts; a member that sent a new view
+        # since the plan keeps the planned ref (the image shows the planned camera)
+        refs = {
+            c.client_id: c.view_ref
+            if c.view is planned[c.client_id][0]
+            else planned[c.client_id][1]
+            for c in members
+        }
         try:
             if not taken:
                 snap = self.snapshot()
@@ -801,20 +809,6 @@ class Session:
             return None
         self.delivery.start(rendered, members, refs, lambda: self.scheduler.forget(key))
         return taken[0].version
-
-    def _refs(
-        self, key: ViewKey, members: list[Client], planned: dict[str, int | None]
-    ) -> dict[str, int | None]:
-        """The change (`view_ref`) each member's image will show. The render parameters are
-        read when the render starts, right after this, so a change since the plan counts; a
-        member whose view moved since the plan keeps the planned ref (the image shows the
-        planned camera)."""
-        refs = dict(planned)
-        for c in members:
-            camera, w, h = self.scheduler.view_of(c, self.camera)
-            if (camera.model_dump_json(), w, h) == (key.camera_json, key.width, key.height):
-                refs[c.client_id] = c.view_ref
-        return refs
 
     async def _render(self, key: ViewKey, snap: Snapshot) -> Rendered | None:
         """One render of `snap` for a view group; None when a new topology arrived since the
