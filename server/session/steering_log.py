@@ -50,8 +50,11 @@ class SteeringLog:
             os.fsync(fh.fileno())
 
     def read(self, session: str) -> list[dict[str, Any]]:
-        """All complete entries, oldest first (a torn last line after a crash is skipped)."""
+        """All complete entries, oldest first (a torn last line after a crash is skipped),
+        including every entry appended before this call: the read waits for the queued
+        writes (blocking; call it off the event loop)."""
         path = self.path(session)
+        self._writer.submit(lambda: None).result()
         if not path.exists():
             return []
         out: list[dict[str, Any]] = []
