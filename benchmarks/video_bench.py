@@ -14,6 +14,8 @@ whose atoms move smoothly (0.3 A breathing, 120 frames per cycle). Frames come a
   and a steerer that decodes every image (PyAV, Pillow), acknowledges each as the dashboard
   does, and changes the iso level 4 times a second, timing each change to the decoded
   image that shows it. Delivered bit rate and frames/s over the window; the server's CPU.
+  `--steer orbit` turns the steerer's own camera instead (2 degrees a change, as a drag on the
+  dashboard does), `--change-hz` sets how often; rows then count keyframes too.
 
     python benchmarks/video_bench.py --device cuda:0            # GPU run, results JSON + table
     python benchmarks/video_bench.py --quick --device cpu       # smoke test
@@ -240,11 +242,28 @@ def _simulate(
     sim.close()
 
 
+def turned(camera: p.Camera, degrees: float) -> p.Camera:
+    """`camera` orbited by `degrees` about the world's y axis (quaternions are (w, x, y, z))."""
+    half = np.radians(degrees) / 2
+    rw, ry = float(np.cos(half)), float(np.sin(half))
+    w, x, y, z = camera.orientation
+    q = (rw * w - ry * y, rw * x + ry * z, rw * y + ry * w, rw * z - ry * x)
+    n = sum(c * c for c in q) ** 0.5
+    return camera.model_copy(update={"orientation": tuple(c / n for c in q)})
+
+
 def _steer(
-    url: str, session: str, video: bool, size: tuple[int, int], seconds: float, out: Any
+    url: str,
+    session: str,
+    video: bool,
+    size: tuple[int, int],
+    seconds: float,
+    out: Any,
+    steer: str = "iso",
+    change_hz: float = 4.0,
 ) -> None:
     """Child process: a steerer decoding every image (and acknowledging each), timing
-    iso-level changes to the decoded image that shows them."""
+    iso-level changes (or turns of its camera) to the decoded image that shows them."""
     import av
     from PIL import Image
 
@@ -259,8 +278,10 @@ def _steer(
                 camera = got.camera
     if camera is None:
         raise RuntimeError("the session sent no camera")
-    peer.send(p.View(camera=camera, width=size[0], height=size[1], video=["h264"] if video else []))
+    codecs: list[p.VideoCodec] = ["h264"] if video else []
+    peer.send(p.View(camera=camera, width=size[0], height=size[1], video=codecs))
     decoder: Any = None
+    keyframes = 0
     stream = None
     pending: dict[int, tuple[float, float]] = {}
     latencies: list[float] = []
@@ -279,10 +300,15 @@ def _steer(
     while (now := time.monotonic()) < end:
         if now >= next_change:
             k += 1
-            seq = peer.send(p.SetRenderParams(params={"iso_level": 0.25 + 0.01 * (k % 2)}))
+            if steer == "orbit":
+                camera = turned(camera, 2.0)
+                view = p.View(camera=camera, width=size[0], height=size[1], video=codecs)
+                seq = peer.send(view)
+            else:
+                seq = peer.send(p.SetRenderParams(params={"iso_level": 0.25 + 0.01 * (k % 2)}))
             if now >= measure_from:
                 pending[seq] = (time.perf_counter(), time.time())
-            next_change += 0.25
+            next_change += 1.0 / change_hz
         try:
             # wait no longer than the next change: a change goes when it is due, not when an
             # image happens to arrive (that would tie every change to the server's passes)
@@ -307,6 +333,7 @@ def _steer(
             continue
         got_frames += 1
         got_bytes += len(msg.data)
+        keyframes += bool(msg.key)
         formats.add(msg.format)
         decode_ms.append((t1 - t0) * 1e3)
         encode_ms.append(msg.encode_ms)
@@ -333,6 +360,7 @@ def _steer(
             "steer_to_photon_ms_p50": percentile(latencies, 50),
             "steer_to_photon_ms_p99": percentile(latencies, 99),
             "changes_timed": len(latencies),
+            "keyframes": keyframes,
             "changes": changes,
         }
     )
@@ -347,6 +375,8 @@ def live(
     size: tuple[int, int],
     seconds: float,
     trace: Trace | None = None,
+    steer: str = "iso",
+    change_hz: float = 4.0,
 ) -> dict[str, Any]:
     ctx = mp.get_context("spawn")
     session = f"{system_name}-{'video' if video else 'jpeg'}-{link}"
@@ -365,7 +395,9 @@ def live(
     try:
         if not ready.wait(600):
             raise TimeoutError("the simulation did not start")
-        steerer = ctx.Process(target=_steer, args=(url, session, video, size, seconds, out))
+        steerer = ctx.Process(
+            target=_steer, args=(url, session, video, size, seconds, out, steer, change_hz)
+        )
         steerer.start()
         time.sleep(3.0)
         c0, w0 = time.process_time(), time.perf_counter()
@@ -387,6 +419,8 @@ def live(
             "system": system_name,
             "transport": "h264" if video else "jpeg",
             "link": link,
+            "steer": steer,
+            "change_hz": change_hz,
             "server_cores": cores,
         }
     )
@@ -395,7 +429,7 @@ def live(
 
 class Trace:
     """Server-side stamps (wall clock) of each timed change, for the latency breakdown: when
-    the steer message was handled, and when the render that drew it was asked for and done.
+    the steer message (or view) was handled, and when the render that drew it was asked for and done.
     The server runs in this process, so its session methods are wrapped here."""
 
     def __init__(self) -> None:
@@ -407,6 +441,7 @@ class Trace:
         self.device_calls: list[tuple[float, float]] = []
         self.last_request: Any = None
         steer, render, render_sync = Session.steer, Session._render, GpuQueue.render_sync
+        set_view = Session.set_view
         render_group = Session._render_group
         self.groups: list[float] = []
         trace = self
@@ -427,6 +462,11 @@ class Trace:
                 trace.steered[(session.id, message.seq)] = time.time()
             steer(session, client, message)
 
+        def traced_view(session: Any, client: Any, view: Any) -> None:
+            if view.seq is not None:  # a turn of the camera (--steer orbit)
+                trace.steered[(session.id, view.seq)] = time.time()
+            set_view(session, client, view)
+
         async def traced_render(session: Any, key: Any, snap: Any) -> Any:
             t0 = time.time()
             out = await render(session, key, snap)
@@ -436,6 +476,7 @@ class Trace:
             return out
 
         Session.steer = traced_steer  # type: ignore[method-assign,assignment]
+        Session.set_view = traced_view  # type: ignore[method-assign]
         Session._render = traced_render  # type: ignore[method-assign,assignment]
         GpuQueue.render_sync = traced_sync  # type: ignore[method-assign]
         Session._render_group = traced_group  # type: ignore[method-assign]
@@ -545,6 +586,13 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="the baseline: video streams encode frames that show a waiting viewer nothing new",
     )
+    ap.add_argument("--steer", choices=["iso", "orbit"], default="iso")
+    ap.add_argument("--change-hz", type=float, default=4.0)
+    ap.add_argument(
+        "--stream-per-camera",
+        action="store_true",
+        help="the baseline: a viewer's video stream restarts (at a keyframe) on every camera move",
+    )
     ap.add_argument(
         "--switch-interval",
         type=float,
@@ -613,6 +661,11 @@ def main(argv: list[str] | None = None) -> int:
 
             Delivery._nothing_new = staticmethod(lambda *_: False)  # type: ignore[method-assign]
             result["encode_every_frame"] = True
+        if args.stream_per_camera:
+            from server.session.streams import VideoStreams
+
+            VideoStreams._follow = lambda *_: None  # type: ignore[method-assign]
+            result["stream_per_camera"] = True
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
             result["switch_interval_s"] = args.switch_interval
@@ -622,7 +675,10 @@ def main(argv: list[str] | None = None) -> int:
             for name in systems:
                 for link in args.links.split(","):
                     for video in [t == "h264" for t in args.transports.split(",")]:
-                        row = live(server, name, n_big, video, link, size, seconds, trace)  # type: ignore[arg-type]
+                        row = live(
+                            server, name, n_big, video, link, size, seconds, trace,  # type: ignore[arg-type]
+                            args.steer, args.change_hz,
+                        )  # fmt: skip
                         result["live"].append(row)
                         print(json.dumps(row), flush=True)
                         req = trace.last_request

@@ -79,6 +79,7 @@ class Delivery:
         now = time.monotonic()
         stills: list[Client] = []
         by_stream: dict[VideoStream, list[Client]] = {}
+        group = frozenset(c.client_id for c in members)
         for client in members:
             codec = self.streams.codec_for(client)
             if codec is None:
@@ -90,7 +91,7 @@ class Delivery:
             elif rendered.rest:
                 stills.append(client)
             else:
-                stream = self.streams.stream_for(client, codec, rendered.camera_json, now)
+                stream = self.streams.stream_for(client, codec, rendered.camera_json, now, group)
                 by_stream.setdefault(stream, []).append(client)
         self.streams.reap(now)
         # created here, in render order: each takes its stream's lock before any other await

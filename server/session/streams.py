@@ -5,6 +5,12 @@ the same bit-rate rung share one stream: one encode serves them all. A viewer wh
 slower lands on a lower rung and so on a stream of its own; a viewer with its own camera has its
 own. A viewer that joins a stream (it connected, its rung or view changed) gets a keyframe on
 that stream's next frame it is ready for, and nothing of the stream before it.
+
+A stream follows its viewers' camera: when every viewer of a stream turns to a new camera
+together (one viewer orbiting its own camera, or everyone watching the session's camera as the
+steerer moves it), the stream carries on under the new camera with delta frames. Only a viewer
+that leaves the others' view (or changes size, codec or rung) starts a stream of its own at a
+keyframe: a keyframe per camera move would swamp a slow link while the user turns the molecule.
 """
 
 from __future__ import annotations
@@ -93,8 +99,18 @@ class VideoStreams:
             return None
         return self.encoders.pick(client.view.video)
 
-    def stream_for(self, client: Client, codec: str, camera_json: str, now: float) -> VideoStream:
-        """The stream `client` gets its next frame from (joining it when that is new)."""
+    def stream_for(
+        self,
+        client: Client,
+        codec: str,
+        camera_json: str,
+        now: float,
+        group: frozenset[str] = frozenset(),
+    ) -> VideoStream:
+        """The stream `client` gets its next frame from (joining it when that is new).
+        `group`: the ids of every client this frame's render is for (all see `camera_json`);
+        the client's current stream follows it to the new camera when all its viewers are
+        among them."""
         view = client.view
         assert view is not None
         cap = self.cap_kbps(view.width, view.height)
@@ -107,6 +123,8 @@ class VideoStreams:
         )
         stream = self._streams.get(key)
         if stream is None:
+            stream = self._follow(client, key, group | {client.client_id})
+        if stream is None:
             encoder = self.encoders.chosen()[codec]
             stream = VideoStream(next(self._ids), key, codec, encoder, 0.0)
             stream.kbps = self.kbps(stream)
@@ -117,6 +135,17 @@ class VideoStreams:
             stream.members.add(client.client_id)
             client.join_stream(stream.stream_id)  # it waits for a keyframe
         stream.last_used = now
+        return stream
+
+    def _follow(self, client: Client, key: StreamKey, group: frozenset[str]) -> VideoStream | None:
+        """The client's stream, moved to `key`, when only the camera differs and all its
+        viewers see the new camera too (none stays behind at the old one); else None."""
+        stream = next((s for s in self._streams.values() if client.client_id in s.members), None)
+        if stream is None or stream.key[1:] != key[1:] or not stream.members <= group:
+            return None
+        del self._streams[stream.key]
+        stream.key = key
+        self._streams[key] = stream
         return stream
 
     def kbps(self, stream: VideoStream) -> float:

@@ -52,6 +52,33 @@ def test_own_camera_own_size_or_slower_link_means_own_stream() -> None:
     assert len(streams) == 3
 
 
+def test_a_stream_follows_its_viewers_to_a_new_camera_unless_one_stays_behind() -> None:
+    streams = VideoStreams(ENCODERS, 4500.0, 350.0)
+    cams = [p.Camera(distance=50.0 + i).model_dump_json() for i in range(4)]
+    a, b = viewer("a"), viewer("b")
+    s = streams.stream_for(a, "h264", cams[0], 0, frozenset({"a"}))
+    a.awaiting_key = False
+    # a turns its own camera: the same stream (no keyframe), now under the new camera
+    assert streams.stream_for(a, "h264", cams[1], 0.1, frozenset({"a"})) is s
+    assert not a.awaiting_key and s.key[0] == cams[1] and len(streams) == 1
+    # b joins that view: the stream is shared
+    assert streams.stream_for(b, "h264", cams[1], 0.2, frozenset({"a", "b"})) is s
+    a.awaiting_key = b.awaiting_key = False
+    # both move together (the session's camera, turned by the steerer): still the one stream
+    for cid in ("a", "b"):
+        c = a if cid == "a" else b
+        assert streams.stream_for(c, "h264", cams[2], 0.3, frozenset({"a", "b"})) is s
+    assert not a.awaiting_key and not b.awaiting_key
+    # a turns away alone: b stays on the stream, a starts its own at a keyframe
+    own = streams.stream_for(a, "h264", cams[3], 0.4, frozenset({"a"}))
+    assert own is not s and a.awaiting_key and s.members == {"b"} and s.key[0] == cams[2]
+    # a size change is a new stream even for a lone viewer (the encoder needs a keyframe)
+    a.awaiting_key = False
+    a.view = p.View(width=800, height=600, video=["h264"])
+    assert streams.stream_for(a, "h264", cams[3], 0.5, frozenset({"a"})) is not own
+    assert a.awaiting_key
+
+
 def test_the_rate_is_what_the_canvas_needs_when_the_link_allows() -> None:
     streams = VideoStreams(ENCODERS, 4500.0, 350.0)
     full_hd = viewer("a", (1920, 1080))

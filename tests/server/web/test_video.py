@@ -120,6 +120,27 @@ def test_a_viewer_with_its_own_camera_gets_its_own_stream(live_server: LiveServe
     b.close()
 
 
+def test_a_viewer_turning_its_camera_keeps_its_stream_without_keyframes(
+    live_server: LiveServer,
+) -> None:
+    """Orbiting is the commonest interaction: each move is a delta frame of the same stream,
+    not a new stream that starts at a keyframe (a keyframe per move swamps a slow link)."""
+    sim, _ = start_sim(live_server)
+    v = VideoViewer(live_server.view_url, live_server.viewer_token, camera=p.Camera())
+    first, shown = video_frame(v, width=320)
+    for turn in range(1, 5):
+        angle = 0.15 * turn
+        cam = p.Camera(orientation=(0.0, float(np.sin(angle)), 0.0, float(np.cos(angle))))
+        v.view((320, 240), camera=cam)
+        msg, px = video_frame(v)
+        while msg.frame_id <= first.frame_id or np.array_equal(px, shown):
+            msg, px = video_frame(v)
+        assert (msg.stream, msg.key) == (first.stream, False), f"turn {turn}"
+        shown = px
+    sim.close()
+    v.close()
+
+
 def test_jpeg_for_viewers_without_video_and_when_a_viewer_drops_it(
     live_server: LiveServer,
 ) -> None:
