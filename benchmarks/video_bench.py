@@ -302,7 +302,9 @@ def _steer(
             k += 1
             if steer == "orbit":
                 camera = turned(camera, 2.0)
-                view = p.View(camera=camera, width=size[0], height=size[1], video=codecs)
+                view = p.View(
+                    camera=camera, width=size[0], height=size[1], video=codecs, interacting=True
+                )  # as a drag on the dashboard sends it
                 seq = peer.send(view)
             else:
                 seq = peer.send(p.SetRenderParams(params={"iso_level": 0.25 + 0.01 * (k % 2)}))
@@ -429,8 +431,8 @@ def live(
 
 class Trace:
     """Server-side stamps (wall clock) of each timed change, for the latency breakdown: when
-    the steer message (or view) was handled, and when the render that drew it was asked for and done.
-    The server runs in this process, so its session methods are wrapped here."""
+    the steer message (or view) was handled, and when the render that drew it was asked for
+    and done. The server runs in this process, so its session methods are wrapped here."""
 
     def __init__(self) -> None:
         from server.pipeline.gpu import GpuQueue
@@ -467,9 +469,9 @@ class Trace:
                 trace.steered[(session.id, view.seq)] = time.time()
             set_view(session, client, view)
 
-        async def traced_render(session: Any, key: Any, snap: Any) -> Any:
+        async def traced_render(session: Any, key: Any, snap: Any, *more: Any) -> Any:
             t0 = time.time()
-            out = await render(session, key, snap)
+            out = await render(session, key, snap, *more)
             if out is not None:
                 span = (t0, time.time(), dict(out.out.timings), out.width * out.height)
                 trace.renders[(session.id, out.image_id)] = span
@@ -594,6 +596,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the baseline: a viewer's video stream restarts (at a keyframe) on every camera move",
     )
     ap.add_argument(
+        "--host-convert",
+        action="store_true",
+        help="the baseline: video frames converted to I420 (and scaled) by swscale on the host",
+    )
+    ap.add_argument(
         "--switch-interval",
         type=float,
         help="the interpreter's thread switch interval in seconds for the server (a variant)",
@@ -666,6 +673,11 @@ def main(argv: list[str] | None = None) -> int:
 
             VideoStreams._follow = lambda *_: None  # type: ignore[method-assign]
             result["stream_per_camera"] = True
+        if args.host_convert:
+            from server.pipeline.gpu import GpuQueue
+
+            GpuQueue._on_cuda = lambda _self: False  # type: ignore[method-assign]
+            result["host_convert"] = True
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
             result["switch_interval_s"] = args.switch_interval

@@ -68,6 +68,9 @@ class RenderRequest:
     layers: tuple[LayerPlan, ...] | None = None
     """The visible layers, their selections evaluated (None: every atom, drawn the single way
     `params` says)."""
+    video_size: tuple[int, int] | None = None
+    """A video stream encodes this image at this size: on a CUDA device the image also comes
+    back as I420 planes at that size (`RenderOutput.i420`), converted and scaled there."""
 
 
 @dataclass
@@ -75,6 +78,8 @@ class RenderOutput:
     rgba: npt.NDArray[np.uint8]
     timings: dict[str, float]
     histogram: npt.NDArray[np.float32] | None = None
+    i420: npt.NDArray[np.uint8] | None = None
+    """The image at the request's `video_size` as I420 planes (CUDA devices only)."""
 
 
 @dataclass
@@ -195,7 +200,15 @@ class GpuQueue:
         if request.histogram:
             counts, _edges = renderer.density_histogram(64)
             hist = np.asarray(counts, dtype=np.float32)
-        return RenderOutput(rgba=rgba, timings=dict(renderer.timings), histogram=hist)
+        i420 = None
+        read_i420 = getattr(renderer, "read_i420", None)  # a multi-device render has none
+        if request.video_size is not None and read_i420 is not None and self._on_cuda():
+            i420 = read_i420(request.video_size)
+        return RenderOutput(rgba, dict(renderer.timings), hist, i420)
+
+    def _on_cuda(self) -> bool:
+        """On the CPU device swscale converts faster than a kernel there: no I420 then."""
+        return self.actual_device.startswith("cuda")
 
     def pick_sync(
         self, request: RenderRequest, x: int, y: int

@@ -160,28 +160,25 @@ class VideoEncoder:
         self.frames = 0
 
     def encode(
-        self, rgba: npt.NDArray[np.uint8], key: bool = False, pts_ms: int | None = None
+        self,
+        rgba: npt.NDArray[np.uint8],
+        key: bool = False,
+        pts_ms: int | None = None,
+        i420: npt.NDArray[np.uint8] | None = None,
     ) -> EncodedFrame:
         """Encode one (h, w, 4) RGBA image; `key` forces a keyframe (IDR). An image of another
         size than the stream's (a render shrunk to the frame budget) is scaled to it, so the
         stream does not restart at a keyframe each time the budget moves. Frames are stamped
-        with the wall time (rate control sees the real frame rate) unless `pts_ms` is given."""
+        with the wall time (rate control sees the real frame rate) unless `pts_ms` is given.
+        `i420`: the same picture already converted at the stream's padded size (the device's
+        `read_i420`), taken instead of converting `rgba` here."""
         av = self._av
         t0 = time.perf_counter()
-        h, w = rgba.shape[:2]
         pw, ph = self._ctx.width, self._ctx.height
-        if (w, h) == (self.width, self.height) and (pw, ph) != (w, h):
-            rgba = np.pad(rgba, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge")
-        # wraps the pixels without a copy (from_ndarray copies row by row: 2-8 ms at 1080p)
-        frame = av.VideoFrame.from_numpy_buffer(np.ascontiguousarray(rgba), format="rgba")
-        frame = frame.reformat(
-            width=pw,
-            height=ph,
-            format="yuv420p",
-            dst_colorspace="ITU709",
-            interpolation="BILINEAR",
-            threads=self.threads,
-        )
+        if i420 is not None and i420.shape == (ph * 3 // 2, pw):
+            frame = self._wrap(i420)
+        else:
+            frame = self._convert(rgba)
         if pts_ms is None:
             now = time.monotonic()
             if self._t0 is None:
@@ -203,6 +200,40 @@ class VideoEncoder:
         if (key or first) and not is_key:
             raise RuntimeError(f"{self.encoder} did not make the keyframe it was asked for")
         return EncodedFrame(data, is_key, (time.perf_counter() - t0) * 1000.0)
+
+    def _wrap(self, i420: npt.NDArray[np.uint8]) -> Any:
+        """A frame of (h * 3 / 2, w) I420 planes: wrapped without a copy where PyAV can (a
+        height that is a multiple of 4), else copied plane by plane into a frame's rows."""
+        pw, ph = self._ctx.width, self._ctx.height
+        if ph % 4 == 0:
+            return self._av.VideoFrame.from_numpy_buffer(i420, format="yuv420p")
+        frame = self._av.VideoFrame(pw, ph, "yuv420p")
+        flat = i420.reshape(-1)
+        at = 0
+        for plane in frame.planes:
+            w, h = plane.width, plane.height
+            rows = np.frombuffer(memoryview(plane), np.uint8).reshape(h, plane.line_size)
+            rows[:, :w] = flat[at : at + w * h].reshape(h, w)
+            at += w * h
+        return frame
+
+    def _convert(self, rgba: npt.NDArray[np.uint8]) -> Any:
+        """RGBA to the encoder's I420 at its size with swscale (`server.render.yuv` does the
+        same on a CUDA device: BT.709 limited range, bilinear scaling, edges repeated)."""
+        h, w = rgba.shape[:2]
+        pw, ph = self._ctx.width, self._ctx.height
+        if (w, h) == (self.width, self.height) and (pw, ph) != (w, h):
+            rgba = np.pad(rgba, ((0, ph - h), (0, pw - w), (0, 0)), mode="edge")
+        # wraps the pixels without a copy (from_ndarray copies row by row: 2-8 ms at 1080p)
+        frame = self._av.VideoFrame.from_numpy_buffer(np.ascontiguousarray(rgba), format="rgba")
+        return frame.reformat(
+            width=pw,
+            height=ph,
+            format="yuv420p",
+            dst_colorspace="ITU709",
+            interpolation="BILINEAR",
+            threads=self.threads,
+        )
 
     def close(self) -> None:
         """End the stream (an end-of-stream to the encoder, which some, SVT-AV1 among them,

@@ -9,6 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from server.render.errors import RenderError
+from server.render.yuv import I420Converter
 
 
 class ImageOutputs:
@@ -16,6 +17,7 @@ class ImageOutputs:
     (packed RGBA, float distance along each ray, int32 atom id)."""
 
     _image: tuple[int, int] | None = None
+    _i420: I420Converter | None = None
 
     def _outputs(self) -> tuple[Any, Any, Any]:
         raise NotImplementedError
@@ -41,6 +43,15 @@ class ImageOutputs:
         w, h = self._need_image()
         rgba: npt.NDArray[np.uint8] = self._read(self._outputs()[0]).view(np.uint8)
         return rgba.reshape(h, w, 4)
+
+    def read_i420(self, size: tuple[int, int]) -> npt.NDArray[np.uint8]:
+        """The last image as a video encoder takes it, scaled to `size` (width, height):
+        (h * 3 / 2, w) uint8 I420 planes, sides padded to even (`server.render.yuv`)."""
+        src = self._need_image()
+        rgba = self._outputs()[0]
+        if self._i420 is None or self._i420.device != rgba.device:
+            self._i420 = I420Converter(rgba.device)
+        return self._i420.convert(rgba, src, size)
 
     def read_depth(self) -> npt.NDArray[np.float32]:
         """(height, width) float32 distance along each ray; inf where nothing was hit."""

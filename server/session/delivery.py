@@ -192,6 +192,7 @@ class Delivery:
                     kbps,
                     rendered.stream_size,
                     key,
+                    rendered.out.i420,
                 )
             except Exception as exc:
                 log.warning(

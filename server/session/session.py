@@ -800,7 +800,8 @@ class Session:
                 if snap is not None:
                     taken.append(snap)
                     self._frame_taken.set()
-            rendered = await self._render(key, taken[0]) if taken else None
+            video = not key.rest and any(self.delivery.streams.codec_for(c) for c in members)
+            rendered = await self._render(key, taken[0], video) if taken else None
         except BaseException:
             slots.release()
             raise
@@ -810,9 +811,10 @@ class Session:
         self.delivery.start(rendered, members, refs, lambda: self.scheduler.forget(key))
         return taken[0].version
 
-    async def _render(self, key: ViewKey, snap: Snapshot) -> Rendered | None:
+    async def _render(self, key: ViewKey, snap: Snapshot, video: bool = False) -> Rendered | None:
         """One render of `snap` for a view group; None when a new topology arrived since the
-        snapshot was taken (the next pass renders that one)."""
+        snapshot was taken (the next pass renders that one). `video`: a member takes it as a
+        video frame (the device then also converts it for the encoder)."""
         if snap.topology_id != self.topology_id:
             return None
         if not self.layers.ready:
@@ -822,6 +824,7 @@ class Session:
         device = self.services.backend.actual_device or self.settings.device
         on_cpu = device.startswith("cpu")
         width, height = self.scheduler.image_size(key, params.quality, on_cpu)
+        stream_size = self.scheduler.stream_size(key, params.quality, on_cpu)
         now = time.monotonic()
         request = RenderRequest(
             slot=self.slot,
@@ -832,6 +835,7 @@ class Session:
             height=height,
             histogram=self.scheduler.histogram_due(key, now),
             layers=layers,
+            video_size=stream_size if video else None,
         )
         out: RenderOutput = await self.services.backend.render(request)
         reduced = self.scheduler.note_render(
@@ -858,7 +862,7 @@ class Session:
             quality,
             not key.interactive and not reduced,
             camera_json=key.camera_json,
-            stream_size=self.scheduler.stream_size(key, params.quality, on_cpu),
+            stream_size=stream_size,
             rest=key.rest,
         )
 

@@ -60,10 +60,16 @@ class VideoStream:
     _encoder: VideoEncoder | None = None
 
     def encode(
-        self, rgba: npt.NDArray[np.uint8], kbps: float, size: tuple[int, int], key: bool
+        self,
+        rgba: npt.NDArray[np.uint8],
+        kbps: float,
+        size: tuple[int, int],
+        key: bool,
+        i420: npt.NDArray[np.uint8] | None = None,
     ) -> EncodedFrame:
         """Encode one frame at `size` (runs in an encoder thread, under `lock`); `key` asks for
-        a keyframe. A new size or bit rate opens a new encoder, which starts with one."""
+        a keyframe. A new size or bit rate opens a new encoder, which starts with one. `i420`:
+        the frame already converted at `size` on the device."""
         w, h = size
         enc = self._encoder
         if enc is None or (enc.width, enc.height) != (w, h) or enc.kbps != kbps:
@@ -71,7 +77,7 @@ class VideoStream:
                 enc.close()
             enc = self._encoder = VideoEncoder(self.codec, self.encoder_name, w, h, kbps)
             self.kbps = kbps
-        return enc.encode(rgba, key=key)
+        return enc.encode(rgba, key=key, i420=i420)
 
     def close(self) -> None:
         if self._encoder is not None:

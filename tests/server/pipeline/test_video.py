@@ -101,6 +101,23 @@ def test_odd_sizes_and_smaller_renders_are_scaled_into_the_stream() -> None:
     assert psnr(out[1][:121, :161], picture(161, 121)[..., :3]) > 20  # upscaled, softer
 
 
+@pytest.mark.parametrize("size", [(160, 120), (161, 121)])
+def test_planes_converted_on_the_device_are_encoded_as_they_are(size: tuple[int, int]) -> None:
+    from tests.render.test_yuv import swscale
+
+    w, h = size
+    enc = VideoEncoder("h264", "libx264", w, h, 2000)
+    img = picture(w, h)
+    moved = picture(w, h, shift=40)  # planes of another picture than the RGBA image's:
+    planes = swscale(moved, size)  # the device's `read_i420` output is what is encoded
+    out = decode("h264", [enc.encode(img, key=True, i420=planes).data])[0][:h, :w]
+    assert psnr(out, moved[..., :3]) > 30 > psnr(out, img[..., :3])
+    # planes of another size (a stale conversion) are not taken: the RGBA image is
+    wrong = swscale(img, (80, 60))
+    out = decode("h264", [enc.encode(img, key=True, i420=wrong).data])[0]
+    assert psnr(out[:h, :w], img[..., :3]) > 30
+
+
 def test_the_rate_follows_the_setting() -> None:
     rng = np.random.default_rng(0)
     sizes = {}
