@@ -211,6 +211,8 @@ class Delivery:
                 return
         services.metrics.encode_ms.observe(frame.encode_ms)
         self.last_encode_ms = frame.encode_ms
+        stream.frames += 1
+        stream.keyframes += frame.key
         pack = self._packer(
             rendered,
             FORMAT[stream.codec],

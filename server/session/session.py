@@ -944,6 +944,7 @@ class Session:
             "title": self.topology.title if self.topology else "",
             "render_params": self.render_params.model_dump(),
             "renders": self.render_count,
+            "video_streams": self.delivery.streams.describe(),
         }
 
     async def frame_taken(self, timeout: float) -> None:

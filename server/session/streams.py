@@ -57,6 +57,9 @@ class VideoStream:
     """Per viewer, the last change (`view_ref`) its last encoded frame showed."""
     last_encoded: float = float("-inf")
     """When the last frame went into the encoder (monotonic seconds)."""
+    frames: int = 0
+    keyframes: int = 0
+    """Frames encoded, and how many of them were keyframes (joins, resizes, lost frames)."""
     _encoder: VideoEncoder | None = None
 
     def encode(
@@ -182,6 +185,8 @@ class VideoStreams:
                 "encoder": s.encoder_name,
                 "kbps": s.kbps,
                 "viewers": len(s.members),
+                "frames": s.frames,
+                "keyframes": s.keyframes,
             }
             for s in self._streams.values()
         ]

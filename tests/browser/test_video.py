@@ -135,3 +135,29 @@ def test_jpeg_from_the_address(
     wait_for_frame(dash, first)
     assert dash.page.locator("#viewport").get_attribute("data-format") == "jpeg"
     assert dash.page.locator("#transport").input_value() == "jpeg"
+
+
+def test_dragging_the_camera_turns_the_stream_without_keyframes(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
+) -> None:
+    """A drag sends a view per animation frame: each is a delta frame of the one stream."""
+    dash = open_dashboard()
+    wait_format(dash, "h264")
+    first = wait_for_frame(dash)
+    session = live_server.app_state.sessions.get("default")
+    (before,) = session.summary()["video_streams"]
+    box = dash.page.locator("#view").bounding_box()
+    assert box is not None
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    mouse = dash.page.mouse
+    mouse.move(cx - 120, cy)
+    mouse.down()
+    for k in range(12):  # a slow drag: a view per step, each drawn before the next
+        mouse.move(cx - 120 + 20 * (k + 1), cy + 3 * k, steps=2)
+        time.sleep(0.15)
+    mouse.up()
+    wait_for_frame(dash, first + 3)
+    (after,) = session.summary()["video_streams"]
+    assert after["stream"] == before["stream"], "the drag restarted the stream"
+    assert after["frames"] >= before["frames"] + 3, "the drag was not streamed"
+    assert after["keyframes"] <= before["keyframes"] + 1, "the drag's frames were keyframes"
