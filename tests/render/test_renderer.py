@@ -68,13 +68,15 @@ def test_pinned_host_buffer_path(device: str) -> None:
     np.testing.assert_array_equal(a.read_rgba(), b.read_rgba())
 
 
+@pytest.mark.parametrize("pageable", [False, True], ids=["staged", "pageable"])
 @pytest.mark.parametrize("double_buffer", [None, True])
 def test_the_next_frame_uploads_while_the_last_renders(
-    device: str, double_buffer: bool | None
+    device: str, double_buffer: bool | None, pageable: bool
 ) -> None:
     """`render(wait=False)`, then the next frame's positions, then `finish`: the frames come out
     as they do one by one, while each upload overlaps the render before it (two buffers on
-    CUDA; one buffer waits for the render first)."""
+    CUDA; one buffer waits for the render first). Frames written into the renderer's
+    page-locked buffer and frames in ordinary memory (which two buffers stage there) alike."""
     n = 80
     top = make_topology(n)
     rng = np.random.default_rng(5)
@@ -91,7 +93,9 @@ def test_the_next_frame_uploads_while_the_last_renders(
     r.render(params, cam, 40, 30, wait=False)
     piped = []
     for f in [*frames[1:], None]:
-        if f is not None:
+        if f is not None and pageable:
+            r.set_positions(f.copy())
+        elif f is not None:
             buf = r.host_positions()
             buf[:] = f
             r.set_positions(buf)
@@ -103,6 +107,25 @@ def test_the_next_frame_uploads_while_the_last_renders(
     for (a_rgba, a_depth), (b_rgba, b_depth) in zip(one_by_one, piped, strict=True):
         np.testing.assert_array_equal(a_rgba, b_rgba)
         np.testing.assert_array_equal(a_depth, b_depth)
+
+
+def test_uploads_in_a_row_keep_the_last_frame(device: str) -> None:
+    """Frames in ordinary memory set one after another without a render between them (each
+    staged through a page-locked buffer with two buffers): the render draws the last one."""
+    n = 60
+    top = make_topology(n)
+    rng = np.random.default_rng(7)
+    frames = [blob(n, seed=8) + rng.normal(size=(n, 3)).astype(np.float32) for _ in range(5)]
+    cam = fit_camera(frames[0], 40, 30)
+    want = render(device, top, frames[-1], RenderParams(), cam, 40, 30).read_rgba()
+    r = Renderer(device, double_buffer=True)
+    r.set_topology(top)
+    r.set_positions(frames[0])
+    r.render(RenderParams(), cam, 40, 30, wait=False)
+    for f in frames[1:]:
+        r.set_positions(f.copy())
+    r.render(RenderParams(), cam, 40, 30)
+    np.testing.assert_array_equal(r.read_rgba(), want)
 
 
 def test_timings_and_grid_reuse(device: str) -> None:
