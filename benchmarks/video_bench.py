@@ -8,8 +8,9 @@ whose atoms move smoothly (0.3 A breathing, 120 frames per cycle). Frames come a
 
 - **quality**: 120 consecutive frames rendered at the stream size; each encoded as the server
   would (JPEG at the default quality 85; H.264 at the bit rate the server gives a 1080p canvas,
-  frames stamped at 60 fps), decoded, and compared with the raw render (PSNR over RGB). Encode
-  time per frame and CPU cores used while encoding (process CPU time / wall time).
+  frames stamped at 60 fps, on CUDA from the device's I420 planes, with a swscale row beside
+  it), decoded, and compared with the raw render (PSNR over RGB). Encode time per frame and
+  CPU cores used while encoding (process CPU time / wall time).
 - **live**: the real server (its process holds nothing else), a simulation streaming 60 frames/s
   and a steerer that decodes every image (PyAV, Pillow), acknowledges each as the dashboard
   does, and changes the iso level 4 times a second, timing each change to the decoded
@@ -161,12 +162,17 @@ def quality(system: System, device: str, size: tuple[int, int], frames: int) -> 
     codec_name = VideoEncoders(("h264",)).chosen()["h264"]
     kbps = max(S.video_min_kbps, S.video_kbps_per_mpixel * size[0] * size[1] / 1e6)
     variants = [(None, None)]  # the server's own choice first
+    on_cuda = device.startswith("cuda")
+    if on_cuda:  # the server's choice converts on the device; this row converts with swscale
+        variants += [("swscale", None)]
     if codec_name == "libx264":
         variants += [(pr, th) for pr in ("superfast", "veryfast", "faster") for th in (8, 16)]
         variants += [("ultrafast", 8)]
     videos = {
-        "h264" if pr is None else f"h264-{pr}-{th}t": VideoEncoder(
-            "h264", codec_name, *size, kbps, preset=pr, threads=th
+        "h264" if pr is None else "h264-swscale" if pr == "swscale" else f"h264-{pr}-{th}t": (
+            VideoEncoder(
+                "h264", codec_name, *size, kbps, preset=None if pr == "swscale" else pr, threads=th
+            )
         )
         for pr, th in variants
     }
@@ -181,6 +187,7 @@ def quality(system: System, device: str, size: tuple[int, int], frames: int) -> 
         renderer.render(RenderParams(), cam, *size)
         rgba = renderer.read_rgba()
         raw = rgba[..., :3]
+        i420 = renderer.read_i420(size) if on_cuda else None  # as the server's device thread
         c0, w0 = time.process_time(), time.perf_counter()
         data, _ = jpeg.encode(rgba, "jpeg", 85)
         c1, w1 = time.process_time(), time.perf_counter()
@@ -192,7 +199,8 @@ def quality(system: System, device: str, size: tuple[int, int], frames: int) -> 
         r["psnr"].append(psnr(np.asarray(Image.open(io.BytesIO(data)).convert("RGB")), raw))
         for name, video in videos.items():
             c0, w0 = time.process_time(), time.perf_counter()
-            enc = video.encode(rgba, pts_ms=round(k * 1000 / 60))
+            planes = i420 if name == "h264" else None
+            enc = video.encode(rgba, pts_ms=round(k * 1000 / 60), i420=planes)
             c1, w1 = time.process_time(), time.perf_counter()
             r = rows[name]
             r["bytes"].append(len(enc.data))
@@ -227,14 +235,22 @@ def _free_port() -> int:
 
 
 def _simulate(
-    url: str, system_name: str, n_atoms: int, session: str, ready: Any, stop: Any
+    url: str,
+    system_name: str,
+    n_atoms: int,
+    session: str,
+    ready: Any,
+    stop: Any,
+    fragment: bool = True,
 ) -> None:
-    """Child process: a simulation sending 60 frames/s."""
+    """Child process: a simulation sending 60 frames/s (large frames in fragments, as the
+    adapters send them, unless `fragment` is False)."""
     system = System(system_name, n_atoms)
     # encoded beforehand, as a fast adapter would: the benchmark measures the server's stream
     cycle = len(system.traj) if system_name == "villin" else CYCLE
     raw = [p.encode(frame(system.positions(k), k)) for k in range(cycle)]
     sim = Peer(f"{url}/ws/sim", "simulation", "bench", session)
+    sim.fragment = fragment
     sim.send(system.topology())
     sim.send_raw(raw[0])
     ready.set()
@@ -379,12 +395,15 @@ def live(
     trace: Trace | None = None,
     steer: str = "iso",
     change_hz: float = 4.0,
+    fragment: bool = True,
 ) -> dict[str, Any]:
     ctx = mp.get_context("spawn")
     session = f"{system_name}-{'video' if video else 'jpeg'}-{link}"
     ready, stop, out, link_ready = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Event()
     direct = f"ws://127.0.0.1:{server.port}"
-    sim = ctx.Process(target=_simulate, args=(direct, system_name, n_atoms, session, ready, stop))
+    sim = ctx.Process(
+        target=_simulate, args=(direct, system_name, n_atoms, session, ready, stop, fragment)
+    )
     sim.start()
     proxy = None
     url = direct
@@ -601,6 +620,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the baseline: video frames converted to I420 (and scaled) by swscale on the host",
     )
     ap.add_argument(
+        "--whole-frames",
+        action="store_true",
+        help="the baseline: the simulation sends each frame in one WebSocket frame, unfragmented",
+    )
+    ap.add_argument(
         "--switch-interval",
         type=float,
         help="the interpreter's thread switch interval in seconds for the server (a variant)",
@@ -678,6 +702,8 @@ def main(argv: list[str] | None = None) -> int:
 
             GpuQueue._on_cuda = lambda _self: False  # type: ignore[method-assign]
             result["host_convert"] = True
+        if args.whole_frames:
+            result["whole_frames"] = True
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
             result["switch_interval_s"] = args.switch_interval
@@ -689,7 +715,7 @@ def main(argv: list[str] | None = None) -> int:
                     for video in [t == "h264" for t in args.transports.split(",")]:
                         row = live(
                             server, name, n_big, video, link, size, seconds, trace,  # type: ignore[arg-type]
-                            args.steer, args.change_hz,
+                            args.steer, args.change_hz, not args.whole_frames,
                         )  # fmt: skip
                         result["live"].append(row)
                         print(json.dumps(row), flush=True)

@@ -4,7 +4,15 @@ Imports only numpy, msgpack and pydantic, so it loads inside any MD run.
 """
 
 from protocol.arrays import WireArray
-from protocol.codec import decode, encode, error_message, unpack, validate
+from protocol.codec import (
+    FRAGMENT_BYTES,
+    decode,
+    encode,
+    error_message,
+    fragments,
+    unpack,
+    validate,
+)
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import (
@@ -55,6 +63,7 @@ from protocol.messages import (
 
 __all__ = [
     "DEFAULT_LIMITS",
+    "FRAGMENT_BYTES",
     "MAX_LAYERS",
     "MESSAGE_TYPES",
     "PROTOCOL_VERSION",
@@ -105,6 +114,7 @@ __all__ = [
     "decode",
     "encode",
     "error_message",
+    "fragments",
     "unpack",
     "validate",
 ]

@@ -19,6 +19,22 @@ _ADAPTER: TypeAdapter[AnyMessage] = TypeAdapter(AnyMessage)
 _MAX_CONTAINER_ENTRIES = 100_000
 
 
+FRAGMENT_BYTES = 256 * 1024
+"""Messages larger than this go out as WebSocket fragments of this size (`fragments`)."""
+
+
+def fragments(data: bytes) -> bytes | list[memoryview]:
+    """What to hand a WebSocket `send`: a large message (a frame of many atoms) as fragments of
+    `FRAGMENT_BYTES`, a small one whole. The receiver then parses and unmasks each fragment
+    as it arrives instead of buffering the whole message and unmasking it in one go: for 12 MB
+    that held a server's event loop for up to 8 ms at a time and took 2.6x the loop time in
+    all (benchmarks/ws_parse_bench.py), time every other viewer's messages waited for."""
+    if len(data) <= FRAGMENT_BYTES:
+        return data
+    view = memoryview(data)
+    return [view[i : i + FRAGMENT_BYTES] for i in range(0, len(data), FRAGMENT_BYTES)]
+
+
 def encode(message: Message) -> bytes:
     """Serialize a message; None fields are omitted (their default applies on decode)."""
     raw: bytes = msgpack.packb(

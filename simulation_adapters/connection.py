@@ -580,7 +580,7 @@ class SimulationConnection:
                 if len(data) > self.limits.max_message_bytes:
                     self._reject(kind, msg, len(data))
                     continue
-                await ws.send(data)
+                await ws.send(protocol.fragments(data))
                 if kind == "topology":
                     assert isinstance(msg, Topology)
                     topology_sent = msg

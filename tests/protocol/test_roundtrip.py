@@ -49,3 +49,13 @@ def test_render_params_patch_keeps_only_given_fields() -> None:
     assert msg.changes() == {"sigma_A": 3.0}
     merged = p.RenderParams().model_copy(update=msg.changes())
     assert merged.sigma_A == 3.0 and merged.mode == "iso"
+
+
+def test_large_messages_go_out_in_fragments_that_join_to_the_message() -> None:
+    small = b"x" * p.FRAGMENT_BYTES
+    assert p.fragments(small) is small  # one piece: no fragmentation
+    big = bytes(range(256)) * (3 * p.FRAGMENT_BYTES // 256 + 7)
+    parts = p.fragments(big)
+    assert isinstance(parts, list) and len(parts) == 4
+    assert all(len(part) == p.FRAGMENT_BYTES for part in parts[:-1])
+    assert b"".join(parts) == big

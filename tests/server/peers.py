@@ -42,6 +42,7 @@ class Peer:
             compression=None,
         ).__enter__()
         self.seq = 0
+        self.fragment = True
         self.welcome: p.Welcome | None = None
         if hello:
             self.send(
@@ -62,7 +63,9 @@ class Peer:
         return self.seq
 
     def send_raw(self, raw: bytes) -> None:
-        self.ws.send(raw)
+        """Send encoded bytes, a large message in fragments as the simulation adapters send it
+        (`fragment = False`: in one piece)."""
+        self.ws.send(p.fragments(raw) if self.fragment else raw)
 
     def recv(self, timeout: float = 20.0) -> p.Message:
         return p.decode(self.ws.recv(timeout=timeout), p.Limits(max_message_bytes=1 << 30))
