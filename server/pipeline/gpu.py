@@ -10,6 +10,7 @@ copies are current), so a slot uploads what changed and nothing else.
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ if TYPE_CHECKING:
     from server.render.multi import MultiRenderer
 
 T = TypeVar("T")
+log = logging.getLogger("scalesteer.gpu")
 
 
 @dataclass(frozen=True)
@@ -203,7 +205,10 @@ class GpuQueue:
         i420 = None
         read_i420 = getattr(renderer, "read_i420", None)  # a multi-device render has none
         if request.video_size is not None and read_i420 is not None and self._on_cuda():
-            i420 = read_i420(request.video_size)
+            try:
+                i420 = read_i420(request.video_size)
+            except Exception:  # the encoder converts the RGBA image itself: slower, not lost
+                log.exception("converting a video frame on %s failed", self.actual_device)
         return RenderOutput(rgba, dict(renderer.timings), hist, i420)
 
     def _on_cuda(self) -> bool:

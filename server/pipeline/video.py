@@ -218,8 +218,10 @@ class VideoEncoder:
         return frame
 
     def _convert(self, rgba: npt.NDArray[np.uint8]) -> Any:
-        """RGBA to the encoder's I420 at its size with swscale (`server.render.yuv` does the
-        same on a CUDA device: BT.709 limited range, bilinear scaling, edges repeated)."""
+        """RGBA to the encoder's I420 at its size with swscale (`server.render.yuv` does it on
+        a CUDA device: BT.709 limited range, bilinear scaling). An image of the stream's own
+        size has its odd sides padded by repeating the edge; a smaller one is scaled to the
+        padded size."""
         h, w = rgba.shape[:2]
         pw, ph = self._ctx.width, self._ctx.height
         if (w, h) == (self.width, self.height) and (pw, ph) != (w, h):

@@ -4,7 +4,7 @@ on the device from the packed RGBA image and scaled to the stream's size on the 
 Why on the device: a stream keeps its size while renders shrink (an interaction renders half
 the canvas), so every interactive frame is scaled up and converted before it is encoded. On the
 host that is a swscale pass as long as the encode itself (benchmarks/README.md, "Video"); here
-it is one small kernel, and the host receives half the bytes of the full-size RGBA image.
+it is one small kernel and a read-back of the planes (3 MB at 1080p).
 """
 
 from __future__ import annotations
@@ -89,15 +89,18 @@ def i420_kernel(
     out[at + half] = _byte(128.0 + 224.0 / 255.0 * cr)
 
 
+MAX_SIZES = 4
+"""Stream sizes whose buffers a converter keeps (viewers of different canvas sizes take turns
+on one renderer; freeing page-locked memory would synchronise the device each time)."""
+
+
 class I420Converter:
-    """Converts a device's RGBA images to I420 at a stream's size; keeps its device and
-    (page-locked, on CUDA) host buffers between frames of the same size."""
+    """Converts a device's RGBA images to I420 at a stream's size; keeps device and
+    (page-locked, on CUDA) host buffers per size between frames."""
 
     def __init__(self, device: Any) -> None:
         self.device = wp.get_device(device)
-        self._size: tuple[int, int] | None = None
-        self._dev: wp.array[wp.uint8] | None = None
-        self._host: Any = None  # wp.array[wp.uint8] on the host
+        self._buffers: dict[tuple[int, int], tuple[wp.array[wp.uint8], Any]] = {}
 
     def convert(
         self, rgba: wp.array[wp.uint32], src: tuple[int, int], size: tuple[int, int]
@@ -108,20 +111,28 @@ class I420Converter:
         sw, sh = src
         cw, ch = size
         w, h = cw + cw % 2, ch + ch % 2
-        if self._size != (w, h):
+        buffers = self._buffers.get((w, h))
+        if buffers is None:
+            if len(self._buffers) >= MAX_SIZES:
+                self._buffers.pop(next(iter(self._buffers)))
             n = w * h * 3 // 2
-            self._dev = wp.empty(n, dtype=wp.uint8, device=self.device)
-            self._host = wp.empty(n, dtype=wp.uint8, device="cpu", pinned=self.device.is_cuda)
-            self._size = (w, h)
-        assert self._dev is not None and self._host is not None
+            buffers = (
+                wp.empty(n, dtype=wp.uint8, device=self.device),
+                wp.empty(n, dtype=wp.uint8, device="cpu", pinned=self.device.is_cuda),
+            )
+            self._buffers[(w, h)] = buffers
+        dev, host = buffers
+        stream = wp.get_stream(self.device) if self.device.is_cuda else None
         wp.launch(
             i420_kernel,
             dim=(w // 2, h // 2),
             inputs=[rgba, sw, sh, w, h, cw, ch],
-            outputs=[self._dev],
+            outputs=[dev],
             device=self.device,
+            stream=stream,
         )
-        wp.copy(self._host, self._dev)
-        wp.synchronize_device(self.device)
-        planes: npt.NDArray[np.uint8] = self._host.numpy().reshape(h * 3 // 2, w).copy()
+        wp.copy(host, dev, stream=stream)
+        if stream is not None:
+            wp.synchronize_stream(stream)  # the planes are on the host: nothing else waited
+        planes: npt.NDArray[np.uint8] = host.numpy().reshape(h * 3 // 2, w).copy()
         return planes

@@ -6,11 +6,12 @@ slower lands on a lower rung and so on a stream of its own; a viewer with its ow
 own. A viewer that joins a stream (it connected, its rung or view changed) gets a keyframe on
 that stream's next frame it is ready for, and nothing of the stream before it.
 
-A stream follows its viewers' camera: when every viewer of a stream turns to a new camera
-together (one viewer orbiting its own camera, or everyone watching the session's camera as the
-steerer moves it), the stream carries on under the new camera with delta frames. Only a viewer
-that leaves the others' view (or changes size, codec or rung) starts a stream of its own at a
-keyframe: a keyframe per camera move would swamp a slow link while the user turns the molecule.
+A stream follows its viewers' camera: when every viewer of a stream is in the render group of
+a new camera (one viewer turning its own camera, the dashboard's drag; or all the viewers of a
+camera that changes for them together), the stream carries on under the new camera with delta
+frames. A viewer that leaves the others' view (or changes size, codec or rung) starts a stream
+of its own at a keyframe: a keyframe per camera move would swamp a slow link while the user
+turns the molecule.
 """
 
 from __future__ import annotations

@@ -115,3 +115,26 @@ def test_renders_for_video_come_back_converted_on_cuda_only(
             assert out.i420 is None  # swscale converts faster than a kernel on the CPU device
     finally:
         queue._pool.shutdown()
+
+
+def test_a_failed_conversion_leaves_the_frame_to_the_encoder(
+    molecule: Callable[..., tuple[Topology, np.ndarray]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
+    from server.render.renderer import Renderer
+
+    def broken(self: Renderer, size: tuple[int, int]) -> np.ndarray:
+        raise RuntimeError("out of memory")
+
+    monkeypatch.setattr(GpuQueue, "_on_cuda", lambda self: True)  # as on a GPU
+    monkeypatch.setattr(Renderer, "read_i420", broken)
+    topology, positions = molecule(60, seed=3)
+    camera = Camera(target=tuple(positions.mean(axis=0)), distance=30.0)
+    queue = GpuQueue(device="cpu")
+    try:
+        snap = Snapshot(topology, positions)
+        request = RenderRequest("t", snap, RenderParams(), camera, 48, 32, video_size=(96, 64))
+        out = queue.render_sync(request)
+        assert out.i420 is None and out.rgba.shape == (32, 48, 4)  # swscale converts instead
+    finally:
+        queue._pool.shutdown()

@@ -64,7 +64,7 @@ def test_a_stream_follows_its_viewers_to_a_new_camera_unless_one_stays_behind() 
     # b joins that view: the stream is shared
     assert streams.stream_for(b, "h264", cams[1], 0.2, frozenset({"a", "b"})) is s
     a.awaiting_key = b.awaiting_key = False
-    # both move together (the session's camera, turned by the steerer): still the one stream
+    # both move to a new camera together (one render group): still the one stream
     for cid in ("a", "b"):
         c = a if cid == "a" else b
         assert streams.stream_for(c, "h264", cams[2], 0.3, frozenset({"a", "b"})) is s
