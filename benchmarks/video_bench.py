@@ -422,6 +422,8 @@ def live(
         steerer.start()
         time.sleep(3.0)
         c0, w0 = time.process_time(), time.perf_counter()
+        if trace is not None:
+            trace.pauses.clear()
         row: dict[str, Any] = out.get(timeout=600)
         cores = (time.process_time() - c0) / (time.perf_counter() - w0)
         steerer.join(30)
@@ -435,6 +437,7 @@ def live(
     if trace is not None:
         row["stages_ms"] = trace.breakdown(session, changes)
         row["timeline"] = trace.timeline(session, changes)
+        row["gc_pauses_ms"] = trace.gc_summary()
     row.update(
         {
             "system": system_name,
@@ -465,7 +468,21 @@ class Trace:
         set_view = Session.set_view
         render_group = Session._render_group
         self.groups: list[float] = []
+        self.pauses: list[tuple[int, float, float]] = []
+        """The server process's garbage collections: (generation, wall start, ms)."""
+        self._gc_start = 0.0
         trace = self
+
+        def on_gc(phase: str, info: dict[str, int]) -> None:
+            if phase == "start":
+                trace._gc_start = time.perf_counter()
+            else:
+                ms = (time.perf_counter() - trace._gc_start) * 1e3
+                trace.pauses.append((info["generation"], time.time() - ms / 1e3, ms))
+
+        import gc
+
+        gc.callbacks.append(on_gc)
 
         async def traced_group(session: Any, *args: Any) -> Any:
             trace.groups.append(time.time())
@@ -501,6 +518,14 @@ class Trace:
         Session._render = traced_render  # type: ignore[method-assign,assignment]
         GpuQueue.render_sync = traced_sync  # type: ignore[method-assign]
         Session._render_group = traced_group  # type: ignore[method-assign]
+
+    def gc_summary(self) -> dict[str, Any]:
+        """Collections during the row by generation: count, total and longest pause (ms)."""
+        out: dict[str, Any] = {}
+        for gen in (0, 1, 2):
+            ms = [p[2] for p in self.pauses if p[0] == gen]
+            out[f"gen{gen}"] = {"count": len(ms), "total": sum(ms), "max": max(ms, default=0.0)}
+        return out
 
     def breakdown(self, session: str, changes: list[tuple[Any, ...]]) -> dict[str, Any]:
         """Each change's path in ms, p50 and p99 per stage: up (the link and the event loop
@@ -625,6 +650,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the baseline: the simulation sends each frame in one WebSocket frame, unfragmented",
     )
     ap.add_argument(
+        "--no-settle",
+        action="store_true",
+        help="the baseline: a large topology leaves the heap to the collector (server.heap)",
+    )
+    ap.add_argument(
         "--switch-interval",
         type=float,
         help="the interpreter's thread switch interval in seconds for the server (a variant)",
@@ -704,6 +734,11 @@ def main(argv: list[str] | None = None) -> int:
             result["host_convert"] = True
         if args.whole_frames:
             result["whole_frames"] = True
+        if args.no_settle:
+            from server import heap
+
+            heap.settle = lambda: 0.0
+            result["no_settle"] = True
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
             result["switch_interval_s"] = args.switch_interval

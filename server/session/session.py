@@ -28,6 +28,7 @@ import numpy.typing as npt
 from pydantic import ValidationError
 
 import protocol as p
+from server import heap
 from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
 from server.render.layerplan import LayerPlan, visible_atoms
 from server.session.clients import Client
@@ -263,6 +264,8 @@ class Session:
         )
         self.broadcast(p.State(sim=self.status))
         self._legend_changed()
+        if topology.n_atoms >= heap.LARGE_TOPOLOGY:
+            heap.settle()  # its per-atom lists leave the collector's walk (server.heap)
 
     def _default_layers(self, topology: p.Topology) -> None:
         """Open a system on what matters: solvent and ions hidden, a ligand at a finer scale

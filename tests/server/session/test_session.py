@@ -193,3 +193,23 @@ def test_a_viewer_that_acknowledges_its_jpeg_images_gets_them_paced(tmp_path: Pa
         assert jpeg.paced_images and not video.paced_images
 
     run(body, tmp_path)
+
+
+def test_a_large_topology_takes_the_heap_out_of_the_collectors_walk(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from server import heap
+
+    settled: list[int] = []
+    monkeypatch.setattr(heap, "settle", lambda: settled.append(1) or 0.0)
+    monkeypatch.setattr(heap, "LARGE_TOPOLOGY", 30)
+
+    async def body(session: Session, backend: PaintBackend) -> None:
+        small, _ = molecule(29)
+        session.on_topology(small)
+        assert settled == []  # a small system: no full collection for it
+        large, _ = molecule(30)
+        session.on_topology(large)
+        assert settled == [1]
+
+    run(body, tmp_path)
