@@ -655,6 +655,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the baseline: a large topology leaves the heap to the collector (server.heap)",
     )
     ap.add_argument(
+        "--always-rgba",
+        action="store_true",
+        help="the baseline: renders for video viewers only read the RGBA image back too",
+    )
+    ap.add_argument(
         "--switch-interval",
         type=float,
         help="the interpreter's thread switch interval in seconds for the server (a variant)",
@@ -739,6 +744,12 @@ def main(argv: list[str] | None = None) -> int:
 
             heap.settle = lambda: 0.0
             result["no_settle"] = True
+        if args.always_rgba:
+            from server.pipeline.gpu import GpuQueue
+
+            render_sync = GpuQueue.render_sync
+            GpuQueue.render_sync = lambda q, r: render_sync(q, replace(r, rgba=True))  # type: ignore[method-assign]
+            result["always_rgba"] = True
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
             result["switch_interval_s"] = args.switch_interval

@@ -73,15 +73,25 @@ class RenderRequest:
     video_size: tuple[int, int] | None = None
     """A video stream encodes this image at this size: on a CUDA device the image also comes
     back as I420 planes at that size (`RenderOutput.i420`), converted and scaled there."""
+    rgba: bool = True
+    """False: only video viewers take this image, so when its I420 planes come back the RGBA
+    image is not read back (`RenderOutput.rgba` is then None)."""
 
 
 @dataclass
 class RenderOutput:
-    rgba: npt.NDArray[np.uint8]
+    rgba: npt.NDArray[np.uint8] | None
+    """(h, w, 4) RGBA; None only when the request said it needs none and planes came back."""
     timings: dict[str, float]
     histogram: npt.NDArray[np.float32] | None = None
     i420: npt.NDArray[np.uint8] | None = None
     """The image at the request's `video_size` as I420 planes (CUDA devices only)."""
+
+    def image(self) -> npt.NDArray[np.uint8]:
+        """The RGBA image, which every request has unless it said `rgba=False`."""
+        if self.rgba is None:
+            raise RuntimeError("this render was asked for video planes only")
+        return self.rgba
 
 
 @dataclass
@@ -197,7 +207,6 @@ class GpuQueue:
 
     def render_sync(self, request: RenderRequest) -> RenderOutput:
         renderer = self._prepare(request)
-        rgba = renderer.read_rgba()
         hist = None
         if request.histogram:
             counts, _edges = renderer.density_histogram(64)
@@ -209,6 +218,7 @@ class GpuQueue:
                 i420 = read_i420(request.video_size)
             except Exception:  # the encoder converts the RGBA image itself: slower, not lost
                 log.exception("converting a video frame on %s failed", self.actual_device)
+        rgba = renderer.read_rgba() if request.rgba or i420 is None else None
         return RenderOutput(rgba, dict(renderer.timings), hist, i420)
 
     def _on_cuda(self) -> bool:

@@ -491,7 +491,7 @@ class JobManager:
                     slot, snapshot, spec.params, camera, spec.width, spec.height, layers=plans
                 )
             )
-            rgba = out.rgba
+            rgba = out.image()
             if spec.overlay is not None:
                 rgba = await loop.run_in_executor(
                     self.encoders, draw_overlay, rgba, index, spec.overlay, camera, positions
@@ -665,7 +665,9 @@ class JobManager:
                         slot, snapshot, source.render_params, spec.camera, spec.width, spec.height
                     )
                 )
-                await loop.run_in_executor(self.encoders, writer.add, snapshot.step, out.rgba, None)
+                await loop.run_in_executor(
+                    self.encoders, writer.add, snapshot.step, out.image(), None
+                )
                 job.done += 1
             if outcome is JobState.DONE and job.done == 0:
                 raise JobError("the session sent no frame while recording")

@@ -161,7 +161,7 @@ class VideoEncoder:
 
     def encode(
         self,
-        rgba: npt.NDArray[np.uint8],
+        rgba: npt.NDArray[np.uint8] | None,
         key: bool = False,
         pts_ms: int | None = None,
         i420: npt.NDArray[np.uint8] | None = None,
@@ -177,8 +177,10 @@ class VideoEncoder:
         pw, ph = self._ctx.width, self._ctx.height
         if i420 is not None and i420.shape == (ph * 3 // 2, pw):
             frame = self._wrap(i420)
-        else:
+        elif rgba is not None:
             frame = self._convert(rgba)
+        else:
+            raise ValueError(f"no RGBA image and no planes of {pw}x{ph} to encode")
         if pts_ms is None:
             now = time.monotonic()
             if self._t0 is None:

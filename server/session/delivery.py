@@ -264,7 +264,13 @@ class Delivery:
     ) -> None:
         services = self.services
         try:
-            if members:
+            if members and rendered.out.rgba is None:
+                # rendered for video viewers only, and one of them now wants JPEG (its video
+                # failed, or it dropped video since): it gets the next render
+                for client in members:
+                    client.needs_image = True
+                on_failure()
+            elif members:
                 await self._encode_jpeg(rendered, members, refs, on_failure, quality)
             if video:
                 await asyncio.gather(*video, return_exceptions=True)
@@ -285,7 +291,7 @@ class Delivery:
             data, encode_ms = await loop.run_in_executor(
                 services.encoders,
                 services.encoder.encode,
-                rendered.out.rgba,
+                rendered.out.image(),
                 "jpeg",
                 quality,
             )

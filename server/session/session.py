@@ -803,8 +803,10 @@ class Session:
                 if snap is not None:
                     taken.append(snap)
                     self._frame_taken.set()
-            video = not key.rest and any(self.delivery.streams.codec_for(c) for c in members)
-            rendered = await self._render(key, taken[0], video) if taken else None
+            codecs = [self.delivery.streams.codec_for(c) for c in members]
+            video = not key.rest and any(codecs)
+            video_only = video and all(codecs)  # no JPEG viewer: no RGBA image needed
+            rendered = await self._render(key, taken[0], video, video_only) if taken else None
         except BaseException:
             slots.release()
             raise
@@ -814,10 +816,13 @@ class Session:
         self.delivery.start(rendered, members, refs, lambda: self.scheduler.forget(key))
         return taken[0].version
 
-    async def _render(self, key: ViewKey, snap: Snapshot, video: bool = False) -> Rendered | None:
+    async def _render(
+        self, key: ViewKey, snap: Snapshot, video: bool = False, video_only: bool = False
+    ) -> Rendered | None:
         """One render of `snap` for a view group; None when a new topology arrived since the
         snapshot was taken (the next pass renders that one). `video`: a member takes it as a
-        video frame (the device then also converts it for the encoder)."""
+        video frame (the device then also converts it for the encoder); `video_only`: every
+        member does (the RGBA image need not come back)."""
         if snap.topology_id != self.topology_id:
             return None
         if not self.layers.ready:
@@ -839,6 +844,7 @@ class Session:
             histogram=self.scheduler.histogram_due(key, now),
             layers=layers,
             video_size=stream_size if video else None,
+            rgba=not video_only,
         )
         out: RenderOutput = await self.services.backend.render(request)
         reduced = self.scheduler.note_render(

@@ -65,7 +65,7 @@ class VideoStream:
 
     def encode(
         self,
-        rgba: npt.NDArray[np.uint8],
+        rgba: npt.NDArray[np.uint8] | None,
         kbps: float,
         size: tuple[int, int],
         key: bool,

@@ -290,7 +290,7 @@ async def render_image(
     finally:
         await state.gpu.release(slot)
     data, _ms = await asyncio.get_running_loop().run_in_executor(
-        state.encoders, state.encoder.encode, out.rgba, format, render_params.jpeg_quality
+        state.encoders, state.encoder.encode, out.image(), format, render_params.jpeg_quality
     )
     return Response(data, media_type=f"image/{format}")
 

@@ -138,3 +138,29 @@ def test_a_failed_conversion_leaves_the_frame_to_the_encoder(
         assert out.i420 is None and out.rgba.shape == (32, 48, 4)  # swscale converts instead
     finally:
         queue._pool.shutdown()
+
+
+def test_video_only_renders_come_back_without_the_rgba_image(
+    molecule: Callable[..., tuple[Topology, np.ndarray]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
+
+    topology, positions = molecule(60, seed=3)
+    camera = Camera(target=tuple(positions.mean(axis=0)), distance=30.0)
+    queue = GpuQueue(device="cpu")
+    try:
+        snap = Snapshot(topology, positions)
+        request = RenderRequest(
+            "t", snap, RenderParams(), camera, 48, 32, video_size=(96, 64), rgba=False
+        )
+        out = queue.render_sync(request)  # the CPU device makes no planes: RGBA comes back
+        assert out.i420 is None and out.image().shape == (32, 48, 4)
+        monkeypatch.setattr(GpuQueue, "_on_cuda", lambda self: True)  # as on a GPU
+        out = queue.render_sync(request)
+        assert out.rgba is None and out.i420 is not None and out.i420.shape == (96, 96)
+        with pytest.raises(RuntimeError, match="video planes only"):
+            out.image()
+        out = queue.render_sync(replace(request, rgba=True))  # a JPEG viewer among them
+        assert out.rgba is not None and out.i420 is not None
+    finally:
+        queue._pool.shutdown()

@@ -213,3 +213,24 @@ def test_a_large_topology_takes_the_heap_out_of_the_collectors_walk(
         assert settled == [1]
 
     run(body, tmp_path)
+
+
+def test_renders_for_video_viewers_only_do_not_read_the_rgba_image_back(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        v = client("v", "viewer")
+        v.view = p.View(width=40, height=30, video=["h264"])
+        session.attach(v)
+        session.on_topology(topo)
+        session.on_frame(frame(pos, 1))
+        await settle(lambda: any(r.snapshot.step == 1 for r in backend.requests))
+        first = next(r for r in backend.requests if r.snapshot.step == 1)
+        assert first.video_size == (40, 30) and first.rgba is False  # planes will do
+        j = client("j", "viewer")  # a JPEG viewer of the same view joins the group
+        session.attach(j)
+        session.on_frame(frame(pos + np.float32(1.0), 2))
+        await settle(lambda: any(r.snapshot.step == 2 for r in backend.requests))
+        second = next(r for r in backend.requests if r.snapshot.step == 2)
+        assert second.video_size == (40, 30) and second.rgba is True
+
+    run(body, tmp_path)
