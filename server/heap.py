@@ -29,7 +29,7 @@ the collector's walk; a smaller one costs a full collection more than it saves).
 
 def settle() -> float:
     """Collect what is garbage now, then freeze the rest; returns the milliseconds it took (a
-    full collection, once: at start-up and when a large topology arrives)."""
+    full collection, once per large topology: `Session.on_topology` calls it)."""
     t0 = time.perf_counter()
     gc.collect()
     gc.freeze()

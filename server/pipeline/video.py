@@ -166,12 +166,13 @@ class VideoEncoder:
         pts_ms: int | None = None,
         i420: npt.NDArray[np.uint8] | None = None,
     ) -> EncodedFrame:
-        """Encode one (h, w, 4) RGBA image; `key` forces a keyframe (IDR). An image of another
-        size than the stream's (a render shrunk to the frame budget) is scaled to it, so the
-        stream does not restart at a keyframe each time the budget moves. Frames are stamped
-        with the wall time (rate control sees the real frame rate) unless `pts_ms` is given.
-        `i420`: the same picture already converted at the stream's padded size (the device's
-        `read_i420`), taken instead of converting `rgba` here."""
+        """Encode one (h, w, 4) RGBA image (None when `i420` is given); `key` forces a
+        keyframe (IDR). An image of another size than the stream's (a render shrunk to the
+        frame budget) is scaled to it, so the stream does not restart at a keyframe each time
+        the budget moves. Frames are stamped with the wall time (rate control sees the real
+        frame rate) unless `pts_ms` is given. `i420`: the same picture already converted at
+        the stream's padded size (the device's `read_i420`), taken instead of converting
+        `rgba` here."""
         av = self._av
         t0 = time.perf_counter()
         pw, ph = self._ctx.width, self._ctx.height
