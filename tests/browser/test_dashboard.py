@@ -44,6 +44,13 @@ def frame_id(dash: Dashboard) -> int:
     return int(value) if value else -1
 
 
+def view_centre(dash: Dashboard) -> tuple[float, float]:
+    """The page coordinates of the middle of the live view (where drags start)."""
+    box = dash.page.locator("#view").bounding_box()
+    assert box is not None
+    return box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+
+
 def wait_for_frame(dash: Dashboard, after: int = -1, *, still: bool = True) -> int:
     """Wait until an image newer than `after` is on screen (a full-quality still by default)."""
     dash.page.wait_for_function(
@@ -210,9 +217,7 @@ def test_dragging_rotates_the_view(
     wait_for_full_view(dash)
     before = snapshot(dash)
     q0 = dash.evaluate("() => window.scalesteer.camera.orientation")
-    box = dash.page.locator("#view").bounding_box()
-    assert box is not None
-    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    cx, cy = view_centre(dash)
     mouse = dash.page.mouse
     mouse.move(cx - 120, cy)
     mouse.down()

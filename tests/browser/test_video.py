@@ -13,7 +13,7 @@ from playwright.sync_api import expect
 
 from tests.browser.conftest import OpenDashboard
 from tests.browser.simulation import OpenMMSimulation
-from tests.browser.test_dashboard import snapshot, wait_for_frame
+from tests.browser.test_dashboard import snapshot, view_centre, wait_for_frame
 from tests.conftest import LiveServer
 
 pytestmark = pytest.mark.browser
@@ -146,9 +146,7 @@ def test_dragging_the_camera_turns_the_stream_without_keyframes(
     first = wait_for_frame(dash)
     session = live_server.app_state.sessions.get("default")
     (before,) = session.summary()["video_streams"]
-    box = dash.page.locator("#view").bounding_box()
-    assert box is not None
-    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    cx, cy = view_centre(dash)
     mouse = dash.page.mouse
     mouse.move(cx - 120, cy)
     mouse.down()
