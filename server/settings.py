@@ -122,6 +122,11 @@ class ServerSettings:
     """A stream's bit rate when the link allows it: per million pixels of canvas at 60 fps
     (1920x1080: 9.3 Mbit/s)."""
     video_min_kbps: float = 350.0
+    video_steer_hold_s: float = 1.0
+    """While a viewer steers, its video stream encodes at the interactive image's size (the
+    browser scales it up, as it does an interactive JPEG image): fewer bits per frame, a
+    shorter encode, send and decode. The stream returns to full size, at a keyframe, once
+    nobody in its view has interacted for this long; 0 keeps every stream at full size."""
     rest_jpeg_quality: int = 95
     """Quality of the JPEG still that replaces a video viewer's last frame once the view rests
     (nothing changed for `rest_after_s`)."""
@@ -174,5 +179,7 @@ class ServerSettings:
             raise ValueError("a token is required unless the server is open on loopback only")
         if self.encode_workers < 1:
             raise ValueError("--encode-workers must be at least 1")
+        if not self.video_steer_hold_s >= 0:
+            raise ValueError("video_steer_hold_s must be 0 or more seconds")
         if self.data_dir is not None and not self.data_dir.is_dir():
             raise ValueError(f"--data-dir {self.data_dir} is not a directory")

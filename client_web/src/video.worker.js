@@ -1,9 +1,11 @@
 // The video decoder, off the main thread: one WebCodecs VideoDecoder per stream, configured for
 // latency, fed the server's frames in order; decoded VideoFrames go back to the page (moved,
-// not copied), each tagged with its frame_id and the time its decode took.
+// not copied), each tagged with its frame_id and the time its decode took. A stream changes
+// size at a keyframe (smaller while someone steers): the decoder is configured again there.
 
 let decoder = null;
 let stream = null;
+let size = "";
 const started = new Map(); // frame_id -> performance.now() when it went into the decoder
 
 /** Drop the decoder (an error may have closed it already) and what was in it. */
@@ -15,6 +17,7 @@ function closeDecoder() {
   }
   decoder = null;
   stream = null;
+  size = "";
   started.clear();
 }
 
@@ -37,13 +40,19 @@ function open(m) {
       fail(`${err.name}: ${err.message}`);
     },
   });
+  stream = m.stream;
+  configure(m);
+}
+
+/** (Re)configure for the size of keyframe `m`; frames already queued decode first. */
+function configure(m) {
   decoder.configure({
     codec: m.codec,
     codedWidth: m.width + (m.width % 2),
     codedHeight: m.height + (m.height % 2),
     optimizeForLatency: true,
   });
-  stream = m.stream;
+  size = `${m.width}x${m.height}`;
 }
 
 self.onmessage = (e) => {
@@ -53,10 +62,11 @@ self.onmessage = (e) => {
     return;
   }
   if (m.type !== "chunk") return;
-  if (m.stream !== stream || !decoder) {
+  if (m.stream !== stream || !decoder || (m.key && `${m.width}x${m.height}` !== size)) {
     if (!m.key) return; // a stream is joined at its keyframe
     try {
-      open(m);
+      if (m.stream === stream && decoder) configure(m);
+      else open(m);
     } catch (err) {
       fail(`${err.name}: ${err.message}`);
       return;

@@ -72,6 +72,9 @@ class Client:
     view: p.View | None = None
     view_ref: int | None = None
     interacting_until: float = 0.0
+    interacted_at: float = float("-inf")
+    """When its last interacting view came (monotonic seconds): its video stream stays at the
+    steering size for `video_steer_hold_s` after it."""
     needs_image: bool = True
     frames_sent: int = 0
     frames_dropped: int = 0

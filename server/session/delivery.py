@@ -183,7 +183,7 @@ class Delivery:
             stream.shown_refs = {c.client_id: refs.get(c.client_id) for c in takers}
             stream.last_encoded = now
             loop = asyncio.get_running_loop()
-            kbps = self.streams.kbps(stream)
+            kbps = self.streams.kbps(stream, rendered.stream_size)
             try:
                 frame = await loop.run_in_executor(
                     services.encoders,

@@ -18,7 +18,10 @@ full-size frame and nothing shrinks.
 
 Video viewers see frames of a stream tuned for motion; when their view rests (what it shows
 unchanged for `rest_after_s`) a *rest* render follows, sent to them as a near-lossless JPEG
-still, so a picture that stops moving ends sharp.
+still, so a picture that stops moving ends sharp. While someone steers a view, its stream is
+encoded at the interactive image's size, and a group of video viewers only renders at that
+size (*steering*); the stream keeps that size until nobody has interacted for
+`video_steer_hold_s`, so steering in bursts does not cost a keyframe per burst.
 """
 
 from __future__ import annotations
@@ -104,10 +107,24 @@ class RenderScheduler:
     _video: dict[ViewKey, tuple[int, float, int]] = field(default_factory=dict)
     """Groups whose last full image went to video viewers: (version, when, refinement level),
     until their rest still is rendered."""
+    _interacted_at: float = float("-inf")
+    """When the shared render parameters last changed (monotonic seconds)."""
 
     def interacting(self, now: float) -> None:
         """Shared render parameters changed: every view is interactive for a moment."""
         self._interactive_until = now + self.settings.interactive_idle_s
+        self._interacted_at = now
+
+    def steering(self, members: Iterable[Client], now: float) -> bool:
+        """Whether a group's video stream is at its steering size: the shared parameters
+        changed, or one of its members sent an interacting view, within `video_steer_hold_s`.
+        (Interactive renders come and go between a user's changes; the stream's size, which
+        changes only at a keyframe, holds for the whole burst of them.)"""
+        hold = self.settings.video_steer_hold_s
+        if hold <= 0:
+            return False
+        last = max([self._interacted_at, *(c.interacted_at for c in members)])
+        return now - last < hold
 
     def view_of(self, client: Client, default_camera: p.Camera | None) -> tuple[p.Camera, int, int]:
         camera = default_camera or p.Camera()
@@ -190,13 +207,20 @@ class RenderScheduler:
         self._video[base] = (version, now, key.refine)
 
     def note_render(
-        self, key: ViewKey, version: int, size: tuple[int, int], ms: float, now: float
+        self,
+        key: ViewKey,
+        version: int,
+        size: tuple[int, int],
+        ms: float,
+        now: float,
+        steering: bool = False,
     ) -> bool:
         """Learn from a render; True when its size was shrunk by the budget (the next
-        refinement is then due once the group's image stays unchanged for a while)."""
+        refinement is then due once the group's image stays unchanged for a while). A
+        `steering` render wanted only the interactive size (its rest still is full size)."""
         self.cost.note(size[0] * size[1], ms)
         base = replace(key, refine=0, rest=False)
-        wanted = self._wanted_size(key)
+        wanted = self._wanted_size(replace(key, interactive=True) if steering else key)
         if key.refine < FINAL and size[0] * size[1] < wanted[0] * wanted[1]:
             if len(self._reduced) >= MAX_REMEMBERED:
                 self._reduced.clear()
@@ -221,11 +245,14 @@ class RenderScheduler:
         )
         return max(1, int(rw * shrink)), max(1, int(rh * shrink))
 
-    def stream_size(self, key: ViewKey, quality: float, on_cpu: bool = False) -> tuple[int, int]:
+    def stream_size(
+        self, key: ViewKey, quality: float, on_cpu: bool = False, steering: bool = False
+    ) -> tuple[int, int]:
         """The size a video stream of this group encodes at: the canvas times the quality
-        within the server's limits, never shrunk by an interaction or the frame budget (a
-        stream changes size only with a keyframe)."""
-        base = replace(key, interactive=False)
+        within the server's limits (the interactive image's size while `steering`), never
+        shrunk by the frame budget or a single interactive render (a stream changes size only
+        with a keyframe)."""
+        base = replace(key, interactive=steering)
         rw, rh = self._wanted_size(base, quality)
         pixels = self.settings.limits.max_image_pixels
         if on_cpu:

@@ -689,7 +689,9 @@ class Session:
         if tracking_changed and view.track:
             self._send_tracked(only=client)
         if view.interacting:
-            client.interacting_until = time.monotonic() + self.settings.interactive_idle_s
+            now = time.monotonic()
+            client.interacting_until = now + self.settings.interactive_idle_s
+            client.interacted_at = now
         self.mark_dirty()
 
     def on_frame_ack(self, client: Client, ack: p.FrameAck) -> None:
@@ -806,7 +808,10 @@ class Session:
             codecs = [self.delivery.streams.codec_for(c) for c in members]
             video = not key.rest and any(codecs)
             video_only = video and all(codecs)  # no JPEG viewer: no RGBA image needed
-            rendered = await self._render(key, taken[0], video, video_only) if taken else None
+            steering = video and self.scheduler.steering(members, time.monotonic())
+            rendered = (
+                await self._render(key, taken[0], video, video_only, steering) if taken else None
+            )
         except BaseException:
             slots.release()
             raise
@@ -817,12 +822,19 @@ class Session:
         return taken[0].version
 
     async def _render(
-        self, key: ViewKey, snap: Snapshot, video: bool = False, video_only: bool = False
+        self,
+        key: ViewKey,
+        snap: Snapshot,
+        video: bool = False,
+        video_only: bool = False,
+        steering: bool = False,
     ) -> Rendered | None:
         """One render of `snap` for a view group; None when a new topology arrived since the
         snapshot was taken (the next pass renders that one). `video`: a member takes it as a
         video frame (the device then also converts it for the encoder); `video_only`: every
-        member does (the RGBA image need not come back)."""
+        member does (the RGBA image need not come back); `steering`: the group's stream is at
+        its steering size (`RenderScheduler.steering`), and a group of video viewers only
+        renders no larger than that."""
         if snap.topology_id != self.topology_id:
             return None
         if not self.layers.ready:
@@ -832,7 +844,10 @@ class Session:
         device = self.services.backend.actual_device or self.settings.device
         on_cpu = device.startswith("cpu")
         width, height = self.scheduler.image_size(key, params.quality, on_cpu)
-        stream_size = self.scheduler.stream_size(key, params.quality, on_cpu)
+        stream_size = self.scheduler.stream_size(key, params.quality, on_cpu, steering)
+        steered = video_only and steering and stream_size[0] * stream_size[1] < width * height
+        if steered:  # every member takes the stream: more pixels would be scaled away
+            width, height = stream_size
         now = time.monotonic()
         request = RenderRequest(
             slot=self.slot,
@@ -848,7 +863,12 @@ class Session:
         )
         out: RenderOutput = await self.services.backend.render(request)
         reduced = self.scheduler.note_render(
-            key, snap.version, (width, height), out.timings.get("total", 0.0), time.monotonic()
+            key,
+            snap.version,
+            (width, height),
+            out.timings.get("total", 0.0),
+            time.monotonic(),
+            steering=steered,
         )
         if reduced:
             after = self.settings.refine_after_s if key.refine == 0 else self.settings.final_after_s
@@ -869,7 +889,7 @@ class Session:
             width,
             height,
             quality,
-            not key.interactive and not reduced,
+            not key.interactive and not reduced and not steered,
             camera_json=key.camera_json,
             stream_size=stream_size,
             rest=key.rest,

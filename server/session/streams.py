@@ -158,12 +158,16 @@ class VideoStreams:
         self._streams[key] = stream
         return stream
 
-    def kbps(self, stream: VideoStream) -> float:
+    def kbps(self, stream: VideoStream, size: tuple[int, int] | None = None) -> float:
         """What the stream encodes at: what its canvas needs when the links of its viewers
-        allow that (their rung is the cap's own), else their rung."""
+        allow that (their rung is the cap's own), else their rung; a frame of a smaller `size`
+        (a steering stream's) at most what that size needs."""
         _, w, h, _, r = stream.key
         cap = self.cap_kbps(w, h)
-        return cap if r >= rung(cap) else float(r)
+        kbps = cap if r >= rung(cap) else float(r)
+        if size is not None and size[0] * size[1] < w * h:
+            kbps = min(kbps, self.cap_kbps(*size))
+        return kbps
 
     def leave(self, client_id: str) -> None:
         for stream in self._streams.values():

@@ -140,22 +140,48 @@ def test_jpeg_from_the_address(
 def test_dragging_the_camera_turns_the_stream_without_keyframes(
     open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
-    """A drag sends a view per animation frame: each is a delta frame of the one stream."""
+    """A drag sends a view per animation frame: each is a delta frame of the one stream, at
+    the interactive size (one keyframe down); once the drag has rested, one keyframe brings
+    the stream back to full size, and the page's decoder follows both."""
     dash = open_dashboard()
     wait_format(dash, "h264")
+    wait_for_frame(dash)
+    default = "{}x{}".format(*live_server.settings.default_size)  # drawn before the page's view
+    dash.page.wait_for_function(
+        "(d) => { const s = document.getElementById('viewport').dataset.imageSize; "
+        "return s && s !== d; }",
+        arg=default,
+        timeout=90_000,
+    )
     first = wait_for_frame(dash)
+    viewport = dash.page.locator("#viewport")
+    full = viewport.get_attribute("data-image-size")
     session = live_server.app_state.sessions.get("default")
     (before,) = session.summary()["video_streams"]
     cx, cy = view_centre(dash)
     mouse = dash.page.mouse
     mouse.move(cx - 120, cy)
     mouse.down()
+    sizes = set()
     for k in range(12):  # a slow drag: a view per step, each drawn before the next
         mouse.move(cx - 120 + 20 * (k + 1), cy + 3 * k, steps=2)
         time.sleep(0.15)
+        sizes.add(viewport.get_attribute("data-image-size"))
     mouse.up()
-    wait_for_frame(dash, first + 3)
+    last = wait_for_frame(dash, first + 3, still=False)  # steering frames are not stills
     (after,) = session.summary()["video_streams"]
     assert after["stream"] == before["stream"], "the drag restarted the stream"
     assert after["frames"] >= before["frames"] + 3, "the drag was not streamed"
     assert after["keyframes"] <= before["keyframes"] + 1, "the drag's frames were keyframes"
+    assert sizes - {full}, f"the drag was streamed at full size only ({sizes})"
+    dash.page.wait_for_function(  # the drag rests: full size again, still decoded as video
+        """([full, after]) => {
+          const v = document.getElementById('viewport').dataset;
+          return v.imageSize === full && Number(v.frame) > after && v.format === 'h264';
+        }""",
+        arg=[full, last],
+        timeout=90_000,
+    )
+    (rested,) = session.summary()["video_streams"]
+    assert rested["stream"] == before["stream"] and rested["keyframes"] <= before["keyframes"] + 2
+    assert snapshot(dash).std() > 5

@@ -154,8 +154,17 @@ class VideoViewer:
         size: tuple[int, int],
         video: tuple[str, ...] = ("h264",),
         camera: p.Camera | None = None,
+        interacting: bool = False,
     ) -> None:
-        self.peer.send(p.View(width=size[0], height=size[1], video=list(video), camera=camera))
+        self.peer.send(
+            p.View(
+                width=size[0],
+                height=size[1],
+                video=list(video),
+                camera=camera,
+                interacting=interacting,
+            )
+        )
 
     def _decode(self, msg: p.Image) -> np.ndarray:
         import io

@@ -152,3 +152,27 @@ def test_on_a_fast_device_the_budget_shrinks_nothing() -> None:
     assert s.note_render(key, 1, (1920, 1080), 4.0, now=10.0) is False  # a GPU: 4 ms
     assert s.image_size(key, 1.0) == (1920, 1080)
     assert s.pick_size(1920, 1080) == (1920, 1080)
+
+
+def test_a_stream_keeps_its_steering_size_through_a_burst_of_changes() -> None:
+    s = RenderScheduler(replace(SETTINGS, video_steer_hold_s=1.0))
+    a, b = viewer("a"), viewer("b")
+    assert not s.steering([a, b], 10.0)  # nobody has steered yet
+    s.interacting(now=10.0)  # a shared parameter changed: every view steers
+    assert s.steering([a], 10.9) and not s.steering([a], 11.0)
+    # between two changes the view is no longer interactive, but the stream keeps its size
+    ((key, _),) = s.plan([a], 10.5, 1, None).groups
+    assert not key.interactive
+    assert s.stream_size(key, 1.0) == (200, 100)
+    assert s.stream_size(key, 1.0, steering=True) == (100, 50)  # the interactive image's
+    b.interacted_at = 20.0  # b drags its camera: its group steers, a's does not
+    assert s.steering([b], 20.5) and not s.steering([a], 20.5)
+    # a steering render at that size is not a budget-reduced one (no refinement follows)
+    assert not s.note_render(key, 1, (100, 50), 1.0, 20.5, steering=True)
+    assert s.note_render(key, 1, (100, 50), 1.0, 20.5)
+
+
+def test_no_steering_size_when_the_hold_is_zero() -> None:
+    s = RenderScheduler(replace(SETTINGS, video_steer_hold_s=0.0))
+    s.interacting(now=10.0)
+    assert not s.steering([viewer("a")], 10.0)

@@ -234,3 +234,39 @@ def test_renders_for_video_viewers_only_do_not_read_the_rgba_image_back(tmp_path
         assert second.video_size == (40, 30) and second.rgba is True
 
     run(body, tmp_path)
+
+
+def test_while_someone_steers_video_streams_at_the_interactive_size(tmp_path: Path) -> None:
+    """Between a steerer's changes the view is not interactive, yet its stream keeps the
+    interactive size (no keyframe per change): a group of video viewers renders no larger,
+    a group with a JPEG viewer renders full size and the stream takes it scaled down."""
+
+    def request(backend: PaintBackend, step: int) -> Any:
+        return next(r for r in backend.requests if r.snapshot.step == step)
+
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        u, v = client("u"), client("v", "viewer")
+        for c in (u, v):
+            c.view = p.View(width=40, height=30, video=["h264"])
+            session.attach(c)
+        session.on_topology(topo)
+        session.on_frame(frame(pos, 1))
+        await settle(lambda: any(r.snapshot.step == 1 for r in backend.requests))
+        first = request(backend, 1)
+        assert (first.width, first.height, first.video_size) == (40, 30, (40, 30))
+        session.steer(u, p.SetRenderParams(seq=2, params={"iso_level": 0.3}))  # type: ignore[arg-type]
+        await asyncio.sleep(SETTINGS.interactive_idle_s + 0.05)  # no longer interactive
+        session.on_frame(frame(pos + np.float32(1.0), 2))
+        await settle(lambda: any(r.snapshot.step == 2 for r in backend.requests))
+        steering = request(backend, 2)
+        assert (steering.width, steering.height, steering.video_size) == (20, 15, (20, 15))
+        session.attach(client("j", "viewer"))  # a JPEG viewer of the same view
+        session.steer(u, p.SetRenderParams(seq=3, params={"iso_level": 0.35}))  # type: ignore[arg-type]
+        await asyncio.sleep(SETTINGS.interactive_idle_s + 0.05)
+        session.on_frame(frame(pos + np.float32(2.0), 3))
+        await settle(lambda: any(r.snapshot.step == 3 for r in backend.requests))
+        mixed = request(backend, 3)
+        assert (mixed.width, mixed.height, mixed.video_size) == (40, 30, (20, 15))
+
+    run(body, tmp_path)

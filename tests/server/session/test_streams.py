@@ -90,3 +90,16 @@ def test_the_rate_is_what_the_canvas_needs_when_the_link_allows() -> None:
     jpeg_only = viewer("d")
     jpeg_only.force_jpeg = True
     assert streams.codec_for(jpeg_only) is None
+
+
+def test_a_smaller_frame_of_a_stream_takes_only_the_rate_its_size_needs() -> None:
+    streams = VideoStreams(ENCODERS, 4500.0, 350.0)
+    s = streams.stream_for(viewer("a", (1920, 1080)), "h264", "{}", 0)
+    full = streams.kbps(s, (1920, 1080))
+    assert full == streams.kbps(s)
+    steering = streams.kbps(s, (960, 540))  # the steering size: a quarter of the pixels
+    assert abs(steering - full / 4) < 1e-6
+    slow = viewer("b", (1920, 1080))
+    slow.link.target_kbps = 900.0  # a slow link's rung is below even that
+    s_slow = streams.stream_for(slow, "h264", "{}", 0)
+    assert streams.kbps(s_slow, (960, 540)) == streams.kbps(s_slow) < steering

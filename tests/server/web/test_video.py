@@ -4,12 +4,14 @@
 from __future__ import annotations
 
 import itertools
+import time
+from pathlib import Path
 
 import httpx
 import numpy as np
 
 import protocol as p
-from tests.conftest import LiveServer
+from tests.conftest import LiveServer, make_settings, start_server
 from tests.server.peers import Peer, VideoViewer, frame
 from tests.server.web.test_streaming import LockStep, start_sim
 
@@ -139,6 +141,54 @@ def test_a_viewer_turning_its_camera_keeps_its_stream_without_keyframes(
         shown = px
     sim.close()
     v.close()
+
+
+def test_a_steering_viewer_gets_the_interactive_size_until_it_stops(tmp_path: Path) -> None:
+    """While a viewer drags its camera its stream carries the interactive image's size, one
+    keyframe on the way down, deltas through the drag's pauses, one keyframe back up once the
+    drag has rested for `video_steer_hold_s`; the decoder follows both changes of size."""
+    hold = 2.5
+    server = start_server(make_settings(tmp_path, video_steer_hold_s=hold))
+    try:
+        sim, pos = start_sim(server)
+        cam = p.Camera()
+        v = VideoViewer(server.view_url, server.viewer_token, camera=cam)
+        first, _ = video_frame(v, width=320)
+        steered = time.monotonic()
+        v.view((320, 240), camera=cam, interacting=True)
+        down, px = video_frame(v, width=160)
+        assert (down.stream, down.key, down.height, px.shape) == (
+            first.stream,
+            True,
+            120,
+            (120, 160, 3),
+        )
+        for step in range(1, 3):  # the simulation moves on while the drag pauses
+            sim.send(frame(pos + np.float32(0.3 * step), step))
+            msg, px = video_frame(v, step=step)
+            assert (msg.stream, msg.key, msg.width, px.shape) == (
+                first.stream,
+                False,
+                160,
+                (120, 160, 3),
+            )
+        assert time.monotonic() - steered < hold, "the checks above must fall within the hold"
+        time.sleep(max(0.0, steered + hold + 0.2 - time.monotonic()))
+        sim.send(frame(pos + np.float32(2.0), 10))
+        up, px = video_frame(v, width=320)  # the first frame back at full size: a keyframe
+        assert (up.stream, up.key, up.height, px.shape) == (first.stream, True, 240, (240, 320, 3))
+        if up.step != 10:  # a render between the hold's end and the new frame went up first
+            msg, px = video_frame(v, step=10)
+            assert (msg.stream, msg.key, msg.width, px.shape) == (
+                first.stream,
+                False,
+                320,
+                (240, 320, 3),
+            )
+        sim.close()
+        v.close()
+    finally:
+        server.stop()
 
 
 def test_jpeg_for_viewers_without_video_and_when_a_viewer_drops_it(
