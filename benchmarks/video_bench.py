@@ -660,6 +660,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the baseline: renders for video viewers only read the RGBA image back too",
     )
     ap.add_argument(
+        "--no-stage",
+        action="store_true",
+        help="the baseline: frames upload from where they arrived (no page-locked staging)",
+    )
+    ap.add_argument(
         "--switch-interval",
         type=float,
         help="the interpreter's thread switch interval in seconds for the server (a variant)",
@@ -750,6 +755,11 @@ def main(argv: list[str] | None = None) -> int:
             render_sync = GpuQueue.render_sync
             GpuQueue.render_sync = lambda q, r: render_sync(q, replace(r, rgba=True))  # type: ignore[method-assign]
             result["always_rgba"] = True
+        if args.no_stage:
+            from server.pipeline.gpu import GpuQueue
+
+            GpuQueue.stage = lambda *_: None  # type: ignore[method-assign]
+            result["no_stage"] = True
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
             result["switch_interval_s"] = args.switch_interval

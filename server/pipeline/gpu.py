@@ -10,6 +10,7 @@ copies are current), so a slot uploads what changed and nothing else.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -20,6 +21,13 @@ import numpy as np
 import numpy.typing as npt
 
 import protocol as p
+from server.pipeline.staging import FrameStager
+
+STAGE_ATOMS = 100_000
+"""Frames of at least this many atoms are copied to page-locked memory as they arrive."""
+STAGE_WAIT_S = 0.02
+"""Longest a render waits for its frame's staged copy to finish before uploading from the
+frame itself."""
 
 if TYPE_CHECKING:
     from server.render import Renderer
@@ -100,6 +108,10 @@ class _Slot:
     topology_id: int = -1
     positions_id: int = -1
     layered: LayeredRenderer | None = None
+    one_cuda: bool = False
+    """One CUDA device draws it (not several, not the CPU)."""
+    stageable: bool = False
+    """`one_cuda` and its last request had no layers: its new frames are staged."""
 
 
 @dataclass
@@ -116,6 +128,13 @@ class GpuQueue:
     )
     _slots: dict[str, _Slot] = field(default_factory=dict)
     actual_device: str = ""
+    stage_atoms: int = STAGE_ATOMS
+    """Frames of at least this many atoms are staged in page-locked memory as they arrive."""
+    _stage_pool: ThreadPoolExecutor = field(
+        default_factory=lambda: ThreadPoolExecutor(max_workers=1, thread_name_prefix="stage")
+    )
+    _stagers: dict[str, FrameStager] = field(default_factory=dict)
+    """Per slot, written on the stage thread (created there: page-locking takes a while)."""
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
@@ -131,6 +150,32 @@ class GpuQueue:
 
     async def release(self, slot: str) -> None:
         await self.call(self.release_sync, slot)
+
+    def stage(self, slot: str, positions_id: int, positions: npt.NDArray[np.float32]) -> None:
+        """A new frame for `slot` arrived (called on the event loop): copy it into page-locked
+        memory on the stage thread, so that its render uploads it without holding the device
+        thread (`server.pipeline.staging`). Only frames of `stage_atoms` or more for a slot
+        that one CUDA device draws without layers; any other frame uploads as before."""
+        target = self._slots.get(slot)
+        n = len(positions)
+        if target is None or not target.stageable or n < self.stage_atoms:
+            return
+        stager = self._stagers.get(slot)
+        if stager is None or stager.n != n:
+            self._stage_pool.submit(self._new_stager, slot, positions_id, positions)
+            return
+        stager.offer(positions_id, positions)
+
+    def _new_stager(self, slot: str, positions_id: int, positions: npt.NDArray[np.float32]) -> None:
+        """(On the stage thread.) Buffers for `slot`'s frames, then the frame that asked."""
+        stager = self._stagers.get(slot)
+        if stager is None or stager.n != len(positions):
+            try:
+                stager = self._stagers[slot] = FrameStager(len(positions), self._stage_pool)
+            except Exception:  # no page-locked memory to be had: frames upload as before
+                log.exception("could not page-lock staging buffers for %d atoms", len(positions))
+                return
+        stager.offer(positions_id, positions)
 
     def _slot(self, key: str) -> _Slot:
         slot = self._slots.get(key)
@@ -150,12 +195,18 @@ class GpuQueue:
                     device=device, max_atoms=self.max_atoms, max_pixels=self.max_pixels
                 )
             self.actual_device = renderer.device
-            slot = self._slots[key] = _Slot(renderer)
+            one_cuda = renderer.device.startswith("cuda") and len(self.devices) <= 1
+            slot = self._slots[key] = _Slot(renderer, one_cuda=one_cuda)
         return slot
 
-    def _prepare(self, request: RenderRequest) -> Renderer | MultiRenderer | LayeredRenderer:
+    def _prepare(
+        self, request: RenderRequest, held: list[tuple[FrameStager, Any]]
+    ) -> Renderer | MultiRenderer | LayeredRenderer:
+        """Bring the slot up to `request`'s snapshot and render it. A staged copy the upload
+        reads from goes into `held`, to be released once the device is done with it."""
         slot = self._slot(request.slot)
         snap = request.snapshot
+        slot.stageable = slot.one_cuda and request.layers is None
         if request.layers is not None:
             return self._prepare_layers(slot, request)
         if slot.topology_id != snap.topology_id:
@@ -163,8 +214,20 @@ class GpuQueue:
             slot.topology_id = snap.topology_id
             slot.positions_id = -1
         if slot.positions_id != snap.positions_id:
-            # frames were checked finite when decoded; skip the host-side scan
-            slot.renderer.set_positions(snap.positions, check_finite=False)
+            stager = self._stagers.get(request.slot) if slot.stageable else None
+            staged = None
+            if stager is not None and stager.n == len(snap.positions):
+                staged = stager.take(snap.positions_id, STAGE_WAIT_S)
+            if staged is not None and stager is not None:
+                from server.render import Renderer
+
+                held.append((stager, staged))
+                renderer_one = slot.renderer
+                assert isinstance(renderer_one, Renderer)  # `one_cuda`
+                renderer_one.set_positions(snap.positions, check_finite=False, staged=staged)
+            else:
+                # frames were checked finite when decoded; skip the host-side scan
+                slot.renderer.set_positions(snap.positions, check_finite=False)
             slot.positions_id = snap.positions_id
         renderer = slot.renderer
         if snap.history:
@@ -206,20 +269,40 @@ class GpuQueue:
         return slot.layered
 
     def render_sync(self, request: RenderRequest) -> RenderOutput:
-        renderer = self._prepare(request)
-        hist = None
-        if request.histogram:
-            counts, _edges = renderer.density_histogram(64)
-            hist = np.asarray(counts, dtype=np.float32)
-        i420 = None
-        read_i420 = getattr(renderer, "read_i420", None)  # a multi-device render has none
-        if request.video_size is not None and read_i420 is not None and self._on_cuda():
-            try:
-                i420 = read_i420(request.video_size)
-            except Exception:  # the encoder converts the RGBA image itself: slower, not lost
-                log.exception("converting a video frame on %s failed", self.actual_device)
-        rgba = renderer.read_rgba() if request.rgba or i420 is None else None
-        return RenderOutput(rgba, dict(renderer.timings), hist, i420)
+        held: list[tuple[FrameStager, Any]] = []
+        try:
+            renderer = self._prepare(request, held)
+            hist = None
+            if request.histogram:
+                counts, _edges = renderer.density_histogram(64)
+                hist = np.asarray(counts, dtype=np.float32)
+            i420 = None
+            read_i420 = getattr(renderer, "read_i420", None)  # a multi-device render has none
+            if request.video_size is not None and read_i420 is not None and self._on_cuda():
+                try:
+                    i420 = read_i420(request.video_size)
+                except Exception:  # the encoder converts the RGBA image itself: slower
+                    log.exception("converting a video frame on %s failed", self.actual_device)
+            rgba = renderer.read_rgba() if request.rgba or i420 is None else None
+            out = RenderOutput(rgba, dict(renderer.timings), hist, i420)
+        except BaseException:
+            self._release_staged(held, failed=True)
+            raise
+        self._release_staged(held)
+        return out
+
+    def _release_staged(self, held: list[tuple[FrameStager, Any]], failed: bool = False) -> None:
+        """Give staged buffers back once the device has read them: a render's read-back waits
+        for its upload; after a failure, the device is waited for here."""
+        if not held:
+            return
+        if failed:
+            import warp as wp
+
+            with contextlib.suppress(Exception):
+                wp.synchronize_device(self.actual_device)
+        for stager, array in held:
+            stager.release(array)
 
     def _on_cuda(self) -> bool:
         """On the CPU device swscale converts faster than a kernel there: no I420 then."""
@@ -230,12 +313,21 @@ class GpuQueue:
     ) -> tuple[int | None, float | None, str | None]:
         if request.layers is not None:
             return self._prepare_layers(self._slot(request.slot), request).pick_layer(x, y)
-        atom, depth = self._prepare(request).pick(x, y)
+        held: list[tuple[FrameStager, Any]] = []
+        try:
+            atom, depth = self._prepare(request, held).pick(x, y)
+        except BaseException:
+            self._release_staged(held, failed=True)
+            raise
+        self._release_staged(held)
         return atom, depth, None
 
     def release_sync(self, slot: str) -> None:
         self._slots.pop(slot, None)
+        self._stagers.pop(slot, None)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+        self._stage_pool.shutdown(wait=True, cancel_futures=True)
         self._slots.clear()
+        self._stagers.clear()

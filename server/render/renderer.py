@@ -342,12 +342,20 @@ class Renderer(ImageOutputs):
         a: npt.NDArray[np.float32] = staging.numpy().view(np.float32).reshape(-1, 3)
         return a[: self._n]
 
-    def set_positions(self, positions: npt.ArrayLike, *, check_finite: bool = True) -> None:
+    def set_positions(
+        self,
+        positions: npt.ArrayLike,
+        *,
+        check_finite: bool = True,
+        staged: npt.NDArray[np.float32] | None = None,
+    ) -> None:
         """Positions (n, 3) in angstrom for the next render; n must match the topology.
 
         `check_finite=False` skips the host-side NaN/Inf scan (one pass over the array) for
         positions already validated upstream, e.g. by the protocol decoder; the device still
-        refuses a non-finite frame by drawing background only."""
+        refuses a non-finite frame by drawing background only. `staged`: the same positions,
+        already copied to page-locked memory (`server.pipeline.staging`), uploaded from there
+        asynchronously; keep it unwritten until this render has finished."""
         if self._topology is None:
             raise RenderError("set_topology must come before set_positions")
         arr = np.asarray(positions)
@@ -369,15 +377,19 @@ class Renderer(ImageOutputs):
             raise RenderError("positions are too large (beyond ±1e30 angstrom)")
         t0 = time.perf_counter()
         if n:
+            if staged is not None:
+                if staged.shape != arr.shape or staged.dtype != np.float32:
+                    raise RenderError(f"a staged copy of shape {staged.shape} for {arr.shape}")
+                arr = staged
             address = arr.__array_interface__["data"][0]
-            staged = [i for i, b in enumerate(self._stagings) if b.ptr == address]
+            own = [i for i, b in enumerate(self._stagings) if b.ptr == address]
             src = (
-                self._stagings[staged[0]]
-                if staged
+                self._stagings[own[0]]
+                if own
                 else wp.array(arr, dtype=wp.vec3, device="cpu", copy=False)
             )
-            if staged:
-                self._next_staging = (staged[0] + 1) % len(self._stagings)
+            if own:
+                self._next_staging = (own[0] + 1) % len(self._stagings)
             if self._cuda:
                 self._upload(src, n)
             else:

@@ -9,6 +9,9 @@ from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import numpy as np
+import numpy.typing as npt
+
 from server.metrics import Metrics
 from server.pipeline.encoder import ImageEncoder
 from server.pipeline.gpu import RenderOutput, RenderRequest
@@ -29,6 +32,10 @@ class RenderBackend(Protocol):
     ) -> tuple[int | None, float | None, str | None]: ...
 
     async def release(self, slot: str) -> None: ...
+
+    def stage(self, slot: str, positions_id: int, positions: npt.NDArray[np.float32]) -> None:
+        """A new frame arrived for `slot`: the backend may start moving it towards the device
+        now, ahead of its render (on the event loop: it must not block)."""
 
 
 @dataclass(frozen=True)

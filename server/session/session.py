@@ -372,6 +372,7 @@ class Session:
         rate = self._step_rate.add(now, frame.step)
         self.positions = frame.positions.to_numpy()
         self.positions_id += 1
+        self.services.backend.stage(self.slot, self.positions_id, self.positions)
         self.box = None if frame.box is None else frame.box.to_numpy()
         self._remember(frame.step)
         if self.frame_sinks:

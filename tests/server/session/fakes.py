@@ -47,6 +47,7 @@ class PaintBackend:
 
     requests: list[RenderRequest] = field(default_factory=list)
     released: list[str] = field(default_factory=list)
+    staged: list[tuple[str, int]] = field(default_factory=list)
     actual_device: str = "paint"
     gate: asyncio.Event | None = None
     """When set, renders wait for it (to hold a render in flight)."""
@@ -68,6 +69,9 @@ class PaintBackend:
 
     async def release(self, slot: str) -> None:
         self.released.append(slot)
+
+    def stage(self, slot: str, positions_id: int, positions: np.ndarray) -> None:
+        self.staged.append((slot, positions_id))
 
 
 def services(tmp_path: Path, backend: PaintBackend | None = None, slots: int = 2) -> Services:

@@ -65,6 +65,17 @@ def test_a_frame_reaches_every_viewer_as_one_shared_render(tmp_path: Path) -> No
     run(body, tmp_path)
 
 
+def test_each_frame_is_offered_to_the_backend_to_stage_as_it_arrives(tmp_path: Path) -> None:
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        session.on_topology(topo)
+        session.on_frame(frame(pos, 1))
+        session.on_frame(frame(pos, 2))
+        assert backend.staged == [(session.slot, 1), (session.slot, 2)]
+
+    run(body, tmp_path)
+
+
 def test_frames_that_outrun_rendering_coalesce_to_the_newest(tmp_path: Path) -> None:
     async def body(session: Session, backend: PaintBackend) -> None:
         topo, pos = molecule()

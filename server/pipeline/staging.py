@@ -1,0 +1,139 @@
+"""Frames copied into page-locked host memory as they arrive, off the device thread.
+
+A simulation's frame sits in ordinary (pageable) memory, and a CUDA copy from there runs through
+a bounce buffer and holds the calling thread for all of it: about 3.4 ms of the device thread
+per 12 MB frame (1M atoms) on an H200 host, time that every render, and so every steering
+change, waits behind. A `FrameStager` copies each new frame into one of a few page-locked
+buffers on a thread of its own as the frame arrives (numpy copies without the interpreter
+lock), so when the frame's render comes the device reads it from there asynchronously.
+
+A buffer goes free -> writing (the stage thread copies into it) -> ready -> in use (a render
+uploads from it) -> free. A ready buffer whose frame was superseded before any render took it
+is reused for a newer frame; a buffer in use is never written.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import threading
+from collections.abc import Callable
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+log = logging.getLogger("scalesteer.gpu")
+
+BUFFERS = 3
+"""One a render uploads from, the newest frame ready, the next one being copied."""
+
+Allocate = Callable[[int], tuple[object, npt.NDArray[np.float32]]]
+"""n atoms -> (the allocation to keep alive, its (n, 3) float32 view)."""
+
+
+def pinned(n: int) -> tuple[object, npt.NDArray[np.float32]]:
+    """A page-locked (n, 3) float32 host buffer (warp allocates it for the CUDA driver)."""
+    import warp
+
+    wp: Any = warp  # warp's host API is unannotated
+    owner = wp.empty(max(n, 1), dtype=wp.vec3, device="cpu", pinned=True)
+    view: npt.NDArray[np.float32] = owner.numpy().view(np.float32).reshape(-1, 3)[:n]
+    return owner, view
+
+
+class State(enum.Enum):
+    FREE = "free"
+    WRITING = "writing"
+    READY = "ready"
+    IN_USE = "in use"
+
+
+@dataclass(eq=False)
+class _Buffer:
+    owner: object
+    array: npt.NDArray[np.float32]
+    positions_id: int = -1
+    state: State = State.FREE
+    done: threading.Event = field(default_factory=threading.Event)
+
+
+class FrameStager:
+    """Page-locked copies of one slot's newest frames of `n` atoms; `offer` is called as
+    frames arrive, `take` and `release` by the render that uploads one."""
+
+    def __init__(
+        self, n: int, pool: Executor, allocate: Allocate = pinned, count: int = BUFFERS
+    ) -> None:
+        self.n = n
+        self._pool = pool
+        self._lock = threading.Lock()
+        self._buffers = [_Buffer(*allocate(n)) for _ in range(count)]
+
+    def offer(self, positions_id: int, positions: npt.NDArray[np.float32]) -> bool:
+        """Copy frame `positions_id` into a buffer on the stage thread; False (and nothing
+        copied) when every buffer is being written or uploaded from."""
+        if positions.shape != (self.n, 3):
+            raise ValueError(f"a frame of shape {positions.shape} offered to a stager of {self.n}")
+        with self._lock:
+            buf = self._pick()
+            if buf is None:
+                return False
+            buf.state, buf.positions_id, buf.done = State.WRITING, positions_id, threading.Event()
+        self._pool.submit(self._copy, buf, positions)
+        return True
+
+    def _pick(self) -> _Buffer | None:
+        for buf in self._buffers:
+            if buf.state is State.FREE:
+                return buf
+        ready = [b for b in self._buffers if b.state is State.READY]
+        return min(ready, key=lambda b: b.positions_id) if ready else None
+
+    def _copy(self, buf: _Buffer, positions: npt.NDArray[np.float32]) -> None:
+        ok = False
+        try:
+            np.copyto(buf.array, positions, casting="same_kind")
+            ok = True
+        except Exception:  # the render then uploads the frame from where it is
+            log.exception("staging a frame in page-locked memory failed")
+        with self._lock:
+            buf.state = State.READY if ok else State.FREE
+            buf.done.set()
+
+    def take(self, positions_id: int, wait_s: float) -> npt.NDArray[np.float32] | None:
+        """The page-locked copy of frame `positions_id`, now in use until `release`; waits up
+        to `wait_s` for a copy under way. None when there is no copy of that frame (it came
+        while every buffer was busy) or it is not done in time."""
+        with self._lock:
+            buf = next(
+                (
+                    b
+                    for b in self._buffers
+                    if b.positions_id == positions_id and b.state in (State.WRITING, State.READY)
+                ),
+                None,
+            )
+            if buf is None:
+                return None
+            done = buf.done
+        if not done.wait(wait_s):
+            return None
+        with self._lock:
+            if buf.state is not State.READY or buf.positions_id != positions_id:
+                return None  # reused for a newer frame meanwhile
+            buf.state = State.IN_USE
+            return buf.array
+
+    def release(self, array: npt.NDArray[np.float32]) -> None:
+        """The upload from `array` is complete: its buffer may take a new frame."""
+        with self._lock:
+            for buf in self._buffers:
+                if buf.array is array:
+                    buf.state = State.FREE
+
+    def states(self) -> list[State]:
+        with self._lock:
+            return [b.state for b in self._buffers]

@@ -1,0 +1,83 @@
+"""Frames staged for upload: each arriving frame is copied into a free buffer on a thread of its
+own; a render takes its frame's copy, and a buffer in use is never written until released."""
+
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from server.pipeline.staging import FrameStager, State
+
+
+def plain(n: int) -> tuple[object, np.ndarray]:
+    a = np.empty((n, 3), np.float32)
+    return a, a
+
+
+@pytest.fixture
+def pool() -> ThreadPoolExecutor:
+    with ThreadPoolExecutor(1) as p:
+        yield p
+
+
+def frame(k: float, n: int = 50) -> np.ndarray:
+    return np.full((n, 3), k, np.float32)
+
+
+def test_a_render_takes_the_copy_of_its_own_frame(pool: ThreadPoolExecutor) -> None:
+    stager = FrameStager(50, pool, plain)
+    assert stager.offer(1, frame(1.0))
+    staged = stager.take(1, wait_s=5.0)
+    assert staged is not None and np.array_equal(staged, frame(1.0))
+    assert stager.take(1, wait_s=0.1) is None  # in use: not handed out twice
+    assert stager.take(7, wait_s=0.1) is None  # a frame never offered
+    stager.release(staged)
+    assert stager.states() == [State.FREE] * 3
+
+
+def test_a_buffer_in_use_is_never_rewritten(pool: ThreadPoolExecutor) -> None:
+    stager = FrameStager(50, pool, plain, count=2)
+    stager.offer(1, frame(1.0))
+    uploading = stager.take(1, wait_s=5.0)
+    assert uploading is not None
+    assert stager.offer(2, frame(2.0))
+    assert stager.take(2, wait_s=5.0) is not None  # the other buffer
+    assert not stager.offer(3, frame(3.0))  # both in use: frame 3 uploads from where it is
+    assert np.array_equal(uploading, frame(1.0))
+    stager.release(uploading)
+    assert stager.offer(4, frame(4.0))
+    copy = stager.take(4, wait_s=5.0)
+    assert copy is uploading and np.array_equal(copy, frame(4.0))
+
+
+def test_superseded_frames_give_their_buffers_to_newer_ones(pool: ThreadPoolExecutor) -> None:
+    stager = FrameStager(50, pool, plain)
+    for k in range(1, 8):  # frames arrive faster than renders take them
+        assert stager.offer(k, frame(float(k)))
+        while State.WRITING in stager.states():  # each copied before the next arrives
+            time.sleep(0.001)
+    newest = stager.take(7, wait_s=5.0)
+    assert newest is not None and np.array_equal(newest, frame(7.0))
+    assert stager.take(1, wait_s=0.1) is None  # its buffer went to a newer frame
+
+
+def test_a_render_waits_for_a_copy_under_way_but_not_forever() -> None:
+    gate = threading.Event()
+    with ThreadPoolExecutor(1) as pool:
+        pool.submit(gate.wait)  # the stage thread is busy: the copy has not started
+        stager = FrameStager(50, pool, plain)
+        stager.offer(1, frame(1.0))
+        assert stager.take(1, wait_s=0.05) is None  # not done in time: upload the frame itself
+        gate.set()
+        taken = stager.take(1, wait_s=5.0)
+        assert taken is not None and np.array_equal(taken, frame(1.0))
+
+
+def test_a_frame_of_another_size_is_refused(pool: ThreadPoolExecutor) -> None:
+    stager = FrameStager(50, pool, plain)
+    with pytest.raises(ValueError, match="shape"):
+        stager.offer(1, frame(1.0, n=49))
