@@ -26,6 +26,8 @@ whose atoms move smoothly (0.3 A breathing, 120 frames per cycle). Frames come a
 from __future__ import annotations
 
 import argparse
+import asyncio
+import collections
 import contextlib
 import io
 import json
@@ -33,6 +35,7 @@ import multiprocessing as mp
 import platform
 import socket
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -424,6 +427,8 @@ def live(
         c0, w0 = time.process_time(), time.perf_counter()
         if trace is not None:
             trace.pauses.clear()
+            if trace.stalls is not None:
+                trace.stalls.reset()
         row: dict[str, Any] = out.get(timeout=600)
         cores = (time.process_time() - c0) / (time.perf_counter() - w0)
         steerer.join(30)
@@ -438,6 +443,8 @@ def live(
         row["stages_ms"] = trace.breakdown(session, changes)
         row["timeline"] = trace.timeline(session, changes)
         row["gc_pauses_ms"] = trace.gc_summary()
+        if trace.stalls is not None:
+            row["loop_stalls"] = trace.stalls.summary()
     row.update(
         {
             "system": system_name,
@@ -449,6 +456,80 @@ def live(
         }
     )
     return row
+
+
+class LoopStalls:
+    """Where the server's event loop is when it stalls (`--stalls`, a diagnostic): a task on
+    the loop ticks every millisecond; a watchdog thread that sees no tick for `after_ms` takes
+    the loop thread's stack (and the innermost frame of every other thread) each millisecond
+    until the loop ticks again."""
+
+    def __init__(self, after_ms: float = 3.0) -> None:
+        self.after_s = after_ms / 1e3
+        self.last_tick = time.perf_counter()
+        self.loop_thread: int | None = None
+        self.stalls: list[float] = []
+        self.samples: collections.Counter[str] = collections.Counter()
+        self.others: collections.Counter[str] = collections.Counter()
+        self._stalled_since: float | None = None
+
+    def start(self) -> None:
+        """Called on the loop (the first render pass): starts the ticker and the watchdog."""
+        if self.loop_thread is not None:
+            return
+        self.loop_thread = threading.get_ident()
+        asyncio.get_running_loop().create_task(self._tick())
+        threading.Thread(target=self._watch, daemon=True, name="stall-watch").start()
+
+    def reset(self) -> None:
+        self.stalls.clear()
+        self.samples.clear()
+        self.others.clear()
+
+    async def _tick(self) -> None:
+        while True:
+            self.last_tick = time.perf_counter()
+            await asyncio.sleep(0.001)
+
+    def _watch(self) -> None:
+        import traceback
+
+        while True:
+            time.sleep(0.001)
+            now = time.perf_counter()
+            late = now - self.last_tick
+            if late < self.after_s:
+                if self._stalled_since is not None:
+                    self.stalls.append((now - self._stalled_since) * 1e3)
+                    self._stalled_since = None
+                continue
+            if self._stalled_since is None:
+                self._stalled_since = self.last_tick
+            frames = sys._current_frames()
+            loop_frame = frames.get(self.loop_thread or -1)
+            if loop_frame is not None:
+                stack = traceback.extract_stack(loop_frame)[-6:]
+                self.samples[
+                    " < ".join(
+                        f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in reversed(stack)
+                    )
+                ] += 1
+            for tid, other in frames.items():
+                if tid not in (self.loop_thread, threading.get_ident()):
+                    code = other.f_code
+                    self.others[
+                        f"{Path(code.co_filename).name}:{other.f_lineno} {code.co_name}"
+                    ] += 1
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "count": len(self.stalls),
+            "total_ms": sum(self.stalls),
+            "p50_ms": percentile(self.stalls, 50) if self.stalls else 0.0,
+            "max_ms": max(self.stalls, default=0.0),
+            "loop_stacks": self.samples.most_common(12),
+            "other_threads": self.others.most_common(12),
+        }
 
 
 class Trace:
@@ -468,6 +549,7 @@ class Trace:
         set_view = Session.set_view
         render_group = Session._render_group
         self.groups: list[float] = []
+        self.stalls: LoopStalls | None = None
         self.pauses: list[tuple[int, float, float]] = []
         """The server process's garbage collections: (generation, wall start, ms)."""
         self._gc_start = 0.0
@@ -486,6 +568,8 @@ class Trace:
 
         async def traced_group(session: Any, *args: Any) -> Any:
             trace.groups.append(time.time())
+            if trace.stalls is not None:
+                trace.stalls.start()
             return await render_group(session, *args)
 
         def traced_sync(queue: Any, request: Any) -> Any:
@@ -676,6 +760,11 @@ def main(argv: list[str] | None = None) -> int:
         metavar="FIELD=VALUE",
         help="a server setting for a variant run (repeatable), e.g. encode_workers=2",
     )
+    ap.add_argument(
+        "--stalls",
+        action="store_true",
+        help="a diagnostic: sample where the server's event loop is whenever it stalls 3 ms",
+    )
     ap.add_argument("--record-villin", action="store_true")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
@@ -764,6 +853,8 @@ def main(argv: list[str] | None = None) -> int:
             sys.setswitchinterval(args.switch_interval)
             result["switch_interval_s"] = args.switch_interval
         trace = Trace()
+        if args.stalls:
+            trace.stalls = LoopStalls()
         server = ServerThread(settings)
         try:
             for name in systems:
