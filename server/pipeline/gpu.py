@@ -25,9 +25,9 @@ from server.pipeline.staging import FrameStager
 
 STAGE_ATOMS = 100_000
 """Frames of at least this many atoms are copied to page-locked memory as they arrive."""
-STAGE_WAIT_S = 0.02
-"""Longest a render waits for its frame's staged copy to finish before uploading from the
-frame itself."""
+STAGE_WAIT_S = 0.005
+"""Longest a render waits for its frame's staged copy to finish (a 12 MB copy takes 2-3 ms)
+before uploading from the frame itself."""
 
 if TYPE_CHECKING:
     from server.render import Renderer
@@ -112,6 +112,8 @@ class _Slot:
     """One CUDA device draws it (not several, not the CPU)."""
     stageable: bool = False
     """`one_cuda` and its last request had no layers: its new frames are staged."""
+    stager: FrameStager | None = None
+    """Its page-locked frames (made on the stage thread; gone with the slot)."""
 
 
 @dataclass
@@ -133,8 +135,6 @@ class GpuQueue:
     _stage_pool: ThreadPoolExecutor = field(
         default_factory=lambda: ThreadPoolExecutor(max_workers=1, thread_name_prefix="stage")
     )
-    _stagers: dict[str, FrameStager] = field(default_factory=dict)
-    """Per slot, written on the stage thread (created there: page-locking takes a while)."""
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
@@ -160,18 +160,22 @@ class GpuQueue:
         n = len(positions)
         if target is None or not target.stageable or n < self.stage_atoms:
             return
-        stager = self._stagers.get(slot)
-        if stager is None or stager.n != n:
-            self._stage_pool.submit(self._new_stager, slot, positions_id, positions)
+        stager = target.stager
+        if stager is not None and stager.n == n:
+            stager.offer(positions_id, positions)
             return
-        stager.offer(positions_id, positions)
+        with contextlib.suppress(RuntimeError):  # the queue is closing: nothing to stage
+            self._stage_pool.submit(self._new_stager, target, positions_id, positions)
 
-    def _new_stager(self, slot: str, positions_id: int, positions: npt.NDArray[np.float32]) -> None:
-        """(On the stage thread.) Buffers for `slot`'s frames, then the frame that asked."""
-        stager = self._stagers.get(slot)
+    def _new_stager(
+        self, slot: _Slot, positions_id: int, positions: npt.NDArray[np.float32]
+    ) -> None:
+        """(On the stage thread.) Buffers for `slot`'s frames, then the frame that asked. A
+        slot released meanwhile takes its buffers with it."""
+        stager = slot.stager
         if stager is None or stager.n != len(positions):
             try:
-                stager = self._stagers[slot] = FrameStager(len(positions), self._stage_pool)
+                stager = slot.stager = FrameStager(len(positions), self._stage_pool)
             except Exception:  # no page-locked memory to be had: frames upload as before
                 log.exception("could not page-lock staging buffers for %d atoms", len(positions))
                 return
@@ -208,13 +212,14 @@ class GpuQueue:
         snap = request.snapshot
         slot.stageable = slot.one_cuda and request.layers is None
         if request.layers is not None:
+            slot.stager = None  # layers upload their own subsets
             return self._prepare_layers(slot, request)
         if slot.topology_id != snap.topology_id:
             slot.renderer.set_topology(snap.topology)
             slot.topology_id = snap.topology_id
             slot.positions_id = -1
         if slot.positions_id != snap.positions_id:
-            stager = self._stagers.get(request.slot) if slot.stageable else None
+            stager = slot.stager
             staged = None
             if stager is not None and stager.n == len(snap.positions):
                 staged = stager.take(snap.positions_id, STAGE_WAIT_S)
@@ -324,10 +329,8 @@ class GpuQueue:
 
     def release_sync(self, slot: str) -> None:
         self._slots.pop(slot, None)
-        self._stagers.pop(slot, None)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
         self._stage_pool.shutdown(wait=True, cancel_futures=True)
         self._slots.clear()
-        self._stagers.clear()

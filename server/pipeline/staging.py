@@ -82,7 +82,12 @@ class FrameStager:
             if buf is None:
                 return False
             buf.state, buf.positions_id, buf.done = State.WRITING, positions_id, threading.Event()
-        self._pool.submit(self._copy, buf, positions)
+        try:
+            self._pool.submit(self._copy, buf, positions)
+        except RuntimeError:  # the pool is shut down: the server is stopping
+            with self._lock:
+                buf.state = State.FREE
+            return False
         return True
 
     def _pick(self) -> _Buffer | None:

@@ -49,8 +49,9 @@ class Rendered:
     still: bool
     camera_json: str = ""
     stream_size: tuple[int, int] = (0, 0)
-    """The size video streams of this view encode at: the full image size, whatever the
-    frame budget or an interaction made of this render (scaled up to it)."""
+    """The size video streams of this view encode at: the full image size whatever the frame
+    budget or a single interactive render made of this render (scaled to it), the interactive
+    size while someone steers (`RenderScheduler.steering`)."""
     rest: bool = False
     """The view rests: video viewers get this one as a near-lossless JPEG still."""
 

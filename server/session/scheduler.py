@@ -213,15 +213,17 @@ class RenderScheduler:
         size: tuple[int, int],
         ms: float,
         now: float,
-        steering: bool = False,
+        budget_size: tuple[int, int] | None = None,
     ) -> bool:
         """Learn from a render; True when its size was shrunk by the budget (the next
-        refinement is then due once the group's image stays unchanged for a while). A
-        `steering` render wanted only the interactive size (its rest still is full size)."""
+        refinement is then due once the group's image stays unchanged for a while).
+        `budget_size`: what `image_size` gave, when the render was smaller still for another
+        reason (a steering stream's size): the refinements follow as they would have."""
         self.cost.note(size[0] * size[1], ms)
         base = replace(key, refine=0, rest=False)
-        wanted = self._wanted_size(replace(key, interactive=True) if steering else key)
-        if key.refine < FINAL and size[0] * size[1] < wanted[0] * wanted[1]:
+        wanted = self._wanted_size(key)
+        shown = budget_size or size
+        if key.refine < FINAL and shown[0] * shown[1] < wanted[0] * wanted[1]:
             if len(self._reduced) >= MAX_REMEMBERED:
                 self._reduced.clear()
             self._reduced[base] = (version, now, key.refine)

@@ -846,7 +846,13 @@ class Session:
         on_cpu = device.startswith("cpu")
         width, height = self.scheduler.image_size(key, params.quality, on_cpu)
         stream_size = self.scheduler.stream_size(key, params.quality, on_cpu, steering)
-        steered = video_only and steering and stream_size[0] * stream_size[1] < width * height
+        budget_size = (width, height)
+        steered = (
+            video_only
+            and steering
+            and key.refine == 0  # a refinement is for the picture at rest: drawn as it was
+            and stream_size[0] * stream_size[1] < width * height
+        )
         if steered:  # every member takes the stream: more pixels would be scaled away
             width, height = stream_size
         now = time.monotonic()
@@ -869,7 +875,7 @@ class Session:
             (width, height),
             out.timings.get("total", 0.0),
             time.monotonic(),
-            steering=steered,
+            budget_size=budget_size,
         )
         if reduced:
             after = self.settings.refine_after_s if key.refine == 0 else self.settings.final_after_s

@@ -160,8 +160,9 @@ class VideoStreams:
 
     def kbps(self, stream: VideoStream, size: tuple[int, int] | None = None) -> float:
         """What the stream encodes at: what its canvas needs when the links of its viewers
-        allow that (their rung is the cap's own), else their rung; a frame of a smaller `size`
-        (a steering stream's) at most what that size needs."""
+        allow that (their rung is the cap's own), else their rung; a frame smaller than the
+        canvas (a steering stream's, or one limited by the quality or the CPU's live size) at
+        most what its own `size` needs."""
         _, w, h, _, r = stream.key
         cap = self.cap_kbps(w, h)
         kbps = cap if r >= rung(cap) else float(r)

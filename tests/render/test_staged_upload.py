@@ -29,16 +29,20 @@ def test_a_staged_frame_draws_the_same_image(
             queue.stage("t", 2, moved)  # the next frame arrives
             if queue is staging and device.startswith("cuda"):
                 deadline = time.monotonic() + 10
-                while (s := queue._stagers.get("t")) is None or State.WRITING in s.states():
+                while (s := queue._slots["t"].stager) is None or State.WRITING in s.states():
                     assert time.monotonic() < deadline, "the frame was never staged"
                     time.sleep(0.005)
             snap = Snapshot(topology, moved, positions_id=2)
             images.append(queue.render_sync(RenderRequest("t", snap, params, camera, 64, 48)))
         assert np.array_equal(images[0].image(), images[1].image())
+        stager = staging._slots["t"].stager
         if device.startswith("cuda"):
-            assert staging._stagers["t"].states().count(State.FREE) >= 2  # given back
+            assert stager is not None
+            assert stager.states() == [State.FREE] * 3  # taken by the render, then given back
         else:
-            assert staging._stagers == {}  # the CPU device reads the frame where it is
+            assert stager is None  # the CPU device reads the frame where it is
+        staging.release_sync("t")
+        assert "t" not in staging._slots  # its buffers went with it
     finally:
         staging.close()
         plain.close()

@@ -167,8 +167,10 @@ def test_a_stream_keeps_its_steering_size_through_a_burst_of_changes() -> None:
     assert s.stream_size(key, 1.0, steering=True) == (100, 50)  # the interactive image's
     b.interacted_at = 20.0  # b drags its camera: its group steers, a's does not
     assert s.steering([b], 20.5) and not s.steering([a], 20.5)
-    # a steering render at that size is not a budget-reduced one (no refinement follows)
-    assert not s.note_render(key, 1, (100, 50), 1.0, 20.5, steering=True)
+    # a render at the steering size is reduced only when the budget would have shrunk it:
+    # the refinements toward the still at rest then follow as they would have
+    assert not s.note_render(key, 1, (100, 50), 1.0, 20.5, budget_size=(200, 100))
+    assert s.note_render(key, 1, (100, 50), 1.0, 20.5, budget_size=(150, 75))
     assert s.note_render(key, 1, (100, 50), 1.0, 20.5)
 
 
