@@ -12,10 +12,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -219,20 +219,17 @@ class GpuQueue:
             slot.topology_id = snap.topology_id
             slot.positions_id = -1
         if slot.positions_id != snap.positions_id:
+            # frames were checked finite when decoded; skip the host-side scan
             stager = slot.stager
             staged = None
             if stager is not None and stager.n == len(snap.positions):
                 staged = stager.take(snap.positions_id, STAGE_WAIT_S)
-            if staged is not None and stager is not None:
-                from server.render import Renderer
-
-                held.append((stager, staged))
-                renderer_one = slot.renderer
-                assert isinstance(renderer_one, Renderer)  # `one_cuda`
-                renderer_one.set_positions(snap.positions, check_finite=False, staged=staged)
-            else:
-                # frames were checked finite when decoded; skip the host-side scan
+            if stager is None or staged is None:
                 slot.renderer.set_positions(snap.positions, check_finite=False)
+            else:  # only a slot one CUDA device draws (a `Renderer`) has a stager
+                held.append((stager, staged))
+                one = cast("Renderer", slot.renderer)
+                one.set_positions(snap.positions, check_finite=False, staged=staged)
             slot.positions_id = snap.positions_id
         renderer = slot.renderer
         if snap.history:
@@ -274,8 +271,7 @@ class GpuQueue:
         return slot.layered
 
     def render_sync(self, request: RenderRequest) -> RenderOutput:
-        held: list[tuple[FrameStager, Any]] = []
-        try:
+        with self._staged() as held:
             renderer = self._prepare(request, held)
             hist = None
             if request.histogram:
@@ -289,25 +285,26 @@ class GpuQueue:
                 except Exception:  # the encoder converts the RGBA image itself: slower
                     log.exception("converting a video frame on %s failed", self.actual_device)
             rgba = renderer.read_rgba() if request.rgba or i420 is None else None
-            out = RenderOutput(rgba, dict(renderer.timings), hist, i420)
+            return RenderOutput(rgba, dict(renderer.timings), hist, i420)
+
+    @contextlib.contextmanager
+    def _staged(self) -> Iterator[list[tuple[FrameStager, Any]]]:
+        """The staged buffers a render uploads from, given back once the device has read them:
+        a render's read-back waits for its upload; after a failure, the device is waited for
+        here."""
+        held: list[tuple[FrameStager, Any]] = []
+        try:
+            yield held
         except BaseException:
-            self._release_staged(held, failed=True)
+            if held:
+                import warp as wp
+
+                with contextlib.suppress(Exception):
+                    wp.synchronize_device(self.actual_device)
             raise
-        self._release_staged(held)
-        return out
-
-    def _release_staged(self, held: list[tuple[FrameStager, Any]], failed: bool = False) -> None:
-        """Give staged buffers back once the device has read them: a render's read-back waits
-        for its upload; after a failure, the device is waited for here."""
-        if not held:
-            return
-        if failed:
-            import warp as wp
-
-            with contextlib.suppress(Exception):
-                wp.synchronize_device(self.actual_device)
-        for stager, array in held:
-            stager.release(array)
+        finally:
+            for stager, array in held:
+                stager.release(array)
 
     def _on_cuda(self) -> bool:
         """On the CPU device swscale converts faster than a kernel there: no I420 then."""
@@ -318,13 +315,8 @@ class GpuQueue:
     ) -> tuple[int | None, float | None, str | None]:
         if request.layers is not None:
             return self._prepare_layers(self._slot(request.slot), request).pick_layer(x, y)
-        held: list[tuple[FrameStager, Any]] = []
-        try:
+        with self._staged() as held:
             atom, depth = self._prepare(request, held).pick(x, y)
-        except BaseException:
-            self._release_staged(held, failed=True)
-            raise
-        self._release_staged(held)
         return atom, depth, None
 
     def release_sync(self, slot: str) -> None:

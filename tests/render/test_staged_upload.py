@@ -46,3 +46,40 @@ def test_a_staged_frame_draws_the_same_image(
     finally:
         staging.close()
         plain.close()
+
+
+def test_a_render_gives_its_staged_copy_back_also_when_it_fails(
+    molecule: Callable[..., tuple[Topology, np.ndarray]],
+) -> None:
+    """The take-and-give-back path, here on the CPU device with a pageable stand-in for the
+    page-locked buffers (on CUDA the test above runs it for real)."""
+    import pytest
+
+    from server.pipeline.staging import FrameStager
+    from server.render.errors import RenderError
+
+    def plain(n: int) -> tuple[object, np.ndarray]:
+        a = np.empty((n, 3), np.float32)
+        return a, a
+
+    topology, positions = molecule(60, seed=3)
+    camera = Camera(target=tuple(positions.mean(axis=0)), distance=30.0)
+    params = RenderParams(sigma_A=1.2)
+    queue = GpuQueue(device="cpu")
+    try:
+        queue.render_sync(RenderRequest("t", Snapshot(topology, positions), params, camera, 64, 48))
+        stager = queue._slots["t"].stager = FrameStager(len(positions), queue._stage_pool, plain)
+        for k, (w, h) in enumerate([(64, 48), (0, 48)], start=2):  # the second size is refused
+            moved = (positions + np.float32(0.5 * k)).astype(np.float32)
+            assert stager.offer(k, moved)
+            snap = Snapshot(topology, moved, positions_id=k)
+            request = RenderRequest("t", snap, params, camera, w, h)
+            if w:
+                queue.render_sync(request)
+            else:
+                with pytest.raises(RenderError):
+                    queue.render_sync(request)
+            assert stager.states() == [State.FREE] * 3, f"frame {k} kept its buffer"
+            assert stager.take(k, 0.0) is None  # taken by its render, not left ready
+    finally:
+        queue.close()

@@ -30,6 +30,12 @@ def video_frame(
     )
 
 
+def seen(msg: p.Image, pixels: np.ndarray) -> tuple[object, ...]:
+    """A decoded video frame as its stream, whether it is a key, its size and the decoded
+    picture's shape."""
+    return msg.stream, msg.key, msg.width, msg.height, pixels.shape
+
+
 def test_viewer_that_decodes_h264_gets_a_video_stream_that_follows_the_simulation(
     live_server: LiveServer,
 ) -> None:
@@ -157,34 +163,19 @@ def test_a_steering_viewer_gets_the_interactive_size_until_it_stops(tmp_path: Pa
         steered = time.monotonic()
         v.view((320, 240), camera=cam, interacting=True)
         down, px = video_frame(v, width=160)
-        assert (down.stream, down.key, down.height, px.shape) == (
-            first.stream,
-            True,
-            120,
-            (120, 160, 3),
-        )
+        assert seen(down, px) == (first.stream, True, 160, 120, (120, 160, 3))
         for step in range(1, 3):  # the simulation moves on while the drag pauses
             sim.send(frame(pos + np.float32(0.3 * step), step))
             msg, px = video_frame(v, step=step)
-            assert (msg.stream, msg.key, msg.width, px.shape) == (
-                first.stream,
-                False,
-                160,
-                (120, 160, 3),
-            )
+            assert seen(msg, px) == (first.stream, False, 160, 120, (120, 160, 3))
         assert time.monotonic() - steered < hold, "the checks above must fall within the hold"
         time.sleep(max(0.0, steered + hold + 0.2 - time.monotonic()))
         sim.send(frame(pos + np.float32(2.0), 10))
         up, px = video_frame(v, width=320)  # the first frame back at full size: a keyframe
-        assert (up.stream, up.key, up.height, px.shape) == (first.stream, True, 240, (240, 320, 3))
+        assert seen(up, px) == (first.stream, True, 320, 240, (240, 320, 3))
         if up.step != 10:  # a render between the hold's end and the new frame went up first
             msg, px = video_frame(v, step=10)
-            assert (msg.stream, msg.key, msg.width, px.shape) == (
-                first.stream,
-                False,
-                320,
-                (240, 320, 3),
-            )
+            assert seen(msg, px) == (first.stream, False, 320, 240, (240, 320, 3))
         sim.close()
         v.close()
     finally:
