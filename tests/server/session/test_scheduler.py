@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import pytest
+
 import protocol as p
 from server.session.scheduler import RenderScheduler
 from server.settings import ServerSettings
@@ -178,3 +180,9 @@ def test_no_steering_size_when_the_hold_is_zero() -> None:
     s = RenderScheduler(replace(SETTINGS, video_steer_hold_s=0.0))
     s.interacting(now=10.0)
     assert not s.steering([viewer("a")], 10.0)
+
+
+def test_a_hold_that_is_not_a_duration_is_refused_by_name() -> None:
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="video_steer_hold_s"):
+            replace(SETTINGS, video_steer_hold_s=bad)
