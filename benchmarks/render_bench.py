@@ -27,6 +27,7 @@ JSON as `max_registers`).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import platform
@@ -622,12 +623,21 @@ class Bench:
         self.save()
 
     # ---- large systems: cell size, and the next upload overlapped with the last render
-    def scale(self, sizes: list[int], cells_list: list[float], w: int, h: int) -> None:
+    def scale(
+        self,
+        sizes: list[int],
+        cells_list: list[float],
+        w: int,
+        h: int,
+        tries: list[dict[str, Any]] | None = None,
+    ) -> None:
         """Iso frames of large systems for each cell size, one by one (set_positions, render)
         and pipelined (render(wait=False), the next frame's set_positions, finish: the upload
         of frame k+1 runs on its own stream while frame k renders). Two frames alternate, each
         written once into one of the renderer's two page-locked buffers, so the timed loop is
-        the server's: upload, grid rebuild and cast of a new frame every time."""
+        the server's: upload, grid rebuild and cast of a new frame every time. `tries` are
+        sets of Renderer options, each with a "label", run one after the other for every cell
+        size (default: the renderer's defaults)."""
         for n in sizes:
             if self.clock.left() < 60:
                 self.results["notes"].append(f"scale section stopped before N={n}")
@@ -637,15 +647,18 @@ class Bench:
             frames = jittered_frames(pos, 2)
             top = topology_of(el, bonds if n <= 10_000_000 else None)
             setup_s = time.perf_counter() - t0
-            for cells in cells_list:
+            for cells, t in itertools.product(cells_list, tries or [{"label": "default"}]):
                 if self.clock.left() < 30:
                     return
+                kw = dict(t)
+                label = str(kw.pop("label", json.dumps(t)))
                 r = Renderer(
                     self.device,
                     max_atoms=n,
                     cells_per_cutoff=cells,
                     max_registers=self.results["max_registers"],
                     volume_max_registers=self.results["volume_max_registers"],
+                    **kw,
                 )
                 r.set_topology(top)
                 bufs = []
@@ -690,6 +703,8 @@ class Bench:
                         "width": w,
                         "height": h,
                         "cells_per_cutoff": cells,
+                        "label": label,
+                        "options": kw,
                         "pipelined": piped,
                         **summary,
                         "bytes_per_atom": (mem["per_atom"] + mem["grid"] + mem["other"]) / n,
@@ -699,7 +714,7 @@ class Bench:
                     self.results.setdefault("scale", []).append(entry)
                     self.save()
                     self.log(
-                        f"scale N={n:,} cells/cutoff={cells:g} piped={piped}: "
+                        f"scale {label} N={n:,} cells/cutoff={cells:g} piped={piped}: "
                         f"{summary['median_ms']:.2f} ms ({summary['fps']:.1f} fps) "
                         f"{fmt_stages(summary.get('stages_ms', {}))}"
                     )
@@ -1385,6 +1400,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variant-params", default="{}", help="render parameters (JSON)")
     p.add_argument("--variants", default="", help='JSON list of Renderer options with "label"')
     p.add_argument("--scale-cells", default="2,1", help="cells per cutoff it tries")
+    p.add_argument(
+        "--scale-options", default="", help='JSON list of Renderer options with "label" (scale)'
+    )
     p.add_argument("--split-lanes", type=int, default=SPLIT_LANES, help="lanes per queued ray")
     p.add_argument(
         "--budgets", default="0,4,8,12,16", help="budget[:lanes] pairs the budget section tries"
@@ -1450,7 +1468,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.scale_sizes:
             scale_sizes = [int(v) for v in args.scale_sizes.split(",")]
         w, h = (64, 48) if args.quick else (1920, 1080)
-        b.scale(scale_sizes, [float(v) for v in args.scale_cells.split(",")], w, h)
+        scale_tries = json.loads(args.scale_options) if args.scale_options else None
+        b.scale(scale_sizes, [float(v) for v in args.scale_cells.split(",")], w, h, scale_tries)
     if "profile" in sections:
         prof = [(496, 64, 48, "classical", "iso")] if args.quick else [
             (1_000_000, 1920, 1080, "classical", "iso"),

@@ -64,3 +64,14 @@ def row_span(g: GridInfo, lo_x: float, hi_x: float, dy: float, dz: float, r2: fl
 def interval_gap(lo_a: float, hi_a: float, lo_b: float, hi_b: float) -> float:
     """Distance between intervals [lo_a, hi_a] and [lo_b, hi_b] (0 when they overlap)."""
     return wp.max(wp.max(lo_a - hi_b, lo_b - hi_a), 0.0)
+
+
+@wp.func
+@no_type_check
+def cell_box(g: GridInfo, c: int):
+    """The corners (lo, hi) of cell c (x fastest)."""
+    ix = c % g.dims[0]
+    iy = (c // g.dims[0]) % g.dims[1]
+    iz = c // (g.dims[0] * g.dims[1])
+    lo = g.origin + wp.vec3(float(ix), float(iy), float(iz)) * g.h
+    return lo, lo + wp.vec3(g.h, g.h, g.h)

@@ -37,8 +37,8 @@ import warp as wp
 from protocol import RenderParams
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
-from server.render.cells import BRICK, GridInfo
-from server.render.density import GAUSSIAN, DensityModel
+from server.render.cells import BRICK, GridInfo, cell_box
+from server.render.density import BOUND_LANES, GAUSSIAN, DensityModel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -600,12 +600,7 @@ def _make(
     @no_type_check
     def walked_bound(f: Field, c: int, stop_above: float) -> float:
         """The bound of cell c from a walk over the atoms within reach of it."""
-        g = f.info[0]
-        ix = c % g.dims[0]
-        iy = (c // g.dims[0]) % g.dims[1]
-        iz = c // (g.dims[0] * g.dims[1])
-        lo = g.origin + wp.vec3(float(ix), float(iy), float(iz)) * g.h
-        hi = lo + wp.vec3(g.h, g.h, g.h)
+        lo, hi = cell_box(f.info[0], c)
         return box_bound(f, lo, hi, stop_above)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
@@ -658,6 +653,36 @@ def _make(
             return
         c = work[i]
         out[c] = walked_bound(f, c, stop_above)
+
+    bound_block_kernel = None
+    block_box_bound = model.block_box_bound
+    if block_box_bound is not None:
+
+        @wp.kernel(enable_backward=False, module="unique", module_options=options)
+        @no_type_check
+        def bound_block_kernel(
+            f: Field,
+            stop_above: float,
+            work: wp.array[wp.int32],
+            work_count: wp.array[wp.int32],
+            out: wp.array[float],
+            blocks: int,
+        ):
+            """`bound_kernel` with a block of BOUND_LANES threads per listed cell: `blocks`
+            blocks take the list's cells in turn (the list's length is known only on the
+            device)."""
+            b, lane = wp.tid()
+            row_j0 = wp.tile_zeros(shape=BOUND_LANES, dtype=wp.int32, storage="shared")
+            row_off = wp.tile_zeros(shape=BOUND_LANES, dtype=wp.int32, storage="shared")
+            listed = wp.min(work_count[0], work.shape[0])
+            i = b
+            while i < listed:
+                c = work[i]
+                lo, hi = cell_box(f.info[0], c)
+                v = block_box_bound(f, lo, hi, stop_above, lane, row_j0, row_off)
+                if lane == 0:
+                    out[c] = v
+                i += blocks
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
@@ -1063,6 +1088,7 @@ def _make(
         model=model,
         bound_settle=bound_settle_kernel,
         bound=bound_kernel,
+        bound_block=bound_block_kernel,
         evaluate=evaluate_kernel,
         histogram=histogram_kernel,
         iso_march=iso_march_kernel,
@@ -1079,6 +1105,7 @@ class RaycastKernels:
     model: DensityModel
     bound_settle: Any
     bound: Any
+    bound_block: Any  # None: the model walks its cell bounds a cell per thread only
     evaluate: Any
     histogram: Any
     iso_march: Any

@@ -14,8 +14,10 @@ from protocol import RenderParams
 from server.render import colors, density
 from server.render.camera import fit_camera
 from server.render.density import GaussianField
+from server.render.errors import RenderError
 from server.render.grid import CellGrid
 from server.render.raycast import kernels_for
+from server.render.renderer import Renderer
 from tests.render import oracle
 from tests.render.conftest import blob, make_topology
 from tests.render.helpers import oracle_molecule, render
@@ -335,3 +337,42 @@ def test_cell_bounds_hold_the_density(device: str, scale_space: str) -> None:
     assert (values > 0).sum() > 50, "the points must reach into the density"
     assert ((bound >= values * (1 - 1e-5)) | (bound > params.iso_level)).all()
     assert (bound < params.iso_level).sum() > 10, "some cells must be skippable"
+
+
+@pytest.mark.parametrize(
+    ("scale_space", "radius_mode"),
+    [("classical", "uniform"), ("classical", "vdw"), ("warped", "uniform")],
+)
+def test_block_walked_bounds_match_the_cell_walks(
+    device: str, scale_space: str, radius_mode: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A block of lanes walking each open cell together decides every cell as one thread per
+    cell does: the same cells below the level, with the same bound up to float summation order
+    (the block sums each chunk of atoms as a tree), and the same image. Two lumps a cell apart
+    give open cells between them with rows of very different lengths; the CPU runs the block's
+    lanes as fibers."""
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    top = make_topology(400)
+    pos = np.concatenate([blob(200, 7), blob(200, 9, offset=(9.0, 0.0, 0.0))]).astype(np.float32)
+    params = RenderParams(scale_space=scale_space, radius_mode=radius_mode)  # type: ignore[arg-type]
+    cam = fit_camera(pos, 64, 48)
+    runs = []
+    for lanes in (1, density.BOUND_LANES):
+        r = render(device, top, pos, params, cam, 64, 48, bound_lanes=lanes)
+        cells = int(np.prod(r.grid_info()["dims"]))
+        stop = r._stop_level(params, r._derive(params))
+        listed = int(r._grid.work_count.numpy()[0])
+        runs.append((r._grid.cell_values.numpy()[:cells], r.read_rgba(), r.read_depth(), listed))
+    (one, rgba_one, depth_one, listed), (block, rgba_block, depth_block, _) = runs
+    assert listed > 100, "the open cells must be walked"
+    below = one < stop
+    np.testing.assert_array_equal(below, block < stop)
+    assert below.sum() > 100
+    np.testing.assert_allclose(block[below], one[below], rtol=1e-5, atol=1e-30)
+    np.testing.assert_array_equal(rgba_block, rgba_one)
+    np.testing.assert_array_equal(depth_block, depth_one)
+
+
+def test_block_walked_bounds_are_refused_at_other_widths() -> None:
+    with pytest.raises(RenderError, match="bound_lanes must be 1 or 32, got 8"):
+        Renderer("cpu", bound_lanes=8)
