@@ -517,109 +517,6 @@ def gaussian_box_bound(f: GaussianField, lo: wp.vec3, hi: wp.vec3, stop_above: f
     return _walk_bound(f, lo, hi, q, wp.float32(0.0))
 
 
-BOUND_LANES = 32
-"""Threads of a block that walk one cell's bound together on CUDA (`block_box_bound`)."""
-_BOUND_LANES = wp.constant(BOUND_LANES)  # type: ignore[no-untyped-call]
-
-
-@wp.func
-@no_type_check
-def atom_box_term(f: GaussianField, j: int, lo: wp.vec3, hi: wp.vec3) -> float:
-    """Sorted atom j counted at its smallest distance to the box [lo, hi] (0 beyond reach)."""
-    a = f.atoms[j]
-    nearest = wp.vec3(
-        wp.clamp(a[0], lo[0], hi[0]), wp.clamp(a[1], lo[1], hi[1]), wp.clamp(a[2], lo[2], hi[2])
-    )
-    e = atom_exponent(f, j, a, nearest)
-    t = float(0.0)
-    if e < f.half_k2:
-        t = a[3] * wp.exp(-e)
-    return t
-
-
-@wp.func
-@no_type_check
-def slot_row(offsets: wp.tile[wp.int32, BOUND_LANES], rows: int, slot: int) -> int:
-    """The last of `rows` rows whose first slot is at or before `slot` (offsets ascend, so
-    empty rows are passed over)."""
-    lo = wp.int32(0)
-    hi = rows - 1
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if offsets[mid] <= slot:
-            lo = mid
-        else:
-            hi = mid - 1
-    return lo
-
-
-@wp.func
-@no_type_check
-def gaussian_block_box_bound(
-    f: GaussianField,
-    lo: wp.vec3,
-    hi: wp.vec3,
-    stop_above: float,
-    lane: int,
-    row_j0: wp.tile[wp.int32, BOUND_LANES],
-    row_off: wp.tile[wp.int32, BOUND_LANES],
-) -> float:
-    """`gaussian_box_bound` walked by every thread of a block together, each returning it.
-
-    The per-thread walk leaves most lanes of a warp idle: neighbouring open cells reach rows
-    of different lengths and stop at different atoms. Here the block lists up to a block's
-    width of rows at once (one per lane, trimmed like `cell_rows`), numbers their atoms
-    consecutively (a prefix sum) and every lane takes one atom of each block-wide chunk; the
-    chunk's terms are summed over the block before the next, so the early stop is decided
-    for all lanes together. `row_j0` and `row_off` are shared tiles of the block's width
-    (scratch). Every thread of the block must call this with the same box."""
-    g = f.info[0]
-    r = g.reach
-    r2 = r * r
-    nb = wp.block_dim()
-    z0, z1 = axis_span(lo[2] - r, hi[2] + r, g.origin[2], g.inv_h, g.dims[2])
-    y0, y1 = axis_span(lo[1] - r, hi[1] + r, g.origin[1], g.inv_h, g.dims[1])
-    ny = wp.max(y1 - y0 + 1, 0)
-    rows = wp.max(z1 - z0 + 1, 0) * ny
-    total = float(0.0)
-    base = wp.int32(0)
-    while base < rows:
-        j0 = wp.int32(0)
-        count = wp.int32(0)
-        k = base + lane
-        if k < rows:
-            iz = z0 + k // ny
-            iy = y0 + k % ny
-            zlo = g.origin[2] + float(iz) * g.h
-            ylo = g.origin[1] + float(iy) * g.h
-            dz = interval_gap(lo[2], hi[2], zlo, zlo + g.h)
-            dy = interval_gap(lo[1], hi[1], ylo, ylo + g.h)
-            x0, x1 = row_span(g, lo[0], hi[0], dy, dz, r2)
-            if x1 >= x0:
-                cells = (iz * g.dims[1] + iy) * g.dims[0]
-                j0 = f.cell_start[cells + x0]
-                count = f.cell_start[cells + x1 + 1] - j0
-        counts = wp.tile(count)
-        row_j0[lane] = j0
-        row_off[lane] = wp.untile(wp.tile_scan_exclusive(counts))
-        items = wp.tile_sum(counts)[0]  # a barrier: every lane's row is visible after it
-        listed = wp.min(nb, rows - base)
-        c = wp.int32(0)
-        while c < items:
-            slot = c + lane
-            term = float(0.0)
-            if slot < items:
-                s = slot_row(row_off, listed, slot)
-                term = atom_box_term(f, row_j0[s] + slot - row_off[s], lo, hi)
-            # also the barrier after which the rows may be overwritten
-            total += wp.tile_sum(wp.tile(term))[0]
-            if total > stop_above:
-                return total
-            c += nb
-        base += nb
-    return total
-
-
 @wp.struct
 class UnsortedAtoms:
     """The atoms in their original order, reached through the grid (`order`): what the mean
@@ -752,10 +649,7 @@ class DensityModel:
     optional, for models that can cheaply tell a value is below a level: `value4_level(f, o,
     d, ts, level)` and `value_grad4_level(...)`, exact where a value may reach `level`, and any
     negative value (read "below, value unknown") where it cannot; the marching kernels only
-    compare values with the level, so they use these. Optional too: `block_box_bound(f, lo,
-    hi, stop_above, lane, row_j0, row_off) -> float`, `box_bound` walked by a block of
-    `BOUND_LANES` threads together (see `gaussian_block_box_bound`); the cell bounds of a
-    model without it are walked a cell per thread.
+    compare values with the level, so they use these.
     """
 
     name: str
@@ -768,7 +662,6 @@ class DensityModel:
     value_grad4: Any = None
     value4_level: Any = None
     value_grad4_level: Any = None
-    block_box_bound: Any = None
 
 
 GAUSSIAN = DensityModel(
@@ -780,5 +673,4 @@ GAUSSIAN = DensityModel(
     box_bound=gaussian_box_bound,
     value4=gaussian_value4,
     value_grad4=gaussian_value_grad4,
-    block_box_bound=gaussian_block_box_bound,
 )

@@ -38,7 +38,7 @@ from protocol import RenderParams
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
 from server.render.cells import BRICK, GridInfo, cell_box
-from server.render.density import BOUND_LANES, GAUSSIAN, DensityModel
+from server.render.density import GAUSSIAN, DensityModel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -608,6 +608,7 @@ def _make(
     def bound_settle_kernel(
         f: Field,
         stop_above: float,
+        keep_from: float,
         cell_start: wp.array[wp.int32],
         coarse: wp.array[float],
         out: wp.array[float],
@@ -618,9 +619,10 @@ def _make(
         can decide anything. A cell that holds an atom is given infinity: the density there
         reaches the level in all but contrived cases (a lone atom lighter than the level). A
         cell whose coarse bound (CellGrid.build_coarse, no walk) is already below the level
-        keeps it. The other cells, empty ones near the atoms, are listed in `work` for
-        `bound_kernel` to walk in full warps (walked here only when the list is full): the
-        skipping decisions are those of walking every cell."""
+        keeps it, and so does one whose coarse bound is `keep_from` or more: a walk there
+        rarely ends below the level. The other cells, empty ones near the atoms, are listed
+        in `work` for `bound_kernel` to walk in full warps (walked here only when the list is
+        full)."""
         c = wp.tid()
         g = f.info[0]
         if g.valid == 0 or c >= g.ncells:
@@ -629,7 +631,7 @@ def _make(
             out[c] = wp.inf
             return
         b = coarse[c]
-        if b < stop_above:
+        if b < stop_above or b >= keep_from:
             out[c] = b
             return
         slot = wp.atomic_add(work_count, 0, 1)
@@ -653,36 +655,6 @@ def _make(
             return
         c = work[i]
         out[c] = walked_bound(f, c, stop_above)
-
-    bound_block_kernel = None
-    block_box_bound = model.block_box_bound
-    if block_box_bound is not None:
-
-        @wp.kernel(enable_backward=False, module="unique", module_options=options)
-        @no_type_check
-        def bound_block_kernel(
-            f: Field,
-            stop_above: float,
-            work: wp.array[wp.int32],
-            work_count: wp.array[wp.int32],
-            out: wp.array[float],
-            blocks: int,
-        ):
-            """`bound_kernel` with a block of BOUND_LANES threads per listed cell: `blocks`
-            blocks take the list's cells in turn (the list's length is known only on the
-            device)."""
-            b, lane = wp.tid()
-            row_j0 = wp.tile_zeros(shape=BOUND_LANES, dtype=wp.int32, storage="shared")
-            row_off = wp.tile_zeros(shape=BOUND_LANES, dtype=wp.int32, storage="shared")
-            listed = wp.min(work_count[0], work.shape[0])
-            i = b
-            while i < listed:
-                c = work[i]
-                lo, hi = cell_box(f.info[0], c)
-                v = block_box_bound(f, lo, hi, stop_above, lane, row_j0, row_off)
-                if lane == 0:
-                    out[c] = v
-                i += blocks
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
@@ -1088,7 +1060,6 @@ def _make(
         model=model,
         bound_settle=bound_settle_kernel,
         bound=bound_kernel,
-        bound_block=bound_block_kernel,
         evaluate=evaluate_kernel,
         histogram=histogram_kernel,
         iso_march=iso_march_kernel,
@@ -1105,7 +1076,6 @@ class RaycastKernels:
     model: DensityModel
     bound_settle: Any
     bound: Any
-    bound_block: Any  # None: the model walks its cell bounds a cell per thread only
     evaluate: Any
     histogram: Any
     iso_march: Any

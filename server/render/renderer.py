@@ -27,7 +27,6 @@ from server.render import colors, raycast, temporal, transfer, warped
 from server.render import device as devmod
 from server.render.camera import CameraFrame, camera_frame
 from server.render.density import (
-    BOUND_LANES,
     GAUSSIAN,
     MEAN_LANES,
     DensityModel,
@@ -68,9 +67,12 @@ cutoff that measured fastest (`max_registers=None`, `cells_per_cutoff=None`; on 
 atoms and 1920x1080: the warped density's Gaussian part has a reach of 0.6 sigma k, and its
 walks, with the segment walks beside them, want fewer registers and larger cells than the
 classical density's; benchmarks/README.md)."""
-BOUND_BLOCKS_PER_SM = 32
-"""Blocks of BOUND_LANES threads per multiprocessor that walk the open cells' bounds (32 is
-the most a multiprocessor holds at once)."""
+BOUND_KEEP_FROM = {"gaussian": 8.0, "warped": math.inf}
+"""Per density model, the multiple of the level from which an empty cell keeps its coarse
+bound unwalked. For the classical density few such walks end below the level, and their cost
+outweighs the samples they save (one H200 at 1920x1080: 10M atoms 19.2 ms a frame against 20.8
+walking them all, 100M atoms 42.4 against 46.4 pipelined, 1M atoms even); the warped density's
+coarse bound ignores the warp, so there walking them all is faster (1M atoms 18.6 against 19.5)."""
 LARGE_ATOMS = 30_000_000
 """From this many atoms the grid has one cell per cutoff for every density: the bound of 1.4
 cells per atom costs more than finer skipping saves (on an H100 at 1920x1080, 100M atoms:
@@ -130,10 +132,9 @@ class Renderer(ImageOutputs):
     only; True: also on the CPU, through warp's API capture); `march_budget` is the number of
     density passes an iso ray takes before it is queued for `split_lanes` threads to finish
     (0: never split; None: split small images of larger molecules on CUDA, see
-    `SPLIT_MIN_ATOMS`); `bound_lanes` is the number of threads that walk one open cell's
-    density bound together (1, the default: a cell per thread; `BOUND_LANES`: a block per
-    cell, for models that provide `block_box_bound`; on an H200 the block took 1.3-4.5x the
-    grid stage's time, benchmarks/README.md).
+    `SPLIT_MIN_ATOMS`); `bound_keep_from` is the multiple of the level from which an empty
+    cell keeps its coarse density bound instead of walking its atoms for a tighter one (inf:
+    every empty cell above the level is walked; None: the density's own, `BOUND_KEEP_FROM`).
     """
 
     def __init__(
@@ -152,7 +153,7 @@ class Renderer(ImageOutputs):
         march_budget: int | None = None,
         split_lanes: int = SPLIT_LANES,
         double_buffer: bool | None = None,
-        bound_lanes: int = 1,
+        bound_keep_from: float | None = None,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
@@ -160,8 +161,8 @@ class Renderer(ImageOutputs):
             raise RenderError(f"march_budget must be >= 0, got {march_budget}")
         if split_lanes < 1:
             raise RenderError(f"split_lanes must be >= 1, got {split_lanes}")
-        if bound_lanes not in (1, BOUND_LANES):
-            raise RenderError(f"bound_lanes must be 1 or {BOUND_LANES}, got {bound_lanes}")
+        if bound_keep_from is not None and not bound_keep_from >= 1.0:
+            raise RenderError(f"bound_keep_from must be >= 1, got {bound_keep_from}")
         if cells_per_cutoff is not None and not cells_per_cutoff >= 1.0:
             raise RenderError(f"cells_per_cutoff must be >= 1, got {cells_per_cutoff}")
         self.device: str = devmod.resolve(device)
@@ -172,7 +173,7 @@ class Renderer(ImageOutputs):
         self.march_budget = march_budget
         self.split_lanes = int(split_lanes)
         self.double_buffer = double_buffer
-        self.bound_lanes = bound_lanes
+        self.bound_keep_from = None if bound_keep_from is None else float(bound_keep_from)
         self.coverage = False
         """Write coverage alpha over no background (a layer composited with others)."""
         self.depth_limit: Any = None
@@ -688,6 +689,12 @@ class Renderer(ImageOutputs):
             return 1.0
         return CELLS_PER_CUTOFF["warped" if d.warp is not None else "gaussian"]
 
+    def _keep_from(self, d: Derived) -> float:
+        """The multiple of the level from which empty cells keep their coarse bound."""
+        if self.bound_keep_from is not None:
+            return self.bound_keep_from
+        return BOUND_KEEP_FROM["warped" if d.warp is not None else "gaussian"]
+
     def _grid_key_for(self, d: Derived, stop: float) -> tuple[Any, ...] | None:
         """The key of the grid this frame needs, or None when the last one still holds."""
         key = (self._positions_version, d, self._cells_for(d), stop)
@@ -745,31 +752,12 @@ class Renderer(ImageOutputs):
         self._grid.build_coarse(self._sorted, d.half_k2 / (d.reach * d.reach))
         grid = self._grid
         grid.work_count.zero_()
-        settle = (f, stop, grid.cell_start, grid.coarse, f.bound, grid.work, grid.work_count)
+        keep = stop * self._keep_from(d) if stop > 0.0 else math.inf
+        settle = (f, stop, keep, grid.cell_start, grid.coarse, f.bound, grid.work, grid.work_count)
         wp.launch(kernels.bound_settle, grid.capacity, settle, device=dev)
-        listed = (f, stop, grid.work, grid.work_count, f.bound)
-        lanes = self.bound_lanes
-        if lanes > 1 and kernels.bound_block is not None:
-            # a few blocks per multiprocessor's worth of resident threads take the listed
-            # cells in turn; the list's length stays on the device
-            blocks = min(self._bound_blocks(), grid.capacity)
-            wp.launch_tiled(
-                kernels.bound_block,
-                dim=[blocks],
-                inputs=(*listed, blocks),
-                block_dim=lanes,
-                device=dev,
-            )
-        else:
-            wp.launch(kernels.bound, grid.capacity, listed, device=dev)
+        walk = (f, stop, grid.work, grid.work_count, f.bound)
+        wp.launch(kernels.bound, grid.capacity, walk, device=dev)
         self._grid.build_bricks()
-
-    def _bound_blocks(self) -> int:
-        """Blocks of the block-walked cell bounds: enough to fill every multiprocessor
-        (BOUND_BLOCKS_PER_SM each) on CUDA, a handful on the CPU."""
-        if self._cuda:
-            return BOUND_BLOCKS_PER_SM * int(self._dev.sm_count)
-        return 64
 
     def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:
         step = AO_STEP_SIGMAS * d.sigma

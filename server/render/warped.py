@@ -19,12 +19,10 @@ import warp as wp
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.cells import GridInfo
 from server.render.density import (
-    BOUND_LANES,
     DensityModel,
     GaussianField,
     Sample,
     cell_rows,
-    gaussian_block_box_bound,
     gaussian_box_bound,
     gaussian_sample,
     gaussian_value,
@@ -397,32 +395,6 @@ def warped_box_bound(f: WarpedField, lo: wp.vec3, hi: wp.vec3, stop_above: float
     return bound
 
 
-@wp.func
-@no_type_check
-def warped_block_box_bound(
-    f: WarpedField,
-    lo: wp.vec3,
-    hi: wp.vec3,
-    stop_above: float,
-    lane: int,
-    row_j0: wp.tile[wp.int32, BOUND_LANES],
-    row_off: wp.tile[wp.int32, BOUND_LANES],
-) -> float:
-    """`warped_box_bound` with its Gaussian walk shared by the block (every thread finds the
-    same factor, so all take the same branch)."""
-    amax = float(1.0)
-    if f.skel.atten > 0.0:
-        q = BoxNear()
-        q.center = (lo + hi) * 0.5
-        q.half = wp.length(hi - lo) * 0.5
-        amax = attenuation(f.skel, _walk_h_box(f.skel, lo, hi, q, wp.float32(0.0)))
-    bound = float(0.0)
-    if amax > 0.0:
-        walked = gaussian_block_box_bound(f.gauss, lo, hi, stop_above / amax, lane, row_j0, row_off)
-        bound = walked * amax
-    return bound
-
-
 WARPED = DensityModel(
     name="warped",
     field=WarpedField,
@@ -434,7 +406,6 @@ WARPED = DensityModel(
     value_grad4=warped_value_grad4,
     value4_level=warped_value4_level,
     value_grad4_level=warped_value_grad4_level,
-    block_box_bound=warped_block_box_bound,
 )
 
 

@@ -4,6 +4,7 @@ the cell grid's neighbour completeness."""
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import no_type_check
 
 import numpy as np
@@ -339,40 +340,34 @@ def test_cell_bounds_hold_the_density(device: str, scale_space: str) -> None:
     assert (bound < params.iso_level).sum() > 10, "some cells must be skippable"
 
 
-@pytest.mark.parametrize(
-    ("scale_space", "radius_mode"),
-    [("classical", "uniform"), ("classical", "vdw"), ("warped", "uniform")],
-)
-def test_block_walked_bounds_match_the_cell_walks(
-    device: str, scale_space: str, radius_mode: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A block of lanes walking each open cell together decides every cell as one thread per
-    cell does: the same cells below the level, with the same bound up to float summation order
-    (the block sums each chunk of atoms as a tree), and the same image. Two lumps a cell apart
-    give open cells between them with rows of very different lengths; the CPU runs the block's
-    lanes as fibers."""
-    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
-    top = make_topology(400)
-    pos = np.concatenate([blob(200, 7), blob(200, 9, offset=(9.0, 0.0, 0.0))]).astype(np.float32)
-    params = RenderParams(scale_space=scale_space, radius_mode=radius_mode)  # type: ignore[arg-type]
+def test_unwalked_cells_only_loosen_bounds_and_keep_the_image(device: str) -> None:
+    """Leaving the empty cells with the largest coarse bounds unwalked gives them the coarse
+    bound: never below their walked one, and the same image (a ray samples where it could
+    have skipped, and finds the level where it did). Two lumps a few cells apart give open
+    cells of every kind."""
+    top = make_topology(1200)
+    pos = np.concatenate([blob(600, 7), blob(600, 9, offset=(9.0, 0.0, 0.0))]).astype(np.float32)
     cam = fit_camera(pos, 64, 48)
-    runs = []
-    for lanes in (1, density.BOUND_LANES):
-        r = render(device, top, pos, params, cam, 64, 48, bound_lanes=lanes)
-        cells = int(np.prod(r.grid_info()["dims"]))
-        stop = r._stop_level(params, r._derive(params))
-        listed = int(r._grid.work_count.numpy()[0])
-        runs.append((r._grid.cell_values.numpy()[:cells], r.read_rgba(), r.read_depth(), listed))
-    (one, rgba_one, depth_one, listed), (block, rgba_block, depth_block, _) = runs
-    assert listed > 100, "the open cells must be walked"
-    below = one < stop
-    np.testing.assert_array_equal(below, block < stop)
-    assert below.sum() > 100
-    np.testing.assert_allclose(block[below], one[below], rtol=1e-5, atol=1e-30)
-    np.testing.assert_array_equal(rgba_block, rgba_one)
-    np.testing.assert_array_equal(depth_block, depth_one)
+    for space in ("classical", "warped"):
+        params = RenderParams(scale_space=space)  # type: ignore[arg-type]
+        runs = {}
+        for keep in (math.inf, 3.0):
+            r = render(device, top, pos, params, cam, 64, 48, bound_keep_from=keep)
+            cells = int(np.prod(r.grid_info()["dims"]))
+            walked = int(r._grid.work_count.numpy()[0])
+            runs[keep] = (
+                r._grid.cell_values.numpy()[:cells],
+                r.read_rgba(),
+                r.read_depth(),
+                walked,
+            )
+        every, fewer = runs[math.inf], runs[3.0]
+        assert every[3] > fewer[3] > 50, space
+        assert (fewer[0] >= every[0]).all() and (fewer[0] > every[0]).sum() > 50, space
+        np.testing.assert_array_equal(fewer[1], every[1])
+        np.testing.assert_array_equal(fewer[2], every[2])
 
 
-def test_block_walked_bounds_are_refused_at_other_widths() -> None:
-    with pytest.raises(RenderError, match="bound_lanes must be 1 or 32, got 8"):
-        Renderer("cpu", bound_lanes=8)
+def test_bound_keep_from_below_one_is_refused() -> None:
+    with pytest.raises(RenderError, match=r"bound_keep_from must be >= 1, got 0\.5"):
+        Renderer("cpu", bound_keep_from=0.5)
