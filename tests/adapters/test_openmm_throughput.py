@@ -39,6 +39,13 @@ def best_rate(sims: dict[str, app.Simulation], rounds: int = 12, steps: int = 80
     return {name: max(values) for name, values in rates.items()}
 
 
+MIN_RATIO = 0.8
+"""The step rate with a stuck server, as a share of the rate without one. A frame send that
+blocked the MD would take it to the server's drain rate, a small fraction; on two busy cores
+the two rates of one healthy run differ by up to 11 % (0.89 seen), so 0.9 failed runs that
+were right."""
+
+
 def test_md_rate_with_a_server_that_never_reads_matches_the_unconnected_rate(
     no_leaked_threads: None,
 ) -> None:
@@ -64,7 +71,7 @@ def test_md_rate_with_a_server_that_never_reads_matches_the_unconnected_rate(
             assert stuck.stats.frames_dropped >= 5
 
             rates = best_rate(sims)
-            if rates["never_reads"] < 0.9 * rates["unconnected"]:
+            if rates["never_reads"] < MIN_RATIO * rates["unconnected"]:
                 # one more set of rounds: a burst of load from elsewhere can cost a set
                 again = best_rate(sims)
                 rates = {name: max(rates[name], again[name]) for name in rates}
@@ -76,7 +83,7 @@ def test_md_rate_with_a_server_that_never_reads_matches_the_unconnected_rate(
             assert handed_over == 12 * 80 // 5  # every report of the timed runs
             assert stuck.stats.frames_sent - sent_before <= 2
             assert not reporters["unconnected"].connection.connected
-            assert rates["never_reads"] >= 0.9 * rates["unconnected"], rates
+            assert rates["never_reads"] >= MIN_RATIO * rates["unconnected"], rates
         finally:
             for reporter in reporters.values():
                 reporter.close(timeout=1.0)

@@ -186,7 +186,9 @@ def test_slow_viewer_does_not_slow_others(live_server: LiveServer) -> None:
     slow = Peer(live_server.view_url, "viewer", live_server.viewer_token, max_queue=1)
     together = lock.median(windows=5)
     assert alone >= 8
-    assert together >= 0.9 * alone, (alone, together)
+    # a viewer that held the others back would stall them, as it reads nothing; two busy
+    # cores move a healthy run's ratio by up to 13 % (0.87 seen), hence 0.8
+    assert together >= 0.8 * alone, (alone, together)
     assert len(live_server.app_state.sessions.get("default").clients) == 2
     sim.close()
     fast.close()
