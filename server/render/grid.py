@@ -1,10 +1,19 @@
 """Uniform cell grid rebuilt on the device every frame.
 
 Build: bounding box (atomic min/max) -> grid layout (one thread, so the host never waits) ->
-cell key per atom and per-cell counts -> stable radix sort of (key, atom) -> exclusive scan of
-the counts = `cell_start`. Cells are ordered x-fastest, so a row of neighbouring cells is one
-contiguous range of sorted atoms. Everything is sized once from the atom count; the grid never
-has more than `cell_capacity(n)` cells (the cell size grows when the box would need more).
+cell key per atom and per-cell counts -> exclusive scan of the counts = `cell_start` -> atoms
+in cell order (`order`), by one of two sorts:
+
+* "counting" (the default): each atom's rank in its cell is the value its count's atomic add
+  returned, so its slot is `cell_start[cell] + rank`; the ranks come in the order the device
+  ran the atoms, so each cell's atoms are then put back in index order (each atom moves by the
+  number of its cell's atoms with a smaller index, in cells of up to `SORTED_IN_CELL` atoms).
+  The result is the stable sort's, atom for atom, without its passes over all keys.
+* "radix": a stable radix sort of (cell, atom) pairs.
+
+Cells are ordered x-fastest, so a row of neighbouring cells is one contiguous range of sorted
+atoms. Everything is sized once from the atom count; the grid never has more than
+`cell_capacity(n)` cells (the cell size grows when the box would need more).
 """
 
 from __future__ import annotations
@@ -26,6 +35,14 @@ MAX_REDUCE_THREADS = 1 << 18
 REDUCE_BLOCK = 256
 """The bounding box is reduced by up to MAX_REDUCE_THREADS threads in blocks of REDUCE_BLOCK
 (one atomic per axis and block)."""
+
+
+SORTED_IN_CELL = 64
+"""The counting sort puts the atoms of cells of up to this many atoms in index order. Molecular
+systems stay far below it (about 3 atoms per cell at two cells per cutoff, 25 at one); a cell
+with more, such as one grown to span a sparse box, keeps the order the device ran its atoms in:
+the same atoms, with sums over them equal up to float rounding from frame to frame."""
+GRID_SORTS = ("counting", "radix")
 
 
 def cell_capacity(n_atoms: int) -> int:
@@ -169,6 +186,67 @@ def keys_kernel(
 
 @wp.kernel
 @no_type_check
+def ranked_keys_kernel(
+    positions: wp.array[wp.vec3],
+    info: wp.array[GridInfo],
+    keys: wp.array[wp.int32],
+    ranks: wp.array[wp.int32],
+    counts: wp.array[wp.int32],
+):
+    """Cell of each atom and its rank among the atoms of that cell the device ran before it."""
+    i = wp.tid()
+    g = info[0]
+    q = (positions[i] - g.origin) * g.inv_h
+    cx = wp.clamp(int(wp.floor(q[0])), 0, g.dims[0] - 1)
+    cy = wp.clamp(int(wp.floor(q[1])), 0, g.dims[1] - 1)
+    cz = wp.clamp(int(wp.floor(q[2])), 0, g.dims[2] - 1)
+    c = (cz * g.dims[1] + cy) * g.dims[0] + cx
+    keys[i] = c
+    ranks[i] = wp.atomic_add(counts, c, 1)
+
+
+@wp.kernel
+@no_type_check
+def place_kernel(
+    keys: wp.array[wp.int32],
+    ranks: wp.array[wp.int32],
+    cell_start: wp.array[wp.int32],
+    placed: wp.array[wp.int32],
+):
+    """Each atom into its slot: its cell's first slot plus its rank there."""
+    i = wp.tid()
+    placed[cell_start[keys[i]] + ranks[i]] = i
+
+
+@wp.kernel
+@no_type_check
+def order_cells_kernel(
+    keys: wp.array[wp.int32],
+    cell_start: wp.array[wp.int32],
+    placed: wp.array[wp.int32],
+    order: wp.array[wp.int32],
+):
+    """`placed` with each cell's atoms in index order, in `order`: the atom in slot j moves
+    to its cell's first slot plus the number of the cell's atoms with a smaller index. One
+    thread per slot, reading its cell's slots (the same ones as its neighbours, from cache);
+    a cell of more than SORTED_IN_CELL atoms is copied as it is."""
+    j = wp.tid()
+    i = placed[j]
+    c = keys[i]
+    a = cell_start[c]
+    b = cell_start[c + 1]
+    if b - a > SORTED_IN_CELL:
+        order[j] = i
+        return
+    before = wp.int32(0)
+    for k in range(a, b):
+        if placed[k] < i:
+            before += 1
+    order[a + before] = i
+
+
+@wp.kernel
+@no_type_check
 def brick_kernel(
     info: wp.array[GridInfo], cell_bound: wp.array[float], brick_bound: wp.array[float]
 ):
@@ -257,8 +335,11 @@ class CellGrid:
     the grid at 8 bytes per cell.
     """
 
-    def __init__(self, device: str, n_atoms: int):
+    def __init__(self, device: str, n_atoms: int, sort: str = "counting"):
+        if sort not in GRID_SORTS:
+            raise ValueError(f"grid sort must be one of {', '.join(GRID_SORTS)}, got {sort!r}")
         self.device = device
+        self.sort = sort
         self.n_atoms = int(n_atoms)
         self.capacity = cell_capacity(self.n_atoms)
         n2 = max(2 * self.n_atoms, 2)
@@ -286,6 +367,14 @@ class CellGrid:
             copy=False,
         )
         self.work_count = wp.zeros(1, dtype=wp.int32, device=device)
+        # the counting sort's ranks: the second half of the keys (no double buffer to keep)
+        self._ranks = wp.array(
+            ptr=self.keys.ptr + 4 * self.n_atoms,
+            dtype=wp.int32,
+            shape=(max(self.n_atoms, 1),),
+            device=device,
+            copy=False,
+        )
         self.coarse = wp.array(
             ptr=self.keys.ptr, dtype=float, shape=(self.capacity + 1,), device=device, copy=False
         )
@@ -342,11 +431,21 @@ class CellGrid:
             device=dev,
         )
         self._counts.zero_()
-        wp.launch(
-            keys_kernel, n, (positions, self.info, self.keys, self.order, self._counts), device=dev
-        )
-        wp.utils.radix_sort_pairs(self.keys, self.order, n, 0, self._end_bit)
+        if self.sort == "radix":
+            keyed = (positions, self.info, self.keys, self.order, self._counts)
+            wp.launch(keys_kernel, n, keyed, device=dev)
+            wp.utils.radix_sort_pairs(self.keys, self.order, n, 0, self._end_bit)
+            wp.utils.array_scan(self._counts, self.cell_start, inclusive=False)
+            return
+        ranked = (positions, self.info, self.keys, self._ranks, self._counts)
+        wp.launch(ranked_keys_kernel, n, ranked, device=dev)
         wp.utils.array_scan(self._counts, self.cell_start, inclusive=False)
+        # atoms are placed in the second half of `order` (free until the cell bounds list
+        # their cells there), then moved into index order within their cells
+        placed = (self.keys, self._ranks, self.cell_start, self.work)
+        wp.launch(place_kernel, n, placed, device=dev)
+        ordered = (self.keys, self.cell_start, self.work, self.order)
+        wp.launch(order_cells_kernel, n, ordered, device=dev)
 
     def build_coarse(self, atoms: wp.array, inv2s2: float) -> None:
         """`coarse`: per cell, an upper bound of the Gaussian density of the sorted `atoms`
