@@ -68,6 +68,17 @@ def interval_gap(lo_a: float, hi_a: float, lo_b: float, hi_b: float) -> float:
 
 @wp.func
 @no_type_check
+def cell_at(g: GridInfo, p: wp.vec3) -> int:
+    """Index of the cell holding p (clamped to the grid; x fastest)."""
+    q = (p - g.origin) * g.inv_h
+    cx = wp.clamp(int(wp.floor(q[0])), 0, g.dims[0] - 1)
+    cy = wp.clamp(int(wp.floor(q[1])), 0, g.dims[1] - 1)
+    cz = wp.clamp(int(wp.floor(q[2])), 0, g.dims[2] - 1)
+    return (cz * g.dims[1] + cy) * g.dims[0] + cx
+
+
+@wp.func
+@no_type_check
 def cell_box(g: GridInfo, c: int):
     """The corners (lo, hi) of cell c (x fastest)."""
     ix = c % g.dims[0]

@@ -23,7 +23,7 @@ from typing import Any, no_type_check
 import warp
 
 from server.render import device as _device  # noqa: F401  (initialises warp)
-from server.render.cells import BRICK, GridInfo
+from server.render.cells import BRICK, GridInfo, cell_at
 
 wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
 
@@ -173,12 +173,7 @@ def keys_kernel(
     """Cell of each atom (x fastest), its index as the sort value, and integer cell counts
     (integer atomics, so the counts and everything after them are deterministic)."""
     i = wp.tid()
-    g = info[0]
-    q = (positions[i] - g.origin) * g.inv_h
-    cx = wp.clamp(int(wp.floor(q[0])), 0, g.dims[0] - 1)
-    cy = wp.clamp(int(wp.floor(q[1])), 0, g.dims[1] - 1)
-    cz = wp.clamp(int(wp.floor(q[2])), 0, g.dims[2] - 1)
-    c = (cz * g.dims[1] + cy) * g.dims[0] + cx
+    c = cell_at(info[0], positions[i])
     keys[i] = c
     values[i] = i
     wp.atomic_add(counts, c, 1)
@@ -195,12 +190,7 @@ def ranked_keys_kernel(
 ):
     """Cell of each atom and its rank among the atoms of that cell the device ran before it."""
     i = wp.tid()
-    g = info[0]
-    q = (positions[i] - g.origin) * g.inv_h
-    cx = wp.clamp(int(wp.floor(q[0])), 0, g.dims[0] - 1)
-    cy = wp.clamp(int(wp.floor(q[1])), 0, g.dims[1] - 1)
-    cz = wp.clamp(int(wp.floor(q[2])), 0, g.dims[2] - 1)
-    c = (cz * g.dims[1] + cy) * g.dims[0] + cx
+    c = cell_at(info[0], positions[i])
     keys[i] = c
     ranks[i] = wp.atomic_add(counts, c, 1)
 

@@ -37,7 +37,7 @@ import warp as wp
 from protocol import RenderParams
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
-from server.render.cells import BRICK, GridInfo, cell_box
+from server.render.cells import BRICK, GridInfo, cell_at, cell_box
 from server.render.density import GAUSSIAN, DensityModel
 
 wp.set_module_options({"enable_backward": False})
@@ -247,17 +247,6 @@ def brick_exit(
 @no_type_check
 def in_grid(g: GridInfo, cx: int, cy: int, cz: int) -> bool:
     return cx >= 0 and cy >= 0 and cz >= 0 and cx < g.dims[0] and cy < g.dims[1] and cz < g.dims[2]
-
-
-@wp.func
-@no_type_check
-def cell_at(g: GridInfo, p: wp.vec3) -> int:
-    """Index of the cell holding p (clamped to the grid)."""
-    q = (p - g.origin) * g.inv_h
-    cx = wp.clamp(int(wp.floor(q[0])), 0, g.dims[0] - 1)
-    cy = wp.clamp(int(wp.floor(q[1])), 0, g.dims[1] - 1)
-    cz = wp.clamp(int(wp.floor(q[2])), 0, g.dims[2] - 1)
-    return (cz * g.dims[1] + cy) * g.dims[0] + cx
 
 
 @wp.func
