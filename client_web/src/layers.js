@@ -10,6 +10,35 @@ import { normalizePoints } from "./transfer.js";
 export const MAX_LAYERS = 8;
 const MODES = ["iso", "volume", "licorice", "tube"];
 const CHECK_MS = 250;
+export const ECHO_WAIT_MS = 3000;
+
+/**
+ * The lists this page sent that the session has not sent back yet. The session's states
+ * arrive in order, so one that still precedes an edit on its way (a layer added a moment
+ * before a scale was typed) must not replace the page's list: an edit made on top of it
+ * would send the older list and lose the newer edit. An edit the session never echoes (it
+ * refused it, or wrote it differently) stops counting after `waitMs`.
+ */
+export class Unechoed {
+  constructor(waitMs = ECHO_WAIT_MS, now = () => performance.now()) {
+    this.waitMs = waitMs;
+    this.now = now;
+    this.items = [];
+  }
+
+  sent(key) {
+    this.items.push({ key, at: this.now() });
+  }
+
+  /** Whether the session's state `key` predates an edit still on its way. */
+  older(key) {
+    const seen = this.items.findIndex((item) => item.key === key);
+    if (seen >= 0) this.items.splice(0, seen + 1);
+    const now = this.now();
+    this.items = this.items.filter((item) => now - item.at < this.waitMs);
+    return this.items.length > 0;
+  }
+}
 
 /** A protocol Layer with only the fields it sets (defaults dropped), or null if invalid. */
 export function normalizeLayer(raw) {
@@ -92,6 +121,7 @@ export class LayersPanel {
     this.empty = $("layers-empty");
     this.addButton = $("layer-add");
     this.disabled = false;
+    this.unechoed = new Unechoed();
     this.addButton.addEventListener("click", () => {
       if (this.layers.length >= MAX_LAYERS) return;
       this.emit([...this.layers, newLayer(this.layers)]);
@@ -102,6 +132,7 @@ export class LayersPanel {
     const clean = normalizeLayers(layers);
     if (!clean) return;
     this.layers = clean;
+    this.unechoed.sent(JSON.stringify(clean));
     this.draw();
     this.onChange(clean);
   }
@@ -111,10 +142,13 @@ export class LayersPanel {
     this.addButton.disabled = disabled || this.layers.length >= MAX_LAYERS;
   }
 
-  /** The session's layers (from `state`); a selection being typed is left alone. */
+  /** The session's layers (from `state`); a selection being typed is left alone, and so are
+   * edits the session has not caught up with. */
   update(layers) {
     const clean = normalizeLayers(layers ?? []) ?? [];
-    if (JSON.stringify(clean) === JSON.stringify(this.layers) && this.list.children.length === clean.length) return;
+    const key = JSON.stringify(clean);
+    if (this.unechoed.older(key)) return;
+    if (key === JSON.stringify(this.layers) && this.list.children.length === clean.length) return;
     const typing = this.list.contains(document.activeElement);
     this.layers = clean;
     if (!typing) this.draw();

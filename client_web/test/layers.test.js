@@ -1,6 +1,6 @@
 import { test } from "node:test";
 import assert from "node:assert/strict";
-import { MAX_LAYERS, describeSelected, moveItem, newLayer, normalizeLayer, normalizeLayers } from "../src/layers.js";
+import { MAX_LAYERS, Unechoed, describeSelected, moveItem, newLayer, normalizeLayer, normalizeLayers } from "../src/layers.js";
 import { decodeHash, encodeHash } from "../src/urlstate.js";
 import { RENDER_DEFAULTS, mergeRender } from "../src/params.js";
 
@@ -56,4 +56,22 @@ test("layers travel in the link", () => {
   const broken = decodeHash("v=1&layers=%5B%7B%22selection%22%3A1%7D");
   assert.deepEqual(broken.render.layers, []);
   assert.ok(broken.invalid.length > 0);
+});
+
+test("a state from before an edit on its way does not replace the page's layers", () => {
+  let t = 0;
+  const guard = new Unechoed(3000, () => t);
+  assert.equal(guard.older("[]"), false); // nothing sent: the session's state is the truth
+  guard.sent("[A]"); // a layer added
+  t = 50;
+  guard.sent("[A+sigma]"); // its scale typed before the first echo came back
+  assert.equal(guard.older("[]"), true); // the state before the layer: keep the edits
+  assert.equal(guard.older("[A]"), true); // the first edit's echo: the second is still coming
+  assert.equal(guard.older("[A+sigma]"), false); // caught up
+  assert.equal(guard.older("[B]"), false); // another steerer's change applies at once
+  guard.sent("[refused]");
+  t = 2000;
+  assert.equal(guard.older("[B]"), true);
+  t = 3100; // never echoed (refused): the session's list wins again
+  assert.equal(guard.older("[B]"), false);
 });
