@@ -8,7 +8,8 @@ in cell order (`order`), by one of two sorts:
   returned, so its slot is `cell_start[cell] + rank`; the ranks come in the order the device
   ran the atoms, so each cell's atoms are then put back in index order (each atom moves by the
   number of its cell's atoms with a smaller index, in cells of up to `SORTED_IN_CELL` atoms).
-  The result is the stable sort's, atom for atom, without its passes over all keys.
+  The result is the stable sort's, atom for atom, without its passes over all keys. Grids
+  whose cells are large enough to hold more (`DENSE_ATOMS_PER_A3`) use the radix sort.
 * "radix": a stable radix sort of (cell, atom) pairs.
 
 Cells are ordered x-fastest, so a row of neighbouring cells is one contiguous range of sorted
@@ -38,10 +39,15 @@ REDUCE_BLOCK = 256
 
 
 SORTED_IN_CELL = 64
-"""The counting sort puts the atoms of cells of up to this many atoms in index order. Molecular
-systems stay far below it (about 3 atoms per cell at two cells per cutoff, 25 at one); a cell
-with more, such as one grown to span a sparse box, keeps the order the device ran its atoms in:
-the same atoms, with sums over them equal up to float rounding from frame to frame."""
+"""The counting sort puts the atoms of cells of up to this many atoms in index order; a cell
+with more keeps the order the device ran its atoms in (the same atoms, with sums over them
+equal up to float rounding from frame to frame). Each atom reads its cell's slots, so the
+limit also bounds that work."""
+DENSE_ATOMS_PER_A3 = 0.15
+"""About the most atoms a molecular system packs per cubic angstrom, hydrogens included (water
+has 0.1, a protein's interior about 0.13): a grid whose cells could hold more than
+SORTED_IN_CELL atoms at this density is sorted by the radix sort (at the default scale a cell
+holds up to 4 atoms at two cells per cutoff, 32 at one; sigma from about 4 A changes sorts)."""
 GRID_SORTS = ("counting", "radix")
 
 
@@ -125,6 +131,10 @@ def setup_kernel(
     bad[0] = 0
     g = GridInfo()
     g.valid = 0
+    # an invalid grid is one cell that every atom falls in: the keys, counts and sort of the
+    # frame (which draws background) stay in bounds
+    g.dims = wp.vec3i(1, 1, 1)
+    g.ncells = 1
     if finite and lo[0] <= hi[0] and lo[1] <= hi[1] and lo[2] <= hi[2]:
         amax = wp.max(wp.max(wp.abs(lo[0]), wp.abs(hi[0])), wp.max(wp.abs(lo[1]), wp.abs(hi[1])))
         amax = wp.max(amax, wp.max(wp.abs(lo[2]), wp.abs(hi[2])))
@@ -421,7 +431,8 @@ class CellGrid:
             device=dev,
         )
         self._counts.zero_()
-        if self.sort == "radix":
+        edge = reach / cells_per_reach
+        if self.sort == "radix" or edge**3 * DENSE_ATOMS_PER_A3 > SORTED_IN_CELL:
             keyed = (positions, self.info, self.keys, self.order, self._counts)
             wp.launch(keys_kernel, n, keyed, device=dev)
             wp.utils.radix_sort_pairs(self.keys, self.order, n, 0, self._end_bit)

@@ -638,7 +638,7 @@ class Renderer(ImageOutputs):
             assert self._topology is not None
             self._skeleton = Skeleton.of(self._topology)
             ref = self._ref_positions if self._ref_positions is not None else np.zeros((self._n, 3))
-            self._skel = _SkeletonBuffers(self.device, self._skeleton, ref)
+            self._skel = _SkeletonBuffers(self.device, self._skeleton, ref, self.grid_sort)
         return self._skel
 
     def _update_weights(self, d: Derived) -> None:
@@ -1108,7 +1108,9 @@ class _SkeletonBuffers:
     """The warped density's device tables for one topology: the segments (and their cell
     grid, rebuilt every frame) and the bond graph for the along-graph smoothing."""
 
-    def __init__(self, device: str, skeleton: Skeleton, reference: npt.ArrayLike) -> None:
+    def __init__(
+        self, device: str, skeleton: Skeleton, reference: npt.ArrayLike, sort: str = "counting"
+    ) -> None:
         self.device = device
         self.skeleton = skeleton
         self.reference = np.asarray(reference, dtype=np.float64)
@@ -1118,7 +1120,7 @@ class _SkeletonBuffers:
         self.mids = wp.zeros(max(m, 1), dtype=wp.vec3, device=device)
         self.seg_a = wp.zeros(max(m, 1), dtype=wp.vec4, device=device)
         self.seg_b = wp.zeros(max(m, 1), dtype=wp.vec4, device=device)
-        self.grid = CellGrid(device, m)
+        self.grid = CellGrid(device, m, sort)
         self.grid.invalidate()
         self.half_length = 0.5 * SEGMENT_SLACK * skeleton.max_segment(self.reference)
         self.adj_start = wp.array(skeleton.adj_start, dtype=wp.int32, device=device)
