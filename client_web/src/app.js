@@ -202,6 +202,7 @@ class Dashboard {
         return undefined;
       }
       case "error": {
+        if (m.ref !== undefined && m.ref !== null) this.layersPanel.refused(m.ref);
         const r = this.acks.error(m);
         if (r) this.simPanel.showAck(r.key, r.status, r.key === "control" ? r.status.label : "");
         this.notices.serverError(m);
@@ -229,6 +230,7 @@ class Dashboard {
 
   welcomed(m) {
     this.welcome = m;
+    this.layersPanel.reconnected();
     this.viewport.resetFrames();
     this.viewport.resetVideo();
     this.viewport.setLimits(m.limits);
@@ -412,6 +414,7 @@ class Dashboard {
     if (!Object.keys(params).length || this.role !== "steerer") return;
     const seq = this.connection.send({ type: "render_params", params });
     if (seq !== null) this.latency.sent(seq, "render_params", performance.now());
+    if (seq !== null && params.layers !== undefined) this.layersPanel.carried(seq);
   }
 
   /** The transfer function in effect: the session's points, or its preset's when it has none. */
