@@ -140,6 +140,10 @@ class TrajectoryReplay:
     def _play(self) -> None:
         next_due = time.monotonic()
         while True:
+            # the wake-ups are counted before the queue is read: steering that lands after
+            # the read (and wakes no one yet) then ends the wait below at once
+            with self._cond:
+                seen = self._wakeups
             self._apply(self.connection.poll_steering())
             with self._cond:
                 if self._stopped:
@@ -151,7 +155,6 @@ class TrajectoryReplay:
                     self.index, at_end = 0, False
                 finished = at_end and self.exit_at_end and not self.paused
                 waiting = at_end or (self.paused and self._budget == 0)
-                seen = self._wakeups
             if finished:  # outside the lock: closing reports states that take it
                 self._flush()
                 return

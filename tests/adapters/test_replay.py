@@ -68,6 +68,35 @@ def test_gro_xtc_streams_all_frames_in_order(
     assert [f.time_ps for f in frames] == pytest.approx([ts.time for ts in u.trajectory])
 
 
+def test_steering_that_arrives_right_after_a_poll_is_applied(
+    peer: SimPeer, replays: list[TrajectoryReplay]
+) -> None:
+    """A paused replay sleeps until steering wakes it. A message that lands between its poll
+    of the steering queue and its going to sleep must still wake it: here a `resume` is
+    delivered just after the replay's first poll, through the connection's own path."""
+    structure = load(PSF, [DCD])
+    r = TrajectoryReplay(structure, peer.ws_url, "secret", fps=50, start_paused=True)
+    replays.append(r)
+    connection = r.connection
+    delivered = False
+    real_poll = connection.poll_steering
+
+    def poll_then_deliver() -> list[object]:
+        nonlocal delivered
+        out = real_poll()
+        # once connected nothing else wakes a paused replay: only this message can
+        if not delivered and connection.connected:
+            delivered = True
+            connection._dispatch(Control(action="resume", seq=10_000), 0)
+        return out  # type: ignore[return-value]
+
+    connection.poll_steering = poll_then_deliver  # type: ignore[method-assign]
+    r.start()
+    assert connection.wait_connected(10)
+    frames = peer.wait_frames(3, timeout=10)
+    assert [f.step for f in frames[:3]] == [0, 1, 2]
+
+
 def test_seek_step_speed_loop_and_stop(peer: SimPeer, replays: list[TrajectoryReplay]) -> None:
     r = play(replays, peer, PSF, DCD, fps=50, start_paused=True)
     assert r.connection.wait_connected(10)
