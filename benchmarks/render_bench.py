@@ -350,6 +350,13 @@ def summarize(walls: list[float], stages: list[dict[str, float]]) -> dict[str, A
     return out
 
 
+def labelled(options: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """A set of Renderer options from the command line: its "label" (else the set itself, as
+    JSON) and the options without it."""
+    kw = dict(options)
+    return str(kw.pop("label", json.dumps(options))), kw
+
+
 class Clock:
     """Wall-clock budget of the whole run; sections stop early rather than overrun."""
 
@@ -650,8 +657,7 @@ class Bench:
             for cells, t in itertools.product(cells_list, tries or [{"label": "default"}]):
                 if self.clock.left() < 30:
                     return
-                kw = dict(t)
-                label = str(kw.pop("label", json.dumps(t)))
+                label, kw = labelled(t)
                 r = Renderer(
                     self.device,
                     max_atoms=n,
@@ -730,8 +736,7 @@ class Bench:
             for t in tries:
                 if self.clock.left() < 20:
                     return
-                kw = dict(t)
-                label = str(kw.pop("label", json.dumps(t)))
+                label, kw = labelled(t)
                 r, frames = self.renderer(n, **kw)
                 cam = fit_camera(frames[0], w, h)
                 st = self.timed(self.frame_step(r, frames, params, cam, w, h), self.args.frames)

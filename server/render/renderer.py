@@ -115,6 +115,11 @@ class Derived:
     warp: WarpScales | None
 
 
+def _model_name(d: Derived) -> str:
+    """The density model a frame draws, as the per-model tables name it."""
+    return "warped" if d.warp is not None else "gaussian"
+
+
 class Renderer(ImageOutputs):
     """Ray-casting renderer of the Gaussian molecular density (see docs/rendering.md).
 
@@ -687,13 +692,13 @@ class Renderer(ImageOutputs):
             return self.cells_per_cutoff
         if self._n >= LARGE_ATOMS:
             return 1.0
-        return CELLS_PER_CUTOFF["warped" if d.warp is not None else "gaussian"]
+        return CELLS_PER_CUTOFF[_model_name(d)]
 
     def _keep_from(self, d: Derived) -> float:
         """The multiple of the level from which empty cells keep their coarse bound."""
         if self.bound_keep_from is not None:
             return self.bound_keep_from
-        return BOUND_KEEP_FROM["warped" if d.warp is not None else "gaussian"]
+        return BOUND_KEEP_FROM[_model_name(d)]
 
     def _grid_key_for(self, d: Derived, stop: float) -> tuple[Any, ...] | None:
         """The key of the grid this frame needs, or None when the last one still holds."""
