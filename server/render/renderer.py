@@ -417,7 +417,9 @@ class Renderer(ImageOutputs):
         if self._ref_positions is None:
             # bonds keep their lengths (the warped density's graph tables use these)
             self._ref_positions = np.array(arr[:n], dtype=np.float32)
-        self._uploaded = True
+        # only a recorded upload is timed: the elapsed time between two unrecorded CUDA events
+        # fails and leaves the error for the next CUDA call that checks for one to report
+        self._uploaded = n > 0
         self._have_positions = True
         self._positions_version += 1
 

@@ -36,6 +36,25 @@ def test_zero_atoms_gives_background(device: str) -> None:
     assert counts.sum() == 0 and len(edges) == 17
 
 
+def test_a_frame_of_no_atoms_is_timed_and_the_next_renderer_draws(device: str) -> None:
+    """A frame of no atoms uploads nothing, so it times no upload: on CUDA the elapsed time
+    between upload events that were never recorded failed (the frame's total read 0 ms) and
+    left its error pending for the next CUDA call that checks, which then failed in its
+    place (the grid's scan of the next renderer)."""
+    r = Renderer(device)
+    r.set_topology(make_topology(0))
+    r.set_positions(np.zeros((0, 3), np.float32))
+    r.render(RenderParams(background=BG), Camera(), 24, 16)
+    t = r.timings
+    assert t["upload"] == 0.0
+    assert t["total"] >= t["raycast"] > 0.0
+    one = Renderer(device)
+    one.set_topology(make_topology(1))
+    one.set_positions(np.array([[3.0, -1.0, 2.0]], np.float32))
+    one.render(RenderParams(background=BG), Camera(target=(3.0, -1.0, 2.0), distance=30.0), 9, 9)
+    assert np.isfinite(one.read_depth()[4, 4])
+
+
 def test_no_topology_gives_background(device: str) -> None:
     r = Renderer(device)
     r.render(RenderParams(mode="volume", background=BG), Camera(), 5, 7)
