@@ -1,10 +1,20 @@
 """Uniform cell grid rebuilt on the device every frame.
 
 Build: bounding box (atomic min/max) -> grid layout (one thread, so the host never waits) ->
-cell key per atom and per-cell counts -> stable radix sort of (key, atom) -> exclusive scan of
-the counts = `cell_start`. Cells are ordered x-fastest, so a row of neighbouring cells is one
-contiguous range of sorted atoms. Everything is sized once from the atom count; the grid never
-has more than `cell_capacity(n)` cells (the cell size grows when the box would need more).
+cell key per atom and per-cell counts -> exclusive scan of the counts = `cell_start` -> atoms
+in cell order (`order`), by one of two sorts:
+
+* "counting" (the default): each atom's rank in its cell is the value its count's atomic add
+  returned, so its slot is `cell_start[cell] + rank`; the ranks come in the order the device
+  ran the atoms, so each cell's atoms are then put back in index order (each atom moves by the
+  number of its cell's atoms with a smaller index, in cells of up to `SORTED_IN_CELL` atoms).
+  The result is the stable sort's, atom for atom, without its passes over all keys. Grids
+  whose cells are large enough to hold more (`DENSE_ATOMS_PER_A3`) use the radix sort.
+* "radix": a stable radix sort of (cell, atom) pairs.
+
+Cells are ordered x-fastest, so a row of neighbouring cells is one contiguous range of sorted
+atoms. Everything is sized once from the atom count; the grid never has more than
+`cell_capacity(n)` cells (the cell size grows when the box would need more).
 """
 
 from __future__ import annotations
@@ -26,6 +36,19 @@ MAX_REDUCE_THREADS = 1 << 18
 REDUCE_BLOCK = 256
 """The bounding box is reduced by up to MAX_REDUCE_THREADS threads in blocks of REDUCE_BLOCK
 (one atomic per axis and block)."""
+
+
+SORTED_IN_CELL = 64
+"""The counting sort puts the atoms of cells of up to this many atoms in index order; a cell
+with more keeps the order the device ran its atoms in (the same atoms, with sums over them
+equal up to float rounding from frame to frame). Each atom reads its cell's slots, so the
+limit also bounds that work."""
+DENSE_ATOMS_PER_A3 = 0.15
+"""About the most atoms a molecular system packs per cubic angstrom, hydrogens included (water
+has 0.1, a protein's interior about 0.13): a grid whose cells could hold more than
+SORTED_IN_CELL atoms at this density is sorted by the radix sort (at the default scale a cell
+holds up to 4 atoms at two cells per cutoff, 32 at one; sigma from about 4 A changes sorts)."""
+GRID_SORTS = ("counting", "radix")
 
 
 def cell_capacity(n_atoms: int) -> int:
@@ -108,8 +131,8 @@ def setup_kernel(
     bad[0] = 0
     g = GridInfo()
     g.valid = 0
-    # an invalid grid is one cell that every atom falls in: the keys and counts of the frame
-    # (which draws background) stay in bounds
+    # an invalid grid is one cell that every atom falls in: the keys, counts and sort of the
+    # frame (which draws background) stay in bounds
     g.dims = wp.vec3i(1, 1, 1)
     g.ncells = 1
     if finite and lo[0] <= hi[0] and lo[1] <= hi[1] and lo[2] <= hi[2]:
@@ -164,6 +187,62 @@ def keys_kernel(
     keys[i] = c
     values[i] = i
     wp.atomic_add(counts, c, 1)
+
+
+@wp.kernel
+@no_type_check
+def ranked_keys_kernel(
+    positions: wp.array[wp.vec3],
+    info: wp.array[GridInfo],
+    keys: wp.array[wp.int32],
+    ranks: wp.array[wp.int32],
+    counts: wp.array[wp.int32],
+):
+    """Cell of each atom and its rank among the atoms of that cell the device ran before it."""
+    i = wp.tid()
+    c = cell_at(info[0], positions[i])
+    keys[i] = c
+    ranks[i] = wp.atomic_add(counts, c, 1)
+
+
+@wp.kernel
+@no_type_check
+def place_kernel(
+    keys: wp.array[wp.int32],
+    ranks: wp.array[wp.int32],
+    cell_start: wp.array[wp.int32],
+    placed: wp.array[wp.int32],
+):
+    """Each atom into its slot: its cell's first slot plus its rank there."""
+    i = wp.tid()
+    placed[cell_start[keys[i]] + ranks[i]] = i
+
+
+@wp.kernel
+@no_type_check
+def order_cells_kernel(
+    keys: wp.array[wp.int32],
+    cell_start: wp.array[wp.int32],
+    placed: wp.array[wp.int32],
+    order: wp.array[wp.int32],
+):
+    """`placed` with each cell's atoms in index order, in `order`: the atom in slot j moves
+    to its cell's first slot plus the number of the cell's atoms with a smaller index. One
+    thread per slot, reading its cell's slots (the same ones as its neighbours, from cache);
+    a cell of more than SORTED_IN_CELL atoms is copied as it is."""
+    j = wp.tid()
+    i = placed[j]
+    c = keys[i]
+    a = cell_start[c]
+    b = cell_start[c + 1]
+    if b - a > SORTED_IN_CELL:
+        order[j] = i
+        return
+    before = wp.int32(0)
+    for k in range(a, b):
+        if placed[k] < i:
+            before += 1
+    order[a + before] = i
 
 
 @wp.kernel
@@ -256,8 +335,11 @@ class CellGrid:
     the grid at 8 bytes per cell.
     """
 
-    def __init__(self, device: str, n_atoms: int):
+    def __init__(self, device: str, n_atoms: int, sort: str = "counting"):
+        if sort not in GRID_SORTS:
+            raise ValueError(f"grid sort must be one of {', '.join(GRID_SORTS)}, got {sort!r}")
         self.device = device
+        self.sort = sort
         self.n_atoms = int(n_atoms)
         self.capacity = cell_capacity(self.n_atoms)
         n2 = max(2 * self.n_atoms, 2)
@@ -285,6 +367,14 @@ class CellGrid:
             copy=False,
         )
         self.work_count = wp.zeros(1, dtype=wp.int32, device=device)
+        # the counting sort's ranks: the second half of the keys (no double buffer to keep)
+        self._ranks = wp.array(
+            ptr=self.keys.ptr + 4 * self.n_atoms,
+            dtype=wp.int32,
+            shape=(max(self.n_atoms, 1),),
+            device=device,
+            copy=False,
+        )
         self.coarse = wp.array(
             ptr=self.keys.ptr, dtype=float, shape=(self.capacity + 1,), device=device, copy=False
         )
@@ -341,11 +431,22 @@ class CellGrid:
             device=dev,
         )
         self._counts.zero_()
-        wp.launch(
-            keys_kernel, n, (positions, self.info, self.keys, self.order, self._counts), device=dev
-        )
-        wp.utils.radix_sort_pairs(self.keys, self.order, n, 0, self._end_bit)
+        edge = reach / cells_per_reach
+        if self.sort == "radix" or edge**3 * DENSE_ATOMS_PER_A3 > SORTED_IN_CELL:
+            keyed = (positions, self.info, self.keys, self.order, self._counts)
+            wp.launch(keys_kernel, n, keyed, device=dev)
+            wp.utils.radix_sort_pairs(self.keys, self.order, n, 0, self._end_bit)
+            wp.utils.array_scan(self._counts, self.cell_start, inclusive=False)
+            return
+        ranked = (positions, self.info, self.keys, self._ranks, self._counts)
+        wp.launch(ranked_keys_kernel, n, ranked, device=dev)
         wp.utils.array_scan(self._counts, self.cell_start, inclusive=False)
+        # atoms are placed in the second half of `order` (free until the cell bounds list
+        # their cells there), then moved into index order within their cells
+        placed = (self.keys, self._ranks, self.cell_start, self.work)
+        wp.launch(place_kernel, n, placed, device=dev)
+        ordered = (self.keys, self.cell_start, self.work, self.order)
+        wp.launch(order_cells_kernel, n, ordered, device=dev)
 
     def build_coarse(self, atoms: wp.array, inv2s2: float) -> None:
         """`coarse`: per cell, an upper bound of the Gaussian density of the sorted `atoms`

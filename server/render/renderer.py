@@ -38,7 +38,7 @@ from server.render.density import (
     total_kernel,
 )
 from server.render.errors import RenderError
-from server.render.grid import CellGrid
+from server.render.grid import GRID_SORTS, CellGrid
 from server.render.outputs import ImageOutputs
 from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
 
@@ -139,7 +139,9 @@ class Renderer(ImageOutputs):
     (0: never split; None: split small images of larger molecules on CUDA, see
     `SPLIT_MIN_ATOMS`); `bound_keep_from` is the multiple of the level from which an empty
     cell keeps its coarse density bound instead of walking its atoms for a tighter one (inf:
-    every empty cell above the level is walked; None: the density's own, `BOUND_KEEP_FROM`).
+    every empty cell above the level is walked; None: the density's own, `BOUND_KEEP_FROM`);
+    `grid_sort` is how the grid puts atoms in cell order each frame ("counting" or "radix",
+    the same order; grid.py).
     """
 
     def __init__(
@@ -159,6 +161,7 @@ class Renderer(ImageOutputs):
         split_lanes: int = SPLIT_LANES,
         double_buffer: bool | None = None,
         bound_keep_from: float | None = None,
+        grid_sort: str = "counting",
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
@@ -166,6 +169,10 @@ class Renderer(ImageOutputs):
             raise RenderError(f"march_budget must be >= 0, got {march_budget}")
         if split_lanes < 1:
             raise RenderError(f"split_lanes must be >= 1, got {split_lanes}")
+        if grid_sort not in GRID_SORTS:
+            raise RenderError(
+                f"grid_sort must be one of {', '.join(GRID_SORTS)}, got {grid_sort!r}"
+            )
         if bound_keep_from is not None and not bound_keep_from >= 1.0:
             raise RenderError(f"bound_keep_from must be >= 1, got {bound_keep_from}")
         if cells_per_cutoff is not None and not cells_per_cutoff >= 1.0:
@@ -179,6 +186,7 @@ class Renderer(ImageOutputs):
         self.split_lanes = int(split_lanes)
         self.double_buffer = double_buffer
         self.bound_keep_from = None if bound_keep_from is None else float(bound_keep_from)
+        self.grid_sort = grid_sort
         self.coverage = False
         """Write coverage alpha over no background (a layer composited with others)."""
         self.depth_limit: Any = None
@@ -263,7 +271,7 @@ class Renderer(ImageOutputs):
         self._colors = wp.zeros(m, dtype=wp.uint32, device=d)
         self._sorted = wp.zeros(m, dtype=wp.vec4, device=d)
         self._inv2s2 = wp.zeros(m, dtype=float, device=d)
-        self._grid = CellGrid(d, n)
+        self._grid = CellGrid(d, n, self.grid_sort)
         self._grid.invalidate()
         self._weights_key: tuple[Any, ...] | None = None
         self._skeleton: Skeleton | None = None
@@ -637,7 +645,7 @@ class Renderer(ImageOutputs):
             assert self._topology is not None
             self._skeleton = Skeleton.of(self._topology)
             ref = self._ref_positions if self._ref_positions is not None else np.zeros((self._n, 3))
-            self._skel = _SkeletonBuffers(self.device, self._skeleton, ref)
+            self._skel = _SkeletonBuffers(self.device, self._skeleton, ref, self.grid_sort)
         return self._skel
 
     def _update_weights(self, d: Derived) -> None:
@@ -1107,7 +1115,9 @@ class _SkeletonBuffers:
     """The warped density's device tables for one topology: the segments (and their cell
     grid, rebuilt every frame) and the bond graph for the along-graph smoothing."""
 
-    def __init__(self, device: str, skeleton: Skeleton, reference: npt.ArrayLike) -> None:
+    def __init__(
+        self, device: str, skeleton: Skeleton, reference: npt.ArrayLike, sort: str = "counting"
+    ) -> None:
         self.device = device
         self.skeleton = skeleton
         self.reference = np.asarray(reference, dtype=np.float64)
@@ -1117,7 +1127,7 @@ class _SkeletonBuffers:
         self.mids = wp.zeros(max(m, 1), dtype=wp.vec3, device=device)
         self.seg_a = wp.zeros(max(m, 1), dtype=wp.vec4, device=device)
         self.seg_b = wp.zeros(max(m, 1), dtype=wp.vec4, device=device)
-        self.grid = CellGrid(device, m)
+        self.grid = CellGrid(device, m, sort)
         self.grid.invalidate()
         self.half_length = 0.5 * SEGMENT_SLACK * skeleton.max_segment(self.reference)
         self.adj_start = wp.array(skeleton.adj_start, dtype=wp.int32, device=device)

@@ -16,7 +16,7 @@ from server.render import colors, density
 from server.render.camera import fit_camera
 from server.render.density import GaussianField
 from server.render.errors import RenderError
-from server.render.grid import CellGrid
+from server.render.grid import SORTED_IN_CELL, CellGrid, order_cells_kernel
 from server.render.raycast import kernels_for
 from server.render.renderer import Renderer
 from tests.render import oracle
@@ -165,20 +165,69 @@ def test_grid_finds_every_atom_within_cutoff(
     )
 
 
-def test_a_frame_with_a_non_finite_position_keeps_every_index_in_bounds(device: str) -> None:
+@pytest.mark.parametrize(("cells_per_reach", "most"), [(2.0, 41), (0.25, 3313)])
+def test_counting_sort_orders_atoms_as_the_radix_sort(
+    device: str, cells_per_reach: float, most: int
+) -> None:
+    """Atom for atom the stable sort's order (each cell's atoms by index), on CUDA too, where
+    the ranks come in whatever order the device ran the atoms. Cells of a dense lump at two
+    cells per reach hold up to 41 atoms; cells four times the reach could hold far more than
+    SORTED_IN_CELL (3,313 here), so such a grid is sorted by the radix sort."""
+    n = 5000
+    pos = np.concatenate([blob(4000, seed=3), blob(1000, seed=5, spread=1.0)]).astype(np.float32)
+    orders = {}
+    for sort in ("radix", "counting"):
+        grid = CellGrid(device, n, sort)
+        grid.build(wp.array(pos, dtype=wp.vec3, device=device), n, 3.0, cells_per_reach)
+        cells = int(grid.read_info()["ncells"])
+        orders[sort] = (grid.order.numpy()[:n], grid.cell_start.numpy()[: cells + 1])
+    (counted, starts), (radix, radix_starts) = orders["counting"], orders["radix"]
+    np.testing.assert_array_equal(starts, radix_starts)
+    assert np.diff(starts).max() == most
+    np.testing.assert_array_equal(counted, radix)
+
+
+@pytest.mark.parametrize("sort", ["counting", "radix"])
+def test_a_frame_with_a_non_finite_position_keeps_every_index_in_bounds(
+    device: str, sort: str
+) -> None:
     """A NaN position invalidates the grid (the frame draws background); its one cell then
-    holds every atom, so the keys and counts stay in bounds frame after frame (they were
-    written through cell -1) and the sort still orders every atom."""
+    holds every atom, so the sort writes only where it may, frame after frame."""
     n = 20_000
     pos = blob(n, seed=4)
     pos[123, 2] = np.nan
-    grid = CellGrid(device, n)
+    grid = CellGrid(device, n, sort)
     for _ in range(3):
         grid.build(wp.array(pos, dtype=wp.vec3, device=device), n, 3.0, 2.0)
     info = grid.read_info()
     assert int(info["valid"]) == 0 and int(info["ncells"]) == 1
     np.testing.assert_array_equal(grid.cell_start.numpy()[:2], [0, n])
     np.testing.assert_array_equal(np.sort(grid.order.numpy()[:n]), np.arange(n))
+
+
+def test_cells_are_put_in_index_order_up_to_their_limit(device: str) -> None:
+    """The counting sort's last step on scrambled cells: each cell of up to SORTED_IN_CELL
+    atoms comes out in index order, a larger one as it was."""
+    rng = np.random.default_rng(8)
+    sizes = [0, 1, 2, 7, 40, SORTED_IN_CELL, SORTED_IN_CELL + 1, 3]
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
+    n = int(starts[-1])
+    placed = rng.permutation(n).astype(np.int32)
+    keys = np.empty(n, np.int32)
+    keys[placed] = np.repeat(np.arange(len(sizes)), sizes)  # atom -> its cell
+    order = wp.zeros(n, dtype=wp.int32, device=device)
+    args = [wp.array(a, dtype=wp.int32, device=device) for a in (keys, starts, placed)]
+    wp.launch(order_cells_kernel, n, (*args, order), device=device)
+    got = order.numpy()
+    for c, size in enumerate(sizes):
+        a, b = starts[c], starts[c + 1]
+        want = placed[a:b] if size > SORTED_IN_CELL else np.sort(placed[a:b])
+        np.testing.assert_array_equal(got[a:b], want)
+
+
+def test_an_unknown_grid_sort_is_refused() -> None:
+    with pytest.raises(RenderError, match="grid_sort must be one of counting, radix, got 'bucket'"):
+        Renderer("cpu", grid_sort="bucket")
 
 
 def test_grid_is_sorted_by_cell(device: str) -> None:
