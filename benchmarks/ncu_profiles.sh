@@ -18,17 +18,18 @@ times=(--cache-control none --clock-control none --metrics gpu__time_duration.su
 
 # the iso march at 1M atoms, 1920x1080: classical and warped density
 ncu --kernel-name regex:iso_march --launch-skip 2 --launch-count 1 "${sections[@]}" \
-    $prof --atoms 1000000 --frames 4 > "$out/ncu_round2_iso_march_1m_1080p.txt"
+    $prof --atoms 1000000 --frames 4 > "$out/ncu_round3_iso_march_1m_1080p.txt"
 ncu --kernel-name regex:iso_march --launch-skip 2 --launch-count 1 "${sections[@]}" \
-    $prof --atoms 1000000 --frames 4 --scale-space warped > "$out/ncu_round2_iso_march_warped_1m_1080p.txt"
-# the cell bounds at 1M atoms (the walk over the cells the coarse bound left open)
+    $prof --atoms 1000000 --frames 4 --scale-space warped > "$out/ncu_round3_iso_march_warped_1m_1080p.txt"
+# the cell bounds at 1M atoms (the walk over the cells the coarse bound left open, with the
+# bounds of their parts below PART_ATOMS)
 ncu --kernel-name regex:"bound_kernel|bound_settle" --launch-skip 4 --launch-count 2 "${sections[@]}" \
-    $prof --atoms 1000000 --frames 4 > "$out/ncu_round2_bounds_1m_1080p.txt"
+    $prof --atoms 1000000 --frames 4 > "$out/ncu_round3_bounds_1m_1080p.txt"
 # the grid build at 10M atoms: keys and ranks, the counting sort, cell weights, spread (nine
 # launches a frame: setup, keys, place, order_cells, cell_weight, three spreads, total)
 ncu --kernel-name regex:"keys_kernel|place_kernel|order_cells|cell_weight|spread_kernel|radix|setup_kernel|total_kernel" \
     --launch-skip 18 --launch-count 9 "${sections[@]}" \
-    $prof --atoms 10000000 --frames 4 > "$out/ncu_round2_grid_10m.txt"
+    $prof --atoms 10000000 --frames 4 > "$out/ncu_round3_grid_10m.txt"
 # per-kernel times of whole frames
-ncu "${times[@]}" $prof --atoms 1000000 --frames 3 > "$out/ncu_round2_frame_1m_1080p.csv"
-ncu "${times[@]}" $prof --atoms 10000000 --frames 3 > "$out/ncu_round2_frame_10m_1080p.csv"
+ncu "${times[@]}" $prof --atoms 1000000 --frames 3 > "$out/ncu_round3_frame_1m_1080p.csv"
+ncu "${times[@]}" $prof --atoms 10000000 --frames 3 > "$out/ncu_round3_frame_10m_1080p.csv"

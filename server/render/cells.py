@@ -33,6 +33,14 @@ class GridInfo:
 
 BRICK = 4
 """Cells per brick edge: the coarse level of empty-space skipping."""
+PARTS = 3
+"""Parts per cell edge: the fine level of empty-space skipping. A walked cell also keeps which
+of its PARTS^3 = 27 parts have a density bound below the level, one bit each of one word."""
+PART_SLACK = 1.0e-3
+"""Each part's bound covers the part widened by this fraction of its edge on every side, so
+a point that rounding puts in the part beside it is still covered."""
+
+_PARTS = wp.constant(PARTS)  # type: ignore[no-untyped-call]
 
 
 @wp.func
@@ -86,3 +94,19 @@ def cell_box(g: GridInfo, c: int):
     iz = c // (g.dims[0] * g.dims[1])
     lo = g.origin + wp.vec3(float(ix), float(iy), float(iz)) * g.h
     return lo, lo + wp.vec3(g.h, g.h, g.h)
+
+
+@wp.func
+@no_type_check
+def part_at(g: GridInfo, p: wp.vec3):
+    """The cell holding p (as `cell_at`) and the bit of its part (x fastest)."""
+    q = (p - g.origin) * g.inv_h
+    cx = wp.clamp(int(wp.floor(q[0])), 0, g.dims[0] - 1)
+    cy = wp.clamp(int(wp.floor(q[1])), 0, g.dims[1] - 1)
+    cz = wp.clamp(int(wp.floor(q[2])), 0, g.dims[2] - 1)
+    n = float(_PARTS)
+    px = wp.clamp(int((q[0] - float(cx)) * n), 0, _PARTS - 1)
+    py = wp.clamp(int((q[1] - float(cy)) * n), 0, _PARTS - 1)
+    pz = wp.clamp(int((q[2] - float(cz)) * n), 0, _PARTS - 1)
+    cell = (cz * g.dims[1] + cy) * g.dims[0] + cx
+    return cell, px + _PARTS * (py + _PARTS * pz)

@@ -25,7 +25,7 @@ from typing import Any, no_type_check
 import warp as wp
 
 from server.render import device as _device  # noqa: F401  (initialises warp)
-from server.render.cells import GridInfo, axis_span, interval_gap, row_span
+from server.render.cells import PART_SLACK, PARTS, GridInfo, axis_span, interval_gap, row_span
 
 wp.set_module_options({"enable_backward": False})
 
@@ -40,6 +40,7 @@ class GaussianField:
     colors: wp.array[wp.uint32]  # original atom index -> RGBA8
     cell_start: wp.array[wp.int32]  # ncells + 1 offsets into atoms
     bound: wp.array[float]  # per cell: upper bound of S in the cell (or > stop level)
+    parts: wp.array[wp.int32]  # per cell: bit s set when part s has a bound below the level
     brick_bound: wp.array[float]  # per brick of BRICK^3 cells: the largest cell bound
     info: wp.array[GridInfo]  # one entry
     inv2s2_uniform: float
@@ -423,12 +424,69 @@ def bound_reached(q: BoxQuery, total: float) -> bool:
     return total > q.stop_above
 
 
+if PARTS != 3:
+    raise ImportError("the part bounds split each cell edge in three (27 bits of one word)")
+PartBounds = wp.types.vector(length=PARTS**3, dtype=wp.float32)
+"""Upper bounds of S over the PARTS^3 parts of a box (x fastest)."""
+
+
+@wp.func
+@no_type_check
+def part_exponents(a: float, lo: float, w: float, c: float) -> wp.vec3:
+    """c times the squared gap from coordinate a to each third [lo + i w, lo + (i + 1) w] of
+    an axis, each widened by PART_SLACK w on both sides."""
+    s = PART_SLACK * w
+    g0 = interval_gap(a, a, lo - s, lo + w + s)
+    g1 = interval_gap(a, a, lo + w - s, lo + 2.0 * w + s)
+    g2 = interval_gap(a, a, lo + 2.0 * w - s, lo + 3.0 * w + s)
+    return wp.vec3(g0 * g0, g1 * g1, g2 * g2) * c
+
+
+@wp.func
+@no_type_check
+def row_part_bounds(
+    f: GaussianField, q: BoxQuery, j0: int, j1: int, total: PartBounds
+) -> PartBounds:
+    """Every atom of [j0, j1) counted at its smallest distance to each part of the box: the
+    squared distance is a sum over the axes, so an atom's 27 terms are products of three
+    exponentials per axis."""
+    out = total
+    w = (q.hi - q.lo) * (1.0 / 3.0)
+    hk = f.half_k2
+    for j in range(j0, j1):
+        a = f.atoms[j]
+        c = f.inv2s2_uniform
+        if f.per_atom != 0:
+            c = f.inv2s2[j]
+        ux = part_exponents(a[0], q.lo[0], w[0], c)
+        uy = part_exponents(a[1], q.lo[1], w[1], c)
+        uz = part_exponents(a[2], q.lo[2], w[2], c)
+        if wp.min(ux) + wp.min(uy) + wp.min(uz) < hk:
+            ex = wp.vec3(wp.exp(-ux[0]), wp.exp(-ux[1]), wp.exp(-ux[2])) * a[3]
+            ey = wp.vec3(wp.exp(-uy[0]), wp.exp(-uy[1]), wp.exp(-uy[2]))
+            ez = wp.vec3(wp.exp(-uz[0]), wp.exp(-uz[1]), wp.exp(-uz[2]))
+            for iz in range(3):
+                for iy in range(3):
+                    for ix in range(3):
+                        if ux[ix] + uy[iy] + uz[iz] < hk:
+                            s = ix + 3 * (iy + 3 * iz)
+                            out[s] = out[s] + ex[ix] * ey[iy] * ez[iz]
+    return out
+
+
+@wp.func
+@no_type_check
+def parts_reached(q: BoxQuery, total: PartBounds) -> bool:
+    return wp.min(total) > q.stop_above
+
+
 _walk_value = cell_rows("value", row_value, wp.vec3, float)
 _walk_value_grad = cell_rows("value_grad", row_value_grad, wp.vec3, wp.vec4)
 _walk_values4 = cell_rows("values4", row_values4, Span4, wp.vec4)
 _walk_value_grad4 = cell_rows("value_grad4", row_value_grad4, Span4, wp.mat44)
 _walk_sample = cell_rows("sample", row_sample, wp.vec3, Sample)
 _walk_bound = cell_rows("bound", row_bound, BoxQuery, float, bound_reached)
+_walk_part_bounds = cell_rows("part_bounds", row_part_bounds, BoxQuery, PartBounds, parts_reached)
 
 
 @wp.func
@@ -515,6 +573,22 @@ def gaussian_box_bound(f: GaussianField, lo: wp.vec3, hi: wp.vec3, stop_above: f
     q.hi = hi
     q.stop_above = stop_above
     return _walk_bound(f, lo, hi, q, wp.float32(0.0))
+
+
+@wp.func
+@no_type_check
+def gaussian_part_bounds(
+    f: GaussianField, lo: wp.vec3, hi: wp.vec3, stop_above: float
+) -> PartBounds:
+    """Upper bounds of S over the 27 parts of the box [lo, hi] (each widened by PART_SLACK of
+    its edge), as `gaussian_box_bound` per part; returns early once every part's sum exceeds
+    `stop_above`."""
+    q = BoxQuery()
+    q.lo = lo
+    q.hi = hi
+    q.stop_above = stop_above
+    s = (hi - lo) * (PART_SLACK / 3.0)
+    return _walk_part_bounds(f, lo - s, hi + s, q, PartBounds())
 
 
 @wp.struct
@@ -649,7 +723,10 @@ class DensityModel:
     optional, for models that can cheaply tell a value is below a level: `value4_level(f, o,
     d, ts, level)` and `value_grad4_level(...)`, exact where a value may reach `level`, and any
     negative value (read "below, value unknown") where it cannot; the marching kernels only
-    compare values with the level, so they use these.
+    compare values with the level, so they use these. And `part_bounds(f, lo, hi,
+    stop_above) -> PartBounds`, the bounds of the 27 parts of a box (as `box_bound` per
+    part, each widened by PART_SLACK of its edge), from which the rays skip samples in the
+    parts of a cell that are below the level; without it only whole cells are skipped.
     """
 
     name: str
@@ -662,6 +739,7 @@ class DensityModel:
     value_grad4: Any = None
     value4_level: Any = None
     value_grad4_level: Any = None
+    part_bounds: Any = None
 
 
 GAUSSIAN = DensityModel(
@@ -673,4 +751,5 @@ GAUSSIAN = DensityModel(
     box_bound=gaussian_box_bound,
     value4=gaussian_value4,
     value_grad4=gaussian_value_grad4,
+    part_bounds=gaussian_part_bounds,
 )

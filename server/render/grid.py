@@ -378,6 +378,14 @@ class CellGrid:
         self.coarse = wp.array(
             ptr=self.keys.ptr, dtype=float, shape=(self.capacity + 1,), device=device, copy=False
         )
+        # and once the coarse bounds are read, which parts of each cell are below the level
+        self.parts = wp.array(
+            ptr=self.keys.ptr,
+            dtype=wp.int32,
+            shape=(self.capacity + 1,),
+            device=device,
+            copy=False,
+        )
         self.bmin = wp.full(3, wp.inf, dtype=float, device=device)
         self.bmax = wp.full(3, -wp.inf, dtype=float, device=device)
         self.bad = wp.zeros(1, dtype=wp.int32, device=device)

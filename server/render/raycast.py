@@ -37,7 +37,7 @@ import warp as wp
 from protocol import RenderParams
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
-from server.render.cells import BRICK, GridInfo, cell_at, cell_box
+from server.render.cells import BRICK, GridInfo, cell_box, part_at
 from server.render.density import GAUSSIAN, DensityModel
 
 wp.set_module_options({"enable_backward": False})
@@ -56,6 +56,11 @@ DEPTH_ALPHA = 0.5
 _STOP_ALPHA = wp.constant(STOP_ALPHA)  # type: ignore[no-untyped-call]
 _DEPTH_ALPHA = wp.constant(DEPTH_ALPHA)  # type: ignore[no-untyped-call]
 
+PART_MARGIN = 1.0 + 1.0e-4
+"""Part bounds are raised by this relative margin before they are compared with the level:
+float rounding in their sums must not put a part below it that a sample reaches."""
+
+_PART_MARGIN = wp.constant(PART_MARGIN)  # type: ignore[no-untyped-call]
 _BRICK = wp.constant(BRICK)  # type: ignore[no-untyped-call]
 _TILE_W = wp.constant(TILE_W)  # type: ignore[no-untyped-call]
 _TILE = wp.constant(TILE)  # type: ignore[no-untyped-call]
@@ -342,6 +347,34 @@ def clear(b: float, level: float, inclusive: int) -> bool:
 
 @wp.func
 @no_type_check
+def clear_samples(
+    bound: wp.array[float],
+    parts: wp.array[wp.int32],
+    g: GridInfo,
+    o: wp.vec3,
+    d: wp.vec3,
+    k: int,
+    shift: float,
+    dt: float,
+    level: float,
+    split: int,
+) -> int:
+    """How many of the lattice samples k, k + 1, k + 2, k + 3 (t = (k + shift) dt), counted
+    from k, lie where a bound says the density is below `level`: in a cell whose bound is,
+    or in a part of a cell whose part bound is (`split` = 1)."""
+    n = wp.int32(0)
+    going = wp.int32(1)
+    while going != 0 and n < 4:
+        c, bit = part_at(g, o + d * ((float(k + n) + shift) * dt))
+        if bound[c] < level or (split != 0 and (parts[c] >> bit) & 1 != 0):
+            n += 1
+        else:
+            going = 0
+    return n
+
+
+@wp.func
+@no_type_check
 def walk_start(o: wp.vec3, d: wp.vec3, t: float, g: GridInfo):
     """The state `walk` starts from at ray parameter t: the cell, the step, the parameters of
     the next cell boundary and the boundary spacing on each axis, and the most cells a walk
@@ -360,6 +393,7 @@ def walk_start(o: wp.vec3, d: wp.vec3, t: float, g: GridInfo):
 @no_type_check
 def walk(
     bound: wp.array[float],
+    parts: wp.array[wp.int32],
     brick_bound: wp.array[float],
     g: GridInfo,
     o: wp.vec3,
@@ -370,6 +404,7 @@ def walk(
     level: float,
     inclusive: int,
     skip: int,
+    split: int,
     k: int,
     cx: int,
     cy: int,
@@ -387,9 +422,10 @@ def walk(
 ):
     """Walk the cells (3D DDA, whole bricks where their bound allows) from the current cell
     to the first lattice sample t_k = (k + shift) dt that lies in a cell whose bound does not
-    let it be skipped (`skip` = 0: no cell is skipped). Returns the new walk state, whether
-    samples were jumped (the previous sample's value is then unknown) and whether the ray is
-    still in the grid with a sample to take."""
+    let it be skipped, and not in a part of it whose bound does (`parts`, when `split` = 1;
+    `skip` = 0: nothing is skipped). Returns the new walk state, whether samples were jumped
+    (the previous sample's value is then unknown) and whether the ray is still in the grid
+    with a sample to take."""
     jumped = wp.int32(0)
     active = wp.int32(1)
     ready = wp.int32(0)
@@ -424,6 +460,18 @@ def walk(
                 k = k_end
         elif (float(k) + shift) * dt < t_exit:
             ready = 1
+            if skip != 0 and split != 0 and parts[cell] != 0:
+                # the cell's samples in its parts below the level: the part of each is taken
+                # from the sample's own position, not from the walk, so it is exact
+                going = wp.int32(1)
+                while going != 0 and (float(k) + shift) * dt < t_exit:
+                    pc, bit = part_at(g, o + d * ((float(k) + shift) * dt))
+                    if clear(bound[pc], level, inclusive) or (parts[pc] >> bit) & 1 != 0:
+                        k += 1
+                        jumped = 1
+                    else:
+                        going = 0
+                ready = 1 - going
         if ready == 0:
             left -= 1
             if t_exit >= t1 or left <= 0:
@@ -469,9 +517,16 @@ def side_change(v4: wp.vec4, iso: float, inside: int, q_from: int) -> int:
 
 
 def _make(
-    model: DensityModel, fast_math: bool, max_registers: int, volume_max_registers: int
+    model: DensityModel,
+    fast_math: bool,
+    max_registers: int,
+    volume_max_registers: int,
+    parts: bool,
 ) -> "RaycastKernels":
     Field = model.field
+    # whether the walked cells mark their parts and the rays skip samples in them: a
+    # constant of the generated code, so kernels without parts carry none of it
+    split = 1 if parts and model.part_bounds is not None else 0
     options = {"fast_math": bool(fast_math)}
     # the ray-marching kernels carry many live values; capping their registers trades a few
     # spills for more resident warps to hide the latency of the neighbour gathers
@@ -481,6 +536,7 @@ def _make(
     value_grad = model.value_grad
     sample = model.sample
     box_bound = model.box_bound
+    part_bounds = model.part_bounds
     value4 = model.value4
     value_grad4 = model.value_grad4
     if value4 is None:
@@ -587,63 +643,35 @@ def _make(
 
     @wp.func
     @no_type_check
-    def walked_bound(f: Field, c: int, stop_above: float) -> float:
-        """The bound of cell c from a walk over the atoms within reach of it."""
+    def walked_whole(f: Field, c: int, stop_above: float):
+        """The bound of cell c from a walk over the atoms within reach of it; no part is
+        known to be below the level."""
         lo, hi = cell_box(f.info[0], c)
-        return box_bound(f, lo, hi, stop_above)
+        return box_bound(f, lo, hi, stop_above), wp.int32(0)
 
-    @wp.kernel(enable_backward=False, module="unique", module_options=options)
-    @no_type_check
-    def bound_settle_kernel(
-        f: Field,
-        stop_above: float,
-        keep_from: float,
-        cell_start: wp.array[wp.int32],
-        coarse: wp.array[float],
-        out: wp.array[float],
-        work: wp.array[wp.int32],
-        work_count: wp.array[wp.int32],
-    ):
-        """An upper bound of the density in each cell (see `clear`), walked only where that
-        can decide anything. A cell that holds an atom is given infinity: the density there
-        reaches the level in all but contrived cases (a lone atom lighter than the level). A
-        cell whose coarse bound (CellGrid.build_coarse, no walk) is already below the level
-        keeps it, and so does one whose coarse bound is `keep_from` or more: a walk there
-        rarely ends below the level. The other cells, empty ones near the atoms, are listed
-        in `work` for `bound_kernel` to walk in full warps (walked here only when the list is
-        full)."""
-        c = wp.tid()
-        g = f.info[0]
-        if g.valid == 0 or c >= g.ncells:
-            return
-        if cell_start[c + 1] > cell_start[c]:
-            out[c] = wp.inf
-            return
-        b = coarse[c]
-        if b < stop_above or b >= keep_from:
-            out[c] = b
-            return
-        slot = wp.atomic_add(work_count, 0, 1)
-        if slot < work.shape[0]:
-            work[slot] = c
-        else:
-            out[c] = walked_bound(f, c, stop_above)
+    walked = walked_whole
+    if split != 0:
 
-    @wp.kernel(enable_backward=False, module="unique", module_options=options)
-    @no_type_check
-    def bound_kernel(
-        f: Field,
-        stop_above: float,
-        work: wp.array[wp.int32],
-        work_count: wp.array[wp.int32],
-        out: wp.array[float],
-    ):
-        """Walk the cells `bound_settle_kernel` listed (threads past the list return)."""
-        i = wp.tid()
-        if i >= wp.min(work_count[0], work.shape[0]):
-            return
-        c = work[i]
-        out[c] = walked_bound(f, c, stop_above)
+        @wp.func
+        @no_type_check
+        def walked_parts(f: Field, c: int, stop_above: float):
+            """The bound of cell c from a walk over the atoms within reach of it: the
+            largest of its parts' bounds, and the bits of the parts below `stop_above`
+            (with a relative margin of PART_MARGIN for float rounding)."""
+            lo, hi = cell_box(f.info[0], c)
+            v = part_bounds(f, lo, hi, stop_above) * _PART_MARGIN
+            mask = wp.int32(0)
+            for iz in range(3):
+                for iy in range(3):
+                    for ix in range(3):
+                        s = ix + 3 * (iy + 3 * iz)
+                        if v[s] < stop_above:
+                            mask = mask | (1 << s)
+            return wp.max(v), mask
+
+        walked = walked_parts
+
+    bound_settle_kernel, bound_kernel = _bound_kernels(Field, walked, options)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
@@ -716,8 +744,8 @@ def _make(
         # sample that needs the density diverges, the expensive pass does not
         while active != 0:
             k, cx, cy, cz, tx, ty, tz, left, jumped, active = walk(
-                f.bound, f.brick_bound, g, o, d, t1, dt, 0.0, m.skip_below, 0,
-                1 - inside, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
+                f.bound, f.parts, f.brick_bound, g, o, d, t1, dt, 0.0, m.skip_below, 0,
+                1 - inside, split, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
             )  # fmt: skip
             if jumped != 0:
                 first = 0
@@ -867,10 +895,10 @@ def _make(
                 )
                 need = wp.int32(1)
                 if inside == 0:
-                    need = 0
-                    for q in range(4):
-                        if not clear(f.bound[cell_at(g, o + d * ts[q])], m.skip_below, 0):
-                            need = 1
+                    clear_n = clear_samples(
+                        f.bound, f.parts, g, o, d, gs, 0.0, dt, m.skip_below, split
+                    )
+                    need = 4 - clear_n
                 if need != 0:
                     v4 = value4_level(f, o, d, ts, m.iso)
                     q_from = wp.int32(1)
@@ -982,8 +1010,8 @@ def _make(
             active = wp.int32(1)
             while active != 0:
                 k, cx, cy, cz, tx, ty, tz, left, _jumped, active = walk(
-                    f.bound, f.brick_bound, g, o, d, t1, dt, jit, vol.clear_level, 1,
-                    1, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
+                    f.bound, f.parts, f.brick_bound, g, o, d, t1, dt, jit, vol.clear_level, 1,
+                    1, split, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
                 )  # fmt: skip
                 if active != 0:
                     # four samples per pass, with gradients when shaded
@@ -1047,6 +1075,7 @@ def _make(
 
     return RaycastKernels(
         model=model,
+        parts=split != 0,
         bound_settle=bound_settle_kernel,
         bound=bound_kernel,
         evaluate=evaluate_kernel,
@@ -1063,6 +1092,8 @@ class RaycastKernels:
     """The kernels generated for one density model."""
 
     model: DensityModel
+    parts: bool
+    """The walked cells mark their parts below the level and the rays skip samples there."""
     bound_settle: Any
     bound: Any
     evaluate: Any
@@ -1073,7 +1104,78 @@ class RaycastKernels:
     volume: Any
 
 
-_KERNELS: dict[tuple[str, bool, int, int], RaycastKernels] = {}
+_KERNELS: dict[tuple[str, bool, int, int, bool], RaycastKernels] = {}
+
+
+def _bound_kernels(field: Any, walked: Any, options: dict[str, Any]) -> tuple[Any, Any]:
+    """The cell-bound kernels over one walk, `walked(f, c, stop_above) -> (bound, parts)`:
+    kernels of their own for each walk, so the plain one carries none of the part walk's
+    registers."""
+    Field = field
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @no_type_check
+    def bound_settle_kernel(
+        f: Field,
+        stop_above: float,
+        keep_from: float,
+        cell_start: wp.array[wp.int32],
+        coarse: wp.array[float],
+        out: wp.array[float],
+        parts: wp.array[wp.int32],
+        work: wp.array[wp.int32],
+        work_count: wp.array[wp.int32],
+    ):
+        """An upper bound of the density in each cell (see `clear`), walked only where that
+        can decide anything. A cell that holds an atom is given infinity: the density there
+        reaches the level in all but contrived cases (a lone atom lighter than the level). A
+        cell whose coarse bound (CellGrid.build_coarse, no walk) is already below the level
+        keeps it, and so does one whose coarse bound is `keep_from` or more: a walk there
+        rarely ends below the level. The other cells, empty ones near the atoms, are listed
+        in `work` for `bound_kernel` to walk in full warps (walked here only when the list is
+        full). Only walked cells know parts below the level (`parts`, which may share the
+        memory of `coarse`: each cell reads its coarse bound before it writes its parts)."""
+        c = wp.tid()
+        g = f.info[0]
+        if g.valid == 0 or c >= g.ncells:
+            return
+        if cell_start[c + 1] > cell_start[c]:
+            out[c] = wp.inf
+            parts[c] = 0
+            return
+        b = coarse[c]
+        if b < stop_above or b >= keep_from:
+            out[c] = b
+            parts[c] = 0
+            return
+        slot = wp.atomic_add(work_count, 0, 1)
+        if slot < work.shape[0]:
+            work[slot] = c
+        else:
+            bound, mask = walked(f, c, stop_above)
+            out[c] = bound
+            parts[c] = mask
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @no_type_check
+    def bound_kernel(
+        f: Field,
+        stop_above: float,
+        work: wp.array[wp.int32],
+        work_count: wp.array[wp.int32],
+        out: wp.array[float],
+        parts: wp.array[wp.int32],
+    ):
+        """Walk the cells `bound_settle_kernel` listed (threads past the list return)."""
+        i = wp.tid()
+        if i >= wp.min(work_count[0], work.shape[0]):
+            return
+        c = work[i]
+        bound, mask = walked(f, c, stop_above)
+        out[c] = bound
+        parts[c] = mask
+
+    return bound_settle_kernel, bound_kernel
 
 
 def kernels_for(
@@ -1081,15 +1183,19 @@ def kernels_for(
     fast_math: bool = True,
     max_registers: int = 0,
     volume_max_registers: int = 0,
+    parts: bool = True,
 ) -> RaycastKernels:
     """The kernels of `model`, generated once per process. `fast_math` lets CUDA use its
     hardware exp/divide/sqrt approximations (a few ulp); `max_registers` and
     `volume_max_registers` (0 = compiler's choice) cap the registers of the iso and volume
-    marching kernels on CUDA. CPU builds ignore them."""
-    key = (model.name, bool(fast_math), int(max_registers), int(volume_max_registers))
+    marching kernels on CUDA. CPU builds ignore them. `parts`: the walked cells mark which
+    of their parts are below the level and the rays skip the samples there (for models with
+    `part_bounds`)."""
+    split = bool(parts) and model.part_bounds is not None
+    key = (model.name, bool(fast_math), int(max_registers), int(volume_max_registers), split)
     k = _KERNELS.get(key)
     if k is None or k.model is not model:
-        k = _make(model, bool(fast_math), int(max_registers), int(volume_max_registers))
+        k = _make(model, bool(fast_math), int(max_registers), int(volume_max_registers), split)
         _KERNELS[key] = k
     return k
 

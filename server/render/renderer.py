@@ -73,6 +73,12 @@ bound unwalked. For the classical density few such walks end below the level, an
 outweighs the samples they save (one H200 at 1920x1080: 10M atoms 19.2 ms a frame against 20.8
 walking them all, 100M atoms 42.4 against 46.4 pipelined, 1M atoms even); the warped density's
 coarse bound ignores the warp, so there walking them all is faster (1M atoms 18.6 against 19.5)."""
+PART_ATOMS = 1_500_000
+"""Below this many atoms the walked cells also mark which of their 27 parts are below the
+level, and every open cell is walked (`part_bounds=None`): the rays skip the samples there.
+Those walks cost in proportion to the atoms, the samples they save to the surface in view
+(one H200 at 1920x1080: 100k atoms 4.9 ms a frame against 6.1, 1M 8.7 against 9.7, 3M 14.7
+against 12.9, 10M 31.3 against 19.0; benchmarks/README.md, "Render core, round three")."""
 LARGE_ATOMS = 30_000_000
 """From this many atoms the grid has one cell per cutoff for every density: the bound of 1.4
 cells per atom costs more than finer skipping saves (on an H100 at 1920x1080, 100M atoms:
@@ -141,7 +147,9 @@ class Renderer(ImageOutputs):
     cell keeps its coarse density bound instead of walking its atoms for a tighter one (inf:
     every empty cell above the level is walked; None: the density's own, `BOUND_KEEP_FROM`);
     `grid_sort` is how the grid puts atoms in cell order each frame ("counting" or "radix",
-    the same order; grid.py).
+    the same order; grid.py); `part_bounds` has the walked cells mark which of their parts
+    are below the level, for the rays to skip the samples there (the same image; None: below
+    `PART_ATOMS` atoms, where every open cell is then walked).
     """
 
     def __init__(
@@ -162,6 +170,7 @@ class Renderer(ImageOutputs):
         double_buffer: bool | None = None,
         bound_keep_from: float | None = None,
         grid_sort: str = "counting",
+        part_bounds: bool | None = None,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
@@ -187,6 +196,7 @@ class Renderer(ImageOutputs):
         self.double_buffer = double_buffer
         self.bound_keep_from = None if bound_keep_from is None else float(bound_keep_from)
         self.grid_sort = grid_sort
+        self.part_bounds = None if part_bounds is None else bool(part_bounds)
         self.coverage = False
         """Write coverage alpha over no background (a layer composited with others)."""
         self.depth_limit: Any = None
@@ -197,12 +207,11 @@ class Renderer(ImageOutputs):
         self._cuda = bool(self._dev.is_cuda)
         if density.field is not GaussianField:
             raise RenderError(f"density {density.name!r} needs a GaussianField to draw with")
+        self._density = density
         self._max_registers = max_registers
-        own = MARCH_REGISTERS.get(density.name, MARCH_REGISTERS["gaussian"])
-        regs = own if max_registers is None else max_registers
-        self._kernels = raycast.kernels_for(density, fast_math, regs, volume_max_registers)
         self._kernel_options = (fast_math, volume_max_registers)
-        self._warped_kernels: raycast.RaycastKernels | None = None
+        self._kernel_sets: dict[tuple[str, bool], raycast.RaycastKernels] = {}
+        self._kernels_of_model(density, False)  # generated now: bad options fail here
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         self._graphs: OrderedDict[tuple[Any, ...], Any] | None = (
             OrderedDict() if graphs or (graphs is None and self._cuda) else None
@@ -602,6 +611,7 @@ class Renderer(ImageOutputs):
         f.colors = self._colors
         f.cell_start = self._grid.cell_start
         f.bound = self._grid.cell_values
+        f.parts = self._grid.parts
         f.brick_bound = self._grid.brick_values
         f.info = self._grid.info
         f.inv2s2_uniform = d.inv2s2
@@ -623,20 +633,29 @@ class Renderer(ImageOutputs):
         f = warped.WarpedField()
         f.info = gauss.info
         f.bound = gauss.bound
+        f.parts = gauss.parts
         f.brick_bound = gauss.brick_bound
         f.gauss = gauss
         f.skel = s
         return f
 
     def _kernels_of(self, d: Derived) -> raycast.RaycastKernels:
-        if d.warp is None:
-            return self._kernels
-        if self._warped_kernels is None:
+        """The kernels of this frame's density, with part bounds below `PART_ATOMS` atoms
+        (or as `part_bounds` says)."""
+        model = self._density if d.warp is None else warped.WARPED
+        parts = self._n < PART_ATOMS if self.part_bounds is None else self.part_bounds
+        return self._kernels_of_model(model, parts)
+
+    def _kernels_of_model(self, model: DensityModel, parts: bool) -> raycast.RaycastKernels:
+        key = (model.name, parts)
+        k = self._kernel_sets.get(key)
+        if k is None:
             fast, volume_regs = self._kernel_options
-            regs = self._max_registers
-            regs = MARCH_REGISTERS[warped.WARPED.name] if regs is None else regs
-            self._warped_kernels = raycast.kernels_for(warped.WARPED, fast, regs, volume_regs)
-        return self._warped_kernels
+            own = MARCH_REGISTERS.get(model.name, MARCH_REGISTERS["gaussian"])
+            regs = own if self._max_registers is None else self._max_registers
+            k = raycast.kernels_for(model, fast, regs, volume_regs, parts)
+            self._kernel_sets[key] = k
+        return k
 
     def _skeleton_buffers(self) -> _SkeletonBuffers:
         """The bond segments and graph of the topology on the device (built once per topology,
@@ -704,11 +723,13 @@ class Renderer(ImageOutputs):
             return 1.0
         return CELLS_PER_CUTOFF[_model_name(d)]
 
-    def _keep_from(self, d: Derived) -> float:
-        """The multiple of the level from which empty cells keep their coarse bound."""
+    def _keep_from(self, d: Derived, parts: bool) -> float:
+        """The multiple of the level from which empty cells keep their coarse bound (with
+        part bounds every open cell is walked: the parts of the cells near the atoms save
+        the most samples)."""
         if self.bound_keep_from is not None:
             return self.bound_keep_from
-        return BOUND_KEEP_FROM[_model_name(d)]
+        return math.inf if parts else BOUND_KEEP_FROM[_model_name(d)]
 
     def _grid_key_for(self, d: Derived, stop: float) -> tuple[Any, ...] | None:
         """The key of the grid this frame needs, or None when the last one still holds."""
@@ -767,10 +788,11 @@ class Renderer(ImageOutputs):
         self._grid.build_coarse(self._sorted, d.half_k2 / (d.reach * d.reach))
         grid = self._grid
         grid.work_count.zero_()
-        keep = stop * self._keep_from(d) if stop > 0.0 else math.inf
-        settle = (f, stop, keep, grid.cell_start, grid.coarse, f.bound, grid.work, grid.work_count)
+        keep = stop * self._keep_from(d, kernels.parts) if stop > 0.0 else math.inf
+        cells = (grid.cell_start, grid.coarse, f.bound, grid.parts)
+        settle = (f, stop, keep, *cells, grid.work, grid.work_count)
         wp.launch(kernels.bound_settle, grid.capacity, settle, device=dev)
-        walk = (f, stop, grid.work, grid.work_count, f.bound)
+        walk = (f, stop, grid.work, grid.work_count, f.bound, grid.parts)
         wp.launch(kernels.bound, grid.capacity, walk, device=dev)
         self._grid.build_bricks()
 

@@ -64,6 +64,7 @@ class WarpedField:
 
     info: wp.array[GridInfo]
     bound: wp.array[float]
+    parts: wp.array[wp.int32]
     brick_bound: wp.array[float]
     gauss: GaussianField
     skel: SkeletonField

@@ -433,6 +433,61 @@ def test_unwalked_cells_only_loosen_bounds_and_keep_the_image(device: str) -> No
         np.testing.assert_array_equal(fewer[2], every[2])
 
 
+def _two_lumps() -> tuple[object, np.ndarray]:
+    pos = np.concatenate([blob(600, 7), blob(600, 9, offset=(9.0, 0.0, 0.0))]).astype(np.float32)
+    return make_topology(1200), pos
+
+
+def test_parts_below_the_level_hold_no_density_above_it(device: str) -> None:
+    """The parts of a walked cell (27, x fastest) marked below the level are: at points
+    spread through every marked part of a cell that is itself above the level, the density
+    is below it."""
+    top, pos = _two_lumps()
+    params = RenderParams()
+    r = render(device, top, pos, params, fit_camera(pos, 32, 24), 32, 24)
+    info = r.grid_info()
+    dims = np.asarray(info["dims"])
+    h = float(info["h"])
+    origin = np.asarray(info["origin"], dtype=np.float64)
+    cells = int(np.prod(dims))
+    bound = r._grid.cell_values.numpy()[:cells]
+    parts = r._grid.parts.numpy()[:cells]
+    cell, part = np.nonzero((parts[:, None] >> np.arange(27)) & 1)
+    keep = bound[cell] >= params.iso_level
+    cell, part = cell[keep], part[keep]
+    assert len(cell) > 200, "open cells must have parts below the level"
+    xyz = np.stack([cell % dims[0], (cell // dims[0]) % dims[1], cell // (dims[0] * dims[1])], 1)
+    sub = np.stack([part % 3, (part // 3) % 3, part // 9], axis=1)
+    rng = np.random.default_rng(5)
+    at = (xyz[:, None, :] + (sub[:, None, :] + rng.uniform(0, 1, (len(cell), 4, 3))) / 3.0) * h
+    values = r.evaluate((origin + at).reshape(-1, 3))[0]
+    assert values.max() < params.iso_level
+    assert values.max() > 0.3 * params.iso_level, "the parts must reach near the surface"
+
+
+@pytest.mark.parametrize("mode", ["iso", "volume"])
+def test_part_bounds_skip_samples_and_keep_the_image(device: str, mode: str) -> None:
+    """Samples in parts below the level are skipped (iso: they cannot hold a crossing;
+    volume: they are transparent): the image is the one of whole-cell skipping, bit for bit,
+    with the classical density and with the warped one (which has no part bounds). A small
+    molecule gets part bounds by default."""
+    top, pos = _two_lumps()
+    cam = fit_camera(pos, 64, 48)
+    for space in ("classical", "warped"):
+        params = RenderParams(mode=mode, scale_space=space)  # type: ignore[arg-type]
+        runs = {}
+        for split in (True, False, None):
+            r = render(device, top, pos, params, cam, 64, 48, part_bounds=split)
+            cells = int(np.prod(r.grid_info()["dims"]))
+            marked = int((r._grid.parts.numpy()[:cells] != 0).sum())
+            runs[split] = (marked, r.read_rgba(), r.read_depth(), r.read_atom_ids())
+        assert runs[False][0] == 0
+        assert runs[True][0] > (50 if space == "classical" else -1), space
+        assert runs[None][0] == runs[True][0], space
+        for a, b in zip(runs[True][1:], runs[False][1:], strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_bound_keep_from_below_one_is_refused() -> None:
     with pytest.raises(RenderError, match=r"bound_keep_from must be >= 1, got 0\.5"):
         Renderer("cpu", bound_keep_from=0.5)
