@@ -375,6 +375,15 @@ def test_a_model_without_batched_forms_draws_the_same_image(device: str) -> None
         np.testing.assert_allclose(a.read_depth()[hit], b.read_depth()[hit], atol=1e-4)
 
 
+def _grid_layout(r: Renderer) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """The grid's cells per axis, cell edge, origin and per-cell bounds after a render."""
+    info = r.grid_info()
+    dims = np.asarray(info["dims"])
+    cells = int(np.prod(dims))
+    origin = np.asarray(info["origin"], dtype=np.float64)
+    return dims, float(info["h"]), origin, r._grid.cell_values.numpy()[:cells]
+
+
 @pytest.mark.parametrize("scale_space", ["classical", "warped"])
 def test_cell_bounds_hold_the_density(device: str, scale_space: str) -> None:
     """Every cell's bound is at least the density anywhere in the cell (checked at points
@@ -384,12 +393,8 @@ def test_cell_bounds_hold_the_density(device: str, scale_space: str) -> None:
     top, pos = mol
     params = RenderParams(scale_space=scale_space)  # type: ignore[arg-type]
     r = render(device, top, pos, params, fit_camera(pos, 32, 24), 32, 24)
-    info = r.grid_info()
-    dims = np.asarray(info["dims"])
-    h = float(info["h"])
-    origin = np.asarray(info["origin"], dtype=np.float64)
-    cells = int(np.prod(dims))
-    bound = r._grid.cell_values.numpy()[:cells]
+    dims, h, origin, bound = _grid_layout(r)
+    cells = len(bound)
     starts = r._grid.cell_start.numpy()[: cells + 1]
     occupied = starts[1:] > starts[:-1]
     assert occupied.any() and np.isinf(bound[occupied]).all()
@@ -445,12 +450,8 @@ def test_parts_below_the_level_hold_no_density_above_it(device: str) -> None:
     top, pos = _two_lumps()
     params = RenderParams()
     r = render(device, top, pos, params, fit_camera(pos, 32, 24), 32, 24)
-    info = r.grid_info()
-    dims = np.asarray(info["dims"])
-    h = float(info["h"])
-    origin = np.asarray(info["origin"], dtype=np.float64)
-    cells = int(np.prod(dims))
-    bound = r._grid.cell_values.numpy()[:cells]
+    dims, h, origin, bound = _grid_layout(r)
+    cells = len(bound)
     parts = r._grid.parts.numpy()[:cells]
     cell, part = np.nonzero((parts[:, None] >> np.arange(27)) & 1)
     keep = bound[cell] >= params.iso_level
