@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import queue
 import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -16,6 +18,13 @@ from tests.server.peers import Peer
 
 ROOT = Path(__file__).resolve().parents[3]
 pytest.importorskip("openmm")
+
+
+def _interruptible() -> None:
+    """Ctrl-C's signal as a terminal delivers it. A child inherits an ignored SIGINT, and
+    Python then raises no KeyboardInterrupt for it: run late in the whole suite, the demo
+    inherited one and ran on after the test's Ctrl-C (alone the test passed)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 @pytest.mark.slow
@@ -38,21 +47,36 @@ def test_demo_serves_frames_and_takes_steering(tmp_path: Path) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        preexec_fn=_interruptible,
     )
+    # the demo's output is read for as long as it runs, as a terminal would: a pipe left
+    # unread fills up (64 KiB) and blocks the demo on its next print, at the latest on
+    # "stopping..." after Ctrl-C
+    lines: queue.Queue[str] = queue.Queue()
+    output: list[str] = []
+
+    def drain() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.put(line)
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
     try:
         url = None
         deadline = time.monotonic() + 180
-        lines = []
-        assert proc.stdout is not None
         while url is None and time.monotonic() < deadline:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            lines.append(line)
+            try:
+                line = lines.get(timeout=1.0)
+            except queue.Empty:
+                if proc.poll() is not None:
+                    break
+                continue
+            output.append(line)
             m = re.search(r"dashboard:\s+http://127\.0\.0\.1:(\d+)/\?token=(\S+)", line)
             if m:
                 url = (int(m.group(1)), m.group(2))
-        assert url is not None, "".join(lines)
+        assert url is not None, "".join(output)
         port, token = url
         steerer = Peer(f"ws://127.0.0.1:{port}/ws/view", "steerer", token)
         state = steerer.expect(
@@ -75,6 +99,9 @@ def test_demo_serves_frames_and_takes_steering(tmp_path: Path) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        reader.join(timeout=10)
+        while not lines.empty():
+            output.append(lines.get_nowait())
         if proc.stdout is not None:
             proc.stdout.close()
-    assert proc.returncode == 0
+    assert proc.returncode == 0, "".join(output[-40:])
