@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import signal
 import sys
 import time
 import webbrowser
@@ -52,8 +53,14 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _stop_on_term(signum: int, frame: object) -> None:
+    """SIGTERM (`docker stop`, a process manager) stops the demo as Ctrl-C does."""
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    signal.signal(signal.SIGTERM, _stop_on_term)
     logging.basicConfig(level="WARNING", format="%(asctime)s %(name)s %(levelname)s %(message)s")
     from simulation_adapters.openmm_reporter import SteeringReporter, run_steered
     from simulation_adapters.openmm_systems import build_villin_simulation

@@ -105,3 +105,33 @@ def test_demo_serves_frames_and_takes_steering(tmp_path: Path) -> None:
         if proc.stdout is not None:
             proc.stdout.close()
     assert proc.returncode == 0, "".join(output[-40:])
+
+
+@pytest.mark.slow
+def test_sigterm_stops_the_demo_as_ctrl_c_does(tmp_path: Path) -> None:
+    """`docker stop` and process managers send SIGTERM: the demo stops in order (its
+    simulation and server closed, exit status 0), not killed half-way."""
+    args = ["demo", "--port", "0", "--no-browser", "--duration", "240"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "server.commands.cli", *args, "--state-dir", str(tmp_path)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    out: list[str] = []
+    assert proc.stdout is not None
+    try:
+        for line in proc.stdout:
+            out.append(line)
+            if "Ctrl-C stops the demo" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        rest, _ = proc.communicate(timeout=60)
+        out.append(rest)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, "".join(out[-40:])
+    assert "stopping..." in "".join(out)
