@@ -329,6 +329,14 @@ def spread_kernel(
     dst[c] = s * scale
 
 
+def _view(base: wp.array, offset: int, dtype: Any, length: int) -> wp.array:
+    """`length` 4-byte items of `base` from item `offset` on, as `dtype`: buffers the build
+    is done with hold later stages' data, so the grid stays within its bytes per atom."""
+    return wp.array(
+        ptr=base.ptr + 4 * offset, dtype=dtype, shape=(length,), device=base.device, copy=False
+    )
+
+
 class CellGrid:
     """Device buffers of the grid for up to `n_atoms` atoms, reused every frame.
 
@@ -352,42 +360,16 @@ class CellGrid:
         self.cell_values = wp.zeros(self.capacity + 1, dtype=float, device=device)
         self.brick_capacity = brick_capacity(self.capacity)
         self.brick_values = wp.zeros(self.brick_capacity, dtype=float, device=device)
-        self._counts = wp.array(
-            ptr=self.cell_values.ptr,
-            dtype=wp.int32,
-            shape=(self.capacity + 1,),
-            device=device,
-            copy=False,
-        )
+        self._counts = _view(self.cell_values, 0, wp.int32, self.capacity + 1)
         # the second half of the sort's values is free once it is done: the cells the bound
         # walks are listed there
-        self.work = wp.array(
-            ptr=self.order.ptr + 4 * self.n_atoms,
-            dtype=wp.int32,
-            shape=(max(self.n_atoms, 1),),
-            device=device,
-            copy=False,
-        )
+        self.work = _view(self.order, self.n_atoms, wp.int32, max(self.n_atoms, 1))
         self.work_count = wp.zeros(1, dtype=wp.int32, device=device)
         # the counting sort's ranks: the second half of the keys (no double buffer to keep)
-        self._ranks = wp.array(
-            ptr=self.keys.ptr + 4 * self.n_atoms,
-            dtype=wp.int32,
-            shape=(max(self.n_atoms, 1),),
-            device=device,
-            copy=False,
-        )
-        self.coarse = wp.array(
-            ptr=self.keys.ptr, dtype=float, shape=(self.capacity + 1,), device=device, copy=False
-        )
+        self._ranks = _view(self.keys, self.n_atoms, wp.int32, max(self.n_atoms, 1))
+        self.coarse = _view(self.keys, 0, float, self.capacity + 1)
         # and once the coarse bounds are read, which parts of each cell are below the level
-        self.parts = wp.array(
-            ptr=self.keys.ptr,
-            dtype=wp.int32,
-            shape=(self.capacity + 1,),
-            device=device,
-            copy=False,
-        )
+        self.parts = _view(self.keys, 0, wp.int32, self.capacity + 1)
         self.bmin = wp.full(3, wp.inf, dtype=float, device=device)
         self.bmax = wp.full(3, -wp.inf, dtype=float, device=device)
         self.bad = wp.zeros(1, dtype=wp.int32, device=device)
