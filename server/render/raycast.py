@@ -347,6 +347,24 @@ def clear(b: float, level: float, inclusive: int) -> bool:
 
 @wp.func
 @no_type_check
+def sample_clear(
+    bound: wp.array[float],
+    parts: wp.array[wp.int32],
+    g: GridInfo,
+    p: wp.vec3,
+    level: float,
+    inclusive: int,
+    split: int,
+) -> bool:
+    """Whether a bound says the density at sample point p cannot matter: its cell's bound,
+    or (`split` = 1) the bound of the part of the cell it lies in. The part is taken from the
+    sample's own position, not from a cell walk, so it is exact."""
+    c, bit = part_at(g, p)
+    return clear(bound[c], level, inclusive) or (split != 0 and (parts[c] >> bit) & 1 != 0)
+
+
+@wp.func
+@no_type_check
 def clear_samples(
     bound: wp.array[float],
     parts: wp.array[wp.int32],
@@ -365,8 +383,7 @@ def clear_samples(
     n = wp.int32(0)
     going = wp.int32(1)
     while going != 0 and n < 4:
-        c, bit = part_at(g, o + d * ((float(k + n) + shift) * dt))
-        if bound[c] < level or (split != 0 and (parts[c] >> bit) & 1 != 0):
+        if sample_clear(bound, parts, g, o + d * ((float(k + n) + shift) * dt), level, 0, split):
             n += 1
         else:
             going = 0
@@ -461,12 +478,11 @@ def walk(
         elif (float(k) + shift) * dt < t_exit:
             ready = 1
             if skip != 0 and split != 0 and parts[cell] != 0:
-                # the cell's samples in its parts below the level: the part of each is taken
-                # from the sample's own position, not from the walk, so it is exact
+                # the cell's samples in its parts below the level
                 going = wp.int32(1)
                 while going != 0 and (float(k) + shift) * dt < t_exit:
-                    pc, bit = part_at(g, o + d * ((float(k) + shift) * dt))
-                    if clear(bound[pc], level, inclusive) or (parts[pc] >> bit) & 1 != 0:
+                    p = o + d * ((float(k) + shift) * dt)
+                    if sample_clear(bound, parts, g, p, level, inclusive, 1):
                         k += 1
                         jumped = 1
                     else:
