@@ -15,7 +15,7 @@ from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
 from protocol.limits import Limits
 
-PROTOCOL_VERSION = "1.6"
+PROTOCOL_VERSION = "1.7"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -599,6 +599,14 @@ class State(Message):
     """*->V: changed parts of the shared session state; absent fields did not change."""
 
     type: Literal["state"] = "state"
+    ref: Seq | None = None
+    """The seq of the `render_params` message this state answers, sent by `by`: with the
+    parameters it made, or with none when they were already in effect. The session applies a
+    client's messages in order, so every one that client sent before `ref` has been applied
+    or refused (an `error` names it) by then."""
+    by: Name | None = None
+    """The `client_id` of the client whose `render_params` message made this change (message
+    `ref`, when it was numbered)."""
     render_params: RenderParams | None = None
     sim_params: SimParams | None = None
     sim: SimStatus | None = None

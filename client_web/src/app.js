@@ -20,6 +20,7 @@ import { requestScreenshot, screenshotName } from "./screenshot.js";
 import { Shortcuts } from "./shortcuts.js";
 import { Recordings } from "./recordings.js";
 import { Timeline } from "./timeline.js";
+import { Unconfirmed } from "./unconfirmed.js";
 import { SimPanel } from "./simpanel.js";
 import { AckTracker } from "./steering.js";
 import { TransferEditor } from "./tfeditor.js";
@@ -42,7 +43,9 @@ class Dashboard {
     this.token = query.token;
     this.sessionName = query.session;
     this.role = query.role;
-    this.render = mergeRender(RENDER_DEFAULTS, {});
+    this.render = mergeRender(RENDER_DEFAULTS, {}); // what the page shows (renderShown)
+    this.sessionRender = mergeRender(RENDER_DEFAULTS, {}); // the session's, from its states
+    this.unconfirmed = new Unconfirmed(); // this page's edits the session has not answered
     this.hashRender = fromHash.render; // a shared link's render params, applied once as steerer
     // layers belong to one system: a link that does not name them keeps the session's
     this.hashHasLayers = new URLSearchParams(window.location.hash.replace(/^#/, "")).has("layers");
@@ -202,7 +205,7 @@ class Dashboard {
         return undefined;
       }
       case "error": {
-        if (m.ref !== undefined && m.ref !== null) this.layersPanel.refused(m.ref);
+        if (m.ref !== undefined && m.ref !== null && this.unconfirmed.refused(m.ref)) this.showRender();
         const r = this.acks.error(m);
         if (r) this.simPanel.showAck(r.key, r.status, r.key === "control" ? r.status.label : "");
         this.notices.serverError(m);
@@ -230,7 +233,7 @@ class Dashboard {
 
   welcomed(m) {
     this.welcome = m;
-    this.layersPanel.reconnected();
+    this.unconfirmed.clear();
     this.viewport.resetFrames();
     this.viewport.resetVideo();
     this.viewport.setLimits(m.limits);
@@ -242,14 +245,12 @@ class Dashboard {
   }
 
   state(m) {
+    if (m.ref !== undefined && m.ref !== null && m.by === this.welcome?.client_id) this.unconfirmed.answered(m.ref);
     if (m.render_params) {
-      this.render = mergeRender(RENDER_DEFAULTS, m.render_params);
+      this.sessionRender = mergeRender(RENDER_DEFAULTS, m.render_params);
+      this.render = this.renderShown();
       if (this.hashRender) this.applyLinkRender();
-      this.renderPanel.update(this.render);
-      this.layersPanel.update(this.render.layers);
-      this.timePanel.update(this.render);
-      this.showTransferFunction();
-      this.writeHashSoon();
+      this.showRender();
     }
     if (m.sim_params) {
       this.simParams = m.sim_params;
@@ -296,6 +297,21 @@ class Dashboard {
         this.sendView(false);
       }
     }
+  }
+
+  /** The render parameters the page shows: the session's, with this page's edits on their way
+   * (sent and not answered, or not sent yet) over them. */
+  renderShown() {
+    return mergeRender(this.unconfirmed.over(this.sessionRender), this.pendingRender);
+  }
+
+  showRender() {
+    this.render = this.renderShown();
+    this.renderPanel.update(this.render);
+    this.layersPanel.update(this.render.layers);
+    this.timePanel.update(this.render);
+    this.showTransferFunction();
+    this.writeHashSoon();
   }
 
   /** A shared link named render params: make the session use them (steerers only). */
@@ -414,7 +430,7 @@ class Dashboard {
     if (!Object.keys(params).length || this.role !== "steerer") return;
     const seq = this.connection.send({ type: "render_params", params });
     if (seq !== null) this.latency.sent(seq, "render_params", performance.now());
-    if (seq !== null && params.layers !== undefined) this.layersPanel.carried(seq);
+    this.unconfirmed.sent(seq, params);
   }
 
   /** The transfer function in effect: the session's points, or its preset's when it has none. */

@@ -1,7 +1,8 @@
 // The layers panel: parts of the system (MDAnalysis selections) each drawn at its own scale.
-// The session's `render_params.layers` is the truth; edits go out as a whole new list, and a
-// selection is checked on the server (`select` -> `selected`: its atom count, or where it is
-// wrong) as it is typed, before it is applied.
+// The session's `render_params.layers` is the truth (with this page's edits on their way over
+// it: unconfirmed.js); edits go out as a whole new list, and a selection is checked on the
+// server (`select` -> `selected`: its atom count, or where it is wrong) as it is typed, before
+// it is applied.
 
 import { $, el } from "./dom.js";
 import { RANGES, clamp } from "./params.js";
@@ -10,60 +11,6 @@ import { normalizePoints } from "./transfer.js";
 export const MAX_LAYERS = 8;
 const MODES = ["iso", "volume", "licorice", "tube"];
 const CHECK_MS = 250;
-export const ECHO_WAIT_MS = 3000;
-
-/**
- * The lists this page sent that the session has not sent back yet. The session's states
- * arrive in order, so one that still precedes an edit on its way (a layer added a moment
- * before a scale was typed) must not replace the page's list: an edit made on top of it
- * would send the older list and lose the newer edit. An edit the session refuses is dropped
- * (`refused`, by the seq its error names); one it never echoes otherwise stops counting
- * after `waitMs`. A list equal to the session's is not an edit: the session sends no state
- * for it.
- */
-export class Unechoed {
-  constructor(waitMs = ECHO_WAIT_MS, now = () => performance.now()) {
-    this.waitMs = waitMs;
-    this.now = now;
-    this.items = [];
-  }
-
-  sent(key, sessionKey) {
-    if (key !== sessionKey) this.items.push({ key, at: this.now(), seq: null });
-  }
-
-  /** The seq of the message that carried the last list sent. */
-  carried(seq) {
-    const last = this.items[this.items.length - 1];
-    if (last && last.seq === null) last.seq = seq;
-  }
-
-  /** An error for message `seq`: that edit will not come back. */
-  refused(seq) {
-    const before = this.items.length;
-    this.items = this.items.filter((item) => item.seq !== seq);
-    return this.items.length !== before;
-  }
-
-  clear() {
-    this.items = [];
-  }
-
-  /** How long until the oldest edit stops counting (null: none waits). */
-  waitLeft() {
-    if (!this.items.length) return null;
-    return Math.max(0, this.items[0].at + this.waitMs - this.now());
-  }
-
-  /** Whether the session's state `key` predates an edit still on its way. */
-  older(key) {
-    const seen = this.items.findIndex((item) => item.key === key);
-    if (seen >= 0) this.items.splice(0, seen + 1);
-    const now = this.now();
-    this.items = this.items.filter((item) => now - item.at < this.waitMs);
-    return this.items.length > 0;
-  }
-}
 
 /** A protocol Layer with only the fields it sets (defaults dropped), or null if invalid. */
 export function normalizeLayer(raw) {
@@ -146,9 +93,6 @@ export class LayersPanel {
     this.empty = $("layers-empty");
     this.addButton = $("layer-add");
     this.disabled = false;
-    this.unechoed = new Unechoed();
-    this.session = [];
-    this.recheck = null;
     this.addButton.addEventListener("click", () => {
       if (this.layers.length >= MAX_LAYERS) return;
       this.emit([...this.layers, newLayer(this.layers)]);
@@ -159,24 +103,8 @@ export class LayersPanel {
     const clean = normalizeLayers(layers);
     if (!clean) return;
     this.layers = clean;
-    this.unechoed.sent(JSON.stringify(clean), JSON.stringify(this.session));
     this.draw();
     this.onChange(clean);
-  }
-
-  /** The message `seq` carried the panel's last list. */
-  carried(seq) {
-    this.unechoed.carried(seq);
-  }
-
-  /** The session refused message `seq` (an error naming it): show its layers again if that
-   * was the panel's edit; a new connection forgets every edit on its way. */
-  refused(seq) {
-    if (this.unechoed.refused(seq)) this.update(this.session);
-  }
-
-  reconnected() {
-    this.unechoed.clear();
   }
 
   setDisabled(disabled) {
@@ -184,19 +112,11 @@ export class LayersPanel {
     this.addButton.disabled = disabled || this.layers.length >= MAX_LAYERS;
   }
 
-  /** The session's layers (from `state`); a selection being typed is left alone, and so are
-   * edits the session has not caught up with. */
+  /** The layers the page shows (the session's, with this page's edits on their way); a
+   * selection being typed is left alone. */
   update(layers) {
     const clean = normalizeLayers(layers ?? []) ?? [];
-    this.session = clean;
-    const key = JSON.stringify(clean);
-    clearTimeout(this.recheck);
-    if (this.unechoed.older(key)) {
-      // no later state may come: look again once the edits on their way stop counting
-      this.recheck = setTimeout(() => this.update(this.session), this.unechoed.waitLeft() + 10);
-      return;
-    }
-    if (key === JSON.stringify(this.layers) && this.list.children.length === clean.length) return;
+    if (JSON.stringify(clean) === JSON.stringify(this.layers) && this.list.children.length === clean.length) return;
     const typing = this.list.contains(document.activeElement);
     this.layers = clean;
     if (!typing) this.draw();

@@ -4,7 +4,7 @@
 
 import { decode as unpack, encode as pack } from "@msgpack/msgpack";
 
-export const PROTOCOL_VERSION = "1.6";
+export const PROTOCOL_VERSION = "1.7";
 
 /** Array dtypes the protocol allows: typed-array constructor and item size in bytes. */
 export const DTYPES = Object.freeze({

@@ -104,7 +104,7 @@ test("hello names role, token, session and protocol version; welcome makes it re
     token: "tok",
     client: "dashboard",
     session: "s1",
-    protocol_version: "1.6",
+    protocol_version: "1.7",
   });
   assert.equal(conn.send({ type: "pick", x: 1, y: 1 }), null, "nothing is sent before welcome");
   socket().deliver(welcome("steerer"));

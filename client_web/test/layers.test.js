@@ -1,6 +1,6 @@
 import { test } from "node:test";
 import assert from "node:assert/strict";
-import { MAX_LAYERS, Unechoed, describeSelected, moveItem, newLayer, normalizeLayer, normalizeLayers } from "../src/layers.js";
+import { MAX_LAYERS, describeSelected, moveItem, newLayer, normalizeLayer, normalizeLayers } from "../src/layers.js";
 import { decodeHash, encodeHash } from "../src/urlstate.js";
 import { RENDER_DEFAULTS, mergeRender } from "../src/params.js";
 
@@ -58,40 +58,3 @@ test("layers travel in the link", () => {
   assert.ok(broken.invalid.length > 0);
 });
 
-test("a state from before an edit on its way does not replace the page's layers", () => {
-  let t = 0;
-  const guard = new Unechoed(3000, () => t);
-  assert.equal(guard.older("[]"), false); // nothing sent: the session's state is the truth
-  guard.sent("[A]", "[]"); // a layer added
-  guard.carried(7);
-  t = 50;
-  guard.sent("[A+sigma]", "[]"); // its scale typed before the first echo came back
-  guard.carried(8);
-  assert.equal(guard.older("[]"), true); // the state before the layer: keep the edits
-  assert.equal(guard.older("[A]"), true); // the first edit's echo: the second is still coming
-  assert.equal(guard.older("[A+sigma]"), false); // caught up
-  assert.equal(guard.older("[B]"), false); // another steerer's change applies at once
-  assert.equal(guard.waitLeft(), null);
-});
-
-test("edits that will not come back stop holding the session's layers", () => {
-  let t = 0;
-  const guard = new Unechoed(3000, () => t);
-  guard.sent("[B]", "[B]"); // the session's own list again (1.50 for 1.5): no state will come
-  assert.equal(guard.older("[C]"), false);
-  guard.sent("[refused]", "[C]");
-  guard.carried(9);
-  assert.equal(guard.older("[C]"), true);
-  assert.equal(guard.refused(8), false); // another message's error
-  assert.equal(guard.refused(9), true); // this edit's: the session's list applies again
-  assert.equal(guard.older("[C]"), false);
-  guard.sent("[lost]", "[C]"); // never echoed: after the wait the session's list wins
-  t = 1000;
-  assert.equal(guard.older("[C]"), true);
-  assert.equal(guard.waitLeft(), 2000);
-  t = 3001;
-  assert.equal(guard.older("[C]"), false);
-  guard.sent("[D]", "[C]");
-  guard.clear(); // a new connection
-  assert.equal(guard.older("[C]"), false);
-});

@@ -569,10 +569,12 @@ class Session:
             self.layers.auto = False
         client.view_ref = message.seq
         if not changes:
+            if message.seq is not None:  # nothing for the others; the sender learns it is in
+                client.send(p.State(ref=message.seq, by=client.client_id))
             return
         self.render_params = merged
         self._log({"event": "render_params", **who, "changes": changes})
-        self.broadcast(p.State(render_params=merged))
+        self.broadcast(p.State(render_params=merged, ref=message.seq, by=client.client_id))
         if "color_by" in changes or "uniform_color" in changes:
             self._legend_changed()
         self.version += 1

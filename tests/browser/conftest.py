@@ -97,7 +97,8 @@ OpenDashboard = Callable[..., Dashboard]
 @pytest.fixture
 def open_dashboard(live_server: LiveServer, chromium: Any) -> Iterator[OpenDashboard]:
     """Open the dashboard as `role` ("steerer", "viewer", or "steerer-with-viewer-token");
-    at teardown no page may have logged a console error (apart from `allow` patterns)."""
+    `before_open(page)` runs before the page loads. At teardown no page may have logged a
+    console error (apart from `allow` patterns)."""
     contexts: list[Any] = []
     pages: list[Dashboard] = []
     allowed: list[re.Pattern[str]] = []
@@ -109,6 +110,7 @@ def open_dashboard(live_server: LiveServer, chromium: Any) -> Iterator[OpenDashb
         hash: str = "",
         allow: tuple[str, ...] = (),
         wait_connected: bool = True,
+        before_open: Callable[[Any], None] | None = None,
     ) -> Dashboard:
         allowed.extend(re.compile(a) for a in allow)
         query = {
@@ -131,6 +133,8 @@ def open_dashboard(live_server: LiveServer, chromium: Any) -> Iterator[OpenDashb
         )
         page.on("pageerror", lambda e: dash.console_errors.append(f"page error: {e}"))
         pages.append(dash)
+        if before_open is not None:  # e.g. routes that must be in place before the page loads
+            before_open(page)
         page.goto(f"{live_server.url}/{query}{hash}")
         if wait_connected:
             wait_text(page, "#conn-text", "connected")

@@ -1,11 +1,15 @@
 """The layers panel in real Chromium: a typed selection is counted on the server as it is
 typed, an invalid one is marked where it goes wrong and changes nothing, an applied one
-changes the picture; a viewer sees the layers and cannot edit them."""
+changes the picture; a viewer sees the layers and cannot edit them; a late state does not take
+back an edit made after the one it answers."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
+from typing import Any
 
+import msgpack
 import pytest
 from playwright.sync_api import expect
 
@@ -78,3 +82,101 @@ def test_a_typed_selection_is_counted_checked_and_drawn(
     for selector in ("#layer-add", "#layer-0-selection", "#layer-1-sigma", "#layer-0-visible"):
         expect(vpage.locator(selector)).to_be_disabled()
     expect(vpage.locator("#layers-reason")).to_contain_text("Read-only")
+
+
+def message_type(message: Any) -> Any:
+    if not isinstance(message, bytes):
+        return None
+    return msgpack.unpackb(message, raw=False, strict_map_key=False).get("type")
+
+
+class HeldStates:
+    """The dashboard's WebSocket, passed through the test: the server's `state` messages wait
+    while `held` and then go on in order, as on a slow link (everything else passes). The
+    test's Playwright calls are what move messages along, so it waits with the page's timer."""
+
+    def __init__(self) -> None:
+        self.held = False
+        self.waiting: list[Any] = []
+        self.page_side: Any = None
+
+    def route(self, ws: Any) -> None:
+        server = ws.connect_to_server()
+        self.page_side = ws
+        ws.on_message(server.send)
+        server.on_message(self._from_server)
+
+    def _from_server(self, message: Any) -> None:
+        if self.held and message_type(message) == "state":
+            self.waiting.append(message)
+        else:
+            self.page_side.send(message)
+
+    def release_through(self, selection: str) -> dict[str, Any]:
+        """Pass on the states that waited, up to the first whose first layer has `selection`;
+        returns that one decoded."""
+        while True:
+            message = self.waiting.pop(0)
+            self.page_side.send(message)
+            m = dict(msgpack.unpackb(message, raw=False, strict_map_key=False))
+            layers = (m.get("render_params") or {}).get("layers") or [{}]
+            if layers[0].get("selection") == selection:
+                return m
+
+    def release(self) -> None:
+        self.held = False
+        while self.waiting:
+            self.page_side.send(self.waiting.pop(0))
+
+
+def wait_on_page(page: Any, condition: Any, what: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting until {what}")
+        page.wait_for_timeout(100)
+
+
+def test_a_late_state_does_not_take_back_a_later_edit(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
+) -> None:
+    """A selection applied and then a scale typed before the selection's state comes back: that
+    state (which has no scale) must not clear the typed scale, on the page or in the session."""
+    link = HeldStates()
+    dash = open_dashboard(before_open=lambda page: page.route_web_socket("**/ws/view*", link.route))
+    page = dash.page
+    wait_for_full_view(dash)
+    page.click("#layer-add")
+    wait_until(lambda: len(session(live_server).render_params.layers) == 1, "the layer arrived")
+    expect(page.locator("#layer-0-selection")).to_have_value("protein")
+    link.held = True
+    page.locator("#layer-0-selection").fill("resid 1-12")
+    page.locator("#layer-0-selection").press("Enter")
+    wait_on_page(
+        page,
+        lambda: session(live_server).render_params.layers[0].selection == "resid 1-12",
+        "the selection reached the session",
+    )
+    page.locator("#layer-0-sigma").fill("0.6")
+    page.locator("#layer-0-sigma").press("Enter")
+    wait_on_page(
+        page,
+        lambda: session(live_server).render_params.layers[0].sigma_A == 0.6,
+        "the scale reached the session",
+    )
+    page.locator("#layer-add").focus()  # out of the list: the panel redraws from states
+    first = link.release_through("resid 1-12")  # the selection's state, without the scale
+    assert first["render_params"]["layers"][0].get("sigma_A") is None
+    page.wait_for_timeout(500)
+    expect(page.locator("#layer-0-sigma")).to_have_value("0.6")
+    expect(page.locator("#layer-0-selection")).to_have_value("resid 1-12")
+    link.release()
+    page.wait_for_timeout(300)
+    expect(page.locator("#layer-0-sigma")).to_have_value("0.6")
+    # an edit after all that builds on the whole list: the scale stays in the session
+    page.locator("#layer-0-name").fill("N-terminus")
+    page.locator("#layer-0-name").press("Enter")
+    wait_on_page(
+        page, lambda: session(live_server).render_params.layers[0].name == "N-terminus", "name"
+    )
+    assert session(live_server).render_params.layers[0].sigma_A == 0.6

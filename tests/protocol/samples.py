@@ -105,6 +105,8 @@ def samples() -> dict[str, p.Message]:
         "frame_ack": p.FrameAck(seq=15, frame_id=7, decode_ms=1.5),
         "state": p.State(
             seq=15,
+            ref=4,
+            by="c1",
             render_params=p.RenderParams(
                 sigma_A=2.0,
                 layers=[

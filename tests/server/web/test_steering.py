@@ -56,6 +56,39 @@ def test_a_partial_lighting_patch_keeps_the_other_fields(live_server: LiveServer
     steerer.close()
 
 
+def test_every_render_params_message_is_answered_by_a_state_naming_it(
+    live_server: LiveServer,
+) -> None:
+    """A change reaches everyone in a state naming the message and its sender; a patch of the
+    values already in effect is answered to its sender alone, with no parameters."""
+    sim, steerer, _ = connect(live_server, "answered")
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "answered")
+    viewer.expect(p.State, where=lambda m: m.render_params is not None)
+    assert steerer.welcome is not None
+    me = steerer.welcome.client_id
+    seq = steerer.send(p.SetRenderParams(params={"sigma_A": 2.5}))
+    for peer in (steerer, viewer):
+        state = peer.expect(p.State, where=lambda m: m.ref == seq)
+        assert state.by == me
+        assert state.render_params is not None and state.render_params.sigma_A == 2.5
+    again = steerer.send(p.SetRenderParams(params={"sigma_A": 2.5}))
+    state = steerer.expect(p.State, where=lambda m: m.ref == again)
+    assert state.by == me and state.render_params is None
+    # only the sender hears of it: the viewer's next answer is to the next change
+    later = steerer.send(p.SetRenderParams(params={"sigma_A": 3.0}))
+    state = viewer.expect(p.State, where=lambda m: m.ref is not None)
+    assert state.ref == later and state.render_params is not None
+    # an unnumbered patch has nothing to be answered by
+    steerer.send_raw(p.encode(p.SetRenderParams(params={"sigma_A": 3.5})))
+    state = viewer.expect(
+        p.State, where=lambda m: m.render_params is not None and m.render_params.sigma_A == 3.5
+    )
+    assert state.ref is None and state.by == me
+    sim.close()
+    steerer.close()
+    viewer.close()
+
+
 def test_refused_sim_params_are_rolled_back(live_server: LiveServer) -> None:
     sim, steerer, _ = connect(live_server, "refuse")
     viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "refuse")
