@@ -62,7 +62,7 @@ from server.render.raycast import (
     pack_rgba,
     pixel_of,
 )
-from server.render.renderer import SPLIT_LANES
+from server.render.renderer import SPLIT_LANES, VOLUME_REGISTERS
 
 wp: Any = warp  # host API calls are dynamic
 
@@ -658,14 +658,9 @@ class Bench:
                 if self.clock.left() < 30:
                     return
                 label, kw = labelled(t)
-                r = Renderer(
-                    self.device,
-                    max_atoms=n,
-                    cells_per_cutoff=cells,
-                    max_registers=self.results["max_registers"],
-                    volume_max_registers=self.results["volume_max_registers"],
-                    **kw,
-                )
+                kw.setdefault("max_registers", self.results["max_registers"])
+                kw.setdefault("volume_max_registers", self.results["volume_max_registers"])
+                r = Renderer(self.device, max_atoms=n, cells_per_cutoff=cells, **kw)
                 r.set_topology(top)
                 bufs = []
                 for f in frames:
@@ -1390,7 +1385,12 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="iso; 0 = compiler's choice; default: each density's own (MARCH_REGISTERS)",
     )
-    p.add_argument("--volume-max-registers", type=int, default=80, help="volume kernel")
+    p.add_argument(
+        "--volume-max-registers",
+        type=int,
+        default=VOLUME_REGISTERS,
+        help="volume kernel (0 = compiler's choice)",
+    )
     p.add_argument("--register-caps", default="0,128,80,64", help="caps the first section tries")
     p.add_argument("--register-sizes", default="100000,1000000", help="atom counts it tries")
     p.add_argument(

@@ -60,13 +60,18 @@ SPLIT_RAYS = 16384
 """The second marching kernel gives each queued ray SPLIT_LANES threads that march
 consecutive stretches of it at once (1: one thread continues the ray); it runs
 SPLIT_LANES * SPLIT_RAYS threads that stride over the queue."""
-MARCH_REGISTERS = {"gaussian": 80, "warped": 64}
+MARCH_REGISTERS = {"gaussian": 64, "warped": 64}
 CELLS_PER_CUTOFF = {"gaussian": 2.0, "warped": 1.0}
 """Per density model, the register cap of the iso marching kernels and the grid's cells per
-cutoff that measured fastest (`max_registers=None`, `cells_per_cutoff=None`; on an H100 at 1M
-atoms and 1920x1080: the warped density's Gaussian part has a reach of 0.6 sigma k, and its
-walks, with the segment walks beside them, want fewer registers and larger cells than the
-classical density's; benchmarks/README.md)."""
+cutoff that measured fastest (`max_registers=None`, `cells_per_cutoff=None`; at 1920x1080: the
+warped density's Gaussian part has a reach of 0.6 sigma k, and its walks, with the segment
+walks beside them, want larger cells than the classical density's (one H100, 1M atoms); with
+part bounds and the counting sort, 64 registers beat 80 for the classical density too (one
+H200: 1M atoms 8.35 ms against 8.66, 10M 17.86 against 18.72, 100M 38.2 against 40.6
+pipelined), and stay best for the warped one; benchmarks/README.md)."""
+VOLUME_REGISTERS = 64
+"""The register cap of the volume kernel (`volume_max_registers`; one H200 at 1920x1080, 1M
+atoms: 18.97 ms against 20.25 with 80, 21.7 with 96)."""
 BOUND_KEEP_FROM = {"gaussian": 8.0, "warped": math.inf}
 """Per density model, the multiple of the level from which an empty cell keeps its coarse
 bound unwalked. For the classical density few such walks end below the level, and their cost
@@ -162,7 +167,7 @@ class Renderer(ImageOutputs):
         empty_space_skipping: bool = True,
         fast_math: bool = True,
         max_registers: int | None = None,
-        volume_max_registers: int = 80,
+        volume_max_registers: int = VOLUME_REGISTERS,
         density: DensityModel = GAUSSIAN,
         graphs: bool | None = None,
         march_budget: int | None = None,
