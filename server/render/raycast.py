@@ -544,8 +544,8 @@ def _make(
     # constant of the generated code, so kernels without parts carry none of it
     split = 1 if parts and model.part_bounds is not None else 0
     options = {"fast_math": bool(fast_math)}
-    # the ray-marching kernels carry many live values; capping their registers trades a few
-    # spills for more resident warps to hide the latency of the neighbour gathers
+    # the ray-marching and shading kernels carry many live values; capping their registers
+    # trades a few spills for more resident warps to hide the latency of the neighbour gathers
     regs = max_registers if max_registers > 0 else None
     volume_regs = volume_max_registers if volume_max_registers > 0 else None
     value = model.value
@@ -928,7 +928,9 @@ def _make(
                         going = 0
             i += rays_per_launch
 
-    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @wp.kernel(
+        enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
+    )
     @no_type_check
     def iso_shade_kernel(
         f: Field,
@@ -1203,10 +1205,10 @@ def kernels_for(
 ) -> RaycastKernels:
     """The kernels of `model`, generated once per process. `fast_math` lets CUDA use its
     hardware exp/divide/sqrt approximations (a few ulp); `max_registers` and
-    `volume_max_registers` (0 = compiler's choice) cap the registers of the iso and volume
-    marching kernels on CUDA. CPU builds ignore them. `parts`: the walked cells mark which
-    of their parts are below the level and the rays skip the samples there (for models with
-    `part_bounds`)."""
+    `volume_max_registers` (0 = compiler's choice) cap the registers of the iso (marching
+    and shading) and volume kernels on CUDA. CPU builds ignore them. `parts`: the walked
+    cells mark which of their parts are below the level and the rays skip the samples there
+    (for models with `part_bounds`)."""
     split = bool(parts) and model.part_bounds is not None
     key = (model.name, bool(fast_math), int(max_registers), int(volume_max_registers), split)
     k = _KERNELS.get(key)

@@ -138,9 +138,10 @@ class Renderer(ImageOutputs):
     cutoff; the cell grows when memory caps the cell count; None: the density's own best,
     `CELLS_PER_CUTOFF`, and 1 from `LARGE_ATOMS` atoms); `empty_space_skipping=False`
     marches every lattice sample (a baseline); `fast_math` picks CUDA's approximate
-    transcendentals; `max_registers` / `volume_max_registers` cap the iso / volume marching
-    kernels' registers on CUDA (0 leaves it to the compiler; None: the density's own best,
-    `MARCH_REGISTERS`; the defaults were the fastest measured, benchmarks/README.md);
+    transcendentals; `max_registers` / `volume_max_registers` cap the registers of the iso
+    (marching and shading) / volume kernels on CUDA (0 leaves it to the compiler; None: the
+    density's own best, `MARCH_REGISTERS`; the defaults were the fastest measured,
+    benchmarks/README.md);
     `double_buffer` keeps two positions buffers so an upload overlaps the render before it
     (None: from `PIPELINE_ATOMS` atoms on CUDA); `density` is the model the ray caster
     evaluates (any model over `GaussianField`, the sorted atoms and cell grid this class
