@@ -427,9 +427,13 @@ class Dashboard {
   flushRender() {
     const params = this.pendingRender;
     this.pendingRender = {};
-    if (!Object.keys(params).length || this.role !== "steerer") return;
-    const seq = this.connection.send({ type: "render_params", params });
-    if (seq !== null) this.latency.sent(seq, "render_params", performance.now());
+    if (!Object.keys(params).length) return;
+    const seq = this.role === "steerer" ? this.connection.send({ type: "render_params", params }) : null;
+    if (seq === null) {
+      this.showRender(); // not sent: the page shows the session's values again
+      return;
+    }
+    this.latency.sent(seq, "render_params", performance.now());
     this.unconfirmed.sent(seq, params);
   }
 

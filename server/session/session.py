@@ -572,8 +572,10 @@ class Session:
             if message.seq is not None:  # nothing for the others; the sender learns it is in
                 client.send(p.State(ref=message.seq, by=client.client_id))
             return
-        self.render_params = merged
+        # logged first: a change the log cannot record is refused (an error naming the
+        # message) rather than drawn without a state telling the viewers of it
         self._log({"event": "render_params", **who, "changes": changes})
+        self.render_params = merged
         self.broadcast(p.State(render_params=merged, ref=message.seq, by=client.client_id))
         if "color_by" in changes or "uniform_color" in changes:
             self._legend_changed()

@@ -116,6 +116,7 @@ class HeldStates:
         """Pass on the states that waited, up to the first whose first layer has `selection`;
         returns that one decoded."""
         while True:
+            assert self.waiting, f"no state with the selection {selection!r} was held"
             message = self.waiting.pop(0)
             self.page_side.send(message)
             m = dict(msgpack.unpackb(message, raw=False, strict_map_key=False))

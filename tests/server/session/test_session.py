@@ -147,6 +147,29 @@ def test_an_invalid_render_patch_names_the_field_and_changes_nothing(tmp_path: P
     run(body, tmp_path)
 
 
+def test_a_render_change_the_log_cannot_record_changes_nothing(tmp_path: Path) -> None:
+    """The steering log is written before the change takes effect: when it fails, the session
+    keeps its parameters and tells no one of a change (the caller answers with an error)."""
+
+    async def body(session: Session, backend: PaintBackend) -> None:
+        steerer, viewer = client("u"), client("v", "viewer")
+        session.attach(steerer)
+        session.attach(viewer)
+        before = session.render_params
+        seen = len(sent(viewer))
+
+        def unreadable(name: str) -> int:
+            raise OSError(f"steering log of {name} unreadable")
+
+        session.services.steering_log.next_id = unreadable  # type: ignore[method-assign]
+        with pytest.raises(OSError, match="unreadable"):
+            session.steer(steerer, p.SetRenderParams(seq=4, params={"sigma_A": 3.0}))
+        assert session.render_params is before
+        assert not [m for m in sent(viewer)[seen:] if isinstance(m, p.State)]
+
+    run(body, tmp_path)
+
+
 def test_a_leaving_puller_releases_its_atoms_for_the_engine(tmp_path: Path) -> None:
     async def body(session: Session, backend: PaintBackend) -> None:
         topo, pos = molecule()
