@@ -93,6 +93,11 @@ export class LayersPanel {
     this.empty = $("layers-empty");
     this.addButton = $("layer-add");
     this.disabled = false;
+    this.stale = false; // rows older than `layers`: a change came while the list had focus
+    this.list.addEventListener("focusout", (e) => {
+      // leaving the list: show what changed meanwhile (after the field's own change applies)
+      if (this.stale && !this.list.contains(e.relatedTarget)) setTimeout(() => this.update(this.layers), 0);
+    });
     this.addButton.addEventListener("click", () => {
       if (this.layers.length >= MAX_LAYERS) return;
       this.emit([...this.layers, newLayer(this.layers)]);
@@ -112,17 +117,22 @@ export class LayersPanel {
     this.addButton.disabled = disabled || this.layers.length >= MAX_LAYERS;
   }
 
-  /** The layers the page shows (the session's, with this page's edits on their way); a
-   * selection being typed is left alone. */
+  /** The layers the page shows (the session's, with this page's edits on their way); while
+   * a field of the list has the focus the rows are left alone, and redrawn when it leaves. */
   update(layers) {
     const clean = normalizeLayers(layers ?? []) ?? [];
-    if (JSON.stringify(clean) === JSON.stringify(this.layers) && this.list.children.length === clean.length) return;
-    const typing = this.list.contains(document.activeElement);
+    const same = JSON.stringify(clean) === JSON.stringify(this.layers) && this.list.children.length === clean.length;
+    if (same && !this.stale) return;
     this.layers = clean;
-    if (!typing) this.draw();
+    if (this.list.contains(document.activeElement)) {
+      this.stale = true; // redrawn when the focus leaves the list
+      return;
+    }
+    this.draw();
   }
 
   draw() {
+    this.stale = false;
     this.list.replaceChildren(...this.layers.map((layer, i) => this.row(layer, i)));
     this.empty.hidden = this.layers.length > 0;
     this.setDisabled(this.disabled);

@@ -181,3 +181,26 @@ def test_a_late_state_does_not_take_back_a_later_edit(
         page, lambda: session(live_server).render_params.layers[0].name == "N-terminus", "name"
     )
     assert session(live_server).render_params.layers[0].sigma_A == 0.6
+
+
+def test_a_change_made_while_a_layer_field_has_the_focus_shows_when_it_leaves(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
+) -> None:
+    """Another steerer renames a layer while this page's focus is in the layers list: the
+    rows are left alone then (a selection may be half typed), and show the new name once the
+    focus leaves the list, with no further state from the session."""
+    first = open_dashboard()
+    wait_for_full_view(first)
+    page = first.page
+    page.click("#layer-add")
+    wait_until(lambda: len(session(live_server).render_params.layers) == 1, "the layer arrived")
+    other = open_dashboard().page
+    expect(other.locator("#layer-0-name")).to_have_value("layer 1")
+    page.locator("#layer-0-selection").focus()
+    other.locator("#layer-0-name").fill("backbone")
+    other.locator("#layer-0-name").press("Enter")
+    wait_until(lambda: session(live_server).render_params.layers[0].name == "backbone", "rename")
+    page.wait_for_timeout(1000)  # the rename's state has reached this page by now
+    expect(page.locator("#layer-0-name")).to_have_value("layer 1")  # left alone while focused
+    page.locator("#layer-add").focus()
+    expect(page.locator("#layer-0-name")).to_have_value("backbone")
