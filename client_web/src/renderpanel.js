@@ -34,6 +34,9 @@ export class RenderPanel {
     ];
     this.bind();
     this.update(this.render);
+    // a field left alone by `update` while it had the focus shows the latest values once the
+    // focus leaves it (the session's, with this page's own edits)
+    $("panel-render").addEventListener("focusout", () => setTimeout(() => this.update(this.render), 0));
   }
 
   emit(patch, final, source) {

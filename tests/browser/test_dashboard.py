@@ -189,6 +189,25 @@ def test_sigma_slider_changes_the_received_image(
     wait_until(lambda: "sigma=0.8" in dash.evaluate("() => location.hash"), "the URL names it")
 
 
+def test_a_field_with_the_focus_shows_another_steerers_change_when_the_focus_leaves(
+    open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
+) -> None:
+    """A number field is not overwritten while it has the focus (it may be half typed); a
+    change another steerer made meanwhile shows once the focus leaves it."""
+    first = open_dashboard()
+    wait_for_full_view(first)
+    page = first.page
+    other = open_dashboard().page
+    page.locator("#sigma-number").focus()
+    other.fill("#sigma-number", "2.4")
+    other.press("#sigma-number", "Enter")
+    wait_until(lambda: session(live_server).render_params.sigma_A == 2.4, "sigma 2.4 arrived")
+    page.wait_for_timeout(1000)  # its state has reached the first page by now
+    expect(page.locator("#sigma-number")).not_to_have_value("2.4")
+    page.locator("#btn-reset-view").focus()
+    expect(page.locator("#sigma-number")).to_have_value("2.4")
+
+
 def test_the_warped_scale_space_is_one_click_away(
     open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
