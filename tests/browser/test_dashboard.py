@@ -76,7 +76,11 @@ def wait_for_full_view(dash: Dashboard) -> None:
     )
 
 
-def wait_until(condition: Callable[[], Any], what: str, timeout: float = 60.0) -> Any:
+def wait_until(
+    condition: Callable[[], Any], what: str, timeout: float = 60.0, page: Any = None
+) -> Any:
+    """Poll `condition`; with a `page`, wait with its timer, so that the page's routes and
+    events keep being handled meanwhile (Playwright dispatches them only during its calls)."""
     deadline = time.monotonic() + timeout
     while True:
         value = condition()
@@ -84,7 +88,10 @@ def wait_until(condition: Callable[[], Any], what: str, timeout: float = 60.0) -
             return value
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting until {what}")
-        time.sleep(0.1)
+        if page is None:
+            time.sleep(0.1)
+        else:
+            page.wait_for_timeout(100)
 
 
 def wait_for_new_image(dash: Dashboard, before: np.ndarray, threshold: float = 4.0) -> np.ndarray:

@@ -5,7 +5,6 @@ back an edit made after the one it answers."""
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 
@@ -93,7 +92,8 @@ def message_type(message: Any) -> Any:
 class HeldStates:
     """The dashboard's WebSocket, passed through the test: the server's `state` messages wait
     while `held` and then go on in order, as on a slow link (everything else passes). The
-    test's Playwright calls are what move messages along, so it waits with the page's timer."""
+    test's Playwright calls are what move messages along, so it waits with
+    `wait_until(..., page=page)`."""
 
     def __init__(self) -> None:
         self.held = False
@@ -130,14 +130,6 @@ class HeldStates:
             self.page_side.send(self.waiting.pop(0))
 
 
-def wait_on_page(page: Any, condition: Any, what: str, timeout: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting until {what}")
-        page.wait_for_timeout(100)
-
-
 def test_a_late_state_does_not_take_back_a_later_edit(
     open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
@@ -153,17 +145,17 @@ def test_a_late_state_does_not_take_back_a_later_edit(
     link.held = True
     page.locator("#layer-0-selection").fill("resid 1-12")
     page.locator("#layer-0-selection").press("Enter")
-    wait_on_page(
-        page,
+    wait_until(
         lambda: session(live_server).render_params.layers[0].selection == "resid 1-12",
         "the selection reached the session",
+        page=page,
     )
     page.locator("#layer-0-sigma").fill("0.6")
     page.locator("#layer-0-sigma").press("Enter")
-    wait_on_page(
-        page,
+    wait_until(
         lambda: session(live_server).render_params.layers[0].sigma_A == 0.6,
         "the scale reached the session",
+        page=page,
     )
     page.locator("#layer-add").focus()  # out of the list: the panel redraws from states
     first = link.release_through("resid 1-12")  # the selection's state, without the scale
@@ -177,8 +169,10 @@ def test_a_late_state_does_not_take_back_a_later_edit(
     # an edit after all that builds on the whole list: the scale stays in the session
     page.locator("#layer-0-name").fill("N-terminus")
     page.locator("#layer-0-name").press("Enter")
-    wait_on_page(
-        page, lambda: session(live_server).render_params.layers[0].name == "N-terminus", "name"
+    wait_until(
+        lambda: session(live_server).render_params.layers[0].name == "N-terminus",
+        "name",
+        page=page,
     )
     assert session(live_server).render_params.layers[0].sigma_A == 0.6
 
