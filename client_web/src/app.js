@@ -248,8 +248,10 @@ class Dashboard {
     if (m.ref !== undefined && m.ref !== null && m.by === this.welcome?.client_id) this.unconfirmed.answered(m.ref);
     if (m.render_params) {
       this.sessionRender = mergeRender(RENDER_DEFAULTS, m.render_params);
-      this.render = this.renderShown();
-      if (this.hashRender) this.applyLinkRender();
+      if (this.hashRender) {
+        this.render = this.renderShown(); // what the link's parameters are compared with
+        this.applyLinkRender();
+      }
       this.showRender();
     }
     if (m.sim_params) {
