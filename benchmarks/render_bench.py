@@ -45,9 +45,9 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from protocol import Camera, RenderParams, Topology, WireArray
-from server.render import Renderer
+from server.render import Renderer, visibility
 from server.render import device as render_device
-from server.render.camera import fit_camera
+from server.render.camera import fit_camera, orbit
 from server.render.density import GaussianField, gaussian_value
 from server.render.raycast import (
     CameraData,
@@ -489,6 +489,7 @@ class Bench:
             "split_lanes": args.split_lanes,
             "max_registers": args.max_registers,
             "volume_max_registers": args.volume_max_registers,
+            "visible_rays": {"stride": visibility.STRIDE, "depth": visibility.DEPTH},
             "notes": [],
         }
         self.systems: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -531,6 +532,30 @@ class Bench:
             # as in the server, where the protocol decoder has already checked finiteness
             r.set_positions(buf, check_finite=False)
             r.render(params, cam, w, h)
+            st = dict(r.timings)
+            st["wall"] = (time.perf_counter() - t0) * 1e3
+            return st
+
+        return step
+
+    def turn_step(
+        self,
+        r: Renderer,
+        frames: list[np.ndarray],
+        params: RenderParams,
+        cam: Camera,
+        w: int,
+        h: int,
+        degrees: float,
+    ) -> Callable[[int], dict[str, float]]:
+        """Frames of a still system seen by a turning camera (`degrees` of yaw a frame), as a
+        steerer sees a paused simulation while dragging the view."""
+        r.set_positions(frames[0])
+
+        def step(i: int) -> dict[str, float]:
+            view = orbit(cam, degrees * i, 0.0)
+            t0 = time.perf_counter()
+            r.render(params, view, w, h)
             st = dict(r.timings)
             st["wall"] = (time.perf_counter() - t0) * 1e3
             return st
@@ -726,7 +751,8 @@ class Bench:
         self, cases: list[tuple[int, int, int]], params: RenderParams, tries: list[dict[str, Any]]
     ) -> None:
         """The same frames with each set of Renderer options (`--variants`, a JSON list of
-        keyword sets, each with a "label"), one after the other."""
+        keyword sets, each with a "label"), one after the other: new positions every frame,
+        or (`--variant-turn` degrees) still positions and a turning camera."""
         for n, w, h in cases:
             for t in tries:
                 if self.clock.left() < 20:
@@ -734,10 +760,16 @@ class Bench:
                 label, kw = labelled(t)
                 r, frames = self.renderer(n, **kw)
                 cam = fit_camera(frames[0], w, h)
-                st = self.timed(self.frame_step(r, frames, params, cam, w, h), self.args.frames)
+                turn = float(self.args.variant_turn)
+                if turn > 0:
+                    step = self.turn_step(r, frames, params, cam, w, h, turn)
+                else:
+                    step = self.frame_step(r, frames, params, cam, w, h)
+                st = self.timed(step, self.args.frames)
                 self.results.setdefault("variants", []).append(
                     {"n_atoms": n, "width": w, "height": h, "label": label, "options": kw,
-                     "params": params.model_dump(mode="json", exclude_defaults=True), **st}
+                     "params": params.model_dump(mode="json", exclude_defaults=True),
+                     "turn_deg": turn, **st}
                 )  # fmt: skip
                 self.save()
                 self.log(
@@ -1404,6 +1436,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--variant-cases", default="", help="N@WxH,... the variants section runs")
     p.add_argument("--variant-params", default="{}", help="render parameters (JSON)")
     p.add_argument("--variants", default="", help='JSON list of Renderer options with "label"')
+    p.add_argument(
+        "--visible-rays", default="", help="STRIDE:DEPTH of the cell-marking rays (visibility.py)"
+    )
+    p.add_argument(
+        "--variant-turn",
+        type=float,
+        default=0.0,
+        help="degrees the camera turns a frame over still positions (0: new positions a frame)",
+    )
     p.add_argument("--scale-cells", default="2,1", help="cells per cutoff it tries")
     p.add_argument(
         "--scale-options", default="", help='JSON list of Renderer options with "label" (scale)'
@@ -1413,6 +1454,10 @@ def main(argv: list[str] | None = None) -> int:
         "--budgets", default="0,4,8,12,16", help="budget[:lanes] pairs the budget section tries"
     )
     args = p.parse_args(argv)
+    if args.visible_rays:
+        # the marking rays of "visible" part bounds, for sweeps (module constants)
+        stride, depth = (int(v) for v in args.visible_rays.split(":"))
+        visibility.STRIDE, visibility.DEPTH = stride, depth
     if args.table:
         print(table(Path(args.table)), end="")
         return 0

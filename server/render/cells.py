@@ -40,6 +40,12 @@ PART_SLACK = 1.0e-3
 """Each part's bound covers the part widened by this fraction of its edge on every side, so
 a point that rounding puts in the part beside it is still covered."""
 
+PART_BITS = (1 << PARTS**3) - 1
+"""The bits of a cell's word that mark its parts below the level."""
+WALKED = 1 << 30
+"""The bit of a cell's word set once its parts have been walked, so a view that reaches it
+again does not list it twice (visibility.py)."""
+
 _PARTS = wp.constant(PARTS)  # type: ignore[no-untyped-call]
 
 

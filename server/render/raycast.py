@@ -37,7 +37,7 @@ import warp as wp
 from protocol import RenderParams
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
-from server.render.cells import BRICK, GridInfo, cell_box, part_at
+from server.render.cells import BRICK, PART_BITS, WALKED, GridInfo, cell_box, part_at
 from server.render.density import GAUSSIAN, DensityModel
 
 wp.set_module_options({"enable_backward": False})
@@ -61,6 +61,8 @@ PART_MARGIN = 1.0 + 1.0e-4
 float rounding in their sums must not put a part below it that a sample reaches."""
 
 _PART_MARGIN = wp.constant(PART_MARGIN)  # type: ignore[no-untyped-call]
+_PART_BITS = wp.constant(PART_BITS)  # type: ignore[no-untyped-call]
+_WALKED = wp.constant(WALKED)  # type: ignore[no-untyped-call]
 _BRICK = wp.constant(BRICK)  # type: ignore[no-untyped-call]
 _TILE_W = wp.constant(TILE_W)  # type: ignore[no-untyped-call]
 _TILE = wp.constant(TILE)  # type: ignore[no-untyped-call]
@@ -477,7 +479,7 @@ def walk(
                 k = k_end
         elif (float(k) + shift) * dt < t_exit:
             ready = 1
-            if skip != 0 and split != 0 and parts[cell] != 0:
+            if skip != 0 and split != 0 and (parts[cell] & _PART_BITS) != 0:
                 # the cell's samples in its parts below the level
                 going = wp.int32(1)
                 while going != 0 and (float(k) + shift) * dt < t_exit:
@@ -673,7 +675,7 @@ def _make(
         def walked_parts(f: Field, c: int, stop_above: float):
             """The bound of cell c from a walk over the atoms within reach of it: the
             largest of its parts' bounds, and the bits of the parts below `stop_above`
-            (with a relative margin of PART_MARGIN for float rounding)."""
+            (with a relative margin of PART_MARGIN for float rounding) with WALKED."""
             lo, hi = cell_box(f.info[0], c)
             v = part_bounds(f, lo, hi, stop_above) * _PART_MARGIN
             mask = wp.int32(0)
@@ -683,11 +685,14 @@ def _make(
                         s = ix + 3 * (iy + 3 * iz)
                         if v[s] < stop_above:
                             mask = mask | (1 << s)
-            return wp.max(v), mask
+            return wp.max(v), mask | _WALKED
 
         walked = walked_parts
 
     bound_settle_kernel, bound_kernel = _bound_kernels(Field, walked, options)
+    whole_settle_kernel, whole_bound_kernel = bound_settle_kernel, bound_kernel
+    if split != 0:
+        whole_settle_kernel, whole_bound_kernel = _bound_kernels(Field, walked_whole, options)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
@@ -1096,6 +1101,8 @@ def _make(
         parts=split != 0,
         bound_settle=bound_settle_kernel,
         bound=bound_kernel,
+        whole_settle=whole_settle_kernel,
+        whole_bound=whole_bound_kernel,
         evaluate=evaluate_kernel,
         histogram=histogram_kernel,
         iso_march=iso_march_kernel,
@@ -1114,6 +1121,10 @@ class RaycastKernels:
     """The walked cells mark their parts below the level and the rays skip samples there."""
     bound_settle: Any
     bound: Any
+    whole_settle: Any
+    whole_bound: Any
+    """The cell-bound kernels without parts (the same as the two above when `parts` is
+    False): the cells a view does not mark take these (visibility.py)."""
     evaluate: Any
     histogram: Any
     iso_march: Any

@@ -3,7 +3,8 @@ camera into an image that stays on the device.
 
 Per frame: positions upload (asynchronous from the pinned `host_positions()` buffer), grid
 rebuild on the device, ray cast. The grid is rebuilt whenever positions or a parameter that
-shapes the density changed; a camera-only change re-casts rays over the same grid.
+shapes the density changed; a camera-only change re-casts rays over the same grid (where
+part bounds follow the view, after the cells the new view adds walk for theirs).
 Buffers are sized by the topology and the largest image so far, never per frame.
 """
 
@@ -23,7 +24,7 @@ import numpy.typing as npt
 import warp
 
 from protocol import Camera, RenderParams, Topology
-from server.render import colors, raycast, temporal, transfer, warped
+from server.render import colors, raycast, temporal, transfer, visibility, warped
 from server.render import device as devmod
 from server.render.camera import CameraFrame, camera_frame
 from server.render.density import (
@@ -80,10 +81,20 @@ walking them all, 100M atoms 42.4 against 46.4 pipelined, 1M atoms even); the wa
 coarse bound ignores the warp, so there walking them all is faster (1M atoms 18.6 against 19.5)."""
 PART_ATOMS = 1_500_000
 """Below this many atoms the walked cells also mark which of their 27 parts are below the
-level, and every open cell is walked (`part_bounds=None`): the rays skip the samples there.
-Those walks cost in proportion to the atoms, the samples they save to the surface in view
-(one H200 at 1920x1080: 100k atoms 4.9 ms a frame against 6.1, 1M 8.7 against 9.7, 3M 14.7
-against 12.9, 10M 31.3 against 19.0; benchmarks/README.md, "Render core, round three")."""
+level, and every open cell is walked (`part_bounds=None`: "all"): the rays skip the samples
+there. Those walks cost in proportion to the atoms, the samples they save to the surface in
+view (one H200 at 1920x1080: 100k atoms 4.9 ms a frame against 6.1, 1M 8.7 against 9.7, 3M
+14.7 against 12.9, 10M 31.3 against 19.0; benchmarks/README.md, "Render core, round three")."""
+VISIBLE_ATOMS = 500_000
+"""From this many atoms an iso frame walks for part bounds only the cells its view reaches
+("visible", visibility.py; the other cells walk whole): one H200 at 1920x1080, new positions
+every frame, 1M atoms 7.30 ms against 7.91 walking every open cell, 3M 10.35 against 11.52
+with whole cells, 10M 15.60 against 17.29; 300k atoms even, 100k 4.81 against 4.52
+(benchmarks/README.md, "Render core, round five")."""
+PART_MODES = ("all", "visible", "none")
+"""`part_bounds`: every open cell walked for its part bounds, only those the view reaches
+(the others walk whole), or whole cells only (empty cells far above the level keep their
+coarse bound: `BOUND_KEEP_FROM`)."""
 LARGE_ATOMS = 30_000_000
 """From this many atoms the grid has one cell per cutoff for every density: the bound of 1.4
 cells per atom costs more than finer skipping saves (on an H100 at 1920x1080, 100M atoms:
@@ -106,6 +117,12 @@ molecules of at least SPLIT_MIN_ATOMS atoms (long enough rays). Both bounds come
 budget sweep in benchmarks/README.md; elsewhere the extra kernel costs more than it saves."""
 
 log = logging.getLogger(__name__)
+
+View = tuple[CameraFrame, tuple[int, int, int, int] | None]
+"""A camera frame and the tile of its image a render casts (None: all of it)."""
+VIEWS_KEPT = 64
+"""Views a grid remembers having walked the cells of (a turning camera makes a new view
+every frame; forgetting one only repeats a walk that finds nothing new)."""
 
 
 @dataclass(frozen=True)
@@ -154,8 +171,9 @@ class Renderer(ImageOutputs):
     every empty cell above the level is walked; None: the density's own, `BOUND_KEEP_FROM`);
     `grid_sort` is how the grid puts atoms in cell order each frame ("counting" or "radix",
     the same order; grid.py); `part_bounds` has the walked cells mark which of their parts
-    are below the level, for the rays to skip the samples there (the same image; None: below
-    `PART_ATOMS` atoms, where every open cell is then walked).
+    are below the level, for the rays to skip the samples there (the same image; one of
+    `PART_MODES`; None: "visible" from `VISIBLE_ATOMS` atoms in iso mode, else "all" below
+    `PART_ATOMS` atoms and "none" from there).
     """
 
     def __init__(
@@ -176,7 +194,7 @@ class Renderer(ImageOutputs):
         double_buffer: bool | None = None,
         bound_keep_from: float | None = None,
         grid_sort: str = "counting",
-        part_bounds: bool | None = None,
+        part_bounds: str | None = None,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
@@ -190,6 +208,10 @@ class Renderer(ImageOutputs):
             )
         if bound_keep_from is not None and not bound_keep_from >= 1.0:
             raise RenderError(f"bound_keep_from must be >= 1, got {bound_keep_from}")
+        if part_bounds is not None and part_bounds not in PART_MODES:
+            raise RenderError(
+                f"part_bounds must be one of {', '.join(PART_MODES)}, got {part_bounds!r}"
+            )
         if cells_per_cutoff is not None and not cells_per_cutoff >= 1.0:
             raise RenderError(f"cells_per_cutoff must be >= 1, got {cells_per_cutoff}")
         self.device: str = devmod.resolve(device)
@@ -202,7 +224,7 @@ class Renderer(ImageOutputs):
         self.double_buffer = double_buffer
         self.bound_keep_from = None if bound_keep_from is None else float(bound_keep_from)
         self.grid_sort = grid_sort
-        self.part_bounds = None if part_bounds is None else bool(part_bounds)
+        self.part_bounds = part_bounds
         self.coverage = False
         """Write coverage alpha over no background (a layer composited with others)."""
         self.depth_limit: Any = None
@@ -232,6 +254,8 @@ class Renderer(ImageOutputs):
         self._have_positions = False
         self._positions_version = 0
         self._grid_key: tuple[Any, ...] | None = None
+        self._views_walked: set[tuple[Any, ...]] = set()
+        """Views whose cells have walked for their parts since the grid was built."""
         self._color_key: tuple[Any, ...] | None = None
         self._tf_key: tuple[Any, ...] | None = None
         self._tf = transfer.build_table()
@@ -645,12 +669,25 @@ class Renderer(ImageOutputs):
         f.skel = s
         return f
 
-    def _kernels_of(self, d: Derived) -> raycast.RaycastKernels:
-        """The kernels of this frame's density, with part bounds below `PART_ATOMS` atoms
-        (or as `part_bounds` says)."""
+    def _kernels_of(self, d: Derived, mode: str) -> raycast.RaycastKernels:
+        """The kernels of this frame's density, with part bounds unless `_parts_for` says
+        "none"."""
         model = self._density if d.warp is None else warped.WARPED
-        parts = self._n < PART_ATOMS if self.part_bounds is None else self.part_bounds
-        return self._kernels_of_model(model, parts)
+        return self._kernels_of_model(model, self._parts_for(d, mode) != "none")
+
+    def _parts_for(self, d: Derived, mode: str) -> str:
+        """Which cells walk for part bounds in a frame of render mode `mode` (`PART_MODES`):
+        none for a density without part bounds; else `part_bounds`, else from
+        `VISIBLE_ATOMS` atoms the cells the view reaches in iso mode (volume rays go on past
+        the surface), else every open cell below `PART_ATOMS` atoms and none from there."""
+        model = self._density if d.warp is None else warped.WARPED
+        if model.part_bounds is None:
+            return "none"
+        if self.part_bounds is not None:
+            return self.part_bounds
+        if self._n >= VISIBLE_ATOMS and mode == "iso":
+            return "visible"
+        return "all" if self._n < PART_ATOMS else "none"
 
     def _kernels_of_model(self, model: DensityModel, parts: bool) -> raycast.RaycastKernels:
         key = (model.name, parts)
@@ -729,22 +766,29 @@ class Renderer(ImageOutputs):
             return 1.0
         return CELLS_PER_CUTOFF[_model_name(d)]
 
-    def _keep_from(self, d: Derived, parts: bool) -> float:
+    def _keep_from(self, d: Derived, parts: str) -> float:
         """The multiple of the level from which empty cells keep their coarse bound (with
-        part bounds every open cell is walked: the parts of the cells near the atoms save
-        the most samples)."""
+        part bounds in every open cell, all are walked: the parts of the cells near the atoms
+        save the most samples)."""
         if self.bound_keep_from is not None:
             return self.bound_keep_from
-        return math.inf if parts else BOUND_KEEP_FROM[_model_name(d)]
+        return math.inf if parts == "all" else BOUND_KEEP_FROM[_model_name(d)]
 
     def _grid_key_for(self, d: Derived, stop: float) -> tuple[Any, ...] | None:
         """The key of the grid this frame needs, or None when the last one still holds."""
         key = (self._positions_version, d, self._cells_for(d), stop)
         return None if key == self._grid_key else key
 
-    def _build_grid(self, d: Derived, f: Any, stop: float) -> None:
+    def _view_of(self, d: Derived, mode: str, stop: float, view: View) -> View | None:
+        """`view` when this frame's cell bounds follow it ("visible" part bounds), else None."""
+        visible = stop > 0.0 and self._parts_for(d, mode) == "visible"
+        return view if visible else None
+
+    def _build_grid(self, d: Derived, f: Any, stop: float, mode: str, view: View | None) -> None:
         """Grid, sorted atoms (weights divided by the mean density at the atoms for relative
-        levels), the warped density's segments, cell bounds and brick bounds: launches only."""
+        levels), the warped density's segments, cell bounds and brick bounds: launches only.
+        `view` (camera frame and tile) marks the cells whose part bounds are walked when the
+        bounds follow the view."""
         dev = self.device
         n = self._n
         self._grid.build(self._pos, n, d.reach, self._cells_for(d))
@@ -789,18 +833,45 @@ class Renderer(ImageOutputs):
         )
         if d.warp is not None:
             self._skeleton_buffers().build(self._pos, d.warp.reach)
-        kernels = self._kernels_of(d)
+        kernels = self._kernels_of(d, mode)
+        parts = self._parts_for(d, mode)
         # the widest atom's 1 / (2 s^2): reach = k s_max and half_k2 = k^2 / 2
         self._grid.build_coarse(self._sorted, d.half_k2 / (d.reach * d.reach))
         grid = self._grid
         grid.work_count.zero_()
-        keep = stop * self._keep_from(d, kernels.parts) if stop > 0.0 else math.inf
+        # with part bounds for the view, every cell first gets its whole-cell bound, and the
+        # cells the view marks then walk for their parts
+        whole = parts != "all"
+        keep = stop * self._keep_from(d, parts) if stop > 0.0 else math.inf
         cells = (grid.cell_start, grid.coarse, f.bound, grid.parts)
         settle = (f, stop, keep, *cells, grid.work, grid.work_count)
-        wp.launch(kernels.bound_settle, grid.capacity, settle, device=dev)
+        wp.launch(
+            kernels.whole_settle if whole else kernels.bound_settle,
+            grid.capacity,
+            settle,
+            device=dev,
+        )
+        walk = (f, stop, grid.work, grid.work_count, f.bound, grid.parts)
+        wp.launch(kernels.whole_bound if whole else kernels.bound, grid.capacity, walk, device=dev)
+        if view is not None:
+            self._walk_view(kernels, f, stop, view)
+        self._grid.build_bricks()
+
+    def _walk_view(self, kernels: raycast.RaycastKernels, f: Any, stop: float, view: View) -> None:
+        """Walk the parts of the cells `view` reaches that no view before it reached since
+        the grid was built (visibility.py); the caller then updates the brick bounds."""
+        dev = self.device
+        grid = self._grid
+        frame, tile = view
+        cam = raycast.camera_data(frame, tile)
+        stride = visibility.STRIDE
+        cols, rows = visibility.rays(cam.width, cam.height, stride)
+        grid.work_count.zero_()
+        marks = (grid.info, cam, stride, cols, rows, visibility.DEPTH, stop, grid.cell_start)
+        args = (*marks, f.bound, grid.parts, grid.work, grid.work_count)
+        wp.launch(visibility.mark_kernel, cols * rows, args, device=dev)
         walk = (f, stop, grid.work, grid.work_count, f.bound, grid.parts)
         wp.launch(kernels.bound, grid.capacity, walk, device=dev)
-        self._grid.build_bricks()
 
     def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:
         step = AO_STEP_SIGMAS * d.sigma
@@ -815,13 +886,19 @@ class Renderer(ImageOutputs):
         frame: CameraFrame,
         build: bool,
         tile: tuple[int, int, int, int] | None = None,
+        walk_view: bool = False,
     ) -> float:
         """Every device operation of one frame after the upload, in order: the same calls run
-        eagerly or into a graph capture. Returns the host time at the grid/cast boundary."""
+        eagerly or into a graph capture. Returns the host time at the grid/cast boundary.
+        `walk_view`: the grid stays, and the cells this view adds walk for their parts."""
         dev = self.device
-        k = self._kernels_of(d)
+        k = self._kernels_of(d, params.mode)
+        view = self._view_of(d, params.mode, stop, (frame, tile))
         if build:
-            self._build_grid(d, f, stop)
+            self._build_grid(d, f, stop, params.mode, view)
+        elif walk_view and view is not None:
+            self._walk_view(k, f, stop, view)
+            self._grid.build_bricks()
         if self._cuda:
             self._stream.record_event(self._events[1])
         t_cast = time.perf_counter()
@@ -969,6 +1046,16 @@ class Renderer(ImageOutputs):
         f = self._field(d)
         ev = self._events if self._cuda else None
         grid_key = self._grid_key_for(d, stop) if self._n else None
+        # a grid with part bounds for the view walks the cells each new view adds
+        walk_view = False
+        if self._n and self._view_of(d, params.mode, stop, (frame, tile)) is not None:
+            if grid_key is not None:
+                self._views_walked.clear()
+            view_key = (cam_seen[4], tile)
+            walk_view = view_key not in self._views_walked
+            if len(self._views_walked) >= VIEWS_KEPT:
+                self._views_walked.clear()
+            self._views_walked.add(view_key)
         if not self._n:
             self._grid.invalidate()
             self._grid_key = None
@@ -977,13 +1064,13 @@ class Renderer(ImageOutputs):
             self._stream.record_event(ev[0])
         t_grid = time.perf_counter()
         launch = functools.partial(
-            self._launch_frame, params, d, f, stop, frame, grid_key is not None, tile
+            self._launch_frame, params, d, f, stop, frame, grid_key is not None, tile, walk_view
         )
         if self._graphs is not None:
             clipped = params.mode == "volume" and self.depth_limit is not None
             limit = self.depth_limit.ptr if clipped else None
             # graphs hold the address of the positions they read
-            key: tuple[Any, ...] = (grid_key is not None, self._n, d, stop, seen[1])
+            key: tuple[Any, ...] = (grid_key is not None, walk_view, self._n, d, stop, seen[1])
             key = (*key, cam_seen[4], tile, limit, self._pos.ptr)
             t_cast = self._replay_or_launch(key, launch)
         else:
@@ -1062,7 +1149,8 @@ class Renderer(ImageOutputs):
         else:
             key = self._grid_key_for(d, stop)
             if key is not None:
-                self._build_grid(d, f, stop)
+                self._views_walked.clear()
+                self._build_grid(d, f, stop, params.mode, None)
                 self._grid_key = key
         self._last = (params, d)
         return f
@@ -1100,9 +1188,9 @@ class Renderer(ImageOutputs):
         cols = wp.zeros(max(m, 1), dtype=wp.vec4, device=dev)
         ids = wp.zeros(max(m, 1), dtype=wp.int32, device=dev)
         if m:
-            d = self._last[1]
+            params, d = self._last
             f = self._field(d)
-            kernels = self._kernels_of(d)
+            kernels = self._kernels_of(d, params.mode)
             wp.launch(kernels.evaluate, m, (f, wp_pts, vals, vgs, cols, ids), device=dev)
         return (
             vals.numpy()[:m].copy(),
@@ -1130,7 +1218,7 @@ class Renderer(ImageOutputs):
             f = self._field(d)
             s = HISTOGRAM_SIDE
             wp.launch(
-                self._kernels_of(d).histogram,
+                self._kernels_of(d, params.mode).histogram,
                 (s, s, s),
                 (f, s, bins / (x_hi * d.iso), bins, self._hist),
                 device=self.device,

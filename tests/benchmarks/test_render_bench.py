@@ -43,3 +43,28 @@ def test_quick_run_writes_results_and_sample_images_into_a_new_folder(tmp_path: 
     ]
     frames = json.loads(out.read_text())["frames"]
     assert {(f["n_atoms"], f["mode"]) for f in frames} == {(496, "iso"), (496, "volume")}
+
+
+def test_variants_of_a_turning_camera_record_their_options(tmp_path: Path) -> None:
+    """`--variant-turn` times still positions under a turning camera, `--visible-rays` sets
+    the marking rays of view-following part bounds; both are recorded with the results."""
+    out = tmp_path / "turn.json"
+    variants = (
+        '[{"label": "whole", "part_bounds": "none"}, {"label": "view", "part_bounds": "visible"}]'
+    )
+    args = ["--quick", "--device", "cpu", "--sections", "variants", "--variant-cases", "2000@48x32"]
+    args += ["--variants", variants, "--variant-turn", "5", "--visible-rays", "3:2"]
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), *args, "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    results = json.loads(out.read_text())
+    assert results["visible_rays"] == {"stride": 3, "depth": 2}
+    rows = results["variants"]
+    assert [(v["label"], v["turn_deg"]) for v in rows] == [("whole", 5.0), ("view", 5.0)]
+    # still positions: nothing is uploaded after the first (warm-up) frame
+    assert all(v["stages_ms"]["upload"] == 0.0 for v in rows)

@@ -13,7 +13,8 @@ import warp as wp
 
 from protocol import RenderParams
 from server.render import colors, density
-from server.render.camera import fit_camera
+from server.render.camera import fit_camera, orbit, quat_to_matrix
+from server.render.cells import WALKED
 from server.render.density import GaussianField
 from server.render.errors import RenderError
 from server.render.grid import SORTED_IN_CELL, CellGrid, order_cells_kernel
@@ -470,23 +471,77 @@ def test_parts_below_the_level_hold_no_density_above_it(device: str) -> None:
 def test_part_bounds_skip_samples_and_keep_the_image(device: str, mode: str) -> None:
     """Samples in parts below the level are skipped (iso: they cannot hold a crossing;
     volume: they are transparent): the image is the one of whole-cell skipping, bit for bit,
-    with the classical density and with the warped one (which has no part bounds). A small
-    molecule gets part bounds by default."""
+    with every open cell walked for its parts or only those the view marks, with the
+    classical density and with the warped one (which has no part bounds). A small molecule
+    gets part bounds in every open cell by default."""
     top, pos = _two_lumps()
     cam = fit_camera(pos, 64, 48)
     for space in ("classical", "warped"):
         params = RenderParams(mode=mode, scale_space=space)  # type: ignore[arg-type]
         runs = {}
-        for split in (True, False, None):
+        for split in ("all", "visible", "none", None):
             r = render(device, top, pos, params, cam, 64, 48, part_bounds=split)
             cells = int(np.prod(r.grid_info()["dims"]))
             marked = int((r._grid.parts.numpy()[:cells] != 0).sum())
             runs[split] = (marked, r.read_rgba(), r.read_depth(), r.read_atom_ids())
-        assert runs[False][0] == 0
-        assert runs[True][0] > (50 if space == "classical" else -1), space
-        assert runs[None][0] == runs[True][0], space
-        for a, b in zip(runs[True][1:], runs[False][1:], strict=True):
-            np.testing.assert_array_equal(a, b)
+        assert runs["none"][0] == 0
+        assert runs["all"][0] > (50 if space == "classical" else -1), space
+        assert runs[None][0] == runs["all"][0], space
+        if space == "classical":
+            # the view reaches only the cells in front of the surface
+            assert 0 < runs["visible"][0] < runs["all"][0], runs["visible"][0]
+        for split in ("all", "visible"):
+            for a, b in zip(runs[split][1:], runs["none"][1:], strict=True):
+                np.testing.assert_array_equal(a, b)
+
+
+def _walked_parts(r: Renderer) -> set[tuple[int, int, int]]:
+    """Cells (x, y, z) of the last grid that walked for their part bounds."""
+    dims = np.asarray(r.grid_info()["dims"])
+    words = r._grid.parts.numpy()[: int(np.prod(dims))]
+    cell = np.nonzero(words & WALKED)[0]
+    xyz = np.stack([cell % dims[0], (cell // dims[0]) % dims[1], cell // (dims[0] * dims[1])], 1)
+    return {(int(x), int(y), int(z)) for x, y, z in xyz}
+
+
+def test_visible_part_bounds_follow_the_view(device: str) -> None:
+    """With part bounds for the view, the cells that walk for their parts are those in front
+    of the surface the camera sees: a camera on +z walks cells on the lumps' +z side; turned
+    to -z over the same atoms, it adds cells on their -z side; new positions start over.
+    Each image is that of whole cells, bit for bit."""
+    top, pos = _two_lumps()
+    params = RenderParams()
+    cam = fit_camera(pos, 64, 48)
+    back = orbit(cam, 180.0, 0.0)
+    axis = quat_to_matrix(cam.orientation)[:, 2]  # from the target towards the first camera
+    r = Renderer(device, part_bounds="visible")
+    r.set_topology(top)
+
+    def side(cells: set[tuple[int, int, int]]) -> float:
+        """Median height along `axis` of the cells' centres above the atoms' centre."""
+        info = r.grid_info()
+        xyz = np.asarray(sorted(cells), dtype=np.float64)
+        at = np.asarray(info["origin"]) + (xyz + 0.5) * float(info["h"]) - pos.mean(axis=0)
+        return float(np.median(at @ axis))
+
+    walked = []
+    for view, fresh in ((cam, True), (back, False), (back, True)):
+        if fresh:
+            r.set_positions(pos)
+        r.render(params, view, 64, 48)
+        ref = render(device, top, pos, params, view, 64, 48, part_bounds="none")
+        np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
+        np.testing.assert_array_equal(r.read_depth(), ref.read_depth())
+        walked.append(_walked_parts(r))
+    front, both, rear = walked
+    assert len(front) > 20 and side(front) > 0
+    assert front < both and side(both - front) < 0
+    assert len(rear) > 20 and side(rear) < 0
+
+
+def test_part_bounds_mode_is_checked() -> None:
+    with pytest.raises(RenderError, match=r"part_bounds must be one of all, visible, none"):
+        Renderer("cpu", part_bounds="some")  # type: ignore[arg-type]
 
 
 def test_bound_keep_from_below_one_is_refused() -> None:

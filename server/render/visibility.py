@@ -1,0 +1,106 @@
+"""Which empty cells of the grid the rays of one view reach before the surface.
+
+Part bounds (the 27 sub-cell bounds of a walked cell, docs/rendering.md) save the most
+samples in the empty cells just in front of the surface, but walking every open cell for them
+costs in proportion to the atoms: at 10M atoms most open cells lie in cavities or behind the
+surface, where no ray samples. `mark_kernel` casts every `STRIDE`-th ray of the view through
+the cells (a 3D DDA, no density sample) and lists the empty cells whose bound passes the level
+that it crosses before it has entered `DEPTH` cells holding atoms (the surface of the view lies
+in or just before those) and whose parts are not walked yet; the part walk then takes the list.
+Every bound stays an upper bound, so the marks decide only speed: a ray that reaches a cell no
+marking ray reached samples it with the cell's own bound, and the image is the one of walking
+every cell. While the atoms stay put, each new view lists only the cells it adds.
+(No `from __future__ import annotations`: warp resolves kernel annotations eagerly.)
+"""
+
+from typing import no_type_check
+
+import warp as wp
+
+from server.render import device as _device  # noqa: F401  (initialises warp)
+from server.render.cells import WALKED, GridInfo
+from server.render.raycast import CameraData, camera_ray, clip_box, walk_start
+
+wp.set_module_options({"enable_backward": False})
+
+_WALKED = wp.constant(WALKED)  # type: ignore[no-untyped-call]
+_UNWALKED = wp.constant(~WALKED)  # type: ignore[no-untyped-call]
+
+STRIDE = 2
+"""Every STRIDE-th ray of each image row and column marks cells."""
+DEPTH = 4
+"""A marking ray stops once it has entered this many cells holding atoms: the surface of the
+view lies in or before them for nearly every ray (a ray that grazes on finds cells with
+their whole-cell bound)."""
+
+
+def rays(width: int, height: int, stride: int) -> tuple[int, int]:
+    """Marking rays per row and per column of a width x height view."""
+    return -(-width // stride), -(-height // stride)
+
+
+@wp.kernel
+@no_type_check
+def mark_kernel(
+    info: wp.array[GridInfo],
+    cam: CameraData,
+    stride: int,
+    cols: int,
+    rows: int,
+    depth: int,
+    level: float,
+    cell_start: wp.array[wp.int32],
+    bound: wp.array[float],
+    parts: wp.array[wp.int32],
+    work: wp.array[wp.int32],
+    work_count: wp.array[wp.int32],
+):
+    """List in `work` each empty cell with a bound at or above `level` and parts not yet
+    walked that ray i crosses before its `depth`-th cell with atoms, once (the first ray to
+    set its WALKED bit lists it; a full list leaves the bit clear)."""
+    i = wp.tid()
+    g = info[0]
+    if g.valid == 0 or i >= cols * rows:
+        return
+    x = wp.min((i % cols) * stride + stride // 2, cam.width - 1)
+    y = wp.min((i // cols) * stride + stride // 2, cam.height - 1)
+    o, d = camera_ray(cam, x, y)
+    t0, t1 = clip_box(o, d, g.origin, g.box_hi)
+    if t0 >= t1:
+        return
+    cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left = walk_start(o, d, t0, g)
+    seen = wp.int32(0)
+    going = wp.int32(1)
+    while going != 0:
+        c = (cz * g.dims[1] + cy) * g.dims[0] + cx
+        if cell_start[c + 1] > cell_start[c]:
+            seen += 1
+            if seen >= depth:
+                going = 0
+        elif bound[c] >= level and (parts[c] & _WALKED) == 0:  # noqa: SIM102
+            # (nested: a kernel's `and` evaluates both sides, and this one is an atomic)
+            if (wp.atomic_or(parts, c, _WALKED) & _WALKED) == 0:
+                slot = wp.atomic_add(work_count, 0, 1)
+                if slot < work.shape[0]:
+                    work[slot] = c
+                else:
+                    wp.atomic_and(parts, c, _UNWALKED)
+        left -= 1
+        t_exit = wp.min(wp.min(tx, ty), tz)
+        if going == 0 or t_exit >= t1 or left <= 0:
+            going = 0
+        elif tx <= ty and tx <= tz:
+            cx += sx
+            tx += dtx
+            if cx < 0 or cx >= g.dims[0]:
+                going = 0
+        elif ty <= tz:
+            cy += sy
+            ty += dty
+            if cy < 0 or cy >= g.dims[1]:
+                going = 0
+        else:
+            cz += sz
+            tz += dtz
+            if cz < 0 or cz >= g.dims[2]:
+                going = 0
