@@ -56,6 +56,17 @@ def cell_capacity(n_atoms: int) -> int:
     return max(int(CELLS_PER_ATOM * n_atoms), MIN_CELLS)
 
 
+CELL_THREADS = 1 << 24
+"""Most threads a per-cell kernel launches; each strides over the cells (or listed cells)
+beyond them. The host never learns a frame's cell count, and a sparse box can use a third
+of the cells it could have: a thread per possible cell then mostly starts only to return."""
+
+
+def cell_threads(capacity: int) -> int:
+    """Threads of a kernel over up to `capacity` cells (`CELL_THREADS`)."""
+    return max(min(capacity, CELL_THREADS), 1)
+
+
 def brick_capacity(cells: int) -> int:
     """Bricks allocated for a grid of `cells` cells (4x headroom over cells / 64 for thin
     boxes; a grid needing more simply walks cells only)."""
@@ -276,25 +287,30 @@ def brick_kernel(
 @no_type_check
 def cell_weight_kernel(
     info: wp.array[GridInfo],
+    threads: int,
     cell_start: wp.array[wp.int32],
     atoms: wp.array[wp.vec4],
     out: wp.array[float],
 ):
-    """The summed weight of each cell's atoms (sorted atoms, weight in w)."""
+    """The summed weight of each cell's atoms (sorted atoms, weight in w); `threads` threads
+    stride over the cells."""
     c = wp.tid()
     g = info[0]
-    if g.valid == 0 or c >= g.ncells:
+    if g.valid == 0:
         return
-    s = float(0.0)
-    for j in range(cell_start[c], cell_start[c + 1]):
-        s += atoms[j][3]
-    out[c] = s
+    while c < g.ncells:
+        s = float(0.0)
+        for j in range(cell_start[c], cell_start[c + 1]):
+            s += atoms[j][3]
+        out[c] = s
+        c += threads
 
 
 @wp.kernel
 @no_type_check
 def spread_kernel(
     info: wp.array[GridInfo],
+    threads: int,
     axis: int,
     inv2s2: float,
     scale: float,
@@ -303,30 +319,32 @@ def spread_kernel(
 ):
     """One axis of the separable cell-pair bound: dst[c] = scale * sum over the cells c + k e
     within reach of exp(-inv2s2 gap(k)^2) src[c + k e], gap(k) = (|k| - 1) h the least distance
-    between the two cells along the axis."""
+    between the two cells along the axis; `threads` threads stride over the cells."""
     c = wp.tid()
     g = info[0]
-    if g.valid == 0 or c >= g.ncells:
+    if g.valid == 0:
         return
-    i = c % g.dims[0]
-    n = g.dims[0]
-    stride = 1
-    if axis == 1:
-        i = (c // g.dims[0]) % g.dims[1]
-        n = g.dims[1]
-        stride = g.dims[0]
-    elif axis == 2:
-        i = c // (g.dims[0] * g.dims[1])
-        n = g.dims[2]
-        stride = g.dims[0] * g.dims[1]
     reach = int(wp.ceil(g.reach * g.inv_h))
-    s = float(0.0)
-    for k in range(-reach, reach + 1):
-        j = i + k
-        if j >= 0 and j < n:
-            gap = float(wp.max(wp.abs(k) - 1, 0)) * g.h
-            s += wp.exp(-inv2s2 * gap * gap) * src[c + k * stride]
-    dst[c] = s * scale
+    while c < g.ncells:
+        i = c % g.dims[0]
+        n = g.dims[0]
+        stride = 1
+        if axis == 1:
+            i = (c // g.dims[0]) % g.dims[1]
+            n = g.dims[1]
+            stride = g.dims[0]
+        elif axis == 2:
+            i = c // (g.dims[0] * g.dims[1])
+            n = g.dims[2]
+            stride = g.dims[0] * g.dims[1]
+        s = float(0.0)
+        for k in range(-reach, reach + 1):
+            j = i + k
+            if j >= 0 and j < n:
+                gap = float(wp.max(wp.abs(k) - 1, 0)) * g.h
+                s += wp.exp(-inv2s2 * gap * gap) * src[c + k * stride]
+        dst[c] = s * scale
+        c += threads
 
 
 def _view(base: wp.array, offset: int, dtype: Any, length: int) -> wp.array:
@@ -447,18 +465,19 @@ class CellGrid:
         walk over atoms). `inv2s2` is that of the widest atom; a 1e-3 margin keeps it above
         the walked bound in float32. The cells' values pass through `cell_values`."""
         dev = self.device
-        cells = self.capacity
+        threads = cell_threads(self.capacity)
         wp.launch(
             cell_weight_kernel,
-            cells,
-            (self.info, self.cell_start, atoms, self.cell_values),
+            threads,
+            (self.info, threads, self.cell_start, atoms, self.cell_values),
             device=dev,
         )
         spread = (self.cell_values, self.coarse, self.cell_values, self.coarse)
         for axis in range(3):
             scale = 1.0 + 1.0e-3 if axis == 2 else 1.0
-            args = (self.info, axis, float(inv2s2), scale, spread[axis], spread[axis + 1])
-            wp.launch(spread_kernel, cells, args, device=dev)
+            cells = (spread[axis], spread[axis + 1])
+            args = (self.info, threads, axis, float(inv2s2), scale, *cells)
+            wp.launch(spread_kernel, threads, args, device=dev)
 
     def build_bricks(self) -> None:
         """Brick maxima of `cell_values`, once the caller has filled the cell bounds."""

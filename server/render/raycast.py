@@ -1142,10 +1142,11 @@ def _bound_kernels(field: Any, walked: Any, options: dict[str, Any]) -> tuple[An
     registers."""
     Field = field
 
-    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @wp.func
     @no_type_check
-    def bound_settle_kernel(
+    def settle(
         f: Field,
+        c: int,
         stop_above: float,
         keep_from: float,
         cell_start: wp.array[wp.int32],
@@ -1155,19 +1156,6 @@ def _bound_kernels(field: Any, walked: Any, options: dict[str, Any]) -> tuple[An
         work: wp.array[wp.int32],
         work_count: wp.array[wp.int32],
     ):
-        """An upper bound of the density in each cell (see `clear`), walked only where that
-        can decide anything. A cell that holds an atom is given infinity: the density there
-        reaches the level in all but contrived cases (a lone atom lighter than the level). A
-        cell whose coarse bound (CellGrid.build_coarse, no walk) is already below the level
-        keeps it, and so does one whose coarse bound is `keep_from` or more: a walk there
-        rarely ends below the level. The other cells, empty ones near the atoms, are listed
-        in `work` for `bound_kernel` to walk in full warps (walked here only when the list is
-        full). Only walked cells know parts below the level (`parts`, which may share the
-        memory of `coarse`: each cell reads its coarse bound before it writes its parts)."""
-        c = wp.tid()
-        g = f.info[0]
-        if g.valid == 0 or c >= g.ncells:
-            return
         if cell_start[c + 1] > cell_start[c]:
             out[c] = wp.inf
             parts[c] = 0
@@ -1187,22 +1175,57 @@ def _bound_kernels(field: Any, walked: Any, options: dict[str, Any]) -> tuple[An
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
+    def bound_settle_kernel(
+        f: Field,
+        stop_above: float,
+        keep_from: float,
+        threads: int,
+        cell_start: wp.array[wp.int32],
+        coarse: wp.array[float],
+        out: wp.array[float],
+        parts: wp.array[wp.int32],
+        work: wp.array[wp.int32],
+        work_count: wp.array[wp.int32],
+    ):
+        """An upper bound of the density in each cell (see `clear`), walked only where that
+        can decide anything. A cell that holds an atom is given infinity: the density there
+        reaches the level in all but contrived cases (a lone atom lighter than the level). A
+        cell whose coarse bound (CellGrid.build_coarse, no walk) is already below the level
+        keeps it, and so does one whose coarse bound is `keep_from` or more: a walk there
+        rarely ends below the level. The other cells, empty ones near the atoms, are listed
+        in `work` for `bound_kernel` to walk in full warps (walked here only when the list is
+        full). Only walked cells know parts below the level (`parts`, which may share the
+        memory of `coarse`: each cell reads its coarse bound before it writes its parts).
+        `threads` threads stride over the grid's cells (grid.cell_threads)."""
+        c = wp.tid()
+        g = f.info[0]
+        if g.valid == 0:
+            return
+        while c < g.ncells:
+            settle(f, c, stop_above, keep_from, cell_start, coarse, out, parts, work, work_count)
+            c += threads
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @no_type_check
     def bound_kernel(
         f: Field,
         stop_above: float,
+        threads: int,
         work: wp.array[wp.int32],
         work_count: wp.array[wp.int32],
         out: wp.array[float],
         parts: wp.array[wp.int32],
     ):
-        """Walk the cells `bound_settle_kernel` listed (threads past the list return)."""
+        """Walk the cells `bound_settle_kernel` listed, `threads` threads striding over the
+        list."""
         i = wp.tid()
-        if i >= wp.min(work_count[0], work.shape[0]):
-            return
-        c = work[i]
-        bound, mask = walked(f, c, stop_above)
-        out[c] = bound
-        parts[c] = mask
+        n = wp.min(work_count[0], work.shape[0])
+        while i < n:
+            c = work[i]
+            bound, mask = walked(f, c, stop_above)
+            out[c] = bound
+            parts[c] = mask
+            i += threads
 
     return bound_settle_kernel, bound_kernel
 

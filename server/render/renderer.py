@@ -39,7 +39,7 @@ from server.render.density import (
     total_kernel,
 )
 from server.render.errors import RenderError
-from server.render.grid import GRID_SORTS, CellGrid
+from server.render.grid import GRID_SORTS, CellGrid, cell_threads
 from server.render.outputs import ImageOutputs
 from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
 
@@ -843,16 +843,14 @@ class Renderer(ImageOutputs):
         # cells the view marks then walk for their parts
         whole = parts != "all"
         keep = stop * self._keep_from(d, parts) if stop > 0.0 else math.inf
+        threads = cell_threads(grid.capacity)
         cells = (grid.cell_start, grid.coarse, f.bound, grid.parts)
-        settle = (f, stop, keep, *cells, grid.work, grid.work_count)
+        settle = (f, stop, keep, threads, *cells, grid.work, grid.work_count)
         wp.launch(
-            kernels.whole_settle if whole else kernels.bound_settle,
-            grid.capacity,
-            settle,
-            device=dev,
+            kernels.whole_settle if whole else kernels.bound_settle, threads, settle, device=dev
         )
-        walk = (f, stop, grid.work, grid.work_count, f.bound, grid.parts)
-        wp.launch(kernels.whole_bound if whole else kernels.bound, grid.capacity, walk, device=dev)
+        walk = (f, stop, threads, grid.work, grid.work_count, f.bound, grid.parts)
+        wp.launch(kernels.whole_bound if whole else kernels.bound, threads, walk, device=dev)
         if view is not None:
             self._walk_view(kernels, f, stop, view)
         self._grid.build_bricks()
@@ -870,8 +868,9 @@ class Renderer(ImageOutputs):
         marks = (grid.info, cam, stride, cols, rows, visibility.DEPTH, stop, grid.cell_start)
         args = (*marks, f.bound, grid.parts, grid.work, grid.work_count)
         wp.launch(visibility.mark_kernel, cols * rows, args, device=dev)
-        walk = (f, stop, grid.work, grid.work_count, f.bound, grid.parts)
-        wp.launch(kernels.bound, grid.capacity, walk, device=dev)
+        threads = cell_threads(grid.capacity)
+        walk = (f, stop, threads, grid.work, grid.work_count, f.bound, grid.parts)
+        wp.launch(kernels.bound, threads, walk, device=dev)
 
     def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:
         step = AO_STEP_SIGMAS * d.sigma

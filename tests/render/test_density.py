@@ -13,6 +13,7 @@ import warp as wp
 
 from protocol import RenderParams
 from server.render import colors, density
+from server.render import grid as grid_module
 from server.render.camera import fit_camera, orbit, quat_to_matrix
 from server.render.cells import WALKED
 from server.render.density import GaussianField
@@ -547,3 +548,27 @@ def test_part_bounds_mode_is_checked() -> None:
 def test_bound_keep_from_below_one_is_refused() -> None:
     with pytest.raises(RenderError, match=r"bound_keep_from must be >= 1, got 0\.5"):
         Renderer("cpu", bound_keep_from=0.5)
+
+
+@pytest.mark.parametrize("parts", ["all", "visible", "none"])
+def test_cell_kernels_that_stride_over_the_cells_give_the_same_bounds(
+    device: str, parts: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The per-cell kernels (weights, spread, settle, walks) launch at most CELL_THREADS
+    threads, each striding over the cells beyond: with a few threads, every cell's bound,
+    its parts and the image are those of a thread per cell."""
+    top, pos = _two_lumps()
+    params = RenderParams()
+    cam = fit_camera(pos, 48, 32)
+    runs = []
+    for threads in (grid_module.CELL_THREADS, 37):
+        monkeypatch.setattr(grid_module, "CELL_THREADS", threads)
+        r = render(device, top, pos, params, cam, 48, 32, part_bounds=parts)
+        cells = int(np.prod(r.grid_info()["dims"]))
+        assert cells > 37 * 10
+        # copies: on the CPU an array's numpy() views memory freed with the renderer
+        bounds = r._grid.cell_values.numpy()[:cells].copy()
+        words = r._grid.parts.numpy()[:cells].copy()
+        runs.append((bounds, words, r.read_rgba(), r.read_depth()))
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
