@@ -523,38 +523,24 @@ class Bench:
         cam: Camera,
         w: int,
         h: int,
+        turn: float = 0.0,
     ) -> Callable[[int], dict[str, float]]:
+        """One timed frame of new positions (written into the page-locked buffer before the
+        clock starts, as the server's decoder does), or with `turn` > 0 of still positions
+        seen by a camera turning `turn` degrees of yaw a frame (a steerer dragging the view
+        of a paused simulation)."""
         buf = r.host_positions()
+        if turn > 0:
+            r.set_positions(frames[0])
 
         def step(i: int) -> dict[str, float]:
-            np.copyto(buf, frames[i % len(frames)])
+            view = orbit(cam, turn * i, 0.0) if turn > 0 else cam
+            if turn <= 0:
+                np.copyto(buf, frames[i % len(frames)])
             t0 = time.perf_counter()
-            # as in the server, where the protocol decoder has already checked finiteness
-            r.set_positions(buf, check_finite=False)
-            r.render(params, cam, w, h)
-            st = dict(r.timings)
-            st["wall"] = (time.perf_counter() - t0) * 1e3
-            return st
-
-        return step
-
-    def turn_step(
-        self,
-        r: Renderer,
-        frames: list[np.ndarray],
-        params: RenderParams,
-        cam: Camera,
-        w: int,
-        h: int,
-        degrees: float,
-    ) -> Callable[[int], dict[str, float]]:
-        """Frames of a still system seen by a turning camera (`degrees` of yaw a frame), as a
-        steerer sees a paused simulation while dragging the view."""
-        r.set_positions(frames[0])
-
-        def step(i: int) -> dict[str, float]:
-            view = orbit(cam, degrees * i, 0.0)
-            t0 = time.perf_counter()
+            if turn <= 0:
+                # as in the server, where the protocol decoder has already checked finiteness
+                r.set_positions(buf, check_finite=False)
             r.render(params, view, w, h)
             st = dict(r.timings)
             st["wall"] = (time.perf_counter() - t0) * 1e3
@@ -761,10 +747,7 @@ class Bench:
                 r, frames = self.renderer(n, **kw)
                 cam = fit_camera(frames[0], w, h)
                 turn = float(self.args.variant_turn)
-                if turn > 0:
-                    step = self.turn_step(r, frames, params, cam, w, h, turn)
-                else:
-                    step = self.frame_step(r, frames, params, cam, w, h)
+                step = self.frame_step(r, frames, params, cam, w, h, turn)
                 st = self.timed(step, self.args.frames)
                 self.results.setdefault("variants", []).append(
                     {"n_atoms": n, "width": w, "height": h, "label": label, "options": kw,

@@ -410,6 +410,44 @@ def walk_start(o: wp.vec3, d: wp.vec3, t: float, g: GridInfo):
 
 @wp.func
 @no_type_check
+def next_cell(
+    g: GridInfo,
+    cx: int,
+    cy: int,
+    cz: int,
+    tx: float,
+    ty: float,
+    tz: float,
+    sx: int,
+    sy: int,
+    sz: int,
+    dtx: float,
+    dty: float,
+    dtz: float,
+):
+    """One DDA step: the cell the ray enters next, the parameters of its next boundaries,
+    and 1 while that cell is inside the grid."""
+    inside = wp.int32(1)
+    if tx <= ty and tx <= tz:
+        cx += sx
+        tx += dtx
+        if cx < 0 or cx >= g.dims[0]:
+            inside = 0
+    elif ty <= tz:
+        cy += sy
+        ty += dty
+        if cy < 0 or cy >= g.dims[1]:
+            inside = 0
+    else:
+        cz += sz
+        tz += dtz
+        if cz < 0 or cz >= g.dims[2]:
+            inside = 0
+    return cx, cy, cz, tx, ty, tz, inside
+
+
+@wp.func
+@no_type_check
 def walk(
     bound: wp.array[float],
     parts: wp.array[wp.int32],
@@ -494,21 +532,10 @@ def walk(
             left -= 1
             if t_exit >= t1 or left <= 0:
                 active = 0
-            elif tx <= ty and tx <= tz:
-                cx += sx
-                tx += dtx
-                if cx < 0 or cx >= g.dims[0]:
-                    active = 0
-            elif ty <= tz:
-                cy += sy
-                ty += dty
-                if cy < 0 or cy >= g.dims[1]:
-                    active = 0
             else:
-                cz += sz
-                tz += dtz
-                if cz < 0 or cz >= g.dims[2]:
-                    active = 0
+                cx, cy, cz, tx, ty, tz, active = next_cell(
+                    g, cx, cy, cz, tx, ty, tz, sx, sy, sz, dtx, dty, dtz
+                )
     return k, cx, cy, cz, tx, ty, tz, left, jumped, active
 
 

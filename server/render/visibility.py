@@ -19,7 +19,7 @@ import warp as wp
 
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.cells import WALKED, GridInfo
-from server.render.raycast import CameraData, camera_ray, clip_box, walk_start
+from server.render.raycast import CameraData, camera_ray, clip_box, next_cell, walk_start
 
 wp.set_module_options({"enable_backward": False})
 
@@ -86,21 +86,9 @@ def mark_kernel(
                 else:
                     wp.atomic_and(parts, c, _UNWALKED)
         left -= 1
-        t_exit = wp.min(wp.min(tx, ty), tz)
-        if going == 0 or t_exit >= t1 or left <= 0:
+        if going == 0 or wp.min(wp.min(tx, ty), tz) >= t1 or left <= 0:
             going = 0
-        elif tx <= ty and tx <= tz:
-            cx += sx
-            tx += dtx
-            if cx < 0 or cx >= g.dims[0]:
-                going = 0
-        elif ty <= tz:
-            cy += sy
-            ty += dty
-            if cy < 0 or cy >= g.dims[1]:
-                going = 0
         else:
-            cz += sz
-            tz += dtz
-            if cz < 0 or cz >= g.dims[2]:
-                going = 0
+            cx, cy, cz, tx, ty, tz, going = next_cell(
+                g, cx, cy, cz, tx, ty, tz, sx, sy, sz, dtx, dty, dtz
+            )
