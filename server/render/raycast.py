@@ -1151,7 +1151,8 @@ class RaycastKernels:
     whole_settle: Any
     whole_bound: Any
     """The cell-bound kernels without parts (the same as the two above when `parts` is
-    False): the cells a view does not mark take these (visibility.py)."""
+    False): with part bounds for the view, every cell takes these first, and the cells the
+    view reaches then walk again with `bound` (visibility.py)."""
     evaluate: Any
     histogram: Any
     iso_march: Any
@@ -1220,9 +1221,10 @@ def _bound_kernels(field: Any, walked: Any, options: dict[str, Any]) -> tuple[An
         cell whose coarse bound (CellGrid.build_coarse, no walk) is already below the level
         keeps it, and so does one whose coarse bound is `keep_from` or more: a walk there
         rarely ends below the level. The other cells, empty ones near the atoms, are listed
-        in `work` for `bound_kernel` to walk in full warps (walked here only when the list is
-        full). Only walked cells know parts below the level (`parts`, which may share the
-        memory of `coarse`: each cell reads its coarse bound before it writes its parts).
+        in `work` for the `bound_kernel` made with the same walk to walk in full warps
+        (walked here only when the list is full). Only walked cells know parts below the
+        level (`parts`, which may share the memory of `coarse`: each cell reads its coarse
+        bound before it writes its parts).
         `threads` threads stride over the grid's cells (grid.cell_threads)."""
         c = wp.tid()
         g = f.info[0]

@@ -17,7 +17,7 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -80,18 +80,20 @@ outweighs the samples they save (one H200 at 1920x1080: 10M atoms 19.2 ms a fram
 walking them all, 100M atoms 42.4 against 46.4 pipelined, 1M atoms even); the warped density's
 coarse bound ignores the warp, so there walking them all is faster (1M atoms 18.6 against 19.5)."""
 PART_ATOMS = 1_500_000
-"""Below this many atoms the walked cells also mark which of their 27 parts are below the
-level, and every open cell is walked (`part_bounds=None`: "all"): the rays skip the samples
-there. Those walks cost in proportion to the atoms, the samples they save to the surface in
-view (one H200 at 1920x1080: 100k atoms 4.9 ms a frame against 6.1, 1M 8.7 against 9.7, 3M
-14.7 against 12.9, 10M 31.3 against 19.0; benchmarks/README.md, "Render core, round three")."""
+"""Below this many atoms (and below `VISIBLE_ATOMS` for iso frames) the walked cells also
+mark which of their 27 parts are below the level, and every open cell is walked
+(`part_bounds=None`: "all"): the rays skip the samples there. Those walks cost in proportion
+to the atoms, the samples they save to the surface in view (one H200 at 1920x1080: 100k atoms
+4.9 ms a frame against 6.1, 1M 8.7 against 9.7, 3M 14.7 against 12.9, 10M 31.3 against 19.0;
+benchmarks/README.md, "Render core, round three")."""
 VISIBLE_ATOMS = 500_000
 """From this many atoms an iso frame walks for part bounds only the cells its view reaches
 ("visible", visibility.py; the other cells walk whole): one H200 at 1920x1080, new positions
 every frame, 1M atoms 7.30 ms against 7.91 walking every open cell, 3M 10.35 against 11.52
-with whole cells, 10M 15.60 against 17.29; 300k atoms even, 100k 4.81 against 4.52
+with whole cells, 10M 15.60 against 17.28; 300k atoms even, 100k 4.81 against 4.52
 (benchmarks/README.md, "Render core, round five")."""
-PART_MODES = ("all", "visible", "none")
+PartMode = Literal["all", "visible", "none"]
+PART_MODES: tuple[PartMode, ...] = ("all", "visible", "none")
 """`part_bounds`: every open cell walked for its part bounds, only those the view reaches
 (the others walk whole), or whole cells only (empty cells far above the level keep their
 coarse bound: `BOUND_KEEP_FROM`)."""
@@ -194,7 +196,7 @@ class Renderer(ImageOutputs):
         double_buffer: bool | None = None,
         bound_keep_from: float | None = None,
         grid_sort: str = "counting",
-        part_bounds: str | None = None,
+        part_bounds: PartMode | None = None,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
@@ -675,7 +677,7 @@ class Renderer(ImageOutputs):
         model = self._density if d.warp is None else warped.WARPED
         return self._kernels_of_model(model, self._parts_for(d, mode) != "none")
 
-    def _parts_for(self, d: Derived, mode: str) -> str:
+    def _parts_for(self, d: Derived, mode: str) -> PartMode:
         """Which cells walk for part bounds in a frame of render mode `mode` (`PART_MODES`):
         none for a density without part bounds; else `part_bounds`, else from
         `VISIBLE_ATOMS` atoms the cells the view reaches in iso mode (volume rays go on past
@@ -766,7 +768,7 @@ class Renderer(ImageOutputs):
             return 1.0
         return CELLS_PER_CUTOFF[_model_name(d)]
 
-    def _keep_from(self, d: Derived, parts: str) -> float:
+    def _keep_from(self, d: Derived, parts: PartMode) -> float:
         """The multiple of the level from which empty cells keep their coarse bound (with
         part bounds in every open cell, all are walked: the parts of the cells near the atoms
         save the most samples)."""
@@ -774,9 +776,10 @@ class Renderer(ImageOutputs):
             return self.bound_keep_from
         return math.inf if parts == "all" else BOUND_KEEP_FROM[_model_name(d)]
 
-    def _grid_key_for(self, d: Derived, stop: float) -> tuple[Any, ...] | None:
-        """The key of the grid this frame needs, or None when the last one still holds."""
-        key = (self._positions_version, d, self._cells_for(d), stop)
+    def _grid_key_for(self, d: Derived, stop: float, mode: str) -> tuple[Any, ...] | None:
+        """The key of the grid this frame needs (render mode `mode`), or None when the last
+        one still holds."""
+        key = (self._positions_version, d, self._cells_for(d), stop, self._parts_for(d, mode))
         return None if key == self._grid_key else key
 
     def _view_of(self, d: Derived, mode: str, stop: float, view: View) -> View | None:
@@ -868,7 +871,7 @@ class Renderer(ImageOutputs):
         marks = (grid.info, cam, stride, cols, rows, visibility.DEPTH, stop, grid.cell_start)
         args = (*marks, f.bound, grid.parts, grid.work, grid.work_count)
         wp.launch(visibility.mark_kernel, cols * rows, args, device=dev)
-        threads = cell_threads(grid.capacity)
+        threads = min(cell_threads(grid.capacity), int(grid.work.shape[0]))
         walk = (f, stop, threads, grid.work, grid.work_count, f.bound, grid.parts)
         wp.launch(kernels.bound, threads, walk, device=dev)
 
@@ -1044,12 +1047,12 @@ class Renderer(ImageOutputs):
         stop = self._stop_level(params, d)
         f = self._field(d)
         ev = self._events if self._cuda else None
-        grid_key = self._grid_key_for(d, stop) if self._n else None
+        grid_key = self._grid_key_for(d, stop, params.mode) if self._n else None
+        if grid_key is not None or not self._n:
+            self._views_walked.clear()
         # a grid with part bounds for the view walks the cells each new view adds
         walk_view = False
         if self._n and self._view_of(d, params.mode, stop, (frame, tile)) is not None:
-            if grid_key is not None:
-                self._views_walked.clear()
             view_key = (cam_seen[4], tile)
             walk_view = view_key not in self._views_walked
             if len(self._views_walked) >= VIEWS_KEPT:
@@ -1146,7 +1149,7 @@ class Renderer(ImageOutputs):
             self._grid.invalidate()
             self._grid_key = None
         else:
-            key = self._grid_key_for(d, stop)
+            key = self._grid_key_for(d, stop, params.mode)
             if key is not None:
                 self._views_walked.clear()
                 self._build_grid(d, f, stop, params.mode, None)
