@@ -256,8 +256,8 @@ class Renderer(ImageOutputs):
         self._have_positions = False
         self._positions_version = 0
         self._grid_key: tuple[Any, ...] | None = None
-        self._views_walked: set[tuple[Any, ...]] = set()
-        """Views whose cells have walked for their parts since the grid was built."""
+        self._views_walked: tuple[tuple[Any, ...] | None, set[tuple[Any, ...]]] = (None, set())
+        """The key of a grid and the views whose cells have walked for their parts on it."""
         self._color_key: tuple[Any, ...] | None = None
         self._tf_key: tuple[Any, ...] | None = None
         self._tf = transfer.build_table()
@@ -888,14 +888,15 @@ class Renderer(ImageOutputs):
         frame: CameraFrame,
         build: bool,
         tile: tuple[int, int, int, int] | None = None,
+        view: View | None = None,
         walk_view: bool = False,
     ) -> float:
         """Every device operation of one frame after the upload, in order: the same calls run
         eagerly or into a graph capture. Returns the host time at the grid/cast boundary.
-        `walk_view`: the grid stays, and the cells this view adds walk for their parts."""
+        `view`: the view the cell bounds follow (`_view_of`); `walk_view`: the grid stays,
+        and the cells this view adds walk for their parts."""
         dev = self.device
         k = self._kernels_of(d, params.mode)
-        view = self._view_of(d, params.mode, stop, (frame, tile))
         if build:
             self._build_grid(d, f, stop, params.mode, view)
         elif walk_view and view is not None:
@@ -1048,16 +1049,18 @@ class Renderer(ImageOutputs):
         f = self._field(d)
         ev = self._events if self._cuda else None
         grid_key = self._grid_key_for(d, stop, params.mode) if self._n else None
-        if grid_key is not None or not self._n:
-            self._views_walked.clear()
         # a grid with part bounds for the view walks the cells each new view adds
+        view = self._view_of(d, params.mode, stop, (frame, tile)) if self._n else None
         walk_view = False
-        if self._n and self._view_of(d, params.mode, stop, (frame, tile)) is not None:
+        if view is not None:
+            current = grid_key if grid_key is not None else self._grid_key
+            on, walked = self._views_walked
+            if on != current or len(walked) >= VIEWS_KEPT:
+                walked = set()
+                self._views_walked = (current, walked)
             view_key = (cam_seen[4], tile)
-            walk_view = view_key not in self._views_walked
-            if len(self._views_walked) >= VIEWS_KEPT:
-                self._views_walked.clear()
-            self._views_walked.add(view_key)
+            walk_view = view_key not in walked
+            walked.add(view_key)
         if not self._n:
             self._grid.invalidate()
             self._grid_key = None
@@ -1066,7 +1069,16 @@ class Renderer(ImageOutputs):
             self._stream.record_event(ev[0])
         t_grid = time.perf_counter()
         launch = functools.partial(
-            self._launch_frame, params, d, f, stop, frame, grid_key is not None, tile, walk_view
+            self._launch_frame,
+            params,
+            d,
+            f,
+            stop,
+            frame,
+            grid_key is not None,
+            tile,
+            view,
+            walk_view,
         )
         if self._graphs is not None:
             clipped = params.mode == "volume" and self.depth_limit is not None
@@ -1151,7 +1163,6 @@ class Renderer(ImageOutputs):
         else:
             key = self._grid_key_for(d, stop, params.mode)
             if key is not None:
-                self._views_walked.clear()
                 self._build_grid(d, f, stop, params.mode, None)
                 self._grid_key = key
         self._last = (params, d)
