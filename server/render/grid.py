@@ -325,18 +325,21 @@ def spread_kernel(
     if g.valid == 0:
         return
     reach = int(wp.ceil(g.reach * g.inv_h))
+    n = g.dims[axis]
+    stride = 1
+    if axis == 1:
+        stride = g.dims[0]
+    elif axis == 2:
+        stride = g.dims[0] * g.dims[1]
     while c < g.ncells:
-        i = c % g.dims[0]
-        n = g.dims[0]
-        stride = 1
-        if axis == 1:
-            i = (c // g.dims[0]) % g.dims[1]
-            n = g.dims[1]
-            stride = g.dims[0]
-        elif axis == 2:
-            i = c // (g.dims[0] * g.dims[1])
-            n = g.dims[2]
-            stride = g.dims[0] * g.dims[1]
+        # the cell's index along the axis (no more integer divisions than the axis needs)
+        i = wp.int32(0)
+        if axis == 0:
+            i = c % n
+        elif axis == 1:
+            i = (c // stride) % n
+        else:
+            i = c // stride
         s = float(0.0)
         for k in range(-reach, reach + 1):
             j = i + k

@@ -1170,37 +1170,6 @@ def _bound_kernels(field: Any, walked: Any, options: dict[str, Any]) -> tuple[An
     registers."""
     Field = field
 
-    @wp.func
-    @no_type_check
-    def settle(
-        f: Field,
-        c: int,
-        stop_above: float,
-        keep_from: float,
-        cell_start: wp.array[wp.int32],
-        coarse: wp.array[float],
-        out: wp.array[float],
-        parts: wp.array[wp.int32],
-        work: wp.array[wp.int32],
-        work_count: wp.array[wp.int32],
-    ):
-        if cell_start[c + 1] > cell_start[c]:
-            out[c] = wp.inf
-            parts[c] = 0
-            return
-        b = coarse[c]
-        if b < stop_above or b >= keep_from:
-            out[c] = b
-            parts[c] = 0
-            return
-        slot = wp.atomic_add(work_count, 0, 1)
-        if slot < work.shape[0]:
-            work[slot] = c
-        else:
-            bound, mask = walked(f, c, stop_above)
-            out[c] = bound
-            parts[c] = mask
-
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     @no_type_check
     def bound_settle_kernel(
@@ -1231,7 +1200,22 @@ def _bound_kernels(field: Any, walked: Any, options: dict[str, Any]) -> tuple[An
         if g.valid == 0:
             return
         while c < g.ncells:
-            settle(f, c, stop_above, keep_from, cell_start, coarse, out, parts, work, work_count)
+            if cell_start[c + 1] > cell_start[c]:
+                out[c] = wp.inf
+                parts[c] = 0
+            else:
+                b = coarse[c]
+                if b < stop_above or b >= keep_from:
+                    out[c] = b
+                    parts[c] = 0
+                else:
+                    slot = wp.atomic_add(work_count, 0, 1)
+                    if slot < work.shape[0]:
+                        work[slot] = c
+                    else:
+                        bound, mask = walked(f, c, stop_above)
+                        out[c] = bound
+                        parts[c] = mask
             c += threads
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
