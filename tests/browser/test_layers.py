@@ -26,6 +26,13 @@ from tests.conftest import LiveServer
 pytestmark = pytest.mark.browser
 
 
+def enter(page: Any, selector: str, text: str) -> None:
+    """Type `text` into the field and press Enter, as a steerer applies a value."""
+    field = page.locator(selector)
+    field.fill(text)
+    field.press("Enter")
+
+
 def test_a_typed_selection_is_counted_checked_and_drawn(
     open_dashboard: OpenDashboard,
     simulation: OpenMMSimulation,
@@ -68,10 +75,8 @@ def test_a_typed_selection_is_counted_checked_and_drawn(
     # a second, finer layer; then the viewer's page shows both, read-only
     page.click("#layer-add")
     wait_until(lambda: len(session(live_server).render_params.layers) == 2, "two layers")
-    page.locator("#layer-1-selection").fill("resid 13-35")
-    page.locator("#layer-1-selection").press("Enter")
-    page.locator("#layer-1-sigma").fill("0.6")
-    page.locator("#layer-1-sigma").press("Enter")
+    enter(page, "#layer-1-selection", "resid 13-35")
+    enter(page, "#layer-1-sigma", "0.6")
     wait_until(lambda: session(live_server).render_params.layers[1].sigma_A == 0.6, "layer 2 sigma")
     page.screenshot(path=str(artifacts / "dashboard-layers.png"))
     viewer = open_dashboard("viewer")
@@ -143,15 +148,13 @@ def test_a_late_state_does_not_take_back_a_later_edit(
     wait_until(lambda: len(session(live_server).render_params.layers) == 1, "the layer arrived")
     expect(page.locator("#layer-0-selection")).to_have_value("protein")
     link.held = True
-    page.locator("#layer-0-selection").fill("resid 1-12")
-    page.locator("#layer-0-selection").press("Enter")
+    enter(page, "#layer-0-selection", "resid 1-12")
     wait_until(
         lambda: session(live_server).render_params.layers[0].selection == "resid 1-12",
         "the selection reached the session",
         page=page,
     )
-    page.locator("#layer-0-sigma").fill("0.6")
-    page.locator("#layer-0-sigma").press("Enter")
+    enter(page, "#layer-0-sigma", "0.6")
     wait_until(
         lambda: session(live_server).render_params.layers[0].sigma_A == 0.6,
         "the scale reached the session",
@@ -167,8 +170,7 @@ def test_a_late_state_does_not_take_back_a_later_edit(
     page.wait_for_timeout(300)
     expect(page.locator("#layer-0-sigma")).to_have_value("0.6")
     # an edit after all that builds on the whole list: the scale stays in the session
-    page.locator("#layer-0-name").fill("N-terminus")
-    page.locator("#layer-0-name").press("Enter")
+    enter(page, "#layer-0-name", "N-terminus")
     wait_until(
         lambda: session(live_server).render_params.layers[0].name == "N-terminus",
         "name",
@@ -191,8 +193,7 @@ def test_a_change_made_while_a_layer_field_has_the_focus_shows_when_it_leaves(
     other = open_dashboard().page
     expect(other.locator("#layer-0-name")).to_have_value("layer 1")
     page.locator("#layer-0-selection").focus()
-    other.locator("#layer-0-name").fill("backbone")
-    other.locator("#layer-0-name").press("Enter")
+    enter(other, "#layer-0-name", "backbone")
     wait_until(lambda: session(live_server).render_params.layers[0].name == "backbone", "rename")
     page.wait_for_timeout(1000)  # the rename's state has reached this page by now
     expect(page.locator("#layer-0-name")).to_have_value("layer 1")  # left alone while focused
