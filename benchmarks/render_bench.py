@@ -1439,7 +1439,14 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.visible_rays:
         # the marking rays of "visible" part bounds, for sweeps (module constants)
-        stride, depth = (int(v) for v in args.visible_rays.split(":"))
+        try:
+            stride, depth = (int(v) for v in args.visible_rays.split(":"))
+        except ValueError:
+            stride = depth = 0
+        if stride < 1 or depth < 1:
+            p.error(
+                f"--visible-rays takes STRIDE:DEPTH, two integers >= 1, got {args.visible_rays!r}"
+            )
         visibility.STRIDE, visibility.DEPTH = stride, depth
     if args.table:
         print(table(Path(args.table)), end="")

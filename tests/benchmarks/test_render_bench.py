@@ -69,3 +69,16 @@ def test_variants_of_a_turning_camera_record_their_options(tmp_path: Path) -> No
     assert [(v["label"], v["turn_deg"]) for v in rows] == [("whole", 5.0), ("view", 5.0)]
     # still positions: nothing is uploaded after the first (warm-up) frame
     assert all(v["stages_ms"]["upload"] == 0.0 for v in rows)
+
+
+def test_marking_rays_that_are_not_two_positive_integers_are_refused() -> None:
+    for bad in ("2", "2:0", "two:4"):
+        run = subprocess.run(
+            [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), "--visible-rays", bad],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert run.returncode == 2, bad
+        assert f"--visible-rays takes STRIDE:DEPTH, two integers >= 1, got '{bad}'" in run.stderr
