@@ -92,6 +92,17 @@ VISIBLE_ATOMS = 500_000
 every frame, 1M atoms 7.30 ms against 7.91 walking every open cell, 3M 10.35 against 11.52
 with whole cells, 10M 15.60 against 17.28; 300k atoms even, 100k 4.81 against 4.52
 (benchmarks/README.md, "Render core, round five")."""
+VIEW_ATOMS = 700_000
+STILL_VIEWS = 8
+"""Views over one set of positions each walk the cells they add to a "visible" grid, so an
+automatic iso grid below `LARGE_ATOMS` atoms walks every open cell ("all") once its positions
+are seen by many views: at least max(2, ceil(n / VIEW_ATOMS)) views of the positions before
+(viewers with cameras of their own over a streamed system: the next grid walks every cell),
+or that many and at least `STILL_VIEWS` views of these positions (a camera turning over a
+paused system: the grid is built again). One H200 at 1920x1080: walking every open cell costs
+0.6 ms more than the cells of one view at 1M atoms, 3.5 at 3M, 14.6 at 10M and 30.7 at 20M,
+and then saves 0.5, 0.7, 0.9 and 1.4 ms on each further view (benchmarks/README.md, "Render
+core, round six"; from `LARGE_ATOMS` the grid has one cell per cutoff and no part bounds)."""
 PartMode = Literal["all", "visible", "none"]
 PART_MODES: tuple[PartMode, ...] = ("all", "visible", "none")
 """`part_bounds`: every open cell walked for its part bounds, only those the view reaches
@@ -174,8 +185,9 @@ class Renderer(ImageOutputs):
     `grid_sort` is how the grid puts atoms in cell order each frame ("counting" or "radix",
     the same order; grid.py); `part_bounds` has the walked cells mark which of their parts
     are below the level, for the rays to skip the samples there (the same image; one of
-    `PART_MODES`; None: "visible" from `VISIBLE_ATOMS` atoms in iso mode, else "all" below
-    `PART_ATOMS` atoms and "none" from there).
+    `PART_MODES`; None: "visible" from `VISIBLE_ATOMS` atoms in iso mode, "all" there too
+    for positions seen by many views (`STILL_VIEWS`), else "all" below `PART_ATOMS` atoms
+    and "none" from there).
     """
 
     def __init__(
@@ -258,6 +270,9 @@ class Renderer(ImageOutputs):
         self._grid_key: tuple[Any, ...] | None = None
         self._views_walked: tuple[tuple[Any, ...] | None, set[tuple[Any, ...]]] = (None, set())
         """The key of a grid and the views whose cells have walked for their parts on it."""
+        self._views_seen: tuple[int, set[tuple[Any, ...]], int] = (-1, set(), 0)
+        """The positions version rendered last, its distinct views (a few counted) and how
+        many views the version rendered before it had (`_many_views`)."""
         self._color_key: tuple[Any, ...] | None = None
         self._tf_key: tuple[Any, ...] | None = None
         self._tf = transfer.build_table()
@@ -681,15 +696,40 @@ class Renderer(ImageOutputs):
         """Which cells walk for part bounds in a frame of render mode `mode` (`PART_MODES`):
         none for a density without part bounds; else `part_bounds`, else from
         `VISIBLE_ATOMS` atoms the cells the view reaches in iso mode (volume rays go on past
-        the surface), else every open cell below `PART_ATOMS` atoms and none from there."""
+        the surface; every open cell for positions seen by many views, `_many_views`), else
+        every open cell below `PART_ATOMS` atoms and none from there."""
         model = self._density if d.warp is None else warped.WARPED
         if model.part_bounds is None:
             return "none"
         if self.part_bounds is not None:
             return self.part_bounds
         if self._n >= VISIBLE_ATOMS and mode == "iso":
-            return "visible"
+            return "all" if self._many_views() else "visible"
         return "all" if self._n < PART_ATOMS else "none"
+
+    def _views_needed(self) -> int:
+        """Views of one set of positions from which walking every open cell pays (`VIEW_ATOMS`)."""
+        return max(2, -(-self._n // VIEW_ATOMS))
+
+    def _count_view(self, view_key: tuple[Any, ...]) -> None:
+        """Count a view of the current positions (up to what `_many_views` asks)."""
+        version, views, before = self._views_seen
+        if version != self._positions_version:
+            version, views, before = self._positions_version, set(), len(views)
+        if len(views) < max(self._views_needed(), STILL_VIEWS):
+            views.add(view_key)
+        self._views_seen = (version, views, before)
+
+    def _many_views(self) -> bool:
+        """Whether an automatic iso grid walks every open cell for the views of its positions:
+        below `LARGE_ATOMS` atoms, when the positions before had `_views_needed` views, or these
+        have had as many and at least `STILL_VIEWS`."""
+        if self._n >= LARGE_ATOMS:
+            return False
+        need = self._views_needed()
+        version, views, before = self._views_seen
+        now = len(views) if version == self._positions_version else 0
+        return before >= need or now >= max(need, STILL_VIEWS)
 
     def _kernels_of_model(self, model: DensityModel, parts: bool) -> raycast.RaycastKernels:
         key = (model.name, parts)
@@ -1048,6 +1088,7 @@ class Renderer(ImageOutputs):
         stop = self._stop_level(params, d)
         f = self._field(d)
         ev = self._events if self._cuda else None
+        self._count_view((cam_seen[4], tile))
         grid_key = self._grid_key_for(d, stop, params.mode) if self._n else None
         # a grid with part bounds for the view walks the cells each new view adds
         view = self._view_of(d, params.mode, stop, (frame, tile)) if self._n else None

@@ -14,6 +14,7 @@ import warp as wp
 from protocol import RenderParams
 from server.render import colors, density
 from server.render import grid as grid_module
+from server.render import renderer as renderer_module
 from server.render.camera import fit_camera, orbit, quat_to_matrix
 from server.render.cells import PART_BITS, WALKED
 from server.render.density import GaussianField
@@ -538,6 +539,38 @@ def test_visible_part_bounds_follow_the_view(device: str) -> None:
     assert len(front) > 20 and side(front) > 0
     assert front < both and side(both - front) < 0
     assert len(rear) > 20 and side(rear) < 0
+
+
+def test_positions_seen_by_many_views_walk_every_open_cell(
+    device: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """By default a large system's grid walks the parts of the cells its views reach. Once
+    STILL_VIEWS views have seen one set of positions (a turning camera), the grid is built
+    again walking every open cell, as "all" does; new positions after them start so too (they
+    are likely seen by as many views), and positions after one view go back to the view's
+    cells. Every image is that of whole cells, bit for bit."""
+    monkeypatch.setattr(renderer_module, "VISIBLE_ATOMS", 1)
+    monkeypatch.setattr(renderer_module, "STILL_VIEWS", 3)
+    top, pos = _two_lumps()
+    params = RenderParams()
+    cam = fit_camera(pos, 64, 48)
+    every = _walked_parts(render(device, top, pos, params, cam, 64, 48, part_bounds="all"))
+    r = Renderer(device)
+    r.set_topology(top)
+    counts = []
+    for fresh, yaw in ((True, 0.0), (False, 30.0), (False, 60.0), (True, 0.0), (True, 0.0)):
+        if fresh:
+            r.set_positions(pos)
+        view = orbit(cam, yaw, 0.0)
+        r.render(params, view, 64, 48)
+        ref = render(device, top, pos, params, view, 64, 48, part_bounds="none")
+        np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
+        np.testing.assert_array_equal(r.read_depth(), ref.read_depth())
+        counts.append(len(_walked_parts(r)))
+    seen, grown, third, after_many, after_one = counts
+    assert 0 < seen < grown < len(every), counts
+    assert third == after_many == len(every), counts
+    assert after_one == seen, counts
 
 
 def test_part_bounds_mode_is_checked() -> None:
