@@ -524,25 +524,31 @@ class Bench:
         w: int,
         h: int,
         turn: float = 0.0,
+        views: int = 1,
     ) -> Callable[[int], dict[str, float]]:
         """One timed frame of new positions (written into the page-locked buffer before the
         clock starts, as the server's decoder does), or with `turn` > 0 of still positions
         seen by a camera turning `turn` degrees of yaw a frame (a steerer dragging the view
-        of a paused simulation)."""
+        of a paused simulation). With `views` > 1 each frame is seen by that many cameras
+        around the system (viewers with cameras of their own): the times are their sums."""
         buf = r.host_positions()
         if turn > 0:
             r.set_positions(frames[0])
+        yaws = [360.0 * j / views for j in range(views)]
 
         def step(i: int) -> dict[str, float]:
-            view = orbit(cam, turn * i, 0.0) if turn > 0 else cam
             if turn <= 0:
                 np.copyto(buf, frames[i % len(frames)])
             t0 = time.perf_counter()
             if turn <= 0:
                 # as in the server, where the protocol decoder has already checked finiteness
                 r.set_positions(buf, check_finite=False)
-            r.render(params, view, w, h)
-            st = dict(r.timings)
+            st: dict[str, float] = {}
+            for yaw in yaws:
+                view = cam if turn <= 0 and yaw == 0.0 else orbit(cam, turn * i + yaw, 0.0)
+                r.render(params, view, w, h)
+                for k, v in r.timings.items():
+                    st[k] = st.get(k, 0.0) + v
             st["wall"] = (time.perf_counter() - t0) * 1e3
             return st
 
@@ -738,7 +744,8 @@ class Bench:
     ) -> None:
         """The same frames with each set of Renderer options (`--variants`, a JSON list of
         keyword sets, each with a "label"), one after the other: new positions every frame,
-        or (`--variant-turn` degrees) still positions and a turning camera."""
+        or (`--variant-turn` degrees) still positions and a turning camera, each frame seen
+        by `--variant-views` cameras."""
         for n, w, h in cases:
             for t in tries:
                 if self.clock.left() < 20:
@@ -747,12 +754,13 @@ class Bench:
                 r, frames = self.renderer(n, **kw)
                 cam = fit_camera(frames[0], w, h)
                 turn = float(self.args.variant_turn)
-                step = self.frame_step(r, frames, params, cam, w, h, turn)
+                views = int(self.args.variant_views)
+                step = self.frame_step(r, frames, params, cam, w, h, turn, views)
                 st = self.timed(step, self.args.frames)
                 self.results.setdefault("variants", []).append(
                     {"n_atoms": n, "width": w, "height": h, "label": label, "options": kw,
                      "params": params.model_dump(mode="json", exclude_defaults=True),
-                     "turn_deg": turn, **st}
+                     "turn_deg": turn, "views": views, **st}
                 )  # fmt: skip
                 self.save()
                 self.log(
@@ -1428,6 +1436,12 @@ def main(argv: list[str] | None = None) -> int:
         default=0.0,
         help="degrees the camera turns a frame over still positions (0: new positions a frame)",
     )
+    p.add_argument(
+        "--variant-views",
+        type=int,
+        default=1,
+        help="cameras around the system that see each frame (times are their sums)",
+    )
     p.add_argument("--scale-cells", default="2,1", help="cells per cutoff it tries")
     p.add_argument(
         "--scale-options", default="", help='JSON list of Renderer options with "label" (scale)'
@@ -1448,6 +1462,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"--visible-rays takes STRIDE:DEPTH, two integers >= 1, got {args.visible_rays!r}"
             )
         visibility.STRIDE, visibility.DEPTH = stride, depth
+    if args.variant_views < 1:
+        p.error(f"--variant-views must be >= 1, got {args.variant_views}")
     if args.table:
         print(table(Path(args.table)), end="")
         return 0

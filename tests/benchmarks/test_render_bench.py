@@ -71,6 +71,36 @@ def test_variants_of_a_turning_camera_record_their_options(tmp_path: Path) -> No
     assert all(v["stages_ms"]["upload"] == 0.0 for v in rows)
 
 
+def test_variants_seen_by_several_cameras_record_their_count(tmp_path: Path) -> None:
+    """`--variant-views` has every frame of new positions seen by that many cameras."""
+    out = tmp_path / "views.json"
+    args = ["--quick", "--device", "cpu", "--sections", "variants", "--variant-cases", "2000@48x32"]
+    args += ["--variants", '[{"label": "three"}]', "--variant-views", "3", "--budget-s", "3600"]
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), *args, "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    rows = json.loads(out.read_text())["variants"]
+    assert [(v["label"], v["views"], v["turn_deg"]) for v in rows] == [("three", 3, 0.0)]
+    assert rows[0]["stages_ms"]["upload"] > 0.0
+
+
+def test_camera_counts_below_one_are_refused() -> None:
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), "--variant-views", "0"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 2
+    assert "--variant-views must be >= 1, got 0" in run.stderr
+
+
 def test_marking_rays_that_are_not_two_positive_integers_are_refused() -> None:
     for bad in ("2", "2:0", "two:4"):
         run = subprocess.run(
