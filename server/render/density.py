@@ -619,20 +619,39 @@ def inv2s2_of(sigma_per_radius: float, radius: float) -> float:
 
 @wp.func
 @no_type_check
+def unsorted_exponent(f: UnsortedAtoms, i: int, a: wp.vec4, p: wp.vec3) -> float:
+    """d^2 / (2 s^2) of original atom i at p (a: its position and weight)."""
+    c = f.inv2s2_uniform
+    if f.per_atom != 0:
+        c = inv2s2_of(f.sigma_per_radius, f.radii[i])
+    return dist2(a, p) * c
+
+
+@wp.func
+@no_type_check
 def row_value_unsorted(f: UnsortedAtoms, p: wp.vec3, j0: int, j1: int, total: float) -> float:
     """`row_value` over sorted slots [j0, j1), each atom read through `order`: the same terms
-    in the same order, so the same sum."""
+    in the same order, so the same sum. Atoms are read two at a time, so the two chains of
+    dependent loads (slot, then position and weight) are in flight together."""
     s = total
-    for j in range(j0, j1):
+    j = j0
+    while j < j1:
         i = f.order[j]
+        i2 = i
+        if j + 1 < j1:
+            i2 = f.order[j + 1]
         q = f.positions[i]
+        q2 = f.positions[i2]
         a = wp.vec4(q[0], q[1], q[2], f.weights[i])
-        c = f.inv2s2_uniform
-        if f.per_atom != 0:
-            c = inv2s2_of(f.sigma_per_radius, f.radii[i])
-        e = dist2(a, p) * c
+        a2 = wp.vec4(q2[0], q2[1], q2[2], f.weights[i2])
+        e = unsorted_exponent(f, i, a, p)
         if e < f.half_k2:
             s += a[3] * kernel(e, f.inv_half_k2)
+        if j + 1 < j1:
+            e2 = unsorted_exponent(f, i2, a2, p)
+            if e2 < f.half_k2:
+                s += a2[3] * kernel(e2, f.inv_half_k2)
+        j += 2
     return s
 
 
@@ -641,6 +660,9 @@ _walk_value_unsorted = cell_rows(
 )
 
 
+MEAN_BLOCK = 64
+"""Threads per block of `mean_density_kernel`: its few thousand threads, each bound by the
+latency of its own loads, spread over more multiprocessors than blocks of 256 would reach."""
 MEAN_LANES = 64
 """Partial sums of the mean density at the sampled atoms (a fixed order: the same frame
 gives the same scale bit for bit, where atomic float adds would not)."""

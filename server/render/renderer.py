@@ -29,6 +29,7 @@ from server.render import device as devmod
 from server.render.camera import CameraFrame, camera_frame
 from server.render.density import (
     GAUSSIAN,
+    MEAN_BLOCK,
     MEAN_LANES,
     DensityModel,
     GaussianField,
@@ -852,7 +853,7 @@ class Renderer(ImageOutputs):
             u.inv_half_k2 = 1.0 / d.half_k2
             u.per_atom = d.per_atom
             mean = (u, n // samples, self._density_samples)
-            wp.launch(mean_density_kernel, samples, mean, device=dev)
+            wp.launch(mean_density_kernel, samples, mean, device=dev, block_dim=MEAN_BLOCK)
             partial = (self._density_samples, samples, self._density_partial)
             wp.launch(partial_sums_kernel, MEAN_LANES, partial, device=dev)
             wp.launch(total_kernel, 1, (self._density_partial, self._density_total), device=dev)

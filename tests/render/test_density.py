@@ -287,6 +287,24 @@ def test_vdw_mode_widens_big_atoms(device: str) -> None:
     np.testing.assert_allclose(vals, np.exp(-(1.5**2) / (2 * np.array([s_h, s_s]) ** 2)), rtol=1e-5)
 
 
+@pytest.mark.parametrize("radius_mode", ["uniform", "vdw"])
+def test_the_scale_of_relative_levels_is_the_mean_density_at_the_sampled_atoms(
+    device: str, radius_mode: str
+) -> None:
+    """Relative levels divide by the mean density at every (n // 4096)-th atom, each summed
+    through the grid over the unsorted atoms: every sample matches the reference density."""
+    top, pos = _two_lumps()
+    params = RenderParams(radius_mode=radius_mode)  # type: ignore[arg-type]
+    r = render(device, top, pos, params, fit_camera(pos, 16, 12), 16, 12)
+    absolute = params.model_copy(update={"level_scale": "absolute"})
+    mol = oracle_molecule(top, pos, absolute)
+    n = len(pos)
+    samples = min(n, 4096)
+    ref = oracle.density(mol, pos[np.arange(samples) * (n // samples)].astype(np.float64))[0]
+    np.testing.assert_allclose(r._density_samples.numpy()[:samples], ref, rtol=1e-5)
+    assert r.density_scale() == pytest.approx(float(ref.mean()), rel=1e-5)
+
+
 @wp.kernel
 @no_type_check
 def _batched_kernel(
