@@ -34,12 +34,18 @@ view lies in or before them for nearly every ray (a ray that grazes on finds cel
 their whole-cell bound)."""
 
 
+MARK_REGISTERS = 64
+"""Registers per thread of `mark_kernel` on CUDA: the compiler's choice (90) held it to a
+quarter of the warps a multiprocessor can keep, and the kernel is bound by the latency of
+its DDA steps, which more warps hide."""
+
+
 def rays(width: int, height: int, stride: int) -> tuple[int, int]:
     """Marking rays per row and per column of a width x height view."""
     return -(-width // stride), -(-height // stride)
 
 
-@wp.kernel
+@wp.kernel(cuda_max_registers=MARK_REGISTERS)
 @no_type_check
 def mark_kernel(
     info: wp.array[GridInfo],
