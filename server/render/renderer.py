@@ -94,6 +94,8 @@ every frame, 1M atoms 7.30 ms against 7.91 walking every open cell, 3M 10.35 aga
 with whole cells, 10M 15.60 against 17.28; 300k atoms even, 100k 4.81 against 4.52
 (benchmarks/README.md, "Render core, round five")."""
 VIEW_ATOMS = 700_000
+"""Atoms per view of one set of positions from which walking every open cell pays
+(`STILL_VIEWS`)."""
 STILL_VIEWS = 8
 """Views over one set of positions each walk the cells they add to a "visible" grid, so an
 automatic iso grid below `LARGE_ATOMS` atoms walks every open cell ("all") once its positions
