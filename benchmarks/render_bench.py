@@ -654,14 +654,17 @@ class Bench:
         w: int,
         h: int,
         tries: list[dict[str, Any]] | None = None,
+        params: RenderParams | None = None,
     ) -> None:
-        """Iso frames of large systems for each cell size, one by one (set_positions, render)
-        and pipelined (render(wait=False), the next frame's set_positions, finish: the upload
-        of frame k+1 runs on its own stream while frame k renders). Two frames alternate, each
+        """Frames of large systems (iso, or `params`) for each cell size, one by one
+        (set_positions, render) and pipelined (render(wait=False), the next frame's
+        set_positions, finish: the upload of frame k+1 runs on its own stream while frame k
+        renders). Two frames alternate, each
         written once into one of the renderer's two page-locked buffers, so the timed loop is
         the server's: upload, grid rebuild and cast of a new frame every time. `tries` are
         sets of Renderer options, each with a "label", run one after the other for every cell
         size (default: the renderer's defaults)."""
+        rp = params if params is not None else RenderParams()  # the frames' render parameters
         for n in sizes:
             if self.clock.left() < 60:
                 self.results["notes"].append(f"scale section stopped before N={n}")
@@ -686,7 +689,6 @@ class Bench:
                     r.set_positions(buf, check_finite=False)
                     bufs.append(buf)
                 cam = fit_camera(frames[0], w, h)
-                params = RenderParams()
                 mem = r.memory_bytes()
                 for piped in (False, True):
                     walls: list[float] = []
@@ -694,17 +696,17 @@ class Bench:
                     count = self.args.warmup + self.args.frames
                     stop = time.perf_counter() + min(self.args.max_config_s, self.clock.left())
                     r.set_positions(bufs[0], check_finite=False)
-                    r.render(params, cam, w, h, wait=not piped)
+                    r.render(rp, cam, w, h, wait=not piped)
                     last = time.perf_counter()
                     for i in range(1, count + 1):
                         if piped:
                             r.set_positions(bufs[i % 2], check_finite=False)
                             r.finish()
                             stages.append(dict(r.timings))
-                            r.render(params, cam, w, h, wait=False)
+                            r.render(rp, cam, w, h, wait=False)
                         else:
                             r.set_positions(bufs[i % 2], check_finite=False)
-                            r.render(params, cam, w, h)
+                            r.render(rp, cam, w, h)
                             stages.append(dict(r.timings))
                         now = time.perf_counter()
                         if i > self.args.warmup:
@@ -715,7 +717,7 @@ class Bench:
                     r.finish()
                     summary = summarize(walls, stages[self.args.warmup :])
                     if piped and wp.get_device(self.device).is_cuda:
-                        summary["activities_ms"] = profile_frame(r, bufs[0], params, cam, w, h)
+                        summary["activities_ms"] = profile_frame(r, bufs[0], rp, cam, w, h)
                     entry = {
                         "n_atoms": n,
                         "width": w,
@@ -723,6 +725,7 @@ class Bench:
                         "cells_per_cutoff": cells,
                         "label": label,
                         "options": kw,
+                        "params": rp.model_dump(mode="json", exclude_defaults=True),
                         "pipelined": piped,
                         **summary,
                         "bytes_per_atom": (mem["per_atom"] + mem["grid"] + mem["other"]) / n,
@@ -1425,7 +1428,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--profile-cases", default="", help="N@WxH@space@variant,... to profile")
     p.add_argument("--scale-sizes", default="", help="atom counts of the scale section")
     p.add_argument("--variant-cases", default="", help="N@WxH,... the variants section runs")
-    p.add_argument("--variant-params", default="{}", help="render parameters (JSON)")
+    p.add_argument(
+        "--variant-params", default="{}", help="render parameters (JSON) of variants and scale"
+    )
     p.add_argument("--variants", default="", help='JSON list of Renderer options with "label"')
     p.add_argument(
         "--visible-rays", default="", help="STRIDE:DEPTH of the cell-marking rays (visibility.py)"
@@ -1525,7 +1530,9 @@ def main(argv: list[str] | None = None) -> int:
             scale_sizes = [int(v) for v in args.scale_sizes.split(",")]
         w, h = (64, 48) if args.quick else (1920, 1080)
         scale_tries = json.loads(args.scale_options) if args.scale_options else None
-        b.scale(scale_sizes, [float(v) for v in args.scale_cells.split(",")], w, h, scale_tries)
+        cells = [float(v) for v in args.scale_cells.split(",")]
+        scale_params = RenderParams.model_validate(json.loads(args.variant_params))
+        b.scale(scale_sizes, cells, w, h, scale_tries, scale_params)
     if "profile" in sections:
         prof = [(496, 64, 48, "classical", "iso")] if args.quick else [
             (1_000_000, 1920, 1080, "classical", "iso"),

@@ -89,6 +89,27 @@ def test_variants_seen_by_several_cameras_record_their_count(tmp_path: Path) -> 
     assert rows[0]["stages_ms"]["upload"] > 0.0
 
 
+def test_the_scale_section_renders_with_the_given_parameters(tmp_path: Path) -> None:
+    """`--variant-params` sets the render parameters of the scale section too (volume
+    frames of large systems), recorded with each row."""
+    out = tmp_path / "scale.json"
+    args = ["--quick", "--device", "cpu", "--sections", "scale", "--scale-sizes", "2000"]
+    args += ["--scale-cells", "2", "--variant-params", '{"mode": "volume"}', "--budget-s", "3600"]
+    run = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), *args, "--out", str(out)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    rows = json.loads(out.read_text())["scale"]
+    assert [(e["params"], e["pipelined"]) for e in rows] == [
+        ({"mode": "volume"}, False),
+        ({"mode": "volume"}, True),
+    ]
+
+
 def test_camera_counts_below_one_are_refused() -> None:
     run = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), "--variant-views", "0"],
