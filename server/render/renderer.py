@@ -80,19 +80,18 @@ bound unwalked. For the classical density few such walks end below the level, an
 outweighs the samples they save (one H200 at 1920x1080: 10M atoms 19.2 ms a frame against 20.8
 walking them all, 100M atoms 42.4 against 46.4 pipelined, 1M atoms even); the warped density's
 coarse bound ignores the warp, so there walking them all is faster (1M atoms 18.6 against 19.5)."""
-PART_ATOMS = 1_500_000
-"""Below this many atoms (and below `VISIBLE_ATOMS` for iso frames) the walked cells also
-mark which of their 27 parts are below the level, and every open cell is walked
-(`part_bounds=None`: "all"): the rays skip the samples there. Those walks cost in proportion
-to the atoms, the samples they save to the surface in view (one H200 at 1920x1080: 100k atoms
-4.9 ms a frame against 6.1, 1M 8.7 against 9.7, 3M 14.7 against 12.9, 10M 31.3 against 19.0;
-benchmarks/README.md, "Render core, round three")."""
 VISIBLE_ATOMS = 500_000
-"""From this many atoms an iso frame walks for part bounds only the cells its view reaches
-("visible", visibility.py; the other cells walk whole): one H200 at 1920x1080, new positions
-every frame, 1M atoms 7.30 ms against 7.91 walking every open cell, 3M 10.35 against 11.52
-with whole cells, 10M 15.60 against 17.28; 300k atoms even, 100k 4.81 against 4.52
-(benchmarks/README.md, "Render core, round five")."""
+"""Below this many atoms every open cell walks for the bounds of its 27 parts
+(`part_bounds=None`: "all"), and the rays skip the samples in parts below the level; from it
+a frame walks for part bounds only the cells its view reaches ("visible", visibility.py; the
+other cells walk whole). Walking every cell costs in proportion to the atoms, the samples it
+saves to the surface in view. One H200 at 1920x1080, new positions every frame: iso, 1M atoms
+7.30 ms against 7.91 walking every open cell, 3M 10.35 against 11.52 with whole cells, 10M
+15.60 against 17.28, 300k atoms even, 100k 4.81 against 4.52 (benchmarks/README.md, "Render
+core, round five"); volume, 1M atoms 18.75 against 19.38 walking every open cell, 3M 25.1
+against 27.4 with whole cells, 10M 34.2 against 37.1, but 100M atoms (one cell per cutoff,
+`LARGE_ATOMS`) 70.5 against 67.1 pipelined, so volume frames from there walk whole cells
+("round six")."""
 VIEW_ATOMS = 700_000
 """Atoms per view of one set of positions from which walking every open cell pays
 (`STILL_VIEWS`)."""
@@ -188,9 +187,9 @@ class Renderer(ImageOutputs):
     `grid_sort` is how the grid puts atoms in cell order each frame ("counting" or "radix",
     the same order; grid.py); `part_bounds` has the walked cells mark which of their parts
     are below the level, for the rays to skip the samples there (the same image; one of
-    `PART_MODES`; None: "visible" from `VISIBLE_ATOMS` atoms in iso mode, "all" there too
-    for positions seen by many views (`STILL_VIEWS`), else "all" below `PART_ATOMS` atoms
-    and "none" from there).
+    `PART_MODES`; None: "all" below `VISIBLE_ATOMS` atoms, "visible" from there, "all" again
+    in iso mode for positions seen by many views, `STILL_VIEWS`, and "none" in volume mode
+    from `LARGE_ATOMS`).
     """
 
     def __init__(
@@ -697,18 +696,20 @@ class Renderer(ImageOutputs):
 
     def _parts_for(self, d: Derived, mode: str) -> PartMode:
         """Which cells walk for part bounds in a frame of render mode `mode` (`PART_MODES`):
-        none for a density without part bounds; else `part_bounds`, else from
-        `VISIBLE_ATOMS` atoms the cells the view reaches in iso mode (volume rays go on past
-        the surface; every open cell for positions seen by many views, `_many_views`), else
-        every open cell below `PART_ATOMS` atoms and none from there."""
+        none for a density without part bounds; else `part_bounds`, else every open cell
+        below `VISIBLE_ATOMS` atoms and the cells the view reaches from there (in iso mode
+        every open cell again for positions seen by many views, `_many_views`; in volume mode
+        none from `LARGE_ATOMS`)."""
         model = self._density if d.warp is None else warped.WARPED
         if model.part_bounds is None:
             return "none"
         if self.part_bounds is not None:
             return self.part_bounds
-        if self._n >= VISIBLE_ATOMS and mode == "iso":
-            return "all" if self._many_views() else "visible"
-        return "all" if self._n < PART_ATOMS else "none"
+        if self._n < VISIBLE_ATOMS or (mode == "iso" and self._many_views()):
+            return "all"
+        if mode != "iso" and self._n >= LARGE_ATOMS:
+            return "none"
+        return "visible"
 
     def _views_needed(self) -> int:
         """Views of one set of positions from which walking every open cell pays (`VIEW_ATOMS`)."""

@@ -591,6 +591,28 @@ def test_positions_seen_by_many_views_walk_every_open_cell(
     assert after_one == seen, counts
 
 
+def test_volume_frames_of_large_systems_walk_the_cells_of_the_view(
+    device: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """From VISIBLE_ATOMS atoms a volume frame walks for part bounds the cells its view
+    reaches, as "visible" does, and from LARGE_ATOMS whole cells only; the image is that of
+    whole cells, bit for bit."""
+    monkeypatch.setattr(renderer_module, "VISIBLE_ATOMS", 1)
+    top, pos = _two_lumps()
+    params = RenderParams(mode="volume")
+    cam = fit_camera(pos, 64, 48)
+    forced = render(device, top, pos, params, cam, 64, 48, part_bounds="visible")
+    every = render(device, top, pos, params, cam, 64, 48, part_bounds="all")
+    ref = render(device, top, pos, params, cam, 64, 48, part_bounds="none")
+    seen = _walked_parts(render(device, top, pos, params, cam, 64, 48))
+    assert 0 < len(seen) < len(_walked_parts(every)) and seen == _walked_parts(forced)
+    monkeypatch.setattr(renderer_module, "LARGE_ATOMS", 1)
+    r = render(device, top, pos, params, cam, 64, 48, cells_per_cutoff=2.0)
+    assert _walked_parts(r) == set()
+    np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
+    np.testing.assert_array_equal(forced.read_rgba(), ref.read_rgba())
+
+
 def test_part_bounds_mode_is_checked() -> None:
     with pytest.raises(RenderError, match=r"part_bounds must be one of all, visible, none"):
         Renderer("cpu", part_bounds="some")  # type: ignore[arg-type]
