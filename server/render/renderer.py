@@ -93,15 +93,16 @@ against 27.4 with whole cells, 10M 34.2 against 37.1, but 100M atoms (one cell p
 `LARGE_ATOMS`) 70.5 against 67.1 pipelined, so volume frames from there walk whole cells
 ("round six")."""
 VIEW_ATOMS = 700_000
-"""Atoms per view of one set of positions from which walking every open cell pays
-(`STILL_VIEWS`)."""
+"""Atoms per view of one set of positions from which walking every open cell about pays
+(`STILL_VIEWS`; measured break-even near 2, 6, 17 and 23 views at 1M, 3M, 10M and 20M)."""
 STILL_VIEWS = 8
 """Views over one set of positions each walk the cells they add to a "visible" grid, so an
 automatic iso grid below `LARGE_ATOMS` atoms walks every open cell ("all") once its positions
-are seen by many views: at least max(2, ceil(n / VIEW_ATOMS)) views of the positions before
-(viewers with cameras of their own over a streamed system: the next grid walks every cell),
-or that many and at least `STILL_VIEWS` views of these positions (a camera turning over a
-paused system: the grid is built again). One H200 at 1920x1080: walking every open cell costs
+are seen by many views (cameras, counted per set of positions and render parameters): at
+least max(2, ceil(n / VIEW_ATOMS)) views of the positions before (viewers with cameras of
+their own over a streamed system: the next grid walks every cell), or that many and at least
+`STILL_VIEWS` views of these positions (a camera turning over a paused system: the grid is
+built again). One H200 at 1920x1080: walking every open cell costs
 0.6 ms more than the cells of one view at 1M atoms, 3.5 at 3M, 14.6 at 10M and 30.7 at 20M,
 and then saves 0.5, 0.7, 0.9 and 1.4 ms on each further view (benchmarks/README.md, "Render
 core, round six"; from `LARGE_ATOMS` the grid has one cell per cutoff and no part bounds)."""
@@ -272,9 +273,14 @@ class Renderer(ImageOutputs):
         self._grid_key: tuple[Any, ...] | None = None
         self._views_walked: tuple[tuple[Any, ...] | None, set[tuple[Any, ...]]] = (None, set())
         """The key of a grid and the views whose cells have walked for their parts on it."""
-        self._views_seen: tuple[int, set[tuple[Any, ...]], int] = (-1, set(), 0)
-        """The positions version rendered last, its distinct views (a few counted) and how
-        many views the version rendered before it had (`_many_views`)."""
+        self._views_seen: tuple[tuple[Any, ...] | None, set[tuple[Any, ...]], int] = (
+            None,
+            set(),
+            0,
+        )
+        """The positions version and derived parameters rendered last (a grid but for its
+        part mode), the distinct cameras that saw them (a few counted) and how many saw the
+        ones rendered before them (`_many_views`)."""
         self._color_key: tuple[Any, ...] | None = None
         self._tf_key: tuple[Any, ...] | None = None
         self._tf = transfer.build_table()
@@ -705,7 +711,7 @@ class Renderer(ImageOutputs):
             return "none"
         if self.part_bounds is not None:
             return self.part_bounds
-        if self._n < VISIBLE_ATOMS or (mode == "iso" and self._many_views()):
+        if self._n < VISIBLE_ATOMS or (mode == "iso" and self._many_views(d)):
             return "all"
         if mode != "iso" and self._n >= LARGE_ATOMS:
             return "none"
@@ -715,25 +721,33 @@ class Renderer(ImageOutputs):
         """Views of one set of positions from which walking every open cell pays (`VIEW_ATOMS`)."""
         return max(2, -(-self._n // VIEW_ATOMS))
 
-    def _count_view(self, view_key: tuple[Any, ...]) -> None:
-        """Count a view of the current positions (up to what `_many_views` asks)."""
-        version, views, before = self._views_seen
-        if version != self._positions_version:
-            version, views, before = self._positions_version, set(), len(views)
-        if len(views) < max(self._views_needed(), STILL_VIEWS):
-            views.add(view_key)
-        self._views_seen = (version, views, before)
+    def _views_of(self, d: Derived) -> tuple[set[tuple[Any, ...]], int]:
+        """The cameras counted for the current positions and derived parameters `d` (none
+        yet when they are new) and the count of those rendered before them."""
+        seen, views, before = self._views_seen
+        if seen != (self._positions_version, d):
+            return set(), len(views)
+        return views, before
 
-    def _many_views(self) -> bool:
-        """Whether an automatic iso grid walks every open cell for the views of its positions:
-        below `LARGE_ATOMS` atoms, when the positions before had `_views_needed` views, or these
-        have had as many and at least `STILL_VIEWS`."""
+    def _count_view(self, d: Derived, camera_key: tuple[Any, ...]) -> None:
+        """Count a camera seeing the current positions with derived parameters `d` (up to
+        what `_many_views` asks). Cameras, not tiles: the bands of one image are one view."""
+        views, before = self._views_of(d)
+        if len(views) < max(self._views_needed(), STILL_VIEWS):
+            views.add(camera_key)
+        self._views_seen = ((self._positions_version, d), views, before)
+
+    def _many_views(self, d: Derived) -> bool:
+        """Whether an automatic iso grid walks every open cell for the views of its positions
+        and derived parameters `d`: below `LARGE_ATOMS` atoms, when the ones rendered before
+        had `_views_needed` views, or these have had as many and at least `STILL_VIEWS`. (A
+        new iso level on still positions is a new grid: it goes by the views of the level
+        before it, once.)"""
         if self._n >= LARGE_ATOMS:
             return False
         need = self._views_needed()
-        version, views, before = self._views_seen
-        now = len(views) if version == self._positions_version else 0
-        return before >= need or now >= max(need, STILL_VIEWS)
+        views, before = self._views_of(d)
+        return before >= need or len(views) >= max(need, STILL_VIEWS)
 
     def _kernels_of_model(self, model: DensityModel, parts: bool) -> raycast.RaycastKernels:
         key = (model.name, parts)
@@ -831,6 +845,23 @@ class Renderer(ImageOutputs):
         visible = stop > 0.0 and self._parts_for(d, mode) == "visible"
         return view if visible else None
 
+    def _unsorted(self, d: Derived) -> UnsortedAtoms:
+        """The atoms in their original order, reached through the grid just built (the mean
+        density at the sampled atoms is taken over them)."""
+        u = UnsortedAtoms()
+        u.positions = self._pos
+        u.weights = self._weights
+        u.radii = self._radii
+        u.order = self._grid.order
+        u.cell_start = self._grid.cell_start
+        u.info = self._grid.info
+        u.inv2s2_uniform = d.inv2s2
+        u.sigma_per_radius = d.sigma_per_radius
+        u.half_k2 = d.half_k2
+        u.inv_half_k2 = 1.0 / d.half_k2
+        u.per_atom = d.per_atom
+        return u
+
     def _build_grid(self, d: Derived, f: Any, stop: float, mode: str, view: View | None) -> None:
         """Grid, sorted atoms (weights divided by the mean density at the atoms for relative
         levels), the warped density's segments, cell bounds and brick bounds: launches only.
@@ -843,19 +874,7 @@ class Renderer(ImageOutputs):
         if d.relative:
             # the density's own scale, from the atoms in their original order through the
             # grid, so the gather below writes the scaled weights in one pass
-            u = UnsortedAtoms()
-            u.positions = self._pos
-            u.weights = self._weights
-            u.radii = self._radii
-            u.order = self._grid.order
-            u.cell_start = self._grid.cell_start
-            u.info = self._grid.info
-            u.inv2s2_uniform = d.inv2s2
-            u.sigma_per_radius = d.sigma_per_radius
-            u.half_k2 = d.half_k2
-            u.inv_half_k2 = 1.0 / d.half_k2
-            u.per_atom = d.per_atom
-            mean = (u, n // samples, self._density_samples)
+            mean = (self._unsorted(d), n // samples, self._density_samples)
             wp.launch(mean_density_kernel, samples, mean, device=dev, block_dim=MEAN_BLOCK)
             partial = (self._density_samples, samples, self._density_partial)
             wp.launch(partial_sums_kernel, MEAN_LANES, partial, device=dev)
@@ -1092,7 +1111,7 @@ class Renderer(ImageOutputs):
         stop = self._stop_level(params, d)
         f = self._field(d)
         ev = self._events if self._cuda else None
-        self._count_view((cam_seen[4], tile))
+        self._count_view(d, cam_seen[4])
         grid_key = self._grid_key_for(d, stop, params.mode) if self._n else None
         # a grid with part bounds for the view walks the cells each new view adds
         view = self._view_of(d, params.mode, stop, (frame, tile)) if self._n else None
@@ -1129,7 +1148,9 @@ class Renderer(ImageOutputs):
             clipped = params.mode == "volume" and self.depth_limit is not None
             limit = self.depth_limit.ptr if clipped else None
             # graphs hold the address of the positions they read
-            key: tuple[Any, ...] = (grid_key is not None, walk_view, self._n, d, stop, seen[1])
+            parts = self._parts_for(d, params.mode)
+            key: tuple[Any, ...] = (grid_key is not None, walk_view, parts, self._n, d, stop)
+            key = (*key, seen[1])
             key = (*key, cam_seen[4], tile, limit, self._pos.ptr)
             t_cast = self._replay_or_launch(key, launch)
         else:

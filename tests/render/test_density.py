@@ -17,7 +17,7 @@ from server.render import grid as grid_module
 from server.render import renderer as renderer_module
 from server.render.camera import fit_camera, orbit, quat_to_matrix
 from server.render.cells import PART_BITS, WALKED
-from server.render.density import GaussianField
+from server.render.density import GaussianField, UnsortedAtoms
 from server.render.errors import RenderError
 from server.render.grid import SORTED_IN_CELL, CellGrid, order_cells_kernel
 from server.render.raycast import kernels_for
@@ -285,6 +285,54 @@ def test_vdw_mode_widens_big_atoms(device: str) -> None:
     s_h = 1.0 * colors.VDW_RADII["H"] / colors.R_REF
     s_s = 1.0 * colors.VDW_RADII["S"] / colors.R_REF
     np.testing.assert_allclose(vals, np.exp(-(1.5**2) / (2 * np.array([s_h, s_s]) ** 2)), rtol=1e-5)
+
+
+@wp.func
+@no_type_check
+def _row_one_at_a_time(f: UnsortedAtoms, p: wp.vec3, j0: int, j1: int, total: float) -> float:
+    """The mean density's row sum one atom at a time (the form before two atoms a step)."""
+    s = total
+    for j in range(j0, j1):
+        i = f.order[j]
+        q = f.positions[i]
+        a = wp.vec4(q[0], q[1], q[2], f.weights[i])
+        c = f.inv2s2_uniform
+        if f.per_atom != 0:
+            c = density.inv2s2_of(f.sigma_per_radius, f.radii[i])
+        e = density.dist2(a, p) * c
+        if e < f.half_k2:
+            s += a[3] * density.kernel(e, f.inv_half_k2)
+    return s
+
+
+_walk_one_at_a_time = density.cell_rows(
+    "one_at_a_time", _row_one_at_a_time, wp.vec3, float, field=UnsortedAtoms
+)
+
+
+@wp.kernel
+@no_type_check
+def _one_at_a_time_kernel(f: UnsortedAtoms, stride: int, values: wp.array[float]):
+    k = wp.tid()
+    p = f.positions[k * stride]
+    values[k] = _walk_one_at_a_time(f, p, p, p, wp.float32(0.0))
+
+
+@pytest.mark.parametrize("radius_mode", ["uniform", "vdw"])
+def test_the_mean_density_two_atoms_a_step_keeps_the_bits(device: str, radius_mode: str) -> None:
+    """The mean density at the sampled atoms reads two atoms a step; each sample is the sum
+    one atom at a time would give, bit for bit (rows of odd and even lengths)."""
+    top, pos = _two_lumps()
+    r = render(device, top, pos, RenderParams(radius_mode=radius_mode), fit_camera(pos, 8, 6), 8, 6)
+    assert r._last is not None
+    n = len(pos)
+    samples = min(n, 4096)
+    out = wp.zeros(samples, dtype=float, device=r.device)
+    args = (r._unsorted(r._last[1]), n // samples, out)
+    wp.launch(_one_at_a_time_kernel, samples, args, device=r.device)
+    got = r._density_samples.numpy()[:samples].copy()
+    assert (got > 0.0).all()
+    np.testing.assert_array_equal(got, out.numpy())
 
 
 @pytest.mark.parametrize("radius_mode", ["uniform", "vdw"])
@@ -563,32 +611,57 @@ def test_positions_seen_by_many_views_walk_every_open_cell(
     device: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """By default a large system's grid walks the parts of the cells its views reach. Once
-    STILL_VIEWS views have seen one set of positions (a turning camera), the grid is built
-    again walking every open cell, as "all" does; new positions after them start so too (they
-    are likely seen by as many views), and positions after one view go back to the view's
-    cells. Every image is that of whole cells, bit for bit."""
+    STILL_VIEWS cameras have seen one set of positions (a turning camera), the grid is built
+    again walking every open cell, as "all" does; positions after two or more cameras (need
+    is 2 here: viewers with cameras of their own) start so too, positions after one camera go
+    back to the view's cells. The bands of one camera's image are one view, and a new level
+    on the same positions goes by the views of the level before it. Every image is that of
+    whole cells, bit for bit."""
     monkeypatch.setattr(renderer_module, "VISIBLE_ATOMS", 1)
     monkeypatch.setattr(renderer_module, "STILL_VIEWS", 3)
     top, pos = _two_lumps()
     params = RenderParams()
+    other = RenderParams(iso_level=0.3)
     cam = fit_camera(pos, 64, 48)
-    every = _walked_parts(render(device, top, pos, params, cam, 64, 48, part_bounds="all"))
+    every = {
+        p.iso_level: _walked_parts(render(device, top, pos, p, cam, 64, 48, part_bounds="all"))
+        for p in (params, other)
+    }
     r = Renderer(device)
     r.set_topology(top)
-    counts = []
-    for fresh, yaw in ((True, 0.0), (False, 30.0), (False, 60.0), (True, 0.0), (True, 0.0)):
+    top_band, low_band = (0, 0, 64, 24), (0, 24, 64, 24)
+    steps: list[tuple[bool, float, RenderParams, tuple[int, int, int, int] | None, str]] = [
+        (True, 0.0, params, None, "view"),  # one camera ...
+        (False, 30.0, params, None, "view"),
+        (False, 60.0, params, None, "all"),  # ... the third on still positions: all
+        (True, 0.0, params, None, "all"),  # new positions after three cameras
+        (True, 0.0, params, None, "view"),  # after one
+        (False, 30.0, params, None, "view"),
+        (True, 0.0, params, top_band, "all"),  # after two
+        (False, 0.0, params, low_band, "all"),
+        (True, 0.0, params, top_band, "view"),  # after one camera's two bands
+        (False, 0.0, other, None, "view"),  # a new level after one view
+        (False, 30.0, other, None, "view"),
+        (False, 60.0, other, None, "all"),
+        (False, 60.0, params, None, "all"),  # the level before, after three views
+        (False, 60.0, other, None, "view"),  # after one
+    ]
+    ref = Renderer(device, part_bounds="none")
+    ref.set_topology(top)
+    ref.set_positions(pos)
+    for fresh, yaw, p, tile, expect in steps:
         if fresh:
             r.set_positions(pos)
         view = orbit(cam, yaw, 0.0)
-        r.render(params, view, 64, 48)
-        ref = render(device, top, pos, params, view, 64, 48, part_bounds="none")
+        r.render(p, view, 64, 48, tile)
+        ref.render(p, view, 64, 48, tile)
         np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
         np.testing.assert_array_equal(r.read_depth(), ref.read_depth())
-        counts.append(len(_walked_parts(r)))
-    seen, grown, third, after_many, after_one = counts
-    assert 0 < seen < grown < len(every), counts
-    assert third == after_many == len(every), counts
-    assert after_one == seen, counts
+        walked = _walked_parts(r)
+        if expect == "all":
+            assert walked == every[p.iso_level], (yaw, tile, p.iso_level)
+        else:
+            assert 0 < len(walked) < len(every[p.iso_level]), (yaw, tile, p.iso_level)
 
 
 def test_volume_frames_of_large_systems_walk_the_cells_of_the_view(
