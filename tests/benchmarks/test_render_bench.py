@@ -6,66 +6,54 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[2]
+QUICK = ["--quick", "--device", "cpu"]
+# a section skips what its budget leaves no time for
+VARIANTS = [*QUICK, "--sections", "variants", "--variant-cases", "2000@48x32", "--budget-s", "3600"]
 
 
-def test_quick_run_writes_results_and_sample_images_into_a_new_folder(tmp_path: Path) -> None:
-    images = tmp_path / "not" / "yet" / "there"
-    out = tmp_path / "quick.json"
-    run = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "render_bench.py"),
-            "--quick",
-            "--device",
-            "cpu",
-            "--sections",
-            "main",
-            "--sizes",
-            "496",
-            "--image-n",
-            "496",
-            "--images",
-            str(images),
-            "--out",
-            str(out),
-        ],
+def bench(*args: str) -> subprocess.CompletedProcess[str]:
+    """The benchmark run with `args` from the project root."""
+    return subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), *args],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=600,
     )
+
+
+def results(out: Path, *args: str) -> dict[str, Any]:
+    """The results a successful run with `args` writes to `out`."""
+    run = bench(*args, "--out", str(out))
     assert run.returncode == 0, run.stderr[-2000:]
+    loaded: dict[str, Any] = json.loads(out.read_text())
+    return loaded
+
+
+def test_quick_run_writes_results_and_sample_images_into_a_new_folder(tmp_path: Path) -> None:
+    images = tmp_path / "not" / "yet" / "there"
+    args = [*QUICK, "--sections", "main", "--sizes", "496", "--image-n", "496"]
+    frames = results(tmp_path / "quick.json", *args, "--images", str(images))["frames"]
     assert sorted(f.name for f in images.iterdir()) == [
         "render_iso_496.jpg",
         "render_volume_496.jpg",
     ]
-    frames = json.loads(out.read_text())["frames"]
     assert {(f["n_atoms"], f["mode"]) for f in frames} == {(496, "iso"), (496, "volume")}
 
 
 def test_variants_of_a_turning_camera_record_their_options(tmp_path: Path) -> None:
     """`--variant-turn` times still positions under a turning camera, `--visible-rays` sets
     the marking rays of view-following part bounds; both are recorded with the results."""
-    out = tmp_path / "turn.json"
     variants = (
         '[{"label": "whole", "part_bounds": "none"}, {"label": "view", "part_bounds": "visible"}]'
     )
-    args = ["--quick", "--device", "cpu", "--sections", "variants", "--variant-cases", "2000@48x32"]
-    args += ["--variants", variants, "--variant-turn", "5", "--visible-rays", "3:2"]
-    args += ["--budget-s", "3600"]  # the section skips what its budget leaves no time for
-    run = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), *args, "--out", str(out)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert run.returncode == 0, run.stderr[-2000:]
-    results = json.loads(out.read_text())
-    assert results["visible_rays"] == {"stride": 3, "depth": 2}
-    rows = results["variants"]
+    args = [*VARIANTS, "--variants", variants, "--variant-turn", "5", "--visible-rays", "3:2"]
+    got = results(tmp_path / "turn.json", *args)
+    assert got["visible_rays"] == {"stride": 3, "depth": 2}
+    rows = got["variants"]
     assert [(v["label"], v["turn_deg"]) for v in rows] == [("whole", 5.0), ("view", 5.0)]
     # still positions: nothing is uploaded after the first (warm-up) frame
     assert all(v["stages_ms"]["upload"] == 0.0 for v in rows)
@@ -73,18 +61,8 @@ def test_variants_of_a_turning_camera_record_their_options(tmp_path: Path) -> No
 
 def test_variants_seen_by_several_cameras_record_their_count(tmp_path: Path) -> None:
     """`--variant-views` has every frame of new positions seen by that many cameras."""
-    out = tmp_path / "views.json"
-    args = ["--quick", "--device", "cpu", "--sections", "variants", "--variant-cases", "2000@48x32"]
-    args += ["--variants", '[{"label": "three"}]', "--variant-views", "3", "--budget-s", "3600"]
-    run = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), *args, "--out", str(out)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert run.returncode == 0, run.stderr[-2000:]
-    rows = json.loads(out.read_text())["variants"]
+    args = [*VARIANTS, "--variants", '[{"label": "three"}]', "--variant-views", "3"]
+    rows = results(tmp_path / "views.json", *args)["variants"]
     assert [(v["label"], v["views"], v["turn_deg"]) for v in rows] == [("three", 3, 0.0)]
     assert rows[0]["stages_ms"]["upload"] > 0.0
 
@@ -92,18 +70,9 @@ def test_variants_seen_by_several_cameras_record_their_count(tmp_path: Path) -> 
 def test_the_scale_section_renders_with_the_given_parameters(tmp_path: Path) -> None:
     """`--variant-params` sets the render parameters of the scale section too (volume
     frames of large systems), recorded with each row."""
-    out = tmp_path / "scale.json"
-    args = ["--quick", "--device", "cpu", "--sections", "scale", "--scale-sizes", "2000"]
-    args += ["--scale-cells", "2", "--variant-params", '{"mode": "volume"}', "--budget-s", "3600"]
-    run = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), *args, "--out", str(out)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert run.returncode == 0, run.stderr[-2000:]
-    rows = json.loads(out.read_text())["scale"]
+    args = [*QUICK, "--sections", "scale", "--scale-sizes", "2000", "--scale-cells", "2"]
+    args += ["--variant-params", '{"mode": "volume"}', "--budget-s", "3600"]
+    rows = results(tmp_path / "scale.json", *args)["scale"]
     assert [(e["params"], e["pipelined"]) for e in rows] == [
         ({"mode": "volume"}, False),
         ({"mode": "volume"}, True),
@@ -111,25 +80,13 @@ def test_the_scale_section_renders_with_the_given_parameters(tmp_path: Path) -> 
 
 
 def test_camera_counts_below_one_are_refused() -> None:
-    run = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), "--variant-views", "0"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    run = bench("--variant-views", "0")
     assert run.returncode == 2
     assert "--variant-views must be >= 1, got 0" in run.stderr
 
 
 def test_marking_rays_that_are_not_two_positive_integers_are_refused() -> None:
     for bad in ("2", "2:0", "two:4"):
-        run = subprocess.run(
-            [sys.executable, str(ROOT / "benchmarks" / "render_bench.py"), "--visible-rays", bad],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+        run = bench("--visible-rays", bad)
         assert run.returncode == 2, bad
         assert f"--visible-rays takes STRIDE:DEPTH, two integers >= 1, got '{bad}'" in run.stderr
