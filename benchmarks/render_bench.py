@@ -1433,7 +1433,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--variants", default="", help='JSON list of Renderer options with "label"')
     p.add_argument(
-        "--visible-rays", default="", help="STRIDE:DEPTH of the cell-marking rays (visibility.py)"
+        "--visible-rays",
+        default="",
+        help="STRIDE:DEPTH of the cell-marking rays (visibility.py; STRIDE at 1920x1080)",
     )
     p.add_argument(
         "--variant-turn",

@@ -928,7 +928,7 @@ class Renderer(ImageOutputs):
         grid = self._grid
         frame, tile = view
         cam = raycast.camera_data(frame, tile)
-        stride = visibility.STRIDE
+        stride = visibility.stride_for(frame.width, frame.height)
         cols, rows = visibility.rays(cam.width, cam.height, stride)
         grid.work_count.zero_()
         marks = (grid.info, cam, stride, cols, rows, visibility.DEPTH, stop, grid.cell_start)

@@ -3,7 +3,7 @@
 Part bounds (the 27 sub-cell bounds of a walked cell, docs/rendering.md) save the most
 samples in the empty cells just in front of the surface, but walking every open cell for them
 costs in proportion to the atoms: at 10M atoms most open cells lie in cavities or behind the
-surface, where no ray samples. `mark_kernel` casts every `STRIDE`-th ray of the view through
+surface, where no ray samples. `mark_kernel` casts every `stride_for`-th ray of the view through
 the cells (a 3D DDA, no density sample) and lists the empty cells whose bound passes the level
 that it crosses before it has entered `DEPTH` cells holding atoms (the surface of the view lies
 in or just before those) and whose parts are not walked yet; the part walk then takes the list.
@@ -13,6 +13,7 @@ every cell. While the atoms stay put, each new view lists only the cells it adds
 (No `from __future__ import annotations`: warp resolves kernel annotations eagerly.)
 """
 
+import math
 from typing import no_type_check
 
 import warp as wp
@@ -27,7 +28,10 @@ _WALKED = wp.constant(WALKED)  # type: ignore[no-untyped-call]
 _UNWALKED = wp.constant(~WALKED)  # type: ignore[no-untyped-call]
 
 STRIDE = 2
-"""Every STRIDE-th ray of each image row and column marks cells."""
+"""Every STRIDE-th ray of each image row and column of a 1920x1080 image (or smaller) marks
+cells (`stride_for`)."""
+STRIDE_PIXELS = 1920 * 1080
+"""Above this many pixels the stride grows with the image's linear size."""
 DEPTH = 4
 """A marking ray stops once it has entered this many cells holding atoms: the surface of the
 view lies in or before them for nearly every ray (a ray that grazes on finds cells with
@@ -38,6 +42,16 @@ MARK_REGISTERS = 64
 """Registers per thread of `mark_kernel` on CUDA: the compiler's choice (90) held it to a
 quarter of the warps a multiprocessor can keep, and the kernel is bound by the latency of
 its DDA steps, which more warps hide."""
+
+
+def stride_for(width: int, height: int) -> int:
+    """The marking rays' stride for a width x height image: `STRIDE` up to `STRIDE_PIXELS`,
+    above in proportion to the image's linear size, so a larger image casts about as many
+    marking rays (a cell covers more of its pixels). One H200, 3840x2160 iso: stride 4 against
+    2, 1M atoms 14.44 / 14.35 ms against 14.52 / 14.50, 3M 19.25 / 19.21 against 19.46 / 19.43
+    (benchmarks/README.md, "Render core, round six")."""
+    scale = math.sqrt(width * height / STRIDE_PIXELS)
+    return max(STRIDE, round(STRIDE * scale))
 
 
 def rays(width: int, height: int, stride: int) -> tuple[int, int]:

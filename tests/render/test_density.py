@@ -12,7 +12,7 @@ import pytest
 import warp as wp
 
 from protocol import RenderParams
-from server.render import colors, density
+from server.render import colors, density, visibility
 from server.render import grid as grid_module
 from server.render import renderer as renderer_module
 from server.render.camera import fit_camera, orbit, quat_to_matrix
@@ -684,6 +684,16 @@ def test_volume_frames_of_large_systems_walk_the_cells_of_the_view(
     assert _walked_parts(r) == set()
     np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
     np.testing.assert_array_equal(forced.read_rgba(), ref.read_rgba())
+
+
+def test_marking_rays_keep_their_count_on_larger_images() -> None:
+    """The marking rays' stride is STRIDE up to 1920x1080 and grows with the image's linear
+    size above it, so a 4K image casts as many marking rays as a 1080p one."""
+    assert visibility.stride_for(64, 48) == visibility.STRIDE == 2
+    assert visibility.stride_for(1920, 1080) == 2
+    assert visibility.stride_for(2560, 1440) == 3
+    assert visibility.stride_for(3840, 2160) == 4
+    assert visibility.rays(3840, 2160, 4) == visibility.rays(1920, 1080, 2)
 
 
 def test_part_bounds_mode_is_checked() -> None:
