@@ -16,6 +16,7 @@ import time
 import webbrowser
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 from protocol import RenderParams
 from server.commands.serve import ServerThread, dashboard_urls
@@ -58,6 +59,18 @@ def _stop_on_term(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def _announce(simulation: Any, settings: ServerSettings) -> None:
+    steer, view = dashboard_urls(settings)
+    platform = simulation.context.getPlatform().getName()
+    print(f"\n  scalesteer dashboard:  {steer}")
+    if view:
+        print(f"  read-only viewer link: {view}")
+    n_atoms = simulation.topology.getNumAtoms()
+    print(f"  simulation: villin headpiece, {n_atoms} atoms, OpenMM {platform}")
+    print("  try: raise the temperature to 450-600 K and watch the motion grow; 300 K calms it")
+    print("  Ctrl-C stops the demo\n", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     signal.signal(signal.SIGTERM, _stop_on_term)
@@ -76,31 +89,27 @@ def main(argv: list[str] | None = None) -> int:
     )
     token, viewer_token = persistent_tokens(args.state_dir)
     settings = replace(settings, token=args.token or token, viewer_token=viewer_token)
-    print("scalesteer demo: preparing the villin headpiece (implicit solvent)...", flush=True)
-    simulation = build_villin_simulation(platform=args.platform)
-    server = ServerThread(settings)
-    settings = server.settings
-    reporter = SteeringReporter(
-        f"ws://127.0.0.1:{settings.port}/ws/sim",
-        token=settings.token,
-        interval=args.interval,
-        session="default",
-    )
-    simulation.reporters.append(reporter)
-    steer, view = dashboard_urls(settings)
-    platform = simulation.context.getPlatform().getName()
-    print(f"\n  scalesteer dashboard:  {steer}")
-    if view:
-        print(f"  read-only viewer link: {view}")
-    n_atoms = simulation.topology.getNumAtoms()
-    print(f"  simulation: villin headpiece, {n_atoms} atoms, OpenMM {platform}")
-    print("  try: raise the temperature to 450-600 K and watch the motion grow; 300 K calms it")
-    print("  Ctrl-C stops the demo\n", flush=True)
-    if not args.no_browser:
-        with contextlib.suppress(Exception):
-            webbrowser.open(steer)
-    deadline = time.monotonic() + args.duration if args.duration > 0 else None
+    server: ServerThread | None = None
+    reporter: SteeringReporter | None = None
+    # One try from the first slow step: a Ctrl-C or SIGTERM while the system is built or the
+    # server starts stops the demo in order too, not with a traceback.
     try:
+        print("scalesteer demo: preparing the villin headpiece (implicit solvent)...", flush=True)
+        simulation = build_villin_simulation(platform=args.platform)
+        server = ServerThread(settings)
+        settings = server.settings
+        reporter = SteeringReporter(
+            f"ws://127.0.0.1:{settings.port}/ws/sim",
+            token=settings.token,
+            interval=args.interval,
+            session="default",
+        )
+        simulation.reporters.append(reporter)
+        _announce(simulation, settings)
+        if not args.no_browser:
+            with contextlib.suppress(Exception):
+                webbrowser.open(dashboard_urls(settings)[0])
+        deadline = time.monotonic() + args.duration if args.duration > 0 else None
         while not reporter.stop_requested and (deadline is None or time.monotonic() < deadline):
             run_steered(simulation, args.interval * 10, reporter=reporter)
         if reporter.stop_requested:
@@ -108,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("\nstopping...", file=sys.stderr)
     finally:
-        reporter.close()
-        server.stop()
+        if reporter is not None:
+            reporter.close()
+        if server is not None:
+            server.stop()
     return 0

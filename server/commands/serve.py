@@ -225,10 +225,18 @@ class ServerThread:
         self._thread = threading.Thread(target=self._server.run, name="uvicorn", daemon=True)
         self._thread.start()
         deadline = time.monotonic() + 60
-        while not self._server.started:
-            if not self._thread.is_alive() or time.monotonic() > deadline:
-                raise RuntimeError(f"the server did not start on {settings.host}:{settings.port}")
-            time.sleep(0.02)
+        try:
+            while not self._server.started:
+                if not self._thread.is_alive() or time.monotonic() > deadline:
+                    raise RuntimeError(
+                        f"the server did not start on {settings.host}:{settings.port}"
+                    )
+                time.sleep(0.02)
+        except BaseException:
+            # Interrupted or failed while starting: the half-started server must not outlive us.
+            self._server.should_exit = True
+            self._thread.join(timeout=30)
+            raise
         self.port: int = self._server.servers[0].sockets[0].getsockname()[1]
         self.settings = replace(settings, port=self.port)
 

@@ -108,9 +108,15 @@ def test_demo_serves_frames_and_takes_steering(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_sigterm_stops_the_demo_as_ctrl_c_does(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "after",
+    ["preparing the villin headpiece", "Ctrl-C stops the demo"],
+    ids=["starting", "running"],
+)
+def test_sigterm_stops_the_demo_as_ctrl_c_does(tmp_path: Path, after: str) -> None:
     """`docker stop` and process managers send SIGTERM: the demo stops in order (its
-    simulation and server closed, exit status 0), not killed half-way."""
+    simulation and server closed, exit status 0), not killed half-way, whether it comes
+    while the system is still being built or once the demo runs."""
     args = ["demo", "--port", "0", "--no-browser", "--duration", "240"]
     proc = subprocess.Popen(
         [sys.executable, "-m", "server.commands.cli", *args, "--state-dir", str(tmp_path)],
@@ -124,7 +130,7 @@ def test_sigterm_stops_the_demo_as_ctrl_c_does(tmp_path: Path) -> None:
     try:
         for line in proc.stdout:
             out.append(line)
-            if "Ctrl-C stops the demo" in line:
+            if after in line:
                 break
         proc.send_signal(signal.SIGTERM)
         rest, _ = proc.communicate(timeout=60)
