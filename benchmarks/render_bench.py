@@ -772,6 +772,39 @@ class Bench:
                 )
                 del r
 
+    # ---- the work of a frame, whatever the device
+    def passes(self, cases: list[tuple[int, int, int]], params: RenderParams) -> None:
+        """The density passes (four samples each) the rays of one frame take, in iso and in
+        volume mode with the same parameters otherwise (`count_passes`): counts, not times,
+        the same on any device, so a CPU run tells what a GPU frame has to do."""
+        for n, w, h in cases:
+            r, frames = self.renderer(n, count_passes=True)
+            r.set_positions(frames[0])
+            cam = fit_camera(frames[0], w, h)
+            entry: dict[str, Any] = {"n_atoms": n, "width": w, "height": h}
+            for mode in ("iso", "volume"):
+                r.render(params.model_copy(update={"mode": mode}), cam, w, h)
+                counts = r.read_pass_counts().astype(np.float64)
+                reached = np.isfinite(r.read_depth())
+                entry[mode] = {
+                    "per_ray": float(counts.mean()),
+                    "per_ray_reaching": float(counts[reached].mean()) if reached.any() else 0.0,
+                    "rays_reaching": float(reached.mean()),
+                    "p99": float(np.percentile(counts, 99)),
+                    "max": int(counts.max()),
+                }
+            entry["volume_over_iso"] = entry["volume"]["per_ray"] / max(
+                entry["iso"]["per_ray"], 1e-9
+            )
+            self.results.setdefault("passes", []).append(entry)
+            self.save()
+            self.log(
+                f"passes N={n:,} {w}x{h}: iso {entry['iso']['per_ray']:.2f} per ray "
+                f"({entry['iso']['per_ray_reaching']:.2f} per ray reaching a surface), "
+                f"volume {entry['volume']['per_ray']:.2f}: {entry['volume_over_iso']:.2f}x"
+            )
+            del r
+
     # ---- per-kernel times of one frame
     def profile(self, cases: list[tuple[int, int, int, str, str]]) -> None:
         """The device activities of one frame (launched one by one, not as a graph) with
@@ -1183,6 +1216,21 @@ def _frame(cam: Camera, w: int, h: int) -> Any:
     return camera_frame(cam, w, h)
 
 
+def cases_of(spec: str, default: list[tuple[int, int, int]]) -> list[tuple[int, int, int]]:
+    """(atoms, width, height) of each "N@WxH" in a comma-separated `spec` (empty: `default`)."""
+    if not spec:
+        return default
+    out = []
+    for case in spec.split(","):
+        n, _, size = case.partition("@")
+        w, _, h = size.partition("x")
+        atoms, width, height = int(n), int(w), int(h)  # ValueError when not numbers
+        if atoms < 1 or width < 1 or height < 1:
+            raise ValueError(case)
+        out.append((atoms, width, height))
+    return out
+
+
 def fmt_stages(st: dict[str, float]) -> str:
     return " ".join(f"{k}={v:.2f}" for k, v in st.items())
 
@@ -1247,6 +1295,21 @@ def table(path: Path) -> str:
                 f"classical density fills the ring): classical {rings['classical']:.2f}, warped "
                 f"{rings['warped']:.2f}.",
             ]
+    if res.get("passes"):
+        lines += [
+            "",
+            "Density passes (four samples each) per ray of one frame, iso and volume:",
+            "",
+            "| atoms | image | iso per ray | iso per ray reaching a surface | volume per ray | "
+            "volume / iso |",
+            "| ---: | --- | ---: | ---: | ---: | ---: |",
+        ]
+        for row in res["passes"]:
+            lines.append(
+                f"| {row['n_atoms']:,} | {row['width']}x{row['height']} | "
+                f"{row['iso']['per_ray']:.2f} | {row['iso']['per_ray_reaching']:.2f} | "
+                f"{row['volume']['per_ray']:.2f} | {row['volume_over_iso']:.2f} |"
+            )
     if res["grid_build"]:
         lines += [
             "",
@@ -1427,7 +1490,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warped-cases", default="", help="N@WxH,... the warped section runs")
     p.add_argument("--profile-cases", default="", help="N@WxH@space@variant,... to profile")
     p.add_argument("--scale-sizes", default="", help="atom counts of the scale section")
-    p.add_argument("--variant-cases", default="", help="N@WxH,... the variants section runs")
+    p.add_argument(
+        "--variant-cases", default="", help="N@WxH,... the variants and passes sections run"
+    )
     p.add_argument(
         "--variant-params", default="{}", help="render parameters (JSON) of variants and scale"
     )
@@ -1469,6 +1534,14 @@ def main(argv: list[str] | None = None) -> int:
                 f"--visible-rays takes STRIDE:DEPTH, two integers >= 1, got {args.visible_rays!r}"
             )
         visibility.STRIDE, visibility.DEPTH = stride, depth
+    for flag, spec in (
+        ("--variant-cases", args.variant_cases),
+        ("--warped-cases", args.warped_cases),
+    ):
+        try:
+            cases_of(spec, [])
+        except ValueError:
+            p.error(f"{flag} takes N@WxH,... (atoms @ width x height, each >= 1), got {spec!r}")
     if args.variant_views < 1:
         p.error(f"--variant-views must be >= 1, got {args.variant_views}")
     if args.table:
@@ -1511,21 +1584,13 @@ def main(argv: list[str] | None = None) -> int:
         cases = [(496, 64, 48)] if args.quick else [
             (n, 500, 500) for n in THESIS
         ] + [(100_000, 1920, 1080), (1_000_000, 1920, 1080)]  # fmt: skip
-        if args.warped_cases:
-            cases = [
-                (int(n), *(int(v) for v in size.split("x")))  # type: ignore[misc]
-                for n, size in (c.split("@") for c in args.warped_cases.split(","))
-            ]
-        b.warped(cases)
+        b.warped(cases_of(args.warped_cases, cases))
+    variant_params = RenderParams.model_validate(json.loads(args.variant_params))
     if "variants" in sections:
-        cases = [(496, 64, 48)]
-        if args.variant_cases:
-            cases = [
-                (int(n), *(int(v) for v in size.split("x")))  # type: ignore[misc]
-                for n, size in (c.split("@") for c in args.variant_cases.split(","))
-            ]
         tries = json.loads(args.variants) if args.variants else [{"label": "default"}]
-        b.variants(cases, RenderParams.model_validate(json.loads(args.variant_params)), tries)
+        b.variants(cases_of(args.variant_cases, [(496, 64, 48)]), variant_params, tries)
+    if "passes" in sections:
+        b.passes(cases_of(args.variant_cases, [(496, 64, 48)]), variant_params)
     if "scale" in sections:
         scale_sizes = [3000] if args.quick else [1_000_000, 10_000_000, 100_000_000]
         if args.scale_sizes:
@@ -1533,8 +1598,7 @@ def main(argv: list[str] | None = None) -> int:
         w, h = (64, 48) if args.quick else (1920, 1080)
         scale_tries = json.loads(args.scale_options) if args.scale_options else None
         cells = [float(v) for v in args.scale_cells.split(",")]
-        scale_params = RenderParams.model_validate(json.loads(args.variant_params))
-        b.scale(scale_sizes, cells, w, h, scale_tries, scale_params)
+        b.scale(scale_sizes, cells, w, h, scale_tries, variant_params)
     if "profile" in sections:
         prof = [(496, 64, 48, "classical", "iso")] if args.quick else [
             (1_000_000, 1920, 1080, "classical", "iso"),

@@ -567,11 +567,15 @@ def _make(
     max_registers: int,
     volume_max_registers: int,
     parts: bool,
+    count: bool,
 ) -> "RaycastKernels":
     Field = model.field
     # whether the walked cells mark their parts and the rays skip samples in them: a
     # constant of the generated code, so kernels without parts carry none of it
     split = 1 if parts and model.part_bounds is not None else 0
+    # whether the marching kernels write each ray's density passes to `counts`: a constant
+    # of the generated code, so the kernels that draw compile without the writes
+    counting = 1 if count else 0
     options = {"fast_math": bool(fast_math)}
     # the ray-marching and shading kernels carry many live values; capping their registers
     # trades a few spills for more resident warps to hide the latency of the neighbour gathers
@@ -778,8 +782,9 @@ def _make(
         its first crossing, taking at most `budget` density passes (0: no limit). Returns
         the crossing's lattice index (-1: none) with the values on both sides of it (-1:
         unknown), whether the ray still has work (budget spent) and the state that resumes
-        it: k, first, inside and the last sample's value (-1: unknown). Refinement is left to
-        the shading kernel, where every ray of a warp refines at once."""
+        it: k, first, inside and the last sample's value (-1: unknown), and the density
+        passes taken. Refinement is left to the shading kernel, where every ray of a warp
+        refines at once."""
         g = f.info[0]
         dt = m.dt
         s_hit = wp.int32(-1)
@@ -822,7 +827,7 @@ def _make(
                 else:
                     prev_v = v4[3]
                     k += 4
-        return s_hit, wp.vec2(prev_v, v_hi), more, k, first, inside, prev_v
+        return s_hit, wp.vec2(prev_v, v_hi), more, k, first, inside, prev_v, passes
 
     @wp.kernel(
         enable_backward=False, module="unique", module_options=options, cuda_max_registers=regs
@@ -838,6 +843,7 @@ def _make(
         queue_v: wp.array[float],
         queue_len: wp.array[wp.int32],
         found: wp.array[wp.int32],
+        counts: wp.array[wp.int32],
         resume: int,
     ):
         """March rays to the lattice interval of their first crossing (`hit_k`, `hit_v`).
@@ -872,12 +878,13 @@ def _make(
         t0, t1 = clip_box(o, d, g.origin, g.box_hi)
         s_hit = wp.int32(-1)
         v = wp.vec2(-1.0, -1.0)
+        passes = wp.int32(0)
         if resume != 0:
             t0 = float(k) * m.dt
         elif g.valid != 0 and t0 < t1:
             k = int(wp.ceil(t0 / m.dt))
         if resume != 0 or (g.valid != 0 and t0 < t1):
-            s_hit, v, more, k, first, inside, prev_v = march_iso(
+            s_hit, v, more, k, first, inside, prev_v, passes = march_iso(
                 f, m, o, d, t0, t1, k, first, inside, prev_v, budget
             )
             if more != 0:
@@ -885,6 +892,11 @@ def _make(
                 queue[slot] = wp.vec4i(tid, k, first, inside)
                 queue_v[slot] = prev_v
                 found[slot] = _NO_HIT
+        if counting != 0:
+            if resume == 0:
+                counts[pix] = passes
+            else:
+                counts[pix] = counts[pix] + passes
         if resume == 0:
             hit_k[pix] = _NO_HIT
         if s_hit >= 0:
@@ -907,6 +919,7 @@ def _make(
         queue_v: wp.array[float],
         queue_len: wp.array[wp.int32],
         found: wp.array[wp.int32],
+        counts: wp.array[wp.int32],
         lanes: int,
         rays_per_launch: int,
     ):
@@ -948,6 +961,8 @@ def _make(
                     )
                     need = 4 - clear_n
                 if need != 0:
+                    if counting != 0:
+                        wp.atomic_add(counts, pix, 1)
                     v4 = value4_level(f, o, d, ts, m.iso)
                     q_from = wp.int32(1)
                     if gs == k0:
@@ -1039,11 +1054,13 @@ def _make(
         rgba: wp.array[wp.uint32],
         depth: wp.array[float],
         ids: wp.array[wp.int32],
+        counts: wp.array[wp.int32],
     ):
         x, y, ok = pixel_of(cam, wp.tid())
         if ok == 0:
             return
         pix = y * cam.width + x
+        passes = wp.int32(0)
         acc = wp.vec3(0.0, 0.0, 0.0)
         alpha = wp.float32(0.0)
         t_depth = float(wp.inf)
@@ -1064,6 +1081,7 @@ def _make(
                     1, split, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
                 )  # fmt: skip
                 if active != 0:
+                    passes += 1
                     # four samples per pass, with gradients when shaded
                     ts = wp.vec4(
                         (float(k) + jit) * dt,
@@ -1118,6 +1136,8 @@ def _make(
         else:
             rgba[pix] = pack_rgba(acc + sh.background * (1.0 - alpha))
         depth[pix] = t_depth
+        if counting != 0:
+            counts[pix] = passes
         atom = wp.int32(-1)
         if t_depth < wp.inf:
             atom = sample(f, o + d * t_depth).atom
@@ -1126,6 +1146,7 @@ def _make(
     return RaycastKernels(
         model=model,
         parts=split != 0,
+        counts=count,
         bound_settle=bound_settle_kernel,
         bound=bound_kernel,
         whole_settle=whole_settle_kernel,
@@ -1146,6 +1167,8 @@ class RaycastKernels:
     model: DensityModel
     parts: bool
     """The walked cells mark their parts below the level and the rays skip samples there."""
+    counts: bool
+    """The marching kernels write each ray's density passes to their `counts` argument."""
     bound_settle: Any
     bound: Any
     whole_settle: Any
@@ -1161,7 +1184,7 @@ class RaycastKernels:
     volume: Any
 
 
-_KERNELS: dict[tuple[str, bool, int, int, bool], RaycastKernels] = {}
+_KERNELS: dict[tuple[str, bool, int, int, bool, bool], RaycastKernels] = {}
 
 
 def _bound_kernels(field: Any, walked: Any, options: dict[str, Any]) -> tuple[Any, Any]:
@@ -1249,18 +1272,21 @@ def kernels_for(
     max_registers: int = 0,
     volume_max_registers: int = 0,
     parts: bool = True,
+    count: bool = False,
 ) -> RaycastKernels:
     """The kernels of `model`, generated once per process. `fast_math` lets CUDA use its
     hardware exp/divide/sqrt approximations (a few ulp); `max_registers` and
     `volume_max_registers` (0 = compiler's choice) cap the registers of the iso (marching
     and shading) and volume kernels on CUDA. CPU builds ignore them. `parts`: the walked
     cells mark which of their parts are below the level and the rays skip the samples there
-    (for models with `part_bounds`)."""
+    (for models with `part_bounds`). `count`: the iso march and volume kernels write the
+    density passes of each ray (a measurement of the work; the image is the same)."""
     split = bool(parts) and model.part_bounds is not None
-    key = (model.name, bool(fast_math), int(max_registers), int(volume_max_registers), split)
+    regs, volume_regs = int(max_registers), int(volume_max_registers)
+    key = (model.name, bool(fast_math), regs, volume_regs, split, bool(count))
     k = _KERNELS.get(key)
     if k is None or k.model is not model:
-        k = _make(model, bool(fast_math), int(max_registers), int(volume_max_registers), split)
+        k = _make(model, bool(fast_math), regs, volume_regs, split, bool(count))
         _KERNELS[key] = k
     return k
 

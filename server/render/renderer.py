@@ -190,7 +190,9 @@ class Renderer(ImageOutputs):
     are below the level, for the rays to skip the samples there (the same image; one of
     `PART_MODES`; None: "all" below `VISIBLE_ATOMS` atoms, "visible" from there, "all" again
     in iso mode for positions seen by many views, `STILL_VIEWS`, and "none" in volume mode
-    from `LARGE_ATOMS`).
+    from `LARGE_ATOMS`); `count_passes` has the rays count their density passes, the work a
+    frame does whatever the device (`read_pass_counts`; kernels of their own, the same
+    image).
     """
 
     def __init__(
@@ -212,6 +214,7 @@ class Renderer(ImageOutputs):
         bound_keep_from: float | None = None,
         grid_sort: str = "counting",
         part_bounds: PartMode | None = None,
+        count_passes: bool = False,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
@@ -255,6 +258,7 @@ class Renderer(ImageOutputs):
         self._density = density
         self._max_registers = max_registers
         self._kernel_options = (fast_math, volume_max_registers)
+        self._count_passes = bool(count_passes)
         self._kernel_sets: dict[tuple[str, bool], raycast.RaycastKernels] = {}
         self._kernels_of_model(density, False)  # generated now: bad options fail here
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
@@ -364,6 +368,7 @@ class Renderer(ImageOutputs):
         self._queue_v = wp.zeros(count, dtype=float, device=d)
         self._queue_len = wp.zeros(1, dtype=wp.int32, device=d)
         self._found = wp.zeros(count, dtype=wp.int32, device=d)
+        self._counts = wp.zeros(count if self._count_passes else 1, dtype=wp.int32, device=d)
         self._pixels = count
         self._drop_graphs()
 
@@ -756,7 +761,7 @@ class Renderer(ImageOutputs):
             fast, volume_regs = self._kernel_options
             own = MARCH_REGISTERS.get(model.name, MARCH_REGISTERS["gaussian"])
             regs = own if self._max_registers is None else self._max_registers
-            k = raycast.kernels_for(model, fast, regs, volume_regs, parts)
+            k = raycast.kernels_for(model, fast, regs, volume_regs, parts, self._count_passes)
             self._kernel_sets[key] = k
         return k
 
@@ -983,7 +988,7 @@ class Renderer(ImageOutputs):
             queued = (*hits, self._queue, self._queue_v, self._queue_len, self._found)
             if m.budget > 0:
                 self._queue_len.zero_()
-            march = (f, cam, m, *queued)
+            march = (f, cam, m, *queued, self._counts)
             wp.launch(k.iso_march, threads, (*march, 0), device=dev, block_dim=MARCH_BLOCK)
             if m.budget > 0 and self.split_lanes > 1:
                 lanes = self.split_lanes
@@ -1012,7 +1017,7 @@ class Renderer(ImageOutputs):
             wp.launch(
                 k.volume,
                 threads,
-                (f, cam, m, vol, sh, self._rgba, self._depth, self._ids),
+                (f, cam, m, vol, sh, self._rgba, self._depth, self._ids, self._counts),
                 device=dev,
                 block_dim=MARCH_BLOCK,
             )
@@ -1195,6 +1200,15 @@ class Renderer(ImageOutputs):
 
     def _outputs(self) -> tuple[wp.array, wp.array, wp.array]:
         return self._rgba, self._depth, self._ids
+
+    def read_pass_counts(self) -> npt.NDArray[np.int32]:
+        """(height, width) int32: the density passes (of four samples each) every ray of the
+        last image took: in iso mode to its crossing (the shading kernel's refinement is not
+        counted), in volume mode to its end. Needs `count_passes=True`."""
+        if not self._count_passes:
+            raise RenderError("pass counts need a Renderer made with count_passes=True")
+        counts: npt.NDArray[np.int32] = self._read(self._counts).astype(np.int32)
+        return counts
 
     def pick(self, x: int, y: int) -> tuple[int | None, float | None]:
         """Atom id and depth at pixel (x from the left, y from the top) of the last image."""

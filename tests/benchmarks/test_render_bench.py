@@ -90,3 +90,28 @@ def test_marking_rays_that_are_not_two_positive_integers_are_refused() -> None:
         run = bench("--visible-rays", bad)
         assert run.returncode == 2, bad
         assert f"--visible-rays takes STRIDE:DEPTH, two integers >= 1, got '{bad}'" in run.stderr
+
+
+def test_the_passes_section_counts_the_work_of_iso_and_volume_frames(tmp_path: Path) -> None:
+    """`--sections passes` records the density passes per ray of an iso and a volume frame
+    of each case, and their ratio."""
+    args = [*QUICK, "--sections", "passes", "--variant-cases", "2000@48x32,3000@40x30"]
+    rows = results(tmp_path / "passes.json", *args)["passes"]
+    assert [(e["n_atoms"], e["width"], e["height"]) for e in rows] == [
+        (2000, 48, 32),
+        (3000, 40, 30),
+    ]
+    for e in rows:
+        assert 0 < e["iso"]["per_ray"] <= e["iso"]["per_ray_reaching"] <= e["iso"]["max"]
+        assert 0 < e["volume"]["rays_reaching"] <= 1
+        assert e["volume_over_iso"] == e["volume"]["per_ray"] / e["iso"]["per_ray"]
+
+
+def test_cases_that_are_not_atoms_at_a_size_are_refused() -> None:
+    for bad in ("1000", "1000@64", "1000@64x", "x@64x48", "0@64x48"):
+        run = bench("--variant-cases", bad)
+        assert run.returncode == 2, bad
+        assert (
+            f"--variant-cases takes N@WxH,... (atoms @ width x height, each >= 1), got '{bad}'"
+            in run.stderr
+        )

@@ -686,6 +686,38 @@ def test_volume_frames_of_large_systems_walk_the_cells_of_the_view(
     np.testing.assert_array_equal(forced.read_rgba(), ref.read_rgba())
 
 
+@pytest.mark.parametrize("mode", ["iso", "volume"])
+def test_rays_count_their_density_passes(device: str, mode: str) -> None:
+    """`count_passes` draws the same image and reports each ray's density passes: none for
+    rays that miss the atoms' box, some for those that reach a surface; skipping empty space
+    never adds a pass and saves many; an iso ray queued after a budget of passes and resumed
+    adds up to the passes of one uninterrupted march."""
+    top, pos = _two_lumps()
+    cam = fit_camera(pos, 64, 48)
+    params = RenderParams(mode=mode)  # type: ignore[arg-type]
+    plain = render(device, top, pos, params, cam, 64, 48)
+    counted = render(device, top, pos, params, cam, 64, 48, count_passes=True)
+    np.testing.assert_array_equal(counted.read_rgba(), plain.read_rgba())
+    np.testing.assert_array_equal(counted.read_depth(), plain.read_depth())
+    passes = counted.read_pass_counts()
+    hit = np.isfinite(counted.read_depth())
+    assert hit.mean() > 0.1 and (passes[hit] > 0).all()
+    assert (passes[0] == 0).all(), "the top row misses the atoms' box"
+    full = render(
+        device, top, pos, params, cam, 64, 48, count_passes=True, empty_space_skipping=False
+    )
+    every = full.read_pass_counts()
+    assert (every >= passes).all() and every.sum() > 2 * passes.sum()
+    if mode == "iso":
+        queued = render(
+            device, top, pos, params, cam, 64, 48, count_passes=True, march_budget=2, split_lanes=1
+        )
+        np.testing.assert_array_equal(queued.read_pass_counts(), passes)
+        assert (passes > 2).any(), "some rays must have been queued"
+    with pytest.raises(RenderError, match="count_passes=True"):
+        plain.read_pass_counts()
+
+
 def test_marking_rays_keep_their_count_on_larger_images() -> None:
     """The marking rays' stride is STRIDE up to 1920x1080 and grows with the image's linear
     size above it, so a 4K image casts as many marking rays as a 1080p one."""
