@@ -45,7 +45,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from protocol import Camera, RenderParams, Topology, WireArray
-from server.render import Renderer, visibility
+from server.render import Renderer, raycast, visibility
 from server.render import device as render_device
 from server.render.camera import fit_camera, orbit
 from server.render.density import GaussianField, gaussian_value
@@ -792,6 +792,7 @@ class Bench:
                     "rays_reaching": float(reached.mean()),
                     "p99": float(np.percentile(counts, 99)),
                     "max": int(counts.max()),
+                    "tile_use": tile_use(counts),
                 }
             entry["volume_over_iso"] = entry["volume"]["per_ray"] / max(
                 entry["iso"]["per_ray"], 1e-9
@@ -1216,6 +1217,22 @@ def _frame(cam: Camera, w: int, h: int) -> Any:
     return camera_frame(cam, w, h)
 
 
+def tile_use(counts: np.ndarray) -> float:
+    """The share of pass slots that do work in the tiles of one warp (`raycast.TILE_W` x
+    `TILE_H` rays, which run in step): the passes taken over the tile's most, times its
+    rays, over the tiles where any ray takes one. Edge tiles that the image cuts are left
+    out."""
+    tw, th = raycast.TILE_W, raycast.TILE_H
+    h, w = counts.shape
+    tiles = counts[: h - h % th, : w - w % tw].reshape(h // th, th, w // tw, tw)
+    per_tile = tiles.transpose(0, 2, 1, 3).reshape(-1, tw * th)
+    most = per_tile.max(axis=1)
+    busy = most > 0
+    if not busy.any():
+        return 1.0
+    return float(per_tile[busy].sum() / (most[busy].sum() * tw * th))
+
+
 def cases_of(spec: str, default: list[tuple[int, int, int]]) -> list[tuple[int, int, int]]:
     """(atoms, width, height) of each "N@WxH" in a comma-separated `spec` (empty: `default`)."""
     if not spec:
@@ -1298,17 +1315,20 @@ def table(path: Path) -> str:
     if res.get("passes"):
         lines += [
             "",
-            "Density passes (four samples each) per ray of one frame, iso and volume:",
+            "Density passes (four samples each) per ray of one frame, iso and volume, and the "
+            "share of a warp's pass slots that do work:",
             "",
-            "| atoms | image | iso per ray | iso per ray reaching a surface | volume per ray | "
-            "volume / iso |",
-            "| ---: | --- | ---: | ---: | ---: | ---: |",
+            "| atoms | image | iso per ray | iso per ray reaching a surface | iso tile use | "
+            "volume per ray | volume tile use | volume / iso |",
+            "| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
         ]
         for row in res["passes"]:
+            iso, vol = row["iso"], row["volume"]
             lines.append(
-                f"| {row['n_atoms']:,} | {row['width']}x{row['height']} | "
-                f"{row['iso']['per_ray']:.2f} | {row['iso']['per_ray_reaching']:.2f} | "
-                f"{row['volume']['per_ray']:.2f} | {row['volume_over_iso']:.2f} |"
+                f"| {row['n_atoms']:,} | {row['width']}x{row['height']} | {iso['per_ray']:.2f} | "
+                f"{iso['per_ray_reaching']:.2f} | {iso.get('tile_use', 0):.2f} | "
+                f"{vol['per_ray']:.2f} | {vol.get('tile_use', 0):.2f} | "
+                f"{row['volume_over_iso']:.2f} |"
             )
     if res["grid_build"]:
         lines += [

@@ -8,6 +8,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 QUICK = ["--quick", "--device", "cpu"]
 # a section skips what its budget leaves no time for
@@ -105,6 +108,24 @@ def test_the_passes_section_counts_the_work_of_iso_and_volume_frames(tmp_path: P
         assert 0 < e["iso"]["per_ray"] <= e["iso"]["per_ray_reaching"] <= e["iso"]["max"]
         assert 0 < e["volume"]["rays_reaching"] <= 1
         assert e["volume_over_iso"] == e["volume"]["per_ray"] / e["iso"]["per_ray"]
+        assert 0 < e["iso"]["tile_use"] <= 1 and 0 < e["volume"]["tile_use"] <= 1
+
+
+def test_tile_use_is_the_share_of_a_warps_pass_slots_that_work(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Passes taken over the tile's most times its rays, over tiles with work; tiles that
+    the image cuts at its edges and tiles without passes are left out."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    from render_bench import tile_use
+
+    counts = np.zeros((9, 17), dtype=np.int32)  # two full 8x4 tiles a row, two rows
+    counts[0, 0] = 4  # tile one: one ray of 32 takes 4 passes, the rest none
+    counts[4:8, 8:16] = 2  # tile four: every ray takes 2
+    counts[8, :] = 9  # the cut row and column are left out
+    counts[:, 16] = 9
+    assert tile_use(counts) == (4 + 64) / ((4 + 2) * 32)
+    assert tile_use(np.zeros((4, 8), dtype=np.int32)) == 1.0
 
 
 def test_cases_that_are_not_atoms_at_a_size_are_refused() -> None:
