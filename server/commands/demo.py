@@ -14,13 +14,16 @@ import signal
 import sys
 import time
 import webbrowser
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from protocol import RenderParams
 from server.commands.serve import ServerThread, dashboard_urls
 from server.settings import ServerSettings, persistent_tokens
+
+if TYPE_CHECKING:
+    from simulation_adapters.openmm_reporter import SteeringReporter
 
 
 def _has_cuda() -> bool:
@@ -71,9 +74,23 @@ def _announce(simulation: Any, settings: ServerSettings) -> None:
     print("  Ctrl-C stops the demo\n", flush=True)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    signal.signal(signal.SIGTERM, _stop_on_term)
+@dataclass
+class _Running:
+    """What the demo has started so far: closed, last started first, however it stops."""
+
+    server: ServerThread | None = None
+    reporter: SteeringReporter | None = None
+
+    def close(self) -> None:
+        if self.reporter is not None:
+            self.reporter.close()
+        if self.server is not None:
+            self.server.stop()
+
+
+def _run(args: argparse.Namespace, running: _Running) -> None:
+    """Build the system, start the server and its reporter (kept in `running` as soon as
+    each exists), and run until the deadline, the dashboard's stop or an interrupt."""
     logging.basicConfig(level="WARNING", format="%(asctime)s %(name)s %(levelname)s %(message)s")
     from simulation_adapters.openmm_reporter import SteeringReporter, run_steered
     from simulation_adapters.openmm_systems import build_villin_simulation
@@ -89,36 +106,46 @@ def main(argv: list[str] | None = None) -> int:
     )
     token, viewer_token = persistent_tokens(args.state_dir)
     settings = replace(settings, token=args.token or token, viewer_token=viewer_token)
-    server: ServerThread | None = None
-    reporter: SteeringReporter | None = None
-    # One try from the first slow step: a Ctrl-C or SIGTERM while the system is built or the
-    # server starts stops the demo in order too, not with a traceback.
+    print("scalesteer demo: preparing the villin headpiece (implicit solvent)...", flush=True)
+    simulation = build_villin_simulation(platform=args.platform)
+    running.server = ServerThread(settings)
+    settings = running.server.settings
+    reporter = running.reporter = SteeringReporter(
+        f"ws://127.0.0.1:{settings.port}/ws/sim",
+        token=settings.token,
+        interval=args.interval,
+        session="default",
+    )
+    simulation.reporters.append(reporter)
+    _announce(simulation, settings)
+    if not args.no_browser:
+        with contextlib.suppress(Exception):
+            webbrowser.open(dashboard_urls(settings)[0])
+    deadline = time.monotonic() + args.duration if args.duration > 0 else None
+    while not reporter.stop_requested and (deadline is None or time.monotonic() < deadline):
+        run_steered(simulation, args.interval * 10, reporter=reporter)
+    if reporter.stop_requested:
+        print("the dashboard stopped the simulation", file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    running = _Running()
+    before = signal.signal(signal.SIGTERM, _stop_on_term)
+    # One try from the handler on: a Ctrl-C or SIGTERM at any point of the start-up (the
+    # imports, the system's build, the server's start) stops the demo in order too.
     try:
-        print("scalesteer demo: preparing the villin headpiece (implicit solvent)...", flush=True)
-        simulation = build_villin_simulation(platform=args.platform)
-        server = ServerThread(settings)
-        settings = server.settings
-        reporter = SteeringReporter(
-            f"ws://127.0.0.1:{settings.port}/ws/sim",
-            token=settings.token,
-            interval=args.interval,
-            session="default",
-        )
-        simulation.reporters.append(reporter)
-        _announce(simulation, settings)
-        if not args.no_browser:
-            with contextlib.suppress(Exception):
-                webbrowser.open(dashboard_urls(settings)[0])
-        deadline = time.monotonic() + args.duration if args.duration > 0 else None
-        while not reporter.stop_requested and (deadline is None or time.monotonic() < deadline):
-            run_steered(simulation, args.interval * 10, reporter=reporter)
-        if reporter.stop_requested:
-            print("the dashboard stopped the simulation", file=sys.stderr)
+        _run(args, running)
     except KeyboardInterrupt:
         print("\nstopping...", file=sys.stderr)
     finally:
-        if reporter is not None:
-            reporter.close()
-        if server is not None:
-            server.stop()
+        # a second Ctrl-C or SIGTERM must not cut the closing short (the server's stop is
+        # bounded): jobs and recordings close whole
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        try:
+            running.close()
+        finally:
+            signal.signal(signal.SIGINT, previous)
+            signal.signal(signal.SIGTERM, before)
     return 0

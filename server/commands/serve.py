@@ -223,22 +223,24 @@ class ServerThread:
         self._app = create_app(settings)
         self._server = uvicorn.Server(_config(settings, log_level, self._app))
         self._thread = threading.Thread(target=self._server.run, name="uvicorn", daemon=True)
-        self._thread.start()
-        deadline = time.monotonic() + 60
         try:
+            self._thread.start()
+            deadline = time.monotonic() + 60
             while not self._server.started:
                 if not self._thread.is_alive() or time.monotonic() > deadline:
                     raise RuntimeError(
                         f"the server did not start on {settings.host}:{settings.port}"
                     )
                 time.sleep(0.02)
+            self.port: int = self._server.servers[0].sockets[0].getsockname()[1]
+            self.settings = replace(settings, port=self.port)
         except BaseException:
-            # Interrupted or failed while starting: the half-started server must not outlive us.
+            # Interrupted or failed while starting: the half-started server must not outlive
+            # us, and its lifespan (jobs, recordings) closes as on a normal stop.
             self._server.should_exit = True
-            self._thread.join(timeout=30)
+            if self._thread.is_alive():
+                self._thread.join(timeout=30)
             raise
-        self.port: int = self._server.servers[0].sockets[0].getsockname()[1]
-        self.settings = replace(settings, port=self.port)
 
     @property
     def app_state(self) -> Any:
