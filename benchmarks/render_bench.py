@@ -776,9 +776,10 @@ class Bench:
     def passes(self, cases: list[tuple[int, int, int]], params: RenderParams) -> None:
         """The density passes (four samples each) the rays of one frame take, in iso and in
         volume mode with the same parameters otherwise (`count_passes`): counts, not times,
-        the same on any device, so a CPU run tells what a GPU frame has to do."""
+        the same on any device, so a CPU run tells what a GPU frame has to do (one march per
+        ray: split rays would count their lanes' passes past the crossing)."""
         for n, w, h in cases:
-            r, frames = self.renderer(n, count_passes=True)
+            r, frames = self.renderer(n, count_passes=True, march_budget=0)
             r.set_positions(frames[0])
             cam = fit_camera(frames[0], w, h)
             entry: dict[str, Any] = {"n_atoms": n, "width": w, "height": h}

@@ -385,6 +385,7 @@ class Renderer(ImageOutputs):
             self._queue,
             self._queue_v,
             self._found,
+            self._counts,
         )
         return {
             "positions": sum(int(a.capacity) for a in self._pos_buffers),
@@ -1204,7 +1205,9 @@ class Renderer(ImageOutputs):
     def read_pass_counts(self) -> npt.NDArray[np.int32]:
         """(height, width) int32: the density passes (of four samples each) every ray of the
         last image took: in iso mode to its crossing (the shading kernel's refinement is not
-        counted), in volume mode to its end. Needs `count_passes=True`."""
+        counted), in volume mode to its end. Rays split over several threads
+        (`march_budget`, `split_lanes`) also count the passes their lanes took past the
+        crossing, which depend on the lanes' timing. Needs `count_passes=True`."""
         if not self._count_passes:
             raise RenderError("pass counts need a Renderer made with count_passes=True")
         counts: npt.NDArray[np.int32] = self._read(self._counts).astype(np.int32)

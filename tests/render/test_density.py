@@ -714,6 +714,13 @@ def test_rays_count_their_density_passes(device: str, mode: str) -> None:
         )
         np.testing.assert_array_equal(queued.read_pass_counts(), passes)
         assert (passes > 2).any(), "some rays must have been queued"
+        # queued rays finished by four lanes each: the rays done within the budget keep
+        # their count, the queued ones add the lanes' passes to the two they took
+        lanes = render(
+            device, top, pos, params, cam, 64, 48, count_passes=True, march_budget=2, split_lanes=4
+        ).read_pass_counts()
+        np.testing.assert_array_equal(lanes[passes <= 2], passes[passes <= 2])
+        assert (lanes[passes > 2] > 2).all()
     with pytest.raises(RenderError, match="count_passes=True"):
         plain.read_pass_counts()
 
