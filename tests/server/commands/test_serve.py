@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import stat
+import threading
+import time
 from pathlib import Path
 
 import pytest
 
+from server.commands import serve
 from server.commands.serve import build_parser, settings_from
+from server.settings import ServerSettings
 
 
 def settings(*argv: str):  # type: ignore[no-untyped-def]
@@ -47,3 +51,25 @@ def test_video_codecs_are_chosen_by_name_or_turned_off(tmp_path: Path) -> None:
     assert settings("--state-dir", state, "--video-codecs", "none").video_codecs == ()
     with pytest.raises(ValueError, match="unknown hevc"):
         settings("--state-dir", state, "--video-codecs", "h264,hevc")
+
+
+def test_a_server_interrupted_while_it_starts_is_stopped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C while `ServerThread` waits for its server (the demo's start-up): the interrupt
+    reaches the caller and the half-started server stops instead of running on in the
+    background."""
+
+    class InterruptedWait:
+        monotonic = staticmethod(time.monotonic)
+
+        @staticmethod
+        def sleep(seconds: float) -> None:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(serve, "time", InterruptedWait)
+    before = {t for t in threading.enumerate() if t.name == "uvicorn"}
+    with pytest.raises(KeyboardInterrupt):
+        serve.ServerThread(ServerSettings(port=0, state_dir=tmp_path, token="t" * 24))
+    left = [t for t in threading.enumerate() if t.name == "uvicorn" and t not in before]
+    assert not any(t.is_alive() for t in left)
