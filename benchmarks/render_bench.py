@@ -1555,14 +1555,16 @@ def main(argv: list[str] | None = None) -> int:
                 f"--visible-rays takes STRIDE:DEPTH, two integers >= 1, got {args.visible_rays!r}"
             )
         visibility.STRIDE, visibility.DEPTH = stride, depth
+    given: dict[str, list[tuple[int, int, int]]] = {}
     for flag, spec in (
         ("--variant-cases", args.variant_cases),
         ("--warped-cases", args.warped_cases),
     ):
         try:
-            cases_of(spec, [])
+            given[flag] = cases_of(spec, [])
         except ValueError:
             p.error(f"{flag} takes N@WxH,... (atoms @ width x height, each >= 1), got {spec!r}")
+    variant_cases = given["--variant-cases"] or [(496, 64, 48)]
     if args.variant_views < 1:
         p.error(f"--variant-views must be >= 1, got {args.variant_views}")
     if args.table:
@@ -1602,16 +1604,16 @@ def main(argv: list[str] | None = None) -> int:
     if "main" in sections:
         b.main_table(sizes, res, grid="grid" in sections)
     if "warped" in sections:
-        cases = [(496, 64, 48)] if args.quick else [
+        warped_cases = [(496, 64, 48)] if args.quick else [
             (n, 500, 500) for n in THESIS
         ] + [(100_000, 1920, 1080), (1_000_000, 1920, 1080)]  # fmt: skip
-        b.warped(cases_of(args.warped_cases, cases))
+        b.warped(given["--warped-cases"] or warped_cases)
     variant_params = RenderParams.model_validate(json.loads(args.variant_params))
     if "variants" in sections:
         tries = json.loads(args.variants) if args.variants else [{"label": "default"}]
-        b.variants(cases_of(args.variant_cases, [(496, 64, 48)]), variant_params, tries)
+        b.variants(variant_cases, variant_params, tries)
     if "passes" in sections:
-        b.passes(cases_of(args.variant_cases, [(496, 64, 48)]), variant_params)
+        b.passes(variant_cases, variant_params)
     if "scale" in sections:
         scale_sizes = [3000] if args.quick else [1_000_000, 10_000_000, 100_000_000]
         if args.scale_sizes:

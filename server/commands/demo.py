@@ -62,7 +62,8 @@ def _stop_on_term(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def _announce(simulation: Any, settings: ServerSettings) -> None:
+def _announce(simulation: Any, settings: ServerSettings) -> str:
+    """Print where the dashboard is and what runs; returns the steering link."""
     steer, view = dashboard_urls(settings)
     platform = simulation.context.getPlatform().getName()
     print(f"\n  scalesteer dashboard:  {steer}")
@@ -72,6 +73,7 @@ def _announce(simulation: Any, settings: ServerSettings) -> None:
     print(f"  simulation: villin headpiece, {n_atoms} atoms, OpenMM {platform}")
     print("  try: raise the temperature to 450-600 K and watch the motion grow; 300 K calms it")
     print("  Ctrl-C stops the demo\n", flush=True)
+    return steer
 
 
 @dataclass
@@ -117,10 +119,10 @@ def _run(args: argparse.Namespace, running: _Running) -> None:
         session="default",
     )
     simulation.reporters.append(reporter)
-    _announce(simulation, settings)
+    steer = _announce(simulation, settings)
     if not args.no_browser:
         with contextlib.suppress(Exception):
-            webbrowser.open(dashboard_urls(settings)[0])
+            webbrowser.open(steer)
     deadline = time.monotonic() + args.duration if args.duration > 0 else None
     while not reporter.stop_requested and (deadline is None or time.monotonic() < deadline):
         run_steered(simulation, args.interval * 10, reporter=reporter)
