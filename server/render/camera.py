@@ -224,3 +224,23 @@ def fit_camera(
             "ortho_height": ortho_height,
         }
     )
+
+
+def band_planes(frame: CameraFrame, y0: float, y1: float) -> tuple[F64, F64]:
+    """The planes (normal, offset) bounding the rays of image rows [y0, y1) (edges in pixels,
+    0 at the top): a point p lies between them where dot(normal, p) + offset >= 0 for both,
+    with normals of unit length (so a distance from a plane is that expression)."""
+    h = float(frame.height)
+    v_top = (1.0 - 2.0 * y0 / h) * frame.scale
+    v_bottom = (1.0 - 2.0 * y1 / h) * frame.scale
+    eye, up, forward = frame.eye, frame.up, frame.forward
+    if frame.ortho:
+        top_n, bottom_n = -up, up.copy()
+        top_d = v_top + float(up @ eye)
+        bottom_d = -v_bottom - float(up @ eye)
+        return np.append(top_n, top_d), np.append(bottom_n, bottom_d)
+    top_n = v_top * forward - up
+    bottom_n = up - v_bottom * forward
+    top_n = top_n / np.linalg.norm(top_n)
+    bottom_n = bottom_n / np.linalg.norm(bottom_n)
+    return np.append(top_n, -float(top_n @ eye)), np.append(bottom_n, -float(bottom_n @ eye))

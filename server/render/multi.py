@@ -7,12 +7,13 @@ device would render, bit for bit. Bands are balanced by the last frame's cost: e
 rows in proportion to the rows per millisecond it managed, so a band over the molecule and a band
 over the background take about as long.
 
-Sort-last (each device a slab of atoms, images composited by depth) would need every device to
-cast every ray through its slab and a compositing pass over partial densities: for an iso-surface
-of a density summed over all atoms, the slabs' densities add before the level is tested, so each
-sample needs every slab's value, which sort-first avoids. It wins only when one device cannot
-hold all positions and a grid (beyond about 60M atoms per 80 GB at 64 bytes per atom plus
-positions and images), the regime where the grid build, not the ray cast, is the frame.
+On CUDA devices a frame is issued from one thread without waiting in between: the positions go
+to every device at once from one page-locked host buffer (each device copies on its own
+stream), every device's render is queued, and each band is copied into one page-locked host
+image as its device finishes. The host never holds a device while another waits, and no copy
+runs through a pageable bounce buffer. Band edges move in whole row quanta, so a balanced frame
+set-up repeats and each device replays its captured graph. CPU devices (which stand in for GPUs
+in tests, and use one core each) render their bands on threads of their own.
 
 A device that fails is dropped with an error in the log; its band goes to the others from then
 on, and the frame is rendered again without it.
@@ -28,26 +29,36 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import warp
 
 from protocol import Camera, RenderParams, Topology
 from server.render.errors import RenderError
 from server.render.renderer import Renderer
 
+wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
 log = logging.getLogger("scalesteer.render")
 
 MIN_ROWS = 4
 """A band is at least one row of 8x4 tiles."""
+ROW_QUANTUM = 8
+"""Band edges fall on multiples of this many rows (two rows of 8x4 tiles): balancing moves them
+in steps, so a frame set-up repeats and each device replays its captured graph of it."""
+STAGING = 2
+"""Page-locked positions buffers a CUDA multi-device renderer writes frames into in turn."""
 
 
 def split_rows(height: int, cuts: Sequence[float]) -> list[tuple[int, int]]:
     """(y0, rows) of contiguous bands between the fractions `cuts` of the image height (one
-    fewer than the devices), each at least `MIN_ROWS` rows (or what is left)."""
+    fewer than the devices), each edge on a multiple of `ROW_QUANTUM` rows where the image is
+    tall enough and each band at least `MIN_ROWS` rows (or what is left)."""
+    quantum = ROW_QUANTUM if height >= ROW_QUANTUM * (len(cuts) + 1) else 1
     bands: list[tuple[int, int]] = []
     y = 0
     for i in range(len(cuts) + 1):
         left = height - y
         last = i == len(cuts)
-        rows = left if last else min(left, max(MIN_ROWS, round(cuts[i] * height) - y))
+        edge = round(cuts[i] * height / quantum) * quantum if not last else height
+        rows = left if last else min(left, max(MIN_ROWS, edge - y))
         bands.append((y, rows))
         y += rows
     return [(y0, rows) for y0, rows in bands if rows > 0]
@@ -71,6 +82,17 @@ def balance(
     return cuts
 
 
+def _pinned(count: int, dtype: Any) -> tuple[Any, npt.NDArray[Any]]:
+    """A page-locked host array (warp's allocation, portable to every device of the host) and
+    its numpy view."""
+    owner = wp.empty(max(count, 1), dtype=dtype, device="cpu", pinned=True)
+    return owner, owner.numpy()
+
+
+def _address(a: npt.NDArray[Any]) -> int:
+    return int(a.__array_interface__["data"][0])
+
+
 class MultiRenderer:
     """The `Renderer` interface over several devices; the image is split in bands."""
 
@@ -78,6 +100,8 @@ class MultiRenderer:
         if len(devices) < 2:
             raise ValueError("a multi-device renderer needs at least two devices")
         self.renderers = [Renderer(device=d, **options) for d in devices]
+        for r in self.renderers:
+            r.cull_to_tile = True  # each device's grid holds the atoms its band reaches
         self.devices = [r.device for r in self.renderers]
         self.labels = [
             d if self.devices.count(d) == 1 else f"{d}#{i}" for i, d in enumerate(self.devices)
@@ -86,15 +110,17 @@ class MultiRenderer:
         n = len(self.renderers)
         self.cuts = [k / n for k in range(1, n)]
         """Where the bands meet, as fractions of the height (balanced frame by frame)."""
-        # one thread per device; a CUDA device named twice (one GPU standing in for two) is
-        # driven from one thread, as graph capture on a device must not race another thread
-        cuda_twice = len({d for d in self.devices if d.startswith("cuda")}) < sum(
-            d.startswith("cuda") for d in self.devices
-        )
-        workers = 1 if cuda_twice else len(self.renderers)
-        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="device")
+        self.cuda = all(d.startswith("cuda") for d in self.devices)
+        """Every device is a CUDA device: frames are issued from the calling thread."""
+        # CPU devices run their kernels on the launching thread: one thread each
+        self._pool = None if self.cuda else ThreadPoolExecutor(n, thread_name_prefix="device")
+        self._staging: list[tuple[Any, npt.NDArray[np.float32]]] = []
+        self._next_staging = 0
+        self._n = 0
+        self._host_image: tuple[Any, npt.NDArray[np.uint32]] | None = None
         self._bands: list[tuple[int, int]] = []
         self._size: tuple[int, int] | None = None
+        self._params: RenderParams | None = None
         self.timings: dict[str, float] = {}
         self.device_ms: dict[str, float] = {}
 
@@ -108,44 +134,125 @@ class MultiRenderer:
 
     def set_topology(self, topology: Topology) -> None:
         self._all("set_topology", topology)
+        n = int(topology.n_atoms)
+        if self.cuda and n != self._n:
+            self._staging = [_pinned(n, wp.vec3) for _ in range(STAGING)]
+            self._staging = [(o, v.view(np.float32).reshape(-1, 3)[:n]) for o, v in self._staging]
+        self._n = n
 
-    def set_positions(self, positions: npt.ArrayLike, *, check_finite: bool = True) -> None:
-        self._all("set_positions", positions, check_finite=check_finite)
+    def host_positions(self) -> npt.NDArray[np.float32]:
+        """A (n, 3) float32 page-locked host buffer (CUDA devices): a frame written here and
+        passed to `set_positions` goes to every device without a host copy. Ask again for every
+        frame (the buffers alternate)."""
+        if not self._staging:
+            return np.empty((self._n, 3), dtype=np.float32)
+        return self._staging[self._next_staging][1]
+
+    def _staged(self, positions: npt.NDArray[Any]) -> npt.NDArray[np.float32]:
+        """`positions` in page-locked memory: one of the staging buffers as it is, anything else
+        copied into the next one (one host copy instead of a pageable upload per device)."""
+        arr = np.asarray(positions)
+        for i, (_owner, view) in enumerate(self._staging):
+            if _address(view) == _address(arr) and arr.shape == view.shape:
+                self._next_staging = (i + 1) % len(self._staging)
+                return view
+        view = self._staging[self._next_staging][1]
+        self._next_staging = (self._next_staging + 1) % len(self._staging)
+        np.copyto(view, arr, casting="same_kind")
+        return view
+
+    def set_positions(
+        self,
+        positions: npt.ArrayLike,
+        *,
+        check_finite: bool = True,
+        staged: npt.NDArray[np.float32] | None = None,
+    ) -> None:
+        """Positions for the next render on every device; the first device checks them.
+        `staged`: the same positions already in page-locked memory."""
+        first, rest = self.renderers[0], self.renderers[1:]
+        if not self.cuda:
+            first.set_positions(positions, check_finite=check_finite)
+            for r in rest:
+                r.set_positions(positions, check_finite=False)
+            return
+        # the checks (shape, dtype, finite) before a host copy is made of a bad frame
+        arr = np.asarray(positions)
+        if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] != self._n:
+            first.set_positions(arr, check_finite=check_finite)  # raises the renderer's error
+        if check_finite and self._n and not np.isfinite(arr).all():
+            first.set_positions(arr, check_finite=True)  # raises the renderer's error
+        src = staged if staged is not None else self._staged(arr)
+        for r in self.renderers:
+            r.set_positions(src, check_finite=False)
 
     def set_history(self, *args: Any, **kwargs: Any) -> None:
         self._all("set_history", *args, **kwargs)
 
+    def _issue(
+        self, params: RenderParams, camera: Camera, w: int, h: int, bands: list[tuple[int, int]]
+    ) -> list[BaseException | None]:
+        """Render every band; the error each device raised (None where it rendered)."""
+        pairs = list(zip(self.renderers, bands, strict=False))
+        errors: list[BaseException | None] = [None] * len(pairs)
+        if self._pool is not None:
+            jobs = [
+                self._pool.submit(r.render, params, camera, w, h, (0, y0, w, rows))
+                for r, (y0, rows) in pairs
+            ]
+            return [j.exception() for j in jobs]
+        for i, (r, (y0, rows)) in enumerate(pairs):
+            try:
+                r.render(params, camera, w, h, (0, y0, w, rows), wait=False)
+            except Exception as exc:  # a device's failure, judged below
+                errors[i] = exc
+        for i, (r, _band) in enumerate(pairs):
+            if errors[i] is None:
+                try:
+                    r.finish()
+                except Exception as exc:
+                    errors[i] = exc
+        return errors
+
     def render(self, params: RenderParams, camera: Camera, width: int, height: int) -> None:
         t0 = time.perf_counter()
+        w, h = int(width), int(height)
         while True:
             if len(self.cuts) != len(self.renderers) - 1:  # a device was dropped
                 n = len(self.renderers)
                 self.cuts = [k / n for k in range(1, n)]
-            bands = split_rows(int(height), self.cuts)
-            jobs = [
-                self._pool.submit(
-                    r.render, params, camera, width, height, (0, y0, int(width), rows)
-                )
-                for r, (y0, rows) in zip(self.renderers, bands, strict=False)
-            ]
-            failed = [i for i, j in enumerate(jobs) if j.exception() is not None]
+            bands = split_rows(h, self.cuts)
+            errors = self._issue(params, camera, w, h, bands)
+            failed = [i for i, e in enumerate(errors) if e is not None]
             if not failed:
                 break
             for i in reversed(failed):
-                exc = jobs[i].exception()
+                exc = errors[i]
+                assert exc is not None
                 if isinstance(exc, RenderError):
                     raise exc  # bad input: the same on every device
                 if len(self.renderers) == 1:
                     raise RuntimeError(f"the last render device failed: {exc}") from exc
                 log.error("render device %s failed (%s); going on without it", self.devices[i], exc)
                 del self.renderers[i], self.devices[i], self.labels[i]
-        self._bands = bands[: len(jobs)]
-        self._size = (int(width), int(height))
-        times = [max(r.timings.get("total", 0.0), 1e-3) for r in self.renderers[: len(bands)]]
+                self.cuda = all(d.startswith("cuda") for d in self.devices)
+        self._bands = bands[: len(errors)]
+        self._size = (w, h)
+        self._params = params
+        used = self.renderers[: len(bands)]
+        times = [max(r.timings.get("total", 0.0), 1e-3) for r in used]
         if len(bands) == len(self.renderers) > 1:
-            # halfway to the balanced cuts: a frame's noise does not swing the bands
-            target = balance(self._bands, times, int(height), len(self.renderers))
-            self.cuts = [0.5 * (a + b) for a, b in zip(self.cuts, target, strict=True)]
+            # the devices' own work (their totals also hold the wait for the host to queue
+            # them), halfway to the balanced cuts: a frame's noise does not swing the bands,
+            # and they move only by more than a row quantum, so set-ups repeat
+            work = [
+                max(r.timings.get("grid", 0.0) + r.timings.get("raycast", 0.0), 1e-3) for r in used
+            ]
+            target = balance(self._bands, work, h, len(self.renderers))
+            cuts = [0.5 * (a + b) for a, b in zip(self.cuts, target, strict=True)]
+            moved = max(abs(a - b) * h for a, b in zip(cuts, self.cuts, strict=True))
+            if moved > ROW_QUANTUM:
+                self.cuts = cuts
         self.device_ms = dict(zip(self.labels, times, strict=False))
         used = self.renderers[: len(times)]
         self.timings = {
@@ -162,9 +269,45 @@ class MultiRenderer:
         parts = [getattr(r, read)() for r in self.renderers[: len(self._bands)]]
         return np.concatenate(parts, axis=0)
 
+    def _gather_rgba(self, dest: Any) -> None:
+        """Each band copied from its device into its rows of `dest` (a host warp array of w * h
+        uint32), every device's copy queued before any is waited for."""
+        w, _h = self._need_size()
+        used = list(zip(self.renderers, self._bands, strict=False))
+        for r, (y0, rows) in used:
+            src = r.device_outputs()[0]
+            wp.copy(dest, src, dest_offset=y0 * w, count=w * rows, stream=wp.get_stream(r.device))
+        for r, _band in used:
+            wp.synchronize_stream(wp.get_stream(r.device))
+
+    def _need_size(self) -> tuple[int, int]:
+        if self._size is None:
+            raise RenderError("nothing rendered yet")
+        return self._size
+
     def read_rgba(self) -> npt.NDArray[np.uint8]:
-        out: npt.NDArray[np.uint8] = self._gather("read_rgba")
-        return out
+        if not self.cuda:
+            out: npt.NDArray[np.uint8] = self._gather("read_rgba")
+            return out
+        w, h = self._need_size()
+        held = self._host_image
+        if held is None or held[1].size < w * h:
+            held = self._host_image = _pinned(w * h, wp.uint32)
+        self._gather_rgba(held[0])
+        image: npt.NDArray[np.uint8] = held[1][: w * h].copy().view(np.uint8).reshape(h, w, 4)
+        return image
+
+    def read_rgba_into(self, out: npt.NDArray[np.uint8]) -> None:
+        """The image into `out` ((height, width, 4) uint8, C-contiguous), each device copying
+        its band straight into its rows (page-locked `out`: no host copy at all)."""
+        w, h = self._need_size()
+        if out.shape != (h, w, 4) or out.dtype != np.uint8 or not out.flags.c_contiguous:
+            raise RenderError(f"read_rgba_into needs a C-contiguous ({h}, {w}, 4) uint8 array")
+        if not self.cuda:
+            out[...] = self.read_rgba()
+            return
+        flat = out.reshape(-1).view(np.uint32)
+        self._gather_rgba(wp.array(flat, dtype=wp.uint32, device="cpu", copy=False))
 
     def read_depth(self) -> npt.NDArray[np.float32]:
         out: npt.NDArray[np.float32] = self._gather("read_depth")
@@ -186,10 +329,17 @@ class MultiRenderer:
         return None, None
 
     def density_histogram(self, *args: Any, **kwargs: Any) -> Any:
-        return self.renderers[0].density_histogram(*args, **kwargs)
+        """The histogram over the whole grid box: the first device builds a grid of every atom
+        for it (its band's next frame culls again)."""
+        first = self.renderers[0]
+        if self._params is None:
+            raise RenderError("render once before asking for a histogram")
+        first.prepare(self._params)
+        return first.density_histogram(*args, **kwargs)
 
     def memory_bytes(self) -> dict[str, int]:
         return self.renderers[0].memory_bytes()
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)

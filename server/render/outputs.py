@@ -7,9 +7,12 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import warp
 
 from server.render.errors import RenderError
 from server.render.yuv import I420Converter
+
+wp: Any = warp  # warp's host API is unannotated
 
 
 class ImageOutputs:
@@ -18,6 +21,7 @@ class ImageOutputs:
 
     _image: tuple[int, int] | None = None
     _i420: I420Converter | None = None
+    _host_reads: dict[Any, Any] | None = None
 
     def _outputs(self) -> tuple[Any, Any, Any]:
         raise NotImplementedError
@@ -34,15 +38,47 @@ class ImageOutputs:
         return (*self._outputs(), w * h)
 
     def _read(self, buffer: Any) -> npt.NDArray[Any]:
+        """The first w * h items of a device buffer as an (h, w) host array of the caller's.
+        From a CUDA device the copy lands in a page-locked buffer kept for the next read (one
+        DMA at the link's rate, where a pageable destination goes through a bounce buffer)."""
         w, h = self._need_image()
-        out: npt.NDArray[Any] = buffer[: w * h].numpy().reshape(h, w)
-        return out.copy()
+        n = w * h
+        if not buffer.device.is_cuda:
+            out: npt.NDArray[Any] = buffer[:n].numpy().reshape(h, w)
+            return out.copy()
+        reads = self._host_reads
+        if reads is None:
+            reads = self._host_reads = {}
+        host = reads.get(buffer.dtype)
+        if host is None or host.shape[0] < n:
+            host = reads[buffer.dtype] = wp.empty(n, dtype=buffer.dtype, device="cpu", pinned=True)
+        stream = wp.get_stream(buffer.device)
+        wp.copy(host, buffer, count=n, stream=stream)
+        wp.synchronize_stream(stream)
+        result: npt.NDArray[Any] = host.numpy()[:n].reshape(h, w).copy()
+        return result
 
     def read_rgba(self) -> npt.NDArray[np.uint8]:
         """(height, width, 4) uint8, row 0 at the top."""
         w, h = self._need_image()
         rgba: npt.NDArray[np.uint8] = self._read(self._outputs()[0]).view(np.uint8)
         return rgba.reshape(h, w, 4)
+
+    def read_rgba_into(self, out: npt.NDArray[np.uint8]) -> None:
+        """The last image into `out` ((height, width, 4) uint8, C-contiguous): from a CUDA
+        device one copy straight into it, at the link's rate when `out` is page-locked (a
+        caller that keeps a few such buffers reads images without a host copy)."""
+        w, h = self._need_image()
+        if out.shape != (h, w, 4) or out.dtype != np.uint8 or not out.flags.c_contiguous:
+            raise RenderError(f"read_rgba_into needs a C-contiguous ({h}, {w}, 4) uint8 array")
+        buffer = self._outputs()[0]
+        if not buffer.device.is_cuda:
+            out[...] = self.read_rgba()
+            return
+        dest = wp.array(out.reshape(-1).view(np.uint32), dtype=wp.uint32, device="cpu", copy=False)
+        stream = wp.get_stream(buffer.device)
+        wp.copy(dest, buffer, count=w * h, stream=stream)
+        wp.synchronize_stream(stream)
 
     def read_i420(self, size: tuple[int, int]) -> npt.NDArray[np.uint8]:
         """The last image as a video encoder takes it, scaled to `size` (width, height):

@@ -26,7 +26,7 @@ import warp
 from protocol import Camera, RenderParams, Topology
 from server.render import colors, raycast, temporal, transfer, visibility, warped
 from server.render import device as devmod
-from server.render.camera import CameraFrame, camera_frame
+from server.render.camera import CameraFrame, band_planes, camera_frame
 from server.render.density import (
     GAUSSIAN,
     MEAN_BLOCK,
@@ -40,7 +40,7 @@ from server.render.density import (
     total_kernel,
 )
 from server.render.errors import RenderError
-from server.render.grid import GRID_SORTS, CellGrid, cell_threads
+from server.render.grid import GRID_SORTS, CellGrid, Cull, cell_threads
 from server.render.outputs import ImageOutputs
 from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
 
@@ -247,6 +247,11 @@ class Renderer(ImageOutputs):
         self.part_bounds = part_bounds
         self.coverage = False
         """Write coverage alpha over no background (a layer composited with others)."""
+        self.cull_to_tile = False
+        """A tile's grid keeps only the atoms within reach of its rays (and of the atoms the
+        mean density of relative levels is taken at): the same image from a grid of a band's
+        share of the atoms, rebuilt when the camera moves. Set by `MultiRenderer` for the
+        classical density; a whole image, or the warped density, keeps every atom."""
         self.depth_limit: Any = None
         """A device array of per-pixel distances where volume rays stop (None: the grid's
         end); set by the layer compositor to the nearest opaque surface of the other layers."""
@@ -840,11 +845,33 @@ class Renderer(ImageOutputs):
             return self.bound_keep_from
         return math.inf if parts == "all" else BOUND_KEEP_FROM[_model_name(d)]
 
-    def _grid_key_for(self, d: Derived, stop: float, mode: str) -> tuple[Any, ...] | None:
-        """The key of the grid this frame needs (render mode `mode`), or None when the last
-        one still holds."""
-        key = (self._positions_version, d, self._cells_for(d), stop, self._parts_for(d, mode))
+    def _grid_key_for(
+        self, d: Derived, stop: float, mode: str, cull: tuple[Any, Cull] | None = None
+    ) -> tuple[Any, ...] | None:
+        """The key of the grid this frame needs (render mode `mode`; `cull`: the key and
+        planes of a culled tile's grid), or None when the last one still holds."""
+        key: tuple[Any, ...] = (self._positions_version, d, self._cells_for(d), stop)
+        key = (*key, self._parts_for(d, mode))
+        if cull is not None:
+            key = (*key, cull[0])
         return None if key == self._grid_key else key
+
+    def _cull_for(
+        self, d: Derived, frame: CameraFrame, camera_key: tuple[Any, ...], tile: Any
+    ) -> tuple[Any, Cull] | None:
+        """The culled grid of a tile (`cull_to_tile`): its key and the planes of its rows'
+        rays, one row wider on each side, kept within the cutoff reach plus the ambient
+        occlusion's farthest sample (four steps)."""
+        if not self.cull_to_tile or tile is None or d.warp is not None:
+            return None
+        y0, rows = tile[1], tile[3]
+        top, bottom = band_planes(frame, y0 - 1.0, y0 + rows + 1.0)
+        c = Cull()
+        c.planes = 2
+        c.top = wp.vec4(*(float(v) for v in top))
+        c.bottom = wp.vec4(*(float(v) for v in bottom))
+        c.margin = float(d.reach * (1.0 + 1.0e-3) + 4.0 * AO_STEP_SIGMAS * d.sigma + 1.0e-3)
+        return (camera_key, y0, rows), c
 
     def _view_of(self, d: Derived, mode: str, stop: float, view: View) -> View | None:
         """`view` when this frame's cell bounds follow it ("visible" part bounds), else None."""
@@ -868,15 +895,24 @@ class Renderer(ImageOutputs):
         u.per_atom = d.per_atom
         return u
 
-    def _build_grid(self, d: Derived, f: Any, stop: float, mode: str, view: View | None) -> None:
+    def _build_grid(
+        self,
+        d: Derived,
+        f: Any,
+        stop: float,
+        mode: str,
+        view: View | None,
+        cull: Cull | None = None,
+    ) -> None:
         """Grid, sorted atoms (weights divided by the mean density at the atoms for relative
         levels), the warped density's segments, cell bounds and brick bounds: launches only.
         `view` (camera frame and tile) marks the cells whose part bounds are walked when the
         bounds follow the view."""
         dev = self.device
         n = self._n
-        self._grid.build(self._pos, n, d.reach, self._cells_for(d))
         samples = min(n, MEAN_SAMPLES)
+        stride = n // samples if d.relative else 0
+        self._grid.build(self._pos, n, d.reach, self._cells_for(d), cull, stride)
         if d.relative:
             # the density's own scale, from the atoms in their original order through the
             # grid, so the gather below writes the scaled weights in one pass
@@ -959,6 +995,7 @@ class Renderer(ImageOutputs):
         tile: tuple[int, int, int, int] | None = None,
         view: View | None = None,
         walk_view: bool = False,
+        cull: Cull | None = None,
     ) -> float:
         """Every device operation of one frame after the upload, in order: the same calls run
         eagerly or into a graph capture. Returns the host time at the grid/cast boundary.
@@ -967,7 +1004,7 @@ class Renderer(ImageOutputs):
         dev = self.device
         k = self._kernels_of(d, params.mode)
         if build:
-            self._build_grid(d, f, stop, params.mode, view)
+            self._build_grid(d, f, stop, params.mode, view, cull)
         elif walk_view and view is not None:
             self._walk_view(k, f, stop, view)
             self._grid.build_bricks()
@@ -1118,7 +1155,8 @@ class Renderer(ImageOutputs):
         f = self._field(d)
         ev = self._events if self._cuda else None
         self._count_view(d, cam_seen[4])
-        grid_key = self._grid_key_for(d, stop, params.mode) if self._n else None
+        cull = self._cull_for(d, frame, cam_seen[4], tile)
+        grid_key = self._grid_key_for(d, stop, params.mode, cull) if self._n else None
         # a grid with part bounds for the view walks the cells each new view adds
         view = self._view_of(d, params.mode, stop, (frame, tile)) if self._n else None
         walk_view = False
@@ -1149,6 +1187,7 @@ class Renderer(ImageOutputs):
             tile,
             view,
             walk_view,
+            None if cull is None else cull[1],
         )
         if self._graphs is not None:
             clipped = params.mode == "volume" and self.depth_limit is not None

@@ -220,7 +220,7 @@ def test_cells_are_put_in_index_order_up_to_their_limit(device: str) -> None:
     keys[placed] = np.repeat(np.arange(len(sizes)), sizes)  # atom -> its cell
     order = wp.zeros(n, dtype=wp.int32, device=device)
     args = [wp.array(a, dtype=wp.int32, device=device) for a in (keys, starts, placed)]
-    wp.launch(order_cells_kernel, n, (*args, order), device=device)
+    wp.launch(order_cells_kernel, n, (*args, len(sizes), order), device=device)
     got = order.numpy()
     for c, size in enumerate(sizes):
         a, b = starts[c], starts[c + 1]

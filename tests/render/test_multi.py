@@ -7,23 +7,27 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol import RenderParams
+from protocol import RenderParams, WireArray
 from server.render import Renderer
 from server.render import device as render_device
-from server.render.camera import fit_camera
+from server.render.camera import band_planes, camera_frame, fit_camera
 from server.render.multi import MultiRenderer, balance, split_rows
-from tests.render.molecules import villin
+from tests.render.molecules import Mol, villin
 
 PARAMS = [
     RenderParams(),
     RenderParams(mode="volume", sigma_A=2.5),
     RenderParams(scale_space="warped", sigma_A=3.0),
+    RenderParams(level_scale="absolute", iso_level=0.4, radius_mode="vdw"),
 ]
+IDS = ["iso", "volume", "warped", "absolute-vdw"]
 
 
 def test_bands_cover_the_image_and_balance_by_cost() -> None:
-    assert split_rows(100, [0.5]) == [(0, 50), (50, 50)]
-    assert split_rows(100, [0.75]) == [(0, 75), (75, 25)]
+    # edges on whole row quanta (a balanced frame set-up repeats: graphs replay)
+    assert split_rows(100, [0.5]) == [(0, 48), (48, 52)]
+    assert split_rows(100, [0.75]) == [(0, 72), (72, 28)]
+    assert split_rows(1080, [0.25, 0.5, 0.7]) == [(0, 272), (272, 272), (544, 208), (752, 328)]
     assert split_rows(10, [0.1, 0.2, 0.9]) == [(0, 4), (4, 4), (8, 2)]  # at least a tile row
     # the top band cost 3x the bottom one: the cut moves up to where the cost halves
     cuts = balance([(0, 50), (50, 50)], [30.0, 10.0], 100, 2)
@@ -31,7 +35,7 @@ def test_bands_cover_the_image_and_balance_by_cost() -> None:
     assert balance([(0, 50), (50, 50)], [10.0, 10.0], 100, 2) == [0.5]
 
 
-@pytest.mark.parametrize("params", PARAMS, ids=["iso", "volume", "warped"])
+@pytest.mark.parametrize("params", PARAMS[:3], ids=IDS[:3])
 def test_a_tile_is_its_rectangle_of_the_whole_image(device: str, params: RenderParams) -> None:
     mol = villin()
     cam = fit_camera(mol.positions, 120, 90)
@@ -48,6 +52,71 @@ def test_a_tile_is_its_rectangle_of_the_whole_image(device: str, params: RenderP
         r.render(params, cam, 120, 90, tile=(100, 0, 30, 10))
 
 
+def villins(copies: int) -> Mol:
+    """`copies` villins side by side along x (a system wider than any one band's reach)."""
+    one = villin()
+    n = len(one.positions)
+    pos = np.concatenate([one.positions + np.float32([32.0 * i, 0.0, 0.0]) for i in range(copies)])
+    top = one.topology
+    bonds = top.bonds.to_numpy().reshape(-1, 2)
+    topology = top.model_copy(
+        update={
+            "n_atoms": n * copies,
+            "elements": top.elements * copies,
+            "names": top.names * copies,
+            "residue_names": top.residue_names * copies,
+            "chain_ids": top.chain_ids * copies,
+            "residue_ids": WireArray.from_numpy(
+                np.tile(top.residue_ids.to_numpy(), copies).astype(np.int32), "<i4"
+            ),
+            "bonds": WireArray.from_numpy(
+                np.concatenate([bonds + n * i for i in range(copies)]).astype(np.int32), "<i4"
+            ),
+        }
+    )
+    return Mol(topology, pos.astype(np.float32))
+
+
+@pytest.mark.parametrize(
+    "params",
+    [RenderParams(level_scale="absolute", iso_level=0.3), RenderParams(sigma_A=0.9)],
+    ids=["absolute", "relative"],
+)
+def test_a_band_grid_holds_the_atoms_its_rays_reach(device: str, params: RenderParams) -> None:
+    """A culled band keeps every atom within reach of its rays (and, for relative levels, of the
+    atoms the mean density is taken at), fewer than all, and draws the whole image's rows."""
+    mol = villins(4)
+    w, h = 64, 96  # the system lies across the bands
+    turn = (0.7071068, 0.0, 0.0, 0.7071068)  # the row of villins runs down the image
+    cam = fit_camera(mol.positions, w, h, orientation=turn)
+    whole = Renderer(device)
+    whole.set_topology(mol.topology)
+    whole.set_positions(mol.positions)
+    whole.render(params, cam, w, h)
+    image = whole.read_rgba()
+    band = Renderer(device)
+    band.cull_to_tile = True
+    band.set_topology(mol.topology)
+    band.set_positions(mol.positions)
+    frame = camera_frame(cam, w, h)
+    n = len(mol.positions)
+    reach = params.cutoff_sigmas * params.sigma_A
+    kept_counts = []
+    for y0 in range(0, h, 24):
+        band.render(params, cam, w, h, tile=(0, y0, w, 24))
+        assert np.array_equal(band.read_rgba(), image[y0 : y0 + 24])
+        grid = band._grid
+        kept = int(grid.cell_start.numpy()[grid.capacity])
+        ids = set(grid.order.numpy()[:kept].tolist())
+        top, bottom = band_planes(frame, y0, y0 + 24)
+        p = mol.positions.astype(np.float64)
+        near = (p @ top[:3] + top[3] >= -reach) & (p @ bottom[:3] + bottom[3] >= -reach)
+        assert set(np.nonzero(near)[0].tolist()) <= ids
+        kept_counts.append(kept)
+    if params.level_scale == "absolute":
+        assert max(kept_counts) < n and min(kept_counts) < n // 2
+
+
 def multi_devices() -> list[str]:
     """Every CUDA device when there are several; one GPU standing in for two; else two CPU
     devices."""
@@ -57,10 +126,11 @@ def multi_devices() -> list[str]:
     return ["cuda:0", "cuda:0"] if n == 1 else ["cpu", "cpu"]
 
 
-@pytest.mark.parametrize("params", PARAMS, ids=["iso", "volume", "warped"])
-def test_several_devices_render_the_one_device_image(params: RenderParams) -> None:
-    mol = villin()
-    cam = fit_camera(mol.positions, 128, 96)
+@pytest.mark.parametrize("params", PARAMS, ids=IDS)
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
+def test_several_devices_render_the_one_device_image(params: RenderParams, projection: str) -> None:
+    mol = villins(2)
+    cam = fit_camera(mol.positions, 128, 96, projection)  # type: ignore[arg-type]
     one = Renderer(multi_devices()[0])
     one.set_topology(mol.topology)
     one.set_positions(mol.positions)
@@ -74,7 +144,7 @@ def test_several_devices_render_the_one_device_image(params: RenderParams) -> No
         assert np.array_equal(multi.read_atom_ids(), one.read_atom_ids())
     x, y = 64, 60
     assert multi.pick(x, y) == one.pick(x, y)
-    assert len(multi.device_ms) == 2
+    assert len(multi.device_ms) == len(multi_devices())
     multi.close()
 
 
@@ -99,3 +169,19 @@ def test_a_failing_device_is_dropped_and_the_others_render(
     one.render(RenderParams(), cam, 64, 48)
     assert np.array_equal(multi.read_rgba(), one.read_rgba())
     multi.close()
+
+
+def test_an_image_reads_into_the_callers_array() -> None:
+    """`read_rgba_into`: the same pixels as `read_rgba`, into an array the caller keeps (from
+    CUDA devices one copy into it); a wrong array is refused with its expected shape."""
+    mol = villin()
+    cam = fit_camera(mol.positions, 40, 30)
+    for r in (Renderer(multi_devices()[0]), MultiRenderer(multi_devices())):
+        r.set_topology(mol.topology)
+        r.set_positions(mol.positions)
+        r.render(RenderParams(), cam, 40, 30)
+        out = np.zeros((30, 40, 4), np.uint8)
+        r.read_rgba_into(out)
+        assert np.array_equal(out, r.read_rgba()) and out.any()
+        with pytest.raises(ValueError, match=r"\(30, 40, 4\) uint8"):
+            r.read_rgba_into(np.zeros((40, 30, 4), np.uint8))
