@@ -3,18 +3,21 @@
 The files were saved into the server's data directory and checked by the isolated reader before
 a child starts; the child plays them into this server's `/ws/sim` with the server token (passed
 in its environment, not on its command line). A child ends with its session's `stop` control,
-`ReplayManager.stop`, or the server.
+`ReplayManager.stop`, or the server: it runs under the server's supervisor
+(`server.supervisor`), so a server that crashes or is killed leaves no replay behind to
+reconnect to the next one.
 """
 
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from server.supervisor import Supervised
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -23,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[2]
 class ReplayProcess:
     session: str
     files: list[str]
-    process: subprocess.Popen[bytes]
+    process: Supervised
     log_path: Path
     started: float = field(default_factory=time.time)
     recording: str | None = None
@@ -88,26 +91,19 @@ class ReplayManager:
         if token is not None:
             env["SCALESTEER_TOKEN"] = token  # not on the command line, where `ps` shows it
         with open(log_path, "wb") as out:
-            process = subprocess.Popen(
-                command, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT
-            )
+            process = Supervised(command, cwd=ROOT, env=env, output=out)
         replay = ReplayProcess(
             session, [f.name for f in files], process, log_path, recording=recording
         )
         self.processes[session] = replay
         return replay
 
-    def stop(self, session: str, timeout: float = 5.0) -> bool:
+    def stop(self, session: str, timeout: float | None = None) -> bool:
         replay = self.processes.get(session)
         if replay is None:
             return False
         if replay.process.poll() is None:
-            replay.process.terminate()
-            try:
-                replay.process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                replay.process.kill()
-                replay.process.wait()
+            replay.process.stop(timeout)
         return True
 
     def close(self) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -16,6 +17,54 @@ ROOT = Path(__file__).resolve().parents[2]
 TOKEN, VIEWER_TOKEN = "test-token", "viewer-token"
 
 
+def command_line(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+    except OSError:
+        return ""
+
+
+def running(pids: list[int]) -> list[int]:
+    """Those of `pids` still running (a zombie has ended)."""
+    out = []
+    for pid in pids:
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_bytes()
+        except OSError:
+            continue
+        if stat[stat.rfind(b")") + 2 :].split()[0] != b"Z":
+            out.append(pid)
+    return out
+
+
+def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
+    """Wait for `pids` to end; those still running at the deadline."""
+    deadline = time.monotonic() + timeout
+    while (left := running(pids)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return [pid for pid in left if command_line(pid)]
+
+
+def listening_ports(pids: list[int]) -> set[int]:
+    """The TCP ports `pids` listen on (any address), from /proc."""
+    inodes: dict[str, int] = {}
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with contextlib.suppress(OSError):
+            for line in Path(table).read_text().splitlines()[1:]:
+                fields = line.split()
+                if fields[3] == "0A":  # LISTEN
+                    inodes[fields[9]] = int(fields[1].rsplit(":", 1)[1], 16)
+    ports = set()
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            for fd in os.listdir(f"/proc/{pid}/fd"):
+                with contextlib.suppress(OSError):
+                    target = os.readlink(f"/proc/{pid}/fd/{fd}")
+                    if target.startswith("socket:[") and target[8:-1] in inodes:
+                        ports.add(inodes[target[8:-1]])
+    return ports
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -26,9 +75,16 @@ def free_port() -> int:
 class ServerProcess:
     """`scalesteer serve` on the CPU device in a child process, with fixed tokens."""
 
-    def __init__(self, state_dir: Path, *extra: str, port: int | None = None) -> None:
+    def __init__(
+        self,
+        state_dir: Path,
+        *extra: str,
+        port: int | None = None,
+        env: dict[str, str] | None = None,
+    ) -> None:
         self.state_dir = state_dir
         self.extra = extra
+        self.env = env
         self.port = port or free_port()
         self.log = state_dir.parent / f"server-{self.port}.log"
         state_dir.mkdir(parents=True, exist_ok=True)
@@ -40,7 +96,9 @@ class ServerProcess:
             "--batch-engine", "local", *extra,
         ]  # fmt: skip
         with open(self.log, "ab") as out:
-            self.process = subprocess.Popen(command, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+            self.process = subprocess.Popen(
+                command, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT
+            )
         deadline = time.monotonic() + 90
         while True:
             if self.process.poll() is not None:
@@ -83,4 +141,4 @@ class ServerProcess:
 
     def restart(self) -> ServerProcess:
         """A new server on the same port and state directory (this one must be stopped)."""
-        return ServerProcess(self.state_dir, *self.extra, port=self.port)
+        return ServerProcess(self.state_dir, *self.extra, port=self.port, env=self.env)
