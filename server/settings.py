@@ -47,6 +47,12 @@ def persistent_tokens(state_dir: Path, renew: bool = False) -> tuple[str, str]:
     return token, viewer
 
 
+def ray_cluster_address() -> str | None:
+    """The Ray cluster named in the environment: `SCALESTEER_RAY_ADDRESS`, else Ray's own
+    `RAY_ADDRESS`."""
+    return os.environ.get("SCALESTEER_RAY_ADDRESS") or os.environ.get("RAY_ADDRESS") or None
+
+
 def is_loopback(host: str) -> bool:
     if host == "localhost":
         return True
@@ -88,11 +94,16 @@ class ServerSettings:
     gpus: str | None = None
     """Render each session's images across several devices: 'all', '0,1', 'cpu,cpu'."""
     batch_engine: Literal["auto", "ray", "local"] = "auto"
-    """Where trajectory jobs render: on Ray (`auto`: when it is installed) or in this process."""
+    """Where trajectory jobs render: in this process, or on Ray when asked (`ray`) or (`auto`)
+    when a cluster is configured (`ray_address`) and Ray is installed."""
     ray_address: str | None = None
-    """The Ray cluster to join (`ray start --head` prints it); None starts a local instance."""
+    """The Ray cluster to join (`ray start --head` prints it); with `batch_engine="ray"`, None
+    starts a Ray instance of this server's own (token-authenticated, ended with the server)."""
     ray_workers: int | None = None
     """Ray render actors at most (default: one per GPU of the cluster, else one per CPU)."""
+    ray_min_frames: int = 64
+    """With `batch_engine="auto"`, jobs of fewer frames render in this process: a small job is
+    done before Ray would have shipped it out."""
     max_running_jobs: int = 2
     """Jobs that read and render at once; later ones wait `queued`."""
     max_readers: int = 2

@@ -2,9 +2,10 @@
 
     scalesteer batch adk.psf adk.dcd -o adk.mp4 --size 1920x1080 --ray-address HEAD:6379
 
-The job runs exactly as `POST /api/jobs` runs it (`server.pipeline.jobs`): on Ray when it is
-installed (a local instance by default, a cluster with `--ray-address` or
-`SCALESTEER_RAY_ADDRESS`), else in this process (`--engine local` forces that).
+The job runs exactly as `POST /api/jobs` runs it (`server.pipeline.jobs`): in this process, or
+on Ray when asked (`--engine ray`: a cluster, or a local instance that ends with this command)
+or when a cluster is configured (`--ray-address`, `SCALESTEER_RAY_ADDRESS`, `RAY_ADDRESS`) for
+jobs of 64 frames or more.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import shutil
 import sys
 import tempfile
@@ -21,12 +21,13 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from server.commands.render import _size
+from server.settings import ray_cluster_address
 
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="scalesteer batch",
-        description="Render a trajectory to an MP4 or a zip of PNGs (on Ray when installed).",
+        description="Render a trajectory to an MP4 or a zip of PNGs, in this process or on Ray.",
     )
     ap.add_argument("topology", help="structure or topology file (pdb, psf, gro, ...)")
     ap.add_argument("trajectory", nargs="*", help="trajectory files (dcd, xtc, trr, ...)")
@@ -39,9 +40,19 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--params", default="{}", help="render parameters as JSON")
     ap.add_argument("--camera", default=None, help="camera as JSON (default: fit the first frame)")
     ap.add_argument("--device", default="auto", help="render device of the in-process engine")
-    ap.add_argument("--engine", choices=["auto", "ray", "local"], default="auto")
-    ap.add_argument("--ray-address", default=os.environ.get("SCALESTEER_RAY_ADDRESS"))
-    ap.add_argument("--ray-workers", type=int, default=None)
+    ap.add_argument(
+        "--engine",
+        choices=["auto", "ray", "local"],
+        default="auto",
+        help="auto: Ray when a cluster is configured (jobs of 64 frames or more), else this "
+        "process; ray: Ray always (a local instance without --ray-address); local: this process",
+    )
+    ap.add_argument(
+        "--ray-address",
+        default=ray_cluster_address(),
+        help="a Ray cluster to join, HOST:PORT (env SCALESTEER_RAY_ADDRESS or RAY_ADDRESS)",
+    )
+    ap.add_argument("--ray-workers", type=int, default=None, help="Ray render actors at most")
     return ap
 
 
@@ -76,9 +87,9 @@ async def run(args: argparse.Namespace) -> int:
         ray_address=args.ray_address,
         ray_workers=args.ray_workers,
     )
-    batch = batch_engine(settings)
-    gpu = GpuQueue(device=args.device)
     work = Path(tempfile.mkdtemp(prefix="scalesteer-batch-"))
+    batch = batch_engine(settings, work / "ray")
+    gpu = GpuQueue(device=args.device)
     encoders = ThreadPoolExecutor(max_workers=4, thread_name_prefix="encode")
     jobs = JobManager(
         work, gpu, encoders, Metrics(), settings.read_limits(), batch=batch, max_running=1
@@ -96,14 +107,23 @@ async def run(args: argparse.Namespace) -> int:
         stride=args.stride,
         fps=args.fps,
     )
-    engine = "Ray" if batch is not None else f"this process ({args.device})"
+    if batch is None:
+        engine = f"this process ({args.device})"
+    else:
+        where = args.ray_address or "a local instance, started now"
+        engine = f"Ray ({where}; jobs under {batch.min_frames} frames here)"
+        if not batch.min_frames:
+            engine = f"Ray ({where})"
     print(f"scalesteer batch: rendering on {engine}", flush=True)
     job = jobs.submit(spec)
-    last = 0.0
+    last, said = 0.0, None
     try:
         while job.state in (JobState.QUEUED, JobState.RUNNING):
             await asyncio.sleep(0.2)
-            if time.monotonic() - last > 2 and job.total:
+            if job.done == 0 and job.stage and job.stage != said:
+                said = job.stage
+                print(f"  {job.stage}...", flush=True)
+            elif time.monotonic() - last > 2 and job.total and job.done:
                 last = time.monotonic()
                 eta = job.describe().get("eta_s")
                 tail = f", about {eta:.0f} s left" if eta else ""

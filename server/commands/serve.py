@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 import threading
 import time
@@ -12,7 +11,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from server.settings import ServerSettings, is_loopback, persistent_tokens
+from server.settings import ServerSettings, is_loopback, persistent_tokens, ray_cluster_address
 
 
 def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
@@ -72,13 +71,16 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
         "--batch-engine",
         choices=["auto", "ray", "local"],
         default="auto",
-        help="where trajectory jobs render: Ray (auto: when installed) or this process",
+        help="where trajectory jobs render: auto: on Ray when a cluster is configured "
+        "(--ray-address; jobs of ray_min_frames frames or more), else here; ray: on Ray always "
+        "(without --ray-address, a token-authenticated instance of this server's own); local: "
+        "here",
     )
     ap.add_argument(
         "--ray-address",
-        default=os.environ.get("SCALESTEER_RAY_ADDRESS"),
-        help="a Ray cluster to join, e.g. HOST:6379 (env SCALESTEER_RAY_ADDRESS; default: "
-        "a local instance on the first job)",
+        default=ray_cluster_address(),
+        help="a Ray cluster to join, e.g. HOST:6379 (env SCALESTEER_RAY_ADDRESS or RAY_ADDRESS; "
+        "RAY_AUTH_TOKEN, when set, authenticates)",
     )
     ap.add_argument("--ray-workers", type=int, help="Ray render actors at most")
     ap.add_argument(

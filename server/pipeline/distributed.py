@@ -1,9 +1,18 @@
 """Batch jobs on Ray: a job's frames cut into chunks and rendered by a pool of Ray actors, one per
 GPU of the cluster (or per CPU worker where there is none), the images coming back in order.
 
-Ray is an extra (`pip install 'scalesteer[ray]'`); without it jobs render in the server's own
-process (`server.pipeline.jobs`). With it, by default a local Ray instance starts on the first
-job and uses the host's GPUs; `--ray-address` (or `SCALESTEER_RAY_ADDRESS`) joins a cluster.
+Ray is an extra (`pip install 'scalesteer[ray]'`) and is used when asked (`--batch-engine ray`)
+or when a cluster is configured (`--ray-address`, `SCALESTEER_RAY_ADDRESS` or `RAY_ADDRESS`);
+otherwise jobs render in the server's own process (`server.pipeline.jobs`), as do small jobs
+(`ray_min_frames`) unless Ray was asked for.
+
+Asked for without a cluster, the server starts a Ray instance of its own (`LocalRay`): `ray
+start --head` under the server's supervisor (`server.supervisor`), so that every Ray process ends
+with the server, `kill -9` included, and none of them sees the terminal's Ctrl-C. Ray's servers
+listen on every interface (Ray has no setting to bind them to loopback), so the instance runs
+with Ray's token authentication and a fresh random token each start: a client without it is
+refused. Its dashboard is off. Joining a cluster, the server authenticates with `RAY_AUTH_TOKEN`
+when it is set (token authentication needs Ray 2.52 or later).
 
 Each actor owns a Renderer and reads its chunks with the project's reader (MDAnalysis): files
 named on the server (`--data-dir` datasets) are read from the same path, which every worker must
@@ -22,10 +31,17 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
+import importlib.metadata
+import importlib.util
 import logging
 import os
+import secrets
+import socket
+import sys
 import tempfile
 import threading
+import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +50,7 @@ from typing import Any
 import numpy as np
 
 import protocol as p
+from server.supervisor import Supervised
 
 log = logging.getLogger("scalesteer.batch")
 
@@ -45,13 +62,107 @@ MAX_CHUNK_TRIES = 3
 IN_FLIGHT = 2
 
 
+CONNECT_S = 90.0
+"""How long a local Ray instance may take to accept the server's connection."""
+
+
 def available() -> bool:
-    """Whether Ray can be imported here."""
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    """Whether Ray is installed here (without importing it: Ray reads its authentication
+    settings when it is first imported)."""
+    return importlib.util.find_spec("ray") is not None
+
+
+AUTH_VARIABLES = ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN")
+TOKEN_AUTH_RAY = (2, 52)
+"""The first Ray release with token authentication."""
+
+
+def _use_token(token: str | None, mode: str | None = "token") -> None:
+    """Authenticate this process's Ray calls with `token` (Ray reads it from the environment;
+    when Ray is already imported, its cached settings are read again, as `ray.init` does when it
+    turns token authentication on). None values remove the variables."""
+    for name, value in zip(AUTH_VARIABLES, (mode, token), strict=True):
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+    if "ray" in sys.modules:
+        raylet: Any = importlib.import_module("ray._raylet")
+        raylet.Config.initialize("")
+        raylet.AuthenticationTokenLoader.instance().reset_cache()
+
+
+class LocalRay:
+    """A Ray instance of this host for this server alone (see the module's docstring)."""
+
+    def __init__(self, log_path: Path | None = None, cpus: int | None = None) -> None:
+        installed = importlib.metadata.version("ray")
+        if tuple(int(x) for x in installed.split(".")[:2]) < TOKEN_AUTH_RAY:
+            raise RuntimeError(
+                f"a Ray instance of the server's own needs Ray 2.52 or later, for its token "
+                f"authentication (installed: {installed}); upgrade Ray or join a cluster "
+                "with --ray-address"
+            )
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port: int = s.getsockname()[1]
+        self.address = f"127.0.0.1:{self.port}"
+        self.log_path = log_path
+        self.token = secrets.token_hex(32)
+        # a folder of its own: `ray start` records its address in its temporary folder, where
+        # another program's `ray.init()` on this host would find it and try to join
+        self.temp_dir = Path(tempfile.mkdtemp(prefix="scalesteer-ray-"))
+        command = [
+            sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block",
+            f"--port={self.port}", f"--temp-dir={self.temp_dir}", "--include-dashboard=false",
+            "--disable-usage-stats",
+        ]  # fmt: skip
+        if cpus is not None:
+            command.append(f"--num-cpus={cpus}")
+        env = dict(os.environ, RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=self.token)
+        env.pop("RAY_ADDRESS", None)
+        if log_path is not None:
+            log_path.parent.mkdir(parents=True, exist_ok=True)
+            with open(log_path, "ab") as out:
+                self.process = Supervised(command, env=env, output=out, remove=self.temp_dir)
+        else:
+            self.process = Supervised(command, env=env, remove=self.temp_dir)
+        self._saved = [os.environ.get(name) for name in AUTH_VARIABLES]
+        _use_token(self.token)
+
+    def connect(self, **options: Any) -> None:
+        """`ray.init` this process to the instance once it is up (its start takes seconds)."""
+        import ray
+
+        deadline = time.monotonic() + CONNECT_S
+        while True:
+            code = self.process.poll()
+            if code is not None:
+                raise RuntimeError(f"the local Ray instance exited with code {code}{self._tail()}")
+            try:
+                ray.init(address=self.address, _temp_dir=str(self.temp_dir), **options)
+                return
+            except ConnectionError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(
+                        f"the local Ray instance did not start in {CONNECT_S:.0f} s{self._tail()}"
+                    ) from None
+                time.sleep(0.5)
+
+    def stop(self) -> None:
+        """End every process of the instance; this process's Ray settings are as before."""
+        self.process.stop()
+        mode, token = self._saved
+        _use_token(token, mode)
+
+    def _tail(self) -> str:
+        if self.log_path is None:
+            return ""
+        with contextlib.suppress(OSError):
+            lines = self.log_path.read_text(errors="replace").strip().splitlines()
+            if lines:
+                return f" ({lines[-1][:300]}; see {self.log_path})"
+        return ""
 
 
 @dataclass(frozen=True)
@@ -202,23 +313,46 @@ class RayBatch:
     """The Ray side of batch jobs: the connection, the actor pool and the chunk scheduler."""
 
     address: str | None = None
+    """The cluster to join; None starts a `LocalRay` on the first job."""
     workers: int | None = None
     """Actors at most (default: one per GPU of the cluster, else one per CPU)."""
+    min_frames: int = 0
+    """Jobs of fewer frames render in the server's own process."""
+    log_dir: Path | None = None
+    """Where the output of a local Ray instance goes (`ray.log`)."""
     _actors: list[Any] = field(default_factory=list)
     _started: bool = False
     _lock: asyncio.Lock | None = None
+    _local: LocalRay | None = None
+    _connected: bool = False
+    """Whether this pool connected this process to Ray (and disconnects it on close)."""
 
     def _start(self) -> None:
+        # Ray's crash handler would take SIGTERM from the server's own graceful stop (a stack
+        # dump, then the process killed before its jobs and recordings are closed)
+        os.environ.setdefault("RAY_DISABLE_FAILURE_SIGNAL_HANDLER", "1")
         import ray
 
         if not ray.is_initialized():
-            ray.init(
-                address=self.address,
-                include_dashboard=False,
-                log_to_driver=False,
-                namespace="scalesteer",
-                configure_logging=False,
-            )
+            options: dict[str, Any] = {
+                "log_to_driver": False,
+                "namespace": "scalesteer",
+                "configure_logging": False,
+            }
+            try:
+                if self.address is None:
+                    log_path = None if self.log_dir is None else self.log_dir / "ray.log"
+                    self._local = LocalRay(log_path)
+                    self._local.connect(**options)
+                else:
+                    token = os.environ.get("RAY_AUTH_TOKEN")
+                    if token and not os.environ.get("RAY_AUTH_MODE"):
+                        _use_token(token)
+                    ray.init(address=self.address, **options)
+            except BaseException:
+                self._stop_local()
+                raise
+            self._connected = True
         resources = ray.cluster_resources()  # type: ignore[no-untyped-call]
         gpus = int(resources.get("GPU", 0))
         count = gpus or max(1, int(resources.get("CPU", 1)))
@@ -229,6 +363,10 @@ class RayBatch:
         self._started = True
         log.info("Ray batch engine: %d actor(s) (%s)", count, "GPU" if gpus else "CPU")
 
+    @property
+    def started(self) -> bool:
+        return self._started
+
     async def ensure(self) -> None:
         if self._lock is None:
             self._lock = asyncio.Lock()
@@ -238,7 +376,12 @@ class RayBatch:
 
     def describe(self) -> dict[str, Any]:
         """For /healthz: the engine and, once started, its workers."""
-        out: dict[str, Any] = {"engine": "ray", "address": self.address or "local"}
+        out: dict[str, Any] = {
+            "engine": "ray",
+            "address": self.address or "local",
+            "min_frames": self.min_frames,
+            "auth": "token" if os.environ.get("RAY_AUTH_MODE") == "token" else "none",
+        }
         if not self._started:
             out["started"] = False
             return out
@@ -329,15 +472,26 @@ class RayBatch:
                     ray.cancel(ref)
 
     def close(self) -> None:
-        if not self._started:
-            return
-        import ray
+        """Kill the actors; a connection this pool made is closed and a local instance it
+        started is stopped (every process of it)."""
+        if self._started:
+            import ray
 
-        for actor in self._actors:
-            with contextlib.suppress(Exception):
-                ray.kill(actor)
-        self._actors = []
-        self._started = False
+            for actor in self._actors:
+                with contextlib.suppress(Exception):
+                    ray.kill(actor)
+            self._actors = []
+            self._started = False
+            if self._connected:
+                with contextlib.suppress(Exception):
+                    ray.shutdown()
+                self._connected = False
+        self._stop_local()
+
+    def _stop_local(self) -> None:
+        if self._local is not None:
+            self._local.stop()
+            self._local = None
 
 
 def _consume(fut: asyncio.Future[Any]) -> None:

@@ -138,6 +138,8 @@ class Job:
     result: Path | None = None
     restarts: int = 0
     """How many server restarts found this job unfinished (each started it again)."""
+    stage: str | None = None
+    """What a running job is doing before its first frame: reading its input, starting Ray."""
     cancel: threading.Event = field(default_factory=threading.Event)
     finish: asyncio.Event = field(default_factory=asyncio.Event)
     task: asyncio.Task[None] | None = None
@@ -190,6 +192,7 @@ class Job:
             "started": self.started,
             "finished": self.finished,
             "restarts": self.restarts,
+            "stage": self.stage if self.state is JobState.RUNNING else None,
             "result": f"/api/jobs/{self.id}/result" if self.state is JobState.DONE else None,
         }
 
@@ -513,6 +516,7 @@ class JobManager:
             return
         job.state = JobState.RUNNING
         job.started = time.time()
+        job.stage = "reading its input"
         self._save(job)
         outcome, error, result = JobState.DONE, None, None
         try:
@@ -539,9 +543,10 @@ class JobManager:
                 writer = await loop.run_in_executor(
                     self.encoders, Mp4Writer, final, spec.fps, spec.width, spec.height
                 )
-            if self.batch is not None:
+            if self.batch is not None and len(indices) >= self.batch.min_frames:
                 completed = await self._render_on_ray(job, structure, indices, writer)
             else:
+                job.stage = "rendering"
                 completed = await self._render_here(job, structure, indices, writer)
             if completed:
                 await loop.run_in_executor(self.encoders, writer.close)
@@ -601,8 +606,14 @@ class JobManager:
             shown = visible_atoms(plans, structure.topology.n_atoms)
             camera = fit_camera(first[shown] if len(shown) else first, spec.width, spec.height)
         files = [spec.topology, *spec.trajectories]
-        if spec.workdir is not None:  # uploads: through the object store
+        if not self.batch.started:
+            job.stage = "starting Ray"
+        try:
             await self.batch.ensure()
+        except RuntimeError as exc:  # a local instance that did not start says why
+            raise JobError(f"Ray: {exc}") from None
+        job.stage = "rendering"
+        if spec.workdir is not None:  # uploads: through the object store
             refs: list[Any] = await asyncio.to_thread(upload_refs, files)
         else:
             refs = [str(f) for f in files]

@@ -7,6 +7,7 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fastapi import FastAPI, WebSocket
@@ -37,17 +38,30 @@ from server.web.state import AppState, SessionRegistry
 log = logging.getLogger("scalesteer.app")
 
 
-def batch_engine(settings: ServerSettings) -> RayBatch | None:
-    """The Ray pool for trajectory jobs, or None to render them in this process."""
+def batch_engine(settings: ServerSettings, log_dir: Path | None = None) -> RayBatch | None:
+    """The Ray pool for trajectory jobs, or None to render them in this process: Ray when asked
+    (`ray`: a cluster, or an instance of this server's own), or (`auto`) when a cluster is
+    configured and Ray is installed, for jobs of `ray_min_frames` frames or more."""
     if settings.batch_engine == "local":
         return None
     from server.pipeline.distributed import RayBatch, available
 
-    if available():
-        return RayBatch(address=settings.ray_address, workers=settings.ray_workers)
     if settings.batch_engine == "ray":
-        raise RuntimeError("--batch-engine ray needs Ray: pip install 'scalesteer[ray]'")
-    return None
+        if not available():
+            raise RuntimeError("--batch-engine ray needs Ray: pip install 'scalesteer[ray]'")
+        return RayBatch(settings.ray_address, settings.ray_workers, log_dir=log_dir)
+    if settings.ray_address is None:
+        return None
+    if not available():
+        log.warning("Ray cluster %s configured but Ray is not installed: jobs render here",
+                    settings.ray_address)  # fmt: skip
+        return None
+    return RayBatch(
+        settings.ray_address,
+        settings.ray_workers,
+        min_frames=settings.ray_min_frames,
+        log_dir=log_dir,
+    )
 
 
 def _load_selections() -> None:
@@ -102,7 +116,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             video_min_kbps=settings.video_min_kbps,
             rest_jpeg_quality=settings.rest_jpeg_quality,
         )
-        batch = batch_engine(settings)
+        batch = batch_engine(settings, state_dir / "ray")
 
         def new_session(name: str) -> Session:
             return Session(name, settings, services)

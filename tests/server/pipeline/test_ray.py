@@ -7,7 +7,10 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import signal
+import subprocess
+import sys
 import time
 import zipfile
 from collections.abc import Iterator
@@ -16,7 +19,15 @@ from pathlib import Path
 import httpx
 import pytest
 
+from server.supervisor import descendants
 from tests.conftest import LiveServer, make_settings, start_server
+from tests.server.processes import (
+    ServerProcess,
+    command_line,
+    listening_ports,
+    running,
+    wait_gone,
+)
 
 ray = pytest.importorskip("ray")
 pytest.importorskip("MDAnalysisTests")
@@ -138,3 +149,93 @@ def test_cancel_frees_the_workers_and_bad_input_fails_with_its_reason(
         assert failed["state"] == "failed" and "broken.pdb" in failed["error"]
     else:
         assert r.status_code == 422 and "broken.pdb" in r.text
+
+
+GCS_PROBE = """
+import sys
+from ray._raylet import GcsClient
+try:
+    GcsClient(address=sys.argv[1]).internal_kv_get(b"scalesteer-probe", None, timeout=10)
+    print("accepted")
+except Exception as exc:
+    print("refused:", type(exc).__name__, exc)
+"""
+
+
+def gcs_probe(address: str, token: str | None) -> str:
+    """What Ray's GCS answers a client holding `token` (None: no token at all)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_AUTH")}
+    env["RAY_AUTH_MODE"] = "token" if token else "disabled"
+    if token:
+        env["RAY_AUTH_TOKEN"] = token
+    out = subprocess.run(
+        [sys.executable, "-c", GCS_PROBE, address],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    return out.stdout.strip()
+
+
+@pytest.mark.slow
+def test_a_ray_instance_of_the_servers_own_is_authenticated_and_ends_with_it(
+    tmp_path: Path,
+) -> None:
+    """The first job started a local Ray whose servers listen on every interface, with no
+    authentication (whoever reached a port ran code as the server's user), and two of its
+    agents outlived the server. Asked for without a cluster, Ray now runs under the server's
+    supervisor with Ray's token authentication and no dashboard, and a `kill -9` of the server
+    leaves none of its processes."""
+    data = tmp_path / "data"
+    data.mkdir()
+    for src in (PSF, DCD):
+        (data / Path(src).name).write_bytes(Path(src).read_bytes())
+    env = {k: v for k, v in os.environ.items() if not k.endswith("RAY_ADDRESS")}
+    server = ServerProcess(
+        tmp_path / "state", "--batch-engine", "ray", "--data-dir", str(data), env=env
+    )
+    try:
+        r = httpx.post(
+            f"{server.url}/api/jobs",
+            headers=AUTH,
+            data={"dataset": Path(PSF).name, "trajectory_dataset": Path(DCD).name,
+                  "width": "32", "height": "24", "output": "zip", "stop": "4"},
+            timeout=30,
+        )  # fmt: skip
+        assert r.status_code == 202, r.text
+        stages = set()
+        deadline = time.monotonic() + 120
+        while (info := httpx.get(f"{server.url}/api/jobs/{r.json()['id']}", headers=AUTH).json())[
+            "state"
+        ] not in ("done", "failed"):
+            stages.add(info["stage"])
+            assert time.monotonic() < deadline, info
+            time.sleep(0.1)
+        assert info["state"] == "done", info
+        assert "starting Ray" in stages  # what the job is waiting for, not "0/4 frames"
+        health = httpx.get(f"{server.url}/healthz", timeout=30).json()["batch"]
+        assert health["address"] == "local" and health["auth"] == "token"
+        tree = running(descendants(server.process.pid))
+        (supervisor,) = [p for p in tree if "server.supervisor" in command_line(p)]
+        ray = descendants(supervisor)
+        assert any("gcs_server" in command_line(p) for p in ray)
+        assert any("raylet" in command_line(p) for p in ray)
+        assert {int(w["pid"]) for w in health["workers"]} <= set(ray)
+        ports = listening_ports(ray)
+        assert ports and 8265 not in ports  # Ray listens, but opens no dashboard
+        port = re.search(r"--port=(\d+)", command_line(supervisor))
+        temp_dir = re.search(r"--temp-dir=(\S+)", command_line(supervisor))
+        assert port is not None and temp_dir is not None
+        environ = Path(f"/proc/{supervisor}/environ").read_bytes().split(b"\0")
+        token = next(v[15:].decode() for v in environ if v.startswith(b"RAY_AUTH_TOKEN="))
+        address = f"127.0.0.1:{port.group(1)}"
+        refused = gcs_probe(address, None)
+        assert refused.startswith("refused: AuthenticationError"), refused
+        assert gcs_probe(address, "0" * len(token)).startswith("refused"), address
+        assert gcs_probe(address, token) == "accepted"  # the control: the probe can pass
+    finally:
+        server.stop(signal.SIGKILL)
+    left = wait_gone(tree)
+    assert not left, [command_line(p) for p in left]
+    assert not Path(temp_dir.group(1)).exists()  # its sockets and logs: removed too

@@ -1,8 +1,10 @@
-"""What the server starts ends with it: replays and file readers, whether the server stops in
-order or is killed with `kill -9` (`server.supervisor`)."""
+"""What the server starts ends with it: replays, file readers and Ray, whether the server stops
+in order or is killed with `kill -9` (`server.supervisor`); and jobs render in the server's own
+process unless Ray is asked for or a cluster is configured."""
 
 from __future__ import annotations
 
+import os
 import signal
 import time
 from pathlib import Path
@@ -11,7 +13,7 @@ import httpx
 import pytest
 
 from server.supervisor import descendants
-from tests.server.processes import TOKEN, ServerProcess, command_line, wait_gone
+from tests.server.processes import TOKEN, ServerProcess, command_line, running, wait_gone
 
 pytest.importorskip("MDAnalysisTests")
 from MDAnalysisTests.datafiles import DCD, PSF
@@ -44,3 +46,34 @@ def test_a_replay_ends_with_its_server(tmp_path: Path, sig: signal.Signals) -> N
         server.stop(sig)
     left = wait_gone(tree)
     assert not left, [command_line(pid) for pid in left]
+
+
+def test_jobs_render_here_unless_ray_is_asked_for(tmp_path: Path) -> None:
+    """Ray started by itself for any job (a 45-frame movie on a laptop: load 41 on 2 cores,
+    two processes left behind); with neither `--batch-engine ray` nor a cluster configured, a
+    job renders in the server's own process and the server starts nothing for it."""
+    env = {k: v for k, v in os.environ.items() if not k.endswith("RAY_ADDRESS")}
+    server = ServerProcess(tmp_path / "state", "--batch-engine", "auto", env=env)
+    try:
+        with httpx.Client(base_url=server.url, timeout=60) as c:
+            assert c.get("/healthz").json()["batch"] == {"engine": "local"}
+            with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+                r = c.post(
+                    "/api/jobs",
+                    headers=AUTH,
+                    files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                    data={"width": "32", "height": "24", "output": "zip", "stop": "3"},
+                )
+            assert r.status_code == 202, r.text
+            deadline = time.monotonic() + 60
+            while (info := c.get(f"/api/jobs/{r.json()['id']}", headers=AUTH).json())[
+                "state"
+            ] not in ("done", "failed"):
+                assert time.monotonic() < deadline, info
+                time.sleep(0.1)
+            assert info["state"] == "done", info
+        # the file readers (one spare waiting for the next file) and nothing else
+        started = [command_line(pid) for pid in running(descendants(server.process.pid))]
+        assert started and all("structures.isolated" in line for line in started), started
+    finally:
+        server.stop()
