@@ -91,6 +91,9 @@ class ServerSettings:
     """Disk the outputs of finished jobs may take together; the oldest go first beyond it."""
     recording_max_bytes: int = 2 << 30
     """Size at which a recording's trajectory stops growing (the recording ends `capped`)."""
+    recording_queue_bytes: int = 128 << 20
+    """Positions a recording holds while they wait for the disk; frames that come while it is
+    full are skipped, counted and listed in the recording (`skipped`, `skipped_spans`)."""
     gpus: str | None = None
     """Render each session's images across several devices: 'all', '0,1', 'cpu,cpu'."""
     batch_engine: Literal["auto", "ray", "local"] = "auto"

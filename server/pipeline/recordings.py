@@ -8,6 +8,11 @@ so the file is a valid trajectory after every chunk: a crash or a kill loses at 
 of the chunk being gathered (`FLUSH_S`), never the file. Positions keep XTC's precision
 (0.001 nm, so within 0.005 Å of what the simulation sent).
 
+The frames waiting for the disk hold at most `queue_bytes` of positions: a frame that arrives
+when they are full is skipped, and the recording says so (`skipped`, and the steps of each run
+of skipped frames in `skipped_spans`), so a simulation faster than the disk costs bounded memory
+and a bounded stop, and the recorded frames stay whole.
+
 On disk, `<state_dir>/recordings/<id>/`: `recording.json` (the manifest, replaced atomically),
 `topology.pdb`, `frames.xtc`, and, once it ends, `steering.jsonl` (the session's log entries
 between its start and stop marks) and `marks.json` (those entries as timeline marks,
@@ -49,6 +54,8 @@ FLUSH_S = 0.5
 FLUSH_FRAMES = 64
 FILES = ("recording.json", "topology.pdb", "frames.xtc", "steering.jsonl", "marks.json")
 """What a recording's folder may hold (and what may be downloaded of it)."""
+MAX_SKIPPED_SPANS = 256
+"""Runs of skipped frames listed one by one; later ones extend the last (its count stays true)."""
 
 
 @dataclass
@@ -64,6 +71,8 @@ class Recording:
     render_params: dict[str, Any]
     camera: dict[str, Any] | None
     first_log_id: int
+    queue_bytes: int = 128 << 20
+    """Positions that may wait for the disk; frames beyond are skipped (and counted)."""
     started: float = field(default_factory=time.time)
     state: str = "recording"
     """recording, finished, capped (stopped at its size limit), interrupted (by a crash)."""
@@ -74,6 +83,15 @@ class Recording:
     steps: list[int] = field(default_factory=list)
     error: str | None = None
     received: int = 0
+    """Frames the session received while recording (every one, `stride` or not)."""
+    skipped: int = 0
+    """Frames not recorded because the disk fell `queue_bytes` behind."""
+    skipped_spans: list[list[int]] = field(default_factory=list)
+    """[first step, last step, frames skipped] of each run of skipped frames."""
+    queued_bytes: int = 0
+    """Positions taken and not yet on disk."""
+    _last_kept: bool = True
+    _queue_lock: threading.Lock = field(default_factory=threading.Lock)
     detach: Callable[[], tuple[int, Future[None]]] | None = None
     """Unhooks the recording from its session's frames (set by whoever hooked it)."""
     _queue: queue.Queue[tuple[int, float, Any, Any] | None] = field(default_factory=queue.Queue)
@@ -101,12 +119,27 @@ class Recording:
             "state": self.state,
             "frames": self.frames,
             "bytes": self.bytes,
+            "queue_bytes": self.queue_bytes,
+            "received": self.received,
+            "skipped": self.skipped,
+            "skipped_spans": self.skipped_spans,
             "error": self.error,
         }
+
+    def skip_warning(self) -> str | None:
+        """What the skipped frames mean, for whoever reads the recording (None: none)."""
+        if not self.skipped:
+            return None
+        return (
+            f"{self.skipped} frame(s) not recorded: the disk fell behind the simulation by "
+            f"{self.queue_bytes / (1 << 20):g} MiB of frames (recording_queue_bytes); "
+            "skipped_spans lists the steps of each gap"
+        )
 
     def describe(self) -> dict[str, Any]:
         base = f"/api/recordings/{self.id}"
         out = {k: v for k, v in self.manifest().items() if k != "scalesteer_recording"}
+        out["warning"] = self.skip_warning()
         out["files"] = {n: f"{base}/files/{n}" for n in FILES if (self.directory / n).exists()}
         out["download"] = f"{base}/download"
         return out
@@ -144,6 +177,10 @@ class Recording:
             render_params=raw["render_params"],
             camera=raw.get("camera"),
             first_log_id=int(raw["first_log_id"]),
+            queue_bytes=int(raw.get("queue_bytes", 128 << 20)),
+            received=int(raw.get("received", 0)),
+            skipped=int(raw.get("skipped", 0)),
+            skipped_spans=[[int(x) for x in span] for span in raw.get("skipped_spans", [])],
             started=float(raw["started"]),
             state=raw["state"],
             stopped=raw.get("stopped"),
@@ -274,6 +311,7 @@ class RecordingStore:
         first_log_id: int,
         stride: int,
         max_bytes: int,
+        queue_bytes: int = 128 << 20,
     ) -> Recording:
         rec_id = f"r{secrets.token_urlsafe(16)}"
         folder = self.directory / rec_id
@@ -288,6 +326,7 @@ class RecordingStore:
             render_params=render_params.model_dump(mode="json"),
             camera=camera.model_dump(mode="json") if camera is not None else None,
             first_log_id=first_log_id,
+            queue_bytes=queue_bytes,
         )
         self._save(rec)
         rec._thread = threading.Thread(
@@ -304,13 +343,31 @@ class RecordingStore:
         time_ps: float,
         positions: npt.NDArray[Any],
         box: npt.NDArray[Any] | None,
-    ) -> None:
-        """Take one frame of the session (called on the event loop: only queues it)."""
+    ) -> bool:
+        """Take one frame of the session (called on the event loop: only queues it). False when
+        the frame was due but skipped, the frames waiting for the disk being at the bound (a
+        frame is always taken when none waits, so a recording never stalls)."""
         if not rec.running or positions.shape[0] != rec.n_atoms:
-            return
+            return True
         rec.received += 1
-        if (rec.received - 1) % rec.stride == 0:
+        if (rec.received - 1) % rec.stride != 0:
+            return True
+        size = _nbytes(positions, box)
+        with rec._queue_lock:
+            kept = rec.queued_bytes == 0 or rec.queued_bytes + size <= rec.queue_bytes
+            if kept:
+                rec.queued_bytes += size
+            else:
+                rec.skipped += 1
+                spans = rec.skipped_spans
+                if spans and (not rec._last_kept or len(spans) >= MAX_SKIPPED_SPANS):
+                    spans[-1][1:] = [step, spans[-1][2] + 1]  # this run goes on
+                else:
+                    spans.append([step, step, 1])
+            rec._last_kept = kept
+        if kept:
             rec._queue.put((step, time_ps, positions, box))
+        return kept
 
     def stop(self, rec: Recording, last_log_id: int | None) -> None:
         """End a recording: the queued frames are written, then the steering span and its
@@ -342,6 +399,7 @@ class RecordingStore:
     def _write_loop(self, rec: Recording, topology: p.Topology) -> None:
         appender: _XtcAppender | None = None
         pending: list[tuple[int, float, Any, Any]] = []
+        pending_bytes = 0
         last_flush = time.monotonic()
         try:
             while True:
@@ -357,10 +415,19 @@ class RecordingStore:
                         write_topology_pdb(rec.directory / "topology.pdb", topology, item[2])
                         appender = _XtcAppender(rec.directory / "frames.xtc", rec.n_atoms)
                     pending.append(item)
-                due = time.monotonic() - last_flush >= FLUSH_S or len(pending) >= FLUSH_FRAMES
+                    pending_bytes += _nbytes(item[2], item[3])
+                # half the queue gathered: write it, so that the other half takes frames
+                due = (
+                    time.monotonic() - last_flush >= FLUSH_S
+                    or len(pending) >= FLUSH_FRAMES
+                    or pending_bytes >= rec.queue_bytes // 2
+                )
                 if pending and (ending or due):
                     assert appender is not None
                     written = appender.append(pending)
+                    with rec._queue_lock:
+                        rec.queued_bytes -= pending_bytes
+                    pending_bytes = 0
                     with rec._lock:
                         rec.frames += len(pending)
                         rec.bytes += written
@@ -409,6 +476,11 @@ class RecordingStore:
         tmp = rec.directory / "recording.json.tmp"
         tmp.write_text(json.dumps(rec.manifest(), indent=1))
         os.replace(tmp, rec.directory / "recording.json")
+
+
+def _nbytes(positions: Any, box: Any) -> int:
+    """Memory a queued frame holds."""
+    return int(positions.nbytes) + (0 if box is None else int(np.asarray(box).nbytes))
 
 
 def _size(path: Path) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import time
 import zipfile
 from concurrent.futures import Future
 from typing import Annotated, Any
@@ -26,6 +27,8 @@ from server.web.rest import State, check_size, steerer_access
 
 router = APIRouter()
 Steerer = Annotated[p.Role, Depends(steerer_access)]
+SKIP_NOTICE_S = 5.0
+"""While a recording skips frames, how often the session is told."""
 
 
 class RecordingRequest(BaseModel):
@@ -90,11 +93,29 @@ async def start_recording(
     limit = min(body.max_bytes or state.settings.recording_max_bytes,
                 state.settings.recording_max_bytes)  # fmt: skip
     rec = state.recordings.start(
-        session_id, live.topology, live.render_params, live.camera, first_id, body.stride, limit
+        session_id,
+        live.topology,
+        live.render_params,
+        live.camera,
+        first_id,
+        body.stride,
+        limit,
+        state.settings.recording_queue_bytes,
     )
+    told = [-SKIP_NOTICE_S]
 
     def sink(step: int, time_ps: float, positions: Any, box: Any) -> None:
-        state.recordings.add(rec, step, time_ps, positions, box)
+        kept = state.recordings.add(rec, step, time_ps, positions, box)
+        if not kept and time.monotonic() - told[0] >= SKIP_NOTICE_S:
+            told[0] = time.monotonic()  # everyone in the session hears of it, once in a while
+            live.broadcast(
+                p.Event(
+                    level="warning",
+                    code="recording_skipped",
+                    message=f"recording {rec.id}: {rec.skip_warning()}",
+                    step=step,
+                )
+            )
         if not rec.running and sink in live.frame_sinks:  # capped
             live.frame_sinks.remove(sink)
 
