@@ -278,6 +278,9 @@ class RecordingStore:
         self.directory.mkdir(parents=True, exist_ok=True)
         self.read_log = read_log
         self.recordings: dict[str, Recording] = {}
+        self.starting: set[str] = set()
+        """Sessions whose recording is being started (the web layer claims a session here
+        before its first await, so two starts cannot both pass the check)."""
 
     # ------------------------------------------------------------------ lifecycle
 

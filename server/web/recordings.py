@@ -88,20 +88,27 @@ async def start_recording(
     for rec in state.recordings.recordings.values():
         if rec.running and rec.session == session_id:
             raise HTTPException(409, f"session {session_id!r} is already recording ({rec.id})")
-    first_id, written = live.log_event({"event": "recording_started"})
-    await asyncio.wrap_future(written)
-    limit = min(body.max_bytes or state.settings.recording_max_bytes,
-                state.settings.recording_max_bytes)  # fmt: skip
-    rec = state.recordings.start(
-        session_id,
-        live.topology,
-        live.render_params,
-        live.camera,
-        first_id,
-        body.stride,
-        limit,
-        state.settings.recording_queue_bytes,
-    )
+    # claimed before the first await: of concurrent starts, one records and the others get 409
+    if session_id in state.recordings.starting:
+        raise HTTPException(409, f"session {session_id!r} is already starting a recording")
+    state.recordings.starting.add(session_id)
+    try:
+        first_id, written = live.log_event({"event": "recording_started"})
+        await asyncio.wrap_future(written)
+        limit = min(body.max_bytes or state.settings.recording_max_bytes,
+                    state.settings.recording_max_bytes)  # fmt: skip
+        rec = state.recordings.start(
+            session_id,
+            live.topology,
+            live.render_params,
+            live.camera,
+            first_id,
+            body.stride,
+            limit,
+            state.settings.recording_queue_bytes,
+        )
+    finally:
+        state.recordings.starting.discard(session_id)
     told = [-SKIP_NOTICE_S]
 
     def sink(step: int, time_ps: float, positions: Any, box: Any) -> None:

@@ -299,3 +299,33 @@ def test_a_recording_faster_than_its_disk_holds_bounded_memory_and_says_what_it_
     assert sum(count for _, _, count in rec["skipped_spans"]) == rec["skipped"]
     assert skipped == set(range(1, sent + 1)) - set(steps)  # the gaps, exactly
     assert steps == sorted(steps)
+
+
+def test_concurrent_starts_of_one_session_record_once(tmp_path: Path) -> None:
+    """Eight concurrent recording starts of one session all got 201 (the docs promise 409)."""
+    import asyncio
+
+    server = ServerProcess(tmp_path / "state")
+    sim = Peer(server.ws_url, "simulation", TOKEN, "raced")
+    try:
+        topo, pos = molecule(12)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        with httpx.Client(base_url=server.url, headers=AUTH, timeout=30) as client:
+            wait_for(
+                lambda: client.get("/api/sessions/raced").json().get("status", {}).get("step") == 0,
+                "the session's first frame",
+            )
+
+        async def race() -> list[httpx.Response]:
+            async with httpx.AsyncClient(base_url=server.url, headers=AUTH, timeout=30) as c:
+                url = "/api/sessions/raced/recordings"
+                return await asyncio.gather(*[c.post(url, json={}) for _ in range(8)])
+
+        codes = sorted(r.status_code for r in asyncio.run(race()))
+        assert codes == [201] + [409] * 7, codes
+        listed = httpx.get(f"{server.url}/api/recordings", headers=AUTH).json()
+        assert [r["state"] for r in listed] == ["recording"]
+    finally:
+        sim.close()
+        server.stop()
