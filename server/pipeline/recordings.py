@@ -14,10 +14,11 @@ of skipped frames in `skipped_spans`), so a simulation faster than the disk cost
 and a bounded stop, and the recorded frames stay whole.
 
 On disk, `<state_dir>/recordings/<id>/`: `recording.json` (the manifest, replaced atomically),
-`topology.pdb`, `frames.xtc`, and, once it ends, `steering.jsonl` (the session's log entries
-between its start and stop marks) and `marks.json` (those entries as timeline marks,
-`server.pipeline.marks`). A recording the server did not end (a crash) is found `interrupted`
-at the next start and finished from what is on disk.
+`topology.pdb`, `frames.xtc` (and `frames.chunk.xtc` while a chunk is encoded), and, once it
+ends, `steering.jsonl` (the session's log entries between its start and stop marks) and
+`marks.json` (those entries as timeline marks, `server.pipeline.marks`). A recording the server
+did not end (a crash) is found `interrupted` at the next start and finished from what is on
+disk; a chunk file the crash left is removed.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ import queue
 import re
 import secrets
 import shutil
-import tempfile
 import threading
 import time
 import warnings
@@ -54,6 +54,10 @@ FLUSH_S = 0.5
 FLUSH_FRAMES = 64
 FILES = ("recording.json", "topology.pdb", "frames.xtc", "steering.jsonl", "marks.json")
 """What a recording's folder may hold (and what may be downloaded of it)."""
+CHUNK = "frames.chunk.xtc"
+"""The chunk being encoded, beside `frames.xtc` (a crash may leave it; the next start removes
+it: its frames either reached `frames.xtc` or are the chunk a crash may lose)."""
+LEFTOVERS = (CHUNK, "recording.json.tmp")
 MAX_SKIPPED_SPANS = 256
 """Runs of skipped frames listed one by one; later ones extend the last (its count stays true)."""
 
@@ -239,7 +243,7 @@ class _XtcAppender:
         self.path = path
         self.n_atoms = n_atoms
         self.universe = mda.Universe.empty(n_atoms, trajectory=True)
-        self.chunk = Path(tempfile.mkstemp(suffix=".xtc", dir=path.parent)[1])
+        self.chunk = path.parent / CHUNK
 
     def append(self, frames: list[tuple[int, float, Any, Any]]) -> int:
         """Write `frames` (step, time_ps, positions A, box A or None); the bytes appended."""
@@ -291,6 +295,10 @@ class RecordingStore:
         for folder in sorted(self.directory.iterdir()):
             if not RECORDING_ID.match(folder.name) or not (folder / "recording.json").is_file():
                 continue
+            for name in LEFTOVERS:  # what a crash left beside the recording's files
+                (folder / name).unlink(missing_ok=True)
+            for stray in folder.glob("tmp*.xtc"):  # the chunks' former, random names
+                stray.unlink(missing_ok=True)
             try:
                 rec = Recording.load(folder)
             except (OSError, ValueError, KeyError) as exc:

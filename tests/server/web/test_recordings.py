@@ -5,6 +5,7 @@ plays every one of them, and each steering action is a mark at the frame it took
 from __future__ import annotations
 
 import io
+import os
 import signal
 import time
 import warnings
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 
 import protocol as p
+from server.pipeline.recordings import FILES
 from tests.browser.simulation import OpenMMSimulation
 from tests.conftest import LiveServer
 from tests.server.peers import Peer, frame, molecule
@@ -205,10 +207,16 @@ def test_a_recording_survives_a_kill_of_the_server(tmp_path: Path) -> None:
     steps = [int(ts.data["step"]) for ts in u.trajectory]
     assert steps == sorted(steps) and len(set(np.diff(steps))) == 1  # every second frame
 
+    def leftovers() -> list[str]:  # beside the recording's files and MDAnalysis's offset caches
+        return [n for n in os.listdir(folder) if n not in FILES and "_offsets." not in n]
+
+    assert leftovers()  # the chunk being written when the server was killed
+
     again = ServerProcess(state_dir, port=server.port)
     try:
         got = httpx.get(f"{again.url}/api/recordings/{rec_id}", headers=AUTH).json()
         assert got["state"] == "interrupted" and got["frames"] == len(frames)
+        assert not leftovers()  # a chunk file had stayed for good
     finally:
         again.stop()
 
