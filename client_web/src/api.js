@@ -54,17 +54,28 @@ export async function startRecording({ token, session, camera, width, height, fp
 }
 
 /** End a recording (the movie is kept), wait for it to be written, resolve to its Blob. */
-export async function finishRecording({ token, job, fetchImpl = fetch, sleep = undefined }) {
+export async function finishRecording({ token, job, fetchImpl = fetch, sleep = undefined, onWarning = undefined }) {
   await apiFetch(`/api/jobs/${encodeURIComponent(job)}`, { token, method: "DELETE", fetchImpl });
-  return jobResult({ token, job, fetchImpl, ...(sleep ? { sleep } : {}) });
+  return jobResult({ token, job, fetchImpl, onWarning, ...(sleep ? { sleep } : {}) });
 }
 
-/** Wait for a job to finish and resolve to its output as a Blob (throws with its failure). */
-export async function jobResult({ token, job, fetchImpl = fetch, sleep = (ms) => new Promise((r) => setTimeout(r, ms)) }) {
+/** Wait for a job to finish and resolve to its output as a Blob (throws with its failure); a
+ * finished job's warning (a partial output: fewer frames than its input should have given) goes
+ * to `onWarning`. */
+export async function jobResult({
+  token,
+  job,
+  fetchImpl = fetch,
+  sleep = (ms) => new Promise((r) => setTimeout(r, ms)),
+  onWarning = undefined,
+}) {
   const path = `/api/jobs/${encodeURIComponent(job)}`;
   for (;;) {
     const info = await (await apiFetch(path, { token, fetchImpl })).json();
-    if (info.state === "done") break;
+    if (info.state === "done") {
+      if (info.warning && onWarning) onWarning(info.warning);
+      break;
+    }
     if (!["queued", "running"].includes(info.state)) throw new Error(`the job ${info.state}: ${info.error ?? ""}`);
     await sleep(300);
   }

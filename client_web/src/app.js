@@ -1003,7 +1003,8 @@ class Dashboard {
     button.disabled = true;
     setText(button, "Saving…");
     try {
-      const blob = await finishRecording({ token: this.token, job });
+      const onWarning = (message) => this.notices.notify({ level: "warning", code: "record", message });
+      const blob = await finishRecording({ token: this.token, job, onWarning });
       downloadBlob(blob, `scalesteer-${session}-${job}.mp4`);
       this.notices.notify({ level: "info", code: "record", message: "movie downloaded" });
     } catch (err) {

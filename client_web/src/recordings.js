@@ -89,6 +89,7 @@ export class Recordings {
     setText(this.button, "Record run");
     const why = rec.state === "capped" ? " (stopped at its size limit)" : "";
     this.notify({ level: "info", code: "record", message: `recorded ${rec.frames} frames, ${formatBytes(rec.bytes)}${why}` });
+    if (rec.warning) this.notify({ level: "warning", code: "record", message: rec.warning });
     // show where the new recording can be replayed, filmed or downloaded
     $("panel-session").open = true;
     this.refresh().then(() => this.list.scrollIntoView({ block: "nearest" }));
@@ -141,7 +142,8 @@ export class Recordings {
       const job = await (
         await apiFetch(`/api/recordings/${rec.id}/movie`, { token: this.token, method: "POST", json: { width, height } })
       ).json();
-      downloadBlob(await jobResult({ token: this.token, job: job.id }), `scalesteer-${rec.id}.mp4`);
+      const onWarning = (message) => this.notify({ level: "warning", code: "record", message });
+      downloadBlob(await jobResult({ token: this.token, job: job.id, onWarning }), `scalesteer-${rec.id}.mp4`);
     } catch (err) {
       this.notify({ level: "error", code: "record", message: err.message });
     }

@@ -1,6 +1,7 @@
 import assert from "node:assert/strict";
 import { test } from "node:test";
 
+import { jobResult } from "../src/api.js";
 import { formatBytes, formatElapsed } from "../src/recordings.js";
 import { crossedRenderMarks } from "../src/timeline.js";
 
@@ -24,4 +25,20 @@ test("render marks are re-applied when playback passes them, not when seeking", 
   assert.deepEqual(crossedRenderMarks(marks, 9, 3), []); // backwards: a seek
   assert.deepEqual(crossedRenderMarks(marks, null, 5), []); // the first frame seen
   assert.deepEqual(crossedRenderMarks(marks, 0, 500), []); // a jump forward: a seek
+});
+
+test("a finished job's warning reaches the page with its output", async () => {
+  const answers = [
+    { state: "running", progress: { done: 3, total: 20 } },
+    { state: "done", partial: true, warning: "frames.xtc: 20 readable frame(s) of the 40 it should hold" },
+  ];
+  const fetchImpl = async (url) =>
+    url.endsWith("/result")
+      ? new Response(new Uint8Array([1, 2, 3]), { status: 200 })
+      : new Response(JSON.stringify(answers.shift()), { status: 200 });
+  const warnings = [];
+  const onWarning = (w) => warnings.push(w);
+  const blob = await jobResult({ token: "t", job: "j1", fetchImpl, sleep: async () => {}, onWarning });
+  assert.equal(blob.size, 3);
+  assert.deepEqual(warnings, ["frames.xtc: 20 readable frame(s) of the 40 it should hold"]);
 });

@@ -82,6 +82,9 @@ class JobSpec:
     """A recording of this live session (no input files): its next `stop` frames."""
     overlay: dict[str, Any] | None = None
     """Steering drawn on the frames (`server.pipeline.overlay`): marks, pulls, hold_frames."""
+    expected_frames: int | None = None
+    """Frames the input should hold (a recording's count): fewer readable ones (a file cut
+    short) make the output partial, and the job says so."""
 
     def record(self) -> dict[str, Any]:
         """A JSON-able form, to survive restarts."""
@@ -100,6 +103,7 @@ class JobSpec:
             "fps": self.fps,
             "workdir": str(self.workdir) if self.workdir else None,
             "overlay": self.overlay,
+            "expected_frames": self.expected_frames,
         }
 
     @classmethod
@@ -121,6 +125,7 @@ class JobSpec:
             workdir=Path(workdir) if workdir else None,
             session=raw.get("session"),
             overlay=raw.get("overlay"),
+            expected_frames=raw.get("expected_frames"),
         )
 
 
@@ -140,6 +145,9 @@ class Job:
     """How many server restarts found this job unfinished (each started it again)."""
     stage: str | None = None
     """What a running job is doing before its first frame: reading its input, starting Ray."""
+    partial: bool = False
+    """The output holds fewer frames than its input should have given (`warning` says why)."""
+    warning: str | None = None
     cancel: threading.Event = field(default_factory=threading.Event)
     finish: asyncio.Event = field(default_factory=asyncio.Event)
     task: asyncio.Task[None] | None = None
@@ -157,6 +165,8 @@ class Job:
             "error": self.error,
             "result": str(self.result) if self.result else None,
             "restarts": self.restarts,
+            "partial": self.partial,
+            "warning": self.warning,
         }
 
     @classmethod
@@ -173,6 +183,8 @@ class Job:
             error=raw["error"],
             result=Path(raw["result"]) if raw["result"] else None,
             restarts=int(raw.get("restarts", 0)),
+            partial=bool(raw.get("partial", False)),
+            warning=raw.get("warning"),
         )
 
     def describe(self) -> dict[str, Any]:
@@ -193,6 +205,8 @@ class Job:
             "finished": self.finished,
             "restarts": self.restarts,
             "stage": self.stage if self.state is JobState.RUNNING else None,
+            "partial": self.partial,
+            "warning": self.warning,
             "result": f"/api/jobs/{self.id}/result" if self.state is JobState.DONE else None,
         }
 
@@ -517,6 +531,7 @@ class JobManager:
         job.state = JobState.RUNNING
         job.started = time.time()
         job.stage = "reading its input"
+        job.partial, job.warning = False, None
         self._save(job)
         outcome, error, result = JobState.DONE, None, None
         try:
@@ -529,6 +544,15 @@ class JobManager:
                 )
             except StructureError as exc:
                 raise JobError(str(exc)) from None
+            expected = spec.expected_frames
+            if expected is not None and structure.n_frames < expected:
+                job.partial = True
+                job.warning = (
+                    f"{spec.trajectories[-1].name if spec.trajectories else spec.topology.name}: "
+                    f"{structure.n_frames} readable frame(s) of the {expected} it should hold "
+                    "(the file is cut short); the output has only those"
+                )
+                log.warning("job %s: %s", job.id, job.warning)
             indices = list(range(structure.n_frames))[spec.start : spec.stop : spec.stride]
             if not indices:
                 raise JobError(
@@ -655,7 +679,7 @@ class JobManager:
             writer = await loop.run_in_executor(
                 self.encoders, Mp4Writer, final, spec.fps, spec.width, spec.height
             )
-            after = -1
+            after = first = -1
             while not job.finish.is_set() and (spec.stop is None or job.done < spec.stop):
                 if job.cancel.is_set():
                     outcome = JobState.CANCELLED
@@ -670,6 +694,8 @@ class JobManager:
                 snapshot = waiter.result()
                 if snapshot is None:
                     continue
+                if first < 0:
+                    first = snapshot.positions_id
                 after = snapshot.positions_id
                 out = await self.gpu.render(
                     RenderRequest(
@@ -682,6 +708,14 @@ class JobManager:
                 job.done += 1
             if outcome is JobState.DONE and job.done == 0:
                 raise JobError("the session sent no frame while recording")
+            sent = after - first + 1  # the session's frames from the first image to the last
+            if outcome is JobState.DONE and sent > job.done:
+                job.partial = True
+                job.warning = (
+                    f"the session sent {sent} frames while recording; {job.done} of them are in "
+                    "the movie (each image took longer to render than the next frame took to "
+                    "come, and a movie image is always of the newest frame)"
+                )
             if outcome is JobState.DONE:
                 await loop.run_in_executor(self.encoders, writer.close)
                 result = final

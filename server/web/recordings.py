@@ -283,6 +283,7 @@ async def recording_movie(
         stride=body.stride,
         fps=body.fps,
         overlay=overlay,
+        expected_frames=rec.frames,
     )
     job = state.jobs.submit(spec)
     return JSONResponse(

@@ -89,8 +89,9 @@ def test_a_recording_of_the_live_session_is_a_movie_of_its_frames(live_server: L
         while (info := c.get(f"/api/jobs/{job}", headers=AUTH).json())["state"] == "running":
             time.sleep(0.1)
         assert info["state"] == "done" and info["session"] == "film", info
+        assert info["partial"] is False and info["warning"] is None  # every frame it was sent
         movie = c.get(f"/api/jobs/{job}/result", headers=AUTH)
-        assert movie.status_code == 200 and movie.headers["content-type"] == "video/mp4"
+        assert movie.status_code == 200 and movie.headers["content-type"] == "video/mp4", movie.text
         import av
 
         with av.open(Path(_write(movie.content))) as container:

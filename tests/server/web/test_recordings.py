@@ -337,3 +337,46 @@ def test_concurrent_starts_of_one_session_record_once(tmp_path: Path) -> None:
     finally:
         sim.close()
         server.stop()
+
+
+def test_a_movie_of_a_recording_cut_short_is_marked_partial(tmp_path: Path) -> None:
+    """A movie job of a truncated recording was marked done with 66 of 132 frames and no
+    warning; the job now says it is partial, and why."""
+    server = ServerProcess(tmp_path / "state")
+    sim = Peer(server.ws_url, "simulation", TOKEN, "cut")
+    client = httpx.Client(base_url=server.url, headers=AUTH, timeout=60)
+    try:
+        topo, pos = molecule(30)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        wait_for(
+            lambda: client.get("/api/sessions/cut").json().get("status", {}).get("step") == 0,
+            "the session's first frame",
+        )
+        rec_id = client.post("/api/sessions/cut/recordings", json={}).json()["id"]
+        for step in range(1, 41):
+            sim.send(frame(pos + np.float32(0.01 * step), step))
+        wait_for(lambda: client.get(f"/api/recordings/{rec_id}").json()["received"] == 40, "frames")
+        rec = client.post(f"/api/recordings/{rec_id}/stop").json()
+        assert rec["frames"] == 40 and rec["skipped"] == 0
+        xtc = server.state_dir / "recordings" / rec_id / "frames.xtc"
+        whole = xtc.read_bytes()
+        xtc.write_bytes(whole[: len(whole) // 2])  # a disk that lost the file's second half
+        kept = len(read_xtc(xtc.parent, 30)[0])
+        assert 0 < kept < 40
+        body = {"width": 32, "height": 24, "overlay": False}
+        job = client.post(f"/api/recordings/{rec_id}/movie", json=body).json()
+        info = wait_for(
+            lambda: (
+                (j := client.get(f"/api/jobs/{job['id']}").json())["state"] in ("done", "failed")
+                and j
+            ),
+            "the movie",
+        )
+    finally:
+        sim.close()
+        client.close()
+        server.stop()
+    assert info["state"] == "done" and info["progress"]["done"] == kept
+    assert info["partial"] is True
+    assert f"{kept} readable frame(s) of the 40" in info["warning"], info["warning"]
