@@ -74,7 +74,12 @@ class SteeringReporter:
 
     The guard rolls back to the last calm report (temperature within 25 % or 50 K of the
     thermostat's) when the run blows up: non-finite positions or energy, or a temperature above
-    `runaway_K` (default: twice the thermostat's temperature, at least 300 K above it).
+    `runaway_K` (default: twice the thermostat's temperature, at least 300 K above it). Calm is
+    judged again at the rollback, against the thermostat of that moment: a state calm only for a
+    hotter thermostat, or one that has blown up again since, is given up for the start's
+    positions (with velocities drawn at today's temperature if the start's are too hot), so the
+    guard never rolls back into the blow-up it caught. Steered settings (temperature, friction,
+    time step) are not rolled back.
     `max_spring_k` is the stiffest pull spring accepted (kJ/mol/A^2); `max_force` also bounds
     what a pull may apply per atom.
     """
@@ -122,6 +127,9 @@ class SteeringReporter:
         self._closed = False
         self._good: openmm.State | None = None  # the last calm report, to roll back to
         self._good_step = 0
+        self._good_K = 0.0  # its temperature
+        self._good_fresh = False  # taken since the last rollback (else it tripped the guard)
+        self._initial_K = 0.0
         self.guard_trips = 0
         self.connection = SimulationConnection(
             url,
@@ -165,11 +173,7 @@ class SteeringReporter:
         self.guard_trips += 1
         if self.pull is not None:
             self.pull.clear(simulation.context)
-        if self._good is not None:
-            self._restore(simulation, self._good)
-            where = f"rolled back to step {self._good_step}"
-        else:
-            where = "no good state to roll back to"
+        where = self._roll_back(simulation)
         with self._cond:
             self.paused, self._step_until = True, None
         text = (
@@ -179,6 +183,34 @@ class SteeringReporter:
         log.error("scalesteer: %s", text)
         self.connection.send_event(Event(level="error", code="guard", message=text, step=step))
         return simulation.context.getState(getPositions=True, getEnergy=True)
+
+    def _roll_back(self, simulation: app.Simulation) -> str:
+        """Restore a state calm for the thermostat of now: the last calm report, unless it is
+        too hot for today's thermostat or has blown up again since, else the start's positions.
+        Returns what was done, for the event."""
+        target = _thermostat_kelvin(simulation) or 300.0
+        limit = self._calm_limit(simulation)
+        good, fresh = self._good, self._good_fresh
+        self._good_fresh = False
+        if good is not None and fresh and self._good_K <= limit:
+            self._restore(simulation, good)
+            return f"rolled back to step {self._good_step}"
+        if good is None:
+            why = "no calm state yet"
+        elif not fresh:
+            why = f"the state of step {self._good_step} blew up again"
+        else:
+            why = (
+                f"the last calm state, step {self._good_step}, is at {self._good_K:.0f} K: too "
+                f"hot for the thermostat's {target:g} K"
+            )
+        assert self._initial_state is not None  # attach() ran: reports come after it
+        self._restore(simulation, self._initial_state)
+        fresh_velocities = ""
+        if self._initial_K > limit:
+            simulation.context.setVelocitiesToTemperature(target * unit.kelvin)
+            fresh_velocities = f", velocities drawn at {target:g} K"
+        return f"rolled back to the start's positions ({why}){fresh_velocities}"
 
     def _blown_up(self, simulation: app.Simulation, state: openmm.State) -> str:
         """Why this state cannot go on ('' if it can)."""
@@ -198,10 +230,15 @@ class SteeringReporter:
     def _calm(self, simulation: app.Simulation, state: openmm.State) -> bool:
         """Close enough to the thermostat to roll back to: a state just under the runaway
         limit would only blow up again."""
+        return self._temperature(state) <= self._calm_limit(simulation)
+
+    def _calm_limit(self, simulation: app.Simulation) -> float:
         target = _thermostat_kelvin(simulation) or 300.0
+        return max(1.25 * target, target + 50.0)
+
+    def _temperature(self, state: openmm.State) -> float:
         kinetic = state.getKineticEnergy().value_in_unit(unit.kilojoule_per_mole)
-        temperature = 2.0 * kinetic / (self._dof * R_KJ_PER_MOL_K)
-        return bool(temperature <= max(1.25 * target, target + 50.0))
+        return float(2.0 * kinetic / (self._dof * R_KJ_PER_MOL_K))
 
     def _runaway_limit(self, simulation: app.Simulation) -> float:
         if self.runaway_K is not None:
@@ -210,10 +247,14 @@ class SteeringReporter:
         return max(2.0 * target, target + 300.0)
 
     def _checkpoint(self, simulation: app.Simulation) -> None:
+        # without the context's parameters: a rollback must not restore an old thermostat
+        # setting (Andersen's temperature is one), only the molecule
         self._good = simulation.context.getState(
-            getPositions=True, getVelocities=True, getParameters=True
+            getPositions=True, getVelocities=True, getEnergy=True
         )
         self._good_step = int(simulation.currentStep)
+        self._good_K = self._temperature(self._good)
+        self._good_fresh = True
 
     def engine_info(self, simulation: app.Simulation) -> EngineInfo:
         """What this simulation can be steered with, and the sensible range of each value."""
@@ -271,7 +312,10 @@ class SteeringReporter:
         self.pull = PullForce(simulation, self.max_force, self.force_group)
         self._dof = degrees_of_freedom(simulation.system)
         self._periodic = bool(simulation.system.usesPeriodicBoundaryConditions())
-        self._initial_state = simulation.context.getState(getPositions=True, getVelocities=True)
+        self._initial_state = simulation.context.getState(
+            getPositions=True, getVelocities=True, getEnergy=True
+        )
+        self._initial_K = self._temperature(self._initial_state)
         self.connection.send_topology(
             topology_message(simulation.topology, simulation.system, self.title)
         )

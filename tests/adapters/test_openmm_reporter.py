@@ -406,6 +406,42 @@ def test_the_guard_rolls_back_a_blown_up_run_releases_the_pulls_and_pauses(
         runner.join(60)
 
 
+def test_the_guard_never_rolls_back_into_a_state_hot_for_the_thermostat_of_now(
+    steered: tuple[app.Simulation, SteeringReporter], peer: SimPeer
+) -> None:
+    """A run held at 1000 K reports states calm for that thermostat, and the guard took one as
+    its rollback point; with the thermostat back at 300 K that state is a runaway, so the guard
+    rolled back into it after every resume (five resumes, five trips; only reset recovered).
+    Now the rollback point must be calm for the thermostat of the moment."""
+    sim, reporter = steered
+    send_and_wait_arrival(peer, reporter, SimParams(temperature_K=1000.0))
+    sim.step(5)  # applied at this report
+    # the heating, at once (constraints and the potential energy take a third of it back)
+    sim.context.setVelocitiesToTemperature(1500 * unit.kelvin)
+    sim.step(5)  # a report calm for a 1000 K thermostat (under 1250 K): a rollback point
+    hot = peer.wait_for(lambda: [f for f in peer.frames if f.step == sim.currentStep])[-1]
+    assert 700.0 < hot.observables["temperature_K"] < 1250.0  # a runaway at 300 K (600 K)
+    send_and_wait_arrival(peer, reporter, SimParams(temperature_K=300.0))
+    runner = threading.Thread(target=run_steered, args=(sim, 100_000))
+    runner.start()
+    try:
+        (event,) = peer.wait_for(lambda: [e for e in peer.of_type(Event) if e.code == "guard"], 60)
+        assert "the start's positions" in event.message and "too hot" in event.message
+        for _ in range(3):  # every resume goes on calmly, none trips the guard again
+            wait_until(lambda: reporter.paused or reporter.guard_trips > 1, 30)
+            held = sim.currentStep
+            peer.send(Control(action="resume"))
+            wait_until(lambda h=held: sim.currentStep > h + 100 or reporter.guard_trips > 1, 60)
+            assert reporter.guard_trips == 1, [e.message for e in peer.of_type(Event)]
+            peer.send(Control(action="pause"))
+        calm = peer.wait_for(lambda: [f for f in peer.frames if f.step > held])[-1]
+        assert calm.observables["temperature_K"] < 450.0
+    finally:
+        reporter.stop_requested = True
+        reporter.resume()
+        runner.join(60)
+
+
 def test_the_engine_declares_what_it_can_be_steered_with(
     steered: tuple[app.Simulation, SteeringReporter], peer: SimPeer
 ) -> None:
