@@ -11,10 +11,13 @@ import threading
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 
 import protocol as p
+from server.supervisor import descendants
 from tests.server.peers import Peer
+from tests.server.processes import command_line, wait_gone
 
 ROOT = Path(__file__).resolve().parents[3]
 pytest.importorskip("openmm")
@@ -25,6 +28,31 @@ def _interruptible() -> None:
     Python then raises no KeyboardInterrupt for it: run late in the whole suite, the demo
     inherited one and ran on after the test's Ctrl-C (alone the test passed)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _small_job(port: int, token: str) -> dict[str, object]:
+    """A three-frame job of the demo's server, once it has ended."""
+    from MDAnalysisTests.datafiles import PDB_small
+
+    url = f"http://127.0.0.1:{port}"
+    auth = {"Authorization": f"Bearer {token}"}
+    with httpx.Client(base_url=url, headers=auth, timeout=60) as c:
+        assert c.get("/healthz").json()["batch"] == {"engine": "local"}
+        with open(PDB_small, "rb") as pdb:
+            r = c.post(
+                "/api/jobs",
+                files={"topology": ("small.pdb", pdb)},
+                data={"width": "32", "height": "24", "output": "zip"},
+            )
+        assert r.status_code == 202, r.text
+        deadline = time.monotonic() + 120
+        while (info := c.get(f"/api/jobs/{r.json()['id']}").json())["state"] in (
+            "queued",
+            "running",
+        ):
+            assert time.monotonic() < deadline, info
+            time.sleep(0.2)
+        return dict(info)
 
 
 @pytest.mark.slow
@@ -92,6 +120,10 @@ def test_demo_serves_frames_and_takes_steering(tmp_path: Path) -> None:
         ack = steerer.expect(p.ParamsAck, 120, where=lambda m: m.ref == seq)
         assert ack.ok and ack.step is not None and ack.step >= first.step
         steerer.close()
+        # a job renders in the demo's own process: Ray had started by itself for a 45-frame
+        # movie, and two of its processes outlived the demo
+        assert _small_job(port, token)["state"] == "done"
+        started = descendants(proc.pid)
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -105,6 +137,8 @@ def test_demo_serves_frames_and_takes_steering(tmp_path: Path) -> None:
         if proc.stdout is not None:
             proc.stdout.close()
     assert proc.returncode == 0, "".join(output[-40:])
+    left = wait_gone(started)  # nothing the demo started outlives it
+    assert not left, [command_line(pid) for pid in left]
 
 
 @pytest.mark.slow
