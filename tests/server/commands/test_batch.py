@@ -44,3 +44,17 @@ def test_batch_names_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main([str(bad), "-o", str(tmp_path / "x.zip"), "--engine", "local", "--device",
                  "cpu"]) == 1  # fmt: skip
     assert "broken.pdb" in capsys.readouterr().err
+
+
+def test_batch_renders_here_unless_ray_is_asked_for(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`batch` started Ray by itself on a laptop and printed "0/10 frames" for 30 s while it
+    started; without `--engine ray` or a cluster it renders in its own process."""
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    monkeypatch.delenv("SCALESTEER_RAY_ADDRESS", raising=False)
+    out = tmp_path / "adk.zip"
+    code = main([PSF, DCD, "-o", str(out), "--size", "32x24", "--stop", "3", "--device", "cpu"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "rendering on this process (cpu)" in printed and "3 frames" in printed
