@@ -179,14 +179,15 @@ def gcs_probe(address: str, token: str | None) -> str:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["stopped", "killed"])
 def test_a_ray_instance_of_the_servers_own_is_authenticated_and_ends_with_it(
-    tmp_path: Path,
+    tmp_path: Path, sig: signal.Signals
 ) -> None:
     """The first job started a local Ray whose servers listen on every interface, with no
-    authentication (whoever reached a port ran code as the server's user), and two of its
-    agents outlived the server. Asked for without a cluster, Ray now runs under the server's
-    supervisor with Ray's token authentication and no dashboard, and a `kill -9` of the server
-    leaves none of its processes."""
+    authentication (whoever reached a port ran code as the server's user); two of its agents
+    outlived the server, and a SIGTERM printed Ray's crash dump. Asked for without a cluster,
+    Ray now runs under the server's supervisor with Ray's token authentication and no
+    dashboard, and neither a stop nor a `kill -9` of the server leaves any of its processes."""
     data = tmp_path / "data"
     data.mkdir()
     for src in (PSF, DCD):
@@ -235,7 +236,8 @@ def test_a_ray_instance_of_the_servers_own_is_authenticated_and_ends_with_it(
         assert gcs_probe(address, "0" * len(token)).startswith("refused"), address
         assert gcs_probe(address, token) == "accepted"  # the control: the probe can pass
     finally:
-        server.stop(signal.SIGKILL)
+        server.stop(sig)
     left = wait_gone(tree)
     assert not left, [command_line(p) for p in left]
     assert not Path(temp_dir.group(1)).exists()  # its sockets and logs: removed too
+    assert "SIGTERM received" not in server.log.read_text()  # no crash dump on a stop
