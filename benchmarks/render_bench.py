@@ -412,7 +412,7 @@ def warped_quality() -> dict[str, Any]:
     ratio (largest second difference of S along lines through the molecule, at step h over at
     h / 2: 4 is smooth, 2 creased) and benzene's ring ratio S(centre) / S(bond midpoint) at the
     sigma where the classical density fills the ring."""
-    from server.render.skeleton import Skeleton, warped_density
+    from server.render.skeleton import Skeleton, carved_density
 
     def mol(pos: np.ndarray, bonds: list[tuple[int, int]]) -> tuple[np.ndarray, Skeleton]:
         top = topology_of(np.array(["C"] * len(pos)), np.array(bonds, np.int32))
@@ -439,7 +439,7 @@ def warped_quality() -> dict[str, Any]:
                 sec = []
                 for hh in (0.02, 0.01):
                     t = np.arange(-4.0, 4.0, hh)
-                    d = warped_density(o + t[:, None] * v, pos, ones, sk, 1.0, strength)[0]
+                    d = carved_density(o + t[:, None] * v, pos, ones, sk, 1.0, strength)[0]
                     sec.append(np.abs(d[2:] - 2 * d[1:-1] + d[:-2]).max())
                 worst = min(worst, sec[0] / sec[1])
             out["crease_ratio"][f"{name}, {'warped' if strength else 'classical'}"] = worst
@@ -449,12 +449,12 @@ def warped_quality() -> dict[str, Any]:
     lo, hi = 0.3, 3.0
     for _ in range(40):
         sig = 0.5 * (lo + hi)
-        c = warped_density(center, pos, ones, sk, sig, 0.0)[0][0]
-        m = warped_density(mid, pos, ones, sk, sig, 0.0)[0][0]
+        c = carved_density(center, pos, ones, sk, sig, 0.0)[0][0]
+        m = carved_density(mid, pos, ones, sk, sig, 0.0)[0][0]
         lo, hi = (lo, sig) if c >= m else (sig, hi)
     for strength in (0.0, 1.0):
-        c = warped_density(center, pos, ones, sk, hi, strength)[0][0]
-        m = warped_density(mid, pos, ones, sk, hi, strength)[0][0]
+        c = carved_density(center, pos, ones, sk, hi, strength)[0][0]
+        m = carved_density(mid, pos, ones, sk, hi, strength)[0][0]
         out["ring_ratio"]["warped" if strength else "classical"] = c / m
     out["ring_sigma"] = hi
     return out

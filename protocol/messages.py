@@ -15,7 +15,7 @@ from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
 from protocol.limits import Limits
 
-PROTOCOL_VERSION = "1.7"
+PROTOCOL_VERSION = "1.8"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -339,6 +339,8 @@ class Lighting(Model):
     depth_cue: Unit = 0.0
 
 
+ScaleSpace = Literal["classical", "geodesic", "carved", "warped"]
+"""`"warped"` is the name 1.1-1.7 gave `"carved"`, kept so saved views and recordings open."""
 ColorBy = Literal["element", "residue", "chain", "uniform", "bfactor", "charge", "motion"]
 TFPreset = Literal["cloud", "shells", "iso-like"]
 
@@ -367,7 +369,7 @@ class Layer(Model):
     """The stick (licorice, default 0.25 A) or tube (default 0.6 A) radius."""
     sigma_A: Annotated[float, Field(ge=0.05, le=50, allow_inf_nan=False)] | None = None
     iso_level: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] | None = None
-    scale_space: Literal["classical", "warped"] | None = None
+    scale_space: ScaleSpace | None = None
     color_by: ColorBy | None = None
     uniform_color: RGB | None = None
     tf_preset: TFPreset | None = None
@@ -390,8 +392,10 @@ class RenderParams(Model):
     `iso_level` (and the transfer function's x) are fractions of the density's own scale,
     the mean density at the atoms at this sigma (`level_scale="mean"`), so the surface stays
     near the molecule's extent as sigma grows; `level_scale="absolute"` reads them in units of
-    one atom's peak density instead. `scale_space="warped"` draws the bond-graph warped density
-    (docs/rendering.md), `warp_strength` 0 being the classical one."""
+    one atom's peak density instead. `scale_space="geodesic"` draws the thesis's warped density
+    (distances measured through the bond graph, made smooth: `geodesic_smoothing` sigmas round
+    its creases), `"carved"` a Gaussian density carved away from the bond skeleton
+    (docs/rendering.md); `warp_strength` 0 is the classical density in both."""
 
     mode: Literal["iso", "volume"] = "iso"
     sigma_A: Annotated[float, Field(ge=0.05, le=50, allow_inf_nan=False)] = 1.5
@@ -407,8 +411,11 @@ class RenderParams(Model):
     background: RGB = (0.08, 0.09, 0.11)
     quality: Annotated[float, Field(ge=0.1, le=2, allow_inf_nan=False)] = 1.0
     jpeg_quality: Annotated[int, Field(ge=10, le=100)] = 85
-    scale_space: Literal["classical", "warped"] = "classical"
+    scale_space: ScaleSpace = "classical"
     warp_strength: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 1.0
+    geodesic_smoothing: Annotated[float, Field(ge=0.05, le=2, allow_inf_nan=False)] = 0.6
+    """tau / sigma of the geodesic density: the temperature of its soft minimum over routes
+    (smaller is closer to the thesis's creased field, larger smoother)."""
     density_weights: Literal["uniform", "electrons"] = "uniform"
     level_scale: Literal["mean", "absolute"] = "mean"
     time_smoothing: Literal["off", "classical", "warped"] = "off"

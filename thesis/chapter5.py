@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 import protocol as p
-from server.render.skeleton import Skeleton, warped_density
+from server.render.skeleton import Skeleton, carved_density
 from thesis.molecular import (
     BondGraph,
     classical_density,
@@ -57,7 +57,7 @@ def warped_of(graph: BondGraph, strength: float = 1.0) -> Any:
     skeleton = Skeleton.of(topology_of(graph))
 
     def density(points: Any, sigma: float) -> Any:
-        s, _ = warped_density(points, graph.positions, graph.densities, skeleton, sigma, strength)
+        s, _ = carved_density(points, graph.positions, graph.densities, skeleton, sigma, strength)
         return s
 
     return density

@@ -28,6 +28,7 @@ export const RENDER_DEFAULTS = Object.freeze({
   jpeg_quality: 85,
   scale_space: "classical",
   warp_strength: 1.0,
+  geodesic_smoothing: 0.6,
   density_weights: "uniform",
   level_scale: "mean",
   time_smoothing: "off",
@@ -45,7 +46,7 @@ export const ENUMS = Object.freeze({
   tf_preset: ["cloud", "shells", "iso-like"],
   color_by: ["element", "residue", "chain", "uniform", "bfactor", "charge", "motion"],
   projection: ["perspective", "orthographic"],
-  scale_space: ["classical", "warped"],
+  scale_space: ["classical", "geodesic", "carved", "warped"],
   density_weights: ["uniform", "electrons"],
   level_scale: ["mean", "absolute"],
   time_smoothing: ["off", "classical", "warped"],
@@ -61,6 +62,7 @@ export const RANGES = Object.freeze({
   quality: [0.1, 2],
   jpeg_quality: [10, 100],
   warp_strength: [0, 1],
+  geodesic_smoothing: [0.05, 2],
   tau_frames: [0.1, 32],
   time_window: [1, 64],
   time_warp_per_A: [0, 100],
@@ -125,4 +127,10 @@ export function diffRender(base, params) {
     if (params[key] !== undefined && !equalValue(base[key], params[key])) out[key] = cloneDeep(params[key]);
   }
   return out;
+}
+
+/** The scale-space choice a session's value shows as: "warped" is the carved density's name
+ * before protocol 1.8 (saved views and recordings still say it). */
+export function shownSpace(value) {
+  return value === "warped" ? "carved" : value;
 }

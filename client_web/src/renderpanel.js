@@ -2,7 +2,15 @@
 // partial `render_params` updates and the session's state comes back to set the controls.
 
 import { $, isBusy, markEdited } from "./dom.js";
-import { RENDER_DEFAULTS, SIGMA_SLIDER, clamp, clampParam, sigmaFromSlider, sliderFromSigma } from "./params.js";
+import {
+  RENDER_DEFAULTS,
+  SIGMA_SLIDER,
+  clamp,
+  clampParam,
+  shownSpace,
+  sigmaFromSlider,
+  sliderFromSigma,
+} from "./params.js";
 import { hexToRgb, rgbToHex } from "./transfer.js";
 import { sig } from "./format.js";
 
@@ -20,6 +28,7 @@ export class RenderPanel {
     this.modeRadios = [...document.querySelectorAll('input[name="mode"]')];
     this.spaceRadios = [...document.querySelectorAll('input[name="scale-space"]')];
     this.warpStrength = $("warp-strength");
+    this.smoothing = $("geodesic-smoothing");
     this.densityWeights = $("density-weights");
     this.radiusMode = $("radius-mode");
     this.colorBy = $("color-by");
@@ -94,6 +103,12 @@ export class RenderPanel {
         this.showOutput(this.warpStrength);
         this.emit({ warp_strength: value }, type === "change", this.warpStrength);
       });
+      this.smoothing.addEventListener(type, () => {
+        const value = clampParam("geodesic_smoothing", this.smoothing.value);
+        if (value === null) return;
+        this.showOutput(this.smoothing);
+        this.emit({ geodesic_smoothing: value }, type === "change", this.smoothing);
+      });
     }
     this.densityWeights.addEventListener("change", () =>
       this.emit({ density_weights: this.densityWeights.value }, true, this.densityWeights),
@@ -160,9 +175,13 @@ export class RenderPanel {
 
   syncEnabled() {
     this.uniformColor.disabled = this.disabled || this.colorBy.value !== "uniform";
-    const warped = this.render.scale_space === "warped";
+    const space = shownSpace(this.render.scale_space);
+    const warped = space !== "classical";
     this.warpStrength.disabled = this.disabled || !warped;
     $("warp-row").classList.toggle("muted", !warped);
+    const geodesic = space === "geodesic";
+    this.smoothing.disabled = this.disabled || !geodesic;
+    $("smoothing-row").classList.toggle("muted", !geodesic);
   }
 
   setDisabled(disabled) {
@@ -186,9 +205,12 @@ export class RenderPanel {
       this.isoNumber.value = String(sig(render.iso_level, 3));
     }
     for (const radio of this.modeRadios) radio.checked = radio.value === render.mode;
-    for (const radio of this.spaceRadios) radio.checked = radio.value === render.scale_space;
+    const space = shownSpace(render.scale_space);
+    for (const radio of this.spaceRadios) radio.checked = radio.value === space;
     set(this.warpStrength, render.warp_strength);
     this.showOutput(this.warpStrength);
+    set(this.smoothing, render.geodesic_smoothing ?? 0.6);
+    this.showOutput(this.smoothing);
     set(this.densityWeights, render.density_weights);
     set(this.radiusMode, render.radius_mode);
     set(this.colorBy, render.color_by);

@@ -33,6 +33,7 @@ const FIELDS = [
   ["cue", "lighting.depth_cue", "num"],
   ["space", "scale_space", "enum"],
   ["warp", "warp_strength", "num"],
+  ["smooth", "geodesic_smoothing", "num"],
   ["weights", "density_weights", "enum"],
   ["levels", "level_scale", "enum"],
   ["ts", "time_smoothing", "enum"],

@@ -9,6 +9,7 @@ import {
   clampParam,
   diffRender,
   mergeRender,
+  shownSpace,
   sigmaFromSlider,
   sliderFromSigma,
 } from "../src/params.js";
@@ -47,4 +48,9 @@ test("values are clamped to the protocol's ranges", () => {
   assert.equal(clampParam("jpeg_quality", 55.4), 55);
   assert.equal(clampParam("temperature_K", "abc"), null);
   assert.equal(clampParam("frame_interval", 0), 1);
+});
+
+test("the carved density's old name shows as Carved", () => {
+  assert.equal(shownSpace("warped"), "carved");
+  for (const v of ["classical", "geodesic", "carved"]) assert.equal(shownSpace(v), v);
 });

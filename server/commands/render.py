@@ -55,11 +55,18 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--scale-space",
-        choices=("classical", "warped"),
+        choices=("classical", "geodesic", "carved"),
         default="classical",
-        help="warped: the bond-graph warped density (docs/rendering.md)",
+        help="geodesic: the thesis's warped density, distances through the bond graph; carved: "
+        "a narrower Gaussian density carved away from the bonds (docs/rendering.md)",
     )
     p.add_argument("--warp-strength", type=float, default=1.0, help="0 (classical) to 1")
+    p.add_argument(
+        "--geodesic-smoothing",
+        type=float,
+        default=0.6,
+        help="the geodesic density's soft minimum, in sigmas (0.05-2; smaller is creased)",
+    )
     p.add_argument(
         "--weights",
         choices=("uniform", "electrons"),
@@ -143,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
             level_scale=args.levels,
             scale_space=args.scale_space,
             warp_strength=args.warp_strength,
+            geodesic_smoothing=args.geodesic_smoothing,
             density_weights=args.weights,
             color_by=args.color_by,
             radius_mode=args.radius_mode,

@@ -10,6 +10,7 @@ Buffers are sized by the topology and the largest image so far, never per frame.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -24,7 +25,7 @@ import numpy.typing as npt
 import warp
 
 from protocol import Camera, RenderParams, Topology
-from server.render import colors, raycast, temporal, transfer, visibility, warped
+from server.render import carved, colors, geodesic_field, raycast, temporal, transfer, visibility
 from server.render import device as devmod
 from server.render.camera import CameraFrame, band_planes, camera_frame
 from server.render.density import (
@@ -40,6 +41,7 @@ from server.render.density import (
     total_kernel,
 )
 from server.render.errors import RenderError
+from server.render.geodesic import GAIN, BondGraph, GeodesicScales
 from server.render.grid import GRID_SORTS, CellGrid, Cull, cell_threads
 from server.render.outputs import ImageOutputs
 from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
@@ -62,23 +64,23 @@ SPLIT_RAYS = 16384
 """The second marching kernel gives each queued ray SPLIT_LANES threads that march
 consecutive stretches of it at once (1: one thread continues the ray); it runs
 SPLIT_LANES * SPLIT_RAYS threads that stride over the queue."""
-MARCH_REGISTERS = {"gaussian": 64, "warped": 64}
-CELLS_PER_CUTOFF = {"gaussian": 2.0, "warped": 1.0}
+MARCH_REGISTERS = {"gaussian": 64, "carved": 64, "geodesic": 0}
+CELLS_PER_CUTOFF = {"gaussian": 2.0, "carved": 1.0, "geodesic": 2.0}
 """Per density model, the register cap of the iso marching kernels and the grid's cells per
 cutoff that measured fastest (`max_registers=None`, `cells_per_cutoff=None`; at 1920x1080: the
-warped density's Gaussian part has a reach of 0.6 sigma k, and its walks, with the segment
+carved density's Gaussian part has a reach of 0.6 sigma k, and its walks, with the segment
 walks beside them, want larger cells than the classical density's (one H100, 1M atoms); with
 part bounds and the counting sort, 64 registers beat 80 for the classical density too (one
 H200: 1M atoms 8.35 ms against 8.66, 10M 17.86 against 18.72, 100M 38.2 against 40.6
-pipelined), and stay best for the warped one; benchmarks/README.md)."""
+pipelined), and stay best for the carved one; benchmarks/README.md)."""
 VOLUME_REGISTERS = 64
 """The register cap of the volume kernel (`volume_max_registers`; one H200 at 1920x1080, 1M
 atoms: 18.97 ms against 20.25 with 80, 21.7 with 96)."""
-BOUND_KEEP_FROM = {"gaussian": 8.0, "warped": math.inf}
+BOUND_KEEP_FROM = {"gaussian": 8.0, "carved": math.inf, "geodesic": 8.0}
 """Per density model, the multiple of the level from which an empty cell keeps its coarse
 bound unwalked. For the classical density few such walks end below the level, and their cost
 outweighs the samples they save (one H200 at 1920x1080: 10M atoms 19.2 ms a frame against 20.8
-walking them all, 100M atoms 42.4 against 46.4 pipelined, 1M atoms even); the warped density's
+walking them all, 100M atoms 42.4 against 46.4 pipelined, 1M atoms even); the carved density's
 coarse bound ignores the warp, so there walking them all is faster (1M atoms 18.6 against 19.5)."""
 VISIBLE_ATOMS = 500_000
 """Below this many atoms every open cell walks for the bounds of its 27 parts
@@ -144,7 +146,7 @@ every frame; forgetting one only repeats a walk that finds nothing new)."""
 @dataclass(frozen=True)
 class Derived:
     """Device-side constants of one set of render parameters. `sigma` is the spatial scale of
-    the atoms' Gaussians (s3 of the warped density, sigma otherwise)."""
+    the atoms' Gaussians (s3 of the carved density, sigma otherwise)."""
 
     sigma: float
     per_atom: int
@@ -157,11 +159,14 @@ class Derived:
     weights: str
     relative: bool
     warp: WarpScales | None
+    geo: GeodesicScales | None = None
 
 
 def _model_name(d: Derived) -> str:
     """The density model a frame draws, as the per-model tables name it."""
-    return "warped" if d.warp is not None else "gaussian"
+    if d.geo is not None:
+        return "geodesic"
+    return "carved" if d.warp is not None else "gaussian"
 
 
 class Renderer(ImageOutputs):
@@ -251,7 +256,8 @@ class Renderer(ImageOutputs):
         """A tile's grid keeps only the atoms within reach of its rays (and of the atoms the
         mean density of relative levels is taken at): the same image from a grid of a band's
         share of the atoms, rebuilt when the camera moves. Set by `MultiRenderer` for the
-        classical density; a whole image, or the warped density, keeps every atom."""
+        classical and the geodesic densities; a whole image, or the carved density, keeps every
+        atom."""
         self.depth_limit: Any = None
         """A device array of per-pixel distances where volume rays stop (None: the grid's
         end); set by the layer compositor to the nearest opaque surface of the other layers."""
@@ -349,6 +355,7 @@ class Renderer(ImageOutputs):
         self._weights_key: tuple[Any, ...] | None = None
         self._skeleton: Skeleton | None = None
         self._skel: _SkeletonBuffers | None = None
+        self._geo: geodesic_field.GeodesicTables | None = None
         self._ref_positions: npt.NDArray[np.float32] | None = None
         self._temporal: temporal.TemporalState | None = None
         self._smoothed = False
@@ -399,6 +406,7 @@ class Renderer(ImageOutputs):
             "image": sum(int(a.capacity) for a in pix),
             "other": int(self._tf_table.capacity + self._hist.capacity),
             "skeleton": self._skel.nbytes if self._skel is not None else 0,
+            "geodesic": self._geo.nbytes if self._geo is not None else 0,
         }
 
     # ------------------------------------------------------------------ inputs
@@ -422,6 +430,7 @@ class Renderer(ImageOutputs):
         self._weights_key = None
         self._skeleton = None
         self._skel = None
+        self._geo = None
         self._ref_positions = None
         self._temporal = None
         self._smoothed = False
@@ -498,7 +507,7 @@ class Renderer(ImageOutputs):
         self._raw_source = positions  # the frame `_pos` holds, until smoothing overwrites it
         self._pos_is_raw = True
         if self._ref_positions is None:
-            # bonds keep their lengths (the warped density's graph tables use these)
+            # bonds keep their lengths (the carved density's graph tables use these)
             self._ref_positions = np.array(arr[:n], dtype=np.float32)
         # only a recorded upload is timed: the elapsed time between two unrecorded CUDA events
         # fails and leaves the error for the next CUDA call that checks for one to report
@@ -630,7 +639,7 @@ class Renderer(ImageOutputs):
 
     def _derive(self, p: RenderParams) -> Derived:
         warp = None
-        if p.scale_space == "warped" and p.warp_strength > 0.0:
+        if p.scale_space in ("carved", "warped") and p.warp_strength > 0.0:
             warp = WarpScales.of(float(p.sigma_A), float(p.warp_strength))
         sigma = warp.space if warp is not None else float(p.sigma_A)
         k = float(p.cutoff_sigmas)
@@ -642,7 +651,7 @@ class Renderer(ImageOutputs):
             spr = 0.0
             s_max = sigma
             per_atom = 0
-        return Derived(
+        out = Derived(
             sigma=sigma,
             per_atom=per_atom,
             sigma_per_radius=spr,
@@ -655,17 +664,25 @@ class Renderer(ImageOutputs):
             relative=p.level_scale == "mean",
             warp=warp,
         )
+        if p.scale_space == "geodesic" and p.warp_strength > 0.0:
+            smoothing = float(p.geodesic_smoothing)
+            scales = GeodesicScales.of(sigma, float(p.warp_strength), k * s_max, smoothing)
+            out = dataclasses.replace(out, geo=scales)
+        return out
 
     # ------------------------------------------------------------------ rendering
 
     def _field(self, d: Derived) -> Any:
-        """The struct the kernels read: a GaussianField, or a WarpedField around one."""
+        """The struct the kernels read: a GaussianField, or a CarvedField or GeodesicField
+        around one."""
         seen = self._field_seen
         if seen is not None and seen[0] == d:
             return seen[1]
         f = self._gaussian_field(d)
         if d.warp is not None:
-            f = self._warped_field(d, f)
+            f = self._carved_field(d, f)
+        elif d.geo is not None:
+            f = self._geodesic_field(d, f)
         self._field_seen = (d, f)
         return f
 
@@ -686,17 +703,17 @@ class Renderer(ImageOutputs):
         f.per_atom = d.per_atom
         return f
 
-    def _warped_field(self, d: Derived, gauss: GaussianField) -> Any:
+    def _carved_field(self, d: Derived, gauss: GaussianField) -> Any:
         assert d.warp is not None
         skel = self._skeleton_buffers()
-        s = warped.SkeletonField()
+        s = carved.SkeletonField()
         s.info = skel.grid.info
         s.cell_start = skel.grid.cell_start
         s.seg_a = skel.seg_a
         s.seg_b = skel.seg_b
         s.r2 = d.warp.reach * d.warp.reach
         s.atten = d.warp.atten
-        f = warped.WarpedField()
+        f = carved.CarvedField()
         f.info = gauss.info
         f.bound = gauss.bound
         f.parts = gauss.parts
@@ -705,11 +722,58 @@ class Renderer(ImageOutputs):
         f.skel = s
         return f
 
+    def _geodesic_field(self, d: Derived, gauss: GaussianField) -> Any:
+        assert d.geo is not None
+        tables = self._geodesic_tables()
+        f = geodesic_field.GeodesicField()
+        f.info = gauss.info
+        f.cell_start = gauss.cell_start
+        f.bound = gauss.bound
+        f.parts = gauss.parts
+        f.brick_bound = gauss.brick_bound
+        f.gauss = gauss
+        f.routes = tables.routes(d.geo.tau, d.geo.strength)
+        return f
+
+    def _geodesic_tables(self) -> geodesic_field.GeodesicTables:
+        """The bond graph and route tables of the topology on the device (made once per
+        topology; `_update_geodesic` builds their routes)."""
+        if self._geo is None:
+            assert self._topology is not None
+            self._geo = geodesic_field.GeodesicTables(self.device, BondGraph.of(self._topology))
+        return self._geo
+
+    def _update_geodesic(self, d: Derived) -> None:
+        """Build the route tables when the weights or the tables' reach change (on the host's
+        thread, before a frame's launches: the build synchronises once)."""
+        if d.geo is None or not self._n:
+            return
+        tables = self._geodesic_tables()
+        key = (d.weights, d.geo.table_reach)
+        if tables.key == key:
+            return
+        tables.build(self._pos, self._weights, GAIN, d.geo.table_reach)
+        tables.key = key
+        if tables.lost:
+            log.warning(
+                "geodesic density: %d atoms have more than %d atoms within %.1f A along the "
+                "bonds; their farthest routes are left out",
+                tables.lost,
+                geodesic_field.NODES,
+                d.geo.table_reach,
+            )
+        self._field_seen = None
+        self._drop_graphs()
+
+    def _model_of(self, d: Derived) -> DensityModel:
+        if d.geo is not None:
+            return geodesic_field.GEODESIC
+        return self._density if d.warp is None else carved.CARVED
+
     def _kernels_of(self, d: Derived, mode: str) -> raycast.RaycastKernels:
         """The kernels of this frame's density, with part bounds unless `_parts_for` says
         "none"."""
-        model = self._density if d.warp is None else warped.WARPED
-        return self._kernels_of_model(model, self._parts_for(d, mode) != "none")
+        return self._kernels_of_model(self._model_of(d), self._parts_for(d, mode) != "none")
 
     def _parts_for(self, d: Derived, mode: str) -> PartMode:
         """Which cells walk for part bounds in a frame of render mode `mode` (`PART_MODES`):
@@ -717,8 +781,7 @@ class Renderer(ImageOutputs):
         below `VISIBLE_ATOMS` atoms and the cells the view reaches from there (in iso mode
         every open cell again for positions seen by many views, `_many_views`; in volume mode
         none from `LARGE_ATOMS`)."""
-        model = self._density if d.warp is None else warped.WARPED
-        if model.part_bounds is None:
+        if self._model_of(d).part_bounds is None:
             return "none"
         if self.part_bounds is not None:
             return self.part_bounds
@@ -783,7 +846,7 @@ class Renderer(ImageOutputs):
 
     def _update_weights(self, d: Derived) -> None:
         """The atoms' weights: uniform or electron counts, smoothed along the bond graph in
-        warped mode (when the topology, the weights or the graph scale change)."""
+        carved mode (when the topology, the weights or the graph scale change)."""
         assert self._topology is not None
         graph = d.warp.graph if d.warp is not None else 0.0
         key = (d.weights, graph)
@@ -905,7 +968,7 @@ class Renderer(ImageOutputs):
         cull: Cull | None = None,
     ) -> None:
         """Grid, sorted atoms (weights divided by the mean density at the atoms for relative
-        levels), the warped density's segments, cell bounds and brick bounds: launches only.
+        levels), the carved density's segments, cell bounds and brick bounds: launches only.
         `view` (camera frame and tile) marks the cells whose part bounds are walked when the
         bounds follow the view."""
         dev = self.device
@@ -913,7 +976,9 @@ class Renderer(ImageOutputs):
         samples = min(n, MEAN_SAMPLES)
         stride = n // samples if d.relative else 0
         self._grid.build(self._pos, n, d.reach, self._cells_for(d), cull, stride)
-        if d.relative:
+        # the geodesic density takes its own mean once its atoms are gathered
+        classical_mean = d.relative and d.geo is None
+        if classical_mean:
             # the density's own scale, from the atoms in their original order through the
             # grid, so the gather below writes the scaled weights in one pass
             mean = (self._unsorted(d), n // samples, self._density_samples)
@@ -933,7 +998,7 @@ class Renderer(ImageOutputs):
                 d.per_atom,
                 self._density_total,
                 float(samples),
-                int(d.relative),
+                int(classical_mean),
                 self._sorted,
                 self._inv2s2,
             ),
@@ -941,6 +1006,16 @@ class Renderer(ImageOutputs):
         )
         if d.warp is not None:
             self._skeleton_buffers().build(self._pos, d.warp.reach)
+        if d.geo is not None:
+            self._geodesic_tables().refresh(self._pos, self._weights, GAIN)
+            if d.relative:
+                sampled = (f, self._pos, n // samples, self._density_samples)
+                wp.launch(geodesic_field.sampled_values_kernel, samples, sampled, device=dev)
+                partial = (self._density_samples, samples, self._density_partial)
+                wp.launch(partial_sums_kernel, MEAN_LANES, partial, device=dev)
+                wp.launch(total_kernel, 1, (self._density_partial, self._density_total), device=dev)
+                scale = (self._sorted, self._density_total, float(samples), n)
+                wp.launch(geodesic_field.rescale_kernel, n, scale, device=dev)
         kernels = self._kernels_of(d, mode)
         parts = self._parts_for(d, mode)
         # the widest atom's 1 / (2 s^2): reach = k s_max and half_k2 = k^2 / 2
@@ -1149,6 +1224,7 @@ class Renderer(ImageOutputs):
         if self._n:
             self._update_colors(params)
             self._update_weights(d)
+            self._update_geodesic(d)
         pw, ph = (tile[2], tile[3]) if tile is not None else (w, h)
         self._alloc_pixels(pw * ph)
         stop = self._stop_level(params, d)
@@ -1277,6 +1353,7 @@ class Renderer(ImageOutputs):
         if self._n:
             self._update_colors(params)
             self._update_weights(d)
+            self._update_geodesic(d)
         f = self._field(d)
         stop = self._stop_level(params, d)
         if not (self._n and self._have_positions):
@@ -1363,7 +1440,7 @@ class Renderer(ImageOutputs):
 
 
 class _SkeletonBuffers:
-    """The warped density's device tables for one topology: the segments (and their cell
+    """The carved density's device tables for one topology: the segments (and their cell
     grid, rebuilt every frame) and the bond graph for the along-graph smoothing."""
 
     def __init__(
@@ -1397,10 +1474,10 @@ class _SkeletonBuffers:
             return
         dev = self.device
         args = (positions, self.ends, self.mids)
-        wp.launch(warped.segment_mids_kernel, self.count, args, device=dev)
+        wp.launch(carved.segment_mids_kernel, self.count, args, device=dev)
         self.grid.build(self.mids, self.count, reach + self.half_length, 2.0)
         gather = (positions, self.ends, self.grid.order, self.seg_a, self.seg_b)
-        wp.launch(warped.gather_segments_kernel, self.count, gather, device=dev)
+        wp.launch(carved.gather_segments_kernel, self.count, gather, device=dev)
 
     def smooth(self, densities: npt.NDArray[np.float32], scale: float, out: wp.array) -> None:
         """dt: `densities` smoothed along the bond graph at warped scale `scale`, into `out`."""
@@ -1420,4 +1497,4 @@ class _SkeletonBuffers:
             float(GRAPH_CUTOFF_SIGMAS * scale),
             out,
         )
-        wp.launch(warped.smooth_densities_kernel, n, args, device=self.device)
+        wp.launch(carved.smooth_densities_kernel, n, args, device=self.device)

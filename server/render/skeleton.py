@@ -1,29 +1,34 @@
-"""The bond-graph warped density: its topology tables and its float64 reference.
+"""The carved density: its topology tables and its float64 reference.
 
-The warped density (docs/rendering.md, "The warped density") is the classical Gaussian density
-of the atoms in a warped space. Strength lambda in [0, 1] splits the scale sigma between the
-molecule's own 1-D structure and space, and warps space away from the bond skeleton:
+The carved density (docs/rendering.md, "The carved density") is a Gaussian density of the atoms
+multiplied by a factor that falls away from the bond skeleton. Strength lambda in [0, 1] narrows
+the atoms' Gaussians and deepens the factor:
 
     S(P) = sum_i dt_i exp(-|P - a_i|^2 / (2 s3^2)) * exp(-lambda^2 kappa^2 phi(P)^2 / (2 sigma^2))
 
-- s3 = sigma sqrt(1 - (c lambda)^2): the spatial part of the scale (c = GRAPH_SHARE);
-- dt = the atom densities d smoothed *along the bond graph* at warped scale sg = c lambda sigma:
-  a normalised Gaussian of the warped geodesic distance, where a bond's warped length is the
-  arclength of the density along it, sqrt(l^2 + (gain (d_i - d_j))^2) (eq. 3.4 on the bond
-  graph: smoothing does not cross density edges);
+- s3 = sigma sqrt(1 - (c lambda)^2): at full strength the Gaussians are 0.6 sigma wide
+  (c = GRAPH_SHARE);
+- dt = the atom weights d averaged along the bond graph at scale sg = c lambda sigma, over the
+  graph distance where a bond's length is the arclength of the weights across it,
+  sqrt(l^2 + (gain (d_i - d_j))^2). With uniform weights (the default) this average returns
+  every weight unchanged; with electron weights it blurs them along the bonds, less across a
+  large weight difference;
 - phi(P) = a smooth distance from P to the bond skeleton (the bonds as segments; an atom with no
   bond is a point): a harmonic soft minimum of the segment distances with compact support R,
-  zero on every bond and saturating at R far away. Space is stretched away from the skeleton
-  (kappa = KAPPA), so rings and near but unbonded parts stay apart longer as sigma grows.
+  zero on every bond and saturating at R far away (kappa = KAPPA).
+
+No distance in it is measured through the bond graph: it is not the thesis's warped density
+(that is `geodesic.py`). What it does is measured against the classical density at the same
+sigma *and* at 0.6 sigma (docs/rendering.md): most of its narrower look is the narrower Gaussian.
 
 At lambda = 0 every piece is the identity: S is the classical density. On the axis of a straight
-chain (between its end atoms) phi = 0 and S is the classical scale space (s3) of the warped
-convolution (eq. 3.3, scale sg, arclength warp of the densities) of the atom densities: both
-computed by `timewarp` (tests/render/test_warped.py). The density never exceeds the classical
-density of the same weights and spatial scale, so the classical cell bounds stay valid.
+chain (between its end atoms) phi = 0 and S is the classical scale space (s3) of the
+along-graph average (eq. 3.3's warped convolution on the graph, scale sg) of the atom weights:
+both computed by `timewarp` (tests/render/test_carved.py). The density never exceeds the
+classical density of the same weights and spatial scale, so the classical cell bounds stay valid.
 
-This module is plain numpy: the Renderer prepares the tables here, the warp kernels live in
-`warped.py`, and `warped_density` is the float64 reference the kernels are tested against.
+This module is plain numpy: the Renderer prepares the tables here, the kernels live in
+`carved.py`, and `carved_density` is the float64 reference the kernels are tested against.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ import numpy.typing as npt
 from protocol import Topology
 
 KAPPA = 1.5
-"""How much farther a point is from the atoms, in the warped space, per unit of its distance
+"""How much farther a point is from the atoms, in the carved space, per unit of its distance
 from the skeleton (at full strength)."""
 GRAPH_SHARE = 0.8
 """At full strength, the share c of sigma that smooths along the bond graph (sg = c sigma);
@@ -61,7 +66,7 @@ F64 = npt.NDArray[np.float64]
 
 @dataclass(frozen=True)
 class WarpScales:
-    """The numbers one (sigma, strength) pair gives the warped density."""
+    """The numbers one (sigma, strength) pair gives the carved density."""
 
     sigma: float
     strength: float
@@ -86,7 +91,7 @@ class WarpScales:
 
 @dataclass(frozen=True)
 class Skeleton:
-    """The bond graph of a topology as the warped density uses it.
+    """The bond graph of a topology as the carved density uses it.
 
     `segments` (m, 2): every bond as (i, j), then every atom without bonds as (i, i);
     `adj_start`, `adj_atom`, `adj_bond`: CSR neighbours of each atom and the bond joining them.
@@ -250,7 +255,7 @@ def skeleton_distance2(
     return phi2, scale[:, None] * dh
 
 
-def warped_density(
+def carved_density(
     points: npt.ArrayLike,
     positions: npt.ArrayLike,
     densities: npt.ArrayLike,

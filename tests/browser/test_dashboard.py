@@ -215,25 +215,48 @@ def test_a_field_with_the_focus_shows_another_steerers_change_when_the_focus_lea
     expect(page.locator("#sigma-number")).to_have_value("2.4")
 
 
-def test_the_warped_scale_space_is_one_click_away(
+def test_the_geodesic_and_carved_scale_spaces_are_one_click_away(
     open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     dash = open_dashboard()
     wait_for_full_view(dash)
     page = dash.page
     strength = page.locator("#warp-strength")
-    expect(strength).to_be_disabled()  # classical: the strength does not apply
-    expect(page.locator("#space-help")).to_contain_text("along the bonds")
+    rounding = page.locator("#geodesic-smoothing")
+    expect(strength).to_be_disabled()  # classical: neither applies
+    expect(rounding).to_be_disabled()
+    expect(page.locator("#space-help")).to_contain_text("through the bonds")
     before = snapshot(dash)
-    page.locator('input[name="scale-space"][value="warped"]').check()
-    wait_until(lambda: session(live_server).render_params.scale_space == "warped", "warped arrived")
+    page.locator('input[name="scale-space"][value="geodesic"]').check()
+    wait_until(lambda: session(live_server).render_params.scale_space == "geodesic", "geodesic")
     expect(strength).to_be_enabled()
-    warped = wait_for_new_image(dash, before, threshold=4.0)
+    expect(rounding).to_be_enabled()
+
+    def changed_from(image: np.ndarray, timeout: float) -> np.ndarray:
+        def differs() -> list[np.ndarray]:
+            wait_for_frame(dash, frame_id(dash) - 1)
+            now = snapshot(dash)
+            return [now] if np.abs(now - image).mean() > 4.0 else []
+
+        result: np.ndarray = wait_until(differs, "the image changed", timeout)[0]
+        return result
+
+    # the first geodesic frame compiles its kernels (once per machine: warp caches them)
+    geodesic = changed_from(before, 240.0)
+    rounding.focus()
+    rounding.press("End")  # the smoothest rounding
+    wait_until(lambda: session(live_server).render_params.geodesic_smoothing == 2.0, "rounding 2")
+    smooth = changed_from(geodesic, 60.0)
+    page.locator('input[name="scale-space"][value="carved"]').check()
+    wait_until(lambda: session(live_server).render_params.scale_space == "carved", "carved")
+    expect(rounding).to_be_disabled()
+    expect(strength).to_be_enabled()
+    carved = changed_from(smooth, 120.0)
     strength.focus()
     strength.press("Home")  # strength 0: the classical density again
     wait_until(lambda: session(live_server).render_params.warp_strength == 0.0, "strength 0")
-    wait_for_new_image(dash, warped, threshold=4.0)
-    wait_until(lambda: "space=warped" in dash.evaluate("() => location.hash"), "URL keeps it")
+    changed_from(carved, 60.0)
+    wait_until(lambda: "space=carved" in dash.evaluate("() => location.hash"), "URL keeps it")
 
 
 def test_dragging_rotates_the_view(

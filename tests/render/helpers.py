@@ -11,7 +11,7 @@ import numpy as np
 from protocol import Camera, RenderParams, Topology
 from server.render import colors
 from server.render.renderer import MEAN_SAMPLES, Renderer
-from server.render.skeleton import Skeleton, warped_density
+from server.render.skeleton import Skeleton, carved_density
 from tests.render import oracle
 from tests.render.oracle import Molecule, density
 
@@ -63,18 +63,18 @@ def render(
     return r
 
 
-def warped_reference(
+def carved_reference(
     topology: Topology, positions: np.ndarray, params: RenderParams
 ) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """The documented warped density of these inputs (float64, every atom), with the same
+    """The documented carved density of these inputs (float64, every atom), with the same
     relative-level scale as the renderer: (S, grad S) at (m, 3) points."""
     skeleton = Skeleton.of(topology)
     dens = colors.atom_weights(topology, params.density_weights).astype(np.float64)
     pos = np.asarray(positions, dtype=np.float64)
-    strength = params.warp_strength if params.scale_space == "warped" else 0.0
+    strength = params.warp_strength if params.scale_space in ("carved", "warped") else 0.0
 
     def raw(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return warped_density(
+        return carved_density(
             points, pos, dens, skeleton, params.sigma_A, strength, params.cutoff_sigmas
         )
 

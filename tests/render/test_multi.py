@@ -17,10 +17,10 @@ from tests.render.molecules import Mol, villin
 PARAMS = [
     RenderParams(),
     RenderParams(mode="volume", sigma_A=2.5),
-    RenderParams(scale_space="warped", sigma_A=3.0),
+    RenderParams(scale_space="carved", sigma_A=3.0),
     RenderParams(level_scale="absolute", iso_level=0.4, radius_mode="vdw"),
 ]
-IDS = ["iso", "volume", "warped", "absolute-vdw"]
+IDS = ["iso", "volume", "carved", "absolute-vdw"]
 
 
 def test_bands_cover_the_image_and_balance_by_cost() -> None:

@@ -71,17 +71,19 @@ def test_bad_size_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
     assert "800x600" in capsys.readouterr().err
 
 
-def test_the_warped_density_renders_and_differs(
+def test_the_geodesic_and_carved_densities_render_and_differ(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     images = {}
-    for space in ("classical", "warped"):
+    for space in ("classical", "geodesic", "carved"):
         out = tmp_path / f"{space}.png"
         argv = [PDB_HOLE, "-o", str(out), "--size", "48x36", "--device", "cpu"]
         assert main([*argv, "--scale-space", space, "--weights", "electrons"]) == 0
         images[space] = np.asarray(Image.open(out), dtype=np.float64)
-    assert np.abs(images["classical"] - images["warped"]).mean() > 2.0
-    assert len(np.unique(images["warped"].reshape(-1, 3), axis=0)) > 10
+    for space in ("geodesic", "carved"):
+        assert np.abs(images["classical"] - images[space]).mean() > 2.0
+        assert len(np.unique(images[space].reshape(-1, 3), axis=0)) > 10
+    assert np.abs(images["geodesic"] - images["carved"]).mean() > 2.0
 
 
 def test_a_solvated_file_opens_on_its_protein_and_layers_steer_it(

@@ -1,4 +1,8 @@
-"""The bond-graph warped density on the device (definition and reference: skeleton.py).
+"""The carved density on the device (definition and reference: skeleton.py): a Gaussian
+density of 0.6 sigma at full strength, carved away from the bond skeleton. It is not the
+thesis's warped density (that is the geodesic density, geodesic_field.py): no distance here is
+measured through the graph, and with uniform weights its along-graph smoothing returns the
+weights unchanged, so it is a narrower classical density times a skeleton factor.
 
     S(P) = G(P) exp(-atten phi(P)^2)
 
@@ -58,8 +62,8 @@ class SkeletonField:
 
 
 @wp.struct
-class WarpedField:
-    """What the warped density reads; `info`, `bound` and `brick_bound` are the atom grid's
+class CarvedField:
+    """What the carved density reads; `info`, `bound` and `brick_bound` are the atom grid's
     (the ray caster walks them), `gauss` the atoms, `skel` the segments."""
 
     info: wp.array[GridInfo]
@@ -229,7 +233,7 @@ def points4(o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> Points4:
 
 @wp.func
 @no_type_check
-def warped_value(f: WarpedField, p: wp.vec3) -> float:
+def carved_value(f: CarvedField, p: wp.vec3) -> float:
     v = gaussian_value(f.gauss, p)
     if v > 0.0 and f.skel.atten > 0.0:
         v = v * attenuation(f.skel, _walk_h(f.skel, p, p, p, wp.float32(0.0)))
@@ -238,7 +242,7 @@ def warped_value(f: WarpedField, p: wp.vec3) -> float:
 
 @wp.func
 @no_type_check
-def warped_value_grad(f: WarpedField, p: wp.vec3) -> wp.vec4:
+def carved_value_grad(f: CarvedField, p: wp.vec3) -> wp.vec4:
     vg = gaussian_value_grad(f.gauss, p)
     out = vg
     if vg[3] > 0.0 and f.skel.atten > 0.0:
@@ -249,7 +253,7 @@ def warped_value_grad(f: WarpedField, p: wp.vec3) -> wp.vec4:
 
 @wp.func
 @no_type_check
-def warped_value4(f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp.vec4:
+def carved_value4(f: CarvedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp.vec4:
     v = gaussian_value4(f.gauss, o, d, ts)
     if f.skel.atten > 0.0 and (v[0] > 0.0 or v[1] > 0.0 or v[2] > 0.0 or v[3] > 0.0):
         pa = o + d * ts[0]
@@ -263,10 +267,10 @@ def warped_value4(f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp.vec
 
 @wp.func
 @no_type_check
-def warped_value4_level(
-    f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float
+def carved_value4_level(
+    f: CarvedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float
 ) -> wp.vec4:
-    """`warped_value4`, but -1 where the Gaussian part alone is below `level` (the factor
+    """`carved_value4`, but -1 where the Gaussian part alone is below `level` (the factor
     never exceeds 1): the skeleton walk runs only where the density may reach the level."""
     v = gaussian_value4(f.gauss, o, d, ts)
     if f.skel.atten > 0.0 and (v[0] >= level or v[1] >= level or v[2] >= level or v[3] >= level):
@@ -286,8 +290,8 @@ def warped_value4_level(
 
 @wp.func
 @no_type_check
-def warped_value_grad4_level(f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float):
-    """`warped_value_grad4`, with value -1 where the Gaussian part is below `level`."""
+def carved_value_grad4_level(f: CarvedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float):
+    """`carved_value_grad4`, with value -1 where the Gaussian part is below `level`."""
     g0, g1, g2, g3 = gaussian_value_grad4(f.gauss, o, d, ts)
     if f.skel.atten > 0.0:
         if g0[3] >= level or g1[3] >= level or g2[3] >= level or g3[3] >= level:
@@ -323,7 +327,7 @@ def attenuated(vg: wp.vec4, ag: wp.vec4) -> wp.vec4:
 
 @wp.func
 @no_type_check
-def warped_value_grad4(f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4):
+def carved_value_grad4(f: CarvedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4):
     g0, g1, g2, g3 = gaussian_value_grad4(f.gauss, o, d, ts)
     if f.skel.atten > 0.0 and (g0[3] > 0.0 or g1[3] > 0.0 or g2[3] > 0.0 or g3[3] > 0.0):
         pa = o + d * ts[0]
@@ -339,7 +343,7 @@ def warped_value_grad4(f: WarpedField, o: wp.vec3, d: wp.vec3, ts: wp.vec4):
 
 @wp.func
 @no_type_check
-def warped_sample(f: WarpedField, p: wp.vec3) -> Sample:
+def carved_sample(f: CarvedField, p: wp.vec3) -> Sample:
     s = gaussian_sample(f.gauss, p)
     if s.value > 0.0 and f.skel.atten > 0.0:
         ag = attenuation_grad(f.skel, _walk_hgrad(f.skel, p, p, p, wp.vec4(0.0, 0.0, 0.0, 0.0)))
@@ -379,10 +383,10 @@ _walk_h_box = cell_rows("skeleton_box", row_skeleton_box, BoxNear, float, field=
 
 @wp.func
 @no_type_check
-def warped_box_bound(f: WarpedField, lo: wp.vec3, hi: wp.vec3, stop_above: float) -> float:
+def carved_box_bound(f: CarvedField, lo: wp.vec3, hi: wp.vec3, stop_above: float) -> float:
     """The Gaussian bound times the largest factor anywhere in the box (the smallest phi^2 a
     point of the box can have): cells away from every bond, such as a ring's middle or the gap
-    between two strands, are skipped where the warp empties them."""
+    between two strands, are skipped where the factor empties them."""
     amax = float(1.0)
     if f.skel.atten > 0.0:
         q = BoxNear()
@@ -396,17 +400,17 @@ def warped_box_bound(f: WarpedField, lo: wp.vec3, hi: wp.vec3, stop_above: float
     return bound
 
 
-WARPED = DensityModel(
-    name="warped",
-    field=WarpedField,
-    value=warped_value,
-    value_grad=warped_value_grad,
-    sample=warped_sample,
-    box_bound=warped_box_bound,
-    value4=warped_value4,
-    value_grad4=warped_value_grad4,
-    value4_level=warped_value4_level,
-    value_grad4_level=warped_value_grad4_level,
+CARVED = DensityModel(
+    name="carved",
+    field=CarvedField,
+    value=carved_value,
+    value_grad=carved_value_grad,
+    sample=carved_sample,
+    box_bound=carved_box_bound,
+    value4=carved_value4,
+    value_grad4=carved_value_grad4,
+    value4_level=carved_value4_level,
+    value_grad4_level=carved_value_grad4_level,
 )
 
 

@@ -1,7 +1,8 @@
-"""The bond-graph warped density: the kernels against the float64 reference, and the
-properties its design promises (docs/rendering.md): smooth, rings carved without artifacts,
-the 1-D warped scale space on a chain, the classical density at strength 0, structure that
-only simplifies as sigma grows, invariance and symmetry."""
+"""The carved density (a narrower Gaussian density carved away from the bond skeleton; not the
+thesis's warped density, which is the geodesic one): the kernels against the float64
+reference, and what its design promises (docs/rendering.md): smooth, the 1-D along-graph scale
+space on a chain, the classical density at strength 0, structure that only simplifies as sigma
+grows, invariance and symmetry; and the name it had before, "warped", still drawing it."""
 
 from __future__ import annotations
 
@@ -21,14 +22,14 @@ from server.render.skeleton import (
     GRAPH_CUTOFF_SIGMAS,
     Skeleton,
     WarpScales,
+    carved_density,
     smoothed_densities,
-    warped_density,
 )
 from tests.render import oracle
-from tests.render.helpers import render, warped_reference
+from tests.render.helpers import carved_reference, render
 from tests.render.molecules import Mol, benzene, chain, hairpin, three_atoms, villin, villin_phe
 
-WARPED = RenderParams(scale_space="warped", sigma_A=1.5)
+CARVED = RenderParams(scale_space="carved", sigma_A=1.5)
 
 
 def _render(device: str, mol: Mol, params: RenderParams, w: int = 48, h: int = 36) -> Renderer:
@@ -48,10 +49,10 @@ def _points_around(mol: Mol, m: int, seed: int, spread: float) -> np.ndarray:
 @pytest.mark.parametrize(
     ("name", "params"),
     [
-        ("villin", WARPED),
-        ("villin", RenderParams(scale_space="warped", sigma_A=0.9, density_weights="electrons")),
-        ("hairpin", RenderParams(scale_space="warped", sigma_A=2.5, warp_strength=0.6)),
-        ("benzene", RenderParams(scale_space="warped", sigma_A=1.0)),
+        ("villin", CARVED),
+        ("villin", RenderParams(scale_space="carved", sigma_A=0.9, density_weights="electrons")),
+        ("hairpin", RenderParams(scale_space="carved", sigma_A=2.5, warp_strength=0.6)),
+        ("benzene", RenderParams(scale_space="carved", sigma_A=1.0)),
     ],
 )
 def test_value_and_gradient_match_the_reference(
@@ -61,7 +62,7 @@ def test_value_and_gradient_match_the_reference(
     r = _render(device, mol, params, 8, 6)
     pts = _points_around(mol, 500, seed=3, spread=1.8)
     vals, vgs, cols, _ids = r.evaluate(pts)
-    ref, ref_grad = warped_reference(mol.topology, mol.positions, params)(pts.astype(np.float64))
+    ref, ref_grad = carved_reference(mol.topology, mol.positions, params)(pts.astype(np.float64))
     scale = float(ref.max())
     np.testing.assert_allclose(vals, ref, rtol=1e-5, atol=1e-6 * scale)
     np.testing.assert_allclose(vgs[:, 3], ref, rtol=1e-5, atol=1e-6 * scale)
@@ -71,13 +72,13 @@ def test_value_and_gradient_match_the_reference(
     assert (ref > 1e-3 * scale).sum() > 100
     # relative levels: the density is divided by its mean at the atoms
     absolute = params.model_copy(update={"level_scale": "absolute"})
-    at_atoms = warped_reference(mol.topology, mol.positions, absolute)(mol.positions)[0]
+    at_atoms = carved_reference(mol.topology, mol.positions, absolute)(mol.positions)[0]
     assert r.density_scale() == pytest.approx(float(at_atoms.mean()), rel=1e-5)
 
 
 def test_smoothing_along_the_graph_matches_the_reference(device: str) -> None:
     mol = villin()
-    params = RenderParams(scale_space="warped", sigma_A=3.0, density_weights="electrons")
+    params = RenderParams(scale_space="carved", sigma_A=3.0, density_weights="electrons")
     r = _render(device, mol, params, 4, 4)
     sc = WarpScales.of(params.sigma_A, params.warp_strength)
     dens = colors.atom_weights(mol.topology, "electrons").astype(np.float64)
@@ -89,14 +90,14 @@ def test_smoothing_along_the_graph_matches_the_reference(device: str) -> None:
 
 def test_iso_depth_matches_a_root_finder_on_the_reference(device: str) -> None:
     mol = villin_phe()
-    params = RenderParams(scale_space="warped", sigma_A=1.2, step_sigmas=0.3)
+    params = RenderParams(scale_space="carved", sigma_A=1.2, step_sigmas=0.3)
     w, h = 40, 30
     cam = orbit(fit_camera(mol.positions, w, h, margin=-0.5), 25.0, 35.0)
     r = render(device, mol.topology, mol.positions, params, cam, w, h)
     depth = r.read_depth()
     frame = camera_frame(cam, w, h)
     origins, dirs = image_rays(frame)
-    ref_fn = warped_reference(mol.topology, mol.positions, params)
+    ref_fn = carved_reference(mol.topology, mol.positions, params)
     dt = params.step_sigmas * WarpScales.of(params.sigma_A, params.warp_strength).space
     t_far = float(np.linalg.norm(origins[0, 0] - mol.positions.mean(0))) + 20.0
     ref = oracle.first_crossings(
@@ -116,11 +117,11 @@ def test_iso_depth_matches_a_root_finder_on_the_reference(device: str) -> None:
 def test_strength_zero_is_the_classical_renderer(device: str, mode: str) -> None:
     mol = villin()
     classical = RenderParams(mode=mode, sigma_A=1.4)  # type: ignore[arg-type]
-    zero = classical.model_copy(update={"scale_space": "warped", "warp_strength": 0.0})
+    zero = classical.model_copy(update={"scale_space": "carved", "warp_strength": 0.0})
     a = _render(device, mol, classical).read_rgba()
     b = _render(device, mol, zero).read_rgba()
     np.testing.assert_array_equal(a, b)
-    weak = classical.model_copy(update={"scale_space": "warped", "warp_strength": 1e-4})
+    weak = classical.model_copy(update={"scale_space": "carved", "warp_strength": 1e-4})
     c = _render(device, mol, weak).read_rgba()
     assert np.abs(c.astype(int) - a.astype(int)).max() <= 2
 
@@ -131,7 +132,7 @@ def test_rigid_motion_leaves_the_density_unchanged(device: str) -> None:
     q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
     shift = np.array([40.0, -15.0, 7.0])
     moved = Mol(mol.topology, (mol.positions @ q.T + shift).astype(np.float32))
-    params = RenderParams(scale_space="warped", sigma_A=1.1)
+    params = RenderParams(scale_space="carved", sigma_A=1.1)
     pts = _points_around(mol, 300, seed=2, spread=1.5).astype(np.float64)
     a = _render(device, mol, params, 4, 4).evaluate(pts)[0]
     b = _render(device, moved, params, 4, 4).evaluate(pts @ q.T + shift)[0]
@@ -145,7 +146,7 @@ def _density(mol: Mol, sigma: float, strength: float) -> object:
     skeleton = Skeleton.of(mol.topology)
     d = np.ones(mol.topology.n_atoms)
     pos = mol.positions.astype(np.float64)
-    return lambda p: warped_density(p, pos, d, skeleton, sigma, strength)[0]
+    return lambda p: carved_density(p, pos, d, skeleton, sigma, strength)[0]
 
 
 def crease_ratio(density: object, mol: Mol, h: float, seed: int) -> float:
@@ -173,15 +174,15 @@ def crease_ratio(density: object, mol: Mol, h: float, seed: int) -> float:
 @pytest.mark.parametrize("maker", [three_atoms, benzene, villin_phe])
 def test_no_creases(maker: object) -> None:
     mol = maker()  # type: ignore[operator]
-    warped = crease_ratio(_density(mol, 1.0, 1.0), mol, 0.02, seed=1)
+    carved = crease_ratio(_density(mol, 1.0, 1.0), mol, 0.02, seed=1)
     classical = crease_ratio(_density(mol, 1.0, 0.0), mol, 0.02, seed=1)
     assert classical == pytest.approx(4.0, abs=0.1)
-    assert warped >= 3.5, warped
+    assert carved >= 3.5, carved
 
 
 def test_no_creases_on_the_device(device: str) -> None:
     mol = villin_phe()
-    r = _render(device, mol, RenderParams(scale_space="warped", sigma_A=1.0), 4, 4)
+    r = _render(device, mol, RenderParams(scale_space="carved", sigma_A=1.0), 4, 4)
     ratio = crease_ratio(lambda p: r.evaluate(p)[0].astype(np.float64), mol, 0.04, seed=4)
     assert ratio >= 3.5, ratio
 
@@ -206,16 +207,16 @@ def test_rings_are_carved_with_their_symmetry(hydrogens: bool) -> None:
     center, mid = np.zeros(3), (pos[0] + pos[1]) / 2
     sigma = _fill_sigma(mol, center, mid)
     classical = _density(mol, sigma, 0.0)
-    warped = _density(mol, sigma, 1.0)
+    carved = _density(mol, sigma, 1.0)
     assert classical(center[None])[0] >= classical(mid[None])[0]  # type: ignore[operator]
-    ratio = warped(center[None])[0] / warped(mid[None])[0]  # type: ignore[operator]
+    ratio = carved(center[None])[0] / carved(mid[None])[0]  # type: ignore[operator]
     assert ratio <= 0.5, ratio
     # six-fold symmetry of the iso-contours: S on circles is 60-degree periodic and mirror
     # symmetric (to the float32 rounding of the atom positions)
     theta = np.linspace(0, 2 * np.pi, 120, endpoint=False)
     for radius in (0.7, 1.2, 2.0, 3.0):
         ring_pts = np.stack([radius * np.cos(theta), radius * np.sin(theta), 0 * theta], axis=1)
-        s = warped(ring_pts)  # type: ignore[operator]
+        s = carved(ring_pts)  # type: ignore[operator]
         np.testing.assert_allclose(s, np.roll(s, 20), rtol=2e-6, atol=1e-12)
         np.testing.assert_allclose(s, s[::-1][np.r_[119, 0:119]], rtol=2e-6, atol=1e-12)
         assert np.ptp(s) > 1e-3 * s.max() or radius < 1.0  # the contours are not circles
@@ -223,7 +224,7 @@ def test_rings_are_carved_with_their_symmetry(hydrogens: bool) -> None:
 
 @pytest.mark.parametrize("strength", [0.0, 0.5, 1.0])
 @pytest.mark.parametrize("sigma", [0.8, 1.5, 3.0])
-def test_a_straight_chain_is_the_1d_warped_scale_space(strength: float, sigma: float) -> None:
+def test_a_straight_chain_is_the_1d_along_graph_scale_space(strength: float, sigma: float) -> None:
     """On the axis of a straight chain (between its end atoms) S equals the classical scale
     space, at the spatial scale s3, of the atom densities after the warped convolution (eq. 3.3)
     at the graph scale sg with the arclength warp of the densities: `timewarp` computes both."""
@@ -233,7 +234,7 @@ def test_a_straight_chain_is_the_1d_warped_scale_space(strength: float, sigma: f
     d = colors.atom_weights(mol.topology, "electrons").astype(np.float64)
     x = np.linspace(t[0], t[-1], 401)
     axis = np.stack([x, 0 * x, 0 * x], axis=1)
-    s, _ = warped_density(axis, mol.positions, d, Skeleton.of(mol.topology), sigma, strength)
+    s, _ = carved_density(axis, mol.positions, d, Skeleton.of(mol.topology), sigma, strength)
     sc = WarpScales.of(sigma, strength)
     if sc.graph > 0:
         warp = timewarp.arclength_warp(t, d, gain=GAIN)
@@ -255,12 +256,12 @@ def test_a_straight_chain_is_the_1d_warped_scale_space(strength: float, sigma: f
 def test_a_straight_chain_on_the_device(device: str) -> None:
     mol = chain(["H", "C", "C", "N", "H", "O", "C", "C", "S", "C"])
     params = RenderParams(
-        scale_space="warped", sigma_A=1.5, density_weights="electrons", level_scale="absolute"
+        scale_space="carved", sigma_A=1.5, density_weights="electrons", level_scale="absolute"
     )
     r = _render(device, mol, params, 4, 4)
     x = np.linspace(0.0, 9 * 1.4, 200)
     axis = np.stack([x, 0 * x, 0 * x], axis=1)
-    ref = warped_reference(mol.topology, mol.positions, params)(axis)[0]
+    ref = carved_reference(mol.topology, mol.positions, params)(axis)[0]
     np.testing.assert_allclose(r.evaluate(axis)[0], ref, rtol=1e-5)
 
 
@@ -283,7 +284,7 @@ def _components(mol: Mol, sigma: float, strength: float, level: float) -> int:
 @pytest.mark.parametrize("maker", [three_atoms, benzene, hairpin])
 def test_structure_only_simplifies_as_sigma_grows(maker: object) -> None:
     """Connected components inside the iso-surface (at the default relative level) never
-    increase with sigma, for the classical and the warped density; the warped keeps the two
+    increase with sigma, for the classical and the carved density; the carved keeps the two
     strands of the hairpin apart longer."""
     mol = maker()  # type: ignore[operator]
     sigmas = (0.4, 0.7, 1.0, 1.4, 2.0, 2.8)
@@ -338,11 +339,20 @@ def test_the_default_cutoff_keeps_the_surface_in_place() -> None:
 
 @pytest.mark.parametrize("mode", ["iso", "volume"])
 def test_empty_space_skipping_changes_nothing(device: str, mode: str) -> None:
-    """The warped cell bounds (the Gaussian bound times the largest warp factor in the cell)
+    """The carved cell bounds (the Gaussian bound times the largest carving factor in the cell)
     only skip what cannot matter: the image equals the one marched without skipping."""
     mol = villin()
-    params = RenderParams(mode=mode, scale_space="warped", sigma_A=1.3)  # type: ignore[arg-type]
+    params = RenderParams(mode=mode, scale_space="carved", sigma_A=1.3)  # type: ignore[arg-type]
     cam = orbit(fit_camera(mol.positions, 40, 30, margin=0.5), 20.0, 10.0)
     a = render(device, mol.topology, mol.positions, params, cam, 40, 30)
     b = render(device, mol.topology, mol.positions, params, cam, 40, 30, empty_space_skipping=False)
     np.testing.assert_array_equal(a.read_rgba(), b.read_rgba())
+
+
+def test_the_name_warped_still_draws_the_carved_density(device: str) -> None:
+    """Protocol 1.1-1.7 called the carved density "warped": saved views and recordings that say
+    so draw the same image."""
+    mol = villin()
+    old = _render(device, mol, CARVED.model_copy(update={"scale_space": "warped"}))
+    new = _render(device, mol, CARVED)
+    assert np.array_equal(old.read_rgba(), new.read_rgba())

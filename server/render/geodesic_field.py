@@ -1,0 +1,857 @@
+"""The geodesic density on the device (definition and float64 reference: geodesic.py).
+
+A sample walks the atoms within the cutoff of P (the classical density's cell grid: a route
+shorter than the cutoff never leaves it), and for each atom a takes the Boltzmann mean of its
+routes (`Routes`: the bonds with an end within graph distance `reach` of a, with the graph
+distance of each end), then adds d_a K(((1 - lambda) r^2 + lambda m^2) / 2 s^2): the
+classical term at strength 0, and never above it. So the classical density bounds this one:
+cells and parts of cells keep their classical bounds, and the marching kernels compute the
+routes only at samples where the classical density alone reaches the level.
+
+The route tables are built on the device when the topology, the atom weights or the tables'
+reach change (a Dijkstra per atom, `build_kernel`, keeping at most `NODES` graph-nearest atoms),
+and their distances follow every frame: each atom keeps its shortest-path tree, and a frame sums
+the current bond weights along it (`distances_kernel`), so a route is always the length of a
+path of the present molecule.
+"""
+
+from typing import Any, no_type_check
+
+import numpy as np
+import warp as wp
+
+from server.render import device as _device  # noqa: F401  (initialises warp)
+from server.render.cells import GridInfo
+from server.render.density import (
+    DensityModel,
+    GaussianField,
+    PartBounds,
+    Sample,
+    cell_rows,
+    dist2,
+    gaussian_box_bound,
+    gaussian_part_bounds,
+    gaussian_value4,
+    kernel,
+    kernel_slope,
+    unpack_rgb,
+)
+from server.render.geodesic import BondGraph
+
+wp.set_module_options({"enable_backward": False})
+
+NODES = 256
+"""Most atoms of one atom's graph ball within the tables' reach (its Dijkstra table); beyond it
+the graph-farthest are dropped and the build reports how many atoms lost some."""
+_NODES = wp.constant(NODES)  # type: ignore[no-untyped-call]
+_Ints = wp.types.vector(length=NODES, dtype=wp.int32)
+_Floats = wp.types.vector(length=NODES, dtype=float)
+
+
+@wp.struct
+class Routes:
+    """Every atom's routes (CSR by original atom index) and the bonds they go through.
+
+    `g[k]`: graph distance from the (i, j) ends of route k's bond to its atom (inf beyond the
+    tables' reach), this frame; `seg_a[b]` = (a_i, l), `seg_v[b]` = (a_j - a_i, 1 / l) of bond
+    b this frame (1 / l = 0 for an atom without bonds, a bond of length 0)."""
+
+    start: wp.array[wp.int32]
+    bond: wp.array[wp.int32]
+    g: wp.array[wp.vec2]
+    seg_a: wp.array[wp.vec4]
+    seg_v: wp.array[wp.vec4]
+    tau: float
+    inv_tau: float
+    tau2: float
+    strength: float
+
+
+@wp.struct
+class GeodesicField:
+    """What the geodesic density reads; `info`, `cell_start`, `bound`, `parts` and
+    `brick_bound` are the atom grid's (the ray caster walks them with the classical bounds)."""
+
+    info: wp.array[GridInfo]
+    cell_start: wp.array[wp.int32]
+    bound: wp.array[float]
+    parts: wp.array[wp.int32]
+    brick_bound: wp.array[float]
+    gauss: GaussianField
+    routes: Routes
+
+
+@wp.func
+@no_type_check
+def ramp(x: float, w: float) -> float:
+    return 0.5 * (x + wp.sqrt(x * x + w * w))
+
+
+@wp.func
+@no_type_check
+def ramp_slope(x: float, w: float) -> float:
+    return 0.5 * (1.0 + x / wp.sqrt(x * x + w * w))
+
+
+@wp.func
+@no_type_check
+def route_pair(r: Routes, k: int, p: wp.vec3) -> wp.vec2:
+    """The two routes through route k's bond (via its end i, via its end j)."""
+    b = r.bond[k]
+    sa = r.seg_a[b]
+    sv = r.seg_v[b]
+    ai = wp.vec3(sa[0], sa[1], sa[2])
+    v = wp.vec3(sv[0], sv[1], sv[2])
+    length = sa[3]
+    inv_l = sv[3]
+    u = float(0.0)
+    if inv_l > 0.0:
+        t = wp.dot(p - ai, v) * inv_l * inv_l
+        w = r.tau * inv_l
+        u = ramp(t, w) - ramp(t - 1.0, w)
+    q = p - (ai + v * u)
+    across = wp.sqrt(wp.dot(q, q) + r.tau2)
+    g = r.g[k]
+    return wp.vec2(across + u * length + g[0], across + (1.0 - u) * length + g[1])
+
+
+@wp.func
+@no_type_check
+def boltzmann(acc: wp.vec3, c: float, inv_tau: float) -> wp.vec3:
+    """(least route, sum of weights, sum of weighted routes) with route c added; the weights
+    are exp(-(c - least) / tau), rescaled when a shorter route comes."""
+    out = acc
+    if c < acc[0]:
+        s = wp.exp((c - acc[0]) * inv_tau)
+        out = wp.vec3(c, acc[1] * s + 1.0, acc[2] * s + c)
+    elif c < wp.inf:
+        e = wp.exp((acc[0] - c) * inv_tau)
+        out = wp.vec3(acc[0], acc[1] + e, acc[2] + c * e)
+    return out
+
+
+@wp.func
+@no_type_check
+def atom_distance(r: Routes, a: int, p: wp.vec3) -> float:
+    """m: the Boltzmann mean of atom a's routes from p (every atom has one at least)."""
+    acc = wp.vec3(wp.inf, 0.0, 0.0)
+    for k in range(r.start[a], r.start[a + 1]):
+        c = route_pair(r, k, p)
+        acc = boltzmann(acc, c[0], r.inv_tau)
+        acc = boltzmann(acc, c[1], r.inv_tau)
+    return acc[2] / acc[1]
+
+
+@wp.struct
+class Points4:
+    """Four points and which of them to evaluate (`live` > 0)."""
+
+    p0: wp.vec3
+    p1: wp.vec3
+    p2: wp.vec3
+    p3: wp.vec3
+    live: wp.vec4
+
+
+@wp.func
+@no_type_check
+def atom_distance4(r: Routes, a: int, q: Points4, live: wp.vec4) -> wp.vec4:
+    """`atom_distance` at the four points of q where `live` is positive (0 elsewhere): each
+    route's bond is read once for all four."""
+    a0 = wp.vec3(wp.inf, 0.0, 0.0)
+    a1 = wp.vec3(wp.inf, 0.0, 0.0)
+    a2 = wp.vec3(wp.inf, 0.0, 0.0)
+    a3 = wp.vec3(wp.inf, 0.0, 0.0)
+    it = r.inv_tau
+    for k in range(r.start[a], r.start[a + 1]):
+        if live[0] > 0.0:
+            c = route_pair(r, k, q.p0)
+            a0 = boltzmann(boltzmann(a0, c[0], it), c[1], it)
+        if live[1] > 0.0:
+            c = route_pair(r, k, q.p1)
+            a1 = boltzmann(boltzmann(a1, c[0], it), c[1], it)
+        if live[2] > 0.0:
+            c = route_pair(r, k, q.p2)
+            a2 = boltzmann(boltzmann(a2, c[0], it), c[1], it)
+        if live[3] > 0.0:
+            c = route_pair(r, k, q.p3)
+            a3 = boltzmann(boltzmann(a3, c[0], it), c[1], it)
+    out = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    if live[0] > 0.0:
+        out[0] = a0[2] / a0[1]
+    if live[1] > 0.0:
+        out[1] = a1[2] / a1[1]
+    if live[2] > 0.0:
+        out[2] = a2[2] / a2[1]
+    if live[3] > 0.0:
+        out[3] = a3[2] / a3[1]
+    return out
+
+
+@wp.struct
+class Mean:
+    """Running Boltzmann mean with its gradient: least route, sums of weights w, w c, w dc,
+    w c dc."""
+
+    least: float
+    w: float
+    wc: float
+    wd: wp.vec3
+    wcd: wp.vec3
+
+
+@wp.func
+@no_type_check
+def mean_add(m: Mean, c: float, dc: wp.vec3, inv_tau: float) -> Mean:
+    out = m
+    if c < m.least:
+        s = wp.exp((c - m.least) * inv_tau)
+        out.least = c
+        out.w = m.w * s + 1.0
+        out.wc = m.wc * s + c
+        out.wd = m.wd * s + dc
+        out.wcd = m.wcd * s + dc * c
+    elif c < wp.inf:
+        e = wp.exp((m.least - c) * inv_tau)
+        out.w = m.w + e
+        out.wc = m.wc + c * e
+        out.wd = m.wd + dc * e
+        out.wcd = m.wcd + dc * (c * e)
+    return out
+
+
+@wp.func
+@no_type_check
+def atom_distance_grad(r: Routes, a: int, p: wp.vec3) -> wp.vec4:
+    """(dm/dP, m) for atom a at p."""
+    m = Mean()
+    m.least = wp.inf
+    m.w = 0.0
+    m.wc = 0.0
+    m.wd = wp.vec3(0.0, 0.0, 0.0)
+    m.wcd = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(r.start[a], r.start[a + 1]):
+        b = r.bond[k]
+        sa = r.seg_a[b]
+        sv = r.seg_v[b]
+        ai = wp.vec3(sa[0], sa[1], sa[2])
+        v = wp.vec3(sv[0], sv[1], sv[2])
+        length = sa[3]
+        inv_l = sv[3]
+        u = float(0.0)
+        du = wp.vec3(0.0, 0.0, 0.0)
+        if inv_l > 0.0:
+            t = wp.dot(p - ai, v) * inv_l * inv_l
+            w = r.tau * inv_l
+            u = ramp(t, w) - ramp(t - 1.0, w)
+            du = v * ((ramp_slope(t, w) - ramp_slope(t - 1.0, w)) * inv_l * inv_l)
+        q = p - (ai + v * u)
+        across = wp.sqrt(wp.dot(q, q) + r.tau2)
+        dacross = (q - du * wp.dot(v, q)) / across
+        g = r.g[k]
+        m = mean_add(m, across + u * length + g[0], dacross + du * length, r.inv_tau)
+        m = mean_add(m, across + (1.0 - u) * length + g[1], dacross - du * length, r.inv_tau)
+    mean = m.wc / m.w
+    grad = m.wd / m.w - (m.wcd / m.w - m.wd * (mean / m.w)) * r.inv_tau
+    return wp.vec4(grad[0], grad[1], grad[2], mean)
+
+
+@wp.func
+@no_type_check
+def inv2s2_at(g: GaussianField, j: int) -> float:
+    c = g.inv2s2_uniform
+    if g.per_atom != 0:
+        c = g.inv2s2[j]
+    return c
+
+
+@wp.func
+@no_type_check
+def row_value(f: GeodesicField, p: wp.vec3, j0: int, j1: int, total: float) -> float:
+    s = total
+    g = f.gauss
+    lam = f.routes.strength
+    for j in range(j0, j1):
+        a4 = g.atoms[j]
+        c = inv2s2_at(g, j)
+        r2 = dist2(a4, p)
+        if r2 * c < g.half_k2:
+            m = atom_distance(f.routes, g.order[j], p)
+            e = ((1.0 - lam) * r2 + lam * m * m) * c
+            if e < g.half_k2:
+                s += a4[3] * kernel(e, g.inv_half_k2)
+    return s
+
+
+@wp.func
+@no_type_check
+def term_grad(
+    g: GaussianField, j: int, a4: wp.vec4, p: wp.vec3, r: Routes, c: float, r2: float
+) -> wp.vec4:
+    """(gradient, value) of sorted atom j's term at p (zero beyond the cutoff)."""
+    out = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    lam = r.strength
+    md = atom_distance_grad(r, g.order[j], p)
+    m = md[3]
+    e = ((1.0 - lam) * r2 + lam * m * m) * c
+    if e < g.half_k2:
+        k = kernel_slope(e, g.inv_half_k2) * a4[3]
+        pa = wp.vec3(a4[0], a4[1], a4[2])
+        de = ((p - pa) * (2.0 * (1.0 - lam)) + wp.vec3(md[0], md[1], md[2]) * (2.0 * lam * m)) * c
+        grad = de * (-k[1])
+        out = wp.vec4(grad[0], grad[1], grad[2], k[0])
+    return out
+
+
+@wp.func
+@no_type_check
+def row_value_grad(f: GeodesicField, p: wp.vec3, j0: int, j1: int, acc: wp.vec4) -> wp.vec4:
+    out = acc
+    g = f.gauss
+    for j in range(j0, j1):
+        a4 = g.atoms[j]
+        c = inv2s2_at(g, j)
+        r2 = dist2(a4, p)
+        if r2 * c < g.half_k2:
+            out += term_grad(g, j, a4, p, f.routes, c, r2)
+    return out
+
+
+@wp.func
+@no_type_check
+def row_sample(f: GeodesicField, p: wp.vec3, j0: int, j1: int, acc: Sample) -> Sample:
+    """Value, gradient, contribution-weighted colour and largest contributor (as the classical
+    `row_sample`, with the geodesic terms)."""
+    s = acc
+    g = f.gauss
+    for j in range(j0, j1):
+        a4 = g.atoms[j]
+        c = inv2s2_at(g, j)
+        r2 = dist2(a4, p)
+        if r2 * c < g.half_k2:
+            t = term_grad(g, j, a4, p, f.routes, c, r2)
+            term = t[3]
+            if term > 0.0:
+                s.value = s.value + term
+                s.grad = s.grad + wp.vec3(t[0], t[1], t[2])
+                oj = int(g.order[j])
+                s.color = s.color + unpack_rgb(g.colors[oj]) * term
+                if term > s.weight or (term == s.weight and oj < s.atom):
+                    s.weight = term
+                    s.atom = oj
+    return s
+
+
+@wp.func
+@no_type_check
+def row_values4(f: GeodesicField, q: Points4, j0: int, j1: int, total: wp.vec4) -> wp.vec4:
+    """S at the live points of q from sorted atoms [j0, j1): each atom's routes once."""
+    v = total
+    g = f.gauss
+    lam = f.routes.strength
+    for j in range(j0, j1):
+        a4 = g.atoms[j]
+        c = inv2s2_at(g, j)
+        r2 = wp.vec4(dist2(a4, q.p0), dist2(a4, q.p1), dist2(a4, q.p2), dist2(a4, q.p3))
+        near = wp.vec4(0.0, 0.0, 0.0, 0.0)
+        for t in range(4):
+            if q.live[t] > 0.0 and r2[t] * c < g.half_k2:
+                near[t] = 1.0
+        if near[0] + near[1] + near[2] + near[3] > 0.0:
+            m = atom_distance4(f.routes, g.order[j], q, near)
+            for t in range(4):
+                if near[t] > 0.0:
+                    e = ((1.0 - lam) * r2[t] + lam * m[t] * m[t]) * c
+                    if e < g.half_k2:
+                        v[t] = v[t] + a4[3] * kernel(e, g.inv_half_k2)
+    return v
+
+
+_walk_value = cell_rows("geodesic_value", row_value, wp.vec3, float, field=GeodesicField)
+_walk_values4 = cell_rows("geodesic_values4", row_values4, Points4, wp.vec4, field=GeodesicField)
+_walk_value_grad = cell_rows(
+    "geodesic_value_grad", row_value_grad, wp.vec3, wp.vec4, field=GeodesicField
+)
+_walk_sample = cell_rows("geodesic_sample", row_sample, wp.vec3, Sample, field=GeodesicField)
+
+
+@wp.func
+@no_type_check
+def geodesic_value(f: GeodesicField, p: wp.vec3) -> float:
+    return _walk_value(f, p, p, p, wp.float32(0.0))
+
+
+@wp.func
+@no_type_check
+def geodesic_value_grad(f: GeodesicField, p: wp.vec3) -> wp.vec4:
+    return _walk_value_grad(f, p, p, p, wp.vec4(0.0, 0.0, 0.0, 0.0))
+
+
+@wp.func
+@no_type_check
+def geodesic_sample(f: GeodesicField, p: wp.vec3) -> Sample:
+    start = Sample()
+    start.value = 0.0
+    start.grad = wp.vec3(0.0, 0.0, 0.0)
+    start.color = wp.vec3(0.0, 0.0, 0.0)
+    start.weight = -1.0
+    start.atom = -1
+    s = _walk_sample(f, p, p, p, start)
+    s.weight = s.value
+    return s
+
+
+@wp.func
+@no_type_check
+def values4(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, live: wp.vec4) -> wp.vec4:
+    """S at the points o + d ts[t] with live[t] > 0 (ts increasing), in one walk over the
+    atoms near their segment; 0 at the others."""
+    q = Points4()
+    q.p0 = o + d * ts[0]
+    q.p1 = o + d * ts[1]
+    q.p2 = o + d * ts[2]
+    q.p3 = o + d * ts[3]
+    q.live = live
+    lo = wp.min(q.p0, q.p3)
+    hi = wp.max(q.p0, q.p3)
+    return _walk_values4(f, lo, hi, q, wp.vec4(0.0, 0.0, 0.0, 0.0))
+
+
+@wp.func
+@no_type_check
+def geodesic_value4(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp.vec4:
+    return values4(f, o, d, ts, wp.vec4(1.0, 1.0, 1.0, 1.0))
+
+
+@wp.func
+@no_type_check
+def geodesic_value4_level(
+    f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float
+) -> wp.vec4:
+    """The geodesic density where the classical one reaches `level` (it never exceeds the
+    classical one), -1 elsewhere: the routes are walked only where a crossing may be."""
+    c = gaussian_value4(f.gauss, o, d, ts)
+    live = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    for t in range(4):
+        if c[t] >= level:
+            live[t] = 1.0
+    v = wp.vec4(-1.0, -1.0, -1.0, -1.0)
+    if live[0] + live[1] + live[2] + live[3] > 0.0:
+        g = values4(f, o, d, ts, live)
+        for t in range(4):
+            if live[t] > 0.0:
+                v[t] = g[t]
+    return v
+
+
+@wp.func
+@no_type_check
+def geodesic_value_grad4(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4):
+    g0 = geodesic_value_grad(f, o + d * ts[0])
+    g1 = geodesic_value_grad(f, o + d * ts[1])
+    g2 = geodesic_value_grad(f, o + d * ts[2])
+    g3 = geodesic_value_grad(f, o + d * ts[3])
+    return g0, g1, g2, g3
+
+
+@wp.func
+@no_type_check
+def below_or_grad(f: GeodesicField, p: wp.vec3, c: float, level: float) -> wp.vec4:
+    out = wp.vec4(0.0, 0.0, 0.0, -1.0)
+    if c >= level:
+        out = geodesic_value_grad(f, p)
+    return out
+
+
+@wp.func
+@no_type_check
+def geodesic_value_grad4_level(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float):
+    c = gaussian_value4(f.gauss, o, d, ts)
+    g0 = below_or_grad(f, o + d * ts[0], c[0], level)
+    g1 = below_or_grad(f, o + d * ts[1], c[1], level)
+    g2 = below_or_grad(f, o + d * ts[2], c[2], level)
+    g3 = below_or_grad(f, o + d * ts[3], c[3], level)
+    return g0, g1, g2, g3
+
+
+@wp.func
+@no_type_check
+def geodesic_box_bound(f: GeodesicField, lo: wp.vec3, hi: wp.vec3, stop_above: float) -> float:
+    """The classical bound: the geodesic density never exceeds the classical one."""
+    return gaussian_box_bound(f.gauss, lo, hi, stop_above)
+
+
+@wp.func
+@no_type_check
+def geodesic_part_bounds(
+    f: GeodesicField, lo: wp.vec3, hi: wp.vec3, stop_above: float
+) -> PartBounds:
+    return gaussian_part_bounds(f.gauss, lo, hi, stop_above)
+
+
+GEODESIC = DensityModel(
+    name="geodesic",
+    field=GeodesicField,
+    value=geodesic_value,
+    value_grad=geodesic_value_grad,
+    sample=geodesic_sample,
+    box_bound=geodesic_box_bound,
+    value4=geodesic_value4,
+    value_grad4=geodesic_value_grad4,
+    value4_level=geodesic_value4_level,
+    value_grad4_level=geodesic_value_grad4_level,
+    part_bounds=geodesic_part_bounds,
+)
+
+
+# ---------------------------------------------------------------- per frame and per table
+
+
+@wp.kernel
+@no_type_check
+def bonds_kernel(
+    positions: wp.array[wp.vec3],
+    ends: wp.array[wp.vec2i],
+    densities: wp.array[float],
+    gain: float,
+    seg_a: wp.array[wp.vec4],
+    seg_v: wp.array[wp.vec4],
+    weight: wp.array[float],
+):
+    """Each bond this frame: its start, vector, length and 1 / length, and its graph weight,
+    the arclength of the densities across it."""
+    b = wp.tid()
+    e = ends[b]
+    ai = positions[e[0]]
+    v = positions[e[1]] - ai
+    length = wp.length(v)
+    inv = float(0.0)
+    if length > 0.0:
+        inv = 1.0 / length
+    seg_a[b] = wp.vec4(ai[0], ai[1], ai[2], length)
+    seg_v[b] = wp.vec4(v[0], v[1], v[2], inv)
+    jump = gain * (densities[e[0]] - densities[e[1]])
+    weight[b] = wp.sqrt(length * length + jump * jump)
+
+
+@wp.kernel
+@no_type_check
+def distances_kernel(
+    node_start: wp.array[wp.int32],
+    node_parent: wp.array[wp.int32],
+    node_edge: wp.array[wp.int32],
+    weight: wp.array[float],
+    node_g: wp.array[float],
+    route_start: wp.array[wp.int32],
+    route_nodes: wp.array[wp.vec2i],
+    route_g: wp.array[wp.vec2],
+):
+    """An atom's graph distances this frame: the current bond weights summed along its
+    shortest-path tree (nodes in the order the build settled them), then each route's ends."""
+    a = wp.tid()
+    n0 = node_start[a]
+    node_g[n0] = 0.0
+    for k in range(n0 + 1, node_start[a + 1]):
+        node_g[k] = node_g[n0 + node_parent[k]] + weight[node_edge[k]]
+    for r in range(route_start[a], route_start[a + 1]):
+        kk = route_nodes[r]
+        gi = wp.inf
+        gj = wp.inf
+        if kk[0] >= 0:
+            gi = node_g[n0 + kk[0]]
+        if kk[1] >= 0:
+            gj = node_g[n0 + kk[1]]
+        route_g[r] = wp.vec2(gi, gj)
+
+
+@wp.kernel
+@no_type_check
+def build_kernel(
+    adj_start: wp.array[wp.int32],
+    adj_atom: wp.array[wp.int32],
+    adj_bond: wp.array[wp.int32],
+    ends: wp.array[wp.vec2i],
+    point_bond: wp.array[wp.int32],
+    weight: wp.array[float],
+    reach: float,
+    fill: int,
+    node_start: wp.array[wp.int32],
+    route_start: wp.array[wp.int32],
+    node_count: wp.array[wp.int32],
+    route_count: wp.array[wp.int32],
+    node_parent: wp.array[wp.int32],
+    node_edge: wp.array[wp.int32],
+    route_bond: wp.array[wp.int32],
+    route_nodes: wp.array[wp.vec2i],
+    overflow: wp.array[wp.int32],
+):
+    """Atom a's graph ball within `reach` by Dijkstra on a table of at most NODES atoms (when
+    full, a nearer atom replaces the farthest unsettled one, and `overflow` counts the atom),
+    then its routes: every bond with an end in the ball, once, with the settled rank of each
+    end (-1 outside the ball). Counts first (`fill` 0), then writes at the scanned offsets."""
+    a = wp.tid()
+    ids = _Ints()
+    dist = _Floats()
+    parent = _Ints()
+    edge = _Ints()
+    state = _Ints()  # -1 unsettled, else the settled rank
+    order = _Ints()
+    ids[0] = a
+    dist[0] = 0.0
+    parent[0] = -1
+    edge[0] = -1
+    state[0] = -1
+    count = wp.int32(1)
+    settled = wp.int32(0)
+    lost = wp.int32(0)
+    going = wp.int32(1)
+    while going != 0:
+        best = wp.int32(-1)
+        for q in range(count):
+            if state[q] < 0 and (best < 0 or dist[q] < dist[best]):
+                best = q
+        if best < 0:
+            going = 0
+        else:
+            state[best] = settled
+            order[settled] = best
+            settled += 1
+            u = ids[best]
+            du = dist[best]
+            for e in range(adj_start[u], adj_start[u + 1]):
+                v = adj_atom[e]
+                dv = du + weight[adj_bond[e]]
+                if dv < reach:
+                    at = wp.int32(-1)
+                    for q in range(count):
+                        if ids[q] == v:
+                            at = q
+                    if at >= 0:
+                        if state[at] < 0 and dv < dist[at]:
+                            dist[at] = dv
+                            parent[at] = best
+                            edge[at] = adj_bond[e]
+                    elif count < _NODES:
+                        ids[count] = v
+                        dist[count] = dv
+                        parent[count] = best
+                        edge[count] = adj_bond[e]
+                        state[count] = -1
+                        count += 1
+                    else:
+                        lost = 1
+                        far = wp.int32(-1)
+                        for q in range(count):
+                            if state[q] < 0 and (far < 0 or dist[q] > dist[far]):
+                                far = q
+                        if far >= 0 and dv < dist[far]:
+                            ids[far] = v
+                            dist[far] = dv
+                            parent[far] = best
+                            edge[far] = adj_bond[e]
+    routes = wp.int32(0)
+    n0 = wp.int32(0)
+    r0 = wp.int32(0)
+    if fill != 0:
+        n0 = node_start[a]
+        r0 = route_start[a]
+    for s in range(settled):
+        q = order[s]
+        if fill != 0:
+            p = wp.int32(0)
+            if parent[q] >= 0:
+                p = state[parent[q]]
+            node_parent[n0 + s] = p
+            node_edge[n0 + s] = edge[q]
+        atom = ids[q]
+        for e in range(adj_start[atom], adj_start[atom + 1]):
+            other = adj_atom[e]
+            rank = wp.int32(-1)
+            for t in range(count):
+                if ids[t] == other and state[t] >= 0:
+                    rank = state[t]
+            if rank < 0 or s < rank:
+                if fill != 0:
+                    b = adj_bond[e]
+                    pair = wp.vec2i(s, rank)
+                    if ends[b][0] != atom:
+                        pair = wp.vec2i(rank, s)
+                    route_bond[r0 + routes] = b
+                    route_nodes[r0 + routes] = pair
+                routes += 1
+    if point_bond[a] >= 0:
+        if fill != 0:
+            route_bond[r0 + routes] = point_bond[a]
+            route_nodes[r0 + routes] = wp.vec2i(0, 0)
+        routes += 1
+    if fill == 0:
+        node_count[a] = settled
+        route_count[a] = routes
+        if lost != 0:
+            wp.atomic_add(overflow, 0, 1)
+
+
+@wp.kernel
+@no_type_check
+def sampled_values_kernel(
+    f: GeodesicField, positions: wp.array[wp.vec3], stride: int, values: wp.array[float]
+):
+    """The geodesic density at every `stride`-th atom (the scale of relative levels)."""
+    k = wp.tid()
+    values[k] = geodesic_value(f, positions[k * stride])
+
+
+@wp.kernel
+@no_type_check
+def rescale_kernel(atoms: wp.array[wp.vec4], total: wp.array[float], samples: float, count: int):
+    """Divide the sorted atoms' weights by the mean density at the sampled atoms."""
+    i = wp.tid()
+    if i < count:
+        t = total[0]
+        if t > 0.0:
+            a = atoms[i]
+            atoms[i] = wp.vec4(a[0], a[1], a[2], a[3] * samples / t)
+
+
+_wp: Any = wp  # warp's host API is unannotated: the table buffers are handled through it
+
+
+class GeodesicTables:
+    """One topology's bonds and route tables on a device: the bonds' geometry and weights are
+    refreshed every frame (`refresh`), the routes built again when the atom weights or the
+    tables' reach change (`build`)."""
+
+    def __init__(self, device: str, graph: BondGraph) -> None:
+        self.device = device
+        self.graph = graph
+        n = graph.n_atoms
+        m = len(graph.ends)
+        self.n = n
+        self.bond_total = m
+        self.ends = _wp.array(graph.ends, dtype=_wp.vec2i, device=device)
+        self.adj_start = _wp.array(graph.adj_start, dtype=_wp.int32, device=device)
+        self.adj_atom = _wp.array(
+            graph.adj_atom if len(graph.adj_atom) else np.zeros(1, np.int32),
+            dtype=_wp.int32,
+            device=device,
+        )
+        self.adj_bond = _wp.array(
+            graph.adj_bond if len(graph.adj_bond) else np.zeros(1, np.int32),
+            dtype=_wp.int32,
+            device=device,
+        )
+        point = np.full(n, -1, np.int32)
+        lonely = graph.ends[graph.bond_count :, 0]
+        point[lonely] = graph.bond_count + np.arange(len(lonely), dtype=np.int32)
+        self.point_bond = _wp.array(point, dtype=_wp.int32, device=device)
+        self.seg_a = _wp.zeros(max(m, 1), dtype=_wp.vec4, device=device)
+        self.seg_v = _wp.zeros(max(m, 1), dtype=_wp.vec4, device=device)
+        self.weight = _wp.zeros(max(m, 1), dtype=float, device=device)
+        self.node_count = _wp.zeros(max(n, 1), dtype=_wp.int32, device=device)
+        self.route_count = _wp.zeros(max(n, 1), dtype=_wp.int32, device=device)
+        self.node_start = _wp.zeros(n + 1, dtype=_wp.int32, device=device)
+        self.route_start = _wp.zeros(n + 1, dtype=_wp.int32, device=device)
+        self.overflow = _wp.zeros(1, dtype=_wp.int32, device=device)
+        self._alloc(0, 0)
+        self.reach = 0.0
+        self.key: tuple[object, ...] | None = None
+        self.lost = 0
+        """Atoms whose graph ball held more than NODES atoms within the reach at the last
+        build (their farthest routes are missing)."""
+
+    def _alloc(self, nodes: int, routes: int) -> None:
+        d = self.device
+        self.node_parent = _wp.zeros(max(nodes, 1), dtype=_wp.int32, device=d)
+        self.node_edge = _wp.zeros(max(nodes, 1), dtype=_wp.int32, device=d)
+        self.node_g = _wp.zeros(max(nodes, 1), dtype=float, device=d)
+        self.route_bond = _wp.zeros(max(routes, 1), dtype=_wp.int32, device=d)
+        self.route_nodes = _wp.zeros(max(routes, 1), dtype=_wp.vec2i, device=d)
+        self.route_g = _wp.zeros(max(routes, 1), dtype=_wp.vec2, device=d)
+
+    @property
+    def nbytes(self) -> int:
+        arrays = (
+            self.ends,
+            self.adj_start,
+            self.adj_atom,
+            self.adj_bond,
+            self.point_bond,
+            self.seg_a,
+            self.seg_v,
+            self.weight,
+            self.node_count,
+            self.route_count,
+            self.node_start,
+            self.route_start,
+            self.node_parent,
+            self.node_edge,
+            self.node_g,
+            self.route_bond,
+            self.route_nodes,
+            self.route_g,
+        )
+        return sum(int(a.capacity) for a in arrays)
+
+    def _bonds(self, positions: Any, densities: Any, gain: float) -> None:
+        if self.bond_total:
+            args = (positions, self.ends, densities, float(gain), self.seg_a, self.seg_v)
+            _wp.launch(bonds_kernel, self.bond_total, (*args, self.weight), device=self.device)
+
+    def build(self, positions: Any, densities: Any, gain: float, reach: float) -> None:
+        """Every atom's graph ball and routes within `reach` of the present bond weights (two
+        passes, counting then writing; synchronises once to size the tables)."""
+        dev = self.device
+        n = self.n
+        self._bonds(positions, densities, gain)
+        self.overflow.zero_()
+        outputs = (self.node_parent, self.node_edge, self.route_bond, self.route_nodes)
+        head = (self.adj_start, self.adj_atom, self.adj_bond, self.ends, self.point_bond)
+        counts = (self.node_start, self.route_start, self.node_count, self.route_count)
+        if n:
+            args = (*head, self.weight, float(reach), 0, *counts, *outputs, self.overflow)
+            _wp.launch(build_kernel, n, args, device=dev)
+        for count, start in (
+            (self.node_count, self.node_start),
+            (self.route_count, self.route_start),
+        ):
+            padded = _wp.zeros(n + 1, dtype=_wp.int32, device=dev)
+            if n:
+                _wp.copy(padded, count, count=n)
+            _wp.utils.array_scan(padded, start, inclusive=False)
+        totals = (int(self.node_start.numpy()[n]), int(self.route_start.numpy()[n]))
+        self._alloc(*totals)
+        if n:
+            outputs = (self.node_parent, self.node_edge, self.route_bond, self.route_nodes)
+            args = (*head, self.weight, float(reach), 1, *counts, *outputs, self.overflow)
+            _wp.launch(build_kernel, n, args, device=dev)
+        self.lost = int(self.overflow.numpy()[0])
+        self.reach = float(reach)
+
+    def refresh(self, positions: Any, densities: Any, gain: float) -> None:
+        """This frame's bonds and route distances (launches only)."""
+        self._bonds(positions, densities, gain)
+        if self.n:
+            args = (
+                self.node_start,
+                self.node_parent,
+                self.node_edge,
+                self.weight,
+                self.node_g,
+                self.route_start,
+                self.route_nodes,
+                self.route_g,
+            )
+            _wp.launch(distances_kernel, self.n, args, device=self.device)
+
+    def routes(self, tau: float, strength: float) -> Routes:
+        r = Routes()
+        r.start = self.route_start
+        r.bond = self.route_bond
+        r.g = self.route_g
+        r.seg_a = self.seg_a
+        r.seg_v = self.seg_v
+        r.tau = float(tau)
+        r.inv_tau = 1.0 / float(tau)
+        r.tau2 = float(tau) * float(tau)
+        r.strength = float(strength)
+        return r

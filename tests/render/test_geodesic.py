@@ -1,0 +1,353 @@
+"""The geodesic density (the thesis's warped molecular density, made smooth): its float64
+reference against eqs. 5.2-5.6 as printed, the properties its design promises (the thesis's
+field as the smoothing goes to 0, never above the classical density, no crease, not a
+narrower Gaussian), and the device kernels against the reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from protocol import RenderParams
+from server.render import geodesic, geodesic_field
+from server.render.camera import fit_camera, orbit
+from server.render.geodesic import (
+    BondGraph,
+    Geodesic,
+    GeodesicScales,
+    best_classical_sigma,
+    classical_density,
+)
+from server.render.renderer import Renderer
+from tests.render.helpers import render
+from tests.render.molecules import Mol, benzene, hairpin, three_atoms, villin
+from thesis import molecular
+
+GEODESIC = RenderParams(scale_space="geodesic", sigma_A=1.5)
+
+
+def geodesic_of(mol: Mol, reach: float, densities: np.ndarray | None = None) -> Geodesic:
+    pos = mol.positions.astype(np.float64)
+    d = np.ones(len(pos)) if densities is None else densities
+    return Geodesic.build(pos, d, BondGraph.of(mol.topology), reach)
+
+
+def thesis_graph(g: molecular.BondGraph) -> Geodesic:
+    """A thesis molecule (figs. 5.5-5.8) with route tables reaching every atom."""
+    graph = BondGraph.from_bonds(len(g.positions), g.bonds)
+    return Geodesic.build(g.positions, g.densities, graph, 50.0, gain=g.gain)
+
+
+def plane_points(n: int, seed: int, extent: float = 3.0) -> np.ndarray:
+    pts = np.random.default_rng(seed).uniform(-extent, extent, size=(n, 3))
+    pts[:, 2] = 0.0
+    return pts
+
+
+THESIS = {
+    "three atoms": molecular.three_atoms(),
+    "dense centre": molecular.three_atoms(2.5),
+    "ring": molecular.ring(),
+}
+
+
+def second_difference_ratios(f: object, o: np.ndarray, v: np.ndarray, h: float) -> list[float]:
+    """max |second difference| at steps h, h/2, h/4 along a line, as the ratios of
+    successive ones: 4 for a field with a bounded second derivative, 2 across a crease."""
+    worst = []
+    for step in (h, h / 2, h / 4):
+        t = np.arange(-0.1, 0.1 + step / 2, step)
+        s = np.asarray(f(o + t[:, None] * v))  # type: ignore[operator]
+        worst.append(float(np.abs(s[2:] - 2.0 * s[1:-1] + s[:-2]).max()))
+    return [worst[0] / worst[1], worst[1] / worst[2]]
+
+
+# ---------------------------------------------------------------- the reference
+
+
+@pytest.mark.parametrize("name", list(THESIS))
+def test_smoothing_zero_is_eqs_5_2_to_5_5_as_printed(name: str) -> None:
+    g = THESIS[name]
+    geo = thesis_graph(g)
+    pts = plane_points(300, 1)
+    for sigma in (0.6, 1.2):
+        ref = molecular.thesis_density(g, pts, sigma)
+        got = geo.density(pts, sigma, smoothing=0.0, cutoff_sigmas=None)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", list(THESIS))
+def test_the_field_tends_to_the_thesiss_as_the_smoothing_goes_to_zero(name: str) -> None:
+    """(a): the distance to eq. 5.5 shrinks with the smoothing, at every point (ties
+    included: their routes are equal, and a mean of equal routes is that route)."""
+    g = THESIS[name]
+    geo = thesis_graph(g)
+    pts = plane_points(300, 2)
+    ref = molecular.thesis_density(g, pts, 1.0)
+    errors = [
+        float(np.abs(geo.density(pts, 1.0, smoothing=t, cutoff_sigmas=None) - ref).max())
+        for t in (0.1, 0.01, 0.001)
+    ]
+    assert errors[1] < 0.2 * errors[0] and errors[2] < 0.2 * errors[1], errors
+    assert errors[2] < 2e-3
+
+
+@pytest.mark.parametrize("name", [*THESIS, "villin"])
+def test_never_above_the_classical_density(name: str) -> None:
+    """(b): every route is a path through the molecule, never shorter than the straight
+    line, so at equal sigma and weights the field never exceeds the classical one."""
+    if name == "villin":
+        mol = villin()
+        pos = mol.positions.astype(np.float64)
+        rng = np.random.default_rng(3)
+        pts = pos[rng.integers(0, len(pos), 300)] + rng.normal(scale=1.5, size=(300, 3))
+        d = np.ones(len(pos))
+        geo = geodesic_of(mol, 8.0)
+    else:
+        g = THESIS[name]
+        pos, d, pts, geo = g.positions, g.densities, plane_points(300, 4), thesis_graph(g)
+    for sigma in (0.7, 1.5, 2.0):
+        classical = classical_density(pts, pos, d, sigma)
+        for strength in (1.0, 0.4):
+            got = geo.density(pts, sigma, strength=strength)
+            assert (got <= classical + 1e-12).all()
+    zero = geo.density(pts, 1.5, strength=0.0)
+    np.testing.assert_allclose(zero, classical_density(pts, pos, d, 1.5), rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", list(THESIS))
+def test_no_crease_on_the_thesiss_molecules(name: str) -> None:
+    """(c): second differences converge as the step halves (ratios near 4) along random lines
+    through the molecule; the thesis's own field, the control, is creased (near 2 or below)."""
+    geo = thesis_graph(THESIS[name])
+    rng = np.random.default_rng(5)
+    smooth, creased = [], []
+    for _ in range(30):
+        o = rng.uniform(-2.0, 2.0, 3)
+        o[2] = 0.0
+        v = rng.normal(size=3)
+        v[2] = 0.0
+        v /= np.linalg.norm(v)
+        smooth += second_difference_ratios(lambda p: geo.density(p, 1.0), o, v, 0.02)
+        exact = lambda p: geo.density(p, 1.0, smoothing=0.0)  # noqa: E731
+        creased += second_difference_ratios(exact, o, v, 0.02)
+    assert min(smooth) > 3.3, sorted(smooth)[:3]
+    assert min(creased) < 2.5
+
+
+def surface_points(geo: Geodesic, sigma: float, level: float, count: int, seed: int) -> np.ndarray:
+    """Points of the iso-surface S = level: from random atoms outwards along random directions
+    to the first crossing, refined by bisection."""
+    rng = np.random.default_rng(seed)
+    pos = geo.positions
+    out: list[np.ndarray] = []
+    ts = np.arange(0.1, 10.0, 0.2)
+    for i in rng.permutation(len(pos)):
+        v = rng.normal(size=3)
+        v /= np.linalg.norm(v)
+        values = geo.density(pos[i] + ts[:, None] * v, sigma)
+        below = np.nonzero(values < level)[0]
+        if not len(below) or below[0] == 0:
+            continue
+        lo, hi = ts[below[0] - 1], ts[below[0]]
+        for _ in range(22):
+            mid = 0.5 * (lo + hi)
+            if geo.density(pos[i] + mid * v[None], sigma)[0] < level:
+                hi = mid
+            else:
+                lo = mid
+        out.append(pos[i] + lo * v)
+        if len(out) == count:
+            break
+    return np.asarray(out)
+
+
+def test_no_crease_at_200_points_of_a_proteins_surface() -> None:
+    """(c) on a real protein (villin headpiece, 582 atoms): at 200 points of its iso-surface
+    (sigma 1.5 A, a quarter of the mean density at the atoms), along random directions."""
+    mol = villin()
+    geo = geodesic_of(mol, 6.0)
+    sigma = 1.5
+    level = 0.25 * float(geo.density(geo.positions[::5], sigma).mean())
+    pts = surface_points(geo, sigma, level, 200, 6)
+    assert len(pts) == 200
+    rng = np.random.default_rng(7)
+    ratios = []
+    for p in pts:
+        v = rng.normal(size=3)
+        ratios += second_difference_ratios(
+            lambda q: geo.density(q, sigma), p, v / np.linalg.norm(v), 0.02
+        )
+    assert np.percentile(ratios, 1) > 3.4 and min(ratios) > 3.0, sorted(ratios)[:5]
+
+
+def test_not_a_narrower_gaussian_where_the_graph_matters() -> None:
+    """(d): the classical density closest to the field (over its width and an amplitude)
+    leaves a residual in the plane of a ring and of a hairpin, where routes go round the ring
+    and along the strands; on one atom, with nothing to route through, it explains the field
+    (the control)."""
+    rng = np.random.default_rng(8)
+    ring = geodesic_of(benzene(hydrogens=False), 8.0)
+    pts = np.c_[rng.uniform(-2.5, 2.5, (400, 2)), np.zeros(400)]
+    fit = best_classical_sigma(
+        ring.density(pts, 1.0), pts, ring.positions, ring.densities, 0.2, 3.0
+    )
+    assert fit[2] > 0.08, fit
+    pin = geodesic_of(hairpin(), 12.0)
+    pts = np.c_[rng.uniform(-2, 13, 600), rng.uniform(-5, 5, 600), np.zeros(600)]
+    fit = best_classical_sigma(pin.density(pts, 1.0), pts, pin.positions, pin.densities, 0.2, 5.0)
+    assert fit[2] > 0.04, fit
+    lone = Geodesic.build(np.zeros((1, 3)), np.ones(1), BondGraph.from_bonds(1, []), 6.0)
+    near = rng.normal(scale=1.0, size=(200, 3))
+    fit = best_classical_sigma(
+        lone.density(near, 1.0), near, lone.positions, lone.densities, 0.2, 3.0
+    )
+    assert fit[2] < 1e-4 and fit[0] == pytest.approx(1.0, rel=1e-3), fit
+
+
+# ---------------------------------------------------------------- the device kernels
+
+
+@pytest.mark.parametrize(
+    ("name", "params"),
+    [
+        ("villin", GEODESIC),
+        ("villin", RenderParams(scale_space="geodesic", sigma_A=0.9, density_weights="electrons")),
+        ("hairpin", RenderParams(scale_space="geodesic", sigma_A=2.0, warp_strength=0.6)),
+        ("three atoms", RenderParams(scale_space="geodesic", sigma_A=1.0, level_scale="absolute")),
+    ],
+)
+def test_value_and_gradient_match_the_reference(
+    device: str, name: str, params: RenderParams
+) -> None:
+    mol = {"villin": villin, "hairpin": hairpin, "three atoms": three_atoms}[name]()
+    cam = fit_camera(mol.positions, 32, 24)
+    r = render(device, mol.topology, mol.positions, params, cam, 32, 24)
+    sigma = params.sigma_A
+    scales = GeodesicScales.of(sigma, params.warp_strength, 4.0 * sigma)
+    from server.render import colors
+
+    d = colors.atom_weights(mol.topology, params.density_weights).astype(np.float64)
+    geo = geodesic_of(mol, scales.table_reach, d)
+    rng = np.random.default_rng(11)
+    pts = mol.positions[rng.integers(0, len(mol.positions), 40)] + rng.normal(size=(40, 3))
+    ref = geo.density(pts, sigma, strength=params.warp_strength) / r.density_scale()
+    val, vg, _col, ids = r.evaluate(pts)
+    np.testing.assert_allclose(val, ref, rtol=2e-5, atol=2e-6 * float(ref.max()))
+    h = 1e-4
+    grad = (
+        np.stack(
+            [
+                (
+                    geo.density(pts + h * e, sigma, strength=params.warp_strength)
+                    - geo.density(pts - h * e, sigma, strength=params.warp_strength)
+                )
+                / (2 * h)
+                for e in np.eye(3)
+            ],
+            axis=1,
+        )
+        / r.density_scale()
+    )
+    np.testing.assert_allclose(vg[:, :3], grad, rtol=1e-3, atol=2e-4 * float(np.abs(grad).max()))
+    assert (ids[val > 0] >= 0).all()
+
+
+def test_the_batched_walks_match_one_point_walks(device: str) -> None:
+    """The marching kernels' four-point walks (every point, or only where the classical density
+    reaches a level) give what one walk per point gives."""
+    mol = villin()
+    r = Renderer(device)
+    r.set_topology(mol.topology)
+    r.set_positions(mol.positions)
+    f = r.prepare(GEODESIC)
+    rng = np.random.default_rng(12)
+    m = 64
+    o = mol.positions[rng.integers(0, len(mol.positions), m)] + rng.normal(size=(m, 3))
+    d = rng.normal(size=(m, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    arrays = [wp.array(a.astype(np.float32), dtype=wp.vec3, device=device) for a in (o, d)]
+    out = wp.zeros((m, 3), dtype=wp.vec4, device=device)
+    wp.launch(_batched_kernel, m, (f, *arrays, 0.5, out), device=device)
+    single, batched, level = (out.numpy()[:, k] for k in range(3))
+    np.testing.assert_allclose(batched, single, rtol=1e-5, atol=1e-6)
+    reached = single >= 0.5  # the classical density is higher still there
+    np.testing.assert_allclose(level[reached], single[reached], rtol=1e-5, atol=1e-6)
+    assert (level[~reached] < 0.5).all()
+
+
+@wp.kernel
+def _batched_kernel(  # type: ignore[no-untyped-def]
+    f: geodesic_field.GeodesicField,
+    o: wp.array(dtype=wp.vec3),
+    d: wp.array(dtype=wp.vec3),
+    level: float,
+    out: wp.array2d(dtype=wp.vec4),
+):
+    i = wp.tid()
+    ts = wp.vec4(0.0, 0.3, 0.6, 0.9)
+    one = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    for q in range(4):
+        one[q] = geodesic_field.geodesic_value(f, o[i] + d[i] * ts[q])
+    out[i, 0] = one
+    out[i, 1] = geodesic_field.geodesic_value4(f, o[i], d[i], ts)
+    out[i, 2] = geodesic_field.geodesic_value4_level(f, o[i], d[i], ts, level)
+
+
+def test_strength_zero_draws_the_classical_image(device: str) -> None:
+    mol = villin()
+    cam = orbit(fit_camera(mol.positions, 48, 36), 30.0, 20.0)
+    zero = render(
+        device,
+        mol.topology,
+        mol.positions,
+        GEODESIC.model_copy(update={"warp_strength": 0.0}),
+        cam,
+        48,
+        36,
+    )
+    classical = render(device, mol.topology, mol.positions, RenderParams(), cam, 48, 36)
+    assert np.array_equal(zero.read_rgba(), classical.read_rgba())
+
+
+def test_a_geodesic_surface_lies_inside_the_classical_one(device: str) -> None:
+    """Drawn at the same absolute level, every ray that hits the geodesic surface hits the
+    classical one no farther away (the field is lower everywhere)."""
+    mol = villin()
+    cam = orbit(fit_camera(mol.positions, 48, 36), 30.0, 20.0)
+    level = {"level_scale": "absolute", "iso_level": 0.5}
+    geo = render(
+        device, mol.topology, mol.positions, GEODESIC.model_copy(update=level), cam, 48, 36
+    )
+    classical = render(device, mol.topology, mol.positions, RenderParams(**level), cam, 48, 36)
+    dg, dc = geo.read_depth(), classical.read_depth()
+    hit = np.isfinite(dg)
+    assert hit.sum() > 100 and np.isfinite(dc[hit]).all()
+    assert (dc[hit] <= dg[hit] + 1e-3).all() and (dc[hit] < dg[hit] - 0.05).any()
+
+
+def test_route_tables_follow_the_reach_and_report_their_bytes(device: str) -> None:
+    mol = villin()
+    cam = fit_camera(mol.positions, 16, 12)
+    r = render(device, mol.topology, mol.positions, GEODESIC, cam, 16, 12)
+    tables = r._geo
+    assert tables is not None and tables.key == (
+        "uniform",
+        GeodesicScales.of(1.5, 1, 6.0).table_reach,
+    )
+    small = r.memory_bytes()["geodesic"]
+    assert small > 0
+    r.render(GEODESIC.model_copy(update={"sigma_A": 1.55}), cam, 16, 12)  # the same step
+    assert r.memory_bytes()["geodesic"] == small
+    r.render(GEODESIC.model_copy(update={"sigma_A": 2.5}), cam, 16, 12)
+    assert r.memory_bytes()["geodesic"] > small and tables.lost == 0
+
+
+def test_an_atom_without_bonds_keeps_its_own_gaussian() -> None:
+    geo = Geodesic.build(np.zeros((1, 3)), np.ones(1), BondGraph.from_bonds(1, []), 6.0)
+    pts = np.random.default_rng(13).normal(size=(50, 3))
+    tau = geodesic.SMOOTHING * 1.5
+    r2 = (pts * pts).sum(axis=1)
+    want = geodesic.taper((r2 + tau * tau) / (2 * 1.5**2), 4.0)
+    np.testing.assert_allclose(geo.density(pts, 1.5), want, rtol=1e-12)
