@@ -78,6 +78,9 @@ class ServerSettings:
     limits: Limits = DEFAULT_LIMITS
     viewer_limits: Limits = VIEWER_LIMITS
     max_upload_bytes: int = 512 * 1024 * 1024
+    max_spool_bytes: int = 2 << 30
+    """Request bodies being received at once, together (uploads wait in `<state-dir>/spool`
+    while they are parsed); a body that would pass it is refused with 503."""
     max_sessions: int = 64
     max_connections: int = 1024
     """Open WebSockets, all endpoints together (a connection counts from its first byte)."""
@@ -171,6 +174,12 @@ class ServerSettings:
     state_interval_s: float = 0.1
     hello_timeout_s: float = 10.0
     client_dir: Path = Path(__file__).resolve().parents[1] / "client_web"
+
+    @property
+    def spool_dir(self) -> Path:
+        """Where uploads wait while they are parsed: the server's own, never the system's
+        temporary directory."""
+        return self.state_dir / "spool"
 
     def read_limits(self, role: str = "steerer") -> ReadLimits:
         """What reading one untrusted file may cost, for a holder of `role`'s token."""

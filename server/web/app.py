@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import shutil
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -33,6 +34,7 @@ from server.web.middleware import HostCheck, UploadLimit
 from server.web.recordings import router as recordings_router
 from server.web.replays import router as replays_router
 from server.web.rest import router
+from server.web.spool import Spool
 from server.web.state import AppState, SessionRegistry
 
 log = logging.getLogger("scalesteer.app")
@@ -70,10 +72,26 @@ def _load_selections() -> None:
         import MDAnalysis.core.selection  # noqa: F401
 
 
+def clean_spool(directory: Path) -> Path:
+    """The spool directory, emptied: scratch folders of file reads a killed server left."""
+    directory.mkdir(parents=True, exist_ok=True)
+    for entry in directory.iterdir():
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+    return directory
+
+
 def create_app(settings: ServerSettings) -> FastAPI:
     """Build the app; resources start with the app's lifespan and stop with it."""
     state_dir = settings.state_dir
     state_dir.mkdir(parents=True, exist_ok=True)
+    spool = Spool(
+        clean_spool(settings.spool_dir),
+        settings.max_upload_bytes + 1024 * 1024,  # the form's own bytes around the files
+        settings.max_spool_bytes,
+    )
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -198,6 +216,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     if (settings.client_dir / "index.html").is_file():
         app.mount("/", StaticFiles(directory=settings.client_dir, html=True), name="client")
-    app.add_middleware(UploadLimit, limit=settings.max_upload_bytes + 1024 * 1024)
+    # the last added runs first: Host, then the body limits
+    app.add_middleware(UploadLimit, spool=spool)
     app.add_middleware(HostCheck, settings=settings)
     return app

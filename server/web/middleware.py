@@ -1,4 +1,5 @@
-"""ASGI middleware of the web edge: the upload size cap and the Host header check."""
+"""ASGI middleware of the web edge: the Host check and the request body limits (per request and
+for all bodies being received at once)."""
 
 from __future__ import annotations
 
@@ -10,49 +11,75 @@ from starlette.responses import PlainTextResponse
 
 from server.settings import ServerSettings
 from server.web.auth import host_allowed
+from server.web.spool import SPOOL, Spool
+
+Scope = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Any]]
+Send = Callable[[Any], Awaitable[None]]
 
 
 class UploadLimit:
     """Refuses request bodies over the upload limit while they stream in (413), so an oversized
-    upload is never spooled to disk whole."""
+    upload is never spooled to disk whole; and bodies that would take the bytes being received
+    at once past the spool's total (503 with `Retry-After`), a declared length from its start.
+    The spool rides in the scope for `server.web.spool.SpoolingRequest`."""
 
-    def __init__(self, app: Any, limit: int) -> None:
+    def __init__(self, app: Any, spool: Spool) -> None:
         self.app = app
-        self.limit = limit
+        self.spool = spool
 
-    async def __call__(
-        self,
-        scope: MutableMapping[str, Any],
-        receive: Callable[[], Awaitable[Any]],
-        send: Callable[[Any], Awaitable[None]],
-    ) -> None:
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        spool = self.spool
+        scope[SPOOL] = spool
         headers = dict(scope.get("headers") or [])
-        declared = headers.get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.limit:
-            await PlainTextResponse(
-                f"request body exceeds the upload limit of {self.limit} bytes", 413
-            )(scope, receive, send)
+        raw = headers.get(b"content-length")
+        declared = int(raw) if raw is not None and raw.isdigit() and len(raw) < 19 else 0
+        if declared > spool.limit:
+            await _too_large(spool.limit)(scope, receive, send)
             return
+        if not spool.take(declared):
+            await _spool_full(spool)(scope, receive, send)
+            return
+        held = declared
         seen = 0
 
         async def counted() -> Any:
-            nonlocal seen
+            nonlocal seen, held
             message = await receive()
             if message["type"] == "http.request":
                 seen += len(message.get("body", b""))
-                if seen > self.limit:
-                    raise _BodyTooLargeError(self.limit)
+                if seen > spool.limit:
+                    raise _BodyTooLargeError(spool.limit)
+                if seen > held:  # past its declared length (or sent without one)
+                    if not spool.take(seen - held):
+                        raise _SpoolFullError(spool)
+                    held = seen
             return message
 
         try:
             await self.app(scope, counted, send)
         except _BodyTooLargeError:
-            await PlainTextResponse(
-                f"request body exceeds the upload limit of {self.limit} bytes", 413
-            )(scope, receive, send)
+            await _too_large(spool.limit)(scope, receive, send)
+        except _SpoolFullError:
+            await _spool_full(spool)(scope, receive, send)
+        finally:
+            spool.give_back(held)
+
+
+def _too_large(limit: int) -> PlainTextResponse:
+    return PlainTextResponse(f"request body exceeds the upload limit of {limit} bytes", 413)
+
+
+def _spool_full(spool: Spool) -> PlainTextResponse:
+    return PlainTextResponse(
+        f"the server is receiving {spool.held} bytes of uploads already, its limit is "
+        f"{spool.total} (max_spool_bytes); try again later",
+        503,
+        headers={"Retry-After": "5"},
+    )
 
 
 class _BodyTooLargeError(HTTPException):
@@ -62,6 +89,18 @@ class _BodyTooLargeError(HTTPException):
         super().__init__(413, f"request body exceeds the upload limit of {limit} bytes")
 
 
+class _SpoolFullError(HTTPException):
+    """Raised while a body streams in past what the spool has left; answered as a 503."""
+
+    def __init__(self, spool: Spool) -> None:
+        super().__init__(
+            503,
+            f"the server is receiving {spool.held} bytes of uploads already, its limit is "
+            f"{spool.total} (max_spool_bytes); try again later",
+            headers={"Retry-After": "5"},
+        )
+
+
 class HostCheck:
     """Refuses HTTP requests and WebSocket handshakes whose Host header is not this server's."""
 
@@ -69,12 +108,7 @@ class HostCheck:
         self.app = app
         self.settings = settings
 
-    async def __call__(
-        self,
-        scope: MutableMapping[str, Any],
-        receive: Callable[[], Awaitable[Any]],
-        send: Callable[[Any], Awaitable[None]],
-    ) -> None:
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] in ("http", "websocket"):
             host = dict(scope.get("headers") or []).get(b"host", b"").decode("latin-1")
             if not host_allowed(self.settings, host):

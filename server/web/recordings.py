@@ -23,9 +23,10 @@ import protocol as p
 from server.pipeline.jobs import JobSpec
 from server.pipeline.marks import pull_path
 from server.pipeline.recordings import FILES, Recording
-from server.web.rest import State, check_size, steerer_access
+from server.web.access import GatedRoute, steerer_access
+from server.web.rest import State, check_size
 
-router = APIRouter()
+router = APIRouter(route_class=GatedRoute)
 Steerer = Annotated[p.Role, Depends(steerer_access)]
 SKIP_NOTICE_S = 5.0
 """While a recording skips frames, how often the session is told."""

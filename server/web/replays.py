@@ -22,13 +22,14 @@ from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Uplo
 
 import protocol as p
 from protocol.messages import SESSION_NAME
+from server.web.access import GatedRoute, steerer_access, viewer_access
 from server.web.children import ReplayManager
-from server.web.rest import State, save_upload, steerer_access, viewer_access
+from server.web.rest import State, save_upload
 from server.web.state import AppState
 from structures.isolated import IsolatedStructure
 from structures.reader import StructureError
 
-router = APIRouter()
+router = APIRouter(route_class=GatedRoute)
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 

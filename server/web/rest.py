@@ -16,7 +16,7 @@ import uuid
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, HTTPException, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
@@ -24,41 +24,19 @@ import protocol as p
 from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
 from server.pipeline.selections import FrameLayers, check_layers
-from server.web.auth import token_role
+from server.web.access import (
+    GatedRoute,
+    app_state,
+    render_access,
+    steerer_access,
+    viewer_access,
+)
 from server.web.state import AppState
 from structures.isolated import IsolatedStructure
 from structures.reader import StructureError
 from structures.selection import SelectionError
 
-router = APIRouter()
-
-
-def app_state(request: Request) -> AppState:
-    state: AppState = request.app.state.scalesteer
-    return state
-
-
-def _token(request: Request) -> str | None:
-    auth = request.headers.get("authorization", "")
-    if auth.lower().startswith("bearer "):
-        return auth[7:].strip()
-    return request.headers.get("x-scalesteer-token") or request.query_params.get("token")
-
-
-def viewer_access(request: Request) -> p.Role:
-    role = token_role(app_state(request).settings, _token(request))
-    if role is None:
-        raise HTTPException(401, "missing or wrong token (Authorization: Bearer TOKEN or ?token=)")
-    return role
-
-
-def steerer_access(request: Request) -> p.Role:
-    role = viewer_access(request)
-    if role != "steerer":
-        raise HTTPException(403, "this needs the server token; the viewer token is read-only")
-    return role
-
-
+router = APIRouter(route_class=GatedRoute)
 State = Annotated[AppState, Depends(app_state)]
 
 
@@ -211,7 +189,7 @@ def check_size(state: AppState, width: int, height: int) -> None:
 )
 async def render_image(
     state: State,
-    role: Annotated[p.Role, Depends(viewer_access)],
+    role: Annotated[p.Role, Depends(render_access)],
     file: Annotated[UploadFile | None, File(description="PDB, mmCIF, GRO or XYZ")] = None,
     dataset: Annotated[
         str | None, Form(description="file name under the server's --data-dir")
@@ -229,14 +207,6 @@ async def render_image(
     format: Annotated[Literal["png", "jpeg"], Form()] = "png",
 ) -> Response:
     check_size(state, width, height)
-    if role == "viewer" and not state.viewer_renders.allow():
-        wait = state.viewer_renders.wait_s()
-        raise HTTPException(
-            429,
-            f"renders with the viewer token are limited to "
-            f"{state.settings.viewer_renders_per_min:g} a minute; retry in {wait:.0f} s",
-            headers={"Retry-After": str(max(1, round(wait)))},
-        )
     given = [x for x in (file, dataset, session) if x is not None]
     if len(given) != 1:
         raise HTTPException(422, "give exactly one of file, dataset or session")

@@ -11,8 +11,10 @@ import asyncio
 import concurrent.futures
 import gzip
 import math
+import os
 import random
 import signal
+import socket
 import time
 from collections.abc import Coroutine, Iterator
 from pathlib import Path
@@ -540,3 +542,134 @@ def test_a_huge_view_on_the_cpu_device_gets_a_smaller_image_fast(live_server: Li
     assert r.status_code == 422 and "CPU" in r.json()["detail"]
     sim.close()
     viewer.close()
+
+
+# ---------------------------------------------------------------- the edge (round three)
+
+
+def partial_request(
+    port: int, path: str, headers: dict[str, str], declared: int, body: bytes
+) -> socket.socket:
+    """A POST declaring `declared` bytes of multipart body of which only `body` is sent."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    head = {
+        "Host": f"127.0.0.1:{port}",
+        "Content-Type": f"multipart/form-data; boundary={BOUNDARY}",
+        "Content-Length": str(declared),
+        **headers,
+    }
+    lines = [f"POST {path} HTTP/1.1", *(f"{k}: {v}" for k, v in head.items()), "", ""]
+    sock.sendall("\r\n".join(lines).encode() + body)
+    return sock
+
+
+def answer(sock: socket.socket, timeout: float = 10.0) -> tuple[int, dict[str, str], str]:
+    """Status, headers and body of the response on `sock` (status 0: none within `timeout`)."""
+    sock.settimeout(timeout)
+    data = b""
+    try:
+        while b"\r\n\r\n" not in data or len(data.split(b"\r\n\r\n", 1)[1]) < _length(data):
+            chunk = sock.recv(65536)
+            if not chunk:
+                break
+            data += chunk
+    except TimeoutError:
+        return 0, {}, ""
+    finally:
+        sock.close()
+    if not data:
+        return 0, {}, ""
+    head, _, body = data.partition(b"\r\n\r\n")
+    status, *fields = head.decode("latin-1").split("\r\n")
+    parsed = dict(f.split(": ", 1) for f in fields if ": " in f)
+    return int(status.split()[1]), {k.lower(): v for k, v in parsed.items()}, body.decode()
+
+
+def _length(data: bytes) -> int:
+    for line in data.split(b"\r\n\r\n", 1)[0].split(b"\r\n"):
+        if line.lower().startswith(b"content-length:"):
+            return int(line.split(b":", 1)[1])
+    return 1 << 30
+
+
+BOUNDARY = "scalesteerboundary"
+
+
+def file_part(name: str, size: int) -> bytes:
+    """The start of a multipart body: one file part with `size` bytes of its content."""
+    head = (
+        f'--{BOUNDARY}\r\nContent-Disposition: form-data; name="file"; filename="{name}"\r\n'
+        "Content-Type: application/octet-stream\r\n\r\n"
+    ).encode()
+    return head + b"ATOM  " * (size // 6)
+
+
+def open_files(pid: int, under: Path) -> list[str]:
+    """Files the process holds open under `under` (deleted ones included)."""
+    found = []
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith(str(under)):
+            found.append(target)
+    return found
+
+
+def wait_for(condition: Any, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_uploads_are_refused_from_their_headers_and_spool_into_the_servers_own_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Round three: 300 MB were spooled to $TMPDIR before the token was checked, and a viewer
+    past its render budget had its upload read before its 429."""
+    system_tmp = tmp_path / "system-tmp"
+    system_tmp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(system_tmp))
+    server = ServerProcess(tmp_path / "state", "--set", "max_spool_bytes=400000000")
+    try:
+        big = 300_000_000
+        # no token, the viewer token where the server token is needed, a spent viewer budget:
+        # each answered from the headers while the body has barely begun
+        sock = partial_request(server.port, "/api/render", {}, big, file_part("a.pdb", 65536))
+        status, _, body = answer(sock)
+        assert status == 401 and "token" in body
+        sock = partial_request(server.port, "/api/jobs", VIEWER, big, file_part("a.pdb", 65536))
+        status, _, body = answer(sock)
+        assert status == 403 and "server token" in body
+        with httpx.Client(base_url=server.url, timeout=60) as c:
+            for _ in range(20):
+                r = c.post("/api/render", headers=VIEWER, data={"dataset": "none.pdb"})
+                if r.status_code == 429:
+                    break
+            assert r.status_code == 429
+        sock = partial_request(server.port, "/api/render", VIEWER, big, file_part("a.pdb", 65536))
+        status, headers, body = answer(sock)
+        assert status == 429 and int(headers["retry-after"]) >= 1 and "a minute" in body
+        # an accepted upload spools into <state-dir>/spool, never into $TMPDIR
+        spool = server.state_dir / "spool"
+        sock = partial_request(server.port, "/api/render", AUTH, big, file_part("a.pdb", 4 << 20))
+        assert wait_for(lambda: open_files(server.process.pid, spool)), "nothing spooled"
+        assert not open_files(server.process.pid, system_tmp)
+        # the bodies being received at once are bounded together: 300 MB are held for this one
+        other = partial_request(server.port, "/api/render", AUTH, 200_000_000, b"")
+        status, headers, body = answer(other)
+        assert status == 503 and "max_spool_bytes" in body and headers["retry-after"]
+        sock.close()  # the client gives up: its spool is given back
+        assert wait_for(lambda: not open_files(server.process.pid, spool))
+        with open(PDB_small, "rb") as fh:
+            r = httpx.post(
+                f"{server.url}/api/render", headers=AUTH, files={"file": ("a.pdb", fh)}, timeout=60
+            )
+        assert r.status_code == 200, r.text
+        assert not any(system_tmp.iterdir())
+    finally:
+        server.stop()
