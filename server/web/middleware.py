@@ -1,5 +1,5 @@
-"""ASGI middleware of the web edge: the Host check and the request body limits (per request and
-for all bodies being received at once)."""
+"""ASGI middleware of the web edge: the Host and Origin checks and the request body limits (per
+request and for all bodies being received at once)."""
 
 from __future__ import annotations
 
@@ -7,15 +7,18 @@ from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
 from fastapi import HTTPException
-from starlette.responses import PlainTextResponse
+from starlette.responses import JSONResponse, PlainTextResponse
 
 from server.settings import ServerSettings
-from server.web.auth import host_allowed
+from server.web.auth import host_allowed, origin_allowed
 from server.web.spool import SPOOL, Spool
 
 Scope = MutableMapping[str, Any]
 Receive = Callable[[], Awaitable[Any]]
 Send = Callable[[Any], Awaitable[None]]
+
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+"""Methods that change nothing on this server; every other one is checked for its Origin."""
 
 
 class UploadLimit:
@@ -118,5 +121,32 @@ class HostCheck:
                     )
                     return
                 await PlainTextResponse(f"host {host!r} not allowed", 403)(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+
+class OriginCheck:
+    """Refuses state-changing HTTP requests (POST, PUT, PATCH, DELETE) sent by a page of another
+    origin, as the WebSocket endpoints do: without it, in the no-token loopback mode any web
+    page the user opens could start recordings, jobs and replays. Scripts send no Origin."""
+
+    def __init__(self, app: Any, settings: ServerSettings) -> None:
+        self.app = app
+        self.settings = settings
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and scope["method"] not in SAFE_METHODS:
+            headers = dict(scope.get("headers") or [])
+            origin = headers.get(b"origin")
+            host = headers.get(b"host")
+            text = origin.decode("latin-1") if origin is not None else None
+            if not origin_allowed(
+                self.settings, text, host.decode("latin-1") if host is not None else None
+            ):
+                detail = (
+                    f"origin {text!r} may not {scope['method']} on this server: only its own "
+                    "pages and --allow-origin origins may change its state"
+                )
+                await JSONResponse({"detail": detail}, 403)(scope, receive, send)
                 return
         await self.app(scope, receive, send)

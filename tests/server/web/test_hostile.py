@@ -673,3 +673,47 @@ def test_uploads_are_refused_from_their_headers_and_spool_into_the_servers_own_f
         assert not any(system_tmp.iterdir())
     finally:
         server.stop()
+
+
+def test_a_page_of_another_origin_cannot_change_state(tmp_path: Path) -> None:
+    """Round three: in the no-token loopback mode any web page could start recordings (201),
+    jobs (202) and replays (201): REST had no Origin check."""
+    server = start_server(
+        make_settings(tmp_path, token=None, viewer_token=None, open_on_loopback=True)
+    )
+    try:
+        sim = Peer(server.ws_url, "simulation", None)
+        topo, pos = molecule(12)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        viewer = Peer(server.view_url, "viewer", None)
+        viewer.expect(p.Image, 60)
+        evil = {"Origin": "http://evil.example"}
+        with httpx.Client(base_url=server.url, timeout=60) as c:
+            pdb = Path(PDB_small).read_bytes()
+            attempts = [
+                c.post("/api/sessions/default/recordings", headers=evil, json={}),
+                c.post("/api/jobs", headers=evil, files={"topology": ("a.pdb", pdb)}),
+                c.post("/api/replays", headers=evil, files={"topology": ("a.pdb", pdb)}),
+                c.post("/api/sessions/default/movies", headers=evil),
+                c.delete("/api/jobs/j0", headers=evil),
+                c.post("/api/render", headers={"Origin": "null"}, data={"session": "default"}),
+            ]
+            for r in attempts:
+                assert r.status_code == 403, (r.request.url, r.status_code, r.text)
+                assert "may not" in r.json()["detail"]
+            assert "'http://evil.example'" in attempts[0].json()["detail"]
+            assert c.get("/api/recordings").json() == []
+            assert c.get("/api/replays").json() == []
+            # reading is not refused (a browser keeps a foreign page from seeing the answer)
+            assert c.get("/api/sessions", headers=evil).status_code == 200
+            # the server's own pages and scripts (no Origin) may
+            own = {"Origin": server.url}
+            r = c.post("/api/sessions/default/recordings", headers=own, json={})
+            assert r.status_code == 201, r.text
+            r = c.post(f"/api/recordings/{r.json()['id']}/stop")
+            assert r.status_code == 200, r.text
+        sim.close()
+        viewer.close()
+    finally:
+        server.stop()
