@@ -5,7 +5,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import secrets
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -121,6 +121,8 @@ class ServerSettings:
     """Wall time to open a file (and to read one frame: a quarter of it)."""
     max_file_bytes: int = 2 << 30
     """Largest size of a file once decompressed (`.gz`, `.bz2`)."""
+    viewer_max_file_bytes: int = 256 << 20
+    """The same for a file a viewer-token holder uploads (500,000 atoms of PDB take 40 MB)."""
     viewer_renders_per_min: float = 30.0
     """`/api/render` calls a viewer-token holder may make per minute (all viewers together)."""
     viewer_max_atoms: int = 500_000
@@ -177,8 +179,8 @@ class ServerSettings:
 
     @property
     def spool_dir(self) -> Path:
-        """Where uploads wait while they are parsed: the server's own, never the system's
-        temporary directory."""
+        """Where uploads wait while they are parsed and compressed files are inflated to be
+        read: the server's own, never the system's temporary directory."""
         return self.state_dir / "spool"
 
     def read_limits(self, role: str = "steerer") -> ReadLimits:
@@ -189,11 +191,18 @@ class ServerSettings:
             max_atoms=min(self.limits.max_atoms, self.viewer_max_atoms)
             if viewer
             else self.limits.max_atoms,
-            max_file_bytes=self.max_file_bytes,
+            max_file_bytes=min(self.max_file_bytes, self.viewer_max_file_bytes)
+            if viewer
+            else self.max_file_bytes,
             memory_bytes=self.read_memory_bytes,
             open_s=timeout,
             frame_s=timeout / 4,
         )
+
+    def spooled_read_limits(self, role: str = "steerer") -> ReadLimits:
+        """`read_limits` for the server, whose compressed files inflate into its spool (the
+        command-line tools read the user's own files, in the system's temporary directory)."""
+        return replace(self.read_limits(role), scratch_dir=str(self.spool_dir))
 
     def __post_init__(self) -> None:
         if self.open_on_loopback and not is_loopback(self.host):

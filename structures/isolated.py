@@ -16,6 +16,7 @@ import contextlib
 import gzip
 import multiprocessing.connection
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -51,6 +52,9 @@ class ReadLimits:
     """Wall time to open the files and build the topology."""
     frame_s: float = 30.0
     """Wall time to read one frame."""
+    scratch_dir: str | None = None
+    """Where compressed files are inflated (a folder per read, removed when the read ends,
+    even by a kill); None: the system's temporary directory."""
 
 
 def _start_child() -> tuple[subprocess.Popen[bytes], multiprocessing.connection.Connection]:
@@ -106,9 +110,14 @@ class IsolatedStructure:
     ) -> None:
         self.limits = limits
         self.label = label or ", ".join(os.path.basename(f) for f in (topology, *trajectories))
-        self._process, self._conn = _take_child()
+        self._scratch = tempfile.mkdtemp(prefix="read-", dir=limits.scratch_dir)
         try:
-            self._conn.send(("open", (topology, list(trajectories), limits)))
+            self._process, self._conn = _take_child()
+        except BaseException:
+            shutil.rmtree(self._scratch, ignore_errors=True)
+            raise
+        try:
+            self._conn.send(("open", (topology, list(trajectories), limits, self._scratch)))
             self.topology: Topology
             self.n_frames: int
             self.topology, self.n_frames = self._answer(limits.open_s, "open")
@@ -171,13 +180,14 @@ class IsolatedStructure:
         self._process.wait()
 
     def close(self) -> None:
-        """End the child (politely, then by force)."""
+        """End the child (politely, then by force) and remove what it inflated."""
         with contextlib.suppress(OSError):
             self._conn.send(("close", None))
         with contextlib.suppress(subprocess.TimeoutExpired):
             self._process.wait(1.0)
         self._kill()
         self._conn.close()
+        shutil.rmtree(self._scratch, ignore_errors=True)
 
     def __enter__(self) -> IsolatedStructure:
         return self
@@ -197,9 +207,9 @@ def _main() -> None:
     except (EOFError, OSError):
         return
     if kind == "open":
-        topology, trajectories, limits = value
+        topology, trajectories, limits, scratch = value
         _limit_resources(limits)
-        _serve(conn, topology, trajectories, limits)
+        _serve(conn, topology, trajectories, limits, scratch)
 
 
 def _serve(
@@ -207,32 +217,32 @@ def _serve(
     topology: str,
     trajectories: list[str],
     limits: ReadLimits,
+    scratch: str,
 ) -> None:
-    with tempfile.TemporaryDirectory(prefix="scalesteer-read-") as scratch:
+    try:
+        top = _prepare(topology, scratch, limits)
+        trajs = [_prepare(t, scratch, limits) for t in trajectories]
+        structure = load(top, trajs, max_atoms=limits.max_atoms)
+        conn.send(("ok", (structure.topology, structure.n_frames)))
+    except StructureError as exc:
+        conn.send(("error", str(exc)))
+        return
+    except MemoryError:
+        conn.send(("error", f"{os.path.basename(topology)}: too large to read here"))
+        return
+    while True:
         try:
-            top = _prepare(topology, scratch, limits)
-            trajs = [_prepare(t, scratch, limits) for t in trajectories]
-            structure = load(top, trajs, max_atoms=limits.max_atoms)
-            conn.send(("ok", (structure.topology, structure.n_frames)))
-        except StructureError as exc:
-            conn.send(("error", str(exc)))
+            kind, value = conn.recv()
+        except (EOFError, OSError):
             return
+        if kind != "positions":
+            return
+        try:
+            conn.send(("ok", structure.positions(int(value))))
         except MemoryError:
-            conn.send(("error", f"{os.path.basename(topology)}: too large to read here"))
-            return
-        while True:
-            try:
-                kind, value = conn.recv()
-            except (EOFError, OSError):
-                return
-            if kind != "positions":
-                return
-            try:
-                conn.send(("ok", structure.positions(int(value))))
-            except MemoryError:
-                conn.send(("error", f"frame {value}: too large to read here"))
-            except Exception as exc:  # a reader's own error for one frame, sent as text
-                conn.send(("error", f"cannot read frame {value}: {str(exc)[:300]}"))
+            conn.send(("error", f"frame {value}: too large to read here"))
+        except Exception as exc:  # a reader's own error for one frame, sent as text
+            conn.send(("error", f"cannot read frame {value}: {str(exc)[:300]}"))
 
 
 def _limit_resources(limits: ReadLimits) -> None:

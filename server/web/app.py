@@ -149,7 +149,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
                 gpu,
                 encoders,
                 metrics,
-                settings.read_limits(),
+                settings.spooled_read_limits(),
                 retention_s=settings.job_retention_s,
                 max_bytes=settings.job_max_bytes,
                 max_running=settings.max_running_jobs,

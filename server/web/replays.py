@@ -76,7 +76,7 @@ async def open_replay(
                     IsolatedStructure,
                     str(files[0]),
                     [str(f) for f in files[1:]],
-                    state.settings.read_limits(),
+                    state.settings.spooled_read_limits(),
                 )
             except StructureError as exc:
                 raise HTTPException(422, str(exc)) from None

@@ -148,7 +148,7 @@ async def _read_frame(
     async with state.readers:
         try:
             structure = await asyncio.to_thread(
-                IsolatedStructure, str(path), (), state.settings.read_limits(role)
+                IsolatedStructure, str(path), (), state.settings.spooled_read_limits(role)
             )
         except StructureError as exc:
             raise HTTPException(422, str(exc)) from None
@@ -311,7 +311,7 @@ async def create_job(
                     IsolatedStructure,
                     str(top),
                     [str(t) for t in trajs],
-                    state.settings.read_limits(),
+                    state.settings.spooled_read_limits(),
                 )
             except StructureError as exc:
                 raise HTTPException(422, str(exc)) from None

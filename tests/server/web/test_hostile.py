@@ -8,6 +8,7 @@ survive a crash or be killed run as their own process (`tests.server.processes`)
 from __future__ import annotations
 
 import asyncio
+import bz2
 import concurrent.futures
 import gzip
 import math
@@ -15,6 +16,7 @@ import os
 import random
 import signal
 import socket
+import threading
 import time
 from collections.abc import Coroutine, Iterator
 from pathlib import Path
@@ -716,4 +718,50 @@ def test_a_page_of_another_origin_cannot_change_state(tmp_path: Path) -> None:
         sim.close()
         viewer.close()
     finally:
+        server.stop()
+
+
+def test_a_bz2_bomb_through_the_viewer_link_inflates_within_its_cap_in_the_spool(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Round three: a bz2 bomb through the viewer link decompressed 2 GiB into $TMPDIR before
+    its 422."""
+    system_tmp = tmp_path / "system-tmp"
+    system_tmp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(system_tmp))
+    cap = 16_000_000
+    server = ServerProcess(tmp_path / "state", "--set", f"viewer_max_file_bytes={cap}")
+    seen: set[str] = set()
+    reading = True
+
+    def watch() -> None:  # what appears in the system's temporary directory meanwhile
+        while reading:
+            seen.update(str(p) for p in system_tmp.rglob("*"))
+            time.sleep(0.01)
+
+    try:
+        packer = bz2.BZ2Compressor(9)
+        bomb = b"".join(packer.compress(bytes(1 << 20)) for _ in range(64)) + packer.flush()
+        assert len(bomb) < 10_000  # 64 MiB inside
+        watcher = threading.Thread(target=watch)
+        watcher.start()
+        with httpx.Client(base_url=server.url, timeout=60) as c:
+            r = c.post("/api/render", headers=VIEWER, files={"file": ("bomb.pdb.bz2", bomb)})
+            assert r.status_code == 422, r.text
+            assert f"bomb.pdb.bz2 decompresses to more than {cap} bytes" in r.json()["detail"]
+            # a real compressed structure is read as before
+            packed = gzip.compress(Path(PDB_small).read_bytes())
+            r = c.post(
+                "/api/render",
+                headers=VIEWER,
+                files={"file": ("small.pdb.gz", packed)},
+                data={"width": "32", "height": "24"},
+            )
+            assert r.status_code == 200, r.text
+        reading = False
+        watcher.join()
+        assert not seen, sorted(seen)[:5]
+        assert not any((server.state_dir / "spool").iterdir())  # each read's folder is gone
+    finally:
+        reading = False
         server.stop()
