@@ -185,10 +185,11 @@ def dashboard_urls(settings: ServerSettings, session: str | None = None) -> tupl
 def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
     import uvicorn
 
+    from server.web import accesslog
     from server.web.app import create_app
     from server.web.transport import guarded_protocol
 
-    return uvicorn.Config(
+    config = uvicorn.Config(
         app if app is not None else create_app(settings),
         host=settings.host,
         port=settings.port,
@@ -206,6 +207,8 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
         # a shutdown never waits on a client for more than this (open dashboards included)
         timeout_graceful_shutdown=5,
     )
+    accesslog.install()  # after the config set uvicorn's logging up
+    return config
 
 
 def run(settings: ServerSettings, log_level: str = "info") -> None:

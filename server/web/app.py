@@ -30,7 +30,7 @@ from server.settings import ServerSettings
 from server.web import ws as ws_endpoints
 from server.web.apidocs import add_docs
 from server.web.auth import RateLimiter
-from server.web.middleware import HostCheck, OriginCheck, UploadLimit
+from server.web.middleware import HostCheck, OriginCheck, SecurityHeaders, UploadLimit
 from server.web.recordings import router as recordings_router
 from server.web.replays import router as replays_router
 from server.web.rest import router
@@ -216,8 +216,9 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     if (settings.client_dir / "index.html").is_file():
         app.mount("/", StaticFiles(directory=settings.client_dir, html=True), name="client")
-    # the last added runs first: Host, Origin, then the body limits
+    # the last added runs first: headers on every answer, then Host, Origin, the body limits
     app.add_middleware(UploadLimit, spool=spool)
     app.add_middleware(OriginCheck, settings=settings)
     app.add_middleware(HostCheck, settings=settings)
+    app.add_middleware(SecurityHeaders, settings=settings)
     return app

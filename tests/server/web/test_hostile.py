@@ -765,3 +765,31 @@ def test_a_bz2_bomb_through_the_viewer_link_inflates_within_its_cap_in_the_spool
     finally:
         reading = False
         server.stop()
+
+
+def test_tokens_stay_out_of_the_logs_and_pages_send_no_referrer(tmp_path: Path) -> None:
+    """Round three: tokens landed in the access log and there was no Referrer-Policy."""
+    server = ServerProcess(tmp_path / "state", "--log-level", "info")
+    try:
+        with httpx.Client(base_url=server.url, timeout=30) as c:
+            page = c.get("/", params={"token": TOKEN})
+            assert page.status_code == 200
+            r = c.get("/api/sessions", params={"role": "viewer", "token": VIEWER_TOKEN})
+            assert r.status_code == 200
+            refused = c.get("/healthz", headers={"Host": "evil.example"})
+            assert refused.status_code == 403
+        peer = Peer(f"{server.view_url}?token={TOKEN}", "viewer", VIEWER_TOKEN)
+        peer.close()
+        for response in (page, r, refused):
+            assert response.headers["referrer-policy"] == "no-referrer"
+            assert response.headers["x-content-type-options"] == "nosniff"
+            assert response.headers["content-security-policy"] == "frame-ancestors 'self'"
+    finally:
+        server.stop()
+    # the links printed at start carry the tokens, as Jupyter's do; the request lines do not
+    requests = [x for x in server.log.read_text().splitlines() if '"GET ' in x or "WebSocket" in x]
+    logged = "\n".join(requests)
+    assert len(requests) >= 4, logged
+    assert "/?token=[redacted]" in logged and "/ws/view?token=[redacted]" in logged
+    assert "role=viewer&token=[redacted]" in logged
+    assert TOKEN not in logged and VIEWER_TOKEN not in logged
