@@ -175,6 +175,10 @@ class ServerSettings:
     stats_interval_s: float = 1.0
     state_interval_s: float = 0.1
     hello_timeout_s: float = 10.0
+    header_timeout_s: float = 10.0
+    """Time a connection has for a request's headers, from its opening (or its first byte
+    after the last response): one that sent part of them is answered 408, one that sent
+    nothing is closed."""
     client_dir: Path = Path(__file__).resolve().parents[1] / "client_web"
 
     @property

@@ -566,7 +566,16 @@ def partial_request(
 
 
 def answer(sock: socket.socket, timeout: float = 10.0) -> tuple[int, dict[str, str], str]:
-    """Status, headers and body of the response on `sock` (status 0: none within `timeout`)."""
+    """Status, headers and body of the response on `sock` (status 0: none within `timeout`),
+    which is closed then."""
+    try:
+        return read_response(sock, timeout)
+    finally:
+        sock.close()
+
+
+def read_response(sock: socket.socket, timeout: float) -> tuple[int, dict[str, str], str]:
+    """The next response on `sock` (status 0: none within `timeout`)."""
     sock.settimeout(timeout)
     data = b""
     try:
@@ -577,8 +586,6 @@ def answer(sock: socket.socket, timeout: float = 10.0) -> tuple[int, dict[str, s
             data += chunk
     except TimeoutError:
         return 0, {}, ""
-    finally:
-        sock.close()
     if not data:
         return 0, {}, ""
     head, _, body = data.partition(b"\r\n\r\n")
@@ -793,3 +800,38 @@ def test_tokens_stay_out_of_the_logs_and_pages_send_no_referrer(tmp_path: Path) 
     assert "/?token=[redacted]" in logged and "/ws/view?token=[redacted]" in logged
     assert "role=viewer&token=[redacted]" in logged
     assert TOKEN not in logged and VIEWER_TOKEN not in logged
+
+
+def test_half_sent_headers_are_not_held(tmp_path: Path) -> None:
+    """Round three: connections that sent part of a request's headers (or nothing) were held
+    with no timeout (500 still open after 20 s)."""
+    server = ServerProcess(tmp_path / "state", "--set", "header_timeout_s=1")
+    try:
+        viewer = Peer(server.view_url, "viewer", VIEWER_TOKEN)  # a WebSocket is not timed
+        half = f"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\nX-Slow: ".encode()
+        partial, silent = [], []
+        for _ in range(30):
+            sock = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+            sock.sendall(half)
+            partial.append(sock)
+        for _ in range(5):
+            silent.append(socket.create_connection(("127.0.0.1", server.port), timeout=10))
+        # a keep-alive connection whose next request stops half way
+        kept = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+        kept.sendall(f"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\n\r\n".encode())
+        assert read_response(kept, 10)[0] == 200
+        kept.sendall(half)
+        partial.append(kept)
+        for sock in partial:
+            status, _, body = answer(sock, 15)
+            assert status == 408 and "did not arrive within 1 s" in body
+        for sock in silent:
+            sock.settimeout(15)
+            assert sock.recv(1) == b""  # closed without a word
+            sock.close()
+        assert httpx.get(f"{server.url}/healthz").status_code == 200
+        viewer.send(p.Ping(client_time=2.0))
+        assert viewer.expect(p.Pong, 10).client_time == 2.0
+        viewer.close()
+    finally:
+        server.stop()
