@@ -1,10 +1,10 @@
-"""Who may do what: tokens grant roles, WebSocket Origins are checked, steering is rate-limited."""
+"""Who may do what: tokens grant roles, Origins are checked, steering is rate-limited per client."""
 
 from __future__ import annotations
 
 import hmac
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from urllib.parse import urlsplit
 
 from protocol import Role
@@ -110,3 +110,53 @@ class RateLimiter:
     def wait_s(self) -> float:
         """Seconds until the next call would be allowed."""
         return max(0.0, (1.0 - self.tokens) / self.rate)
+
+    def full(self, now: float) -> bool:
+        """Whether the bucket has refilled (a fresh one would be no different)."""
+        return self.tokens < 0 or self.tokens + (now - self.stamp) * self.rate >= self.burst
+
+
+ANY_PER_STEER = 20
+"""Other messages (views, picks, pings) a client may send per steering message allowed."""
+
+
+@dataclass
+class ClientBudget:
+    """What one client may still send: steering messages, and all others."""
+
+    steer: RateLimiter
+    any: RateLimiter
+    users: int = 0
+    """Connections of this client open now."""
+
+
+@dataclass
+class ClientBudgets:
+    """Rate limits per client, not per connection: a client is a role at a remote address, so
+    one that reconnects (or opens several connections) finds its budget as it left it. Budgets
+    nobody uses are forgotten once they have refilled."""
+
+    _budgets: dict[tuple[str, str], ClientBudget] = field(default_factory=dict)
+
+    def take(self, role: str, address: str, steer_per_s: float) -> ClientBudget:
+        """The budget of `role` at `address` (steering at `steer_per_s`, bursts as large),
+        counted as used until `give_back`."""
+        now = time.monotonic()
+        for key, idle in list(self._budgets.items()):
+            if idle.users == 0 and idle.steer.full(now) and idle.any.full(now):
+                del self._budgets[key]
+        budget = self._budgets.get((role, address))
+        if budget is None:
+            others = ANY_PER_STEER * steer_per_s
+            budget = self._budgets[(role, address)] = ClientBudget(
+                RateLimiter(steer_per_s, max(1.0, steer_per_s)),
+                RateLimiter(others, max(1.0, others)),
+            )
+        budget.users += 1
+        return budget
+
+    def give_back(self, budget: ClientBudget) -> None:
+        budget.users -= 1
+
+    def __len__(self) -> int:
+        return len(self._budgets)

@@ -25,7 +25,7 @@ from server.session.services import Services
 from server.session.session import Session
 from server.session.steering_log import SteeringLog
 from server.settings import ServerSettings
-from server.web.auth import RateLimiter
+from server.web.auth import ClientBudgets, RateLimiter
 from server.web.children import ReplayManager
 
 _SESSION_NAME = re.compile(SESSION_NAME)
@@ -111,6 +111,8 @@ class AppState:
     viewer_renders: RateLimiter
     """`/api/render` calls by viewer-token holders, together."""
     connections: Connections = field(default_factory=Connections)
+    budgets: ClientBudgets = field(default_factory=ClientBudgets)
+    """WebSocket rate limits per client (role and remote address), across its connections."""
     replays: ReplayManager = field(default_factory=ReplayManager)
     """Replays opened from the dashboard (child processes)."""
 

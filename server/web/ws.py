@@ -25,6 +25,7 @@ from server.session.session import Session
 from server.web.auth import (
     SIMULATION_TYPES,
     STEERING_TYPES,
+    ClientBudget,
     RateLimiter,
     grant,
     may_send,
@@ -38,8 +39,6 @@ log = logging.getLogger("scalesteer.ws")
 Endpoint = Literal["sim", "view"]
 _client_ids = itertools.count(1)
 MAX_ERRORS_PER_10S = 50
-ANY_PER_STEER = 20
-"""Other messages (views, picks, pings) a connection may send per steering message allowed."""
 OFFLOAD_BYTES = 1 << 20
 PONG_BACKLOG = 64
 """A ping is not answered while this many messages wait to be sent to its peer."""
@@ -47,16 +46,16 @@ PONG_BACKLOG = 64
 
 @dataclass
 class Guard:
-    """Per-connection rate limits and the count of its recent protocol errors."""
+    """A connection's rate limits (its client's, shared with the client's other connections)
+    and the count of its own recent protocol errors."""
 
     steer: RateLimiter
     any: RateLimiter
     errors: deque[float] = field(default_factory=lambda: deque(maxlen=64))
 
     @classmethod
-    def for_limits(cls, limits: p.Limits) -> Guard:
-        rate = limits.max_steer_per_s
-        return cls(RateLimiter(rate, rate), RateLimiter(ANY_PER_STEER * rate, ANY_PER_STEER * rate))
+    def of(cls, budget: ClientBudget) -> Guard:
+        return cls(budget.steer, budget.any)
 
     def note_error(self) -> int:
         """Record a protocol error; returns how many happened in the last 10 s."""
@@ -120,6 +119,7 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
     session = None
     sender: asyncio.Task[None] | None = None
     counted: str | None = None
+    budget: ClientBudget | None = None
     state.connections.total += 1
     try:
         hello = await _handshake(ws, state, endpoint)
@@ -174,7 +174,9 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
             ws=ws,
             instance=hello.instance,
         )
-        guard = Guard.for_limits(limits)
+        address = ws.client.host if ws.client is not None else ""
+        budget = state.budgets.take(role, address, limits.max_steer_per_s)
+        guard = Guard.of(budget)
         client.send(
             p.Welcome(session_id=session.id, client_id=client.client_id, role=role, limits=limits)
         )
@@ -199,6 +201,8 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
         state.connections.total -= 1
         if counted is not None:
             state.connections.by_token[counted] -= 1
+        if budget is not None:
+            state.budgets.give_back(budget)
         if client is not None:
             if session is not None:
                 session.detach(client)
@@ -332,11 +336,15 @@ async def _dispatch(session: Session, client: Client, guard: Guard, message: p.M
     # a simulation's own messages are never rate-limited: its frames are read one at a time and
     # the newest replaces the last (ingest is paced by `frame_taken`, not refused)
     if not (client.role == "simulation" and kind in SIMULATION_TYPES):
-        limiter = guard.steer if kind in STEERING_TYPES else guard.any
+        steering = kind in STEERING_TYPES
+        limiter = guard.steer if steering else guard.any
         if not limiter.allow():
+            what = "steering messages" if steering else "messages other than steering"
             raise p.ProtocolError(
                 p.ErrorCode.RATE_LIMITED,
-                f"too many {kind} messages; slow down",
+                f"too many {kind} messages: {what} are limited to {limiter.rate:g} a second "
+                "for each client (its role and address, all its connections together); "
+                "slow down",
                 "type",
                 message.seq,
             )

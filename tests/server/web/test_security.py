@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import random
 import time
 
@@ -274,5 +275,57 @@ def test_pulls_are_capped(tmp_path) -> None:  # type: ignore[no-untyped-def]
         assert err.code == "too_large" and err.path == "pull.atom"
         sim.close()
         steerer.close()
+    finally:
+        server.stop()
+
+
+def test_the_steering_budget_is_the_clients_not_the_connections(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Round three: the steering rate limit started afresh on every reconnection (15,114
+    actions accepted in 30 s, 4.2 times the limit, each one fsync'd to the steering log)."""
+    from tests.conftest import make_settings, start_server
+
+    rate = 1.0  # one steering message a second, bursts of one
+    limits = p.Limits(max_message_bytes=256 * 1024, max_steer_per_s=rate)
+    server = start_server(make_settings(tmp_path, viewer_limits=limits))
+    try:
+        accepted = refused = 0
+        started = time.monotonic()
+        for _ in range(6):  # a flood that reconnects after every refusal
+            steerer = Peer(server.view_url, "steerer", server.token)
+            seqs = []
+            for _ in range(3):  # each a change (a change is what the log records)
+                sigma = 1.0 + 0.01 * (accepted + refused + len(seqs))
+                seqs.append(steerer.send(p.SetRenderParams(params={"sigma_A": sigma})))
+            steerer.send(p.Ping(client_time=0.0))
+            replies = []
+            while not any(isinstance(m, p.Pong) for m in replies):
+                replies.append(steerer.recv(10))
+            errors = {m.ref: m for m in replies if isinstance(m, p.Error)}
+            for seq in seqs:
+                if seq in errors:
+                    assert errors[seq].code == "rate_limited"
+                    assert "1 a second for each client" in errors[seq].message
+                    refused += 1
+                else:
+                    accepted += 1
+            steerer.close()
+        elapsed = time.monotonic() - started
+        # one burst, then what refilled meanwhile: not a fresh burst per connection
+        assert accepted <= 1 + math.floor(elapsed * rate), (accepted, elapsed)
+        assert refused >= 18 - accepted
+        # the log holds what was accepted, and only that (its writer thread may lag a little)
+        deadline = time.monotonic() + 10
+        while True:
+            log = server.app_state.steering_log.read("default")
+            logged = sum(e.get("event") == "render_params" for e in log)
+            if logged >= accepted or time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        assert logged == accepted
+        # a viewer at the same address is another client: its own budget is whole
+        viewer = Peer(server.view_url, "viewer", server.viewer_token)
+        viewer.send(p.Ping(client_time=3.0))
+        assert viewer.expect(p.Pong, 10).client_time == 3.0
+        viewer.close()
     finally:
         server.stop()
