@@ -24,7 +24,8 @@ class ErrorCode(StrEnum):
     CONFLICT = "conflict"
     """The session already has a simulation from another adapter instance."""
     CAPACITY = "capacity"
-    """The server, the session or the token holds its limit of connections; try again later."""
+    """The server, the session or the token holds its limit of connections; try again later.
+    With the path `view.video`: of video streams (the view gets JPEG images meanwhile)."""
 
 
 class ProtocolError(Exception):

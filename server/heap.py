@@ -16,9 +16,11 @@ until the process ends.
 
 from __future__ import annotations
 
+import ctypes
 import gc
 import logging
 import time
+from typing import Any
 
 log = logging.getLogger("scalesteer.heap")
 
@@ -36,3 +38,21 @@ def settle() -> float:
     ms = (time.perf_counter() - t0) * 1e3
     log.info("heap settled: %d objects frozen in %.0f ms", gc.get_freeze_count(), ms)
     return ms
+
+
+def give_back_memory() -> None:
+    """Return the heap freed since to the system (glibc keeps freed memory in its arenas: after
+    ten 640x480 SVT-AV1 encoders closed, the process kept 117 of their 171 MB until this ran,
+    and 23 after). Called from a thread when video encoders close; a no-op without glibc."""
+    global _TRIM
+    if _TRIM is None:
+        try:
+            _TRIM = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):
+            _TRIM = False
+    if _TRIM:
+        _TRIM(0)
+
+
+_TRIM: Any = None
+"""glibc's `malloc_trim`, False where there is none."""

@@ -86,7 +86,7 @@ class ServerSettings:
     """Open WebSockets, all endpoints together (a connection counts from its first byte)."""
     max_connections_per_token: int = 256
     """Connections holding one token (the server token, or the viewer token) at once."""
-    max_clients_per_session: int = 256
+    max_clients_per_session: int = 64
     """Viewers and steerers of one session at once."""
     job_retention_s: float = 24 * 3600.0
     """How long a finished job's output stays downloadable."""
@@ -137,6 +137,11 @@ class ServerSettings:
     """Video codecs the server streams to viewers that decode them, best first; empty: JPEG
     only. Each is encoded by NVENC where the GPU has it, else in software (server/pipeline/
     video.py)."""
+    max_video_streams: int = 16
+    """Video streams (each with an encoder of its own, 12-160 MB) open in the whole server;
+    viewers that would need another get JPEG images until one closes."""
+    max_video_streams_per_session: int = 8
+    """The same for one session, so that one session's viewers cannot take them all."""
     video_kbps_per_mpixel: float = 4500.0
     """A stream's bit rate when the link allows it: per million pixels of canvas at 60 fps
     (1920x1080: 9.3 Mbit/s)."""

@@ -264,16 +264,38 @@ def _probe(codec: str, encoder: str) -> str | None:
 
 
 class VideoEncoders:
-    """Which encoder serves each codec on this server, found by probing once (lazily)."""
+    """Which encoder serves each codec on this server, found by probing once (lazily), and how
+    many streams may have one open at once.
 
-    def __init__(self, codecs: tuple[str, ...]) -> None:
+    An encoder holds its own frames and look-ups: after two frames, about 12 MB (libx264) to
+    17 MB (SVT-AV1) at 640x480, 48 MB (libx264), 67 MB (SVT-AV1) and 160 MB (libvpx-vp9) at
+    1920x1080. Every viewer with a camera of its own would otherwise open one (80 such
+    viewers took 1.2 GB), so at most `max_streams` are open in the whole server; a viewer
+    beyond them gets JPEG images until one closes."""
+
+    def __init__(self, codecs: tuple[str, ...], max_streams: int = 16) -> None:
         unknown = [c for c in codecs if c not in CANDIDATES]
         if unknown:
             raise ValueError(f"unknown video codec(s) {unknown}; known: {', '.join(CANDIDATES)}")
         self.preference = codecs
+        self.max_streams = max_streams
+        self.open_streams = 0
+        """Streams holding a slot now (each has at most one encoder open)."""
         self._chosen: dict[str, str] | None = None
         self._why: dict[str, str] = {}
         self._lock = threading.Lock()
+
+    def take_slot(self) -> bool:
+        """A slot for one more stream; False when `max_streams` are open."""
+        with self._lock:
+            if self.open_streams >= self.max_streams:
+                return False
+            self.open_streams += 1
+            return True
+
+    def give_slot(self) -> None:
+        with self._lock:
+            self.open_streams -= 1
 
     def chosen(self) -> dict[str, str]:
         """codec -> encoder, for the codecs that have a working encoder here."""
@@ -322,4 +344,8 @@ class VideoEncoders:
 
     def describe(self) -> dict[str, Any]:
         chosen = self.chosen()
-        return {"encoders": dict(chosen), "unavailable": dict(self._why)}
+        return {
+            "encoders": dict(chosen),
+            "unavailable": dict(self._why),
+            "streams": {"open": self.open_streams, "max": self.max_streams},
+        }

@@ -87,6 +87,8 @@ class Client:
     """Video failed for this client (its encoder could not run): JPEG from now on."""
     video_stream: int | None = None
     """The video stream this client is on (None: JPEG)."""
+    video_refused: bool = False
+    """It was told that no video stream was free for it (and gets JPEG images meanwhile)."""
     awaiting_key: bool = True
     paced_images: bool = False
     """It acknowledges its JPEG images too (the dashboard does): they then go only while its

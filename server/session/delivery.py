@@ -23,9 +23,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import protocol as p
+from server.heap import give_back_memory
 from server.pipeline.gpu import RenderOutput
 from server.pipeline.video import FORMAT, WEBCODECS
-from server.session.clients import Client, ImageOffer
+from server.session.clients import Client, ClientState, ImageOffer
 from server.session.services import Services
 from server.session.streams import VideoStream, VideoStreams
 
@@ -64,7 +65,10 @@ class Delivery:
         self.services = services
         self.last_encode_ms = 0.0
         self.streams = VideoStreams(
-            services.video, services.video_kbps_per_mpixel, services.video_min_kbps
+            services.video,
+            services.video_kbps_per_mpixel,
+            services.video_min_kbps,
+            services.video_streams_per_session,
         )
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -78,6 +82,10 @@ class Delivery:
         """Encode and offer in tasks of their own; the caller's encode slot is released when
         they end. `on_failure` runs when the encode fails (the view must render again)."""
         now = time.monotonic()
+        # first the streams their viewers left (a slot they free serves this render)
+        self._closed(self.streams.leave_empty())
+        # a viewer that left while this rendered needs no image (nor a stream opened for it)
+        members = [c for c in members if c.state is ClientState.CONNECTED]
         stills: list[Client] = []
         by_stream: dict[VideoStream, list[Client]] = {}
         group = frozenset(c.client_id for c in members)
@@ -93,8 +101,13 @@ class Delivery:
                 stills.append(client)
             else:
                 stream = self.streams.stream_for(client, codec, rendered.camera_json, now, group)
-                by_stream.setdefault(stream, []).append(client)
-        self.streams.reap(now)
+                if stream is None:  # no stream to spare: JPEG, and the viewer is told why
+                    self._refuse_video(client)
+                    stills.append(client)
+                else:
+                    client.video_refused = False
+                    by_stream.setdefault(stream, []).append(client)
+        self._closed(self.streams.reap(now))
         # created here, in render order: each takes its stream's lock before any other await
         video = []
         for stream, clients in by_stream.items():
@@ -117,7 +130,28 @@ class Delivery:
         return list(self._tasks)
 
     def leave(self, client: Client) -> None:
-        self.streams.leave(client.client_id)
+        self._closed(self.streams.leave(client.client_id))
+
+    def close(self) -> None:
+        """The session ends: its streams close (their encoders and slots go back)."""
+        self._closed(self.streams.close())
+
+    def _refuse_video(self, client: Client) -> None:
+        if client.video_stream is not None:
+            client.leave_video()
+        if not client.video_refused:  # told once, until it gets a stream again
+            client.video_refused = True
+            self.services.metrics.errors.labels(p.ErrorCode.CAPACITY.value).inc()
+            client.send(
+                p.Error(
+                    code=p.ErrorCode.CAPACITY, message=self.streams.refusal(), path="view.video"
+                )
+            )
+
+    def _closed(self, streams: int) -> None:
+        """Streams closed: the heap their encoders held goes back to the system."""
+        if streams:
+            asyncio.get_running_loop().run_in_executor(None, give_back_memory)
 
     def _packer(
         self, rendered: Rendered, fmt: str, data: bytes, encode_ms: float, **video: Any
@@ -156,9 +190,22 @@ class Delivery:
         clients: list[Client],
         refs: dict[str, int | None],
     ) -> None:
+        try:
+            await self._encode_frame(rendered, stream, clients, refs)
+        finally:
+            if not stream.members:  # its viewers left while it encoded: it closes now
+                self._closed(self.streams.leave_empty())
+
+    async def _encode_frame(
+        self,
+        rendered: Rendered,
+        stream: VideoStream,
+        clients: list[Client],
+        refs: dict[str, int | None],
+    ) -> None:
         services = self.services
         async with stream.lock:
-            if rendered.image_id < stream.newest:
+            if stream.closed or rendered.image_id < stream.newest:
                 # a newer render waits behind this one: encode that (each encode would
                 # otherwise queue behind the last and every frame would arrive later)
                 services.metrics.frames_dropped.inc()
@@ -196,6 +243,8 @@ class Delivery:
                     rendered.out.i420,
                 )
             except Exception as exc:
+                if stream.closed:  # closed while this frame waited for the encoder thread
+                    return
                 log.warning(
                     "video encoder %s failed in session %s (%s: %s); its viewers get JPEG",
                     stream.encoder_name,

@@ -53,4 +53,6 @@ class Services:
     """Which video encoders this server has (probed on first use)."""
     video_kbps_per_mpixel: float = 4500.0
     video_min_kbps: float = 350.0
+    video_streams_per_session: int = 8
+    """Video streams (each with its encoder) one session may have open at once."""
     rest_jpeg_quality: int = 95

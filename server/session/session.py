@@ -1016,4 +1016,5 @@ class Session:
         for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+        self.delivery.close()
         await self.services.backend.release(self.slot)

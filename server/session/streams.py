@@ -12,6 +12,11 @@ camera that changes for them together), the stream carries on under the new came
 frames. A viewer that leaves the others' view (or changes size, codec or rung) starts a stream
 of its own at a keyframe: a keyframe per camera move would swamp a slow link while the user
 turns the molecule.
+
+Encoders cost memory (`server.pipeline.video.VideoEncoders`), so a session opens at most
+`max_streams` streams and the server at most its `max_streams` in all: a viewer that would need
+one more gets JPEG images (and one `capacity` error naming the limit) until a stream closes. A
+stream closes, and its encoder with it, as soon as its last viewer leaves it.
 """
 
 from __future__ import annotations
@@ -19,6 +24,8 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -61,7 +68,13 @@ class VideoStream:
     frames: int = 0
     keyframes: int = 0
     """Frames encoded, and how many of them were keyframes (joins, resizes, lost frames)."""
+    closed: bool = False
+    """Its viewers left and its slot was given back: an encode still waiting for the lock
+    finds it so and leaves the frame out."""
     _encoder: VideoEncoder | None = None
+    _busy: threading.Lock = field(default_factory=threading.Lock)
+    """Held by the encoder thread while it encodes and by `close`: an encoder is never
+    closed under a frame (a cancelled encode task leaves its thread running)."""
 
     def encode(
         self,
@@ -74,28 +87,41 @@ class VideoStream:
         """Encode one frame at `size` (runs in an encoder thread, under `lock`); `key` asks for
         a keyframe. A new size or bit rate opens a new encoder, which starts with one. `i420`:
         the frame already converted at `size` on the device."""
-        w, h = size
-        enc = self._encoder
-        if enc is None or (enc.width, enc.height) != (w, h) or enc.kbps != kbps:
-            if enc is not None:
-                enc.close()
-            enc = self._encoder = VideoEncoder(self.codec, self.encoder_name, w, h, kbps)
-            self.kbps = kbps
-        return enc.encode(rgba, key=key, i420=i420)
+        with self._busy:
+            if self.closed:
+                raise RuntimeError(f"video stream {self.stream_id} is closed")
+            w, h = size
+            enc = self._encoder
+            if enc is None or (enc.width, enc.height) != (w, h) or enc.kbps != kbps:
+                if enc is not None:
+                    enc.close()
+                enc = self._encoder = VideoEncoder(self.codec, self.encoder_name, w, h, kbps)
+                self.kbps = kbps
+            return enc.encode(rgba, key=key, i420=i420)
 
     def close(self) -> None:
-        if self._encoder is not None:
-            self._encoder.close()
-            self._encoder = None
+        """Close the encoder (a failed one; or the stream's, with `closed` set by its owner);
+        the next frame opens a new one unless the stream is closed."""
+        with self._busy:
+            if self._encoder is not None:
+                self._encoder.close()
+                self._encoder = None
 
 
 class VideoStreams:
-    """The streams of one session, by `StreamKey`."""
+    """The streams of one session, by `StreamKey`; at most `max_streams` of them."""
 
-    def __init__(self, encoders: VideoEncoders, kbps_per_mpixel: float, min_kbps: float) -> None:
+    def __init__(
+        self,
+        encoders: VideoEncoders,
+        kbps_per_mpixel: float,
+        min_kbps: float,
+        max_streams: int = 8,
+    ) -> None:
         self.encoders = encoders
         self.kbps_per_mpixel = kbps_per_mpixel
         self.min_kbps = min_kbps
+        self.max_streams = max_streams
         self._streams: dict[StreamKey, VideoStream] = {}
         self._ids = itertools.count(1)
 
@@ -105,9 +131,18 @@ class VideoStreams:
         return max(self.min_kbps, self.kbps_per_mpixel * width * height / 1e6)
 
     def codec_for(self, client: Client) -> str | None:
+        """The codec `client` is streamed in; None: JPEG (it decodes no video we encode, its
+        video failed, or it was refused a stream and none is free yet)."""
         if client.view is None or not client.view.video or client.force_jpeg:
             return None
+        if client.video_refused and client.video_stream is None and not self._room():
+            return None
         return self.encoders.pick(client.view.video)
+
+    def _room(self) -> bool:
+        """Whether a new stream would get a slot now (in this session and in the server)."""
+        free = self.encoders.open_streams < self.encoders.max_streams
+        return free and len(self._streams) < self.max_streams
 
     def stream_for(
         self,
@@ -116,11 +151,12 @@ class VideoStreams:
         camera_json: str,
         now: float,
         group: frozenset[str] = frozenset(),
-    ) -> VideoStream:
-        """The stream `client` gets its next frame from (joining it when that is new).
-        `group`: the ids of every client this frame's render is for (all see `camera_json`);
-        the client's current stream follows it to the new camera when all its viewers are
-        among them."""
+    ) -> VideoStream | None:
+        """The stream `client` gets its next frame from (joining it when that is new), None
+        when it would need a new one and the session or the server holds its limit of streams
+        (it gets JPEG images meanwhile). `group`: the ids of every client this frame's render
+        is for (all see `camera_json`); the client's current stream follows it to the new
+        camera when all its viewers are among them."""
         view = client.view
         assert view is not None
         cap = self.cap_kbps(view.width, view.height)
@@ -135,6 +171,9 @@ class VideoStreams:
         if stream is None:
             stream = self._follow(client, key, group | {client.client_id})
         if stream is None:
+            self.leave(client.client_id)  # the stream it leaves gives its slot back first
+            if len(self._streams) >= self.max_streams or not self.encoders.take_slot():
+                return None
             encoder = self.encoders.chosen()[codec]
             stream = VideoStream(next(self._ids), key, codec, encoder, 0.0)
             stream.kbps = self.kbps(stream)
@@ -146,6 +185,18 @@ class VideoStreams:
             client.join_stream(stream.stream_id)  # it waits for a keyframe
         stream.last_used = now
         return stream
+
+    def refusal(self) -> str:
+        """Why a viewer gets no stream of its own (what `stream_for` returning None means)."""
+        if len(self._streams) >= self.max_streams:
+            return (
+                f"this session streams video for {self.max_streams} views at once, its limit "
+                "(max_video_streams_per_session); this view gets JPEG images until one ends"
+            )
+        return (
+            f"the server streams video for {self.encoders.max_streams} views at once, its "
+            "limit (max_video_streams); this view gets JPEG images until one ends"
+        )
 
     def _follow(self, client: Client, key: StreamKey, group: frozenset[str]) -> VideoStream | None:
         """The client's stream, moved to `key`, when only the camera differs and all its
@@ -170,15 +221,37 @@ class VideoStreams:
             kbps = min(kbps, self.cap_kbps(*size))
         return kbps
 
-    def leave(self, client_id: str) -> None:
+    def leave(self, client_id: str) -> int:
+        """The client leaves its stream, which closes if it was the last viewer (one encoding
+        a frame closes when the frame is done); returns how many streams closed."""
         for stream in self._streams.values():
             stream.members.discard(client_id)
+        return self._close_where(lambda s: not s.members)
 
-    def reap(self, now: float) -> None:
+    def leave_empty(self) -> int:
+        """Close the streams whose viewers all moved to others; how many closed."""
+        return self._close_where(lambda s: not s.members)
+
+    def reap(self, now: float) -> int:
+        """Close streams nobody watches or no frame went to for `IDLE_S`; how many closed."""
+        return self._close_where(lambda s: not s.members or now - s.last_used > IDLE_S)
+
+    def close(self) -> int:
+        """Close every stream (the session ends); how many closed."""
+        return self._close_where(lambda s: True, even_encoding=True)
+
+    def _close_where(
+        self, condition: Callable[[VideoStream], bool], even_encoding: bool = False
+    ) -> int:
+        closed = 0
         for key, stream in list(self._streams.items()):
-            if (not stream.members or now - stream.last_used > IDLE_S) and not stream.lock.locked():
-                stream.close()
+            if condition(stream) and (even_encoding or not stream.lock.locked()):
                 del self._streams[key]
+                stream.closed = True
+                stream.close()
+                self.encoders.give_slot()
+                closed += 1
+        return closed
 
     def __len__(self) -> int:
         return len(self._streams)

@@ -117,7 +117,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         upload_dir = state_dir / "uploads"
         upload_dir.mkdir(parents=True, exist_ok=True)
 
-        video = VideoEncoders(settings.video_codecs)
+        video = VideoEncoders(settings.video_codecs, settings.max_video_streams)
         await asyncio.to_thread(video.chosen)  # probe once, before the first viewer waits on it
         # the selection language loads while the server starts (not when the first topology
         # arrives, on the event loop)
@@ -132,6 +132,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             video=video,
             video_kbps_per_mpixel=settings.video_kbps_per_mpixel,
             video_min_kbps=settings.video_min_kbps,
+            video_streams_per_session=settings.max_video_streams_per_session,
             rest_jpeg_quality=settings.rest_jpeg_quality,
         )
         batch = batch_engine(settings, state_dir / "ray")

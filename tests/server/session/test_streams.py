@@ -103,3 +103,25 @@ def test_a_smaller_frame_of_a_stream_takes_only_the_rate_its_size_needs() -> Non
     slow.link.target_kbps = 900.0  # a slow link's rung is below even that
     s_slow = streams.stream_for(slow, "h264", "{}", 0)
     assert streams.kbps(s_slow, (960, 540)) == streams.kbps(s_slow) < steering
+
+
+def test_streams_are_capped_per_session_and_per_server_and_close_with_their_last_viewer() -> None:
+    encoders = VideoEncoders(("h264",), max_streams=3)
+    one = VideoStreams(encoders, 4500.0, 350.0, max_streams=2)
+    other = VideoStreams(encoders, 4500.0, 350.0, max_streams=2)
+    cams = [p.Camera(distance=50.0 + i).model_dump_json() for i in range(5)]
+    a, b, c, d, e = (viewer(x) for x in "abcde")
+    assert one.stream_for(a, "h264", cams[0], 0) is not None
+    assert one.stream_for(b, "h264", cams[1], 0) is not None
+    assert one.stream_for(c, "h264", cams[2], 0) is None  # the session's two are taken
+    assert "max_video_streams_per_session" in one.refusal()
+    assert other.stream_for(d, "h264", cams[3], 0) is not None
+    assert other.stream_for(e, "h264", cams[4], 0) is None  # the server's three are taken
+    assert "max_video_streams" in other.refusal() and encoders.open_streams == 3
+    # a refused viewer is a JPEG viewer until a slot frees
+    c.video_refused = e.video_refused = True
+    assert one.codec_for(c) is None and other.codec_for(e) is None
+    assert one.leave("a") == 1 and encoders.open_streams == 2  # closed with its last viewer
+    assert one.codec_for(c) == "h264"
+    assert one.stream_for(c, "h264", cams[2], 1) is not None and encoders.open_streams == 3
+    assert one.close() == 2 and other.close() == 1 and encoders.open_streams == 0

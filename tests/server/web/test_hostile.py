@@ -30,7 +30,7 @@ import websockets
 
 import protocol as p
 from tests.conftest import LiveServer, make_settings, start_server
-from tests.server.peers import Peer, frame, molecule
+from tests.server.peers import Peer, VideoViewer, frame, molecule
 from tests.server.processes import TOKEN, VIEWER_TOKEN, ServerProcess
 
 pytest.importorskip("MDAnalysisTests")
@@ -423,7 +423,9 @@ def test_a_big_frame_before_hello_is_refused_from_its_header(live_server: LiveSe
 
 def test_a_connection_storm_leaves_the_server_responsive(tmp_path: Path) -> None:
     """Item 5: 500 connections stalled the server; every join sent everyone the whole list."""
-    server = start_server(make_settings(tmp_path, max_connections_per_token=200))
+    server = start_server(
+        make_settings(tmp_path, max_connections_per_token=200, max_clients_per_session=256)
+    )
     try:
         sim = Peer(server.ws_url, "simulation", server.token, "storm")
         topo, pos = molecule(16)
@@ -833,5 +835,63 @@ def test_half_sent_headers_are_not_held(tmp_path: Path) -> None:
         viewer.send(p.Ping(client_time=2.0))
         assert viewer.expect(p.Pong, 10).client_time == 2.0
         viewer.close()
+    finally:
+        server.stop()
+
+
+def test_video_encoders_are_bounded_and_given_back_when_their_viewers_leave(
+    tmp_path: Path,
+) -> None:
+    """Round three: each viewer with its own camera got its own encoder (80 viewers: +1.2 GB),
+    never given back after they left."""
+    server = ServerProcess(tmp_path / "state", "--set", "max_video_streams=4")
+    try:
+        sim = Peer(server.ws_url, "simulation", TOKEN)
+        topo, pos = molecule(24)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        jpeg = Peer(server.view_url, "viewer", VIEWER_TOKEN)
+        jpeg.expect(p.Image, 60)
+        before = server.rss_bytes()
+
+        def streams() -> dict[str, int]:
+            info: dict[str, int] = httpx.get(f"{server.url}/healthz").json()["video"]["streams"]
+            return info
+
+        viewers = []
+        for i in range(5):  # each with a camera of its own: a stream each, while there are any
+            turn = 0.3 * (i + 1)
+            camera = p.Camera(orientation=(float(np.cos(turn)), 0.0, float(np.sin(turn)), 0.0))
+            viewers.append(
+                VideoViewer(server.view_url, VIEWER_TOKEN, camera=camera, size=(1280, 720))
+            )
+        for v in viewers[:4]:
+            assert v.next(60)[0].format == "h264"
+        last = viewers[4]
+        refused = last.peer.expect(p.Error, 60, where=lambda m: m.path == "view.video")
+        assert refused.code == "capacity" and "max_video_streams" in refused.message
+        assert last.next(60)[0].format == "jpeg"
+        assert streams() == {"open": 4, "max": 4}
+        peak = server.rss_bytes()
+        # one leaves: its stream closes, and the waiting viewer gets video in its place
+        viewers[0].close()
+        sim.send(frame(pos + np.float32(0.5), 1))
+        image, _ = last.next(60, where=lambda m: m.format != "jpeg")
+        assert image.format == "h264" and image.key
+        assert streams()["open"] == 4
+        # the others leave: every stream closes with its last viewer, no render needed
+        for v in viewers[1:]:
+            v.close()
+        assert wait_for(lambda: streams()["open"] == 0)
+        # the encoders' memory goes back to the system (most of it: the heap keeps some)
+        assert wait_for(lambda: server.rss_bytes() - before < (peak - before) / 2), (
+            before >> 20,
+            peak >> 20,
+            server.rss_bytes() >> 20,
+        )
+        sim.send(frame(pos, 2))
+        jpeg.expect(p.Image, 60, where=lambda m: m.step == 2)
+        sim.close()
+        jpeg.close()
     finally:
         server.stop()
