@@ -220,6 +220,11 @@ class ServerSettings:
             raise ValueError("a token is required unless the server is open on loopback only")
         if self.encode_workers < 1:
             raise ValueError("--encode-workers must be at least 1")
+        if self.max_spool_bytes < self.max_upload_bytes:
+            raise ValueError(
+                f"max_spool_bytes ({self.max_spool_bytes}) must be at least max_upload_bytes "
+                f"({self.max_upload_bytes}): a whole upload must fit in the spool"
+            )
         if not self.video_steer_hold_s >= 0:
             raise ValueError("video_steer_hold_s must be 0 or more seconds")
         if self.data_dir is not None and not self.data_dir.is_dir():

@@ -645,9 +645,12 @@ def test_uploads_are_refused_from_their_headers_and_spool_into_the_servers_own_f
     system_tmp = tmp_path / "system-tmp"
     system_tmp.mkdir()
     monkeypatch.setenv("TMPDIR", str(system_tmp))
-    server = ServerProcess(tmp_path / "state", "--set", "max_spool_bytes=400000000")
+    server = ServerProcess(
+        tmp_path / "state",
+        *("--set", "max_upload_bytes=200000000", "--set", "max_spool_bytes=300000000"),
+    )
     try:
-        big = 300_000_000
+        big = 200_000_000
         # no token, the viewer token where the server token is needed, a spent viewer budget:
         # each answered from the headers while the body has barely begun
         sock = partial_request(server.port, "/api/render", {}, big, file_part("a.pdb", 65536))
@@ -670,8 +673,8 @@ def test_uploads_are_refused_from_their_headers_and_spool_into_the_servers_own_f
         sock = partial_request(server.port, "/api/render", AUTH, big, file_part("a.pdb", 4 << 20))
         assert wait_for(lambda: open_files(server.process.pid, spool)), "nothing spooled"
         assert not open_files(server.process.pid, system_tmp)
-        # the bodies being received at once are bounded together: 300 MB are held for this one
-        other = partial_request(server.port, "/api/render", AUTH, 200_000_000, b"")
+        # the bodies being received at once are bounded together: 200 MB are held for this one
+        other = partial_request(server.port, "/api/render", AUTH, 150_000_000, b"")
         status, headers, body = answer(other)
         assert status == 503 and "max_spool_bytes" in body and headers["retry-after"]
         sock.close()  # the client gives up: its spool is given back
