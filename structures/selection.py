@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 import re
+import threading
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -23,6 +24,15 @@ import numpy as np
 import numpy.typing as npt
 
 from protocol import Topology
+from structures.selection_cost import (
+    Density,
+    Refusal,
+    SelectionLimits,
+    depth_refusal,
+    estimate,
+    secondary_refusal,
+    text_refusal,
+)
 
 SOLVENT_RESNAMES = (
     "SOL", "WAT", "HOH", "H2O", "TIP", "TIP3", "TIP3P", "TIP4", "TIP4P", "TIP5", "TIP5P", "T3P",
@@ -57,14 +67,34 @@ def _backbone(names: set[str]) -> bool:
 
 
 class SelectionError(ValueError):
-    """A selection MDAnalysis could not parse; `position` is the 0-based character offset of
-    the offending token in the text (its length when the text ended too soon)."""
+    """A selection that cannot be evaluated: MDAnalysis could not parse it, or it would cost
+    more than a limit allows (`limit` names the limit, `value` its value). `position` is the
+    0-based character offset of the offending token in the text (its length when the text
+    ended too soon)."""
 
-    def __init__(self, text: str, reason: str, position: int) -> None:
-        self.text = text
+    def __init__(
+        self, text: str | None, reason: str, position: int, limit: str = "", value: int = 0
+    ) -> None:
+        """`text` None: not about one text (a request for several that failed as a whole)."""
+        self.text = text or ""
+        self._whole = text is None
         self.reason = reason
         self.position = position
-        super().__init__(f"selection {text!r} at character {position + 1}: {reason}")
+        self.limit = limit
+        self.value = value
+        if text is None:
+            super().__init__(reason)
+            return
+        shown = text if len(text) <= 80 else text[:60] + "..."
+        super().__init__(f"selection {shown!r} at character {position + 1}: {reason}")
+
+    @classmethod
+    def refused(cls, text: str, refusal: Refusal) -> SelectionError:
+        return cls(text, refusal.reason, refusal.position, refusal.limit, refusal.value)
+
+    def __reduce__(self) -> tuple[Any, ...]:  # crosses process boundaries whole
+        text = None if self._whole else self.text
+        return (type(self), (text, self.reason, self.position, self.limit, self.value))
 
 
 def is_dynamic(text: str) -> bool:
@@ -140,15 +170,76 @@ def universe_of(topology: Topology) -> Any:
     return u
 
 
+class SelectionSkippedError(SelectionError):
+    """Not evaluated: another selection of the same all-or-nothing request was refused."""
+
+
+_SKIPPED = "not evaluated: another selection of the same request was refused"
+
+
+@dataclass
+class _Priced:
+    """A selection parsed and priced, ready to run (or already known: `atoms`)."""
+
+    text: str
+    tree: Any
+    dynamic: bool
+    cost: int
+    atoms: npt.NDArray[np.int32] | None = None
+
+
+_THIS_CALL = object()
+"""Positions placed for the selections of one `evaluate` call only."""
+_PARSE_LOCK = threading.Lock()
+"""MDAnalysis's selection parser keeps its state in one shared object."""
+
+
+def parse(text: str) -> Any:
+    """MDAnalysis's parse tree of `text` (nothing evaluated); raises SelectionError naming
+    where the text goes wrong."""
+    from MDAnalysis.core import selection as mda_selection
+    from MDAnalysis.exceptions import SelectionError as MDASelectionError
+
+    try:
+        with _PARSE_LOCK, warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return mda_selection.Parser.parse(text, {}, periodic=True, sorted=True)
+    except MDASelectionError as exc:
+        raise _named(text, str(exc)) from None
+    except RecursionError:
+        raise SelectionError(text, "the selection is nested too deeply", 0) from None
+    except MemoryError:
+        raise
+    except Exception as exc:
+        raise _named(text, f"{type(exc).__name__}: {exc}") from None
+
+
+def _named(text: str, raw: str) -> SelectionError:
+    """MDAnalysis's complaint, worded for a person typing, at the position it points to."""
+    reason = raw.replace("Unknown selection token: 'None'", "the text ends too soon")
+    reason = reason.replace("Unexpected token: 'None'", "the text ends too soon.")
+    if "'within'" in reason:
+        reason += " (VMD's `within D of sel` is `sel or around D sel` here)"
+    return SelectionError(text, reason, _position_of(text, raw))
+
+
 @dataclass
 class Selector:
-    """Selections on one topology; static results are cached by their text."""
+    """Selections on one topology; static results are cached by their text.
+
+    With `limits`, a selection is priced before it runs (`structures.selection_cost`) and
+    refused when it costs more; without, it runs whatever it costs (for a user's own files on
+    their own machine: `scalesteer render`)."""
 
     topology: Topology
 
     def __post_init__(self) -> None:
         self._universe: Any = None
         self._static: dict[str, npt.NDArray[np.int32]] = {}
+        self._density: tuple[Any, Density] | None = None
+        self._placed: Any = None
+        """The key of the positions the universe holds (None: none placed yet)."""
+        self._key: Any = _THIS_CALL
 
     @property
     def universe(self) -> Any:
@@ -161,53 +252,143 @@ class Selector:
         text: str,
         positions: npt.ArrayLike | None = None,
         box: npt.ArrayLike | None = None,
+        limits: SelectionLimits | None = None,
     ) -> npt.NDArray[np.int32]:
         """Sorted indices of the atoms `text` selects. A dynamic selection needs `positions`
         (n, 3 angstrom), and measures distances through the periodic `box` (3x3 vectors,
         angstrom) when there is one; raises SelectionError naming the position of what is
-        wrong."""
+        wrong (or the limit it would cross)."""
+        found = self.evaluate([text], positions, box, limits)[0]
+        if isinstance(found, SelectionError):
+            raise found
+        return found
+
+    def evaluate(
+        self,
+        texts: list[str],
+        positions: npt.ArrayLike | None = None,
+        box: npt.ArrayLike | None = None,
+        limits: SelectionLimits | None = None,
+        positions_key: Any = None,
+        strict: bool = False,
+    ) -> list[npt.NDArray[np.int32] | SelectionError]:
+        """Each text's atoms, or why not. The texts share one budget (`limits.max_pairs`,
+        the layers of one render together): all are priced before any runs, and the first
+        that takes the total past the limit, and any after it that would, are refused.
+        `strict`: when any is refused (or does not parse), none runs (a render that cannot
+        be drawn whole). `positions_key` names the positions: the same key again means the
+        same positions (their placement and density are kept); None, positions to take
+        afresh."""
+        if positions_key is None or positions_key != self._placed:
+            self._placed = None
+            self._density = None
+        self._key = positions_key if positions_key is not None else _THIS_CALL
+        spent = 0
+        priced: list[_Priced | SelectionError] = []
+        for text in texts:
+            try:
+                item = self._price(text, positions, box, limits, spent)
+            except SelectionError as exc:
+                priced.append(exc)
+                continue
+            spent += item.cost
+            priced.append(item)
+        failed = any(isinstance(each, SelectionError) for each in priced)
+        out: list[npt.NDArray[np.int32] | SelectionError] = []
+        for each in priced:
+            if isinstance(each, SelectionError):
+                out.append(each)
+            elif strict and failed:
+                out.append(SelectionSkippedError(each.text, _SKIPPED, 0))
+            else:
+                try:
+                    out.append(self._run(each))
+                except SelectionError as exc:
+                    out.append(exc)
+        if positions_key is None:
+            self._placed = None
+        return out
+
+    def _price(
+        self,
+        text: str,
+        positions: npt.ArrayLike | None,
+        box: npt.ArrayLike | None,
+        limits: SelectionLimits | None,
+        spent: int,
+    ) -> _Priced:
+        """Parse `text` and, with `limits`, price it (refused past them); nothing runs yet
+        but the cheap parts whose sizes the price needs."""
         text = text.strip()
         if not text:
             raise SelectionError(text, "the selection is empty (use 'all' for every atom)", 0)
         dynamic = is_dynamic(text)
         if not dynamic and text in self._static:
-            return self._static[text]
+            return _Priced(text, None, dynamic, 0, self._static[text])
+        if limits is not None and (refusal := text_refusal(text, limits)) is not None:
+            raise SelectionError.refused(text, refusal)
+        tree = parse(text)
+        if limits is not None and (refusal := depth_refusal(text, tree, limits)) is not None:
+            raise SelectionError.refused(text, refusal)
         u = self.universe
         if dynamic:
             if positions is None:
                 raise SelectionError(text, "this selection needs positions", 0)
-            if self.topology.n_atoms:
+            if self.topology.n_atoms and self._placed is None:
                 u.atoms.positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+                self._placed = self._key
             u.dimensions = _dimensions(box)
-        from MDAnalysis.exceptions import SelectionError as MDASelectionError
-
+        if limits is None:
+            return _Priced(text, tree, dynamic, 0)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                group = u.select_atoms(text)
-        except MDASelectionError as exc:
-            raw = str(exc)
-            reason = raw.replace("Unknown selection token: 'None'", "the text ends too soon")
-            reason = reason.replace("Unexpected token: 'None'", "the text ends too soon.")
-            if "'within'" in reason:
-                reason += " (VMD's `within D of sel` is `sel or around D sel` here)"
-            raise SelectionError(text, reason, _position_of(text, raw)) from None
+                density = self._density_of(positions) if dynamic else None
+                price, refusal = estimate(text, tree, u, density, limits, spent)
+        except MemoryError:
+            raise
+        except Exception as exc:  # a term that fails on this topology, found while counting
+            raise _named(text, f"{type(exc).__name__}: {exc}") from None
+        if refusal is not None:
+            raise SelectionError.refused(text, refusal)
+        return _Priced(text, tree, dynamic, price.pairs)
+
+    def _run(self, item: _Priced) -> npt.NDArray[np.int32]:
+        if item.atoms is not None:
+            return item.atoms
+        text = item.text
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                group = item.tree.apply(self.universe.atoms)
         except RecursionError:
             raise SelectionError(text, "the selection is nested too deeply", 0) from None
+        except MemoryError:
+            raise
         except Exception as exc:  # e.g. ImportError: `smarts` without RDKit
-            reason = f"{type(exc).__name__}: {exc}"
-            raise SelectionError(text, reason, _position_of(text, reason)) from None
+            raise _named(text, f"{type(exc).__name__}: {exc}") from None
         indices = np.asarray(group.indices, dtype=np.int32)
-        if not dynamic:
+        if not item.dynamic:
             if len(self._static) > 256:
                 self._static.clear()
             self._static[text] = indices
         return indices
 
-    def secondary(self, positions: npt.ArrayLike) -> npt.NDArray[np.uint8]:
+    def _density_of(self, positions: npt.ArrayLike | None) -> Density | None:
+        """The density of the positions placed (kept with them)."""
+        if positions is None:
+            return None
+        if self._density is None:
+            self._density = (self._placed, Density(positions))
+        return self._density[1]
+
+    def secondary(
+        self, positions: npt.ArrayLike, limits: SelectionLimits | None = None
+    ) -> npt.NDArray[np.uint8]:
         """Per atom, the secondary structure of its residue by MDAnalysis's DSSP at these
         positions: 0 coil (or not protein), 1 helix, 2 strand. Residues without a complete
-        backbone (N, CA, C, O) count as coil."""
+        backbone (N, CA, C, O) count as coil. With `limits`, a protein too large for them
+        (DSSP's cost grows with the square of its residues) raises SelectionError."""
         from MDAnalysis.analysis.dssp import DSSP
 
         n = self.topology.n_atoms
@@ -216,9 +397,12 @@ class Selector:
             return codes
         u = self.universe
         u.atoms.positions = np.asarray(positions, dtype=np.float32).reshape(-1, 3)
+        self._placed = None
         residues = list(u.select_atoms("protein").residues)
         if len(residues) < 3:
             return codes
+        if limits is not None and (refusal := secondary_refusal(len(residues), limits)):
+            raise SelectionError.refused("secondary structure", refusal)
         found = None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -327,9 +511,10 @@ def default_layers(topology: Topology, sigma_A: float) -> list[dict[str, Any]]:
 _PROBE: Selector | None = None
 
 
-def check_syntax(text: str) -> None:
-    """Raise SelectionError when `text` does not parse, before any topology is at hand (a
-    one-atom system answers every keyword; what a selection finds is not checked)."""
+def check_syntax(text: str, limits: SelectionLimits | None = None) -> None:
+    """Raise SelectionError when `text` does not parse (or, with `limits`, is too long or
+    nested too deeply), before any topology is at hand (a one-atom system answers every
+    keyword; what a selection finds, and what it costs on a real system, is not checked)."""
     global _PROBE
     if _PROBE is None:
         from protocol import WireArray
@@ -344,4 +529,4 @@ def check_syntax(text: str) -> None:
             bonds=WireArray.from_numpy(np.zeros((0, 2)), "<i4"),
         )
         _PROBE = Selector(probe)
-    _PROBE.select(text, np.zeros((1, 3), dtype=np.float32))
+    _PROBE.select(text, np.zeros((1, 3), dtype=np.float32), None, limits)
