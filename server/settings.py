@@ -11,6 +11,8 @@ from typing import Literal
 
 from protocol import DEFAULT_LIMITS, Limits, RenderParams
 from structures.isolated import ReadLimits
+from structures.selection_cost import SelectionLimits
+from structures.selection_pool import PoolLimits
 
 VIEWER_LIMITS = Limits(max_message_bytes=256 * 1024)
 """Browsers and scripts send only small control messages."""
@@ -129,6 +131,19 @@ class ServerSettings:
     """Largest structure a viewer-token holder may have the server read (counted before
     parsing), so the read-only link cannot buy minutes of CPU with a small compressed file."""
     viewer_read_timeout_s: float = 20.0
+    selection_max_chars: int = 2048
+    """Characters of one selection (a layer's, or one typed and counted)."""
+    selection_max_depth: int = 32
+    """Depth of a selection's parse tree (parentheses, prefixes, chained and/or)."""
+    selection_max_pairs: int = 4_000_000
+    """Estimated cost of one selection, or of the layers of one render together, in atom
+    pair checks (structures/selection_cost.py; about 4 s of one core)."""
+    selection_timeout_s: float = 10.0
+    """Wall time of one evaluation in a selection worker; past it the worker is killed."""
+    selection_memory_bytes: int = 4 << 30
+    """Address space of one selection worker process."""
+    selection_workers: int = 2
+    """Selection worker processes (each keeps the universes of the topologies it serves)."""
     session_idle_s: float = 600.0
     interactive_idle_s: float = 0.15
     interactive_scale: float = 0.5
@@ -213,6 +228,21 @@ class ServerSettings:
         command-line tools read the user's own files, in the system's temporary directory)."""
         return replace(self.read_limits(role), scratch_dir=str(self.spool_dir))
 
+    def selection_limits(self) -> PoolLimits:
+        """What evaluating selections may cost, for everyone alike (viewers and steerers,
+        sessions, REST renders and jobs)."""
+        return PoolLimits(
+            selection=SelectionLimits(
+                max_chars=self.selection_max_chars,
+                max_depth=self.selection_max_depth,
+                max_pairs=self.selection_max_pairs,
+            ),
+            workers=self.selection_workers,
+            timeout_s=self.selection_timeout_s,
+            memory_bytes=self.selection_memory_bytes,
+            max_atoms=self.limits.max_atoms,
+        )
+
     def __post_init__(self) -> None:
         if self.open_on_loopback and not is_loopback(self.host):
             raise ValueError("--no-token-on-loopback-only needs a loopback --host")
@@ -225,6 +255,8 @@ class ServerSettings:
                 f"max_spool_bytes ({self.max_spool_bytes}) must be at least max_upload_bytes "
                 f"({self.max_upload_bytes}): a whole upload must fit in the spool"
             )
+        if self.selection_workers < 1:
+            raise ValueError("selection_workers must be at least 1")
         if not self.video_steer_hold_s >= 0:
             raise ValueError("video_steer_hold_s must be 0 or more seconds")
         if self.data_dir is not None and not self.data_dir.is_dir():

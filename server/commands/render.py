@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         where = ".".join(str(x) for x in first["loc"])
         return _fail(f"invalid {where}: {first['msg']}")
     try:
-        check_layers(params)
+        check_layers(params)  # a user's own files on their own machine: no cost limits
     except ValueError as exc:
         # --select is drawn as the one layer: say which option the text came from
         return _fail(f"--select: {exc}" if args.select is not None else str(exc))
@@ -178,11 +178,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from PIL import Image
 
-    from server.pipeline.selections import FrameLayers
+    from server.pipeline.selections import FrameLayers, LayerError
     from server.render.layerplan import visible_atoms
     from server.render.layers import LayeredRenderer
     from server.render.renderer import Renderer
-    from structures.selection import SelectionError
+    from structures.selection_pool import InProcess
 
     width, height = args.size
     try:
@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
             positions = structure.positions(args.frame)
         topology = structure.topology
         n = topology.n_atoms
-        plans = FrameLayers(params, topology).plans(positions, args.frame)
+        plans = FrameLayers(params, topology, InProcess(topology)).plans(positions, args.frame)
         shown = visible_atoms(plans, n)
         if not len(shown):
             return _fail("the selection takes no atoms: nothing to draw")
@@ -211,8 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         ms = (time.perf_counter() - t0) * 1e3
     except RenderError as exc:
         return _fail(str(exc))
-    except SelectionError as exc:
-        return _fail(str(exc))
+    except LayerError as exc:
+        return _fail(str(exc.error))
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(rgba[..., :3]).save(out)

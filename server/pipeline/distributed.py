@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import importlib
 import importlib.metadata
 import importlib.util
@@ -182,6 +183,9 @@ class ChunkInputs:
     reference: int
     """The job's first frame: the warped density's bond lengths come from it, as in-process."""
     overlay: dict[str, Any] | None = None
+    selection_limits: Any = None
+    """The server's `structures.selection_pool.PoolLimits`: layers are evaluated by a
+    selection worker of the actor's own, under the same limits as on the server."""
 
 
 def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequence[int]) -> Any:
@@ -195,6 +199,8 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
     from structures.reader import load
 
     if state.get("job") != inputs.job:
+        if state.get("held") is not None:
+            state["held"].release()  # the last job's topology leaves the selection worker
         state.clear()
         files = [_local(f, inputs.job) for f in (inputs.topology, *inputs.trajectories)]
         structure = load(files[0], files[1:])
@@ -211,7 +217,11 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
     layers = state.get("layers")
     if layers is None or layers.params != params:  # one per job: selections and helices kept
         reference = structure.positions(inputs.reference)
-        layers = state["layers"] = FrameLayers(params, structure.topology, reference)
+        if state.get("held") is not None:
+            state["held"].release()
+        pool = _selection_pool(inputs.selection_limits)
+        held = state["held"] = pool.hold(structure.topology) if params.layers else None
+        layers = state["layers"] = FrameLayers(params, structure.topology, held, reference)
     camera = p.Camera.model_validate(inputs.camera)
     window = time_window(params, inputs.n_frames)
 
@@ -253,6 +263,19 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
         else:
             out.append((index, np.ascontiguousarray(rgba).tobytes(), None))
     return out
+
+
+_POOLS: dict[Any, Any] = {}
+
+
+def _selection_pool(limits: Any) -> Any:
+    """This actor's selection worker (one per limits; it ends with the actor's process)."""
+    from structures.selection_pool import PoolLimits, SelectionPool
+
+    chosen = limits if limits is not None else PoolLimits()
+    if chosen not in _POOLS:
+        _POOLS[chosen] = SelectionPool(dataclasses.replace(chosen, workers=1))
+    return _POOLS[chosen]
 
 
 def state_device_name() -> str:

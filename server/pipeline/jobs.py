@@ -37,13 +37,13 @@ from server.pipeline.encoder import encode_image
 from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
 from server.pipeline.overlay import draw_overlay
-from server.pipeline.selections import FrameLayers
+from server.pipeline.selections import FrameLayers, LayerError
 from structures.isolated import IsolatedStructure, ReadLimits
 
 if TYPE_CHECKING:
     from server.pipeline.distributed import RayBatch
 from structures.reader import StructureError
-from structures.selection import SelectionError
+from structures.selection_pool import Held, SelectionPool
 
 log = logging.getLogger("scalesteer.jobs")
 
@@ -275,10 +275,12 @@ class JobManager:
         max_running: int = 2,
         upload_dir: Path | None = None,
         batch: RayBatch | None = None,
+        selections: SelectionPool | None = None,
     ) -> None:
         """Outputs of finished jobs are kept `retention_s` seconds, and the newest of them
         together at most `max_bytes` (older outputs are removed first). At most `max_running`
-        jobs read and render at once; the others wait `queued`."""
+        jobs read and render at once; the others wait `queued`. Layer selections are
+        evaluated by `selections` (the server's workers; a pool of its own by default)."""
         self.directory = directory
         self.retention_s = retention_s
         self.max_bytes = max_bytes
@@ -290,6 +292,7 @@ class JobManager:
         self.upload_dir = upload_dir
         self.batch = batch
         """Trajectory jobs render on this Ray pool when given, else in this process."""
+        self.selections = selections or SelectionPool()
         self.jobs: dict[str, Job] = {}
         self._running = asyncio.Semaphore(max_running)
 
@@ -463,22 +466,38 @@ class JobManager:
     ) -> bool:
         """Render the frames on this server's GPU queue, in order, into `writer`; False when
         the job was cancelled before the last frame."""
+        frames = _FrameCache(structure)
+        held = self.selections.hold(structure.topology) if job.spec.params.layers else None
+        try:
+            return await self._frames_here(job, structure, indices, writer, frames, held)
+        finally:
+            if held is not None:
+                held.release()
+
+    async def _frames_here(
+        self,
+        job: Job,
+        structure: IsolatedStructure,
+        indices: list[int],
+        writer: FrameWriter,
+        frames: _FrameCache,
+        held: Held | None,
+    ) -> bool:
         spec = job.spec
         slot = f"job:{job.id}"
         loop = asyncio.get_running_loop()
         camera = spec.camera
         topology = structure.topology
-        frames = _FrameCache(structure)
         window = time_window(spec.params, structure.n_frames)
-        layers = FrameLayers(spec.params, topology)
+        layers = FrameLayers(spec.params, topology, held)
         for n, index in enumerate(indices):
             if job.cancel.is_set():
                 return False
             positions = await frames.get(index)
-            try:  # MDAnalysis work: off the event loop
-                plans = await asyncio.to_thread(layers.plans, positions, index)
-            except SelectionError as exc:
-                raise JobError(f"params.layers: {exc}") from None
+            try:  # evaluated by a selection worker, awaited here
+                plans = await layers.plans_async(positions, index)
+            except LayerError as exc:
+                raise JobError(f"params.{exc}") from None
             if camera is None:
                 from server.render.camera import fit_camera
                 from server.render.layerplan import visible_atoms
@@ -618,15 +637,26 @@ class JobManager:
         spec = job.spec
         loop = asyncio.get_running_loop()
         camera = spec.camera
+        plans = None
+        if camera is None or spec.params.layers:
+            # the first frame's layers here: a layer past the selection limits fails the job
+            # now, not in every chunk; and the camera frames what they show
+            held = self.selections.hold(structure.topology) if spec.params.layers else None
+            try:
+                first = await asyncio.to_thread(structure.positions, indices[0])
+                layers = FrameLayers(spec.params, structure.topology, held)
+                plans = await layers.plans_async(first, indices[0])
+            except StructureError as exc:
+                raise JobError(str(exc)) from None
+            except LayerError as exc:
+                raise JobError(f"params.{exc}") from None
+            finally:
+                if held is not None:
+                    held.release()
         if camera is None:
             from server.render.camera import fit_camera
             from server.render.layerplan import visible_atoms
 
-            try:
-                first = await asyncio.to_thread(structure.positions, indices[0])
-                plans = FrameLayers(spec.params, structure.topology).plans(first, indices[0])
-            except (StructureError, SelectionError) as exc:
-                raise JobError(str(exc)) from None
             shown = visible_atoms(plans, structure.topology.n_atoms)
             camera = fit_camera(first[shown] if len(shown) else first, spec.width, spec.height)
         files = [spec.topology, *spec.trajectories]
@@ -653,6 +683,7 @@ class JobManager:
             n_frames=structure.n_frames,
             reference=indices[0],
             overlay=spec.overlay,
+            selection_limits=self.selections.limits,
         )
 
         async def write(index: int, rgba: Any, png: bytes | None) -> None:

@@ -17,6 +17,7 @@ from server.pipeline.encoder import ImageEncoder
 from server.pipeline.gpu import RenderOutput, RenderRequest
 from server.pipeline.video import VideoEncoders
 from server.session.steering_log import SteeringLog
+from structures.selection_pool import SelectionPool
 
 
 class RenderBackend(Protocol):
@@ -56,3 +57,5 @@ class Services:
     video_streams_per_session: int = 8
     """Video streams (each with its encoder) one session may have open at once."""
     rest_jpeg_quality: int = 95
+    selections: SelectionPool = field(default_factory=SelectionPool)
+    """The worker processes that evaluate layer selections (never the event loop)."""

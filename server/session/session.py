@@ -8,7 +8,8 @@ clients watching it. This class is the facade the WebSocket edge talks to; the w
 - `delivery.Delivery`: encoding and offering images to clients;
 - a `services.RenderBackend` (the GPU queue) that draws.
 
-All methods run on the event loop.
+All methods run on the event loop; selections are evaluated in worker processes
+(`layers.LayerBook`), never on it.
 """
 
 from __future__ import annotations
@@ -129,7 +130,7 @@ class Session:
         A recording hooks its stop here, so it never stays "recording" without a session."""
         """Called with every frame the simulation sends (recordings): they must only queue."""
         self.acks = AckBook()
-        self.layers = LayerBook(self._selection_moved)
+        self.layers = LayerBook(self._selection_moved, services.selections)
         self.scheduler = RenderScheduler(settings)
         self.delivery = Delivery(session_id, services)
         self.version = 0
@@ -249,9 +250,9 @@ class Session:
         changed = self.topology is None or self.topology.n_atoms != topology.n_atoms
         self.topology = topology
         self.topology_id += 1
-        self.layers.topology(topology, self.topology_id)
         if self.layers.auto:
             self._default_layers(topology)
+        self.layers.topology(topology, self.topology_id, prepare=bool(self.render_params.layers))
         if changed:
             self.positions = None
             self.camera = None
@@ -282,8 +283,8 @@ class Session:
         self.version += 1
 
     def _selection_moved(self) -> None:
-        """A distance-based layer selection took in or let go of atoms (or the selections of
-        a large system became ready)."""
+        """A layer selection's atoms arrived from the worker, or a distance-based one took in
+        or let go of atoms."""
         if self.camera is None:
             self._fit_camera()
         self.version += 1
@@ -294,11 +295,11 @@ class Session:
         if self.positions is None or self.topology is None:
             return
         n = self.topology.n_atoms
-        if not self.layers.ready:
-            return
         plans = self.layers.plans(
             self.render_params, n, self.positions, self.positions_id, self.box
         )
+        if not self.layers.ready:
+            return  # once the layers' atoms arrive (`_selection_moved`)
         from server.render.camera import fit_camera
 
         shown = visible_atoms(plans, n)
@@ -311,25 +312,28 @@ class Session:
             self.render_params, snap.topology.n_atoms, snap.positions, snap.positions_id, self.box
         )
 
-    def select(self, client: Client, message: p.Select) -> p.Selected:
-        """Count the atoms a selection takes now (nothing changes)."""
+    async def select(self, client: Client, message: p.Select) -> p.Selected:
+        """Count the atoms a selection takes now (nothing changes): priced, then evaluated by
+        a selection worker; a selection past a limit is answered with the limit."""
         if self.topology is None:
             raise p.ProtocolError(
                 p.ErrorCode.NOT_READY, "no topology to select from yet", "select", message.seq
             )
         try:
-            atoms = self.layers.select(message.text, self.positions, self.box)
+            count = await self.layers.count(
+                message.text, self.positions, self.positions_id, self.box
+            )
         except SelectionError as exc:
             return p.Selected(
                 ref=message.seq,
                 text=message.text,
                 error=exc.reason[:1024],
-                position=exc.position,
+                position=min(exc.position, len(message.text)),
             )
         return p.Selected(
             ref=message.seq,
             text=message.text,
-            count=len(atoms),
+            count=count,
             dynamic=is_dynamic(message.text),
         )
 
@@ -523,12 +527,13 @@ class Session:
                 message.seq,
             )
 
-    def steer(self, client: Client, message: p.Message) -> None:
-        """Apply a steering message from a steerer (roles and rates checked by the caller)."""
+    async def steer(self, client: Client, message: p.Message) -> None:
+        """Apply a steering message from a steerer (roles and rates checked by the caller).
+        New layers wait for their selections to be checked by a worker."""
         who = {"client_id": client.client_id, "client": client.name}
         match message:
             case p.SetRenderParams():
-                self._set_render_params(client, message, who)
+                await self._set_render_params(client, message, who)
             case p.SimParams():
                 self._need_sim(message)
                 check_sim_params(self.engine, message)
@@ -557,7 +562,7 @@ class Session:
                     message.seq,
                 )
 
-    def _set_render_params(
+    async def _set_render_params(
         self, client: Client, message: p.SetRenderParams, who: dict[str, str]
     ) -> None:
         try:
@@ -565,7 +570,12 @@ class Session:
         except ValidationError as exc:
             raise _invalid(exc, "render_params.params", message.seq) from None
         if "layers" in changes:
-            self._check_layers(merged, message.seq)
+            await self._check_layers(merged, message.seq)
+            # other steering may have landed meanwhile: the patch applies to what is now
+            try:
+                merged, changes = merge_patch(self.render_params, message.changes())
+            except ValidationError as exc:
+                raise _invalid(exc, "render_params.params", message.seq) from None
             self.layers.auto = False
         client.view_ref = message.seq
         if not changes:
@@ -583,24 +593,55 @@ class Session:
         self.scheduler.interacting(time.monotonic())
         self.mark_dirty()
 
-    def _check_layers(self, params: p.RenderParams, seq: int | None) -> None:
-        """Every layer's selection must parse (and evaluate) on this topology; the first
-        that does not is named with the position of what is wrong, and nothing changes."""
-        # before the topology (or while a large one is prepared) the text must at least parse
-        whole = self.topology is not None and self.layers.ready
-        for i, layer in enumerate(params.layers):
+    async def _check_layers(self, params: p.RenderParams, seq: int | None) -> None:
+        """Every layer's selection must parse, keep to the selection limits and evaluate on
+        this topology (all of them together within one budget, in a worker); the first that
+        does not is named with the position of what is wrong, and nothing changes. A layer
+        past a limit is `too_large`, naming the limit."""
+        limits = self.services.selections.limits.selection
+        layers = params.layers
+        # the text first, here: it must parse, and its length and nesting are bounded
+        for i, layer in enumerate(layers):
             try:
-                if whole and (self.positions is not None or not is_dynamic(layer.selection)):
-                    self.layers.select(layer.selection, self.positions, self.box)
-                else:
-                    check_syntax(layer.selection)
+                check_syntax(layer.selection, limits)
             except SelectionError as exc:
-                raise p.ProtocolError(
-                    p.ErrorCode.INVALID_MESSAGE,
-                    f"layer {i + 1} ({layer.name or 'unnamed'}): {exc}",
-                    f"render_params.params.layers.{i}.selection",
-                    seq,
-                ) from None
+                raise self._layer_error(exc, i, layer, seq) from None
+        try:
+            if self.topology is None:
+                return  # checked on the topology when it comes (drawn as nothing if it fails)
+            # distance-based layers are priced on the frame; before one, they parse only
+            checked = [
+                (i, layer)
+                for i, layer in enumerate(layers)
+                if self.positions is not None or not is_dynamic(layer.selection)
+            ]
+            if not checked:
+                return
+            found = await self.layers.check(
+                [layer.selection for _, layer in checked], self.positions, self.positions_id,
+                self.box,
+            )  # fmt: skip
+        except SelectionError as exc:  # the request as a whole: its time or memory
+            if len(checked) == 1:  # the one layer it was
+                raise self._layer_error(exc, checked[0][0], checked[0][1], seq) from None
+            raise self._layer_error(exc, -1, None, seq) from None
+        for (i, layer), error in zip(checked, found, strict=True):
+            if error is not None:
+                raise self._layer_error(error, i, layer, seq)
+
+    @staticmethod
+    def _layer_error(
+        exc: SelectionError, i: int, layer: p.Layer | None, seq: int | None
+    ) -> p.ProtocolError:
+        code = p.ErrorCode.TOO_LARGE if exc.limit else p.ErrorCode.INVALID_MESSAGE
+        if layer is None:
+            return p.ProtocolError(code, f"layers: {exc}", "render_params.params.layers", seq)
+        return p.ProtocolError(
+            code,
+            f"layer {i + 1} ({layer.name or 'unnamed'}): {exc}",
+            f"render_params.params.layers.{i}.selection",
+            seq,
+        )
 
     def _script_forces(self, client: Client, message: p.Forces, who: dict[str, str]) -> None:
         limit = self.settings.limits.max_forces
@@ -842,9 +883,9 @@ class Session:
         renders no larger than that."""
         if snap.topology_id != self.topology_id:
             return None
-        if not self.layers.ready:
-            return None  # the selections of a large system are still being prepared
         layers = self._layer_plans(snap)
+        if not self.layers.ready:
+            return None  # a layer's atoms are still being evaluated; they call again
         params = self.render_params
         device = self.services.backend.actual_device or self.settings.device
         on_cpu = device.startswith("cpu")
@@ -1017,4 +1058,5 @@ class Session:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self.delivery.close()
+        self.layers.close()
         await self.services.backend.release(self.slot)

@@ -36,6 +36,7 @@ from server.web.replays import router as replays_router
 from server.web.rest import router
 from server.web.spool import Spool
 from server.web.state import AppState, SessionRegistry
+from structures.selection_pool import SelectionPool
 
 log = logging.getLogger("scalesteer.app")
 
@@ -119,9 +120,10 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
         video = VideoEncoders(settings.video_codecs, settings.max_video_streams)
         await asyncio.to_thread(video.chosen)  # probe once, before the first viewer waits on it
-        # the selection language loads while the server starts (not when the first topology
-        # arrives, on the event loop)
+        # the selection language loads while the server starts (its texts are parsed here,
+        # before a worker evaluates them)
         asyncio.get_running_loop().run_in_executor(None, _load_selections)
+        selections = SelectionPool(settings.selection_limits())
         services = Services(
             gpu,
             encoders,
@@ -134,6 +136,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             video_min_kbps=settings.video_min_kbps,
             video_streams_per_session=settings.max_video_streams_per_session,
             rest_jpeg_quality=settings.rest_jpeg_quality,
+            selections=selections,
         )
         batch = batch_engine(settings, state_dir / "ray")
 
@@ -156,6 +159,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
                 max_running=settings.max_running_jobs,
                 upload_dir=upload_dir,
                 batch=batch,
+                selections=selections,
             ),
             recordings=RecordingStore(state_dir / "recordings", steering_log.read),
             upload_dir=upload_dir,
@@ -190,6 +194,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             if batch is not None:
                 await asyncio.to_thread(batch.close)
             await state.sessions.close()
+            await asyncio.to_thread(selections.close)
             await asyncio.to_thread(gpu.close)
             encoders.shutdown(wait=True)
             steering_log.close()

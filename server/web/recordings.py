@@ -24,7 +24,7 @@ from server.pipeline.jobs import JobSpec
 from server.pipeline.marks import pull_path
 from server.pipeline.recordings import FILES, Recording
 from server.web.access import GatedRoute, steerer_access
-from server.web.rest import State, check_size
+from server.web.rest import State, check_layer_texts, check_size
 
 router = APIRouter(route_class=GatedRoute)
 Steerer = Annotated[p.Role, Depends(steerer_access)]
@@ -263,6 +263,7 @@ async def recording_movie(
     _finished(rec)
     check_size(state, body.width, body.height)
     params = body.params or p.RenderParams.model_validate(rec.render_params)
+    check_layer_texts(state, params, "params")
     camera = body.camera or (p.Camera.model_validate(rec.camera) if rec.camera else None)
     overlay = None
     if body.overlay:

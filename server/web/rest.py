@@ -23,7 +23,7 @@ from pydantic import BaseModel, ValidationError
 import protocol as p
 from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
-from server.pipeline.selections import FrameLayers, check_layers
+from server.pipeline.selections import FrameLayers, LayerError, check_layers
 from server.web.access import (
     GatedRoute,
     app_state,
@@ -34,17 +34,18 @@ from server.web.access import (
 from server.web.state import AppState
 from structures.isolated import IsolatedStructure
 from structures.reader import StructureError
-from structures.selection import SelectionError
 
 router = APIRouter(route_class=GatedRoute)
 State = Annotated[AppState, Depends(app_state)]
 
 
-def _check_layers(params: p.RenderParams, field: str) -> None:
-    """Every layer selection must parse: a 422 naming the layer and the position."""
+def check_layer_texts(state: AppState, params: p.RenderParams, field: str) -> None:
+    """Every layer selection must parse and keep to the selection limits (its length and
+    nesting, checked here before anything is read): a 422 naming the layer, the position
+    and any limit."""
     try:
-        check_layers(params)
-    except ValueError as exc:
+        check_layers(params, state.selections.limits.selection)
+    except LayerError as exc:
         raise HTTPException(422, f"{field}.{exc}") from None
 
 
@@ -212,8 +213,10 @@ async def render_image(
         raise HTTPException(422, "give exactly one of file, dataset or session")
     render_params = _model(p.RenderParams, params, "params")
     if render_params is not None:
-        _check_layers(render_params, "params")
+        check_layer_texts(state, render_params, "params")
     cam = _model(p.Camera, camera, "camera")
+    held = None
+    frame_key = frame
     if session is not None:
         live = state.sessions.get(session)
         if live is None:
@@ -223,6 +226,7 @@ async def render_image(
         topology, positions, box = live.topology, live.positions, live.box
         render_params = render_params or live.render_params
         cam = cam or live.camera
+        held, frame_key = live.layers.held, live.positions_id  # its worker has them
     else:
         workdir = Path(tempfile.mkdtemp(prefix="render-", dir=state.upload_dir))
         try:
@@ -240,11 +244,18 @@ async def render_image(
 
         defaults = await asyncio.to_thread(default_layers, topology, p.RenderParams().sigma_A)
         render_params = p.RenderParams(layers=[p.Layer(**f) for f in defaults])
-    try:
-        layers = FrameLayers(render_params, topology)
-        plans = await asyncio.to_thread(layers.plans, positions, 0, box)
-    except SelectionError as exc:
-        raise HTTPException(422, f"params.layers: {exc}") from None
+    own = held is None and bool(render_params.layers)
+    if own:
+        held = state.selections.hold(topology)
+    try:  # evaluated by a selection worker (priced first, bounded in time and memory)
+        plans = await FrameLayers(render_params, topology, held).plans_async(
+            positions, frame_key, box
+        )
+    except LayerError as exc:
+        raise HTTPException(422, f"params.{exc}") from None
+    finally:
+        if own and held is not None:
+            held.release()
     if cam is None:
         from server.render.camera import fit_camera
         from server.render.layerplan import visible_atoms
@@ -291,7 +302,7 @@ async def create_job(
     if (topology is None) == (dataset is None):
         raise HTTPException(422, "give exactly one of topology (upload) or dataset")
     render_params = _model(p.RenderParams, params, "params") or p.RenderParams()
-    _check_layers(render_params, "params")
+    check_layer_texts(state, render_params, "params")
     cam = _model(p.Camera, camera, "camera")
     workdir = Path(tempfile.mkdtemp(prefix="job-", dir=state.upload_dir))
     try:

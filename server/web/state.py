@@ -27,6 +27,7 @@ from server.session.steering_log import SteeringLog
 from server.settings import ServerSettings
 from server.web.auth import ClientBudgets, RateLimiter
 from server.web.children import ReplayManager
+from structures.selection_pool import SelectionPool
 
 _SESSION_NAME = re.compile(SESSION_NAME)
 
@@ -115,6 +116,11 @@ class AppState:
     """WebSocket rate limits per client (role and remote address), across its connections."""
     replays: ReplayManager = field(default_factory=ReplayManager)
     """Replays opened from the dashboard (child processes)."""
+
+    @property
+    def selections(self) -> SelectionPool:
+        """The worker processes that evaluate selections (sessions, REST renders, jobs)."""
+        return self.services.selections
 
     @property
     def metrics(self) -> Metrics:

@@ -368,7 +368,7 @@ async def _dispatch(session: Session, client: Client, guard: Guard, message: p.M
         case p.Pick():
             client.send(await session.pick(client, message))
         case p.Select():
-            client.send(session.select(client, message))
+            client.send(await session.select(client, message))
         case p.Ping():
             # pings are latency probes: under a flood, answer only while the peer keeps up
             if client.backlog < PONG_BACKLOG:
@@ -386,4 +386,4 @@ async def _dispatch(session: Session, client: Client, guard: Guard, message: p.M
                     message.message[:200],
                 )
         case _:
-            session.steer(client, message)
+            await session.steer(client, message)

@@ -102,14 +102,14 @@ def test_sim_params_show_only_once_the_engine_confirms(tmp_path: Path) -> None:
         session.attach(steerer)
         session.on_topology(topo)
         session.on_frame(frame(pos, 0))
-        session.steer(steerer, p.SimParams(seq=4, temperature_K=900.0))
+        await session.steer(steerer, p.SimParams(seq=4, temperature_K=900.0))
         forwarded = [m for m in sent(sim) if isinstance(m, p.SimParams)][-1]
         assert session.sim_params.temperature_K is None
         session.on_ack(p.ParamsAck(ref=forwarded.seq or 0, ok=False, detail="too hot"))
         assert session.sim_params.temperature_K is None
         reply = [m for m in sent(steerer) if isinstance(m, p.ParamsAck)][-1]
         assert reply.ref == 4 and not reply.ok
-        session.steer(steerer, p.SimParams(seq=5, temperature_K=310.0))
+        await session.steer(steerer, p.SimParams(seq=5, temperature_K=310.0))
         forwarded = [m for m in sent(sim) if isinstance(m, p.SimParams)][-1]
         session.on_ack(p.ParamsAck(ref=forwarded.seq or 0, ok=True, step=3))
         assert session.sim_params.temperature_K == 310.0
@@ -124,7 +124,7 @@ def test_steering_without_a_simulation_is_refused_and_logged_nowhere(tmp_path: P
         steerer = client("u")
         session.attach(steerer)
         with pytest.raises(p.ProtocolError) as err:
-            session.steer(steerer, p.Control(action="pause"))
+            await session.steer(steerer, p.Control(action="pause"))
         assert err.value.code == p.ErrorCode.NOT_READY
         assert session.services.steering_log.read("s") == []
 
@@ -140,7 +140,7 @@ def test_an_invalid_render_patch_names_the_field_and_changes_nothing(tmp_path: P
             type="render_params", seq=3, params=p.RenderParams.model_construct(sigma_A=-1.0)
         )
         with pytest.raises(p.ProtocolError) as err:
-            session.steer(steerer, patch)
+            await session.steer(steerer, patch)
         assert err.value.path == "render_params.params.sigma_A"
         assert session.render_params is before
 
@@ -163,7 +163,7 @@ def test_a_render_change_the_log_cannot_record_changes_nothing(tmp_path: Path) -
 
         session.services.steering_log.next_id = unreadable  # type: ignore[method-assign]
         with pytest.raises(OSError, match="unreadable"):
-            session.steer(steerer, p.SetRenderParams(seq=4, params={"sigma_A": 3.0}))
+            await session.steer(steerer, p.SetRenderParams(seq=4, params={"sigma_A": 3.0}))
         assert session.render_params is before
         assert not [m for m in sent(viewer)[seen:] if isinstance(m, p.State)]
 
@@ -179,7 +179,7 @@ def test_a_leaving_puller_releases_its_atoms_for_the_engine(tmp_path: Path) -> N
         session.on_topology(topo)
         session.on_frame(frame(pos, 0))
         target = tuple(float(v) + 1.0 for v in pos[2])
-        session.steer(user, p.Pull(seq=1, atom=2, target=target))  # type: ignore[arg-type]
+        await session.steer(user, p.Pull(seq=1, atom=2, target=target))  # type: ignore[arg-type]
         pulled = [m for m in sent(sim) if isinstance(m, p.Forces)][-1]
         assert pulled.indices.to_numpy().tolist() == [2]
         session.on_frame(frame(pos + np.float32(0.5), 1))  # the spring follows the atom
@@ -289,14 +289,14 @@ def test_while_someone_steers_video_streams_at_the_interactive_size(tmp_path: Pa
         await settle(lambda: any(r.snapshot.step == 1 for r in backend.requests))
         first = request(backend, 1)
         assert (first.width, first.height, first.video_size) == (40, 30, (40, 30))
-        session.steer(u, p.SetRenderParams(seq=2, params={"iso_level": 0.3}))  # type: ignore[arg-type]
+        await session.steer(u, p.SetRenderParams(seq=2, params={"iso_level": 0.3}))  # type: ignore[arg-type]
         await asyncio.sleep(SETTINGS.interactive_idle_s + 0.05)  # no longer interactive
         session.on_frame(frame(pos + np.float32(1.0), 2))
         await settle(lambda: any(r.snapshot.step == 2 for r in backend.requests))
         steering = request(backend, 2)
         assert (steering.width, steering.height, steering.video_size) == (20, 15, (20, 15))
         session.attach(client("j", "viewer"))  # a JPEG viewer of the same view
-        session.steer(u, p.SetRenderParams(seq=3, params={"iso_level": 0.35}))  # type: ignore[arg-type]
+        await session.steer(u, p.SetRenderParams(seq=3, params={"iso_level": 0.35}))  # type: ignore[arg-type]
         await asyncio.sleep(SETTINGS.interactive_idle_s + 0.05)
         session.on_frame(frame(pos + np.float32(2.0), 3))
         await settle(lambda: any(r.snapshot.step == 3 for r in backend.requests))

@@ -11,6 +11,7 @@ import asyncio
 import bz2
 import concurrent.futures
 import gzip
+import json
 import math
 import os
 import random
@@ -896,5 +897,319 @@ def test_video_encoders_are_bounded_and_given_back_when_their_viewers_leave(
         jpeg.expect(p.Image, 60, where=lambda m: m.step == 2)
         sim.close()
         jpeg.close()
+    finally:
+        server.stop()
+
+
+# ---------------------------------------------------------------- selections (round three, 1)
+#
+# A viewer's selection froze or killed the server: selections ran on the event loop (REST render
+# layers in the server's process) with no cost limit. They are now priced before they run and
+# evaluated in worker processes under a time and memory limit.
+
+SELECT_ATOMS = 40_000
+
+
+def crowded(n: int) -> tuple[p.Topology, np.ndarray]:
+    """`n` atoms of alanine backbone (N, CA, C, O; a quarter of them CA) packed as densely as
+    water (0.1 atoms per cubic angstrom), each near a point of a grid."""
+    side = math.ceil(n ** (1 / 3))
+    grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
+    rng = np.random.default_rng(3)
+    pos = (grid * 2.154 + rng.normal(0, 0.3, (n, 3))).astype(np.float32)
+    names = [("N", "CA", "C", "O")[i % 4] for i in range(n)]
+    topo = p.Topology(
+        n_atoms=n,
+        elements=[("N", "C", "C", "O")[i % 4] for i in range(n)],
+        names=names,
+        residue_ids=p.WireArray.from_numpy(np.arange(n) // 4 + 1, "<i4"),
+        residue_names=["ALA"] * n,
+        chain_ids=["A"] * n,
+        bonds=p.WireArray.from_numpy(np.zeros((0, 2)), "<i4"),
+    )
+    return topo, pos
+
+
+def crowded_pdb(n: int) -> bytes:
+    topo, pos = crowded(n)
+    lines = [
+        f"ATOM  {i + 1:5d} {name:<4s} ALA A{i // 4 + 1:4d}    "
+        f"{x:8.3f}{y:8.3f}{z:8.3f}  1.00  0.00           {name[0]}"
+        for i, (name, (x, y, z)) in enumerate(zip(topo.names, pos, strict=True))
+    ]
+    return ("\n".join([*lines, "END", ""])).encode()
+
+
+def nested(levels: int, cutoff: float = 5) -> str:
+    return f"around {cutoff:g} (" * levels + "name CA" + ")" * levels
+
+
+def start_crowded(server: ServerProcess, name: str) -> Peer:
+    """A simulation of SELECT_ATOMS atoms on `server`, its one frame sent."""
+    sim = Peer(server.ws_url, "simulation", TOKEN, name)
+    topo, pos = crowded(SELECT_ATOMS)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    return sim
+
+
+def joined(server: ServerProcess, name: str, role: p.Role = "viewer") -> Peer:
+    """A client of session `name`, once the session has its topology."""
+    peer = Peer(server.view_url, role, VIEWER_TOKEN if role == "viewer" else TOKEN, name)
+    deadline = time.monotonic() + 60
+    while True:
+        seq = peer.send(p.Select(text="index 0"))
+        reply = peer.expect(p.Message, 30, where=lambda m, s=seq: getattr(m, "ref", None) == s)
+        if isinstance(reply, p.Selected):
+            return peer
+        assert time.monotonic() < deadline, reply
+        time.sleep(0.2)
+
+
+def select(peer: Peer, text: str, timeout: float = 60) -> tuple[p.Selected, float]:
+    started = time.monotonic()
+    seq = peer.send(p.Select(text=text))
+    reply = peer.expect(p.Selected, timeout, where=lambda m: m.ref == seq)
+    return reply, time.monotonic() - started
+
+
+def ping_rtt(peer: Peer) -> float:
+    started = time.monotonic()
+    seq = peer.send(p.Ping(client_time=0.0))
+    peer.expect(p.Pong, 30, where=lambda m: m.ref == seq)
+    return time.monotonic() - started
+
+
+def children_of(pid: int) -> list[int]:
+    """Running processes whose parent is `pid`."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found.append(int(stat.parent.name))
+    return found
+
+
+def running(pid: int) -> bool:
+    """Whether `pid` is a live process (a zombie no reaper has collected yet is not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def crowded_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    """A server with default selection limits (viewer renders not rate-limited here)."""
+    proc = ServerProcess(
+        tmp_path_factory.mktemp("selections") / "state",
+        "--set", "viewer_renders_per_min=600",
+        "--set", "cpu_max_live_pixels=10000",  # its images are not what is tested
+    )  # fmt: skip
+    sim = start_crowded(proc, "crowded")
+    yield proc
+    sim.close()
+    proc.stop()
+
+
+def test_a_viewers_nested_selection_is_refused_naming_the_limit(
+    crowded_server: ServerProcess,
+) -> None:
+    """Round three, item 1: a viewer's `select` of `around 5 (` x60 + `name CA` + `)` x60 on a
+    40k-atom session blocked every client for 14 s."""
+    viewer = joined(crowded_server, "crowded")
+    reply, seconds = select(viewer, nested(60))
+    assert reply.count is None and "selection_max_depth" in reply.error, reply
+    assert reply.position == 32 * len("around 5 (") + len("around 5 ")  # the 33rd "("
+    # within the depth limit, past the budget: priced before it runs, the term named
+    reply, seconds = select(viewer, nested(20))
+    assert reply.count is None and "selection_max_pairs" in reply.error, reply
+    assert "`around` at character 1" in reply.error and seconds < 10
+    # what a person types still counts, from the worker that holds the system
+    reply, _ = select(viewer, "name CA")
+    assert reply.count == SELECT_ATOMS // 4 and not reply.error
+    reply, _ = select(viewer, "around 3 index 0:9")
+    assert reply.count and reply.dynamic
+    viewer.close()
+
+
+def test_a_viewers_selection_of_every_pair_is_refused_before_it_allocates(
+    crowded_server: ServerProcess,
+) -> None:
+    """Round three, item 1: `around 1000 index 0:4999` grew the process past 13 GB in 60 s and
+    dropped every client."""
+    viewer = joined(crowded_server, "crowded")
+    rss = crowded_server.rss_bytes()
+    reply, seconds = select(viewer, "around 1000 index 0:4999", timeout=30)
+    assert reply.count is None and "selection_max_pairs" in reply.error, reply
+    assert "4,000,000" in reply.error and seconds < 10
+    assert crowded_server.rss_bytes() - rss < 100 * 2**20
+    assert ping_rtt(viewer) < 2.0
+    viewer.close()
+
+
+def test_a_viewers_render_with_a_layer_of_every_pair_is_a_422_naming_the_limit(
+    crowded_server: ServerProcess,
+) -> None:
+    """Round three, item 1: a viewer's `POST /api/render` of a 20k-atom PDB with a layer
+    `around 1000 index 0:5999` was killed by the OOM killer in 20 s."""
+    params = '{"layers": [{"selection": "protein"}, {"selection": "around 1000 index 0:5999"}]}'
+    rss = crowded_server.rss_bytes()
+    with httpx.Client(base_url=crowded_server.url, timeout=60) as c:
+        r = c.post(
+            "/api/render",
+            headers=VIEWER,
+            files={"file": ("crowded.pdb", crowded_pdb(20_000))},
+            data={"width": "32", "height": "24", "params": params},
+        )
+        assert r.status_code == 422, r.text
+        detail = r.json()["detail"]
+        assert detail.startswith("params.layers.1.selection") and "selection_max_pairs" in detail
+        assert c.get("/healthz").status_code == 200
+    assert crowded_server.alive() and crowded_server.rss_bytes() - rss < 200 * 2**20
+
+
+def test_viewer_renders_with_nested_small_cutoff_layers_end_at_once(
+    crowded_server: ServerProcess,
+) -> None:
+    """Round three, item 1: five viewer renders with nested small-cutoff layers kept both
+    cores busy for 3 minutes. The layers of one render share one budget."""
+    layers = [{"selection": nested(4, 4.0 + 0.1 * i)} for i in range(8)]
+    params = json.dumps({"layers": layers})
+    pdb = crowded_pdb(20_000)
+
+    def render() -> httpx.Response:
+        with httpx.Client(base_url=crowded_server.url, timeout=120) as c:
+            return c.post(
+                "/api/render",
+                headers=VIEWER,
+                files={"file": ("crowded.pdb", pdb)},
+                data={"width": "32", "height": "24", "params": params},
+            )
+
+    started = time.monotonic()
+    with concurrent.futures.ThreadPoolExecutor(5) as pool:
+        answers = list(pool.map(lambda _: render(), range(5)))
+    seconds = time.monotonic() - started
+    for r in answers:
+        assert r.status_code == 422, r.text
+        assert "selection_max_pairs" in r.json()["detail"], r.text
+        assert "for the layers before it" in r.json()["detail"]
+    assert seconds < 30, seconds
+
+
+def test_a_steerers_costly_layers_are_refused_without_blocking_anyone(
+    crowded_server: ServerProcess,
+) -> None:
+    """Round three, item 1: a steerer's layers took the same path (4.3 s blocked)."""
+    steerer = joined(crowded_server, "crowded", "steerer")
+    viewer = joined(crowded_server, "crowded")
+    layers = [
+        {"name": "ca", "selection": "name CA"},
+        {"name": "shell", "selection": nested(12)},
+    ]
+    seq = steerer.send(p.SetRenderParams(params={"layers": layers}))
+    rtt = ping_rtt(viewer)
+    err = steerer.expect(p.Error, 30, where=lambda m: m.ref == seq)
+    assert err.code == "too_large" and "selection_max_pairs" in err.message, err
+    assert err.path == "render_params.params.layers.1.selection"
+    assert rtt < 2.0
+    # nothing changed, and a layer within the limits is taken
+    good = [{"name": "near", "selection": "around 4 index 0:99"}]
+    seq = steerer.send(p.SetRenderParams(params={"layers": good}))
+    state = steerer.expect(p.State, 30, where=lambda m: m.ref == seq)
+    assert state.render_params is not None
+    assert [x.selection for x in state.render_params.layers] == ["around 4 index 0:99"]
+    steerer.close()
+    viewer.close()
+
+
+def test_a_job_with_a_costly_layer_fails_naming_the_limit(crowded_server: ServerProcess) -> None:
+    """Jobs (and recordings' movies, which are jobs) evaluate layers the same way."""
+    params = '{"layers": [{"selection": "around 1000 index 0:2999"}]}'
+    with httpx.Client(base_url=crowded_server.url, timeout=120) as c:
+        with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+            r = c.post(
+                "/api/jobs",
+                headers=AUTH,
+                files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                data={"width": "32", "height": "24", "stop": "2", "params": params},
+            )
+        assert r.status_code == 202, r.text
+        info = wait_job(c, r.json()["id"], 60)
+    assert info["state"] == "failed", info
+    assert str(info["error"]).startswith("params.layers.0.selection")
+    assert "selection_max_pairs" in str(info["error"])
+
+
+@pytest.fixture(scope="module")
+def backstop_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    """A server whose estimate lets everything through: what it misses meets the worker's
+    time and memory limits."""
+    proc = ServerProcess(
+        tmp_path_factory.mktemp("backstop") / "state",
+        "--set", "selection_max_pairs=1000000000000",
+        "--set", "selection_timeout_s=4",
+        "--set", f"selection_memory_bytes={400 * 2**20}",  # a worker holds about 270 MB
+        "--set", "cpu_max_live_pixels=10000",
+    )  # fmt: skip
+    sim = start_crowded(proc, "crowded")
+    yield proc
+    sim.close()
+    proc.stop()
+
+
+def test_a_selection_past_the_workers_time_is_stopped_and_the_worker_replaced(
+    backstop_server: ServerProcess,
+) -> None:
+    viewer = joined(backstop_server, "crowded")
+    other = joined(backstop_server, "crowded")
+    seq = viewer.send(p.Select(text=nested(20)))
+    rtts = [ping_rtt(other) for _ in range(10) if time.sleep(0.2) is None]
+    reply = viewer.expect(p.Selected, 60, where=lambda m: m.ref == seq)
+    assert reply.count is None and "selection_timeout_s" in reply.error, reply
+    assert "longer than 4 s" in reply.error
+    assert max(rtts) < 1.0, rtts  # the evaluation never held the event loop
+    reply, _ = select(viewer, "name CA")  # a fresh worker answers what follows
+    assert reply.count == SELECT_ATOMS // 4
+    viewer.close()
+    other.close()
+
+
+def test_a_selection_past_the_workers_memory_is_stopped_and_the_server_untouched(
+    backstop_server: ServerProcess,
+) -> None:
+    viewer = joined(backstop_server, "crowded")
+    rss = backstop_server.rss_bytes()
+    reply, _ = select(viewer, "same x as all")  # 40,000 x 40,000 comparisons held at once
+    assert reply.count is None and "selection_memory_bytes" in reply.error, reply
+    assert "400 MiB" in reply.error
+    assert backstop_server.rss_bytes() - rss < 100 * 2**20
+    reply, _ = select(viewer, "name CA")
+    assert reply.count == SELECT_ATOMS // 4
+    viewer.close()
+
+
+def test_selection_workers_end_with_the_server(tmp_path: Path) -> None:
+    """A worker is a child of the server; a `kill -9` of the server takes it along."""
+    server = ServerProcess(tmp_path / "state")
+    try:
+        sim = Peer(server.ws_url, "simulation", TOKEN, "small")
+        topo, pos = molecule(16)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        viewer = joined(server, "small")  # its `select` starts a worker
+        workers = children_of(server.process.pid)
+        assert workers, "no selection worker"
+        server.stop(signal.SIGKILL)
+        deadline = time.monotonic() + 10
+        while any(running(pid) for pid in workers):
+            assert time.monotonic() < deadline, "a selection worker outlived the server"
+            time.sleep(0.1)
+        sim.close()
+        viewer.close()
     finally:
         server.stop()
