@@ -64,6 +64,7 @@ async def run(args: argparse.Namespace) -> int:
     from server.settings import ServerSettings
     from server.web.app import batch_engine
     from server.web.rest import unknown_keys
+    from structures.selection_pool import SelectionPool
 
     suffix = args.output.suffix.lower()
     if suffix not in (".mp4", ".zip"):
@@ -91,8 +92,17 @@ async def run(args: argparse.Namespace) -> int:
     batch = batch_engine(settings, work / "ray")
     gpu = GpuQueue(device=args.device)
     encoders = ThreadPoolExecutor(max_workers=4, thread_name_prefix="encode")
+    # layers are evaluated as the server evaluates them (docs/server.md, "Selections")
+    selections = SelectionPool(settings.selection_limits())
     jobs = JobManager(
-        work, gpu, encoders, Metrics(), settings.read_limits(), batch=batch, max_running=1
+        work,
+        gpu,
+        encoders,
+        Metrics(),
+        settings.read_limits(),
+        batch=batch,
+        max_running=1,
+        selections=selections,
     )
     spec = JobSpec(
         topology=Path(args.topology).resolve(),
@@ -134,6 +144,7 @@ async def run(args: argparse.Namespace) -> int:
     finally:
         if batch is not None:
             await asyncio.to_thread(batch.close)
+        await asyncio.to_thread(selections.close)
         await asyncio.to_thread(gpu.close)
         encoders.shutdown(wait=True)
     if job.state is not JobState.DONE or job.result is None:
