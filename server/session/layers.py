@@ -5,8 +5,9 @@ Selections never run on the event loop: the server's selection workers
 A layer's first evaluation is asked for when a render needs it; until every visible layer has
 its atoms the session does not render (`ready` is False), and the answer triggers the render.
 Static selections are evaluated once per topology. Distance-based ones (`around 5 resname LIG`)
-are re-evaluated as frames arrive, at most every `REFRESH_S` (and at most a quarter of the
-time: a selection that took 0.4 s waits 1.6 s), while the last result keeps being drawn. The
+are re-evaluated as frames arrive, at most every `REFRESH_S` (and keeping their worker busy a
+fifth of the time at most: a selection that took 0.4 s waits 1.6 s), while the last result
+keeps being drawn. The
 plans handed to the GPU are rebuilt only when the parameters or an atom set change, so a
 renderer sees the same parameter objects frame after frame.
 """

@@ -49,6 +49,7 @@ from server.session.steering import (
 )
 from server.settings import ServerSettings
 from structures.selection import SelectionError, check_syntax, is_dynamic
+from structures.selection_pool import SelectionBusyError
 
 log = logging.getLogger("scalesteer.session")
 
@@ -633,7 +634,10 @@ class Session:
     def _layer_error(
         exc: SelectionError, i: int, layer: p.Layer | None, seq: int | None
     ) -> p.ProtocolError:
-        code = p.ErrorCode.TOO_LARGE if exc.limit else p.ErrorCode.INVALID_MESSAGE
+        if isinstance(exc, SelectionBusyError):
+            code = p.ErrorCode.NOT_READY  # nothing wrong with them: asking again may answer
+        else:
+            code = p.ErrorCode.TOO_LARGE if exc.limit else p.ErrorCode.INVALID_MESSAGE
         if layer is None:
             return p.ProtocolError(code, f"layers: {exc}", "render_params.params.layers", seq)
         return p.ProtocolError(
