@@ -25,6 +25,7 @@ import numpy.typing as npt
 
 from protocol import Topology
 from structures.selection_cost import (
+    TOKEN,
     Density,
     Refusal,
     SelectionLimits,
@@ -53,7 +54,6 @@ DYNAMIC_KEYWORDS = frozenset(
 LIGAND_SIGMA_FACTOR = 0.5
 """A ligand's default layer shows it at half the session's scale (its chemistry, not its blob)."""
 
-_TOKEN = re.compile(r"\(|\)|[^\s()]+")
 _MASS = {"H": 1.008, "C": 12.011, "N": 14.007, "O": 15.999, "P": 30.974, "S": 32.06}
 
 
@@ -100,7 +100,7 @@ class SelectionError(ValueError):
 def is_dynamic(text: str) -> bool:
     """Whether `text` reads coordinates (its atoms change as the system moves): a distance
     keyword, or `same x|y|z as ...`."""
-    tokens = [t.lower() for t in _TOKEN.findall(text)]
+    tokens = [t.lower() for t in TOKEN.findall(text)]
     if any(t in DYNAMIC_KEYWORDS for t in tokens):
         return True
     return any(a == "same" and b in ("x", "y", "z") for a, b in itertools.pairwise(tokens))
@@ -110,7 +110,7 @@ def _position_of(text: str, reason: str) -> int:
     """Where MDAnalysis's complaint points in `text`: the token it names, or the end."""
     value = re.search(r"value: (\S+?)'?$", reason)
     quoted = [value.group(1)] if value else re.findall(r"'([^']*)'", reason)
-    spans = [(m.group(), m.start()) for m in _TOKEN.finditer(text)]
+    spans = [(m.group(), m.start()) for m in TOKEN.finditer(text)]
     if not quoted or quoted[0] == "None":
         return len(text.rstrip())
     word = quoted[0]
@@ -423,15 +423,6 @@ class Selector:
         for residue, c in zip(residues, found, strict=True):
             codes[residue.atoms.indices] = SECONDARY_CODES.get(str(c), 0)
         return codes
-
-    def cached(self, text: str) -> npt.NDArray[np.int32] | None:
-        """A static selection's atoms if evaluated before (no universe work, no lock)."""
-        return self._static.get(text.strip())
-
-    def count(
-        self, text: str, positions: npt.ArrayLike | None = None, box: npt.ArrayLike | None = None
-    ) -> int:
-        return len(self.select(text, positions, box))
 
 
 def _dimensions(box: npt.ArrayLike | None) -> npt.NDArray[np.float32] | None:

@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-_TOKEN = re.compile(r"\(|\)|[^\s()]+")
+TOKEN = re.compile(r"\(|\)|[^\s()]+")
+"""A token of the selection language as MDAnalysis splits it (parentheses stand alone)."""
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,7 @@ def text_refusal(text: str, limits: SelectionLimits) -> Refusal | None:
             limits.max_chars,
         )
     depth = 0
-    for match in _TOKEN.finditer(text):
+    for match in TOKEN.finditer(text):
         if match.group() == "(":
             depth += 1
             if depth > limits.max_depth:
@@ -133,7 +134,7 @@ def positions_of(text: str, tree: Any) -> dict[int, int]:
     """Each node's character offset in `text` (by id): the k-th node of a keyword in text
     order is the k-th occurrence of that keyword among the text's tokens."""
     offsets: dict[str, list[int]] = {}
-    for m in _TOKEN.finditer(text):
+    for m in TOKEN.finditer(text):
         offsets.setdefault(m.group(), []).append(m.start())
     seen: dict[str, int] = {}
     out: dict[int, int] = {}
