@@ -51,7 +51,7 @@ def test_the_figures_are_written(tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
     from thesis.chapter5 import make_figures
 
-    paths = make_figures(tmp_path, dpi=40)
+    paths = make_figures(tmp_path, dpi=40, renders=False)
     assert [p.name for p in paths] == [
         "fig5_6_three_atoms.png",
         "fig5_7_center_density.png",
