@@ -30,7 +30,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", default="1920x1080")
     p.add_argument("--mode", default="iso", choices=["iso", "volume"])
     p.add_argument("--frames", type=int, default=4)
-    p.add_argument("--scale-space", default="classical", choices=["classical", "warped"])
+    p.add_argument(
+        "--scale-space", default="classical", choices=["classical", "geodesic", "carved"]
+    )
     p.add_argument("--device", default="cuda:0")
     p.add_argument("--budget", type=int, default=None, help="first marching kernel's passes")
     p.add_argument("--lanes", type=int, default=None, help="threads per queued ray")

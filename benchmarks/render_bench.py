@@ -407,59 +407,6 @@ def image_error(a: np.ndarray, b: np.ndarray, da: np.ndarray, db: np.ndarray) ->
 # ----------------------------------------------------------------------------- sections
 
 
-def warped_quality() -> dict[str, Any]:
-    """The design measures of the warped density (float64 reference, strength 1): the crease
-    ratio (largest second difference of S along lines through the molecule, at step h over at
-    h / 2: 4 is smooth, 2 creased) and benzene's ring ratio S(centre) / S(bond midpoint) at the
-    sigma where the classical density fills the ring."""
-    from server.render.skeleton import Skeleton, carved_density
-
-    def mol(pos: np.ndarray, bonds: list[tuple[int, int]]) -> tuple[np.ndarray, Skeleton]:
-        top = topology_of(np.array(["C"] * len(pos)), np.array(bonds, np.int32))
-        return pos, Skeleton.of(top)
-
-    ang = np.arange(6) * math.pi / 3
-    ring = np.stack([1.39 * np.cos(ang), 1.39 * np.sin(ang), 0 * ang], axis=1)
-    cases = {
-        "three atoms": mol(
-            np.array([[-1.3, -0.75, 0.0], [0.0, 0.0, 0.0], [1.3, -0.75, 0.0]]), [(0, 1), (1, 2)]
-        ),
-        "benzene ring": mol(ring, [(i, (i + 1) % 6) for i in range(6)]),
-    }
-    out: dict[str, Any] = {"crease_ratio": {}, "ring_ratio": {}}
-    rng = np.random.default_rng(3)
-    for name, (pos, sk) in cases.items():
-        ones = np.ones(len(pos))
-        for strength in (0.0, 1.0):
-            worst = math.inf
-            for _ in range(12):
-                v = rng.normal(size=3)
-                v /= np.linalg.norm(v)
-                o = pos[rng.integers(len(pos))] + rng.normal(scale=0.3, size=3)
-                sec = []
-                for hh in (0.02, 0.01):
-                    t = np.arange(-4.0, 4.0, hh)
-                    d = carved_density(o + t[:, None] * v, pos, ones, sk, 1.0, strength)[0]
-                    sec.append(np.abs(d[2:] - 2 * d[1:-1] + d[:-2]).max())
-                worst = min(worst, sec[0] / sec[1])
-            out["crease_ratio"][f"{name}, {'warped' if strength else 'classical'}"] = worst
-    pos, sk = cases["benzene ring"]
-    ones = np.ones(6)
-    center, mid = np.zeros((1, 3)), ((pos[0] + pos[1]) / 2)[None]
-    lo, hi = 0.3, 3.0
-    for _ in range(40):
-        sig = 0.5 * (lo + hi)
-        c = carved_density(center, pos, ones, sk, sig, 0.0)[0][0]
-        m = carved_density(mid, pos, ones, sk, sig, 0.0)[0][0]
-        lo, hi = (lo, sig) if c >= m else (sig, hi)
-    for strength in (0.0, 1.0):
-        c = carved_density(center, pos, ones, sk, hi, strength)[0][0]
-        m = carved_density(mid, pos, ones, sk, hi, strength)[0][0]
-        out["ring_ratio"]["warped" if strength else "classical"] = c / m
-    out["ring_sigma"] = hi
-    return out
-
-
 class Bench:
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
@@ -484,7 +431,7 @@ class Bench:
             "registers": [],
             "budgets": [],
             "blocks": [],
-            "warped": [],
+            "densities": [],
             "march_budget": args.march_budget,
             "split_lanes": args.split_lanes,
             "max_registers": args.max_registers,
@@ -613,38 +560,41 @@ class Bench:
             if grid and self.clock.left() > 15:
                 self.grid_build(n, r, frames)
 
-    # ---- the warped density next to the classical one
-    def warped(self, cases: list[tuple[int, int, int]]) -> None:
-        """Iso frames of the classical and the bond-graph warped density (strength 1) on the
-        same renderer and frames, one after the other, grid rebuilt every frame."""
+    # ---- the geodesic and carved densities next to the classical one
+    def densities(self, cases: list[tuple[int, int, int]]) -> None:
+        """Iso frames of the classical, geodesic and carved densities (strength 1, relative
+        level) on the same renderer and frames, one after the other, grid rebuilt every frame;
+        and each density's device bytes per atom (the geodesic's route tables included)."""
         for n, w, h in cases:
             if self.clock.left() < 20:
-                self.results["notes"].append(f"warped section stopped before N={n}: budget")
+                self.results["notes"].append(f"densities section stopped before N={n}: budget")
                 break
             r, frames = self.renderer(n)
             cam = fit_camera(frames[0], w, h)
             row: dict[str, Any] = {"n_atoms": n, "system": THESIS.get(n, "tiled 4AKE")}
             row.update(width=w, height=h)
-            for space in ("classical", "warped"):
+            for space in ("classical", "geodesic", "carved"):
                 params = RenderParams(scale_space=space)  # type: ignore[arg-type]
                 row[space] = self.timed(
                     self.frame_step(r, frames, params, cam, w, h), self.args.frames
                 )
                 mem = r.memory_bytes()
+                extra = mem.get("skeleton", 0) if space == "carved" else 0
+                extra += mem.get("geodesic", 0) if space == "geodesic" else 0
                 row[f"{space}_bytes_per_atom"] = (
-                    mem["per_atom"] + mem["grid"] + mem["other"] + mem.get("skeleton", 0)
+                    mem["per_atom"] + mem["grid"] + mem["other"] + extra
                 ) / n
-            row["warped_over_classical_fps"] = (
-                row["classical"]["median_ms"] / row["warped"]["median_ms"]
-            )
-            self.results["warped"].append(row)
+            for space in ("geodesic", "carved"):
+                row[f"{space}_over_classical_fps"] = (
+                    row["classical"]["median_ms"] / row[space]["median_ms"]
+                )
+            self.results["densities"].append(row)
             self.save()
             self.log(
-                f"N={n:>9,} {w}x{h} classical {row['classical']['median_ms']:.3f} ms, warped "
-                f"{row['warped']['median_ms']:.3f} ms ({row['warped_over_classical_fps']:.2f}x fps)"
+                f"N={n:>9,} {w}x{h} classical {row['classical']['median_ms']:.3f} ms, geodesic "
+                f"{row['geodesic']['median_ms']:.3f} ms ({row['geodesic_over_classical_fps']:.2f}x "
+                f"fps), carved {row['carved']['median_ms']:.3f} ms"
             )
-        self.results["warped_quality"] = warped_quality()
-        self.save()
 
     # ---- large systems: cell size, and the next upload overlapped with the last render
     def scale(
@@ -1285,34 +1235,25 @@ def table(path: Path) -> str:
             f"{f['median_ms']:.3f} | {f['fps']:.0f} | {st.get('upload', 0):.3f} | "
             f"{st.get('grid', 0):.3f} | {st.get('raycast', 0):.3f} | {f['bytes_per_atom']:.1f} |"
         )
-    if res.get("warped"):
+    if res.get("densities"):
         lines += [
             "",
-            "Warped density (strength 1) next to the classical one, iso, median ms per frame "
-            "(grid and segment grid rebuilt every frame):",
+            "The geodesic and carved densities (strength 1) next to the classical one, iso, "
+            "median ms per frame (grid and tables' distances rebuilt every frame):",
             "",
-            "| atoms | image | classical ms | warped ms | warped fps / classical fps | "
-            "B/atom classical | B/atom warped |",
-            "| ---: | --- | ---: | ---: | ---: | ---: | ---: |",
+            "| atoms | image | classical ms | geodesic ms | geodesic fps / classical | carved ms | "
+            "carved fps / classical | B/atom classical | geodesic | carved |",
+            "| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
         ]
-        for row in res["warped"]:
+        for row in res["densities"]:
             lines.append(
                 f"| {row['n_atoms']:,} | {row['width']}x{row['height']} | "
-                f"{row['classical']['median_ms']:.3f} | {row['warped']['median_ms']:.3f} | "
-                f"{row['warped_over_classical_fps']:.2f} | "
-                f"{row['classical_bytes_per_atom']:.1f} | {row['warped_bytes_per_atom']:.1f} |"
+                f"{row['classical']['median_ms']:.3f} | {row['geodesic']['median_ms']:.3f} | "
+                f"{row['geodesic_over_classical_fps']:.2f} | {row['carved']['median_ms']:.3f} | "
+                f"{row['carved_over_classical_fps']:.2f} | "
+                f"{row['classical_bytes_per_atom']:.1f} | {row['geodesic_bytes_per_atom']:.1f} | "
+                f"{row['carved_bytes_per_atom']:.1f} |"
             )
-        quality = res.get("warped_quality")
-        if quality:
-            creases = ", ".join(f"{k} {v:.2f}" for k, v in quality["crease_ratio"].items())
-            rings = quality["ring_ratio"]
-            lines += [
-                "",
-                f"Crease ratio (4 smooth, 2 creased): {creases}. Benzene ring ratio "
-                f"S(centre) / S(bond midpoint) at sigma {quality['ring_sigma']:.3f} A (where the "
-                f"classical density fills the ring): classical {rings['classical']:.2f}, warped "
-                f"{rings['warped']:.2f}.",
-            ]
     if res.get("passes"):
         lines += [
             "",
@@ -1508,7 +1449,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--block-sizes", default="64,128,256", help="block sizes it tries")
     p.add_argument("--budget-cases", default="", help="N@WxH,... the budget section runs")
-    p.add_argument("--warped-cases", default="", help="N@WxH,... the warped section runs")
+    p.add_argument("--density-cases", default="", help="N@WxH,... the densities section runs")
     p.add_argument("--profile-cases", default="", help="N@WxH@space@variant,... to profile")
     p.add_argument("--scale-sizes", default="", help="atom counts of the scale section")
     p.add_argument(
@@ -1558,7 +1499,7 @@ def main(argv: list[str] | None = None) -> int:
     given: dict[str, list[tuple[int, int, int]]] = {}
     for flag, spec in (
         ("--variant-cases", args.variant_cases),
-        ("--warped-cases", args.warped_cases),
+        ("--density-cases", args.density_cases),
     ):
         try:
             given[flag] = cases_of(spec, [])
@@ -1603,11 +1544,11 @@ def main(argv: list[str] | None = None) -> int:
             )
     if "main" in sections:
         b.main_table(sizes, res, grid="grid" in sections)
-    if "warped" in sections:
-        warped_cases = [(496, 64, 48)] if args.quick else [
+    if "densities" in sections:
+        density_cases = [(496, 64, 48)] if args.quick else [
             (n, 500, 500) for n in THESIS
         ] + [(100_000, 1920, 1080), (1_000_000, 1920, 1080)]  # fmt: skip
-        b.warped(given["--warped-cases"] or warped_cases)
+        b.densities(given["--density-cases"] or density_cases)
     variant_params = RenderParams.model_validate(json.loads(args.variant_params))
     if "variants" in sections:
         tries = json.loads(args.variants) if args.variants else [{"label": "default"}]
@@ -1626,7 +1567,7 @@ def main(argv: list[str] | None = None) -> int:
         prof = [(496, 64, 48, "classical", "iso")] if args.quick else [
             (1_000_000, 1920, 1080, "classical", "iso"),
             (1_000_000, 1920, 1080, "classical", "volume"),
-            (1_000_000, 1920, 1080, "warped", "iso"),
+            (1_000_000, 1920, 1080, "geodesic", "iso"),
             (10_000_000, 1920, 1080, "classical", "iso"),
         ]  # fmt: skip
         if args.profile_cases:

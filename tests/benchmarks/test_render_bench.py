@@ -136,3 +136,13 @@ def test_cases_that_are_not_atoms_at_a_size_are_refused() -> None:
             f"--variant-cases takes N@WxH,... (atoms @ width x height, each >= 1), got '{bad}'"
             in run.stderr
         )
+
+
+def test_the_densities_section_times_each_density_and_counts_its_bytes(tmp_path: Path) -> None:
+    args = [*QUICK, "--sections", "densities", "--density-cases", "496@32x24"]
+    (row,) = results(tmp_path / "densities.json", *args)["densities"]
+    assert row["n_atoms"] == 496 and (row["width"], row["height"]) == (32, 24)
+    for space in ("classical", "geodesic", "carved"):
+        assert row[space]["median_ms"] > 0
+    # the geodesic density's route tables come on top of the classical density's buffers
+    assert row["geodesic_bytes_per_atom"] > row["classical_bytes_per_atom"]

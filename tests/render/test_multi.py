@@ -19,8 +19,9 @@ PARAMS = [
     RenderParams(mode="volume", sigma_A=2.5),
     RenderParams(scale_space="carved", sigma_A=3.0),
     RenderParams(level_scale="absolute", iso_level=0.4, radius_mode="vdw"),
+    RenderParams(scale_space="geodesic", sigma_A=1.2),
 ]
-IDS = ["iso", "volume", "carved", "absolute-vdw"]
+IDS = ["iso", "volume", "carved", "absolute-vdw", "geodesic"]
 
 
 def test_bands_cover_the_image_and_balance_by_cost() -> None:
