@@ -1290,6 +1290,12 @@ class Renderer(ImageOutputs):
         if wait:
             self.finish()
 
+    @property
+    def pipelined(self) -> bool:
+        """Positions set while a render is queued (`render(wait=False)`) upload during it: a
+        CUDA renderer with two positions buffers (`double_buffer`, or from `PIPELINE_ATOMS`)."""
+        return self._cuda and len(self._pos_buffers) > 1
+
     def finish(self) -> None:
         """Wait for the last `render` and take its stage times (`timings`)."""
         if self._pending is None:
