@@ -325,13 +325,17 @@ class GpuQueue:
 
                 names = tuple(lane.device for lane in self._lanes)
                 renderer = MultiRenderer(
-                    names, max_atoms=self.max_atoms, max_pixels=self.max_pixels
+                    names,
+                    max_atoms=self.max_atoms,
+                    max_pixels=self.max_pixels,
+                    **self.renderer_options,
                 )
             else:
                 renderer = Renderer(
                     device=self._device_of(key),
                     max_atoms=self.max_atoms,
                     max_pixels=self.max_pixels,
+                    **self.renderer_options,
                 )
             self.actual_device = renderer.device
             on_cuda = all(d.startswith("cuda") for d in renderer.device.split(","))
