@@ -62,7 +62,7 @@ from server.render.raycast import (
     pack_rgba,
     pixel_of,
 )
-from server.render.renderer import SPLIT_LANES, VOLUME_REGISTERS
+from server.render.tuning import SPLIT_LANES, VOLUME_REGISTERS, Tuning
 
 wp: Any = warp  # host API calls are dynamic
 
@@ -457,7 +457,7 @@ class Bench:
         kw.setdefault("volume_max_registers", self.results["volume_max_registers"])
         kw.setdefault("march_budget", self.results["march_budget"])
         kw.setdefault("split_lanes", self.results["split_lanes"])
-        r = Renderer(self.device, max_atoms=max(n, 1), **kw)
+        r = Renderer(self.device, max_atoms=max(n, 1), tuning=Tuning.of(kw))
         r.set_topology(topology_of(el, bonds))
         frames = jittered_frames(pos, 3)
         return r, frames
@@ -630,7 +630,8 @@ class Bench:
                 label, kw = labelled(t)
                 kw.setdefault("max_registers", self.results["max_registers"])
                 kw.setdefault("volume_max_registers", self.results["volume_max_registers"])
-                r = Renderer(self.device, max_atoms=n, cells_per_cutoff=cells, **kw)
+                tuning = Tuning.of({**kw, "cells_per_cutoff": cells})
+                r = Renderer(self.device, max_atoms=n, tuning=tuning)
                 r.set_topology(top)
                 bufs = []
                 for f in frames:
@@ -866,15 +867,14 @@ class Bench:
 
         # (a) naive: no empty-space skipping
         if self.clock.left() > 20:
-            rn = Renderer(
-                dev,
-                max_atoms=n,
+            naive = Tuning(
                 empty_space_skipping=False,
                 max_registers=self.results["max_registers"],
                 volume_max_registers=self.results["volume_max_registers"],
                 march_budget=self.results["march_budget"],
                 split_lanes=self.results["split_lanes"],
             )
+            rn = Renderer(dev, max_atoms=n, tuning=naive)
             rn.set_topology(topology_of(self.system(n)[1], self.system(n)[2]))
             sn = self.timed(self.frame_step(rn, frames, iso, cam, w, h), nf)
             rn.set_positions(frames[0])

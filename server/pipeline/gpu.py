@@ -46,6 +46,7 @@ if TYPE_CHECKING:
     from server.render.layerplan import LayerPlan
     from server.render.layers import LayeredRenderer
     from server.render.multi import MultiRenderer
+    from server.render.tuning import Tuning
 
 T = TypeVar("T")
 log = logging.getLogger("scalesteer.gpu")
@@ -156,8 +157,8 @@ class GpuQueue:
     _stage_pool: ThreadPoolExecutor = field(
         default_factory=lambda: ThreadPoolExecutor(max_workers=1, thread_name_prefix="stage")
     )
-    renderer_options: dict[str, Any] = field(default_factory=dict)
-    """Extra `Renderer` options of every slot's renderers (benchmarks and tests)."""
+    tuning: Tuning | None = None
+    """The renderers' tuning (benchmarks and tests; None: the defaults)."""
     _lanes: list[_Lane] = field(default_factory=list)
     _lane_of: dict[str, int] = field(default_factory=dict)
     _spread: str | None = None
@@ -328,14 +329,14 @@ class GpuQueue:
                     names,
                     max_atoms=self.max_atoms,
                     max_pixels=self.max_pixels,
-                    **self.renderer_options,
+                    tuning=self.tuning,
                 )
             else:
                 renderer = Renderer(
                     device=self._device_of(key),
                     max_atoms=self.max_atoms,
                     max_pixels=self.max_pixels,
-                    **self.renderer_options,
+                    tuning=self.tuning,
                 )
             self.actual_device = renderer.device
             on_cuda = all(d.startswith("cuda") for d in renderer.device.split(","))

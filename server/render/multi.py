@@ -98,6 +98,7 @@ class MultiRenderer:
     """The `Renderer` interface over several devices; the image is split in bands."""
 
     def __init__(self, devices: Sequence[str], **options: Any) -> None:
+        """`options` are the `Renderer`'s (max_atoms, max_pixels, tuning), for every device."""
         if len(devices) < 2:
             raise ValueError("a multi-device renderer needs at least two devices")
         self.renderers = [Renderer(device=d, **options) for d in devices]

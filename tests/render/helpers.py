@@ -10,8 +10,10 @@ import numpy as np
 
 from protocol import Camera, RenderParams, Topology
 from server.render import colors
+from server.render.density import GAUSSIAN
 from server.render.renderer import MEAN_SAMPLES, Renderer
 from server.render.skeleton import Skeleton, carved_density
+from server.render.tuning import Tuning
 from tests.render import oracle
 from tests.render.oracle import Molecule, density
 
@@ -55,7 +57,8 @@ def render(
     height: int,
     **kw: object,
 ) -> Renderer:
-    r = Renderer(device, **kw)  # type: ignore[arg-type]
+    density = kw.pop("density", GAUSSIAN)
+    r = Renderer(device, density=density, tuning=Tuning.of(kw) if kw else None)  # type: ignore[arg-type]
     r.set_topology(topology)
     if topology.n_atoms:
         r.set_positions(positions)

@@ -19,6 +19,7 @@ from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.render import Renderer
 from server.render import device as render_device
 from server.render.multi import MultiRenderer
+from server.render.tuning import Tuning
 
 
 def image_of(topology: Topology, positions: np.ndarray, camera: Camera, device: str) -> np.ndarray:
@@ -114,7 +115,7 @@ def test_the_next_staged_frame_uploads_while_a_render_runs(
     topology, positions = molecule(3000, seed=5)
     camera = Camera(target=tuple(positions.mean(axis=0)), distance=60.0)
     moved = (positions + np.float32(0.6)).astype(np.float32)
-    queue = GpuQueue(device="cuda:0", stage_atoms=10, renderer_options={"double_buffer": True})
+    queue = GpuQueue(device="cuda:0", stage_atoms=10, tuning=Tuning(double_buffer=True))
     try:
         queue.render_sync(request("session:a", topology, positions, camera))
         slot = queue._slots["session:a"]
