@@ -44,6 +44,7 @@ from server.render.errors import RenderError
 from server.render.geodesic import GAIN, BondGraph, GeodesicScales
 from server.render.grid import CellGrid, Cull, cell_threads
 from server.render.outputs import ImageOutputs
+from server.render.reach import reach_sigmas
 from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
 from server.render.tuning import (
     BOUND_KEEP_FROM,
@@ -524,7 +525,10 @@ class Renderer(ImageOutputs):
         if p.scale_space in ("carved", "warped") and p.warp_strength > 0.0:
             warp = WarpScales.of(float(p.sigma_A), float(p.warp_strength))
         sigma = warp.space if warp is not None else float(p.sigma_A)
-        k = float(p.cutoff_sigmas)
+        # the reach the surface's accuracy needs at this sigma, at most cutoff_sigmas (reach.py;
+        # measured for the Gaussian density: the carved density keeps cutoff_sigmas)
+        fixed = warp is not None or self.tuning.fixed_cutoff
+        k = float(p.cutoff_sigmas) if fixed else reach_sigmas(sigma, p.cutoff_sigmas)
         if p.radius_mode == "vdw":
             spr = sigma / colors.R_REF
             s_max = spr * self._r_max
