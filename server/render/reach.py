@@ -31,7 +31,7 @@ REACH: tuple[tuple[float, float], ...] = (
     (4.5, 3.75),
     (6.0, 3.75),
     (9.0, 3.75),
-    (12.0, 4.0),
+    (12.0, 3.75),
 )
 """(sigma in A, k): the least cutoff measured, plus margin (see the module docstring)."""
 
