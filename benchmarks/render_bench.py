@@ -1227,7 +1227,8 @@ def _describe(params: dict[str, Any]) -> str:
 
 
 def table(path: Path) -> str:
-    """Markdown tables of a results file (for benchmarks/README.md)."""
+    """Markdown tables of every section of a results file (printed after each run; the
+    README's tables are benchmarks/tables/)."""
     res = json.loads(Path(path).read_text())
     lines = [
         f"GPU: **{res['gpu']}** (warp {res['warp']}, {res['date']}); parameters "
