@@ -1,0 +1,130 @@
+"""The import graph of the project's packages: no cycles, and imports only down the layers.
+
+The graph is read from the source with `ast`, every import statement counted wherever it stands
+(inside a function, under `TYPE_CHECKING`): an import moved into a function still runs, so a
+cycle it closes is still a cycle, only a later one.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterable
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = (
+    "protocol",
+    "structures",
+    "timewarp",
+    "simulation_adapters",
+    "server",
+    "scalesteer",
+    "thesis",
+)
+
+
+def modules(root: Path, packages: Iterable[str] = PACKAGES) -> dict[str, Path]:
+    """Dotted module name -> source file, for every module of `packages` under `root`."""
+    out: dict[str, Path] = {}
+    for package in packages:
+        for path in sorted((root / package).rglob("*.py")):
+            parts = list(path.relative_to(root).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts.pop()
+            out[".".join(parts)] = path
+    return out
+
+
+def _known(name: str, known: dict[str, Path]) -> str | None:
+    """The project module `name` names (a name imported from a module: that module)."""
+    while name and name not in known:
+        name = name.rpartition(".")[0]
+    return name or None
+
+
+def import_graph(known: dict[str, Path]) -> dict[str, set[str]]:
+    """Module -> the project modules its import statements name, all of them counted."""
+    graph: dict[str, set[str]] = {}
+    for module, path in known.items():
+        named: set[str] = set()
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                named |= {t for a in node.names if (t := _known(a.name, known))}
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                    base = ".".join([*up, *([node.module] if node.module else [])])
+                named |= {t for a in node.names if (t := _known(f"{base}.{a.name}", known))}
+        named.discard(module)
+        graph[module] = named
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Each import cycle, as the modules along it back to the first (one per strongly connected
+    set of modules)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = set()
+            while True:
+                w = stack.pop()
+                group.add(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                found.append(_path_through(graph, group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def _path_through(graph: dict[str, set[str]], group: set[str]) -> list[str]:
+    """A shortest cycle inside `group`, from its first module back to it."""
+    start = min(group)
+    paths = {start: [start]}
+    frontier = [start]
+    while frontier:
+        nxt = []
+        for v in frontier:
+            for w in sorted(graph[v] & group):
+                if w == start:
+                    return [*paths[v], start]
+                if w not in paths:
+                    paths[w] = [*paths[v], w]
+                    nxt.append(w)
+        frontier = nxt
+    raise AssertionError(f"no cycle through {start}")
+
+
+def test_no_import_cycles() -> None:
+    found = cycles(import_graph(modules(ROOT)))
+    assert not found, "import cycles: " + "; ".join(" -> ".join(c) for c in found)
+
+
+def test_a_cycle_closed_inside_a_function_is_found(tmp_path: Path) -> None:
+    pkg = tmp_path / "protocol"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from protocol.b import B\nA = 1\n")
+    (pkg / "b.py").write_text("B = 2\n\ndef late():\n    from protocol import a\n    return a\n")
+    (pkg / "c.py").write_text("from . import a\n")
+    graph = import_graph(modules(tmp_path, ["protocol"]))
+    assert graph["protocol.c"] == {"protocol.a"}
+    assert cycles(graph) == [["protocol.a", "protocol.b", "protocol.a"]]
