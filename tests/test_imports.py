@@ -2,7 +2,8 @@
 
 The graph is read from the source with `ast`, every import statement counted wherever it stands
 (inside a function, under `TYPE_CHECKING`): an import moved into a function still runs, so a
-cycle it closes is still a cycle, only a later one.
+cycle it closes is still a cycle, only a later one, and a layer it crosses is still crossed.
+The layers are docs/architecture.md's ("Checking the layers").
 """
 
 from __future__ import annotations
@@ -21,6 +22,37 @@ PACKAGES = (
     "scalesteer",
     "thesis",
 )
+
+BELOW = {"protocol", "structures"}
+"""What the server and the adapters both stand on: the wire format and the file readers."""
+SERVER = {"server.render", "server.pipeline", "server.session", "server.web"}
+MAY_IMPORT: dict[str, set[str]] = {
+    "protocol": set(),
+    "structures": {"protocol"},
+    "timewarp": set(),
+    "simulation_adapters": BELOW,
+    "scalesteer": BELOW | {"simulation_adapters"},  # the Python client, where it is present
+    "server": BELOW,  # the server-wide modules: settings, metrics, heap, supervisor
+    "server.render": BELOW | {"timewarp", "server"},
+    "server.pipeline": BELOW | {"timewarp", "server", "server.render"},
+    "server.session": BELOW | {"timewarp", "server", "server.render", "server.pipeline"},
+    "server.web": BELOW | {"timewarp", "server"} | SERVER - {"server.web"},
+    # the composition root: the command line wires servers and adapters together
+    "server.commands": BELOW | {"timewarp", "server", "simulation_adapters"} | SERVER,
+    "thesis": BELOW | {"timewarp", "server.render"},
+}
+"""Layer -> the layers it may import besides its own. Arrows point down the data flow: the
+server never imports the adapters, except its command line, which starts both."""
+
+
+def layer(module: str) -> str:
+    """The layer a module belongs to: its top-level package, or for `server` its sub-package
+    (`server.web`, ...; the modules directly in `server/` are the server-wide layer)."""
+    top, _, rest = module.partition(".")
+    if top == "server" and rest:
+        sub = f"server.{rest.partition('.')[0]}"
+        return sub if sub in MAY_IMPORT else "server"
+    return top
 
 
 def modules(root: Path, packages: Iterable[str] = PACKAGES) -> dict[str, Path]:
@@ -118,6 +150,25 @@ def test_no_import_cycles() -> None:
     assert not found, "import cycles: " + "; ".join(" -> ".join(c) for c in found)
 
 
+def crossings(graph: dict[str, set[str]]) -> list[str]:
+    """Each import of a layer its importer may not import, said in words."""
+    out = []
+    for module in sorted(graph):
+        allowed = MAY_IMPORT[layer(module)]
+        for target in sorted(graph[module]):
+            if layer(target) != layer(module) and layer(target) not in allowed:
+                out.append(
+                    f"{module} imports {target} ({layer(module)} may import {sorted(allowed)})"
+                )
+    return out
+
+
+def test_imports_point_down_the_layers() -> None:
+    graph = import_graph(modules(ROOT))
+    assert set(map(layer, graph)) <= set(MAY_IMPORT), "a package without a layer"
+    assert not crossings(graph), "\n".join(crossings(graph))
+
+
 def test_a_cycle_closed_inside_a_function_is_found(tmp_path: Path) -> None:
     pkg = tmp_path / "protocol"
     pkg.mkdir()
@@ -128,3 +179,20 @@ def test_a_cycle_closed_inside_a_function_is_found(tmp_path: Path) -> None:
     graph = import_graph(modules(tmp_path, ["protocol"]))
     assert graph["protocol.c"] == {"protocol.a"}
     assert cycles(graph) == [["protocol.a", "protocol.b", "protocol.a"]]
+
+
+def test_an_import_against_the_layers_is_named(tmp_path: Path) -> None:
+    for folder in ("server/web", "simulation_adapters"):
+        (tmp_path / folder).mkdir(parents=True)
+        (tmp_path / folder / "__init__.py").write_text("")
+    (tmp_path / "server/__init__.py").write_text("")
+    (tmp_path / "simulation_adapters/replay.py").write_text("")
+    (tmp_path / "server/web/children.py").write_text(
+        "def start():\n    from simulation_adapters import replay\n"
+    )
+    graph = import_graph(modules(tmp_path, ["server", "simulation_adapters"]))
+    assert crossings(graph) == [
+        "server.web.children imports simulation_adapters.replay (server.web may import "
+        "['protocol', 'server', 'server.pipeline', 'server.render', 'server.session', "
+        "'structures', 'timewarp'])"
+    ]
