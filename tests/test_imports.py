@@ -169,6 +169,39 @@ def test_imports_point_down_the_layers() -> None:
     assert not crossings(graph), "\n".join(crossings(graph))
 
 
+def path_edits(path: Path) -> list[int]:
+    """Lines of `path` that change the interpreter's import path (`sys.path` mutated or
+    assigned, `site.addsitedir`)."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        target: ast.expr | None = None
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+            target = node.func.value
+            if ast.unparse(node.func) == "site.addsitedir":
+                lines.append(node.lineno)
+        elif isinstance(node, ast.Assign | ast.AugAssign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            for t in targets:
+                target = t.value if isinstance(t, ast.Subscript) else t
+                if ast.unparse(target) == "sys.path":
+                    lines.append(node.lineno)
+            continue
+        if target is not None and ast.unparse(target) == "sys.path":
+            lines.append(node.lineno)
+    return sorted(lines)
+
+
+def test_no_shipped_code_edits_the_import_path() -> None:
+    """An edited `sys.path` makes every folder beside it importable and shadows what is
+    installed; the packages import as installed (or from a checkout with `PYTHONPATH=.`)."""
+    edits = [
+        f"{path.relative_to(ROOT)}:{line}"
+        for path in modules(ROOT).values()
+        for line in path_edits(path)
+    ]
+    assert not edits, f"sys.path edited at {', '.join(edits)}"
+
+
 def test_a_cycle_closed_inside_a_function_is_found(tmp_path: Path) -> None:
     pkg = tmp_path / "protocol"
     pkg.mkdir()
@@ -196,3 +229,16 @@ def test_an_import_against_the_layers_is_named(tmp_path: Path) -> None:
         "['protocol', 'server', 'server.pipeline', 'server.render', 'server.session', "
         "'structures', 'timewarp'])"
     ]
+
+
+def test_an_import_path_edit_is_found(tmp_path: Path) -> None:
+    source = tmp_path / "m.py"
+    source.write_text(
+        "import site, sys\n"
+        "sys.path.insert(0, '.')\n"
+        "sys.path += ['x']\n"
+        "sys.path[:0] = ['y']\n"
+        "site.addsitedir('z')\n"
+        "print(sys.path[0])\n"
+    )
+    assert path_edits(source) == [2, 3, 4, 5]
