@@ -259,6 +259,11 @@ class Forces(Message):
         return self
 
 
+SimSteering = SimParams | Control | Forces
+"""*->S: what steers a simulation; the server forwards it, the simulation answers each with a
+`params_ack`."""
+
+
 class Pull(Message):
     """V->*: pull one atom with a spring toward `target` (angstrom), or apply `force`
     directly; `release` clears it."""
