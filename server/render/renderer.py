@@ -25,6 +25,7 @@ import numpy.typing as npt
 import warp
 
 from protocol import Camera, RenderParams, Topology
+from protocol.messages import MAX_CUTOFF_SIGMAS, MIN_CUTOFF_SIGMAS
 from server.render import carved, colors, geodesic_field, raycast, temporal, transfer, visibility
 from server.render import device as devmod
 from server.render.camera import CameraFrame, band_planes, camera_frame
@@ -501,8 +502,11 @@ class Renderer(ImageOutputs):
             raise RenderError(f"mode must be 'iso' or 'volume', got {params.mode!r}")
         if params.radius_mode not in ("uniform", "vdw"):
             raise RenderError(f"radius_mode must be 'uniform' or 'vdw', got {params.radius_mode!r}")
-        if params.cutoff_sigmas > 10:
-            raise RenderError(f"cutoff_sigmas must be <= 10, got {params.cutoff_sigmas}")
+        if not MIN_CUTOFF_SIGMAS <= params.cutoff_sigmas <= MAX_CUTOFF_SIGMAS:
+            raise RenderError(
+                f"cutoff_sigmas must be within {MIN_CUTOFF_SIGMAS}..{MAX_CUTOFF_SIGMAS}, "
+                f"got {params.cutoff_sigmas}"
+            )
 
     @staticmethod
     def _check_camera(camera: Camera, width: int, height: int) -> CameraFrame:
