@@ -39,8 +39,8 @@ from server.pipeline.history import time_window
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
 from server.pipeline.overlay import draw_overlay
 from server.pipeline.selections import FrameLayers, LayerError
+from structures.errors import StructureError
 from structures.isolated import IsolatedStructure, ReadLimits
-from structures.reader import StructureError
 from structures.selection_pool import Held, SelectionPool
 
 log = logging.getLogger("scalesteer.jobs")
