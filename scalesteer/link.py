@@ -85,6 +85,7 @@ class ViewLink:
         self._ws: ClientConnection | None = None
         self._reader: asyncio.Task[None] | None = None
         self.view_seq = 0
+        self._closing = False
         """The seq of the last `view` sent."""
         self._loopback = parts.hostname in ("127.0.0.1", "localhost", "::1")
 
@@ -150,6 +151,8 @@ class ViewLink:
                     continue
                 self._dispatch(message)
         except ConnectionClosed as exc:
+            if self._closing:
+                return self._finish("closed")
             reason = f"the server closed the connection ({exc.rcvd.code if exc.rcvd else 1006})"
             if exc.rcvd and exc.rcvd.reason:
                 reason += f": {exc.rcvd.reason}"
@@ -288,6 +291,7 @@ class ViewLink:
             await self.send(FrameAck(frame_id=frame_id, decode_ms=decode_ms))
 
     async def close(self) -> None:
+        self._closing = True
         if self._ws is not None:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self._ws.close(), 3.0)
