@@ -284,7 +284,9 @@ class Session:
     ) -> Subscription:
         """Call `callback(image)` with every image of the live stream at this size (JPEG;
         newest first: a slow callback skips images instead of queueing them). The images
-        come from the session's camera; `close()` the subscription to stop them."""
+        come from the session's camera; on a CPU device the server shrinks live images to
+        what it renders within its frame budget (`image.size` says what came), a still at
+        full size follows when nothing changes. `close()` the subscription to stop them."""
         sub = Subscription(callback, self._unsubscribe)
         with self._lock:
             self._images.append((sub, (width, height)))

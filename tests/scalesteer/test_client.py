@@ -127,7 +127,9 @@ def test_images_and_observables_are_delivered_to_callbacks(
 
     with session.on_image(on_image, 80, 60), session.on_observables(statuses.append):
         assert got.wait(60)
-    assert all(i.size == (80, 60) for i in images) or images[-1].array().shape[:2] == (60, 80)
+    # live images on the CPU may be shrunk to the frame budget, never grown past the view
+    assert all(i.size[0] <= 80 and i.size[1] <= 60 for i in images)
+    assert images[-1].array().shape[:2] == images[-1].size[::-1]
     assert images[-1].array().std() > 5
     frame_ids = [i.frame_id for i in images]
     assert frame_ids == sorted(frame_ids) and len(set(frame_ids)) == len(frame_ids)
