@@ -54,7 +54,6 @@ async function render({ model, el }) {
   let drawn = 0;
   let picked = null;
   let videoProblem = "";
-  const t0 = performance.now();
 
   const current = () => camera ?? (model.get("session_camera") ? normalizeCamera(model.get("session_camera")) : null);
 
@@ -80,7 +79,7 @@ async function render({ model, el }) {
       drawn += 1;
       last = msg;
       meter.add(t, msg.data.byteLength);
-      if (root.dataset.firstFrameMs === undefined) root.dataset.firstFrameMs = String(Math.round(t - t0));
+      if (root.dataset.firstFrameAt === undefined) root.dataset.firstFrameAt = String(t); // page clock
       root.dataset.frames = String(drawn);
       root.dataset.frameId = String(msg.frame_id);
       root.dataset.format = msg.format;

@@ -89,7 +89,10 @@ class JupyterLab:
         return f"http://127.0.0.1:{self.port}"
 
     def notebook_url(self, name: str) -> str:
-        return f"{self.url}/lab/tree/{name}?token={self.token}"
+        """The notebook in a workspace of its own (JupyterLab restores a workspace's tabs: a
+        notebook opened earlier must not open again beside this one)."""
+        workspace = Path(name).stem
+        return f"{self.url}/lab/workspaces/{workspace}/tree/{name}?token={self.token}"
 
     def stop(self) -> None:
         if self.process.poll() is None:
@@ -109,12 +112,13 @@ READY = """() => {
     && panel.sessionContext.session.kernel;
   return !!(kernel && kernel.status === 'idle' && panel.content.widgets.length);
 }"""
-RUN_CELL = """async (index) => {
+RUN_CELL = """(index) => {
   const app = window.jupyterapp;
   const panel = app.shell.currentWidget;
   panel.content.activeCellIndex = index;
-  await app.commands.execute('notebook:run-cell');
-  return performance.now();
+  const asked = performance.now();
+  app.commands.execute('notebook:run-cell'); // resolves when the cell has run: not awaited
+  return asked;
 }"""
 RESTART = """async () => {
   const panel = window.jupyterapp.shell.currentWidget;
