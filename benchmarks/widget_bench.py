@@ -164,6 +164,8 @@ def main() -> int:
         "size": [width, height],
         "replay_fps": args.fps,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        # the machine is shared: its load (1-minute average) as the run starts and ends
+        "load_average": [os.getloadavg()[0]],
     }
     with tempfile.TemporaryDirectory(prefix="widget-bench-") as tmp:
         root = Path(tmp)
@@ -250,6 +252,7 @@ def main() -> int:
                 browser.close()
         finally:
             lab.stop()
+    out["load_average"].append(os.getloadavg()[0])
     target = args.out or RESULTS / f"widget_{args.device.replace(':', '')}.json"
     target.write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(out, indent=2))

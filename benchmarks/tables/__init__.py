@@ -43,6 +43,7 @@ from .server import (
     pipeline,
     video_live,
     video_quality,
+    widget,
     ws_parse,
 )
 
@@ -89,6 +90,7 @@ TABLES: dict[str, Table] = {
     "batch": Table(("batch_h100.json", "batch_cpu_2core.json"), batch),
     "cpu-interactive": Table(("cpu_interactive_2core.json",), cpu_interactive),
     "ws-parse": Table(("ws_parse_h200_host.json", "ws_parse_cpu_2core.json"), ws_parse),
+    "widget": Table(("widget_cpu_2core.json",), widget),
 }
 """Each README table and the results files it reads: the newest full run of its benchmark on
 each GPU it shows (older runs are in results/archive/)."""

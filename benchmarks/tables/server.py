@@ -1,6 +1,6 @@
 """Tables of the benchmarks that run the server or its pipeline: latency_bench.py,
 pipeline_bench.py, multi_session_bench.py, video_bench.py, batch_bench.py,
-cpu_interactive_bench.py and ws_parse_bench.py."""
+cpu_interactive_bench.py, ws_parse_bench.py and widget_bench.py."""
 
 from __future__ import annotations
 
@@ -219,3 +219,29 @@ def ws_parse(sources: list[Source]) -> str:
     header = ["host", "message bytes", "whole: loop ms / longest step"]
     header += ["fragments: loop ms / longest step", "ratio"]
     return block(sources, table(header, "lrrrr", rows))
+
+
+def widget(sources: list[Source]) -> str:
+    """The notebook widget as the page measures it, beside its controls in the same run: the
+    pictures the kernel forwarded and the dashboard on the same session."""
+    rows = []
+    for name, res in sources:
+        runs = ", ".join(num(s, 2) for s in res["first_picture_runs_s"])
+        load = " / ".join(num(x, 1) for x in res["load_average"])
+        rows.append(
+            [
+                stem(name, "widget_"),
+                count(res["atoms"]),
+                f"{size(*res['size'])} {res['widget_format']}",
+                load,
+                f"{num(res['first_picture_s'], 2)} ({runs})",
+                num(res["cold_s"], 1),
+                num(res["widget_fps"], 2),
+                num(res["forwarded_fps"], 2),
+                f"{num(res['dashboard_fps'], 2)} ({res['dashboard_image_size']})",
+            ]
+        )
+    header = ["run", "atoms", "view", "load avg start / end", "first picture s, median (runs)"]
+    header += ["first picture with the server's start s", "widget drew/s"]
+    header += ["kernel forwarded/s (control)", "dashboard drew/s (control)"]
+    return block(sources, table(header, "lrlrrrrrr", rows))

@@ -219,3 +219,18 @@ def test_next_image_takes_the_size_asked_for(
     started = time.monotonic()
     image = session.next_image(timeout=60, width=72, height=54)
     assert image.array().shape == (54, 72, 3), time.monotonic() - started
+
+
+def test_a_part_of_a_universe_keeps_the_bonds_among_its_atoms(small_universe: Any) -> None:
+    import MDAnalysis as mda
+
+    from scalesteer.sources import structure_of
+    from structures.reader import topology_of
+
+    part = small_universe.select_atoms("resid 10:40")
+    topology = structure_of(part, frame=0).topology
+    merged = topology_of(mda.Merge(part))  # the part as a universe of its own
+    assert topology.n_atoms == part.n_atoms
+    assert np.array_equal(topology.bonds.to_numpy(), merged.bonds.to_numpy())
+    assert topology.names == merged.names and topology.elements == merged.elements
+    assert np.array_equal(topology.residue_ids.to_numpy(), merged.residue_ids.to_numpy())
