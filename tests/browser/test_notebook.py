@@ -73,7 +73,7 @@ def wait_still(page: Any, after: int = -1, index: int = 0) -> int:
 
 
 def test_a_notebook_widget_streams_steers_and_survives_a_kernel_restart(
-    lab: JupyterLab, chromium: Any
+    lab: JupyterLab, chromium: Any, artifacts: Path
 ) -> None:
     page = open_notebook(chromium, lab, "view.ipynb")
     errors: list[str] = []
@@ -100,7 +100,10 @@ def test_a_notebook_widget_streams_steers_and_survives_a_kernel_restart(
     page.mouse.move(cx + 80, cy + 10, steps=6)
     page.mouse.up()
     turned = wait_still(page, steered)
-    assert np.abs(snapshot(page) - after).mean() > 2, "the drag turns the molecule"
+    page.screenshot(path=str(artifacts / "notebook-widget-turned.png"))
+    shown = snapshot(page)
+    assert shown.std() > 5, f"the turned molecule is drawn: {page.evaluate(VIEW, 0)}"
+    assert np.abs(shown - after).mean() > 2, "the drag turns the molecule"
     page.mouse.click(cx, cy)  # a pick in the middle of the molecule
     page.wait_for_function(
         "() => document.querySelector('.scalesteer-hud').textContent.includes('atom')",
