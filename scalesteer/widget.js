@@ -93,7 +93,15 @@ async function render({ model, el }) {
       viewport.resetVideo();
       sendView(false);
     },
-    makeVideoPipe: (handlers) => new video.VideoPipe({ ...handlers, workerUrl: urls["video.worker.js"] }),
+    makeVideoPipe: (handlers) => {
+      try {
+        return new video.VideoPipe({ ...handlers, workerUrl: urls["video.worker.js"] });
+      } catch (err) {
+        // no worker from a blob: URL here (a strict Content-Security-Policy): JPEG instead
+        setTimeout(() => handlers.onError(`no video decoder worker (${err.message})`));
+        return { push() {}, reset() {}, close() {} };
+      }
+    },
   });
 
   // the cameras this page sent: the kernel sets the `camera` trait to each, and those echoes
