@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -59,12 +59,11 @@ def invalid(exc: ValidationError, prefix: str) -> ScalesteerError:
     return ScalesteerError(ErrorCode.INVALID_MESSAGE, f"{path}: {err['msg']}", path)
 
 
-class Source:
+class Source(Protocol):
     """What feeds a session from this process (a replayed trajectory, an OpenMM reporter);
     closed with the session."""
 
-    def close(self) -> None:  # pragma: no cover - the interface
-        raise NotImplementedError
+    def close(self) -> None: ...
 
 
 class Session:

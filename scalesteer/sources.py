@@ -22,8 +22,6 @@ from typing import Any
 
 import numpy as np
 
-from scalesteer.session import Source
-
 
 class SourceError(TypeError):
     """An object that cannot feed a session (the message says what would)."""
@@ -242,7 +240,7 @@ def _from_ase(obj: Any) -> tuple[Any, str]:
     return universe, f"ASE {first.get_chemical_formula()}"
 
 
-class ReplaySource(Source):
+class ReplaySource:
     """A trajectory played to a session from this process (see `TrajectoryReplay`)."""
 
     def __init__(self, structure: Any, url: str, token: str | None, session: str, **options: Any):
@@ -258,7 +256,7 @@ class ReplaySource(Source):
 # ---------------------------------------------------------------------- OpenMM
 
 
-class OpenMMSource(Source):
+class OpenMMSource:
     """An OpenMM simulation with the steering reporter attached: it sends its topology now and
     a frame every `interval` steps while it runs. `run(steps)` runs it on a thread of its own
     (the notebook stays free); or step it yourself (`simulation.step`, `run_steered`)."""

@@ -26,13 +26,13 @@ import logging
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, get_args
 
 import anywidget
 import traitlets
 from pydantic import ValidationError
 
-from protocol import Camera, Layer, Pick, RenderParams, SetRenderParams, View
+from protocol import Camera, Layer, Pick, RenderParams, SetRenderParams, VideoCodec, View
 from scalesteer import background
 from scalesteer.errors import ScalesteerError
 from scalesteer.link import ViewLink
@@ -49,6 +49,7 @@ CLIENT_SRC = HERE.parent / "client_web" / "src"
 MODULES = ("camera.js", "video.js", "viewport.js", "video.worker.js")
 """The dashboard's modules the widget runs, in dependency order."""
 HEARTBEAT_S = 1.0
+CODECS = get_args(VideoCodec)
 # trait -> the render parameter it shows
 STEERED = {"sigma": "sigma_A", "iso": "iso_level", "scale_space": "scale_space", "mode": "mode"}
 
@@ -197,7 +198,7 @@ class SessionView(anywidget.AnyWidget):
                     width=max(1, int(content.get("width") or self.width)),
                     height=max(1, int(content.get("height") or self.height)),
                     interacting=bool(content.get("interacting")),
-                    video=[c for c in content.get("video") or [] if c in _CODECS],
+                    video=[c for c in content.get("video") or [] if c in CODECS],
                 )
                 if view.camera is not None:
                     self._guard.quiet = True
@@ -273,6 +274,3 @@ class SessionView(anywidget.AnyWidget):
             with contextlib.suppress(Exception):
                 background.run(self.link.close(), 10)
         super().close()
-
-
-_CODECS = ("h264", "h264-baseline", "av1", "vp9")
