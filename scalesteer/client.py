@@ -88,13 +88,14 @@ class Client:
     def session(self, name: str | None = None) -> Session:
         """Open (or join) the session `name` (default: the link's session, else `default`)."""
         name = name or self.default_session or "default"
-        link = self._link(name, self.role, CLIENT_NAME)
+        link = self.open_link(name, self.role, CLIENT_NAME)
         session = Session(self, link, self.timeout)
         background.run(link.view(IDLE_VIEW), self.timeout)
         self._sessions.append(session)
         return session
 
-    def _link(self, name: str, role: Role, client: str) -> ViewLink:
+    def open_link(self, name: str, role: Role, client: str) -> ViewLink:
+        """A WebSocket link to session `name` as `role`, naming itself `client`."""
         try:
             Hello(role=role, session=name)
         except ValidationError as exc:
@@ -237,7 +238,8 @@ class Client:
 
     # ------------------------------------------------------------------ ending
 
-    def _forget(self, session: Session) -> None:
+    def forget(self, session: Session) -> None:
+        """`session` has left: it is no longer listed."""
         if session in self._sessions:
             self._sessions.remove(session)
 

@@ -26,6 +26,7 @@ from protocol import (
     ParamsAck,
     Pull,
     RenderParams,
+    Role,
     Select,
     Selected,
     SetRenderParams,
@@ -39,11 +40,26 @@ from scalesteer.errors import ScalesteerError
 from scalesteer.images import StreamedImage
 from scalesteer.jobs import Job, Recording
 from scalesteer.link import ViewLink
+from scalesteer.rest import Rest
 from scalesteer.state import SessionState
 
 if TYPE_CHECKING:
-    from scalesteer.client import Client
     from scalesteer.widget import SessionView
+
+
+class Owner(Protocol):
+    """What a session needs of the client that opened it (`scalesteer.client.Client`)."""
+
+    url: str
+    rest: Rest
+    role: Role
+
+    def open_link(self, name: str, role: Role, client: str) -> ViewLink:
+        """A link of its own to session `name`."""
+
+    def forget(self, session: Session) -> None:
+        """The session has left: the client stops listing it."""
+
 
 TIMEOUT_S = 30.0
 IDLE_VIEW = View(width=1, height=1)
@@ -69,7 +85,7 @@ class Source(Protocol):
 class Session:
     """One session of a server, joined as a steerer (see `Client.session`)."""
 
-    def __init__(self, client: Client, link: ViewLink, timeout: float = TIMEOUT_S) -> None:
+    def __init__(self, client: Owner, link: ViewLink, timeout: float = TIMEOUT_S) -> None:
         self.client = client
         self.link = link
         self.timeout = timeout
@@ -100,6 +116,10 @@ class Session:
     @property
     def render_params(self) -> RenderParams:
         return self.link.state.render_params
+
+    def open_link(self, client: str) -> ViewLink:
+        """Another link to this session, with this session's role (a widget's own)."""
+        return self.client.open_link(self.name, self.client.role, client)
 
     @property
     def layers(self) -> list[Layer]:
@@ -436,7 +456,7 @@ class Session:
             self.source = None
         if not background.in_loop():
             background.run(self.link.close(), 10)
-        self.client._forget(self)
+        self.client.forget(self)
 
     def __enter__(self) -> Session:
         return self

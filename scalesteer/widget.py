@@ -26,7 +26,7 @@ import logging
 import threading
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, get_args
+from typing import TYPE_CHECKING, Any, Protocol, get_args
 
 import anywidget
 import traitlets
@@ -40,9 +40,29 @@ from scalesteer.state import SessionState
 
 if TYPE_CHECKING:
     from protocol import Image
-    from scalesteer.session import Session
 
 log = logging.getLogger("scalesteer.widget")
+
+
+class Viewed(Protocol):
+    """What a widget needs of the session it shows (`scalesteer.session.Session`)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def link(self) -> ViewLink: ...
+
+    @property
+    def state(self) -> SessionState: ...
+
+    @property
+    def render_params(self) -> RenderParams: ...
+
+    def set(self, **params: Any) -> RenderParams: ...
+
+    def open_link(self, client: str) -> ViewLink: ...
+
 
 HERE = Path(__file__).resolve().parent
 CLIENT_SRC = HERE.parent / "client_web" / "src"
@@ -92,7 +112,7 @@ class SessionView(anywidget.AnyWidget):
     fps = traitlets.Float(0.0).tag(sync=True)
     """Pictures the page drew in its last second."""
 
-    def __init__(self, session: Session, width: int = 640, height: int = 480, **kwargs: Any):
+    def __init__(self, session: Viewed, width: int = 640, height: int = 480, **kwargs: Any):
         state = session.state
         super().__init__(
             _modules=dashboard_modules(),
@@ -106,8 +126,7 @@ class SessionView(anywidget.AnyWidget):
         self.images_sent = 0
         self._guard = threading.local()
         self._closed = False
-        client = session.client
-        self.link: ViewLink = client._link(session.name, client.role, "scalesteer-widget")
+        self.link: ViewLink = session.open_link("scalesteer-widget")
         self.link.on_image.append(self._forward)
         self.link.on_close.append(self._link_closed)
         session.link.on_state.append(self._session_state)
