@@ -227,9 +227,6 @@ class Session:
         for pending in self.acks.take_all():
             self._settle(pending, p.ParamsAck(ref=0, ok=False, detail=why))
 
-    def client_infos(self) -> list[p.ClientInfo]:
-        return self.roster.infos()
-
     def full_state(self) -> p.State:
         return p.State(
             render_params=self.render_params,
