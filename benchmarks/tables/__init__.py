@@ -35,6 +35,7 @@ from .render import (
     temporal,
 )
 from .server import (
+    adapter,
     batch,
     cpu_interactive,
     latency_delivery,
@@ -91,6 +92,7 @@ TABLES: dict[str, Table] = {
     "cpu-interactive": Table(("cpu_interactive_2core.json",), cpu_interactive),
     "ws-parse": Table(("ws_parse_h200_host.json", "ws_parse_cpu_2core.json"), ws_parse),
     "widget": Table(("widget_cpu_2core.json",), widget),
+    "adapter": Table(("adapter_cpu_2core.json",), adapter),
 }
 """Each README table and the results files it reads: the newest full run of its benchmark on
 each GPU it shows (older runs are in results/archive/)."""
