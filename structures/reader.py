@@ -225,6 +225,11 @@ def _elements(u: Any) -> list[str]:
     return ["X"] * int(atoms.n_atoms)
 
 
+def element_mass(element: str) -> float:
+    """The standard atomic mass (g/mol) of an element symbol; 0 for one not in the table."""
+    return _MASSES.get(element.strip().capitalize(), 0.0)
+
+
 def _element_of_mass(mass: float) -> str:
     best = min(_MASSES, key=lambda e: abs(_MASSES[e] - mass))
     return best if abs(_MASSES[best] - mass) < 0.05 * max(mass, 1.0) else "X"
