@@ -399,82 +399,54 @@ class Molecules:
 
     @classmethod
     def from_bonds(cls, n: int, bonds: npt.NDArray[np.int64]) -> Molecules:
-        bonds = bonds[bonds[:, 0] != bonds[:, 1]] if len(bonds) else bonds.reshape(0, 2)
-        ends = np.concatenate([bonds, bonds[:, ::-1]]) if len(bonds) else bonds
-        by_atom = np.argsort(ends[:, 0], kind="stable")
-        neighbours = ends[by_atom, 1].astype(np.int64)
-        indptr = np.zeros(n + 1, dtype=np.int64)
-        np.add.at(indptr, ends[:, 0] + 1, 1)
-        indptr = np.cumsum(indptr)
-        root = _components(n, indptr, neighbours)
-        parent, depth = _trees(n, indptr, neighbours, root)
-        roots, molecule, counts = np.unique(root, return_inverse=True, return_counts=True)
-        order = np.argsort(molecule, kind="stable").astype(np.int32)
-        del roots
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import breadth_first_order, connected_components
+
+        if n == 0:
+            empty = np.zeros(0, dtype=np.int32)
+            return cls(0, empty, empty, empty, empty, empty)
+        bonds = bonds.reshape(-1, 2)
+        bonds = bonds[bonds[:, 0] != bonds[:, 1]]
+        graph = coo_matrix(
+            (np.ones(len(bonds), dtype=np.int8), (bonds[:, 0], bonds[:, 1])), shape=(n, n)
+        )
+        _count, label = connected_components(graph, directed=False)
+        root_of = np.full(int(label.max()) + 1, n, dtype=np.int64)
+        np.minimum.at(root_of, label, np.arange(n))
+        root = root_of[label]
+        # one breadth-first search from a node bonded to every root: each molecule's tree is
+        # rooted at its lowest atom, and every tree edge is a bond
+        roots = np.flatnonzero(root == np.arange(n))
+        rows = np.concatenate([bonds[:, 0], bonds[:, 1], np.full(len(roots), n)])
+        cols = np.concatenate([bonds[:, 1], bonds[:, 0], roots])
+        linked = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n + 1, n + 1))
+        _order, before = breadth_first_order(
+            linked.tocsr(), n, directed=True, return_predecessors=True
+        )
+        parent = np.asarray(before[:n], dtype=np.int64)
+        parent[roots] = roots
+        molecule_roots, molecule, counts = np.unique(root, return_inverse=True, return_counts=True)
+        del molecule_roots
         return cls(
             n_atoms=n,
             molecule=molecule.astype(np.int32),
             parent=parent.astype(np.int32),
-            depth=depth.astype(np.int32),
-            order=order,
+            depth=_depths(parent).astype(np.int32),
+            order=np.argsort(molecule, kind="stable").astype(np.int32),
             counts=counts.astype(np.int32),
         )
 
 
-def _components(
-    n: int, indptr: npt.NDArray[np.int64], neighbours: npt.NDArray[np.int64]
-) -> npt.NDArray[np.int64]:
-    """Each atom's molecule as its lowest atom index: minimum labels spread over the bonds,
-    with pointer jumping (a chain of L atoms settles in about log2 L rounds)."""
-    label = np.arange(n, dtype=np.int64)
-    has = np.flatnonzero(np.diff(indptr) > 0)
-    if not len(has):
-        return label
-    starts = indptr[has]
+def _depths(parent: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """Each atom's bonds to its root, by pointer jumping (log2 of the deepest depth passes)."""
+    depth = (parent != np.arange(len(parent))).astype(np.int64)
+    up = parent.copy()
     while True:
-        lowest = np.minimum.reduceat(label[neighbours], starts)
-        new = label.copy()
-        new[has] = np.minimum(label[has], lowest)
-        # hook each root onto the lowest label one of its atoms saw, then jump pointers
-        np.minimum.at(new, label[has], new[has])
-        while True:
-            jumped = new[new]
-            if np.array_equal(jumped, new):
-                break
-            new = jumped
-        if np.array_equal(new, label):
-            return label
-        label = new
-
-
-def _trees(
-    n: int,
-    indptr: npt.NDArray[np.int64],
-    neighbours: npt.NDArray[np.int64],
-    root: npt.NDArray[np.int64],
-) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-    """Breadth-first trees from each molecule's root, all molecules a level at a time."""
-    parent = np.full(n, -1, dtype=np.int64)
-    depth = np.zeros(n, dtype=np.int64)
-    frontier = np.flatnonzero(root == np.arange(n))
-    parent[frontier] = frontier
-    level = 0
-    while len(frontier):
-        level += 1
-        counts = indptr[frontier + 1] - indptr[frontier]
-        total = int(counts.sum())
-        if total == 0:
-            break
-        source = np.repeat(frontier, counts)
-        offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
-        found = neighbours[np.repeat(indptr[frontier], counts) + offsets]
-        new = parent[found] < 0
-        found, source = found[new], source[new]
-        found, first = np.unique(found, return_index=True)
-        parent[found] = source[first]
-        depth[found] = level
-        frontier = found
-    return parent, depth
+        jumped = up[up]
+        if np.array_equal(jumped, up):
+            return depth
+        depth = depth + depth[up]
+        up = jumped
 
 
 # ---------------------------------------------------------------------- boxes (host)
