@@ -439,7 +439,7 @@ class Molecules:
 
 def _depths(parent: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
     """Each atom's bonds to its root, by pointer jumping (log2 of the deepest depth passes)."""
-    depth = (parent != np.arange(len(parent))).astype(np.int64)
+    depth: npt.NDArray[np.int64] = (parent != np.arange(len(parent))).astype(np.int64)
     up = parent.copy()
     while True:
         jumped = up[up]
