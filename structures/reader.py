@@ -194,6 +194,27 @@ def load(
     return Structure(topology=topo, universe=u)
 
 
+MIN_CELL_SIDE_A = 6.0
+"""A box with a side shorter than this is a placeholder (a PDB's CRYST1 of 1 A), no cell."""
+
+
+def cell_of(u: Any) -> npt.NDArray[np.float32] | None:
+    """The universe's current box as MDAnalysis' dimensions (a, b, c, alpha, beta, gamma), or
+    None when it has none or a placeholder."""
+    try:
+        dims = u.dimensions
+    except Exception:  # a reader without a box
+        return None
+    if dims is None:
+        return None
+    dims = np.asarray(dims, dtype=np.float32)
+    if dims.shape != (6,) or not np.isfinite(dims).all() or (dims[:3] < MIN_CELL_SIDE_A).any():
+        return None
+    if (dims[3:] <= 0).any() or (dims[3:] >= 180).any():
+        return None
+    return dims
+
+
 def _strings(atoms: Any, attr: str, default: str, width: int) -> list[str]:
     values = getattr(atoms, attr, None) if _has(atoms, attr) else None
     if values is None:
@@ -250,7 +271,8 @@ def topology_of(u: Any, *, guess_bonds: bool = True, title: str = "") -> Topolog
         # the guesser looks radii up by atom type; map each type to its element's radius
         types = atoms.types if _has(atoms, "types") else np.array(elements)
         radii = {str(t): _VDW_GUESS.get(e, 1.5) for t, e in zip(types, elements, strict=True)}
-        pairs = guess(atoms, atoms.positions, box=None, vdwradii=radii)
+        # across a periodic box too: a molecule the box cuts is still one molecule
+        pairs = guess(atoms, atoms.positions, box=cell_of(u), vdwradii=radii)
         if len(pairs):
             guessed = np.asarray(sorted(pairs), dtype=np.int32).reshape(-1, 2)
             both = np.sort(np.concatenate([bonds, guessed]), axis=1)
