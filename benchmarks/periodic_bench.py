@@ -42,7 +42,8 @@ import warp as wp
 
 from protocol import Topology, WireArray
 from server.render import device as render_device
-from server.render.periodic import Options, PeriodicTransform
+from server.render.boxes import Options
+from server.render.periodic import PeriodicTransform
 
 MODES: dict[str, dict[str, Any]] = {
     "whole": {"mode": "whole"},

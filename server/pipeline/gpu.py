@@ -31,9 +31,11 @@ before uploading from the frame itself."""
 
 if TYPE_CHECKING:
     from server.render import Renderer
+    from server.render.boxes import Options, Shown
     from server.render.layerplan import LayerPlan
     from server.render.layers import LayeredRenderer
     from server.render.multi import MultiRenderer
+    from server.render.periodic import PeriodicTransform
 
 T = TypeVar("T")
 log = logging.getLogger("scalesteer.gpu")
@@ -86,6 +88,21 @@ class RenderRequest:
     image is not read back (`RenderOutput.rgba` is then None)."""
 
 
+@dataclass(frozen=True)
+class DisplayRequest:
+    """One frame of `slot` to show as `options` say (molecules made whole, centred, wrapped,
+    followed, fitted; `server.render.periodic`), on the device the slot renders on, which keeps
+    what spans its frames (where each atom was, the fit's reference). `restart`: this frame
+    does not follow the last one (a seek, new options)."""
+
+    slot: str
+    topology: p.Topology
+    positions: npt.NDArray[np.float32]
+    box: npt.NDArray[np.float32] | None
+    options: Options
+    restart: bool = False
+
+
 @dataclass
 class RenderOutput:
     rgba: npt.NDArray[np.uint8] | None
@@ -114,6 +131,8 @@ class _Slot:
     """`one_cuda` and its last request had no layers: its new frames are staged."""
     stager: FrameStager | None = None
     """Its page-locked frames (made on the stage thread; gone with the slot)."""
+    periodic: PeriodicTransform | None = None
+    """Its frames' periodic steps (made at its first `display`)."""
 
 
 @dataclass
@@ -150,6 +169,10 @@ class GpuQueue:
 
     async def release(self, slot: str) -> None:
         await self.call(self.release_sync, slot)
+
+    async def display(self, request: DisplayRequest) -> Shown:
+        """A frame as displayed (periodic steps on the slot's device), read back."""
+        return await self.call(self.display_sync, request)
 
     def stage(self, slot: str, positions_id: int, positions: npt.NDArray[np.float32]) -> None:
         """A new frame for `slot` arrived (called on the event loop): copy it into page-locked
@@ -318,6 +341,18 @@ class GpuQueue:
         with self._staged() as held:
             atom, depth = self._prepare(request, held).pick(x, y)
         return atom, depth, None
+
+    def display_sync(self, request: DisplayRequest) -> Shown:
+        slot = self._slot(request.slot)
+        transform = slot.periodic
+        if transform is None:
+            from server.render.periodic import PeriodicTransform
+
+            transform = slot.periodic = PeriodicTransform(slot.renderer.device)
+        transform.set_topology(request.topology)
+        if request.restart:
+            transform.restart()
+        return transform.apply(request.positions, request.box, request.options)
 
     def release_sync(self, slot: str) -> None:
         self._slots.pop(slot, None)

@@ -31,12 +31,14 @@ from pydantic import ValidationError
 import protocol as p
 from server import heap
 from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
+from server.render.boxes import Shown, usable_box
 from server.render.layerplan import LayerPlan, visible_atoms
 from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
 from server.session.engine_limits import check_control, check_pull, check_sim_params
 from server.session.forces import ForceBook
 from server.session.layers import LayerBook
+from server.session.periodic import PERIODIC_FIELDS, PeriodicFrames, needs_display
 from server.session.roster import Roster
 from server.session.scheduler import RenderScheduler, ViewKey
 from server.session.services import Services
@@ -114,6 +116,14 @@ class Session:
         self.positions_id = 0
         self.box: npt.NDArray[np.float32] | None = None
         """The last frame's periodic box vectors (3x3, angstrom), if it sent any."""
+        self.raw_positions: npt.NDArray[np.float32] | None = None
+        """The last frame's positions as the simulation sent them (`positions` are the ones
+        displayed: molecules whole, centred, fitted, as the render parameters say)."""
+        self.shown: Shown | None = None
+        """How `positions` were displayed (None: as sent)."""
+        self._cell_sent: p.Cell | None = None
+        self._frame_step: int | None = None
+        self._frame_delta = 0
         self.status = p.SimStatus(state="waiting")
         self.render_params = settings.render_defaults
         self.sim_params = p.SimParams()
@@ -132,6 +142,7 @@ class Session:
         """Called with every frame the simulation sends (recordings): they must only queue."""
         self.acks = AckBook()
         self.layers = LayerBook(self._selection_moved, services.selections)
+        self.periodic = PeriodicFrames(self.slot, services.backend, self._publish)
         self.scheduler = RenderScheduler(settings)
         self.delivery = Delivery(session_id, services)
         self.version = 0
@@ -254,8 +265,11 @@ class Session:
         if self.layers.auto:
             self._default_layers(topology)
         self.layers.topology(topology, self.topology_id, prepare=bool(self.render_params.layers))
+        self.periodic.held = self.layers.held
         if changed:
             self.positions = None
+            self.raw_positions = None
+            self.shown = None
             self.camera = None
             self.forces.clear()
             self._history.clear()  # frames of another system: the window starts again
@@ -297,7 +311,7 @@ class Session:
             return
         n = self.topology.n_atoms
         plans = self.layers.plans(
-            self.render_params, n, self.positions, self.positions_id, self.box
+            self.render_params, n, self._selected_positions(), self.positions_id, self.box
         )
         if not self.layers.ready:
             return  # once the layers' atoms arrive (`_selection_moved`)
@@ -310,8 +324,14 @@ class Session:
 
     def _layer_plans(self, snap: Snapshot) -> tuple[LayerPlan, ...] | None:
         return self.layers.plans(
-            self.render_params, snap.topology.n_atoms, snap.positions, snap.positions_id, self.box
-        )
+            self.render_params, snap.topology.n_atoms, self._selected_positions(),
+            snap.positions_id, self.box,
+        )  # fmt: skip
+
+    def _selected_positions(self) -> npt.NDArray[np.float32] | None:
+        """The positions selections read (`around`, `point`): the frame as the simulation sent
+        it, with its box (a fit rotates the displayed frame off the box's axes)."""
+        return self.raw_positions if self.raw_positions is not None else self.positions
 
     async def select(self, client: Client, message: p.Select) -> p.Selected:
         """Count the atoms a selection takes now (nothing changes): priced, then evaluated by
@@ -322,7 +342,7 @@ class Session:
             )
         try:
             count = await self.layers.count(
-                message.text, self.positions, self.positions_id, self.box
+                message.text, self._selected_positions(), self.positions_id, self.box
             )
         except SelectionError as exc:
             return p.Selected(
@@ -375,18 +395,18 @@ class Session:
             )
         now = time.monotonic()
         rate = self._step_rate.add(now, frame.step)
-        self.positions = frame.positions.to_numpy()
-        self.positions_id += 1
-        self.services.backend.stage(self.slot, self.positions_id, self.positions)
+        raw = frame.positions.to_numpy()
+        self.raw_positions = raw
         self.box = None if frame.box is None else frame.box.to_numpy()
-        self._remember(frame.step)
+        jumped = self._frame_step is not None and is_jump(
+            self._frame_step, self._frame_delta, frame.step
+        )
+        if self._frame_step is not None and not jumped:
+            self._frame_delta = frame.step - self._frame_step
+        self._frame_step = frame.step
         if self.frame_sinks:
             for sink in list(self.frame_sinks):
-                sink(frame.step, frame.time_ps, self.positions, self.box)
-        self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
-        self._frame_arrived = asyncio.Event()
-        if self.camera is None:
-            self._fit_camera()
+                sink(frame.step, frame.time_ps, raw, self.box)
         paused = self.status.state == "paused"
         self.status = p.SimStatus(
             state="paused" if paused else "running",
@@ -398,16 +418,39 @@ class Session:
             observables=dict(frame.observables),
         )
         self.services.metrics.sim_frames.inc()
-        self.version += 1
         if self.clients:
-            self._frame_taken.clear()
-        if self.forces.springs:
-            self._send_forces()
+            self._frame_taken.clear()  # taken by the render that draws it, once displayed
+        if needs_display(self.render_params, self.box):
+            self.periodic.submit(
+                self.topology, self.topology_id, raw, self.box, frame.step, self.render_params,
+                jumped,
+            )  # fmt: skip
+        else:
+            self.periodic.drop()
+            self._publish(raw, None, frame.step)
         wait = self.settings.state_interval_s - (now - self._last_state_sent)
         if wait <= 0:
             self._send_status()
         elif self._status_flush is None:  # the last frame of a burst is reported too
             self._status_flush = asyncio.get_running_loop().call_later(wait, self._send_status)
+
+    def _publish(self, positions: npt.NDArray[np.float32], shown: Shown | None, step: int) -> None:
+        """A frame is ready to draw: `positions` as displayed (`shown` says how; None: as
+        the simulation sent them)."""
+        if self._closed or self.topology is None or len(positions) != self.topology.n_atoms:
+            return
+        self.positions = positions
+        self.shown = shown
+        self.positions_id += 1
+        self.services.backend.stage(self.slot, self.positions_id, positions)
+        self._remember(step)
+        self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
+        self._frame_arrived = asyncio.Event()
+        if self.camera is None:
+            self._fit_camera()
+        self.version += 1
+        if self.forces.springs:
+            self._send_forces()
         self.mark_dirty()
 
     def _remember(self, step: int) -> None:
@@ -435,8 +478,29 @@ class Session:
             self._status_flush.cancel()
             self._status_flush = None
         self._last_state_sent = time.monotonic()
-        self.broadcast(p.State(sim=self.status))
+        cell = self._cell()
+        if cell is not None and cell != self._cell_sent:
+            self._cell_sent = cell
+            self.broadcast(p.State(sim=self.status, cell=cell))
+        else:
+            self.broadcast(p.State(sim=self.status))
         self._send_tracked()
+
+    def _cell(self) -> p.Cell | None:
+        """The periodic box of the frame shown, as displayed (moved with it by a fit)."""
+        shown = self.shown
+        if shown is not None and shown.cell is not None:
+            origin, vectors = shown.cell
+        else:
+            box = usable_box(self.box)
+            if box is None:
+                return None
+            origin, vectors = np.zeros(3), box
+        a, b, c = (tuple(round(float(x), 4) for x in v) for v in vectors)
+        return p.Cell(
+            origin=tuple(round(float(x), 4) for x in origin),
+            vectors=(a, b, c),
+        )
 
     def _send_tracked(self, only: Client | None = None) -> None:
         """Where each viewer's tracked atoms are now (markers and measurements follow them)."""
@@ -570,6 +634,8 @@ class Session:
             merged, changes = merge_patch(self.render_params, message.changes())
         except ValidationError as exc:
             raise _invalid(exc, "render_params.params", message.seq) from None
+        if any(f in changes for f in PERIODIC_FIELDS):
+            await self._check_periodic(merged, message.seq)
         if "layers" in changes:
             await self._check_layers(merged, message.seq)
             # other steering may have landed meanwhile: the patch applies to what is now
@@ -590,9 +656,65 @@ class Session:
         self.broadcast(p.State(render_params=merged, ref=message.seq, by=client.client_id))
         if "color_by" in changes or "uniform_color" in changes:
             self._legend_changed()
+        if any(f in changes for f in PERIODIC_FIELDS):
+            self._redisplay()
         self.version += 1
         self.scheduler.interacting(time.monotonic())
         self.mark_dirty()
+
+    def _redisplay(self) -> None:
+        """The periodic options changed: the last frame is displayed again with them (also
+        while the simulation is paused)."""
+        raw = self.raw_positions
+        if raw is None or self.topology is None:
+            return
+        step = self.status.step
+        if needs_display(self.render_params, self.box):
+            self.periodic.submit(
+                self.topology, self.topology_id, raw, self.box, step, self.render_params, True
+            )
+        else:
+            self.periodic.drop()
+            self._publish(raw, None, step)
+
+    async def _check_periodic(self, params: p.RenderParams, seq: int | None) -> None:
+        """The centre and fit selections in use must parse, name fixed atoms (a distance-based
+        selection changes from frame to frame) and evaluate on this topology; the first that
+        does not is named, and nothing changes."""
+        limits = self.services.selections.limits.selection
+        used = []
+        if params.center == "selection":
+            used.append(("center_selection", params.center_selection))
+        if params.fit != "off":
+            used.append(("fit_selection", params.fit_selection))
+        for field, text in used:
+            path = f"render_params.params.{field}"
+            try:
+                check_syntax(text, limits)
+            except SelectionError as exc:
+                code = p.ErrorCode.TOO_LARGE if exc.limit else p.ErrorCode.INVALID_MESSAGE
+                raise p.ProtocolError(code, f"{field}: {exc}", path, seq) from None
+            if is_dynamic(text):
+                raise p.ProtocolError(
+                    p.ErrorCode.INVALID_MESSAGE,
+                    f"{field}: {text!r} reads coordinates (around, point, ...); the centre and "
+                    "the fit need atoms that stay the same from frame to frame",
+                    path,
+                    seq,
+                )
+            if self.topology is None:
+                continue
+            try:
+                (error,) = await self.layers.check([text], None, self.positions_id)
+            except SelectionError as exc:
+                error = exc
+            if error is not None:
+                code = (
+                    p.ErrorCode.NOT_READY
+                    if isinstance(error, SelectionBusyError)
+                    else (p.ErrorCode.TOO_LARGE if error.limit else p.ErrorCode.INVALID_MESSAGE)
+                )
+                raise p.ProtocolError(code, f"{field}: {error}", path, seq)
 
     async def _check_layers(self, params: p.RenderParams, seq: int | None) -> None:
         """Every layer's selection must parse, keep to the selection limits and evaluate on
@@ -619,8 +741,8 @@ class Session:
             if not checked:
                 return
             found = await self.layers.check(
-                [layer.selection for _, layer in checked], self.positions, self.positions_id,
-                self.box,
+                [layer.selection for _, layer in checked], self._selected_positions(),
+                self.positions_id, self.box,
             )  # fmt: skip
         except SelectionError as exc:  # the request as a whole: its time or memory
             if len(checked) == 1:  # the one layer it was
@@ -701,6 +823,10 @@ class Session:
 
     def _merged_forces(self) -> p.Forces:
         idx, forces = self.forces.merged(self.positions)
+        shown = self.shown
+        if shown is not None and len(forces):
+            # given in the displayed frame: a fit rotated it (F_engine = R^T F_displayed)
+            forces = (np.asarray(forces, dtype=np.float64) @ shown.rotation).astype(np.float32)
         return p.Forces(
             indices=p.WireArray.from_numpy(idx, "<i4"),
             forces=p.WireArray.from_numpy(forces, "<f4"),
@@ -1062,5 +1188,6 @@ class Session:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self.delivery.close()
+        await self.periodic.close()
         self.layers.close()
         await self.services.backend.release(self.slot)

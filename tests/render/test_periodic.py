@@ -13,7 +13,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from server.render.periodic import Molecules, Options, PeriodicTransform, usable_box
+from server.render.boxes import Options, usable_box
+from server.render.periodic import Molecules, PeriodicTransform
 from structures.reader import topology_of
 
 mda = pytest.importorskip("MDAnalysis")
