@@ -7,6 +7,7 @@ accepts, all of them accept. MDAnalysis is imported lazily: `pip install scalest
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -30,8 +31,33 @@ STRUCTURE_FORMATS = (
     "pqr",
     "mol2",
     "crd",
+    "tpr",
+    "prmtop",
+    "parm7",
 )
-TRAJECTORY_FORMATS = ("dcd", "xtc", "trr", "pdb", "nc", "ncdf", "xyz", "lammpsdump")
+TRAJECTORY_FORMATS = (
+    "dcd",
+    "xtc",
+    "trr",
+    "pdb",
+    "nc",
+    "ncdf",
+    "xyz",
+    "lammpsdump",
+    "lammpstrj",
+    "dump",
+    "mdcrd",
+    "inpcrd",
+    "rst7",
+    "gro",
+)
+MDANALYSIS_FORMATS = {
+    "pdbx": "MMCIF",
+    "lammpstrj": "LAMMPSDUMP",
+    "dump": "LAMMPSDUMP",
+    "rst7": "INPCRD",
+}
+"""Suffixes MDAnalysis does not know by that name, and the format they hold."""
 
 
 class StructureError(ValueError):
@@ -56,6 +82,20 @@ class Structure:
             warnings.simplefilter("ignore")
             ts = self.universe.trajectory[index]
             return np.ascontiguousarray(ts.positions, dtype=np.float32)
+
+    def frame(
+        self, index: int = 0
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None]:
+        """Positions (angstrom) of frame `index` and its periodic box (rows are the box
+        vectors; None without one, or for a placeholder)."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ts = self.universe.trajectory[index]
+            positions = np.ascontiguousarray(ts.positions, dtype=np.float32)
+            box = None
+            if cell_of(self.universe) is not None:
+                box = np.asarray(ts.triclinic_dimensions, dtype=np.float32)
+        return positions, box
 
     def frames(
         self, start: int = 0, stop: int | None = None, stride: int = 1
@@ -150,11 +190,14 @@ def load(
 
     for path in (topology, *trajectories):
         check = CHECKS.get(_fmt(path))
-        if check is not None and not path.lower().endswith((".gz", ".bz2")):
+        if check is not None:
             check(path)
     kwargs: dict[str, Any] = {}
-    if fmt == "pdbx":
-        kwargs["topology_format"] = "MMCIF"
+    if fmt in MDANALYSIS_FORMATS:
+        kwargs["topology_format"] = MDANALYSIS_FORMATS[fmt]
+    named = {MDANALYSIS_FORMATS.get(_fmt(t)) for t in trajectories} - {None}
+    if len(named) == 1 and all(_fmt(t) in MDANALYSIS_FORMATS for t in trajectories):
+        kwargs["format"] = named.pop()
     if fmt == "data":
         style = atom_style or lammps_atom_style(topology)
         if style is not None:
@@ -164,7 +207,7 @@ def load(
             warnings.simplefilter("ignore")
             u = mda.Universe(topology, *trajectories, **kwargs)
     except Exception as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        msg = reason(exc, (topology, *trajectories))
         names = ", ".join(os.path.basename(f) for f in (topology, *trajectories))
         hint = ""
         if fmt == "data" and "atom_style" in str(exc):
@@ -213,6 +256,24 @@ def cell_of(u: Any) -> npt.NDArray[np.float32] | None:
     if (dims[3:] <= 0).any() or (dims[3:] >= 180).any():
         return None
     return dims
+
+
+def reason(exc: BaseException, paths: Sequence[str]) -> str:
+    """What a reader's error says: the innermost cause (MDAnalysis wraps a parser's own words
+    in "Failed to construct topology from file ..."), its first line, with the files named by
+    their names alone (never the server's directories)."""
+    inner = exc
+    while True:
+        cause = inner.__cause__ or inner.__context__
+        if cause is None or cause is inner or not str(cause).strip():
+            break
+        inner = cause
+    lines = [line.strip() for line in str(inner).splitlines() if line.strip()]
+    text = " ".join(lines[:2]) if lines else type(inner).__name__
+    for path in paths:
+        text = text.replace(os.path.abspath(path), os.path.basename(path))
+        text = text.replace(path, os.path.basename(path))
+    return re.sub(r"(?:/[^/\s'\"]+)+/([^/\s'\"]+)", r"\1", text)
 
 
 def _strings(atoms: Any, attr: str, default: str, width: int) -> list[str]:
