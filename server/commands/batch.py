@@ -20,7 +20,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from server.commands.render import _size
+from server.commands.render import _size, add_periodic_options, periodic_fields
 from server.settings import ray_cluster_address
 
 
@@ -53,6 +53,7 @@ def parser() -> argparse.ArgumentParser:
         help="a Ray cluster to join, HOST:PORT (env SCALESTEER_RAY_ADDRESS or RAY_ADDRESS)",
     )
     ap.add_argument("--ray-workers", type=int, default=None, help="Ray render actors at most")
+    add_periodic_options(ap)
     return ap
 
 
@@ -61,6 +62,7 @@ async def run(args: argparse.Namespace) -> int:
     from server.metrics import Metrics
     from server.pipeline.gpu import GpuQueue
     from server.pipeline.jobs import JobManager, JobSpec, JobState
+    from server.pipeline.periodic import check_periodic
     from server.settings import ServerSettings
     from server.web.app import batch_engine
     from server.web.rest import unknown_keys
@@ -77,9 +79,10 @@ async def run(args: argparse.Namespace) -> int:
         unknown = unknown_keys(p.RenderParams, raw, "params")
         if unknown:
             raise ValueError(f"{unknown}: unknown field")
-        params = p.RenderParams.model_validate(raw)
+        params = p.RenderParams.model_validate({**raw, **periodic_fields(args)})
+        check_periodic(params)
         camera = p.Camera.model_validate(json.loads(args.camera)) if args.camera else None
-    except ValueError as exc:  # JSON errors and validation errors are ValueErrors
+    except ValueError as exc:  # JSON, validation and selection errors are ValueErrors
         print(f"scalesteer batch: {exc}", file=sys.stderr)
         return 2
     settings = ServerSettings(

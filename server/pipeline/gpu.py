@@ -93,7 +93,8 @@ class DisplayRequest:
     """One frame of `slot` to show as `options` say (molecules made whole, centred, wrapped,
     followed, fitted; `server.render.periodic`), on the device the slot renders on, which keeps
     what spans its frames (where each atom was, the fit's reference). `restart`: this frame
-    does not follow the last one (a seek, new options)."""
+    does not follow the last one (a seek, new options); `reference`: the fit superposes the
+    frames that follow onto this one."""
 
     slot: str
     topology: p.Topology
@@ -101,6 +102,7 @@ class DisplayRequest:
     box: npt.NDArray[np.float32] | None
     options: Options
     restart: bool = False
+    reference: bool = False
 
 
 @dataclass
@@ -352,7 +354,7 @@ class GpuQueue:
         transform.set_topology(request.topology)
         if request.restart:
             transform.restart()
-        return transform.apply(request.positions, request.box, request.options)
+        return transform.apply(request.positions, request.box, request.options, request.reference)
 
     def release_sync(self, slot: str) -> None:
         self._slots.pop(slot, None)

@@ -523,9 +523,8 @@ class PeriodicTransform:
 
     def restart(self) -> None:
         """The next frame does not follow the last one (a seek, a new stream): `unwrap` makes
-        it whole again, and the fit takes it as its reference."""
+        it whole again. The fit keeps its reference."""
         self._following = False
-        self._reference_key = None
 
     def nbytes(self) -> int:
         """Device memory held (for the memory budget)."""
@@ -553,11 +552,13 @@ class PeriodicTransform:
         positions: npt.ArrayLike,
         box: npt.ArrayLike | None,
         options: Options,
+        reference: bool = False,
     ) -> Shown:
         """The frame as displayed. Positions (n, 3) in angstrom; `box` rows are its vectors
-        (a box that is no cell, `usable_box`, counts as none: the box steps are skipped)."""
+        (a box that is no cell, `usable_box`, counts as none: the box steps are skipped).
+        The fit's reference is the first frame of these options, or this one (`reference`)."""
         self.upload(positions)
-        self.run(box, options)
+        self.run(box, options, reference)
         return self.result()
 
     def upload(self, positions: npt.ArrayLike) -> None:
@@ -581,7 +582,7 @@ class PeriodicTransform:
         """The displayed positions `run` leaves on the device."""
         return self._out
 
-    def run(self, box: npt.ArrayLike | None, options: Options) -> None:
+    def run(self, box: npt.ArrayLike | None, options: Options, reference: bool = False) -> None:
         """Launch the frame's kernels (asynchronous on a CUDA device): the displayed positions
         go to `device_result`."""
         cell = usable_box(box)
@@ -648,7 +649,7 @@ class PeriodicTransform:
         if fit_count:
             atoms = self._atoms(fit_atoms)
             key = (*options.key(), cell is None)
-            if self._reference_key != key:
+            if reference or self._reference_key != key:
                 self._take_reference(common, atoms, fit_count)
                 self._reference_key = key
             small["fit_sums"].zero_()

@@ -29,16 +29,6 @@ from structures.selection_pool import Held, SelectionBusyError
 
 log = logging.getLogger("scalesteer.session")
 
-PERIODIC_FIELDS = ("periodic", "center", "center_selection", "fit", "fit_selection")
-"""The render parameters that change how frames are displayed."""
-
-
-def needs_display(params: p.RenderParams, box: npt.NDArray[Any] | None) -> bool:
-    """Whether a frame with this box is displayed other than as sent."""
-    if usable_box(box) is not None and (params.periodic != "off" or params.center != "off"):
-        return True
-    return params.fit != "off" or params.center == "selection"
-
 
 @dataclass
 class _Frame:

@@ -31,14 +31,22 @@ from pydantic import ValidationError
 import protocol as p
 from server import heap
 from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
-from server.render.boxes import Shown, usable_box
+from server.pipeline.periodic import (
+    PERIODIC_FIELDS,
+    PeriodicError,
+    check_periodic,
+    displayed_cell,
+    needs_display,
+    selection_fields,
+)
+from server.render.boxes import Shown
 from server.render.layerplan import LayerPlan, visible_atoms
 from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
 from server.session.engine_limits import check_control, check_pull, check_sim_params
 from server.session.forces import ForceBook
 from server.session.layers import LayerBook
-from server.session.periodic import PERIODIC_FIELDS, PeriodicFrames, needs_display
+from server.session.periodic import PeriodicFrames
 from server.session.roster import Roster
 from server.session.scheduler import RenderScheduler, ViewKey
 from server.session.services import Services
@@ -488,19 +496,7 @@ class Session:
 
     def _cell(self) -> p.Cell | None:
         """The periodic box of the frame shown, as displayed (moved with it by a fit)."""
-        shown = self.shown
-        if shown is not None and shown.cell is not None:
-            origin, vectors = shown.cell
-        else:
-            box = usable_box(self.box)
-            if box is None:
-                return None
-            origin, vectors = np.zeros(3), box
-        a, b, c = (tuple(round(float(x), 4) for x in v) for v in vectors)
-        return p.Cell(
-            origin=tuple(round(float(x), 4) for x in origin),
-            vectors=(a, b, c),
-        )
+        return displayed_cell(self.shown, self.box)
 
     def _send_tracked(self, only: Client | None = None) -> None:
         """Where each viewer's tracked atoms are now (markers and measurements follow them)."""
@@ -681,39 +677,25 @@ class Session:
         """The centre and fit selections in use must parse, name fixed atoms (a distance-based
         selection changes from frame to frame) and evaluate on this topology; the first that
         does not is named, and nothing changes."""
-        limits = self.services.selections.limits.selection
-        used = []
-        if params.center == "selection":
-            used.append(("center_selection", params.center_selection))
-        if params.fit != "off":
-            used.append(("fit_selection", params.fit_selection))
-        for field, text in used:
-            path = f"render_params.params.{field}"
-            try:
-                check_syntax(text, limits)
-            except SelectionError as exc:
-                code = p.ErrorCode.TOO_LARGE if exc.limit else p.ErrorCode.INVALID_MESSAGE
-                raise p.ProtocolError(code, f"{field}: {exc}", path, seq) from None
-            if is_dynamic(text):
-                raise p.ProtocolError(
-                    p.ErrorCode.INVALID_MESSAGE,
-                    f"{field}: {text!r} reads coordinates (around, point, ...); the centre and "
-                    "the fit need atoms that stay the same from frame to frame",
-                    path,
-                    seq,
-                )
-            if self.topology is None:
-                continue
+        try:
+            check_periodic(params, self.services.selections.limits.selection)
+        except PeriodicError as exc:
+            raise p.ProtocolError(
+                p.ErrorCode.INVALID_MESSAGE, str(exc), f"render_params.params.{exc.path}", seq
+            ) from None
+        if self.topology is None:
+            return
+        for field, text in selection_fields(params):
             try:
                 (error,) = await self.layers.check([text], None, self.positions_id)
             except SelectionError as exc:
                 error = exc
             if error is not None:
-                code = (
-                    p.ErrorCode.NOT_READY
-                    if isinstance(error, SelectionBusyError)
-                    else (p.ErrorCode.TOO_LARGE if error.limit else p.ErrorCode.INVALID_MESSAGE)
-                )
+                if isinstance(error, SelectionBusyError):
+                    code = p.ErrorCode.NOT_READY
+                else:
+                    code = p.ErrorCode.TOO_LARGE if error.limit else p.ErrorCode.INVALID_MESSAGE
+                path = f"render_params.params.{field}"
                 raise p.ProtocolError(code, f"{field}: {error}", path, seq)
 
     async def _check_layers(self, params: p.RenderParams, seq: int | None) -> None:

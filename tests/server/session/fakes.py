@@ -83,7 +83,7 @@ class PaintBackend:
         transform.set_topology(request.topology)
         if request.restart:
             transform.restart()
-        return transform.apply(request.positions, request.box, request.options)
+        return transform.apply(request.positions, request.box, request.options, request.reference)
 
     def stage(self, slot: str, positions_id: int, positions: np.ndarray) -> None:
         self.staged.append((slot, positions_id))
