@@ -259,6 +259,7 @@ class Session:
             engine=self.engine,
             legend=self.legend,
             camera=self.camera,
+            cell=self._cell(),
         )
 
     def broadcast(self, message: p.Message) -> None:
@@ -436,10 +437,15 @@ class Session:
         else:
             self.periodic.drop()
             self._publish(raw, None, frame.step)
+        self._report(now)
+
+    def _report(self, now: float) -> None:
+        """Send the status (and the tracked atoms, the cell) now, or once `state_interval_s`
+        has passed since the last: the last frame of a burst is reported too."""
         wait = self.settings.state_interval_s - (now - self._last_state_sent)
         if wait <= 0:
             self._send_status()
-        elif self._status_flush is None:  # the last frame of a burst is reported too
+        elif self._status_flush is None:
             self._status_flush = asyncio.get_running_loop().call_later(wait, self._send_status)
 
     def _publish(self, positions: npt.NDArray[np.float32], shown: Shown | None, step: int) -> None:
@@ -459,6 +465,8 @@ class Session:
         self.version += 1
         if self.forces.springs:
             self._send_forces()
+        if shown is not None or self._cell_sent is not None:
+            self._report(time.monotonic())  # markers and the cell as displayed now
         self.mark_dirty()
 
     def _remember(self, step: int) -> None:
