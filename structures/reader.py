@@ -293,6 +293,7 @@ def _has(atoms: Any, attr: str) -> bool:
 
 def _elements(u: Any) -> list[str]:
     atoms = u.atoms
+    raw: list[str] = []
     if _has(atoms, "elements"):
         raw = [str(e).strip().capitalize() for e in atoms.elements]
         if all(raw):
@@ -300,8 +301,13 @@ def _elements(u: Any) -> list[str]:
     if _has(atoms, "names"):
         from MDAnalysis.guesser.default_guesser import DefaultGuesser
 
-        guessed = DefaultGuesser(None).guess_types(atoms.names)
-        return [str(e).strip().capitalize() or "X" for e in guessed]
+        missing = [i for i, e in enumerate(raw) if not e] if raw else range(int(atoms.n_atoms))
+        names = np.asarray(atoms.names)[np.asarray(missing, dtype=np.int64)]
+        guessed = DefaultGuesser(None).guess_types(names)  # only those the file left blank
+        out = raw or [""] * int(atoms.n_atoms)
+        for i, e in zip(missing, guessed, strict=True):
+            out[i] = str(e).strip().capitalize() or "X"
+        return out
     if _has(atoms, "masses"):
         return [_element_of_mass(float(m)) for m in atoms.masses]
     return ["X"] * int(atoms.n_atoms)
@@ -323,8 +329,12 @@ def topology_of(u: Any, *, guess_bonds: bool = True, title: str = "") -> Topolog
     n = int(atoms.n_atoms)
     elements = [e[:3] for e in _elements(u)]
     bonds = np.zeros((0, 2), dtype=np.int32)
-    if _has(u, "bonds") and len(u.bonds):
-        bonds = np.asarray(u.bonds.indices, dtype=np.int32).reshape(-1, 2)
+    try:
+        found = u.bonds  # built once: a bond group of 25,000 bonds takes half a second
+    except Exception:  # MDAnalysis raises NoDataError for a topology without bonds
+        found = None
+    if found is not None and len(found):
+        bonds = np.asarray(found.indices, dtype=np.int32).reshape(-1, 2)
     # a PDB's CONECT records cover only hetero groups and disulfides: guess the rest too
     if guess_bonds and len(bonds) < n // 2 and n <= 500_000:
         from MDAnalysis.topology.guessers import guess_bonds as guess
