@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import time
@@ -229,7 +230,11 @@ def main(argv: list[str] | None = None) -> int:
     result: dict[str, Any] = {
         "device": device,
         "device_name": str(wp.get_device(device).name),
+        "gpu": str(wp.get_device(device).name) if device.startswith("cuda") else "cpu",
         "host": platform.node(),
+        "host_cpus": os.cpu_count(),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "warp": wp.config.version,
         "frames": frames,
         "sizes": [bench_size(device, n, frames) for n in sizes],
     }

@@ -50,7 +50,8 @@ from simulation_adapters.imd_session import (
     IMDSession,
 )
 from simulation_adapters.runaway import RunawayGuard
-from structures.reader import Structure, StructureError, element_mass, load
+from structures.errors import StructureError
+from structures.reader import Structure, element_mass, load
 
 log = logging.getLogger("scalesteer.imd")
 

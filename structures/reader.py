@@ -17,6 +17,8 @@ import numpy as np
 import numpy.typing as npt
 
 from protocol import Topology, WireArray
+from structures.errors import StructureError
+from structures.textcheck import CHECKS
 
 STRUCTURE_FORMATS = (
     "pdb",
@@ -58,10 +60,6 @@ MDANALYSIS_FORMATS = {
     "rst7": "INPCRD",
 }
 """Suffixes MDAnalysis does not know by that name, and the format they hold."""
-
-
-class StructureError(ValueError):
-    """A structure or trajectory that cannot be used, with a message naming the problem."""
 
 
 @dataclass
@@ -186,8 +184,6 @@ def load(
                 f"unsupported trajectory format {_fmt(t)!r} ({os.path.basename(t)}); "
                 f"use one of {', '.join(TRAJECTORY_FORMATS)}"
             )
-    from structures.textcheck import CHECKS
-
     for path in (topology, *trajectories):
         check = CHECKS.get(_fmt(path))
         if check is not None:

@@ -16,7 +16,7 @@ import shlex
 from collections.abc import Iterator
 from itertools import islice
 
-from structures.reader import StructureError
+from structures.errors import StructureError
 
 MAX_QUOTED = 60
 
