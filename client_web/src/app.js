@@ -2,7 +2,7 @@
 // Pure logic lives in the other modules; this one holds the session state and the DOM wiring.
 
 import { DEFAULT_CAMERA, lookAlong, normalizeCamera, project, setProjection, unprojectToPlane } from "./camera.js";
-import { apiFetch, finishRecording, openReplay, startRecording } from "./api.js";
+import { apiFetch, finishRecording, openReplay, replayFiles, startRecording } from "./api.js";
 import { ConnState, Connection, viewUrl } from "./connection.js";
 import { $, downloadBlob, el, setText, throttle } from "./dom.js";
 import { integer, milliseconds, nanoseconds, position, sig } from "./format.js";
@@ -1019,11 +1019,9 @@ class Dashboard {
     const files = [...(input.files ?? [])];
     input.value = "";
     if (!files.length) return;
-    // the structure first: a trajectory format cannot carry a topology on its own
-    const trajectory = /\.(dcd|xtc|trr|nc|ncdf|lammpstrj)$/i;
-    files.sort((a, b) => Number(trajectory.test(a.name)) - Number(trajectory.test(b.name)));
-    this.notices.notify({ level: "info", code: "open", message: `uploading ${files.map((f) => f.name).join(", ")}…` });
     try {
+      replayFiles(files); // refused here, naming the files, before anything is uploaded
+      this.notices.notify({ level: "info", code: "open", message: `uploading ${files.map((f) => f.name).join(", ")}…` });
       const opened = await openReplay({ token: this.token, files });
       const url = new URL(window.location.href);
       url.searchParams.set("session", opened.session);

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fastapi import FastAPI, WebSocket
+from fastapi.exceptions import RequestValidationError
 from fastapi.staticfiles import StaticFiles
 
 from server.metrics import Metrics
@@ -36,6 +37,7 @@ from server.web.replays import router as replays_router
 from server.web.rest import router
 from server.web.spool import Spool
 from server.web.state import AppState, SessionRegistry
+from server.web.validation import validation_failed
 from structures.selection_pool import SelectionPool
 
 log = logging.getLogger("scalesteer.app")
@@ -207,6 +209,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         docs_url=None,
         redoc_url=None,
     )
+    app.add_exception_handler(RequestValidationError, validation_failed)
     app.include_router(router)
     app.include_router(replays_router)
     app.include_router(recordings_router)

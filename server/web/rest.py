@@ -122,14 +122,18 @@ _UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
 
 
 async def save_upload(upload: UploadFile, directory: Path, limit: int, index: int = 0) -> Path:
-    """Stream an upload to `directory` under a unique, safe name that keeps its extension."""
+    """Stream an upload to `directory` under a safe name that keeps its extension: the name it
+    came with (so what the reader says about it names the user's file), prefixed with `index`
+    only when an earlier file of the request took that name."""
     name = _UNSAFE.sub("_", Path(upload.filename or "upload").name).lstrip(".")
     if not name:
         raise HTTPException(422, f"unusable file name {upload.filename!r}")
     if len(name) > 120:  # keep the extension, which names the format
         stem, dot, ext = name.rpartition(".")
         name = stem[: 100 - len(ext)] + dot + ext[:16] if dot else name[:120]
-    target = directory / f"{index}-{name}"
+    target = directory / name
+    if target.exists():
+        target = directory / f"{index}-{name}"
     size = 0
     with open(target, "wb") as out:
         while chunk := await upload.read(1 << 20):
