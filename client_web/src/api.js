@@ -62,33 +62,40 @@ export async function openReplay({ token, files, fps = 30, fetchImpl = fetch }) 
   return response.json();
 }
 
-/** Start recording a session's frames to an MP4 with this camera and size; resolves to the job. */
-export async function startRecording({ token, session, camera, width, height, fps = 30, fetchImpl = fetch }) {
-  const form = formOf({ camera, width: Math.round(width), height: Math.round(height), fps });
+/** Start a movie of a session's frames with this camera and size, taking frames for at most
+ * `maxS` seconds and ending when `owner` (this page's instance) leaves; resolves to the job. */
+export async function startRecording({
+  token,
+  session,
+  camera,
+  width,
+  height,
+  fps = 30,
+  maxS,
+  owner,
+  fetchImpl = fetch,
+}) {
+  const form = formOf({ camera, width: Math.round(width), height: Math.round(height), fps, max_s: maxS, owner });
   const path = `/api/sessions/${encodeURIComponent(session)}/movies`;
   const response = await apiFetch(path, { token, method: "POST", form, fetchImpl });
   return response.json();
 }
 
-/** End a recording (the movie is kept), wait for it to be written, resolve to its Blob. */
-export async function finishRecording({ token, job, fetchImpl = fetch, sleep = undefined, onWarning = undefined }) {
-  await apiFetch(`/api/jobs/${encodeURIComponent(job)}`, { token, method: "DELETE", fetchImpl });
-  return jobResult({ token, job, fetchImpl, onWarning, ...(sleep ? { sleep } : {}) });
-}
-
 /** Wait for a job to finish and resolve to its output as a Blob (throws with its failure); a
  * finished job's warning (a partial output: fewer frames than its input should have given) goes
- * to `onWarning`. */
+ * to `onWarning`, and each answer while it runs to `onProgress`. */
 export async function jobResult({
   token,
   job,
   fetchImpl = fetch,
   sleep = (ms) => new Promise((r) => setTimeout(r, ms)),
   onWarning = undefined,
+  onProgress = undefined,
 }) {
   const path = `/api/jobs/${encodeURIComponent(job)}`;
   for (;;) {
     const info = await (await apiFetch(path, { token, fetchImpl })).json();
+    onProgress?.(info);
     if (info.state === "done") {
       if (info.warning && onWarning) onWarning(info.warning);
       break;

@@ -58,5 +58,9 @@ test("a structure alone opens without a trajectory field; the structure goes fir
     return new Response(JSON.stringify({ session: "replay-box" }), { status: 201 });
   };
   assert.equal((await openReplay({ token: "t", files: [xtc, gro], fetchImpl })).session, "replay-box");
-  assert.deepEqual(sent[0], [["topology", "box.gro"], ["trajectory", "run.xtc"], ["fps", "30"]]);
+  assert.deepEqual(sent[0], [
+    ["topology", "box.gro"],
+    ["trajectory", "run.xtc"],
+    ["fps", "30"],
+  ]);
 });

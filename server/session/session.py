@@ -139,7 +139,6 @@ class Session:
         self._image_ids = itertools.count(1)
         self._roster_flush: asyncio.TimerHandle | None = None
         self._status_flush: asyncio.TimerHandle | None = None
-        self._frame_arrived = asyncio.Event()
         self._step_rate = StepRate()
         self._dirty = asyncio.Event()
         self._closed = False
@@ -383,8 +382,6 @@ class Session:
         if self.frame_sinks:
             for sink in list(self.frame_sinks):
                 sink(frame.step, frame.time_ps, self.positions, self.box)
-        self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
-        self._frame_arrived = asyncio.Event()
         if self.camera is None:
             self._fit_camera()
         paused = self.status.state == "paused"
@@ -759,20 +756,6 @@ class Session:
 
     def mark_dirty(self) -> None:
         self._dirty.set()
-
-    async def next_frame(self, after: int, timeout: float) -> Snapshot | None:
-        """The first snapshot whose `positions_id` is above `after`, waiting up to `timeout`
-        seconds for the simulation to send it (None if it does not)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            snap = self.snapshot()
-            if snap is not None and snap.positions_id > after:
-                return snap
-            left = deadline - time.monotonic()
-            if left <= 0 or self._closed:
-                return None
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._frame_arrived.wait(), left)
 
     def snapshot(self) -> Snapshot | None:
         """The molecule as it is now, for one render pass."""

@@ -32,6 +32,7 @@ from server.web import ws as ws_endpoints
 from server.web.apidocs import add_docs
 from server.web.auth import RateLimiter
 from server.web.middleware import HostCheck, OriginCheck, SecurityHeaders, UploadLimit
+from server.web.owners import Owners
 from server.web.recordings import router as recordings_router
 from server.web.replays import router as replays_router
 from server.web.rest import router
@@ -165,6 +166,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             ),
             recordings=RecordingStore(state_dir / "recordings", steering_log.read),
             upload_dir=upload_dir,
+            owners=Owners(settings.owner_grace_s),
             readers=asyncio.Semaphore(settings.max_readers),
             viewer_renders=RateLimiter(
                 settings.viewer_renders_per_min / 60.0,
@@ -190,6 +192,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             yield
         finally:
             reaping.cancel()
+            state.owners.close()
             await asyncio.to_thread(state.replays.close)
             await asyncio.to_thread(state.recordings.close)
             await state.jobs.close()

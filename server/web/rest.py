@@ -11,18 +11,21 @@ import json
 import re
 import shutil
 import tempfile
+import time
 import typing
 import uuid
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, UploadFile
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
 import protocol as p
 from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
+from server.pipeline.livemovie import MovieFrame, MovieQueue
 from server.pipeline.selections import FrameLayers, LayerError, check_layers
 from server.web.access import (
     GatedRoute,
@@ -37,6 +40,8 @@ from structures.reader import StructureError
 
 router = APIRouter(route_class=GatedRoute)
 State = Annotated[AppState, Depends(app_state)]
+SKIP_NOTICE_S = 5.0
+"""While a recording or a movie skips frames, how often the session is told."""
 
 
 def check_layer_texts(state: AppState, params: p.RenderParams, field: str) -> None:
@@ -354,6 +359,21 @@ async def create_job(
     )
 
 
+@router.get("/api/jobs", summary="Jobs, newest first (running and queued ones first)")
+async def list_jobs(
+    state: State,
+    _role: Annotated[p.Role, Depends(steerer_access)],
+    active: Annotated[
+        bool, Query(description="only those queued or running (a movie still recording)")
+    ] = False,
+) -> list[dict[str, Any]]:
+    jobs = sorted(
+        state.jobs.jobs.values(),
+        key=lambda j: (j.state in FINAL, -j.created),
+    )
+    return [j.describe() for j in jobs if not (active and j.state in FINAL)]
+
+
 def _job(state: AppState, job_id: str) -> Any:
     job = state.jobs.get(job_id)
     if job is None:
@@ -384,7 +404,7 @@ async def get_job_result(
 
 @router.delete(
     "/api/jobs/{job_id}",
-    summary="Cancel a job, end a recording (keeping it), or delete a finished job's output",
+    summary="Cancel a job, stop a live movie (keeping it; again: cancel it), or delete an output",
 )
 async def delete_job(
     job_id: str, state: State, _role: Annotated[p.Role, Depends(steerer_access)]
@@ -393,9 +413,10 @@ async def delete_job(
     if job.state in FINAL:
         state.jobs.forget(job)
         return {"id": job_id, "deleted": True}
-    if job.spec.session is not None and job.state is JobState.RUNNING:
-        state.jobs.finish(job)  # a recording ends here and keeps its movie
-        return {"id": job_id, "finishing": True}
+    recording = job.frames is not None and not job.frames.closed
+    if job.state is JobState.RUNNING and recording:
+        state.jobs.finish(job)  # a live movie takes no more frames and keeps its movie
+        return {**job.describe(), "finishing": True}
     state.jobs.cancel(job)
     described: dict[str, Any] = job.describe()
     return described
@@ -479,10 +500,23 @@ async def record_session(
     height: Annotated[int, Form()] = 480,
     fps: Annotated[float, Form(gt=0, le=120)] = 30.0,
     max_frames: Annotated[int, Form(ge=1, le=100_000)] = 1800,
+    max_s: Annotated[
+        float | None,
+        Form(gt=0, le=86_400, description="seconds of recording (default: movie_max_s, 600)"),
+    ] = None,
+    owner: Annotated[
+        str | None,
+        Form(
+            max_length=64,
+            description="a page's hello.instance: the movie ends when that page leaves",
+        ),
+    ] = None,
 ) -> JSONResponse:
-    """Each frame the simulation sends from now on, drawn with the session's render
-    parameters of that moment (what the dashboard shows) and this camera; the movie ends after
-    `max_frames` frames or when `DELETE /api/jobs/{id}` finishes it (the movie is kept)."""
+    """The frame shown now and each frame the simulation sends from now on, every one, drawn
+    with the session's render parameters and layers of its moment (what the dashboard shows)
+    and this camera. It takes frames until `max_frames`, `max_s`, `DELETE /api/jobs/{id}`, its
+    `owner` leaving the session or the session closing, then renders those still waiting
+    and keeps the movie."""
     check_size(state, width, height)
     live = state.sessions.get(session_id)
     if live is None:
@@ -501,8 +535,53 @@ async def record_session(
         stop=max_frames,
         fps=fps,
         session=session_id,
+        max_s=max_s or state.settings.movie_max_s,
     )
-    job = state.jobs.record(live, spec)
+    told = [-SKIP_NOTICE_S]
+
+    def skipped(frames: MovieQueue, step: int) -> None:
+        if time.monotonic() - told[0] >= SKIP_NOTICE_S:  # at once, then once in a while
+            told[0] = time.monotonic()
+            live.broadcast(
+                p.Event(
+                    level="warning",
+                    code="movie_skipped",
+                    message=f"movie {job.id}: {frames.skip_warning()}",
+                    step=step,
+                )
+            )
+
+    frames = MovieQueue(state.settings.movie_queue_bytes, max_frames, skipped)
+
+    def take(step: int, time_ps: float, positions: Any, box: Any) -> None:
+        snap = live.snapshot()
+        if snap is not None:
+            frames.offer(MovieFrame(replace(snap, step=step), live.render_params, box))
+
+    now = live.snapshot()
+    if now is not None:  # the frame on the screen when the movie starts
+        frames.offer(MovieFrame(now, live.render_params, live.box))
+
+    async def session_closed() -> None:
+        frames.close(f"session {session_id!r} closed")
+
+    def unhook() -> None:
+        if take in live.frame_sinks:
+            live.frame_sinks.remove(take)
+        if session_closed in live.close_hooks:
+            live.close_hooks.remove(session_closed)
+
+    live.frame_sinks.append(take)
+    live.close_hooks.append(session_closed)
+    job = state.jobs.record(spec, frames, lambda: live.layers.held, owner)
+    frames.when_closed(unhook)
+    if owner is not None:
+
+        async def end(why: str) -> None:
+            state.jobs.finish(job, why)
+
+        state.owners.own(live, owner, job.id, end)
+        frames.when_closed(lambda: state.owners.done(job.id))
     return JSONResponse(
         job.describe(), status_code=202, headers={"Location": f"/api/jobs/{job.id}"}
     )
