@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Executor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -38,7 +38,7 @@ from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.pipeline.livemovie import MovieQueue
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
 from server.pipeline.overlay import draw_overlay
-from server.pipeline.selections import FrameLayers, LayerError
+from server.pipeline.selections import FrameLayers, LayerError, opening_params
 from structures.isolated import IsolatedStructure, ReadLimits
 
 if TYPE_CHECKING:
@@ -98,7 +98,8 @@ class JobSpec:
             "session": self.session,
             "topology": str(self.topology),
             "trajectories": [str(t) for t in self.trajectories],
-            "params": self.params.model_dump(mode="json"),
+            # unset fields stay unset: parameters that name no layers get the default ones
+            "params": self.params.model_dump(mode="json", exclude_unset=True),
             "camera": self.camera.model_dump(mode="json") if self.camera else None,
             "width": self.width,
             "height": self.height,
@@ -598,6 +599,10 @@ class JobManager:
                 )
             except StructureError as exc:
                 raise JobError(str(exc)) from None
+            opening = await asyncio.to_thread(opening_params, spec.params, structure.topology)
+            if opening is not spec.params:  # the default layers, kept for a restart
+                job.spec = spec = replace(spec, params=opening)
+                self._save(job)
             expected = spec.expected_frames
             if expected is not None and structure.n_frames < expected:
                 job.partial = True

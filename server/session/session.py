@@ -107,6 +107,9 @@ class Session:
         self.roster = Roster()
         self.topology: p.Topology | None = None
         self.legend: p.Legend | None = None
+        self._legend_key: Any = None
+        self._legend_plans: tuple[LayerPlan, ...] | None = None
+        """The layers the legend was made for (it lists only the atoms they show)."""
         self.engine: p.EngineInfo | None = None
         """What the simulation declared it can be steered with (kept until a new one says)."""
         self.topology_id = 0
@@ -264,6 +267,7 @@ class Session:
             update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": "running"}
         )
         self.broadcast(p.State(sim=self.status))
+        self._legend_plans = None  # the last layers' atoms were of the last topology
         self._legend_changed()
         if topology.n_atoms >= heap.LARGE_TOPOLOGY:
             heap.settle()  # its per-atom lists leave the collector's walk (server.heap)
@@ -454,13 +458,32 @@ class Session:
             )
 
     def _legend_changed(self) -> None:
+        """The colouring changed, or the topology: the legend again, for the atoms shown."""
+        self._legend_key = None
+        self._show_legend(self._legend_plans)
+
+    def _show_legend(self, plans: tuple[LayerPlan, ...] | None) -> None:
+        """What the colours of the atoms the layers show mean (hidden solvent and ions are
+        not in it), sent when it changes."""
         if self.topology is None:
             return
-        from server.render.colors import legend
-
         rp = self.render_params
-        self.legend = legend(self.topology, rp.color_by, rp.uniform_color)
-        self.broadcast(p.State(legend=self.legend))
+        atoms = None if plans is None else tuple(plan.atoms_key for plan in plans)
+        key = (self.topology_id, rp.color_by, rp.uniform_color, atoms)
+        if key == self._legend_key:
+            return
+        self._legend_key, self._legend_plans = key, plans
+        from server.render.colors import legend
+        from server.render.layerplan import subset_topology
+
+        topology = self.topology
+        shown = visible_atoms(plans, topology.n_atoms)
+        if 0 < len(shown) < topology.n_atoms:
+            topology = subset_topology(topology, shown)
+        drawn = legend(topology, rp.color_by, rp.uniform_color)
+        if drawn != self.legend:
+            self.legend = drawn
+            self.broadcast(p.State(legend=self.legend))
 
     def on_ack(self, ack: p.ParamsAck) -> None:
         pending = self.acks.take(ack.ref)
@@ -873,6 +896,7 @@ class Session:
         layers = self._layer_plans(snap)
         if not self.layers.ready:
             return None  # a layer's atoms are still being evaluated; they call again
+        self._show_legend(layers)
         params = self.render_params
         device = self.services.backend.actual_device or self.settings.device
         on_cpu = device.startswith("cpu")

@@ -277,7 +277,10 @@ async def recording_movie(
     rec = _recording(state, rec_id)
     _finished(rec)
     check_size(state, body.width, body.height)
-    params = body.params or p.RenderParams.model_validate(rec.render_params)
+    started = p.RenderParams.model_validate(rec.render_params)
+    params = body.params or started
+    if "layers" not in params.model_fields_set:  # the layers of the recording's start
+        params = params.model_copy(update={"layers": started.layers})
     check_layer_texts(state, params, "params")
     camera = body.camera or (p.Camera.model_validate(rec.camera) if rec.camera else None)
     overlay = None

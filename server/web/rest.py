@@ -26,7 +26,7 @@ import protocol as p
 from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
 from server.pipeline.livemovie import MovieFrame, MovieQueue
-from server.pipeline.selections import FrameLayers, LayerError, check_layers
+from server.pipeline.selections import FrameLayers, LayerError, check_layers, opening_params
 from server.web.access import (
     GatedRoute,
     app_state,
@@ -233,7 +233,10 @@ async def render_image(
         if live.topology is None or live.positions is None:
             raise HTTPException(409, f"session {session!r} has no frame yet")
         topology, positions, box = live.topology, live.positions, live.box
-        render_params = render_params or live.render_params
+        if render_params is None:
+            render_params = live.render_params
+        elif "layers" not in render_params.model_fields_set:  # the session's layers
+            render_params = render_params.model_copy(update={"layers": live.render_params.layers})
         cam = cam or live.camera
         held, frame_key = live.layers.held, live.positions_id  # its worker has them
     else:
@@ -248,11 +251,10 @@ async def render_image(
             box = None
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
-    if render_params is None:  # a file opens on its molecule, as a session does
-        from structures.selection import default_layers
-
-        defaults = await asyncio.to_thread(default_layers, topology, p.RenderParams().sigma_A)
-        render_params = p.RenderParams(layers=[p.Layer(**f) for f in defaults])
+    # a file opens on its molecule, as a session does, unless the parameters name layers
+    render_params = await asyncio.to_thread(
+        opening_params, render_params or p.RenderParams(), topology
+    )
     own = held is None and bool(render_params.layers)
     if own:
         held = state.selections.hold(topology)
