@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import logging
 import signal
+import socket
 import sys
 import time
 import webbrowser
@@ -35,7 +36,12 @@ def _has_cuda() -> bool:
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="scalesteer demo", description=__doc__)
     ap.add_argument("--host", default="127.0.0.1")
-    ap.add_argument("--port", type=int, default=8000, help="0 picks a free port")
+    ap.add_argument(
+        "--port",
+        type=int,
+        default=8000,
+        help="0 picks a free port (with make: make demo PORT=8001)",
+    )
     ap.add_argument("--device", default="auto", help="render device: auto | cpu | cuda:N")
     ap.add_argument(
         "--platform", default=None, help="OpenMM platform (default: CUDA if present, else CPU)"
@@ -55,6 +61,20 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-browser", action="store_true", help="do not try to open the dashboard")
     ap.add_argument("--state-dir", type=Path, default=Path(".scalesteer"))
     return ap
+
+
+def port_taken(host: str, port: int) -> bool:
+    """Whether something listens on `host:port` already (the server would not start there);
+    port 0 is never taken."""
+    if port == 0:
+        return False
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            probe.bind((host, port))
+        except OSError:
+            return True
+    return False
 
 
 def _stop_on_term(signum: int, frame: object) -> None:
@@ -132,6 +152,14 @@ def _run(args: argparse.Namespace, running: _Running) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if port_taken(args.host, args.port):
+        print(
+            f"scalesteer demo: port {args.port} on {args.host} is in use (another demo or "
+            f"server?); start on another one: make demo PORT={args.port + 1}, or scalesteer "
+            f"demo --port {args.port + 1} (--port 0 picks a free one)",
+            file=sys.stderr,
+        )
+        return 2
     running = _Running()
     before = signal.signal(signal.SIGTERM, _stop_on_term)
     # One try from the handler on: a Ctrl-C or SIGTERM at any point of the start-up (the

@@ -175,3 +175,20 @@ def test_sigterm_stops_the_demo_as_ctrl_c_does(tmp_path: Path, after: str) -> No
             proc.communicate()
     assert proc.returncode == 0, "".join(out[-40:])
     assert "stopping..." in "".join(out)
+
+
+def test_demo_on_a_taken_port_says_how_to_pick_another(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import socket
+
+    from server.commands.demo import main
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["--port", str(port), "--no-browser", "--state-dir", "/nonexistent"]) == 2
+    err = capsys.readouterr().err
+    assert f"port {port} on 127.0.0.1 is in use" in err
+    assert f"make demo PORT={port + 1}" in err and f"--port {port + 1}" in err
