@@ -166,6 +166,10 @@ def test_files_opened_from_the_browser_replay_with_a_timeline(
     timeline = page.locator("#timeline")
     expect(timeline).to_be_visible(timeout=60_000)
     expect(page.locator("#tl-frame")).to_have_text(re.compile(r"^frame \d+ / 98$"))
+    # the bar had covered the view's status line (step, fps, latency)
+    hud, bar = page.locator("#hud").bounding_box(), timeline.bounding_box()
+    assert hud is not None and bar is not None
+    assert hud["y"] + hud["height"] <= bar["y"], (hud, bar)
     page.click("#tl-play")  # pause, then seek to frame 50
     expect(page.locator("#tl-play")).to_have_text("Play")
     page.locator("#tl-scrub").fill("49")
