@@ -99,6 +99,18 @@ def test_shift_clicking_atoms_measures_and_the_markers_follow_them(
     page.mouse.click(x3, y3)
     page.keyboard.up("Shift")
     expect(page.locator("#pick-measure")).to_have_text(re.compile(r"^angle [\d.]+ °"))
+    # the three atoms' labels and the angle's: none covers another (they had overlapped)
+    rects = dash.evaluate("() => window.scalesteer.viewport.labelRects")
+    assert [r["text"].split()[0] for r in rects[:3]] == ["1", "2", "3"] and len(rects) == 4
+    for i, a in enumerate(rects):
+        for b in rects[i + 1 :]:
+            apart = (
+                a["x"] + a["w"] <= b["x"]
+                or b["x"] + b["w"] <= a["x"]
+                or a["y"] + a["h"] <= b["y"]
+                or b["y"] + b["h"] <= a["y"]
+            )
+            assert apart, (a, b)
     page.keyboard.press("Escape")
     expect(page.locator("#pick-measure")).to_have_text(re.compile("^Shift-click"))
 
