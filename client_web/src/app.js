@@ -8,7 +8,7 @@ import { $, downloadBlob, el, setText, throttle } from "./dom.js";
 import { integer, milliseconds, nanoseconds, position, sig } from "./format.js";
 import { LatencyTracker, RateMeter, clockSample } from "./latency.js";
 import { showLegend } from "./legend.js";
-import { Picks, atomLabel, measurement } from "./measure.js";
+import { Picks, atomLabel, measurement, trackedAtoms, trackedPosition } from "./measure.js";
 import { Notices } from "./notices.js";
 import { RENDER_DEFAULTS, SIGMA_SLIDER, clamp, diffRender, mergeRender } from "./params.js";
 import { LayersPanel } from "./layers.js";
@@ -231,9 +231,15 @@ class Dashboard {
         this.notices.serverError(m);
         return undefined;
       }
-      case "tracked":
+      case "tracked": {
         if (this.picks.track(m)) this.showPicks();
+        const pulled = this.pull?.state === "active" ? trackedPosition(m, this.pull.atom) : null;
+        if (pulled) {
+          this.pull.position = pulled; // the arrow starts at the atom as it moves
+          this.viewport.setPullLine({ from: pulled, to: this.pull.pointer });
+        }
         return undefined;
+      }
       case "event":
         this.notices.notify({
           level: m.level,
@@ -582,7 +588,7 @@ class Dashboard {
       height: viewH,
       device_pixel_ratio: clamp(dpr, 0.1, 8),
       interacting,
-      track: this.picks.indices,
+      track: trackedAtoms(this.picks.indices, this.pull?.state === "active" ? this.pull.atom : null),
       video: this.offeredVideo(),
     });
     if (seq !== null) this.latency.sent(seq, "view", performance.now());
@@ -748,6 +754,7 @@ class Dashboard {
     $("pull-hint").hidden = false;
     this.viewport.setPullLine({ from: pull.position, to: pull.pointer });
     this.sendPull();
+    this.sendView(false); // track the pulled atom
   }
 
   pullMove(x, y) {
@@ -787,7 +794,10 @@ class Dashboard {
     $("pull-hint").hidden = true;
     this.viewport.setPullLine(null);
     this.viewport.setPending(null);
-    if (pull?.state === "active" && !silent) this.connection.send({ type: "pull", atom: pull.atom, release: true });
+    if (pull?.state === "active" && !silent) {
+      this.connection.send({ type: "pull", atom: pull.atom, release: true });
+      this.sendView(false); // no longer tracked
+    }
   }
 
   releaseAll() {

@@ -314,7 +314,8 @@ export class Viewport {
         (this.pullLine.to[1] / viewH) * this.overlay.height,
       ];
       if (a) drawArrow(g, a, b, dpr);
-    }
+      this.arrowFrom = a; // overlay pixels, for automation
+    } else this.arrowFrom = null;
   }
 
   /** The labels, placed beside their anchors without covering each other or the markers;
