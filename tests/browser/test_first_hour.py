@@ -66,6 +66,11 @@ def test_the_legend_names_the_colours(
     dash.page.select_option("#color-by", "residue")
     expect(legend.locator(".legend-title")).to_have_text("Residue class")
     expect(legend.locator(".legend-entries")).to_contain_text("hydrophobic")
+    # motion's unit had been a bare "γ′": the legend says what it is and what sets it
+    dash.page.select_option("#color-by", "motion")
+    expect(legend.locator(".legend-title")).to_have_text("Motion: warp rate γ′")
+    expect(legend.locator(".legend-ends")).to_have_text(re.compile(r"1 γ′ at rest\s*3 γ′ fast"))
+    expect(legend.locator(".legend-note")).to_contain_text("frames of warped time per frame")
 
 
 def test_shift_clicking_atoms_measures_and_the_markers_follow_them(
