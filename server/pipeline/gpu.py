@@ -22,6 +22,7 @@ import numpy.typing as npt
 
 import protocol as p
 from server.pipeline.staging import FrameStager
+from server.threads import name_thread
 
 STAGE_ATOMS = 100_000
 """Frames of at least this many atoms are copied to page-locked memory as they arrive."""
@@ -126,14 +127,18 @@ class GpuQueue:
     max_atoms: int = 4_000_000
     max_pixels: int = 3840 * 2160
     _pool: ThreadPoolExecutor = field(
-        default_factory=lambda: ThreadPoolExecutor(max_workers=1, thread_name_prefix="gpu")
+        default_factory=lambda: ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="gpu", initializer=name_thread
+        )
     )
     _slots: dict[str, _Slot] = field(default_factory=dict)
     actual_device: str = ""
     stage_atoms: int = STAGE_ATOMS
     """Frames of at least this many atoms are staged in page-locked memory as they arrive."""
     _stage_pool: ThreadPoolExecutor = field(
-        default_factory=lambda: ThreadPoolExecutor(max_workers=1, thread_name_prefix="stage")
+        default_factory=lambda: ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="stage", initializer=name_thread
+        )
     )
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:

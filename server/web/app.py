@@ -28,6 +28,7 @@ from server.session.services import Services
 from server.session.session import Session
 from server.session.steering_log import SteeringLog
 from server.settings import ServerSettings
+from server.threads import name_thread
 from server.web import ws as ws_endpoints
 from server.web.apidocs import add_docs
 from server.web.auth import RateLimiter
@@ -112,7 +113,9 @@ def create_app(settings: ServerSettings) -> FastAPI:
             max_pixels=settings.limits.max_image_pixels,
         )
         encoders = ThreadPoolExecutor(
-            max_workers=settings.encode_workers, thread_name_prefix="encode"
+            max_workers=settings.encode_workers,
+            thread_name_prefix="encode",
+            initializer=name_thread,
         )
         encoder = await asyncio.to_thread(select_encoder, settings.device)
         # shared by all sessions: encodes in flight never outnumber the encoder threads
