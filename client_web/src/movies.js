@@ -15,7 +15,8 @@ const POLL_MS = 1000;
 export function movieLabel(info, elapsedS) {
   const m = info?.movie;
   if (!m || m.recording) return `Stop recording ${formatElapsed(elapsedS)} / ${formatElapsed(m?.max_s ?? MOVIE_MAX_S)}`;
-  return `Saving… ${info.progress.done} / ${m.taken} frames`;
+  const left = m.eta_s ? `, about ${formatElapsed(m.eta_s)} left` : "";
+  return `Saving… ${info.progress.done} / ${m.taken} frames${left}`;
 }
 
 export class MovieButton {

@@ -74,4 +74,5 @@ test("the movie button says how long it records and, after the stop, how far it 
   assert.equal(movieLabel(movie({}), 75), "Stop recording 1:15 / 10:00");
   assert.equal(movieLabel(null, 2), `Stop recording 0:02 / ${Math.floor(MOVIE_MAX_S / 60)}:00`);
   assert.equal(movieLabel(movie({ recording: false }), 0), "Saving… 3 / 9 frames");
+  assert.equal(movieLabel(movie({ recording: false, eta_s: 75 }), 0), "Saving… 3 / 9 frames, about 1:15 left");
 });

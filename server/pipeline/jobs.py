@@ -762,12 +762,14 @@ class JobManager:
                     plans = await layers.plans_async(snap.positions, snap.positions_id, frame.box)
                 except LayerError as exc:
                     raise JobError(f"params.{exc}") from None
+                started = time.monotonic()
                 out = await self.gpu.render(
                     RenderRequest(
                         slot, snap, frame.params, spec.camera, spec.width, spec.height, layers=plans
                     )
                 )
                 await loop.run_in_executor(self.encoders, writer.add, snap.step, out.image(), None)
+                frames.rendered(time.monotonic() - started)
                 job.done += 1
             job.total = frames.taken
             if job.cancel.is_set():

@@ -24,6 +24,9 @@ from server.pipeline.gpu import Snapshot
 
 MAX_SKIPPED_SPANS = 256
 """Runs of skipped frames listed one by one; later ones extend the last (its count stays true)."""
+BEHIND_FRAMES = 8
+"""Frames waiting to be rendered from which the movie says it renders slower than the
+simulation sends them (once), with what that costs after the stop."""
 
 
 @dataclass(frozen=True)
@@ -48,6 +51,11 @@ class MovieQueue:
     max_frames: int
     on_skip: Callable[[MovieQueue, int], None] | None = None
     """Called with the step of each skipped frame, as it is skipped."""
+    on_behind: Callable[[MovieQueue], None] | None = None
+    """Called once, when `BEHIND_FRAMES` frames wait while the movie still takes frames."""
+    render_s: float | None = None
+    """A movie frame's render time (a running mean), once one is rendered."""
+    told_behind: bool = False
     taken: int = 0
     skipped: int = 0
     skipped_spans: list[list[int]] = field(default_factory=list)
@@ -74,6 +82,10 @@ class MovieQueue:
         self.taken += 1
         self._last_kept = True
         self._arrived.set()
+        if len(self._frames) >= BEHIND_FRAMES and not self.told_behind:
+            self.told_behind = True
+            if self.on_behind is not None:
+                self.on_behind(self)
         if self.taken >= self.max_frames:
             self.close(f"it reached its {self.max_frames} frames (max_frames)")
         return True
@@ -91,6 +103,19 @@ class MovieQueue:
         self._last_kept = False
         if self.on_skip is not None:
             self.on_skip(self, step)
+
+    def rendered(self, seconds: float) -> None:
+        """A frame took `seconds` to render (and encode): the estimate of what waits."""
+        self.render_s = seconds if self.render_s is None else 0.8 * self.render_s + 0.2 * seconds
+
+    def behind_notice(self) -> str:
+        """What a movie that renders slower than its frames come will cost."""
+        each = f"{self.render_s:.2g} s" if self.render_s is not None else "longer"
+        return (
+            f"{self.waiting} frames wait to be rendered (a movie frame takes {each} here): the "
+            "movie keeps every frame and renders those still waiting after it stops taking "
+            "frames (a smaller window films faster)"
+        )
 
     def skip_warning(self) -> str | None:
         """What the skipped frames mean (None: none was skipped)."""
@@ -137,9 +162,12 @@ class MovieQueue:
         return frame
 
     def describe(self) -> dict[str, Any]:
+        eta = None if self.render_s is None else round(self.waiting * self.render_s, 1)
         return {
             "taken": self.taken,
             "waiting": self.waiting,
+            "render_s": None if self.render_s is None else round(self.render_s, 3),
+            "eta_s": eta,
             "skipped": self.skipped,
             "skipped_spans": [list(s) for s in self.skipped_spans],
             "recording": not self.closed,

@@ -553,7 +553,16 @@ async def record_session(
                 )
             )
 
-    frames = MovieQueue(state.settings.movie_queue_bytes, max_frames, skipped)
+    def behind(frames: MovieQueue) -> None:
+        live.broadcast(
+            p.Event(
+                level="info",
+                code="movie_behind",
+                message=f"movie {job.id}: {frames.behind_notice()}",
+            )
+        )
+
+    frames = MovieQueue(state.settings.movie_queue_bytes, max_frames, skipped, behind)
 
     def take(step: int, time_ps: float, positions: Any, box: Any) -> None:
         snap = live.snapshot()

@@ -68,6 +68,8 @@ def test_a_movie_keeps_every_frame_sent_faster_than_it_renders(live_server: Live
         taken = c.get(f"/api/jobs/{job}", headers=AUTH).json()["movie"]
         assert taken["taken"] == BURST + 1, taken  # the frame on the screen, then each new one
         assert taken["waiting"] > 0  # the renders are behind: frames wait, none is dropped
+        behind = watcher.expect(p.Event, 30, where=lambda m: m.code == "movie_behind")
+        assert job in behind.message and "keeps every frame" in behind.message
         finishing = c.delete(f"/api/jobs/{job}", headers=AUTH).json()
         assert finishing["finishing"] and finishing["state"] == "running"
         info = _finished(c, job)
@@ -75,6 +77,7 @@ def test_a_movie_keeps_every_frame_sent_faster_than_it_renders(live_server: Live
         assert info["progress"] == {"done": BURST + 1, "total": BURST + 1}
         assert info["movie"]["skipped"] == 0 and info["warning"] is None
         assert info["movie"]["ended_because"] == "it was stopped"
+        assert info["movie"]["render_s"] > 0 and info["movie"]["eta_s"] == 0
         assert _movie_frames(c, job) == BURST + 1
     sim.close()
     watcher.close()
