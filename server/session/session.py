@@ -944,7 +944,7 @@ class Session:
         metrics = self.services.metrics
         metrics.frames_rendered.inc()
         metrics.render_ms.observe(out.timings.get("total", 0.0))
-        quality = self.scheduler.jpeg_quality(key, params)
+        quality = self.scheduler.jpeg_quality(key, params, (width, height))
         return Rendered(
             out,
             next(self._image_ids),
