@@ -19,6 +19,7 @@ sys.path.insert(0, str(ROOT))
 from protocol import RenderParams
 from server.render import Renderer
 from server.render.camera import fit_camera
+from server.render.tuning import Tuning
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from render_bench import build_system, jittered_frames, topology_of
@@ -39,12 +40,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
     pos, el, bonds = build_system(args.atoms)
-    kw = {}
+    kw: dict[str, object] = {"graphs": False}
     if args.budget is not None:
         kw["march_budget"] = args.budget
     if args.lanes is not None:
         kw["split_lanes"] = args.lanes
-    r = Renderer(args.device, max_atoms=args.atoms, graphs=False, **kw)
+    r = Renderer(args.device, max_atoms=args.atoms, tuning=Tuning.of(kw))
     r.set_topology(topology_of(el, bonds))
     cam = fit_camera(pos, w, h)
     params = RenderParams(mode=args.mode, scale_space=args.scale_space)  # type: ignore[arg-type]

@@ -155,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     from protocol import Lighting, RenderParams
     from server.pipeline.selections import check_layers, opening_params
     from server.render.camera import fit_camera
-    from structures.reader import StructureError, load
+    from structures.errors import StructureError
+    from structures.reader import load
 
     try:
         layers = layer_option(args)

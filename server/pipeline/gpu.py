@@ -1,5 +1,16 @@
-"""The GPU queue: one thread owns the device, and every render — live sessions and batch jobs —
-runs on it in submission order.
+"""The GPU queue: a thread owns each device, and every render — live sessions and batch jobs —
+runs on its device's thread in submission order.
+
+With several devices (`--gpus`) a lone session is drawn across all of them (sort-first,
+`MultiRenderer`, driven from the first device's thread, which then takes every other render too);
+from the second session on, each session is placed on a device of its own (the least busy), and
+jobs and one-off renders go to the least busy device. A session drawn across every device is
+moved onto one, and back, as sessions come and go: the threads whose devices change are drained
+first, so no two threads ever drive one device.
+
+A live render overlaps the next frame's upload: once its launches are queued, the newest frame
+already staged in page-locked memory uploads into the renderer's spare positions buffer while
+the image renders, and the next request for that frame finds it on the device.
 
 Work arrives as `RenderRequest`s naming a *slot*: each slot (a session, a job, a one-off REST
 render) keeps its own Renderer, so its topology and buffers stay resident between requests. A
@@ -12,10 +23,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar, cast
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -35,6 +47,7 @@ if TYPE_CHECKING:
     from server.render.layerplan import LayerPlan
     from server.render.layers import LayeredRenderer
     from server.render.multi import MultiRenderer
+    from server.render.tuning import Tuning
 
 T = TypeVar("T")
 log = logging.getLogger("scalesteer.gpu")
@@ -109,28 +122,35 @@ class _Slot:
     topology_id: int = -1
     positions_id: int = -1
     layered: LayeredRenderer | None = None
-    one_cuda: bool = False
-    """One CUDA device draws it (not several, not the CPU)."""
+    on_cuda: bool = False
+    """CUDA devices draw it (one or several, not the CPU)."""
     stageable: bool = False
-    """`one_cuda` and its last request had no layers: its new frames are staged."""
+    """`on_cuda` and its last request had no layers: its new frames are staged."""
     stager: FrameStager | None = None
     """Its page-locked frames (made on the stage thread; gone with the slot)."""
+    prefetched: tuple[FrameStager, Any] | None = None
+    """A staged frame uploaded while the last render ran, released after the next render."""
+
+
+@dataclass(eq=False)
+class _Lane:
+    """A device and the one thread that drives it."""
+
+    device: str
+    pool: ThreadPoolExecutor
+    slots: set[str] = field(default_factory=set)
 
 
 @dataclass
 class GpuQueue:
-    """Serialises device work on one thread; methods named `*_sync` run on that thread."""
+    """Device work, each device's on its own thread (`_Lane`); methods named `*_sync` run on
+    the thread of the slot they serve."""
 
     device: str = "auto"
     devices: tuple[str, ...] = ()
-    """Several devices: each session's images are rendered across them (sort-first)."""
+    """Several devices: a lone session is drawn across them, several are placed one a device."""
     max_atoms: int = 4_000_000
     max_pixels: int = 3840 * 2160
-    _pool: ThreadPoolExecutor = field(
-        default_factory=lambda: ThreadPoolExecutor(
-            max_workers=1, thread_name_prefix="gpu", initializer=name_thread
-        )
-    )
     _slots: dict[str, _Slot] = field(default_factory=dict)
     actual_device: str = ""
     stage_atoms: int = STAGE_ATOMS
@@ -140,21 +160,135 @@ class GpuQueue:
             max_workers=1, thread_name_prefix="stage", initializer=name_thread
         )
     )
+    tuning: Tuning | None = None
+    """The renderers' tuning (benchmarks and tests; None: the defaults)."""
+    prefetch: bool = True
+    """Upload the newest staged frame while a live render runs (off: the baseline)."""
+    _lanes: list[_Lane] = field(default_factory=list)
+    _lane_of: dict[str, int] = field(default_factory=dict)
+    _spread: str | None = None
+    """The session drawn across every device (its work and all other work on lane 0)."""
+    _placing: asyncio.Lock | None = None
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def __post_init__(self) -> None:
+        names = self.devices if self.devices else (self.device,)
+        self._lanes = [
+            _Lane(
+                d,
+                ThreadPoolExecutor(
+                    max_workers=1, thread_name_prefix=f"gpu{i}", initializer=name_thread
+                ),
+            )
+            for i, d in enumerate(names)
+        ]
+
+    @property
+    def spread(self) -> str | None:
+        """The session drawn across every device now, if one is."""
+        return self._spread
+
+    def lane_device(self, slot: str) -> str | None:
+        """The device whose thread serves `slot` (None: not placed yet)."""
+        lane = self._lane_of.get(slot)
+        return None if lane is None else self._lanes[lane].device
+
+    async def _run(self, lane: int, fn: Callable[..., T], *args: Any) -> T:
+        pool = self._lanes[lane].pool
+        return await asyncio.get_running_loop().run_in_executor(pool, fn, *args)
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
-        return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+        """Run `fn` on the first device's thread."""
+        return await self._run(0, fn, *args)
+
+    async def _lane(self, slot: str) -> int:
+        """The lane of `slot`, placing it (and moving a session drawn across every device onto
+        one of its own when a second session comes) on its first request."""
+        lane = self._lane_of.get(slot)
+        if lane is not None:
+            return lane
+        if self._placing is None:
+            self._placing = asyncio.Lock()
+        async with self._placing:
+            lane = self._lane_of.get(slot)
+            if lane is not None:
+                return lane
+            session = slot.startswith("session:")
+            several = len(self._lanes) > 1
+            if session and several and self._spread is None and not self._sessions():
+                self._spread = slot
+                return self._place(slot, 0)
+            if self._spread is not None and session:
+                await self._gather_spread()
+            if self._spread is not None:  # a job or one-off render beside the lone session
+                return self._place(slot, 0)
+            return self._place(slot, self._least_busy())
+
+    def _sessions(self) -> list[str]:
+        return [k for k in self._lane_of if k.startswith("session:")]
+
+    def _least_busy(self) -> int:
+        return min(range(len(self._lanes)), key=lambda i: (len(self._lanes[i].slots), i))
+
+    def _place(self, slot: str, lane: int) -> int:
+        with self._lock:
+            self._lane_of[slot] = lane
+            self._lanes[lane].slots.add(slot)
+        return lane
+
+    async def _gather_spread(self) -> None:
+        """The session drawn across every device moves onto the first device alone: its
+        renderer is dropped on its thread (after any render of it) and made again there."""
+        spread = self._spread
+        assert spread is not None
+        await self._run(0, self._drop_sync, spread)
+        self._spread = None
+
+    async def _spread_again(self) -> None:
+        """One session left on several devices: every lane drains, and it is drawn across all
+        of them again (its renderer made again on the first device's thread)."""
+        sessions = self._sessions()
+        if len(self._lanes) < 2 or len(sessions) != 1 or self._spread is not None:
+            return
+        (last,) = sessions
+        others = [k for k in self._lane_of if not k.startswith("session:")]
+        if others:
+            return  # jobs or one-off renders still hold their devices
+        for i in range(len(self._lanes)):
+            await self._run(i, lambda: None)
+        lane = self._lane_of[last]
+        await self._run(lane, self._drop_sync, last)
+        with self._lock:
+            self._lanes[lane].slots.discard(last)
+            del self._lane_of[last]
+        self._spread = last
+        self._place(last, 0)
 
     async def render(self, request: RenderRequest) -> RenderOutput:
-        return await self.call(self.render_sync, request)
+        lane = await self._lane(request.slot)
+        return await self._run(lane, self.render_sync, request)
 
     async def pick(
         self, request: RenderRequest, x: int, y: int
     ) -> tuple[int | None, float | None, str | None]:
         """The atom, depth and layer name at pixel (x, y) of the image `request` draws."""
-        return await self.call(self.pick_sync, request, x, y)
+        lane = await self._lane(request.slot)
+        return await self._run(lane, self.pick_sync, request, x, y)
 
     async def release(self, slot: str) -> None:
-        await self.call(self.release_sync, slot)
+        lane = self._lane_of.get(slot)
+        if lane is None:
+            return
+        if self._placing is None:
+            self._placing = asyncio.Lock()
+        async with self._placing:
+            await self._run(lane, self.release_sync, slot)
+            with self._lock:
+                self._lanes[lane].slots.discard(slot)
+                self._lane_of.pop(slot, None)
+            if self._spread == slot:
+                self._spread = None
+            await self._spread_again()
 
     def stage(self, slot: str, positions_id: int, positions: npt.NDArray[np.float32]) -> None:
         """A new frame for `slot` arrived (called on the event loop): copy it into page-locked
@@ -186,36 +320,50 @@ class GpuQueue:
                 return
         stager.offer(positions_id, positions)
 
+    def _device_of(self, key: str) -> str:
+        lane = self._lane_of.get(key, 0)
+        return self._lanes[lane].device
+
     def _slot(self, key: str) -> _Slot:
-        slot = self._slots.get(key)
+        with self._lock:
+            slot = self._slots.get(key)
         if slot is None:
             from server.render import Renderer
 
             renderer: Renderer | MultiRenderer
-            if len(self.devices) > 1 and key.startswith("session:"):
+            if self._spread == key:
                 from server.render.multi import MultiRenderer
 
+                names = tuple(lane.device for lane in self._lanes)
                 renderer = MultiRenderer(
-                    self.devices, max_atoms=self.max_atoms, max_pixels=self.max_pixels
+                    names,
+                    max_atoms=self.max_atoms,
+                    max_pixels=self.max_pixels,
+                    tuning=self.tuning,
                 )
             else:
-                device = self.devices[0] if self.devices else self.device
                 renderer = Renderer(
-                    device=device, max_atoms=self.max_atoms, max_pixels=self.max_pixels
+                    device=self._device_of(key),
+                    max_atoms=self.max_atoms,
+                    max_pixels=self.max_pixels,
+                    tuning=self.tuning,
                 )
             self.actual_device = renderer.device
-            one_cuda = renderer.device.startswith("cuda") and len(self.devices) <= 1
-            slot = self._slots[key] = _Slot(renderer, one_cuda=one_cuda)
+            on_cuda = all(d.startswith("cuda") for d in renderer.device.split(","))
+            slot = _Slot(renderer, on_cuda=on_cuda)
+            with self._lock:
+                self._slots[key] = slot
         return slot
 
     def _prepare(
-        self, request: RenderRequest, held: list[tuple[FrameStager, Any]]
+        self, request: RenderRequest, held: list[tuple[FrameStager, Any]], *, wait: bool = True
     ) -> Renderer | MultiRenderer | LayeredRenderer:
-        """Bring the slot up to `request`'s snapshot and render it. A staged copy the upload
-        reads from goes into `held`, to be released once the device is done with it."""
+        """Bring the slot up to `request`'s snapshot and render it (`wait=False`: queue the
+        render of a slot without layers and return). A staged copy the upload reads from goes
+        into `held`, to be released once the device is done with it."""
         slot = self._slot(request.slot)
         snap = request.snapshot
-        slot.stageable = slot.one_cuda and request.layers is None
+        slot.stageable = slot.on_cuda and request.layers is None
         if request.layers is not None:
             slot.stager = None  # layers upload their own subsets
             return self._prepare_layers(slot, request)
@@ -231,18 +379,39 @@ class GpuQueue:
                 staged = stager.take(snap.positions_id, STAGE_WAIT_S)
             if stager is None or staged is None:
                 slot.renderer.set_positions(snap.positions, check_finite=False)
-            else:  # only a slot one CUDA device draws (a `Renderer`) has a stager
+            else:  # only a slot CUDA devices draw has a stager
                 held.append((stager, staged))
-                one = cast("Renderer", slot.renderer)
-                one.set_positions(snap.positions, check_finite=False, staged=staged)
+                slot.renderer.set_positions(snap.positions, check_finite=False, staged=staged)
             slot.positions_id = snap.positions_id
         renderer = slot.renderer
         if snap.history:
             renderer.set_history(
                 snap.history, snap.history_epoch, request.params, live=snap.live, lag=snap.lag
             )
-        renderer.render(request.params, request.camera, request.width, request.height)
+        renderer.render(request.params, request.camera, request.width, request.height, wait=wait)
         return renderer
+
+    def _prefetch(self, slot: _Slot, request: RenderRequest) -> None:
+        """While the slot's render runs, upload the newest frame staged since (into the spare
+        positions buffer): its render will find it on the device. Only for renderers that
+        upload during a render, and frames without a history to smooth over."""
+        renderer = slot.renderer
+        stager = slot.stager
+        if not self.prefetch or stager is None or request.snapshot.history:
+            return
+        if not getattr(renderer, "pipelined", False):
+            return
+        newest = stager.newest(slot.positions_id)
+        if newest is None:
+            return
+        positions_id, array = newest
+        try:
+            renderer.set_positions(array, check_finite=False, staged=array)
+        except Exception:
+            stager.release(array)
+            raise
+        slot.positions_id = positions_id
+        slot.prefetched = (stager, array)
 
     def _prepare_layers(self, slot: _Slot, request: RenderRequest) -> LayeredRenderer:
         """Draw `request`'s layers, each with a renderer of its own on the slot's device."""
@@ -251,7 +420,7 @@ class GpuQueue:
             from server.render import Renderer
             from server.render.layers import LayeredRenderer
 
-            device = self.devices[0] if self.devices else self.device
+            device = self._device_of(request.slot)
             slot.layered = LayeredRenderer(
                 lambda: Renderer(
                     device=device, max_atoms=self.max_atoms, max_pixels=self.max_pixels
@@ -276,8 +445,16 @@ class GpuQueue:
         return slot.layered
 
     def render_sync(self, request: RenderRequest) -> RenderOutput:
+        slot = self._slot(request.slot)
+        before = slot.prefetched
+        slot.prefetched = None
         with self._staged() as held:
-            renderer = self._prepare(request, held)
+            if before is not None:
+                held.append(before)  # its upload is done once this render has read it
+            renderer = self._prepare(request, held, wait=request.layers is not None)
+            if request.layers is None:
+                self._prefetch(slot, request)
+                slot.renderer.finish()
             hist = None
             if request.histogram:
                 counts, _edges = renderer.density_histogram(64)
@@ -305,7 +482,8 @@ class GpuQueue:
                 import warp as wp
 
                 with contextlib.suppress(Exception):
-                    wp.synchronize_device(self.actual_device)
+                    for device in self.actual_device.split(","):
+                        wp.synchronize_device(device)
             raise
         finally:
             for stager, array in held:
@@ -324,10 +502,34 @@ class GpuQueue:
             atom, depth = self._prepare(request, held).pick(x, y)
         return atom, depth, None
 
+    def _drop_sync(self, key: str) -> None:
+        """(On the slot's thread.) Forget the slot's renderer (its next request makes one
+        again where it is placed then), after its last render."""
+        with self._lock:
+            slot = self._slots.pop(key, None)
+        if slot is None:
+            return
+        with contextlib.suppress(Exception):
+            slot.renderer.finish()
+        if slot.prefetched is not None:
+            slot.prefetched[0].release(slot.prefetched[1])
+        close = getattr(slot.renderer, "close", None)
+        if close is not None:
+            with contextlib.suppress(Exception):
+                close()
+
     def release_sync(self, slot: str) -> None:
-        self._slots.pop(slot, None)
+        self._drop_sync(slot)
 
     def close(self) -> None:
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        for lane in self._lanes:
+            lane.pool.shutdown(wait=True, cancel_futures=True)
         self._stage_pool.shutdown(wait=True, cancel_futures=True)
-        self._slots.clear()
+        with self._lock:
+            slots = list(self._slots.values())
+            self._slots.clear()
+        for slot in slots:
+            close = getattr(slot.renderer, "close", None)
+            if close is not None:
+                with contextlib.suppress(Exception):
+                    close()

@@ -132,6 +132,18 @@ class FrameStager:
             buf.state = State.IN_USE
             return buf.array
 
+    def newest(self, after: int) -> tuple[int, npt.NDArray[np.float32]] | None:
+        """The newest ready copy of a frame after `after` (its id and array), now in use until
+        `release`; None when no copy newer than that is ready (a copy still being written is not
+        waited for)."""
+        with self._lock:
+            ready = [b for b in self._buffers if b.state is State.READY and b.positions_id > after]
+            if not ready:
+                return None
+            buf = max(ready, key=lambda b: b.positions_id)
+            buf.state = State.IN_USE
+            return buf.positions_id, buf.array
+
     def release(self, array: npt.NDArray[np.float32]) -> None:
         """The upload from `array` is complete: its buffer may take a new frame."""
         with self._lock:

@@ -181,13 +181,17 @@ def taper(u: float) -> wp.vec2:
 @wp.func
 @no_type_check
 def kernel(e: float, inv_ek: float) -> float:
-    """One atom's tapered Gaussian exp(-e) w(e / ek) (inside the cutoff)."""
-    u = e * inv_ek
-    u2 = u * u
-    u4 = u2 * u2
-    u8 = u4 * u4
-    m = 1.0 - u8 * u8
-    return wp.exp(-e) * m * m
+    """One atom's tapered Gaussian exp(-e) w(e / ek) (inside the cutoff; inv_ek 0: untapered,
+    the renderer's baseline for the taper's cost)."""
+    out = wp.exp(-e)
+    if inv_ek > 0.0:
+        u = e * inv_ek
+        u2 = u * u
+        u4 = u2 * u2
+        u8 = u4 * u4
+        m = 1.0 - u8 * u8
+        out = out * m * m
+    return out
 
 
 @wp.func
@@ -195,9 +199,12 @@ def kernel(e: float, inv_ek: float) -> float:
 def kernel_slope(e: float, inv_ek: float) -> wp.vec2:
     """(K, -dK/de) of K(e) = exp(-e) w(e / ek): the gradient of an atom's term at P is
     -dK/de * 2 c (a - P)."""
-    t = taper(e * inv_ek)
     x = wp.exp(-e)
-    return wp.vec2(x * t[0], x * (t[0] - t[1] * inv_ek))
+    out = wp.vec2(x, x)
+    if inv_ek > 0.0:
+        t = taper(e * inv_ek)
+        out = wp.vec2(x * t[0], x * (t[0] - t[1] * inv_ek))
+    return out
 
 
 @wp.func

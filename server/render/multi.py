@@ -21,6 +21,7 @@ on, and the frame is rendered again without it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Sequence
@@ -97,6 +98,7 @@ class MultiRenderer:
     """The `Renderer` interface over several devices; the image is split in bands."""
 
     def __init__(self, devices: Sequence[str], **options: Any) -> None:
+        """`options` are the `Renderer`'s (max_atoms, max_pixels, tuning), for every device."""
         if len(devices) < 2:
             raise ValueError("a multi-device renderer needs at least two devices")
         self.renderers = [Renderer(device=d, **options) for d in devices]
@@ -121,6 +123,7 @@ class MultiRenderer:
         self._bands: list[tuple[int, int]] = []
         self._size: tuple[int, int] | None = None
         self._params: RenderParams | None = None
+        self._pending: Any = None
         self.timings: dict[str, float] = {}
         self.device_ms: dict[str, float] = {}
 
@@ -214,9 +217,59 @@ class MultiRenderer:
                     errors[i] = exc
         return errors
 
-    def render(self, params: RenderParams, camera: Camera, width: int, height: int) -> None:
+    def render(
+        self,
+        params: RenderParams,
+        camera: Camera,
+        width: int,
+        height: int,
+        *,
+        wait: bool = True,
+    ) -> None:
+        """Render the image across the devices. `wait=False` (CUDA devices) returns once every
+        device's band is queued: positions set meanwhile upload while the bands render, and
+        `finish` (or reading an output) waits for them."""
+        self.finish()
         t0 = time.perf_counter()
         w, h = int(width), int(height)
+        if self.cuda and not wait and len(self.renderers) > 1:
+            bands = split_rows(h, self.cuts)
+            pairs = list(zip(self.renderers, bands, strict=False))
+            try:
+                for r, (y0, rows) in pairs:
+                    r.render(params, camera, w, h, (0, y0, w, rows), wait=False)
+            except Exception:  # a device's failure: the blocking path judges it
+                for r, _band in pairs:
+                    with contextlib.suppress(Exception):
+                        r.finish()
+            else:
+                self._pending = (params, w, h, bands, t0, camera)
+                return
+        self._render_blocking(params, camera, w, h, t0)
+
+    def finish(self) -> None:
+        """Wait for a render queued with `wait=False`; a device that failed in it is dropped
+        and the image rendered again on the others."""
+        pending = self._pending
+        if pending is None:
+            return
+        self._pending = None
+        params, w, h, bands, t0, camera = pending
+        errors: list[BaseException | None] = []
+        for r in self.renderers[: len(bands)]:
+            try:
+                r.finish()
+                errors.append(None)
+            except Exception as exc:  # judged by the blocking path
+                errors.append(exc)
+        if any(e is not None for e in errors):
+            self._render_blocking(params, camera, w, h, t0)
+            return
+        self._after(params, w, h, bands, t0)
+
+    def _render_blocking(
+        self, params: RenderParams, camera: Camera, w: int, h: int, t0: float
+    ) -> None:
         while True:
             if len(self.cuts) != len(self.renderers) - 1:  # a device was dropped
                 n = len(self.renderers)
@@ -236,7 +289,18 @@ class MultiRenderer:
                 log.error("render device %s failed (%s); going on without it", self.devices[i], exc)
                 del self.renderers[i], self.devices[i], self.labels[i]
                 self.cuda = all(d.startswith("cuda") for d in self.devices)
-        self._bands = bands[: len(errors)]
+        self._after(params, w, h, bands[: len(errors)], t0)
+
+    def _after(
+        self,
+        params: RenderParams,
+        w: int,
+        h: int,
+        bands: list[tuple[int, int]],
+        t0: float,
+    ) -> None:
+        """A finished frame's bands, balance and timings."""
+        self._bands = bands
         self._size = (w, h)
         self._params = params
         used = self.renderers[: len(bands)]
@@ -254,7 +318,6 @@ class MultiRenderer:
             if moved > ROW_QUANTUM:
                 self.cuts = cuts
         self.device_ms = dict(zip(self.labels, times, strict=False))
-        used = self.renderers[: len(times)]
         self.timings = {
             "upload": max(r.timings.get("upload", 0.0) for r in used),
             "grid": max(r.timings.get("grid", 0.0) for r in used),
@@ -263,7 +326,14 @@ class MultiRenderer:
             **{f"device:{d}": t for d, t in self.device_ms.items()},
         }
 
+    @property
+    def pipelined(self) -> bool:
+        """Positions set while a render is queued upload during it (CUDA devices that keep two
+        positions buffers each)."""
+        return self.cuda and all(r.pipelined for r in self.renderers)
+
     def _gather(self, read: str) -> Any:
+        self.finish()
         if self._size is None:
             raise RenderError("nothing rendered yet")
         parts = [getattr(r, read)() for r in self.renderers[: len(self._bands)]]
@@ -281,6 +351,7 @@ class MultiRenderer:
             wp.synchronize_stream(wp.get_stream(r.device))
 
     def _need_size(self) -> tuple[int, int]:
+        self.finish()
         if self._size is None:
             raise RenderError("nothing rendered yet")
         return self._size
@@ -318,6 +389,7 @@ class MultiRenderer:
         return out
 
     def pick(self, x: int, y: int) -> tuple[int | None, float | None]:
+        self.finish()
         if self._size is None:
             raise RenderError("nothing rendered yet")
         w, h = self._size
@@ -331,6 +403,7 @@ class MultiRenderer:
     def density_histogram(self, *args: Any, **kwargs: Any) -> Any:
         """The histogram over the whole grid box: the first device builds a grid of every atom
         for it (its band's next frame culls again)."""
+        self.finish()
         first = self.renderers[0]
         if self._params is None:
             raise RenderError("render once before asking for a histogram")
@@ -341,5 +414,7 @@ class MultiRenderer:
         return self.renderers[0].memory_bytes()
 
     def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.finish()
         if self._pool is not None:
             self._pool.shutdown(wait=True)

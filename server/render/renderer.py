@@ -18,13 +18,14 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 import warp
 
 from protocol import Camera, RenderParams, Topology
+from protocol.messages import MAX_CUTOFF_SIGMAS, MIN_CUTOFF_SIGMAS
 from server.render import carved, colors, geodesic_field, raycast, temporal, transfer, visibility
 from server.render import device as devmod
 from server.render.camera import CameraFrame, band_planes, camera_frame
@@ -42,9 +43,29 @@ from server.render.density import (
 )
 from server.render.errors import RenderError
 from server.render.geodesic import GAIN, BondGraph, GeodesicScales
-from server.render.grid import GRID_SORTS, CellGrid, Cull, cell_threads
+from server.render.grid import CellGrid, Cull, cell_threads
 from server.render.outputs import ImageOutputs
+from server.render.reach import reach_sigmas
 from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
+from server.render.tuning import (
+    BOUND_KEEP_FROM,
+    CELLS_PER_CUTOFF,
+    GRAPH_CACHE,
+    LARGE_ATOMS,
+    MARCH_BLOCK,
+    MARCH_BUDGET,
+    MARCH_REGISTERS,
+    PIPELINE_ATOMS,
+    SPLIT_MIN_ATOMS,
+    SPLIT_PIXELS_PER_SM,
+    SPLIT_RAYS,
+    STILL_VIEWS,
+    VIEW_ATOMS,
+    VIEWS_KEPT,
+    VISIBLE_ATOMS,
+    PartMode,
+    Tuning,
+)
 
 wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
 
@@ -53,94 +74,15 @@ HISTOGRAM_SIDE = 64
 HISTOGRAM_X_MAX = 3.0
 AO_STEP_SIGMAS = 0.6
 STAGES = ("upload", "grid", "raycast", "total")
-GRAPH_CACHE = 8
-"""CUDA graphs kept per renderer (least recently used dropped): one per distinct frame set-up,
-e.g. one per viewer camera when several viewers each hold their own."""
-MARCH_BUDGET = 6
-"""Density passes an iso ray takes in the first marching kernel when rays are split; rays
-that need more are queued for a second kernel."""
-SPLIT_LANES = 8
-SPLIT_RAYS = 16384
-"""The second marching kernel gives each queued ray SPLIT_LANES threads that march
-consecutive stretches of it at once (1: one thread continues the ray); it runs
-SPLIT_LANES * SPLIT_RAYS threads that stride over the queue."""
-MARCH_REGISTERS = {"gaussian": 64, "carved": 64, "geodesic": 0}
-CELLS_PER_CUTOFF = {"gaussian": 2.0, "carved": 1.0, "geodesic": 2.0}
-"""Per density model, the register cap of the iso marching kernels and the grid's cells per
-cutoff that measured fastest (`max_registers=None`, `cells_per_cutoff=None`; at 1920x1080: the
-carved density's Gaussian part has a reach of 0.6 sigma k, and its walks, with the segment
-walks beside them, want larger cells than the classical density's (one H100, 1M atoms); with
-part bounds and the counting sort, 64 registers beat 80 for the classical density too (one
-H200: 1M atoms 8.35 ms against 8.66, 10M 17.86 against 18.72, 100M 38.2 against 40.6
-pipelined), and stay best for the carved one; benchmarks/README.md)."""
-VOLUME_REGISTERS = 64
-"""The register cap of the volume kernel (`volume_max_registers`; one H200 at 1920x1080, 1M
-atoms: 18.97 ms against 20.25 with 80, 21.7 with 96)."""
-BOUND_KEEP_FROM = {"gaussian": 8.0, "carved": math.inf, "geodesic": 8.0}
-"""Per density model, the multiple of the level from which an empty cell keeps its coarse
-bound unwalked. For the classical density few such walks end below the level, and their cost
-outweighs the samples they save (one H200 at 1920x1080: 10M atoms 19.2 ms a frame against 20.8
-walking them all, 100M atoms 42.4 against 46.4 pipelined, 1M atoms even); the carved density's
-coarse bound ignores the warp, so there walking them all is faster (1M atoms 18.6 against 19.5)."""
-VISIBLE_ATOMS = 500_000
-"""Below this many atoms every open cell walks for the bounds of its 27 parts
-(`part_bounds=None`: "all"), and the rays skip the samples in parts below the level; from it
-a frame walks for part bounds only the cells its view reaches ("visible", visibility.py; the
-other cells walk whole). Walking every cell costs in proportion to the atoms, the samples it
-saves to the surface in view. One H200 at 1920x1080, new positions every frame: iso, 1M atoms
-7.30 ms against 7.91 walking every open cell, 3M 10.35 against 11.52 with whole cells, 10M
-15.60 against 17.28, 300k atoms even, 100k 4.81 against 4.52 (benchmarks/README.md, "Render
-core, round five"); volume, 1M atoms 18.75 against 19.38 walking every open cell, 3M 25.1
-against 27.4 with whole cells, 10M 34.2 against 37.1, but 100M atoms (one cell per cutoff,
-`LARGE_ATOMS`) 70.5 against 67.1 pipelined, so volume frames from there walk whole cells
-("round six")."""
-VIEW_ATOMS = 700_000
-"""Atoms per view of one set of positions from which walking every open cell about pays
-(`STILL_VIEWS`; measured break-even near 2, 6, 17 and 23 views at 1M, 3M, 10M and 20M)."""
-STILL_VIEWS = 8
-"""Views over one set of positions each walk the cells they add to a "visible" grid, so an
-automatic iso grid below `LARGE_ATOMS` atoms walks every open cell ("all") once its positions
-are seen by many views (cameras, counted per set of positions and render parameters): at
-least max(2, ceil(n / VIEW_ATOMS)) views of the positions before (viewers with cameras of
-their own over a streamed system: the next grid walks every cell), or that many and at least
-`STILL_VIEWS` views of these positions (a camera turning over a paused system: the grid is
-built again). One H200 at 1920x1080: walking every open cell costs
-0.6 ms more than the cells of one view at 1M atoms, 3.5 at 3M, 14.6 at 10M and 30.7 at 20M,
-and then saves 0.5, 0.7, 0.9 and 1.4 ms on each further view (benchmarks/README.md, "Render
-core, round six"; from `LARGE_ATOMS` the grid has one cell per cutoff and no part bounds)."""
-PartMode = Literal["all", "visible", "none"]
-PART_MODES: tuple[PartMode, ...] = ("all", "visible", "none")
-"""`part_bounds`: every open cell walked for its part bounds, only those the view reaches
-(the others walk whole), or whole cells only (empty cells far above the level keep their
-coarse bound: `BOUND_KEEP_FROM`)."""
-LARGE_ATOMS = 30_000_000
-"""From this many atoms the grid has one cell per cutoff for every density: the bound of 1.4
-cells per atom costs more than finer skipping saves (on an H100 at 1920x1080, 100M atoms:
-69.7 ms a frame against 94.8 with two cells per cutoff; 10M atoms: 23.4 against 20.9)."""
-PIPELINE_ATOMS = 1_000_000
-"""From this many atoms a CUDA renderer keeps two positions buffers (`double_buffer=None`):
-below it an upload takes well under a tenth of a millisecond and one buffer, with one graph
-per frame set-up, is the better choice."""
-MARCH_BLOCK = 256
-"""Threads per block of the marching kernels."""
 MEAN_SAMPLES = 4096
 """Atoms whose density sets the scale of relative levels (every n // 4096-th atom)."""
 SEGMENT_SLACK = 1.5
 """The segment grid assumes no bond grows beyond this times its length in the first frame."""
-SPLIT_PIXELS_PER_SM = 8 * 1024
-SPLIT_MIN_ATOMS = 4096
-"""Rays are split automatically on CUDA for images of at most SPLIT_PIXELS_PER_SM pixels per
-multiprocessor (too few rays to fill the GPU: the slowest rays set the frame time) and
-molecules of at least SPLIT_MIN_ATOMS atoms (long enough rays). Both bounds come from the
-budget sweep in benchmarks/README.md; elsewhere the extra kernel costs more than it saves."""
 
 log = logging.getLogger(__name__)
 
 View = tuple[CameraFrame, tuple[int, int, int, int] | None]
 """A camera frame and the tile of its image a render casts (None: all of it)."""
-VIEWS_KEPT = 64
-"""Views a grid remembers having walked the cells of (a turning camera makes a new view
-every frame; forgetting one only repeats a walk that finds nothing new)."""
 
 
 @dataclass(frozen=True)
@@ -172,33 +114,10 @@ def _model_name(d: Derived) -> str:
 class Renderer(ImageOutputs):
     """Ray-casting renderer of the Gaussian molecular density (see docs/rendering.md).
 
-    `cells_per_cutoff` sets the grid cell to cutoff / cells_per_cutoff (1 = cell equals the
-    cutoff; the cell grows when memory caps the cell count; None: the density's own best,
-    `CELLS_PER_CUTOFF`, and 1 from `LARGE_ATOMS` atoms); `empty_space_skipping=False`
-    marches every lattice sample (a baseline); `fast_math` picks CUDA's approximate
-    transcendentals; `max_registers` / `volume_max_registers` cap the registers of the iso
-    (marching and shading) / volume kernels on CUDA (0 leaves it to the compiler; None: the
-    density's own best, `MARCH_REGISTERS`; the defaults were the fastest measured,
-    benchmarks/README.md);
-    `double_buffer` keeps two positions buffers so an upload overlaps the render before it
-    (None: from `PIPELINE_ATOMS` atoms on CUDA); `density` is the model the ray caster
-    evaluates (any model over `GaussianField`, the sorted atoms and cell grid this class
-    builds); `graphs` replays repeated frame set-ups as captured graphs (None: on CUDA devices
-    only; True: also on the CPU, through warp's API capture); `march_budget` is the number of
-    density passes an iso ray takes before it is queued for `split_lanes` threads to finish
-    (0: never split; None: split small images of larger molecules on CUDA, see
-    `SPLIT_MIN_ATOMS`); `bound_keep_from` is the multiple of the level from which an empty
-    cell keeps its coarse density bound instead of walking its atoms for a tighter one (inf:
-    every empty cell above the level is walked; None: the density's own, `BOUND_KEEP_FROM`);
-    `grid_sort` is how the grid puts atoms in cell order each frame ("counting" or "radix",
-    the same order; grid.py); `part_bounds` has the walked cells mark which of their parts
-    are below the level, for the rays to skip the samples there (the same image; one of
-    `PART_MODES`; None: "all" below `VISIBLE_ATOMS` atoms, "visible" from there, "all" again
-    in iso mode for positions seen by many views, `STILL_VIEWS`, and "none" in volume mode
-    from `LARGE_ATOMS`); `count_passes` has the rays count their density passes, the work a
-    frame does whatever the device (`read_pass_counts`; kernels of their own, the same
-    image).
-    """
+    `density` is the model the ray caster evaluates (any model over `GaussianField`, the sorted
+    atoms and cell grid this class builds; the geodesic and carved densities are chosen by the
+    render parameters); `tuning` sets how the renderer trades its own work (tuning.py: the
+    defaults are the fastest measured, and none but `taper` changes an image)."""
 
     def __init__(
         self,
@@ -206,50 +125,16 @@ class Renderer(ImageOutputs):
         max_atoms: int = 4_000_000,
         max_pixels: int = 3840 * 2160,
         *,
-        cells_per_cutoff: float | None = None,
-        empty_space_skipping: bool = True,
-        fast_math: bool = True,
-        max_registers: int | None = None,
-        volume_max_registers: int = VOLUME_REGISTERS,
         density: DensityModel = GAUSSIAN,
-        graphs: bool | None = None,
-        march_budget: int | None = None,
-        split_lanes: int = SPLIT_LANES,
-        double_buffer: bool | None = None,
-        bound_keep_from: float | None = None,
-        grid_sort: str = "counting",
-        part_bounds: PartMode | None = None,
-        count_passes: bool = False,
+        tuning: Tuning | None = None,
     ) -> None:
         if max_atoms < 0 or max_pixels < 1:
             raise RenderError("max_atoms must be >= 0 and max_pixels >= 1")
-        if march_budget is not None and march_budget < 0:
-            raise RenderError(f"march_budget must be >= 0, got {march_budget}")
-        if split_lanes < 1:
-            raise RenderError(f"split_lanes must be >= 1, got {split_lanes}")
-        if grid_sort not in GRID_SORTS:
-            raise RenderError(
-                f"grid_sort must be one of {', '.join(GRID_SORTS)}, got {grid_sort!r}"
-            )
-        if bound_keep_from is not None and not bound_keep_from >= 1.0:
-            raise RenderError(f"bound_keep_from must be >= 1, got {bound_keep_from}")
-        if part_bounds is not None and part_bounds not in PART_MODES:
-            raise RenderError(
-                f"part_bounds must be one of {', '.join(PART_MODES)}, got {part_bounds!r}"
-            )
-        if cells_per_cutoff is not None and not cells_per_cutoff >= 1.0:
-            raise RenderError(f"cells_per_cutoff must be >= 1, got {cells_per_cutoff}")
+        t = tuning if tuning is not None else Tuning()
+        self.tuning = t
         self.device: str = devmod.resolve(device)
         self.max_atoms = int(max_atoms)
         self.max_pixels = int(max_pixels)
-        self.cells_per_cutoff = None if cells_per_cutoff is None else float(cells_per_cutoff)
-        self.empty_space_skipping = bool(empty_space_skipping)
-        self.march_budget = march_budget
-        self.split_lanes = int(split_lanes)
-        self.double_buffer = double_buffer
-        self.bound_keep_from = None if bound_keep_from is None else float(bound_keep_from)
-        self.grid_sort = grid_sort
-        self.part_bounds = part_bounds
         self.coverage = False
         """Write coverage alpha over no background (a layer composited with others)."""
         self.cull_to_tile = False
@@ -267,14 +152,12 @@ class Renderer(ImageOutputs):
         if density.field is not GaussianField:
             raise RenderError(f"density {density.name!r} needs a GaussianField to draw with")
         self._density = density
-        self._max_registers = max_registers
-        self._kernel_options = (fast_math, volume_max_registers)
-        self._count_passes = bool(count_passes)
+        self._count_passes = t.count_passes
         self._kernel_sets: dict[tuple[str, bool], raycast.RaycastKernels] = {}
         self._kernels_of_model(density, False)  # generated now: bad options fail here
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         self._graphs: OrderedDict[tuple[Any, ...], Any] | None = (
-            OrderedDict() if graphs or (graphs is None and self._cuda) else None
+            OrderedDict() if t.graphs or (t.graphs is None and self._cuda) else None
         )
         self._last_launch: tuple[Any, ...] | None = None
         self._recent: deque[tuple[Any, ...]] = deque(maxlen=GRAPH_CACHE)
@@ -336,7 +219,8 @@ class Renderer(ImageOutputs):
         # CUDA, large systems: a second positions buffer and a second page-locked staging
         # buffer, so the next frame uploads while the last one renders (`render(wait=False)`,
         # then set_positions); small systems keep one of each (one graph per frame set-up)
-        double = self.double_buffer if self.double_buffer is not None else n >= PIPELINE_ATOMS
+        chosen = self.tuning.double_buffer
+        double = chosen if chosen is not None else n >= PIPELINE_ATOMS
         count = 2 if self._cuda and double else 1
         self._pos_buffers = [self._pos] + [
             wp.zeros(m, dtype=wp.vec3, device=d) for _ in range(count - 1)
@@ -350,7 +234,7 @@ class Renderer(ImageOutputs):
         self._colors = wp.zeros(m, dtype=wp.uint32, device=d)
         self._sorted = wp.zeros(m, dtype=wp.vec4, device=d)
         self._inv2s2 = wp.zeros(m, dtype=float, device=d)
-        self._grid = CellGrid(d, n, self.grid_sort)
+        self._grid = CellGrid(d, n, self.tuning.grid_sort)
         self._grid.invalidate()
         self._weights_key: tuple[Any, ...] | None = None
         self._skeleton: Skeleton | None = None
@@ -618,8 +502,11 @@ class Renderer(ImageOutputs):
             raise RenderError(f"mode must be 'iso' or 'volume', got {params.mode!r}")
         if params.radius_mode not in ("uniform", "vdw"):
             raise RenderError(f"radius_mode must be 'uniform' or 'vdw', got {params.radius_mode!r}")
-        if params.cutoff_sigmas > 10:
-            raise RenderError(f"cutoff_sigmas must be <= 10, got {params.cutoff_sigmas}")
+        if not MIN_CUTOFF_SIGMAS <= params.cutoff_sigmas <= MAX_CUTOFF_SIGMAS:
+            raise RenderError(
+                f"cutoff_sigmas must be within {MIN_CUTOFF_SIGMAS}..{MAX_CUTOFF_SIGMAS}, "
+                f"got {params.cutoff_sigmas}"
+            )
 
     @staticmethod
     def _check_camera(camera: Camera, width: int, height: int) -> CameraFrame:
@@ -642,7 +529,10 @@ class Renderer(ImageOutputs):
         if p.scale_space in ("carved", "warped") and p.warp_strength > 0.0:
             warp = WarpScales.of(float(p.sigma_A), float(p.warp_strength))
         sigma = warp.space if warp is not None else float(p.sigma_A)
-        k = float(p.cutoff_sigmas)
+        # the reach the surface's accuracy needs at this sigma, at most cutoff_sigmas (reach.py;
+        # measured for the Gaussian density: the carved density keeps cutoff_sigmas)
+        fixed = warp is not None or self.tuning.fixed_cutoff
+        k = float(p.cutoff_sigmas) if fixed else reach_sigmas(sigma, p.cutoff_sigmas)
         if p.radius_mode == "vdw":
             spr = sigma / colors.R_REF
             s_max = spr * self._r_max
@@ -699,7 +589,7 @@ class Renderer(ImageOutputs):
         f.info = self._grid.info
         f.inv2s2_uniform = d.inv2s2
         f.half_k2 = d.half_k2
-        f.inv_half_k2 = 1.0 / d.half_k2
+        f.inv_half_k2 = 1.0 / d.half_k2 if self.tuning.taper else 0.0
         f.per_atom = d.per_atom
         return f
 
@@ -783,8 +673,8 @@ class Renderer(ImageOutputs):
         none from `LARGE_ATOMS`)."""
         if self._model_of(d).part_bounds is None:
             return "none"
-        if self.part_bounds is not None:
-            return self.part_bounds
+        if self.tuning.part_bounds is not None:
+            return self.tuning.part_bounds
         if self._n < VISIBLE_ATOMS or (mode == "iso" and self._many_views(d)):
             return "all"
         if mode != "iso" and self._n >= LARGE_ATOMS:
@@ -827,9 +717,9 @@ class Renderer(ImageOutputs):
         key = (model.name, parts)
         k = self._kernel_sets.get(key)
         if k is None:
-            fast, volume_regs = self._kernel_options
+            fast, volume_regs = self.tuning.fast_math, self.tuning.volume_max_registers
             own = MARCH_REGISTERS.get(model.name, MARCH_REGISTERS["gaussian"])
-            regs = own if self._max_registers is None else self._max_registers
+            regs = own if self.tuning.max_registers is None else self.tuning.max_registers
             k = raycast.kernels_for(model, fast, regs, volume_regs, parts, self._count_passes)
             self._kernel_sets[key] = k
         return k
@@ -841,7 +731,7 @@ class Renderer(ImageOutputs):
             assert self._topology is not None
             self._skeleton = Skeleton.of(self._topology)
             ref = self._ref_positions if self._ref_positions is not None else np.zeros((self._n, 3))
-            self._skel = _SkeletonBuffers(self.device, self._skeleton, ref, self.grid_sort)
+            self._skel = _SkeletonBuffers(self.device, self._skeleton, ref, self.tuning.grid_sort)
         return self._skel
 
     def _update_weights(self, d: Derived) -> None:
@@ -885,7 +775,7 @@ class Renderer(ImageOutputs):
 
     def _stop_level(self, p: RenderParams, d: Derived) -> float:
         """Density level the cell bounds are compared with (-1: no skipping)."""
-        if not self.empty_space_skipping:
+        if not self.tuning.empty_space_skipping:
             return -1.0
         if p.mode == "iso":
             return d.iso
@@ -894,8 +784,8 @@ class Renderer(ImageOutputs):
 
     def _cells_for(self, d: Derived) -> float:
         """Cells per cutoff of this frame's grid: the renderer's, else the density's best."""
-        if self.cells_per_cutoff is not None:
-            return self.cells_per_cutoff
+        if self.tuning.cells_per_cutoff is not None:
+            return self.tuning.cells_per_cutoff
         if self._n >= LARGE_ATOMS:
             return 1.0
         return CELLS_PER_CUTOFF[_model_name(d)]
@@ -904,8 +794,8 @@ class Renderer(ImageOutputs):
         """The multiple of the level from which empty cells keep their coarse bound (with
         part bounds in every open cell, all are walked: the parts of the cells near the atoms
         save the most samples)."""
-        if self.bound_keep_from is not None:
-            return self.bound_keep_from
+        if self.tuning.bound_keep_from is not None:
+            return self.tuning.bound_keep_from
         return math.inf if parts == "all" else BOUND_KEEP_FROM[_model_name(d)]
 
     def _grid_key_for(
@@ -954,7 +844,7 @@ class Renderer(ImageOutputs):
         u.inv2s2_uniform = d.inv2s2
         u.sigma_per_radius = d.sigma_per_radius
         u.half_k2 = d.half_k2
-        u.inv_half_k2 = 1.0 / d.half_k2
+        u.inv_half_k2 = 1.0 / d.half_k2 if self.tuning.taper else 0.0
         u.per_atom = d.per_atom
         return u
 
@@ -1103,8 +993,8 @@ class Renderer(ImageOutputs):
                 self._queue_len.zero_()
             march = (f, cam, m, *queued, self._counts)
             wp.launch(k.iso_march, threads, (*march, 0), device=dev, block_dim=MARCH_BLOCK)
-            if m.budget > 0 and self.split_lanes > 1:
-                lanes = self.split_lanes
+            if m.budget > 0 and self.tuning.split_lanes > 1:
+                lanes = self.tuning.split_lanes
                 rays = min(w * h, SPLIT_RAYS)
                 args = (*march, lanes, rays)
                 wp.launch(k.iso_split, lanes * rays, args, device=dev, block_dim=MARCH_BLOCK)
@@ -1138,8 +1028,8 @@ class Renderer(ImageOutputs):
 
     def _budget_for(self, pixels: int) -> int:
         """Passes before an iso ray is queued for the split second kernel (0: one kernel)."""
-        if self.march_budget is not None:
-            return self.march_budget
+        if self.tuning.march_budget is not None:
+            return self.tuning.march_budget
         small = pixels <= SPLIT_PIXELS_PER_SM * int(getattr(self._dev, "sm_count", 0) or 0)
         return MARCH_BUDGET if self._cuda and small and self._n >= SPLIT_MIN_ATOMS else 0
 
@@ -1289,6 +1179,12 @@ class Renderer(ImageOutputs):
         self._last = (params, d)
         if wait:
             self.finish()
+
+    @property
+    def pipelined(self) -> bool:
+        """Positions set while a render is queued (`render(wait=False)`) upload during it: a
+        CUDA renderer with two positions buffers (`double_buffer`, or from `PIPELINE_ATOMS`)."""
+        return self._cuda and len(self._pos_buffers) > 1
 
     def finish(self) -> None:
         """Wait for the last `render` and take its stage times (`timings`)."""

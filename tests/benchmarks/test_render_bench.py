@@ -146,3 +146,24 @@ def test_the_densities_section_times_each_density_and_counts_its_bytes(tmp_path:
         assert row[space]["median_ms"] > 0
     # the geodesic density's route tables come on top of the classical density's buffers
     assert row["geodesic_bytes_per_atom"] > row["classical_bytes_per_atom"]
+
+
+def test_the_multi_session_benchmark_compares_sessions_with_one(tmp_path: Path) -> None:
+    out = tmp_path / "sessions.json"
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "multi_session_bench.py"),
+            *("--devices", "cpu,cpu", "--atoms", "300", "--size", "32x24", "--seconds", "0.3"),
+            *("--out", str(out)),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    got = json.loads(out.read_text())
+    assert got["one_session_one_device"]["frames"] > 0
+    assert len(got["sessions_one_device_each"]) == 2 and len(got["each_over_one"]) == 2
+    assert got["spread_over_one"] > 0

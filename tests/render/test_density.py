@@ -21,7 +21,9 @@ from server.render.density import GaussianField, UnsortedAtoms
 from server.render.errors import RenderError
 from server.render.grid import SORTED_IN_CELL, CellGrid, order_cells_kernel
 from server.render.raycast import kernels_for
+from server.render.reach import reach_sigmas
 from server.render.renderer import Renderer
+from server.render.tuning import Tuning
 from tests.render import oracle
 from tests.render.conftest import blob, make_topology
 from tests.render.helpers import oracle_molecule, render
@@ -230,7 +232,7 @@ def test_cells_are_put_in_index_order_up_to_their_limit(device: str) -> None:
 
 def test_an_unknown_grid_sort_is_refused() -> None:
     with pytest.raises(RenderError, match="grid_sort must be one of counting, radix, got 'bucket'"):
-        Renderer("cpu", grid_sort="bucket")
+        Renderer("cpu", tuning=Tuning(grid_sort="bucket"))
 
 
 def test_grid_is_sorted_by_cell(device: str) -> None:
@@ -582,7 +584,7 @@ def test_visible_part_bounds_follow_the_view(device: str) -> None:
     cam = fit_camera(pos, 64, 48)
     back = orbit(cam, 180.0, 0.0)
     axis = quat_to_matrix(cam.orientation)[:, 2]  # from the target towards the first camera
-    r = Renderer(device, part_bounds="visible")
+    r = Renderer(device, tuning=Tuning(part_bounds="visible"))
     r.set_topology(top)
 
     def side(cells: set[tuple[int, int, int]]) -> float:
@@ -646,7 +648,7 @@ def test_positions_seen_by_many_views_walk_every_open_cell(
         (False, 60.0, params, None, "all"),  # the level before, after three views
         (False, 60.0, other, None, "view"),  # after one
     ]
-    ref = Renderer(device, part_bounds="none")
+    ref = Renderer(device, tuning=Tuning(part_bounds="none"))
     ref.set_topology(top)
     ref.set_positions(pos)
     for fresh, yaw, p, tile, expect in steps:
@@ -737,12 +739,12 @@ def test_marking_rays_keep_their_count_on_larger_images() -> None:
 
 def test_part_bounds_mode_is_checked() -> None:
     with pytest.raises(RenderError, match=r"part_bounds must be one of all, visible, none"):
-        Renderer("cpu", part_bounds="some")  # type: ignore[arg-type]
+        Renderer("cpu", tuning=Tuning(part_bounds="some"))  # type: ignore[arg-type]
 
 
 def test_bound_keep_from_below_one_is_refused() -> None:
     with pytest.raises(RenderError, match=r"bound_keep_from must be >= 1, got 0\.5"):
-        Renderer("cpu", bound_keep_from=0.5)
+        Renderer("cpu", tuning=Tuning(bound_keep_from=0.5))
 
 
 @pytest.mark.parametrize("parts", ["all", "visible", "none"])
@@ -767,3 +769,24 @@ def test_cell_kernels_that_stride_over_the_cells_give_the_same_bounds(
         runs.append((bounds, words, r.read_rgba(), r.read_depth()))
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_untapered_gaussians_are_cut_at_the_cutoff(device: str) -> None:
+    """`Tuning(taper=False)`, the baseline the taper's cost is measured against: each atom's
+    Gaussian whole inside the cutoff and zero beyond."""
+    rng = np.random.default_rng(21)
+    pos = rng.normal(scale=3.0, size=(60, 3)).astype(np.float32)
+    top = make_topology(60)
+    params = RenderParams(sigma_A=1.2, level_scale="absolute", iso_level=0.3)
+    r = render(device, top, pos, params, fit_camera(pos, 8, 6), 8, 6, taper=False)
+    pts = pos[:20] + rng.normal(scale=1.5, size=(20, 3)).astype(np.float32)
+    got = r.evaluate(pts)[0]
+    d2 = ((pts[:, None, :].astype(np.float64) - pos[None]) ** 2).sum(-1)
+    e = d2 / (2 * 1.2**2)
+    k = reach_sigmas(1.2, params.cutoff_sigmas)
+    want = np.where(e < 0.5 * k**2, np.exp(-e), 0.0).sum(axis=1)
+    np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-7)
+    tapered = render(device, top, pos, params, fit_camera(pos, 8, 6), 8, 6).evaluate(pts)[0]
+    assert not np.allclose(tapered, want, rtol=1e-6)  # the default does taper
+    with pytest.raises(RenderError, match="unknown tuning tapering"):
+        Tuning.of({"tapering": False})

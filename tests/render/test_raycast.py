@@ -13,6 +13,7 @@ from server.render.camera import camera_frame, fit_camera, image_rays, look_at, 
 from server.render.errors import RenderError
 from server.render.renderer import Renderer
 from server.render.transfer import build_table
+from server.render.tuning import Tuning
 from tests.render import oracle
 from tests.render.conftest import blob, make_topology
 from tests.render.helpers import oracle_light, oracle_molecule, render
@@ -190,11 +191,11 @@ def test_split_rays_draw_the_same_image(device: str, scene: str, budget: int, la
 def test_split_policy_and_its_arguments() -> None:
     auto = Renderer("cpu")
     assert auto._budget_for(W * H) == 0  # never automatic on the CPU
-    assert Renderer("cpu", march_budget=5)._budget_for(W * H) == 5
+    assert Renderer("cpu", tuning=Tuning(march_budget=5))._budget_for(W * H) == 5
     with pytest.raises(RenderError, match="march_budget"):
-        Renderer("cpu", march_budget=-1)
+        Renderer("cpu", tuning=Tuning(march_budget=-1))
     with pytest.raises(RenderError, match="split_lanes"):
-        Renderer("cpu", split_lanes=0)
+        Renderer("cpu", tuning=Tuning(split_lanes=0))
 
 
 def test_cell_size_does_not_change_the_image(device: str) -> None:

@@ -9,6 +9,7 @@ from protocol import Camera, Lighting, RenderParams
 from server.render import Renderer
 from server.render.camera import fit_camera, orbit
 from server.render.grid import MIN_CELLS
+from server.render.tuning import Tuning
 from tests.render.conftest import blob, make_topology
 from tests.render.helpers import render
 
@@ -87,7 +88,7 @@ def test_the_next_frame_uploads_while_the_last_renders(
     for f in frames:
         r = render(device, top, f, params, cam, 40, 30)
         one_by_one.append((r.read_rgba(), r.read_depth()))
-    r = Renderer(device, double_buffer=double_buffer)
+    r = Renderer(device, tuning=Tuning(double_buffer=double_buffer))
     r.set_topology(top)
     r.set_positions(frames[0])
     r.render(params, cam, 40, 30, wait=False)
@@ -118,7 +119,7 @@ def test_uploads_in_a_row_keep_the_last_frame(device: str) -> None:
     frames = [blob(n, seed=8) + rng.normal(size=(n, 3)).astype(np.float32) for _ in range(5)]
     cam = fit_camera(frames[0], 40, 30)
     want = render(device, top, frames[-1], RenderParams(), cam, 40, 30).read_rgba()
-    r = Renderer(device, double_buffer=True)
+    r = Renderer(device, tuning=Tuning(double_buffer=True))
     r.set_topology(top)
     r.set_positions(frames[0])
     r.render(RenderParams(), cam, 40, 30, wait=False)
@@ -198,8 +199,8 @@ def test_graph_replay_draws_what_eager_launches_draw(device: str) -> None:
     top = make_topology(n)
     pos = blob(n, seed=3)
     cam = fit_camera(pos, 32, 24)
-    replay = Renderer(device, graphs=True)
-    eager = Renderer(device, graphs=False)
+    replay = Renderer(device, tuning=Tuning(graphs=True))
+    eager = Renderer(device, tuning=Tuning(graphs=False))
     rng = np.random.default_rng(5)
     steps: list[tuple[str, RenderParams, Camera, int, int]] = (
         [("stream", RenderParams(sigma_A=1.3), cam, 32, 24)] * 4
@@ -235,8 +236,8 @@ def test_cameras_taking_turns_replay_their_graphs(device: str) -> None:
     pos = blob(n, seed=4)
     base = fit_camera(pos, 24, 20)
     cams = [orbit(base, 40.0 * k, 0.0) for k in range(3)]
-    replay = Renderer(device, graphs=True)
-    eager = Renderer(device, graphs=False)
+    replay = Renderer(device, tuning=Tuning(graphs=True))
+    eager = Renderer(device, tuning=Tuning(graphs=False))
     params = RenderParams(sigma_A=1.2)
     for r in (replay, eager):
         r.set_topology(top)

@@ -114,7 +114,7 @@ def test_renders_for_video_come_back_converted_on_cuda_only(
         else:
             assert out.i420 is None  # swscale converts faster than a kernel on the CPU device
     finally:
-        queue._pool.shutdown()
+        queue.close()
 
 
 def test_a_failed_conversion_leaves_the_frame_to_the_encoder(
@@ -137,7 +137,7 @@ def test_a_failed_conversion_leaves_the_frame_to_the_encoder(
         out = queue.render_sync(request)
         assert out.i420 is None and out.rgba.shape == (32, 48, 4)  # swscale converts instead
     finally:
-        queue._pool.shutdown()
+        queue.close()
 
 
 def test_video_only_renders_come_back_without_the_rgba_image(
@@ -163,4 +163,4 @@ def test_video_only_renders_come_back_without_the_rgba_image(
         out = queue.render_sync(replace(request, rgba=True))  # a JPEG viewer among them
         assert out.rgba is not None and out.i420 is not None
     finally:
-        queue._pool.shutdown()
+        queue.close()

@@ -1,0 +1,139 @@
+"""How the renderer trades its own work: every switch and threshold that changes how long a frame
+takes but not what it shows (the tests hold each one's image to the default's), in one place.
+
+`Tuning` is what a caller may set (benchmarks and tests do; the server keeps the defaults); the
+module constants below are the rules the defaults follow, each with the reason it holds and the
+results file it was measured in (`benchmarks/results/`; the rounds' history is in
+`benchmarks/HISTORY.md`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from server.render.errors import RenderError
+from server.render.grid import GRID_SORTS
+
+PartMode = Literal["all", "visible", "none"]
+PART_MODES: tuple[PartMode, ...] = ("all", "visible", "none")
+"""`part_bounds`: every open cell walked for its part bounds, only those the view reaches (the
+others walk whole), or whole cells only."""
+
+# ----------------------------------------------------------------- rules of the defaults
+
+MARCH_REGISTERS = {"gaussian": 64, "carved": 64, "geodesic": 0}
+"""Register cap of each density's iso kernels (0: the compiler's): 64 keeps more warps in flight
+than 80 for the classical and carved densities (render_h200_round4_regs_sizes.json); the
+geodesic density's route loop spills under a cap."""
+VOLUME_REGISTERS = 64
+"""Register cap of the volume kernel: fewer registers, more warps
+(render_h200_round4_regs_volume.json)."""
+CELLS_PER_CUTOFF = {"gaussian": 2.0, "carved": 1.0, "geodesic": 2.0}
+"""Grid cells per cutoff of each density: the carved density's Gaussians reach 0.6 sigma k and
+its walks want larger cells (render_h100_variants_warped*.json)."""
+BOUND_KEEP_FROM = {"gaussian": 8.0, "carved": math.inf, "geodesic": 8.0}
+"""Per density, the multiple of the level from which an empty cell keeps its coarse bound
+unwalked: few such walks end below the level for the classical bound, while the carved density's
+coarse bound ignores its factor (render_h200_round3_parts_keep.json)."""
+VISIBLE_ATOMS = 500_000
+"""From this many atoms only the cells the view reaches walk for part bounds (walking every
+cell costs with the atoms, the samples it saves with the surface in view;
+render_h200_round5_visible*.json)."""
+VIEW_ATOMS = 700_000
+"""Atoms per view of one set of positions from which walking every open cell pays
+(render_h200_round6_views*.json)."""
+STILL_VIEWS = 8
+"""Views of still positions after which the grid walks every open cell (a turning camera over a
+paused system; render_h200_round6_views*.json)."""
+LARGE_ATOMS = 30_000_000
+"""From this many atoms the grid has one cell per cutoff and volume frames walk whole cells: the
+bounds of 1.4 cells per atom cost more than finer skipping saves (render_h100_scale.json)."""
+PIPELINE_ATOMS = 1_000_000
+"""From this many atoms a CUDA renderer keeps two positions buffers (an upload overlaps the
+render before it); below, an upload takes under 0.1 ms and one buffer keeps one graph per
+frame set-up."""
+MARCH_BLOCK = 256
+"""Threads per block of the marching kernels (render_h100_split.json, "blocks")."""
+MARCH_BUDGET = 6
+"""Density passes an iso ray takes in the first marching kernel when rays are split; rays that
+need more are queued for the second (render_h100_split.json, "budgets")."""
+SPLIT_LANES = 8
+SPLIT_RAYS = 16384
+"""The second marching kernel gives each queued ray SPLIT_LANES threads that march consecutive
+stretches of it, SPLIT_LANES * SPLIT_RAYS threads striding over the queue."""
+SPLIT_PIXELS_PER_SM = 8 * 1024
+SPLIT_MIN_ATOMS = 4096
+"""Rays are split automatically on CUDA for images of at most SPLIT_PIXELS_PER_SM pixels per
+multiprocessor (too few rays to fill the GPU) of molecules of at least SPLIT_MIN_ATOMS atoms
+(rays long enough to be worth it; the budget sweep of render_h100_split.json)."""
+GRAPH_CACHE = 8
+"""CUDA graphs kept per renderer, least recently used dropped: one per distinct frame set-up
+(one per viewer camera when viewers hold their own)."""
+VIEWS_KEPT = 64
+"""Views a grid remembers having walked the cells of (forgetting one only repeats a walk)."""
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """The renderer's switches; None picks the rule above. None of them changes an image except
+    `taper` (off: each Gaussian cut at the cutoff, a baseline for the taper's cost) and
+    `empty_space_skipping` (off: every lattice sample marched, the same image slower) and
+    `fixed_cutoff` (the surface moves within the accuracy bound)."""
+
+    cells_per_cutoff: float | None = None
+    """Grid cell = cutoff / this (>= 1; the cell grows where memory caps the count)."""
+    empty_space_skipping: bool = True
+    fast_math: bool = True
+    """CUDA's approximate transcendentals."""
+    max_registers: int | None = None
+    """Register cap of the iso kernels on CUDA (0: the compiler's)."""
+    volume_max_registers: int = VOLUME_REGISTERS
+    graphs: bool | None = None
+    """Replay repeated frame set-ups as captured graphs (None: on CUDA only)."""
+    march_budget: int | None = None
+    """Passes an iso ray takes before it is queued for `split_lanes` threads (0: never split)."""
+    split_lanes: int = SPLIT_LANES
+    double_buffer: bool | None = None
+    """Two positions buffers, so an upload overlaps the render before it."""
+    bound_keep_from: float | None = None
+    """Multiple of the level from which an empty cell keeps its coarse bound (inf: walk all)."""
+    grid_sort: str = "counting"
+    part_bounds: PartMode | None = None
+    count_passes: bool = False
+    """Rays count their density passes (`Renderer.read_pass_counts`; kernels of their own)."""
+    taper: bool = True
+    fixed_cutoff: bool = False
+    """Reach cutoff_sigmas exactly, not the least the surface's accuracy needs (reach.py): the
+    baseline of the accuracy reach's gain."""
+
+    def __post_init__(self) -> None:
+        if self.march_budget is not None and self.march_budget < 0:
+            raise RenderError(f"march_budget must be >= 0, got {self.march_budget}")
+        if self.split_lanes < 1:
+            raise RenderError(f"split_lanes must be >= 1, got {self.split_lanes}")
+        if self.grid_sort not in GRID_SORTS:
+            raise RenderError(
+                f"grid_sort must be one of {', '.join(GRID_SORTS)}, got {self.grid_sort!r}"
+            )
+        if self.bound_keep_from is not None and not self.bound_keep_from >= 1.0:
+            raise RenderError(f"bound_keep_from must be >= 1, got {self.bound_keep_from}")
+        if self.part_bounds is not None and self.part_bounds not in PART_MODES:
+            raise RenderError(
+                f"part_bounds must be one of {', '.join(PART_MODES)}, got {self.part_bounds!r}"
+            )
+        if self.cells_per_cutoff is not None and not self.cells_per_cutoff >= 1.0:
+            raise RenderError(f"cells_per_cutoff must be >= 1, got {self.cells_per_cutoff}")
+
+    @classmethod
+    def of(cls, options: dict[str, object]) -> Tuning:
+        """A tuning from a mapping of its fields (benchmarks' JSON options); an unknown name is
+        refused with the names there are."""
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise RenderError(
+                f"unknown tuning {', '.join(unknown)} (known: {', '.join(sorted(known))})"
+            )
+        return cls(**options)  # type: ignore[arg-type]

@@ -1,0 +1,136 @@
+"""The GPU queue over several devices (server/pipeline/gpu.py): a lone session is drawn across
+every device, several sessions each get one, and the threads that drive the devices never
+share one. Two CPU devices stand in for two GPUs; the images are checked against one device's.
+On a CUDA host the pipelined path (the next staged frame uploaded while a render runs) is
+checked too."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from protocol import Camera, RenderParams, Topology
+from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
+from server.render import Renderer
+from server.render import device as render_device
+from server.render.multi import MultiRenderer
+from server.render.tuning import Tuning
+
+
+def image_of(topology: Topology, positions: np.ndarray, camera: Camera, device: str) -> np.ndarray:
+    r = Renderer(device)
+    r.set_topology(topology)
+    r.set_positions(positions)
+    r.render(RenderParams(), camera, 48, 32)
+    return r.read_rgba()
+
+
+def request(slot: str, topology: Topology, positions: np.ndarray, camera: Camera) -> RenderRequest:
+    return RenderRequest(slot, Snapshot(topology, positions), RenderParams(), camera, 48, 32)
+
+
+def test_sessions_spread_over_every_device_alone_and_take_one_each_together(
+    molecule: Callable[..., tuple[Topology, np.ndarray]],
+) -> None:
+    topology, positions = molecule(60, seed=3)
+    camera = Camera(target=tuple(positions.mean(axis=0)), distance=30.0)
+    want = image_of(topology, positions, camera, "cpu")
+    queue = GpuQueue(devices=("cpu", "cpu"))
+
+    async def run() -> None:
+        a = await queue.render(request("session:a", topology, positions, camera))
+        assert queue.spread == "session:a"
+        assert isinstance(queue._slots["session:a"].renderer, MultiRenderer)
+        job = await queue.render(request("job:1", topology, positions, camera))
+        assert queue.lane_device("job:1") == "cpu" and queue._lane_of["job:1"] == 0
+        await queue.release("job:1")
+        b = await queue.render(request("session:b", topology, positions, camera))
+        # the second session moves the first onto the first device and takes the other
+        assert queue.spread is None
+        assert queue._lane_of == {"session:a": 0, "session:b": 1}
+        a2 = await queue.render(request("session:a", topology, positions, camera))
+        assert isinstance(queue._slots["session:a"].renderer, Renderer)
+        for out in (a, job, b, a2):
+            assert np.array_equal(out.image(), want)
+        await queue.release("session:b")
+        assert queue.spread == "session:a"  # alone again: across every device
+        a3 = await queue.render(request("session:a", topology, positions, camera))
+        assert isinstance(queue._slots["session:a"].renderer, MultiRenderer)
+        assert np.array_equal(a3.image(), want)
+
+    try:
+        asyncio.run(run())
+    finally:
+        queue.close()
+
+
+def test_each_device_has_a_thread_of_its_own(
+    molecule: Callable[..., tuple[Topology, np.ndarray]],
+) -> None:
+    """A session placed on the second device renders while the first device's thread is
+    held: the two sessions never wait on each other."""
+    topology, positions = molecule(40, seed=4)
+    camera = Camera(target=tuple(positions.mean(axis=0)), distance=30.0)
+    queue = GpuQueue(devices=("cpu", "cpu"))
+    held = threading.Event()
+    names: set[str] = set()
+
+    def hold() -> None:
+        names.add(threading.current_thread().name)
+        held.wait(30)
+
+    async def run() -> None:
+        await queue.render(request("session:a", topology, positions, camera))
+        await queue.render(request("session:b", topology, positions, camera))
+        blocker = asyncio.ensure_future(queue._run(0, hold))
+        t0 = time.monotonic()
+        out = await queue.render(request("session:b", topology, positions, camera))
+        assert out.image().any() and not blocker.done()
+        held.set()
+        await blocker
+        assert time.monotonic() - t0 < 30
+
+    try:
+        asyncio.run(run())
+    finally:
+        held.set()
+        queue.close()
+    assert names == {"gpu0_0"}
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(render_device.cuda_count() == 0, reason="needs a CUDA device")
+def test_the_next_staged_frame_uploads_while_a_render_runs(
+    molecule: Callable[..., tuple[Topology, np.ndarray]],
+) -> None:
+    """A live render uploads the newest staged frame into the spare buffer before it returns;
+    the request for that frame then draws it without another upload, the same image."""
+    from server.pipeline.staging import State
+
+    topology, positions = molecule(3000, seed=5)
+    camera = Camera(target=tuple(positions.mean(axis=0)), distance=60.0)
+    moved = (positions + np.float32(0.6)).astype(np.float32)
+    queue = GpuQueue(device="cuda:0", stage_atoms=10, tuning=Tuning(double_buffer=True))
+    try:
+        queue.render_sync(request("session:a", topology, positions, camera))
+        slot = queue._slots["session:a"]
+        assert slot.renderer.pipelined
+        queue.stage("session:a", 2, moved)
+        deadline = time.monotonic() + 10
+        while slot.stager is None or State.READY not in slot.stager.states():
+            assert time.monotonic() < deadline, "the frame was never staged"
+            time.sleep(0.005)
+        queue.render_sync(request("session:a", topology, positions, camera))  # frame 1 again
+        assert slot.positions_id == 2 and slot.prefetched is not None
+        snap = Snapshot(topology, moved, positions_id=2)
+        out = queue.render_sync(RenderRequest("session:a", snap, RenderParams(), camera, 48, 32))
+        assert np.array_equal(out.image(), image_of(topology, moved, camera, "cuda:0"))
+        assert slot.prefetched is None  # given back once the render read it
+        assert slot.stager.states() == [State.FREE] * 3
+    finally:
+        queue.close()
