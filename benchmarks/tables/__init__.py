@@ -44,6 +44,7 @@ from .server import (
     pipeline,
     video_live,
     video_quality,
+    widget,
     ws_parse,
 )
 
@@ -94,6 +95,7 @@ TABLES: dict[str, Table] = {
         ("cpu_demo_chromium_2core.json", "cpu_demo_chromium_2core_as_loaded.json"),
         cpu_demo_chromium,
     ),
+    "widget": Table(("widget_cpu_2core.json",), widget),
 }
 """Each README table and the results files it reads: the newest full run of its benchmark on
 each GPU it shows (older runs are in results/archive/)."""

@@ -1,6 +1,6 @@
 """Tables of the benchmarks that run the server or its pipeline: latency_bench.py,
 pipeline_bench.py, multi_session_bench.py, video_bench.py, batch_bench.py,
-cpu_interactive_bench.py, cpu_demo_chromium.py and ws_parse_bench.py."""
+cpu_interactive_bench.py, cpu_demo_chromium.py, ws_parse_bench.py and widget_bench.py."""
 
 from __future__ import annotations
 
@@ -272,3 +272,29 @@ def cpu_demo_chromium(sources: list[Source]) -> str:
     rows = [[label] + [get(run) for _, run in cols] for label, get in lines]
     header = ["measure"] + [head for head, _ in cols]
     return block(sources, table(header, "l" + "r" * len(cols), rows))
+
+
+def widget(sources: list[Source]) -> str:
+    """The notebook widget as the page measures it, beside its controls in the same run: the
+    pictures the kernel forwarded and the dashboard on the same session."""
+    rows = []
+    for name, res in sources:
+        runs = ", ".join(num(s, 2) for s in res["first_picture_runs_s"])
+        load = " / ".join(num(x, 1) for x in res["load_average"])
+        rows.append(
+            [
+                stem(name, "widget_"),
+                count(res["atoms"]),
+                f"{size(*res['size'])} {res['widget_format']}",
+                load,
+                f"{num(res['first_picture_s'], 2)} ({runs})",
+                num(res["cold_s"], 1),
+                num(res["widget_fps"], 2),
+                num(res["forwarded_fps"], 2),
+                f"{num(res['dashboard_fps'], 2)} ({res['dashboard_image_size']})",
+            ]
+        )
+    header = ["run", "atoms", "view", "load avg start / end", "first picture s, median (runs)"]
+    header += ["first picture with the server's start s", "widget drew/s"]
+    header += ["kernel forwarded/s (control)", "dashboard drew/s (control)"]
+    return block(sources, table(header, "lrlrrrrrr", rows))
