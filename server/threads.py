@@ -11,11 +11,13 @@ import threading
 _PR_SET_NAME = 15
 
 
-def name_thread() -> None:
-    """Give the calling thread its Python name (`gpu_0`, `encode_1`, `uvicorn`) as its native
-    name, cut to the 15 bytes Linux keeps; nothing where `prctl` is missing. Meant as a thread
-    pool's `initializer` or the first call of a thread's target."""
+def name_thread(name: str | None = None) -> None:
+    """Give the calling thread its Python name (`gpu_0`, `encode_1`, `uvicorn`), or `name`
+    first, as its native name, cut to the 15 bytes Linux keeps; nothing where `prctl` is
+    missing. Meant as a thread pool's `initializer` or the first call of a thread's target."""
+    if name is not None:
+        threading.current_thread().name = name
     with contextlib.suppress(OSError, AttributeError, TypeError):
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        name = threading.current_thread().name.encode("utf-8", "replace")[:15]
-        libc.prctl(_PR_SET_NAME, ctypes.c_char_p(name), 0, 0, 0)
+        native = threading.current_thread().name.encode("utf-8", "replace")[:15]
+        libc.prctl(_PR_SET_NAME, ctypes.c_char_p(native), 0, 0, 0)

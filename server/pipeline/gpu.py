@@ -176,9 +176,8 @@ class GpuQueue:
         self._lanes = [
             _Lane(
                 d,
-                ThreadPoolExecutor(
-                    max_workers=1, thread_name_prefix=f"gpu{i}", initializer=name_thread
-                ),
+                # one thread a device, named for it: gpu_0, gpu_1, ...
+                ThreadPoolExecutor(max_workers=1, initializer=name_thread, initargs=(f"gpu_{i}",)),
             )
             for i, d in enumerate(names)
         ]
