@@ -26,6 +26,7 @@ from .markdown import Results, Source, TableError
 from .render import (
     layers,
     multi_device,
+    periodic,
     reach,
     render_baselines,
     render_densities,
@@ -37,6 +38,7 @@ from .render import (
 from .server import (
     adapter,
     batch,
+    cpu_demo_chromium,
     cpu_interactive,
     latency_delivery,
     latency_steer,
@@ -91,6 +93,11 @@ TABLES: dict[str, Table] = {
     "batch": Table(("batch_h100.json", "batch_cpu_2core.json"), batch),
     "cpu-interactive": Table(("cpu_interactive_2core.json",), cpu_interactive),
     "ws-parse": Table(("ws_parse_h200_host.json", "ws_parse_cpu_2core.json"), ws_parse),
+    "periodic": Table(("periodic_cpu_2core.json",), periodic),
+    "cpu-demo-chromium": Table(
+        ("cpu_demo_chromium_2core.json", "cpu_demo_chromium_2core_as_loaded.json"),
+        cpu_demo_chromium,
+    ),
     "widget": Table(("widget_cpu_2core.json",), widget),
     "adapter": Table(("adapter_cpu_2core.json",), adapter),
 }

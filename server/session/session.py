@@ -31,12 +31,22 @@ from pydantic import ValidationError
 import protocol as p
 from server import heap
 from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
+from server.pipeline.periodic import (
+    PERIODIC_FIELDS,
+    PeriodicError,
+    check_periodic,
+    displayed_cell,
+    needs_display,
+    selection_fields,
+)
+from server.render.boxes import Shown
 from server.render.layerplan import LayerPlan, visible_atoms
 from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
 from server.session.engine_limits import check_control, check_pull, check_sim_params
 from server.session.forces import ForceBook
 from server.session.layers import LayerBook
+from server.session.periodic import PeriodicFrames
 from server.session.roster import Roster
 from server.session.scheduler import RenderScheduler, ViewKey
 from server.session.services import Services
@@ -107,6 +117,9 @@ class Session:
         self.roster = Roster()
         self.topology: p.Topology | None = None
         self.legend: p.Legend | None = None
+        self._legend_key: Any = None
+        self._legend_plans: tuple[LayerPlan, ...] | None = None
+        """The layers the legend was made for (it lists only the atoms they show)."""
         self.engine: p.EngineInfo | None = None
         """What the simulation declared it can be steered with (kept until a new one says)."""
         self.topology_id = 0
@@ -114,6 +127,14 @@ class Session:
         self.positions_id = 0
         self.box: npt.NDArray[np.float32] | None = None
         """The last frame's periodic box vectors (3x3, angstrom), if it sent any."""
+        self.raw_positions: npt.NDArray[np.float32] | None = None
+        """The last frame's positions as the simulation sent them (`positions` are the ones
+        displayed: molecules whole, centred, fitted, as the render parameters say)."""
+        self.shown: Shown | None = None
+        """How `positions` were displayed (None: as sent)."""
+        self._cell_sent: p.Cell | None = None
+        self._frame_step: int | None = None
+        self._frame_delta = 0
         self.status = p.SimStatus(state="waiting")
         self.render_params = settings.render_defaults
         self.sim_params = p.SimParams()
@@ -126,12 +147,17 @@ class Session:
         self._last_step: int | None = None
         self._step_delta = 0
         self.frame_sinks: list[FrameSink] = []
+        """Called with each frame as the simulation sent it (a recording keeps these)."""
+        self.shown_sinks: list[Callable[[int], None]] = []
+        """Called with a frame's step once it is displayed (`snapshot()` holds it then): a
+        movie of the view takes these, after the periodic steps."""
         self.close_hooks: list[Callable[[], Awaitable[None]]] = []
         """Run (in order, each once) when the session closes: reaped, or the server stops.
         A recording hooks its stop here, so it never stays "recording" without a session."""
         """Called with every frame the simulation sends (recordings): they must only queue."""
         self.acks = AckBook()
         self.layers = LayerBook(self._selection_moved, services.selections)
+        self.periodic = PeriodicFrames(self.slot, services.backend, self._publish)
         self.scheduler = RenderScheduler(settings)
         self.delivery = Delivery(session_id, services)
         self.version = 0
@@ -139,7 +165,6 @@ class Session:
         self._image_ids = itertools.count(1)
         self._roster_flush: asyncio.TimerHandle | None = None
         self._status_flush: asyncio.TimerHandle | None = None
-        self._frame_arrived = asyncio.Event()
         self._step_rate = StepRate()
         self._dirty = asyncio.Event()
         self._closed = False
@@ -237,6 +262,7 @@ class Session:
             engine=self.engine,
             legend=self.legend,
             camera=self.camera,
+            cell=self._cell(),
         )
 
     def broadcast(self, message: p.Message) -> None:
@@ -251,8 +277,11 @@ class Session:
         if self.layers.auto:
             self._default_layers(topology)
         self.layers.topology(topology, self.topology_id, prepare=bool(self.render_params.layers))
+        self.periodic.held = self.layers.held
         if changed:
             self.positions = None
+            self.raw_positions = None
+            self.shown = None
             self.camera = None
             self.forces.clear()
             self._history.clear()  # frames of another system: the window starts again
@@ -262,6 +291,7 @@ class Session:
             update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": "running"}
         )
         self.broadcast(p.State(sim=self.status))
+        self._legend_plans = None  # the last layers' atoms were of the last topology
         self._legend_changed()
         if topology.n_atoms >= heap.LARGE_TOPOLOGY:
             heap.settle()  # its per-atom lists leave the collector's walk (server.heap)
@@ -294,7 +324,7 @@ class Session:
             return
         n = self.topology.n_atoms
         plans = self.layers.plans(
-            self.render_params, n, self.positions, self.positions_id, self.box
+            self.render_params, n, self._selected_positions(), self.positions_id, self.box
         )
         if not self.layers.ready:
             return  # once the layers' atoms arrive (`_selection_moved`)
@@ -307,8 +337,14 @@ class Session:
 
     def _layer_plans(self, snap: Snapshot) -> tuple[LayerPlan, ...] | None:
         return self.layers.plans(
-            self.render_params, snap.topology.n_atoms, snap.positions, snap.positions_id, self.box
-        )
+            self.render_params, snap.topology.n_atoms, self._selected_positions(),
+            snap.positions_id, self.box,
+        )  # fmt: skip
+
+    def _selected_positions(self) -> npt.NDArray[np.float32] | None:
+        """The positions selections read (`around`, `point`): the frame as the simulation sent
+        it, with its box (a fit rotates the displayed frame off the box's axes)."""
+        return self.raw_positions if self.raw_positions is not None else self.positions
 
     async def select(self, client: Client, message: p.Select) -> p.Selected:
         """Count the atoms a selection takes now (nothing changes): priced, then evaluated by
@@ -319,7 +355,7 @@ class Session:
             )
         try:
             count = await self.layers.count(
-                message.text, self.positions, self.positions_id, self.box
+                message.text, self._selected_positions(), self.positions_id, self.box
             )
         except SelectionError as exc:
             return p.Selected(
@@ -372,18 +408,18 @@ class Session:
             )
         now = time.monotonic()
         rate = self._step_rate.add(now, frame.step)
-        self.positions = frame.positions.to_numpy()
-        self.positions_id += 1
-        self.services.backend.stage(self.slot, self.positions_id, self.positions)
+        raw = frame.positions.to_numpy()
+        self.raw_positions = raw
         self.box = None if frame.box is None else frame.box.to_numpy()
-        self._remember(frame.step)
+        jumped = self._frame_step is not None and is_jump(
+            self._frame_step, self._frame_delta, frame.step
+        )
+        if self._frame_step is not None and not jumped:
+            self._frame_delta = frame.step - self._frame_step
+        self._frame_step = frame.step
         if self.frame_sinks:
             for sink in list(self.frame_sinks):
-                sink(frame.step, frame.time_ps, self.positions, self.box)
-        self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
-        self._frame_arrived = asyncio.Event()
-        if self.camera is None:
-            self._fit_camera()
+                sink(frame.step, frame.time_ps, raw, self.box)
         paused = self.status.state == "paused"
         self.status = p.SimStatus(
             state="paused" if paused else "running",
@@ -395,16 +431,46 @@ class Session:
             observables=dict(frame.observables),
         )
         self.services.metrics.sim_frames.inc()
-        self.version += 1
         if self.clients:
-            self._frame_taken.clear()
-        if self.forces.springs:
-            self._send_forces()
+            self._frame_taken.clear()  # taken by the render that draws it, once displayed
+        if needs_display(self.render_params, self.box):
+            self.periodic.submit(
+                self.topology, self.topology_id, raw, self.box, frame.step, self.render_params,
+                jumped,
+            )  # fmt: skip
+        else:
+            self.periodic.drop()
+            self._publish(raw, None, frame.step)
+        self._report(now)
+
+    def _report(self, now: float) -> None:
+        """Send the status (and the tracked atoms, the cell) now, or once `state_interval_s`
+        has passed since the last: the last frame of a burst is reported too."""
         wait = self.settings.state_interval_s - (now - self._last_state_sent)
         if wait <= 0:
             self._send_status()
-        elif self._status_flush is None:  # the last frame of a burst is reported too
+        elif self._status_flush is None:
             self._status_flush = asyncio.get_running_loop().call_later(wait, self._send_status)
+
+    def _publish(self, positions: npt.NDArray[np.float32], shown: Shown | None, step: int) -> None:
+        """A frame is ready to draw: `positions` as displayed (`shown` says how; None: as
+        the simulation sent them)."""
+        if self._closed or self.topology is None or len(positions) != self.topology.n_atoms:
+            return
+        self.positions = positions
+        self.shown = shown
+        self.positions_id += 1
+        self.services.backend.stage(self.slot, self.positions_id, positions)
+        self._remember(step)
+        for shown_sink in list(self.shown_sinks):
+            shown_sink(step)
+        if self.camera is None:
+            self._fit_camera()
+        self.version += 1
+        if self.forces.springs:
+            self._send_forces()
+        if shown is not None or self._cell_sent is not None:
+            self._report(time.monotonic())  # markers and the cell as displayed now
         self.mark_dirty()
 
     def _remember(self, step: int) -> None:
@@ -432,8 +498,17 @@ class Session:
             self._status_flush.cancel()
             self._status_flush = None
         self._last_state_sent = time.monotonic()
-        self.broadcast(p.State(sim=self.status))
+        cell = self._cell()
+        if cell is not None and cell != self._cell_sent:
+            self._cell_sent = cell
+            self.broadcast(p.State(sim=self.status, cell=cell))
+        else:
+            self.broadcast(p.State(sim=self.status))
         self._send_tracked()
+
+    def _cell(self) -> p.Cell | None:
+        """The periodic box of the frame shown, as displayed (moved with it by a fit)."""
+        return displayed_cell(self.shown, self.box)
 
     def _send_tracked(self, only: Client | None = None) -> None:
         """Where each viewer's tracked atoms are now (markers and measurements follow them)."""
@@ -454,13 +529,32 @@ class Session:
             )
 
     def _legend_changed(self) -> None:
+        """The colouring changed, or the topology: the legend again, for the atoms shown."""
+        self._legend_key = None
+        self._show_legend(self._legend_plans)
+
+    def _show_legend(self, plans: tuple[LayerPlan, ...] | None) -> None:
+        """What the colours of the atoms the layers show mean (hidden solvent and ions are
+        not in it), sent when it changes."""
         if self.topology is None:
             return
-        from server.render.colors import legend
-
         rp = self.render_params
-        self.legend = legend(self.topology, rp.color_by, rp.uniform_color)
-        self.broadcast(p.State(legend=self.legend))
+        atoms = None if plans is None else tuple(plan.atoms_key for plan in plans)
+        key = (self.topology_id, rp.color_by, rp.uniform_color, atoms)
+        if key == self._legend_key:
+            return
+        self._legend_key, self._legend_plans = key, plans
+        from server.render.colors import legend
+        from server.render.layerplan import subset_topology
+
+        topology = self.topology
+        shown = visible_atoms(plans, topology.n_atoms)
+        if 0 < len(shown) < topology.n_atoms:
+            topology = subset_topology(topology, shown)
+        drawn = legend(topology, rp.color_by, rp.uniform_color)
+        if drawn != self.legend:
+            self.legend = drawn
+            self.broadcast(p.State(legend=self.legend))
 
     def on_ack(self, ack: p.ParamsAck) -> None:
         pending = self.acks.take(ack.ref)
@@ -567,6 +661,8 @@ class Session:
             merged, changes = merge_patch(self.render_params, message.changes())
         except ValidationError as exc:
             raise _invalid(exc, "render_params.params", message.seq) from None
+        if any(f in changes for f in PERIODIC_FIELDS):
+            await self._check_periodic(merged, message.seq)
         if "layers" in changes:
             await self._check_layers(merged, message.seq)
             # other steering may have landed meanwhile: the patch applies to what is now
@@ -587,9 +683,51 @@ class Session:
         self.broadcast(p.State(render_params=merged, ref=message.seq, by=client.client_id))
         if "color_by" in changes or "uniform_color" in changes:
             self._legend_changed()
+        if any(f in changes for f in PERIODIC_FIELDS):
+            self._redisplay()
         self.version += 1
         self.scheduler.interacting(time.monotonic())
         self.mark_dirty()
+
+    def _redisplay(self) -> None:
+        """The periodic options changed: the last frame is displayed again with them (also
+        while the simulation is paused)."""
+        raw = self.raw_positions
+        if raw is None or self.topology is None:
+            return
+        step = self.status.step
+        if needs_display(self.render_params, self.box):
+            self.periodic.submit(
+                self.topology, self.topology_id, raw, self.box, step, self.render_params, True
+            )
+        else:
+            self.periodic.drop()
+            self._publish(raw, None, step)
+
+    async def _check_periodic(self, params: p.RenderParams, seq: int | None) -> None:
+        """The centre and fit selections in use must parse, name fixed atoms (a distance-based
+        selection changes from frame to frame) and evaluate on this topology; the first that
+        does not is named, and nothing changes."""
+        try:
+            check_periodic(params, self.services.selections.limits.selection)
+        except PeriodicError as exc:
+            raise p.ProtocolError(
+                p.ErrorCode.INVALID_MESSAGE, str(exc), f"render_params.params.{exc.path}", seq
+            ) from None
+        if self.topology is None:
+            return
+        for field, text in selection_fields(params):
+            try:
+                (error,) = await self.layers.check([text], None, self.positions_id)
+            except SelectionError as exc:
+                error = exc
+            if error is not None:
+                if isinstance(error, SelectionBusyError):
+                    code = p.ErrorCode.NOT_READY
+                else:
+                    code = p.ErrorCode.TOO_LARGE if error.limit else p.ErrorCode.INVALID_MESSAGE
+                path = f"render_params.params.{field}"
+                raise p.ProtocolError(code, f"{field}: {error}", path, seq)
 
     async def _check_layers(self, params: p.RenderParams, seq: int | None) -> None:
         """Every layer's selection must parse, keep to the selection limits and evaluate on
@@ -616,8 +754,8 @@ class Session:
             if not checked:
                 return
             found = await self.layers.check(
-                [layer.selection for _, layer in checked], self.positions, self.positions_id,
-                self.box,
+                [layer.selection for _, layer in checked], self._selected_positions(),
+                self.positions_id, self.box,
             )  # fmt: skip
         except SelectionError as exc:  # the request as a whole: its time or memory
             if len(checked) == 1:  # the one layer it was
@@ -698,6 +836,10 @@ class Session:
 
     def _merged_forces(self) -> p.Forces:
         idx, forces = self.forces.merged(self.positions)
+        shown = self.shown
+        if shown is not None and len(forces):
+            # given in the displayed frame: a fit rotated it (F_engine = R^T F_displayed)
+            forces = (np.asarray(forces, dtype=np.float64) @ shown.rotation).astype(np.float32)
         return p.Forces(
             indices=p.WireArray.from_numpy(idx, "<i4"),
             forces=p.WireArray.from_numpy(forces, "<f4"),
@@ -756,20 +898,6 @@ class Session:
 
     def mark_dirty(self) -> None:
         self._dirty.set()
-
-    async def next_frame(self, after: int, timeout: float) -> Snapshot | None:
-        """The first snapshot whose `positions_id` is above `after`, waiting up to `timeout`
-        seconds for the simulation to send it (None if it does not)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            snap = self.snapshot()
-            if snap is not None and snap.positions_id > after:
-                return snap
-            left = deadline - time.monotonic()
-            if left <= 0 or self._closed:
-                return None
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._frame_arrived.wait(), left)
 
     def snapshot(self) -> Snapshot | None:
         """The molecule as it is now, for one render pass."""
@@ -887,6 +1015,7 @@ class Session:
         layers = self._layer_plans(snap)
         if not self.layers.ready:
             return None  # a layer's atoms are still being evaluated; they call again
+        self._show_legend(layers)
         params = self.render_params
         device = self.services.backend.actual_device or self.settings.device
         on_cpu = device.startswith("cpu")
@@ -934,7 +1063,7 @@ class Session:
         metrics = self.services.metrics
         metrics.frames_rendered.inc()
         metrics.render_ms.observe(out.timings.get("total", 0.0))
-        quality = self.scheduler.jpeg_quality(key, params)
+        quality = self.scheduler.jpeg_quality(key, params, (width, height))
         return Rendered(
             out,
             next(self._image_ids),
@@ -1059,5 +1188,6 @@ class Session:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self.delivery.close()
+        await self.periodic.close()
         self.layers.close()
         await self.services.backend.release(self.slot)
