@@ -93,7 +93,7 @@ TABLES: dict[str, Table] = {
     "batch": Table(("batch_h100.json", "batch_cpu_2core.json"), batch),
     "cpu-interactive": Table(("cpu_interactive_2core.json",), cpu_interactive),
     "ws-parse": Table(("ws_parse_h200_host.json", "ws_parse_cpu_2core.json"), ws_parse),
-    "periodic": Table(("periodic_cpu_2core.json",), periodic),
+    "periodic": Table(("periodic_h200.json", "periodic_cpu_2core.json"), periodic),
     "cpu-demo-chromium": Table(
         ("cpu_demo_chromium_2core.json", "cpu_demo_chromium_2core_as_loaded.json"),
         cpu_demo_chromium,
