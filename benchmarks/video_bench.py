@@ -539,15 +539,16 @@ class Trace:
 
     def __init__(self) -> None:
         from server.pipeline.gpu import GpuQueue
+        from server.session.render_loop import RenderLoop
         from server.session.session import Session
 
         self.steered: dict[tuple[str, int], float] = {}
         self.renders: dict[tuple[str, int], tuple[float, float, dict[str, float], int]] = {}
         self.device_calls: list[tuple[float, float]] = []
         self.last_request: Any = None
-        steer, render, render_sync = Session.steer, Session._render, GpuQueue.render_sync
+        steer, render, render_sync = Session.steer, RenderLoop._render, GpuQueue.render_sync
         set_view = Session.set_view
-        render_group = Session._render_group
+        render_group = RenderLoop._render_group
         self.groups: list[float] = []
         self.stalls: LoopStalls | None = None
         self.pauses: list[tuple[int, float, float]] = []
@@ -566,11 +567,11 @@ class Trace:
 
         gc.callbacks.append(on_gc)
 
-        async def traced_group(session: Any, *args: Any) -> Any:
+        async def traced_group(loop: Any, *args: Any) -> Any:
             trace.groups.append(time.time())
             if trace.stalls is not None:
                 trace.stalls.start()
-            return await render_group(session, *args)
+            return await render_group(loop, *args)
 
         def traced_sync(queue: Any, request: Any) -> Any:
             t0 = time.time()
@@ -589,19 +590,19 @@ class Trace:
                 trace.steered[(session.id, view.seq)] = time.time()
             set_view(session, client, view)
 
-        async def traced_render(session: Any, key: Any, snap: Any, *more: Any) -> Any:
+        async def traced_render(loop: Any, key: Any, snap: Any, *more: Any) -> Any:
             t0 = time.time()
-            out = await render(session, key, snap, *more)
+            out = await render(loop, key, snap, *more)
             if out is not None:
                 span = (t0, time.time(), dict(out.out.timings), out.width * out.height)
-                trace.renders[(session.id, out.image_id)] = span
+                trace.renders[(loop.session_id, out.image_id)] = span
             return out
 
         Session.steer = traced_steer  # type: ignore[method-assign,assignment]
         Session.set_view = traced_view  # type: ignore[method-assign]
-        Session._render = traced_render  # type: ignore[method-assign,assignment]
+        RenderLoop._render = traced_render  # type: ignore[method-assign,assignment]
         GpuQueue.render_sync = traced_sync  # type: ignore[method-assign]
-        Session._render_group = traced_group  # type: ignore[method-assign]
+        RenderLoop._render_group = traced_group  # type: ignore[method-assign]
 
     def gc_summary(self) -> dict[str, Any]:
         """Collections during the row by generation: count, total and longest pause (ms)."""

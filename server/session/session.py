@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import logging
 import time
 from collections import deque
@@ -30,7 +29,7 @@ from pydantic import ValidationError
 
 import protocol as p
 from server import heap
-from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
+from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.periodic import (
     PERIODIC_FIELDS,
     PeriodicError,
@@ -42,13 +41,14 @@ from server.pipeline.periodic import (
 from server.render.boxes import Shown
 from server.render.layerplan import LayerPlan, visible_atoms
 from server.session.clients import Client
-from server.session.delivery import Delivery, Rendered
+from server.session.delivery import Delivery
 from server.session.engine_limits import check_control, check_pull, check_sim_params
 from server.session.forces import ForceBook
 from server.session.layers import LayerBook
 from server.session.periodic import PeriodicFrames
+from server.session.render_loop import RenderLoop, Scene
 from server.session.roster import Roster
-from server.session.scheduler import RenderScheduler, ViewKey
+from server.session.scheduler import RenderScheduler
 from server.session.services import Services
 from server.session.steering import (
     AckBook,
@@ -162,21 +162,18 @@ class Session:
         self.delivery = Delivery(session_id, services)
         self.version = 0
         """Counts every change to what the session draws (positions, render parameters)."""
-        self._image_ids = itertools.count(1)
         self._roster_flush: asyncio.TimerHandle | None = None
         self._status_flush: asyncio.TimerHandle | None = None
         self._step_rate = StepRate()
-        self._dirty = asyncio.Event()
         self._closed = False
         self._last_state_sent = 0.0
-        self.render_count = 0
-        self.last_timings: dict[str, float] = {}
-        self._render_times: list[float] = []
-        self.histogram: npt.NDArray[np.float32] | None = None
         self._frame_taken = asyncio.Event()
         self._frame_taken.set()
+        self.renders = RenderLoop(
+            self, session_id, self.slot, settings, services, self.scheduler, self.delivery
+        )
         self._tasks = [
-            asyncio.create_task(self._render_loop(), name=f"render-{session_id}"),
+            self.renders.start(),
             asyncio.create_task(self._stats_loop(), name=f"stats-{session_id}"),
         ]
 
@@ -892,12 +889,17 @@ class Session:
         if client.needs_image:  # it skipped the newest picture while its link was busy
             self.mark_dirty()
 
-    def mark_dirty_later(self, delay_s: float) -> None:
-        """Look for due renders again after `delay_s` (a refinement coming due)."""
-        asyncio.get_running_loop().call_later(delay_s, self.mark_dirty)
-
     def mark_dirty(self) -> None:
-        self._dirty.set()
+        """Something the viewers see changed: the render loop looks for due renders."""
+        self.renders.mark_dirty()
+
+    @property
+    def render_count(self) -> int:
+        return self.renders.render_count
+
+    @property
+    def last_timings(self) -> dict[str, float]:
+        return self.renders.last_timings
 
     def snapshot(self) -> Snapshot | None:
         """The molecule as it is now, for one render pass."""
@@ -915,167 +917,25 @@ class Session:
             live=self.engine is None or self.engine.kind != "replay",
         )
 
-    async def _render_loop(self) -> None:
-        while not self._closed:
-            await self._dirty.wait()
-            self._dirty.clear()
-            try:
-                await self._render_pending()
-            except asyncio.CancelledError:
-                raise
-            except Exception:
-                log.exception("render failed in session %s", self.id)
-                self.broadcast(
-                    p.Error(code=p.ErrorCode.INTERNAL, message="render failed; see the server log")
-                )
-                await asyncio.sleep(0.5)
+    def can_render(self) -> bool:
+        return self.topology is not None and self.positions is not None
 
-    async def _render_pending(self) -> None:
-        if self.topology is None or self.positions is None or not self.clients:
-            return
-        plan = self.scheduler.plan(
-            self.clients.values(), time.monotonic(), self.version, self.camera
-        )
-        taken: list[Snapshot] = []  # the snapshot of this pass, taken when its first render starts
-        for key, members in plan.groups:
-            planned = {c.client_id: (c.view, c.view_ref) for c in members}
-            version = await self._render_group(key, members, planned, taken)
-            if version is not None:
-                self.scheduler.rendered(key, version)
-                if any(c.video_stream is not None for c in members):
-                    self.scheduler.video_shown(key, version, time.monotonic())
-                    if not key.rest:  # its rest still is due if nothing changes until then
-                        self.mark_dirty_later(self.settings.rest_after_s + 0.01)
-        if plan.come_back_in is not None:  # the full-quality still once the interaction pauses
-            asyncio.get_running_loop().call_later(plan.come_back_in, self.mark_dirty)
+    def take_snapshot(self) -> Snapshot | None:
+        """`snapshot()` for a render pass: the newest frame counts as taken (`frame_taken`)."""
+        snap = self.snapshot()
+        if snap is not None:
+            self._frame_taken.set()
+        return snap
 
-    async def _render_group(
-        self,
-        key: ViewKey,
-        members: list[Client],
-        planned: dict[str, tuple[p.View | None, int | None]],
-        taken: list[Snapshot],
-    ) -> int | None:
-        """Render one view group, then leave its encoding and delivery to a task of its own.
-        Returns the version rendered (None: nothing was).
-
-        The encode slot is taken before the snapshot, so a render waiting for a free encoder
-        renders the newest frame once it gets one; the other groups of the same pass render
-        that same snapshot (`taken`), so its upload and grid serve them all.
-        """
-        slots = self.services.encode_slots
-        await slots.acquire()
-        # the change each image shows: the render parameters are read as the render starts,
-        # right after this, so a steer since the plan counts; a member that sent a new view
-        # since the plan keeps the planned ref (the image shows the planned camera)
-        refs = {
-            c.client_id: c.view_ref
-            if c.view is planned[c.client_id][0]
-            else planned[c.client_id][1]
-            for c in members
-        }
-        try:
-            if not taken:
-                snap = self.snapshot()
-                if snap is not None:
-                    taken.append(snap)
-                    self._frame_taken.set()
-            codecs = [self.delivery.streams.codec_for(c) for c in members]
-            video = not key.rest and any(codecs)
-            video_only = video and all(codecs)  # no JPEG viewer: no RGBA image needed
-            steering = video and self.scheduler.steering(members, time.monotonic())
-            rendered = (
-                await self._render(key, taken[0], video, video_only, steering) if taken else None
-            )
-        except BaseException:
-            slots.release()
-            raise
-        if rendered is None:
-            slots.release()
-            return None
-        self.delivery.start(rendered, members, refs, lambda: self.scheduler.forget(key))
-        return taken[0].version
-
-    async def _render(
-        self,
-        key: ViewKey,
-        snap: Snapshot,
-        video: bool = False,
-        video_only: bool = False,
-        steering: bool = False,
-    ) -> Rendered | None:
-        """One render of `snap` for a view group; None when a new topology arrived since the
-        snapshot was taken (the next pass renders that one). `video`: a member takes it as a
-        video frame (the device then also converts it for the encoder); `video_only`: every
-        member does (the RGBA image need not come back); `steering`: the group's stream is at
-        its steering size (`RenderScheduler.steering`), and a group of video viewers only
-        renders no larger than that."""
+    def scene(self, snap: Snapshot) -> Scene | None:
+        """What the render loop draws `snap` with (`RenderHost.scene`)."""
         if snap.topology_id != self.topology_id:
             return None
         layers = self._layer_plans(snap)
         if not self.layers.ready:
             return None  # a layer's atoms are still being evaluated; they call again
         self._show_legend(layers)
-        params = self.render_params
-        device = self.services.backend.actual_device or self.settings.device
-        on_cpu = device.startswith("cpu")
-        width, height = self.scheduler.image_size(key, params.quality, on_cpu)
-        stream_size = self.scheduler.stream_size(key, params.quality, on_cpu, steering)
-        budget_size = (width, height)
-        steered = (
-            video_only
-            and steering
-            and key.refine == 0  # a refinement is for the picture at rest: drawn as it was
-            and stream_size[0] * stream_size[1] < width * height
-        )
-        if steered:  # every member takes the stream: more pixels would be scaled away
-            width, height = stream_size
-        now = time.monotonic()
-        request = RenderRequest(
-            slot=self.slot,
-            snapshot=snap,
-            params=params,
-            camera=key.camera,
-            width=width,
-            height=height,
-            histogram=self.scheduler.histogram_due(key, now),
-            layers=layers,
-            video_size=stream_size if video else None,
-            rgba=not video_only,
-        )
-        out: RenderOutput = await self.services.backend.render(request)
-        reduced = self.scheduler.note_render(
-            key,
-            snap.version,
-            (width, height),
-            out.timings.get("total", 0.0),
-            time.monotonic(),
-            budget_size=budget_size,
-        )
-        if reduced:
-            after = self.settings.refine_after_s if key.refine == 0 else self.settings.final_after_s
-            self.mark_dirty_later(after + 0.01)
-        if out.histogram is not None:
-            self.histogram = out.histogram
-        self.render_count += 1
-        self.last_timings = out.timings
-        self._render_times.append(time.monotonic())
-        metrics = self.services.metrics
-        metrics.frames_rendered.inc()
-        metrics.render_ms.observe(out.timings.get("total", 0.0))
-        quality = self.scheduler.jpeg_quality(key, params, (width, height))
-        return Rendered(
-            out,
-            next(self._image_ids),
-            snap.step,
-            width,
-            height,
-            quality,
-            not key.interactive and not reduced and not steered,
-            camera_json=key.camera_json,
-            stream_size=stream_size,
-            rest=key.rest,
-        )
+        return Scene(layers)
 
     async def pick(self, client: Client, pick: p.Pick) -> p.Picked:
         snap = self.snapshot()
@@ -1121,10 +981,8 @@ class Session:
     async def _stats_loop(self) -> None:
         while not self._closed:
             await asyncio.sleep(self.settings.stats_interval_s)
-            now = time.monotonic()
-            self._render_times = [t for t in self._render_times if now - t < 2.0]
-            fps = len(self._render_times) / 2.0
-            t = self.last_timings
+            fps = self.renders.fps(time.monotonic())
+            t = self.renders.last_timings
             for client in list(self.clients.values()):
                 client.send(
                     p.Stats(

@@ -1,0 +1,229 @@
+"""The render loop's decisions against a host that is only its state and a backend without a
+GPU: what a change renders, for which views, and what a failure leaves behind."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Callable, Coroutine
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+import protocol as p
+from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
+from server.session.clients import Client
+from server.session.delivery import Delivery
+from server.session.render_loop import RenderLoop, Scene
+from server.session.scheduler import RenderScheduler
+from server.settings import ServerSettings
+from tests.server.peers import molecule
+from tests.server.session.fakes import PaintBackend, client, run_on_own_loop, sent, services
+
+SETTINGS = ServerSettings(token="t", default_size=(40, 30), stats_interval_s=60.0)
+
+
+@dataclass
+class Host:
+    """A session reduced to what the render loop reads and tells."""
+
+    topology: p.Topology
+    positions: npt.NDArray[np.float32]
+    clients: dict[str, Client] = field(default_factory=dict)
+    camera: p.Camera | None = field(default_factory=lambda: p.Camera(distance=40.0))
+    render_params: p.RenderParams = SETTINGS.render_defaults
+    version: int = 1
+    drawable: bool = True
+    """False: `scene` answers None (a new topology arrived, or layers are being evaluated)."""
+    taken: list[Snapshot] = field(default_factory=list)
+    broadcasts: list[p.Message] = field(default_factory=list)
+
+    def can_render(self) -> bool:
+        return True
+
+    def take_snapshot(self) -> Snapshot | None:
+        snap = Snapshot(
+            self.topology, self.positions, positions_id=self.version, version=self.version
+        )
+        self.taken.append(snap)
+        return snap
+
+    def scene(self, snap: Snapshot) -> Scene | None:
+        return Scene(None) if self.drawable else None
+
+    def broadcast(self, message: p.Message) -> None:
+        self.broadcasts.append(message)
+
+
+@dataclass
+class FailingOnce(PaintBackend):
+    """Raises on its first render, paints after."""
+
+    failures: int = 1
+
+    async def render(self, request: RenderRequest) -> RenderOutput:
+        if self.failures:
+            self.failures -= 1
+            self.requests.append(request)
+            raise RuntimeError("the device went away")
+        return await super().render(request)
+
+
+Body = Callable[[RenderLoop, Host, PaintBackend], Coroutine[Any, Any, None]]
+
+
+def run(body: Body, tmp: Path, backend: PaintBackend | None = None, slots: int = 2) -> None:
+    async def main() -> None:
+        back = backend or PaintBackend()
+        svc = services(tmp, back, slots)
+        topo, pos = molecule()
+        host = Host(topo, pos.astype(np.float32))
+        delivery = Delivery("s", svc)
+        loop = RenderLoop(
+            host, "s", "session:s", SETTINGS, svc, RenderScheduler(SETTINGS), delivery
+        )
+        task = loop.start()
+        try:
+            await body(loop, host, back)
+        finally:
+            task.cancel()
+            for t in [task, *delivery.in_flight()]:
+                t.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await t
+            delivery.close()
+            svc.steering_log.close()
+
+    run_on_own_loop(main)
+
+
+async def settle(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + timeout
+    while not predicate():
+        if loop.time() > end:
+            raise TimeoutError("condition not met")
+        await asyncio.sleep(0.005)
+
+
+async def quiet() -> None:
+    """Let every ready task run (the loop wakes, renders with the paint backend, delivers)."""
+    for _ in range(20):
+        await asyncio.sleep(0)
+    await asyncio.sleep(0.05)
+
+
+def images(c: Client) -> list[p.Image]:
+    return [m for m in sent(c) if isinstance(m, p.Image)]
+
+
+def test_a_change_renders_once_however_often_it_is_marked(tmp_path: Path) -> None:
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        a = client("a", "viewer")
+        host.clients["a"] = a
+        for _ in range(5):
+            loop.mark_dirty()
+        await settle(lambda: bool(images(a)))
+        for _ in range(5):
+            loop.mark_dirty()
+            await quiet()
+        assert [r.snapshot.version for r in backend.requests] == [1]
+        host.version = 2
+        loop.mark_dirty()
+        await settle(lambda: len(backend.requests) == 2)
+        await quiet()
+        assert [r.snapshot.version for r in backend.requests] == [1, 2]
+        assert loop.render_count == 2
+
+    run(body, tmp_path)
+
+
+def test_a_change_during_a_render_is_rendered_next_not_lost(tmp_path: Path) -> None:
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        a = client("a", "viewer")
+        host.clients["a"] = a
+        backend.gate = asyncio.Event()
+        loop.mark_dirty()
+        await settle(lambda: len(backend.requests) == 1)  # version 1 in flight
+        host.version = 2
+        loop.mark_dirty()
+        await quiet()
+        assert len(backend.requests) == 1  # one render at a time
+        backend.gate.set()
+        await settle(lambda: len(backend.requests) == 2)
+        assert backend.requests[1].snapshot.version == 2
+        await settle(lambda: any(i.frame_id == 2 for i in images(a)))
+
+    run(body, tmp_path)
+
+
+def test_a_viewer_with_its_own_camera_gets_its_own_render_of_the_same_snapshot(
+    tmp_path: Path,
+) -> None:
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        a, b, c = client("a", "viewer"), client("b", "viewer"), client("c", "viewer")
+        own = p.Camera(distance=90.0)
+        c.view = p.View(camera=own, width=40, height=30)
+        host.clients.update(a=a, b=b, c=c)
+        loop.mark_dirty()
+        await settle(lambda: all(images(x) for x in (a, b, c)))
+        cameras = sorted(r.camera.distance for r in backend.requests)
+        assert cameras == [40.0, 90.0]  # a and b share the session's camera
+        assert len(host.taken) == 1  # both renders drew the one snapshot of the pass
+        assert images(a)[0].frame_id == images(b)[0].frame_id != images(c)[0].frame_id
+
+    run(body, tmp_path)
+
+
+def test_a_failed_render_is_reported_to_every_client_and_the_loop_goes_on(
+    tmp_path: Path,
+) -> None:
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        a = client("a", "viewer")
+        host.clients["a"] = a
+        loop.mark_dirty()
+        await settle(lambda: bool(host.broadcasts))
+        (error,) = host.broadcasts
+        assert isinstance(error, p.Error) and error.code == p.ErrorCode.INTERNAL
+        assert loop.services.encode_slots._value == 2  # its encode slot was given back
+        host.version = 2
+        loop.mark_dirty()
+        await settle(lambda: bool(images(a)))
+        assert images(a)[0].step == 0 and loop.render_count == 1
+
+    run(body, tmp_path, FailingOnce())
+
+
+def test_a_snapshot_the_host_cannot_draw_yet_renders_nothing_and_frees_its_slot(
+    tmp_path: Path,
+) -> None:
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        a = client("a", "viewer")
+        host.clients["a"] = a
+        host.drawable = False
+        loop.mark_dirty()
+        await settle(lambda: bool(host.taken))
+        await quiet()
+        assert backend.requests == [] and images(a) == []
+        assert loop.services.encode_slots._value == 1
+        host.drawable = True  # the layers' atoms arrived: the host marks the loop dirty
+        loop.mark_dirty()
+        await settle(lambda: bool(images(a)))  # the same version, not yet drawn, is due still
+        assert [r.snapshot.version for r in backend.requests] == [1]
+
+    run(body, tmp_path, slots=1)
+
+
+def test_without_viewers_nothing_is_rendered_and_no_frame_is_taken(tmp_path: Path) -> None:
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        loop.mark_dirty()
+        await quiet()
+        assert backend.requests == [] and host.taken == []
+        host.clients["a"] = a = client("a", "viewer")
+        loop.mark_dirty()
+        await settle(lambda: bool(images(a)))
+
+    run(body, tmp_path)
