@@ -22,6 +22,10 @@ JSON as `max_registers`).
     python benchmarks/render_bench.py --out benchmarks/results/render_h100.json
     python benchmarks/render_bench.py --quick --device cpu      # smoke test, tiny sizes
     python benchmarks/render_bench.py --table benchmarks/results/render_h100.json
+
+Kept whole: one benchmark is one file that runs on its own on a GPU host (`python
+benchmarks/render_bench.py`), and its `Bench` class holds the systems, cameras and renderers every
+row of one run is timed against.
 """
 
 from __future__ import annotations

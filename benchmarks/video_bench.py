@@ -21,6 +21,9 @@ whose atoms move smoothly (0.3 A breathing, 120 frames per cycle). Frames come a
     python benchmarks/video_bench.py --device cuda:0            # GPU run, results JSON + table
     python benchmarks/video_bench.py --quick --device cpu       # smoke test
     python benchmarks/video_bench.py --record-villin            # (re)make the villin frames
+
+Kept whole: one benchmark is one file that runs on its own on a GPU host, and its quality and live
+rows share the systems, the encoders and the trace of the server they measure.
 """
 
 from __future__ import annotations

@@ -3,6 +3,9 @@
 Directions: S = simulation adapter, V = viewer/steerer (browser or script), * = server.
 Units: angstrom, ps, K, kJ/mol, kJ/mol/A. Optional fields default to None and are omitted
 on the wire, which is what lets old peers ignore what new peers add.
+
+Kept whole: the wire schema in one place, so the JSON Schema (`protocol.schema`), docs/protocol.md
+and the test vectors are generated from one file and its one tagged union.
 """
 
 from __future__ import annotations

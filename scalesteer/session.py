@@ -4,7 +4,9 @@ Every steering call is checked by the protocol's models before it is sent (a val
 range raises at once, naming the field) and then waits for the server's answer: the `state`
 that names it for render parameters, the simulation's acknowledgement for simulation
 parameters and run control. A refusal raises `ScalesteerError` with the server's code and path.
-"""
+
+Kept whole: `Session` is the Python client's public surface, one method per steering call or
+query, and splitting the class would split the API docs/python.md describes."""
 
 from __future__ import annotations
 

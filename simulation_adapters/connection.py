@@ -11,6 +11,10 @@ owns an asyncio event loop. The MD thread only hands over messages:
 
 The thread reconnects with exponential backoff and re-sends the topology on every connection.
 Only numpy, msgpack, pydantic and websockets are imported: this loads inside any MD run.
+
+Kept whole: it loads inside any MD run on numpy, msgpack, pydantic and websockets alone, and one
+class owns the background thread's state (mailbox, queue, reconnects) that the MD thread hands
+messages to.
 """
 
 from __future__ import annotations

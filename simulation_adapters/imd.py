@@ -9,6 +9,10 @@ The engine streams coordinates (and time, energies, box); the bridge forwards th
 (latest wins, so the engine never waits on the render server) and sends the dashboard's steering
 back: pulling forces (MDCOMM), pause/resume, the transmission rate (TRATE), and KILL only when
 started with `--allow-kill`. IMD carries no atom names, so the topology comes from a file.
+
+Kept whole: `IMDBridge` is one translation between an IMD engine and scalesteer (the units, the
+steering each engine accepts, the two threads that carry them), and the command that starts it is
+its only caller.
 """
 
 from __future__ import annotations

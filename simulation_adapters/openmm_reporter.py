@@ -13,6 +13,10 @@ The reporter declares what it can be steered with (`EngineInfo`: temperature, ti
 friction ranges sensible for this system, the pull limits), and guards the run: positions,
 energy or temperature that blow up (NaN, or a temperature past `runaway_K`) roll the context back
 to the last good report, release every pull, pause, and tell everyone in the session why.
+
+Kept whole: OpenMM's reporter protocol makes `SteeringReporter` one object whose `report` applies
+every kind of steering on the MD thread, and the run's guard (roll back, release the pulls, pause)
+shares that state.
 """
 
 from __future__ import annotations

@@ -9,6 +9,9 @@ are *dynamic*: `Selector.select` evaluates them on the positions it is given.
 The default layers follow what every molecular viewer does: solvent and ions hidden, the polymer
 (protein or nucleic acid) at the session's scale, and any other residues, ligands, at a finer
 scale of their own.
+
+Kept whole: the MDAnalysis universe built from a topology message and the selections evaluated on
+it are one translation of the protocol's topology, tested as one.
 """
 
 from __future__ import annotations

@@ -16,6 +16,9 @@ atom session answers in a few milliseconds) and reloads it after a restart.
 
 Workers end with the server: each exits when its pipe to the server closes, and the kernel
 kills it when the server's process dies (`PR_SET_PDEATHSIG`), even mid-evaluation.
+
+Kept whole: the server's side of each worker's pipe and the worker's own loop (`_main`) speak one
+private message format, kept in one file so the two cannot drift apart.
 """
 
 from __future__ import annotations

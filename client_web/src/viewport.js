@@ -1,6 +1,9 @@
 // The live view: a canvas sized to its container and the device pixel ratio, streamed images
 // drawn as they arrive (stale ones skipped), an overlay for the selected atom and the pull
 // arrow, and the pointer, wheel, touch and keyboard gestures that move the camera.
+//
+// Kept whole: the drawing, the overlay and the gestures share the canvas's size, its device
+// pixel ratio and the pointer's state, which one class keeps consistent between them.
 
 import { orbit, pan, project, zoom } from "./camera.js";
 import { cellEdges } from "./cell.js";

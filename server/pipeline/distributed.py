@@ -25,6 +25,9 @@ Faults: an actor whose process dies is restarted by Ray and its chunk retried
 (`MAX_RESTARTS`); a chunk whose actor is gone for good goes to another actor; a job whose
 chunks cannot be rendered fails with the reason. Images are assembled by frame index, so
 every frame is written exactly once.
+
+Kept whole: everything that touches Ray (the local instance, the actors, the chunks) is here, the
+one module that imports Ray, and only when a job asks for it.
 """
 
 from __future__ import annotations

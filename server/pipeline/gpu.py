@@ -16,6 +16,9 @@ Work arrives as `RenderRequest`s naming a *slot*: each slot (a session, a job, a
 render) keeps its own Renderer, so its topology and buffers stay resident between requests. A
 request carries a `Snapshot` (topology and positions with the ids that tell whether the slot's
 copies are current), so a slot uploads what changed and nothing else.
+
+Kept whole: `GpuQueue` owns the device threads and where each slot is placed on them; the upload
+overlap and the moves between devices change the same state under its one lock.
 """
 
 from __future__ import annotations

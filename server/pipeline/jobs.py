@@ -10,6 +10,10 @@ saying why, when they are gone), a finished job's output stays downloadable. Ids
 (128 bits), so a job is reachable only by whoever was given its id. Input files are read in a
 child process (`structures.isolated`): a file that crashes the reader fails its job, not the
 server.
+
+Kept whole: a job's life (queued, rendering, done or failed, started again from its record after a
+restart) is one state machine in `JobManager`, and the records it keeps are written and read only
+here.
 """
 
 from __future__ import annotations

@@ -19,6 +19,9 @@ ends, `steering.jsonl` (the session's log entries between its start and stop mar
 `marks.json` (those entries as timeline marks, `server.pipeline.marks`). A recording the server
 did not end (a crash) is found `interrupted` at the next start and finished from what is on
 disk; a chunk file the crash left is removed.
+
+Kept whole: the on-disk format (manifest, XTC chunks, the span of the steering log) is written by
+`Recording` and read back by `RecordingStore` after a crash, both beside the format they share.
 """
 
 from __future__ import annotations

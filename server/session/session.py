@@ -4,12 +4,17 @@ clients watching it. This class is the facade the WebSocket edge talks to; the w
 - `roster.Roster`: who is connected;
 - `steering`: render-parameter patches, simulation parameters confirmed by the engine, acks;
 - `forces.ForceBook`: pulls and script forces merged into the one set an engine applies;
+- `render_loop.RenderLoop`: renders what is due each time the session changes;
 - `scheduler.RenderScheduler`: when to render which view group, at which quality;
 - `delivery.Delivery`: encoding and offering images to clients;
 - a `services.RenderBackend` (the GPU queue) that draws.
 
 All methods run on the event loop; selections are evaluated in worker processes
 (`layers.LayerBook`), never on it.
+
+Kept whole: the state every message reads and changes (topology, frame, render parameters, camera,
+layers) lives on this one object, and each method here handles one message; the work itself is in
+the modules listed above.
 """
 
 from __future__ import annotations

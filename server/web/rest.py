@@ -2,6 +2,9 @@
 
 Inputs are structures uploaded as files or named datasets under `--data-dir` (never any other
 server path). Every failure is a 4xx naming what was wrong; server faults are logged, not leaked.
+
+Kept whole: every HTTP route in one file, so the API's surface and the 4xx each route answers read
+in one place beside docs/server.md's table of them.
 """
 
 from __future__ import annotations
