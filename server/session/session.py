@@ -13,8 +13,8 @@ All methods run on the event loop; selections are evaluated in worker processes
 (`layers.LayerBook`), never on it.
 
 Kept whole: the state every message reads and changes (topology, frame, render parameters, camera,
-layers) lives on this one object, and each method here handles one message; the work itself is in
-the modules listed above.
+layers) lives on this one object, and each public method handles one kind of message with the
+checks that need that state; the work itself is in the modules listed above.
 """
 
 from __future__ import annotations
