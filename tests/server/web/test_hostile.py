@@ -1051,6 +1051,24 @@ def test_a_viewers_selection_of_every_pair_is_refused_before_it_allocates(
     viewer.close()
 
 
+def test_a_viewers_same_text_selection_is_priced_as_the_comparisons_it_makes(
+    crowded_server: ServerProcess,
+) -> None:
+    """`same resname as all` was priced as one pass over the system, but numpy compares text
+    properties (names, types, residue names, segments) one value at a time: on 40,000 atoms it
+    held a worker until its 10 s ran out (37 s unbounded), and the session's other selections
+    waited behind it."""
+    viewer = joined(crowded_server, "crowded")
+    reply, _ = select(viewer, "same resname as all")
+    assert reply.count is None and "selection_max_pairs" in reply.error, reply
+    assert "`same` at character 1" in reply.error
+    reply, _ = select(viewer, "same name as index 0:99")  # 100 x 40,000 comparisons: allowed
+    assert reply.count == SELECT_ATOMS and not reply.error, reply
+    reply, _ = select(viewer, "same residue as all")  # numbers are sorted, one pass
+    assert reply.count == SELECT_ATOMS and not reply.error, reply
+    viewer.close()
+
+
 def test_a_viewers_render_with_a_layer_of_every_pair_is_a_422_naming_the_limit(
     crowded_server: ServerProcess,
 ) -> None:
