@@ -910,9 +910,10 @@ def test_video_encoders_are_bounded_and_given_back_when_their_viewers_leave(
 SELECT_ATOMS = 40_000
 
 
-def crowded(n: int) -> tuple[p.Topology, np.ndarray]:
+def crowded(n: int, chained: bool = False) -> tuple[p.Topology, np.ndarray]:
     """`n` atoms of alanine backbone (N, CA, C, O; a quarter of them CA) packed as densely as
-    water (0.1 atoms per cubic angstrom), each near a point of a grid."""
+    water (0.1 atoms per cubic angstrom), each near a point of a grid; `chained`: each atom
+    bonded to the next (a bond per atom, as in a protein)."""
     side = math.ceil(n ** (1 / 3))
     grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
     rng = np.random.default_rng(3)
@@ -925,7 +926,10 @@ def crowded(n: int) -> tuple[p.Topology, np.ndarray]:
         residue_ids=p.WireArray.from_numpy(np.arange(n) // 4 + 1, "<i4"),
         residue_names=["ALA"] * n,
         chain_ids=["A"] * n,
-        bonds=p.WireArray.from_numpy(np.zeros((0, 2)), "<i4"),
+        bonds=p.WireArray.from_numpy(
+            np.stack([np.arange(n - 1), np.arange(1, n)], 1) if chained else np.zeros((0, 2)),
+            "<i4",
+        ),
     )
     return topo, pos
 
@@ -1067,6 +1071,26 @@ def test_a_viewers_same_text_selection_is_priced_as_the_comparisons_it_makes(
     reply, _ = select(viewer, "same residue as all")  # numbers are sorted, one pass
     assert reply.count == SELECT_ATOMS and not reply.error, reply
     viewer.close()
+
+
+def test_a_viewers_bonded_selection_is_priced_by_the_bonds_it_walks(
+    crowded_server: ServerProcess,
+) -> None:
+    """`bonded` was priced at two pair checks per atom, but MDAnalysis gathers the group's bonds
+    in Python (8-14 us a bond): four nested `bonded` on 47,681 atoms with 58,766 bonds ran past
+    the worker's 10 s, and the session's other selections waited behind it."""
+    sim = Peer(crowded_server.ws_url, "simulation", TOKEN, "chained")
+    topo, pos = crowded(SELECT_ATOMS, chained=True)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    viewer = joined(crowded_server, "chained")
+    reply, _ = select(viewer, "bonded " * 8 + "index 0")
+    assert reply.count is None and "selection_max_pairs" in reply.error, reply
+    assert "`bonded` at character" in reply.error
+    reply, _ = select(viewer, "bonded index 0:9")  # one walk through the bonds: allowed
+    assert reply.count == 11 and not reply.error, reply
+    viewer.close()
+    sim.close()
 
 
 def test_a_viewers_render_with_a_layer_of_every_pair_is_a_422_naming_the_limit(
