@@ -1255,3 +1255,43 @@ def test_selection_workers_end_with_the_server(tmp_path: Path) -> None:
         viewer.close()
     finally:
         server.stop()
+
+
+# ---------------------------------------------------------------- recordings of large systems
+
+
+def test_a_large_bonded_recording_reaches_the_disk_and_survives_a_kill(tmp_path: Path) -> None:
+    """A recording writes its topology before its first frame. MDAnalysis's PDB writer walked
+    every atom's bonds in Python (32 s for 47,681 atoms): no frame reached the disk meanwhile,
+    and a `kill -9` then left a truncated `topology.pdb` and none of the frames received."""
+    from server.pipeline.recordings import xtc_steps
+
+    server = ServerProcess(tmp_path / "state")
+    sim = Peer(server.ws_url, "simulation", TOKEN, "big")
+    try:
+        topo, pos = crowded(SELECT_ATOMS, chained=True)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        c = httpx.Client(base_url=server.url, headers=AUTH, timeout=30)
+        deadline = time.monotonic() + 30
+        while (r := c.post("/api/sessions/big/recordings", json={})).status_code == 409:
+            assert time.monotonic() < deadline, r.text  # until the topology has arrived
+            time.sleep(0.2)
+        assert r.status_code == 201, r.text
+        folder = tmp_path / "state" / "recordings" / r.json()["id"]
+        step, deadline = 0, time.monotonic() + 20
+        while (frames := c.get(f"/api/recordings/{folder.name}").json()["frames"]) < 2:
+            assert time.monotonic() < deadline, "no frame of the recording reached the disk"
+            step += 1
+            sim.send(frame(pos, step))
+            time.sleep(0.2)
+        server.stop(signal.SIGKILL)
+        c.close()
+    finally:
+        sim.close()
+        server.stop()
+    lines = (folder / "topology.pdb").read_bytes().splitlines()
+    assert sum(x.startswith(b"ATOM") for x in lines) == SELECT_ATOMS
+    assert sum(x.startswith(b"CONECT") for x in lines) == SELECT_ATOMS  # bonded, each
+    assert lines[-1] == b"END"  # whole
+    assert len(xtc_steps(folder / "frames.xtc", SELECT_ATOMS)) >= frames
