@@ -690,6 +690,43 @@ def test_uploads_are_refused_from_their_headers_and_spool_into_the_servers_own_f
         server.stop()
 
 
+def test_slow_uploads_with_the_viewer_token_leave_the_spool_to_others(tmp_path: Path) -> None:
+    """Four uploads with the viewer token that declared 512 MiB each and then sent nothing more
+    held the whole spool (max_spool_bytes, 2 GiB), and every other upload, the server token's
+    too, was answered 503 for as long as they stayed open. Requests without the server token
+    now hold at most viewer_spool_bytes (1 GiB) of it, and a body that stalls for
+    body_timeout_s is answered 408 and lets go of its part."""
+    server = ServerProcess(tmp_path / "state", "--set", "body_timeout_s=2")
+    try:
+        declared = 512 << 20
+        start = file_part("a.pdb", 6)
+        slow = [partial_request(server.port, "/api/render", VIEWER, declared, start)]
+        slow += [partial_request(server.port, "/api/render", VIEWER, declared, start)]
+        status, headers, body = answer(
+            partial_request(server.port, "/api/render", VIEWER, declared, start), 5
+        )
+        assert status == 503 and "viewer_spool_bytes" in body and headers["retry-after"], body
+        with open(PDB_small, "rb") as fh:  # the server token's upload is received meanwhile
+            r = httpx.post(
+                f"{server.url}/api/render", headers=AUTH, files={"file": ("a.pdb", fh)}, timeout=60
+            )
+        assert r.status_code == 200, r.text
+        for sock in slow:  # stalled: answered, and their part of the spool given back
+            status, _, body = answer(sock, 10)
+            assert status == 408 and "body_timeout_s" in body, body
+        with open(PDB_small, "rb") as fh:
+            r = httpx.post(
+                f"{server.url}/api/render",
+                headers=VIEWER,
+                files={"file": ("a.pdb", fh)},
+                data={"width": "32", "height": "24"},
+                timeout=60,
+            )
+        assert r.status_code == 200, r.text
+    finally:
+        server.stop()
+
+
 def test_a_page_of_another_origin_cannot_change_state(tmp_path: Path) -> None:
     """Round three: in the no-token loopback mode any web page could start recordings (201),
     jobs (202) and replays (201): REST had no Origin check."""
