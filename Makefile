@@ -7,7 +7,7 @@ BIN := $(VENV)/bin
 PIP := $(BIN)/python -m pip
 NPM_DIR := client_web
 
-.PHONY: demo test check format schema bench client chromium clean
+.PHONY: demo test check format schema bench bench-tables client chromium clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -62,6 +62,10 @@ schema: $(VENV)/.dev-installed
 
 bench: $(VENV)/.dev-installed
 	$(BIN)/python benchmarks/render_bench.py --quick
+
+# the numbers tables of benchmarks/README.md, remade from benchmarks/results/ (standard library only)
+bench-tables:
+	$(PYTHON) -m benchmarks.tables
 
 clean:
 	rm -rf $(VENV) $(NPM_DIR)/node_modules .hypothesis

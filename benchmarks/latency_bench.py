@@ -24,6 +24,7 @@ import argparse
 import asyncio
 import dataclasses
 import io
+import itertools
 import json
 import multiprocessing as mp
 import platform
@@ -62,10 +63,16 @@ def gpu_name(device: str) -> str:
 
 
 def start(
-    device: str, size: tuple[int, int], tmp: Path, interactive_scale: float | None = None
+    device: str,
+    size: tuple[int, int],
+    tmp: Path,
+    interactive_scale: float | None = None,
+    stream_atoms: int = 0,
 ) -> ServerThread:
     limits = p.Limits(
-        max_message_bytes=512 * 1024 * 1024, max_atoms=12_000_000, max_steer_per_s=1000
+        max_message_bytes=max(512 << 20, 16 * stream_atoms + (1 << 20)),
+        max_atoms=max(12_000_000, stream_atoms),
+        max_steer_per_s=1000,
     )
     settings = ServerSettings(
         port=0,
@@ -239,13 +246,16 @@ def _viewers(
     out.put(asyncio.run(_count_images(url, session, viewers, own_camera, size, seconds)))
 
 
+_RUNS = itertools.count()
+
+
 def throughput(
     server: ServerThread, n_atoms: int, viewers: int, own_camera: bool, seconds: float
 ) -> dict[str, Any]:
     """Frames/s delivered per viewer. The simulation and the viewers run in processes of
     their own, so the server's process holds only the server."""
     url = f"ws://127.0.0.1:{server.port}"
-    session = f"tp-{viewers}-{int(own_camera)}"
+    session = f"tp-{viewers}-{int(own_camera)}-{next(_RUNS)}"
     ctx = mp.get_context("spawn")
     ready, stop, out, rate = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
     streamer = ctx.Process(target=_stream, args=(url, session, n_atoms, ready, stop, rate))
@@ -297,6 +307,16 @@ def main(argv: list[str] | None = None) -> int:
         help="image scale while steering (server default 0.5; 1 = full size at once)",
     )
     ap.add_argument("--no-throughput", action="store_true", help="the latency part only")
+    ap.add_argument(
+        "--viewers",
+        default="1,10,50,4own",
+        help="throughput cases: viewers sharing the view, or N'own' holding cameras of their own",
+    )
+    ap.add_argument(
+        "--prefetch-control",
+        action="store_true",
+        help="each throughput case also without the next frame's upload overlapped (the control)",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.size, args.latency_atoms, args.changes, args.seconds = "96x64", 500, 20, 1.0
@@ -305,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
-        server = start(args.device, (w, h), Path(tmp), args.interactive_scale)
+        server = start(args.device, (w, h), Path(tmp), args.interactive_scale, args.stream_atoms)
         try:
             device = server.app_state.gpu.device
             result: dict[str, Any] = {
@@ -326,11 +346,18 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(result["latency"], indent=1), flush=True)
             result["interactive_scale"] = server.settings.interactive_scale
             result["throughput"] = []
-            cases = () if args.no_throughput else ((1, False), (10, False), (50, False), (4, True))
+            cases = [] if args.no_throughput else [
+                (int(c.removesuffix("own")), c.endswith("own")) for c in args.viewers.split(",")
+            ]  # fmt: skip
+            queue = server.app_state.gpu
             for viewers, own in cases:
-                row = throughput(server, args.stream_atoms, viewers, own, args.seconds)
-                print(json.dumps(row), flush=True)
-                result["throughput"].append(row)
+                for prefetch in (False, True) if args.prefetch_control else (True,):
+                    queue.prefetch = prefetch
+                    row = throughput(server, args.stream_atoms, viewers, own, args.seconds)
+                    row["prefetch"] = prefetch
+                    print(json.dumps(row), flush=True)
+                    result["throughput"].append(row)
+            queue.prefetch = True
             del device
         finally:
             server.stop()

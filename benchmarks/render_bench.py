@@ -697,16 +697,26 @@ class Bench:
         self, cases: list[tuple[int, int, int]], params: RenderParams, tries: list[dict[str, Any]]
     ) -> None:
         """The same frames with each set of Renderer options (`--variants`, a JSON list of
-        keyword sets, each with a "label"), one after the other: new positions every frame,
-        or (`--variant-turn` degrees) still positions and a turning camera, each frame seen
-        by `--variant-views` cameras."""
+        keyword sets, each with a "label" and optionally "params" over `params`), one after
+        the other: new positions every frame, or (`--variant-turn` degrees) still positions and
+        a turning camera, each frame seen by `--variant-views` cameras."""
+        base = params
         for n, w, h in cases:
             for t in tries:
                 if self.clock.left() < 20:
                     return
                 label, kw = labelled(t)
+                params = base.model_copy(update=kw.pop("params", {}))
+                matched = bool(kw.pop("matched_level", False))
                 r, frames = self.renderer(n, **kw)
                 cam = fit_camera(frames[0], w, h)
+                if matched:  # the absolute level that draws the relative level's surface
+                    r.set_positions(frames[0])
+                    r.render(params, cam, w, h)
+                    level = params.iso_level * r.density_scale()
+                    params = params.model_copy(
+                        update={"level_scale": "absolute", "iso_level": level}
+                    )
                 turn = float(self.args.variant_turn)
                 views = int(self.args.variant_views)
                 step = self.frame_step(r, frames, params, cam, w, h, turn, views)
@@ -714,7 +724,7 @@ class Bench:
                 self.results.setdefault("variants", []).append(
                     {"n_atoms": n, "width": w, "height": h, "label": label, "options": kw,
                      "params": params.model_dump(mode="json", exclude_defaults=True),
-                     "turn_deg": turn, "views": views, **st}
+                     "matched_level": matched, "turn_deg": turn, "views": views, **st}
                 )  # fmt: skip
                 self.save()
                 self.log(
@@ -1217,7 +1227,8 @@ def _describe(params: dict[str, Any]) -> str:
 
 
 def table(path: Path) -> str:
-    """Markdown tables of a results file (for benchmarks/README.md)."""
+    """Markdown tables of every section of a results file (printed after each run; the
+    README's tables are benchmarks/tables/)."""
     res = json.loads(Path(path).read_text())
     lines = [
         f"GPU: **{res['gpu']}** (warp {res['warp']}, {res['date']}); parameters "

@@ -259,6 +259,11 @@ class Forces(Message):
         return self
 
 
+SimSteering = SimParams | Control | Forces
+"""*->S: what steers a simulation; the server forwards it, the simulation answers each with a
+`params_ack`."""
+
+
 class Pull(Message):
     """V->*: pull one atom with a spring toward `target` (angstrom), or apply `force`
     directly; `release` clears it."""
@@ -346,6 +351,10 @@ TFPreset = Literal["cloud", "shells", "iso-like"]
 
 
 MAX_LAYERS = 8
+MIN_CUTOFF_SIGMAS = 1
+MAX_CUTOFF_SIGMAS = 6
+"""The range of `RenderParams.cutoff_sigmas`, the greatest reach of an atom's Gaussian in
+sigmas; the renderer refuses the same range (the surface's accuracy needs at most 4)."""
 LAYER_OVERRIDES = (
     "mode", "sigma_A", "iso_level", "scale_space", "color_by", "uniform_color", "tf_preset",
     "transfer_function",
@@ -401,7 +410,9 @@ class RenderParams(Model):
     sigma_A: Annotated[float, Field(ge=0.05, le=50, allow_inf_nan=False)] = 1.5
     radius_mode: Literal["uniform", "vdw"] = "uniform"
     iso_level: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.25
-    cutoff_sigmas: Annotated[float, Field(ge=1, le=6, allow_inf_nan=False)] = 4.0
+    cutoff_sigmas: Annotated[
+        float, Field(ge=MIN_CUTOFF_SIGMAS, le=MAX_CUTOFF_SIGMAS, allow_inf_nan=False)
+    ] = 4.0
     step_sigmas: Annotated[float, Field(ge=0.02, le=2, allow_inf_nan=False)] = 0.25
     transfer_function: list[TFPoint] = Field(default_factory=list, max_length=64)
     tf_preset: TFPreset = "cloud"

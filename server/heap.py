@@ -5,7 +5,7 @@ thread runs Python: not the event loop, not the device thread, not the encoders.
 server's own modules loaded (about 190,000 objects) and a 1M-atom topology (its per-atom lists
 of names, elements, residues) one such collection took 135 ms on the H200's host, once or twice
 a minute at 60 frames/s, and a steering change that met it waited that long
-(benchmarks/README.md, "Collector pauses").
+(benchmarks/HISTORY.md, "Collector pauses").
 
 `settle` collects once and moves every object still alive into the collector's permanent
 generation (`gc.freeze`): later collections walk only what is newer, frames, messages and

@@ -35,12 +35,10 @@ from websockets.exceptions import ConnectionClosed, InvalidURI, WebSocketExcepti
 
 import protocol
 from protocol import (
-    Control,
     EngineInfo,
     Error,
     ErrorCode,
     Event,
-    Forces,
     Frame,
     Hello,
     Limits,
@@ -49,15 +47,12 @@ from protocol import (
     Ping,
     Pong,
     ProtocolError,
-    SimParams,
+    SimSteering,
     Topology,
     Welcome,
 )
 
 log = logging.getLogger("scalesteer.connection")
-
-SteeringMessage = SimParams | Control | Forces
-"""What the server sends a simulation to steer it."""
 
 #: error codes after which reconnecting with the same settings cannot succeed
 FATAL_CODES = frozenset(
@@ -541,7 +536,7 @@ class SimulationConnection:
             self._dispatch(msg, generation)
 
     def _dispatch(self, msg: Message, generation: int) -> None:
-        if isinstance(msg, SteeringMessage):
+        if isinstance(msg, SimSteering):
             self.stats.steering_received += 1
             with self._lock:
                 self._steering.append(msg)

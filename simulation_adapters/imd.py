@@ -48,7 +48,8 @@ from simulation_adapters.imd_session import (
     IMDError,
     IMDSession,
 )
-from structures.reader import Structure, StructureError, load
+from structures.errors import StructureError
+from structures.reader import Structure, load
 
 log = logging.getLogger("scalesteer.imd")
 

@@ -27,7 +27,8 @@ import numpy as np
 from protocol import Control, EngineInfo, Frame, Message, ParamRange, SimParams, WireArray
 from simulation_adapters.cli_support import add_retry, configure_logging, parse
 from simulation_adapters.connection import ConnectionState, SimulationConnection
-from structures.reader import Structure, StructureError, load
+from structures.errors import StructureError
+from structures.reader import Structure, load
 
 log = logging.getLogger("scalesteer.replay")
 

@@ -32,7 +32,8 @@ import numpy as np
 import numpy.typing as npt
 
 from protocol import Topology
-from structures.reader import StructureError, load
+from structures.errors import StructureError
+from structures.reader import load
 
 _ROOT = str(Path(__file__).resolve().parents[1])
 _SPARE: tuple[subprocess.Popen[bytes], multiprocessing.connection.Connection] | None = None

@@ -16,6 +16,8 @@ import numpy as np
 import numpy.typing as npt
 
 from protocol import Topology, WireArray
+from structures.errors import StructureError
+from structures.textcheck import CHECKS
 
 STRUCTURE_FORMATS = (
     "pdb",
@@ -32,10 +34,6 @@ STRUCTURE_FORMATS = (
     "crd",
 )
 TRAJECTORY_FORMATS = ("dcd", "xtc", "trr", "pdb", "nc", "ncdf", "xyz", "lammpsdump")
-
-
-class StructureError(ValueError):
-    """A structure or trajectory that cannot be used, with a message naming the problem."""
 
 
 @dataclass
@@ -146,8 +144,6 @@ def load(
                 f"unsupported trajectory format {_fmt(t)!r} ({os.path.basename(t)}); "
                 f"use one of {', '.join(TRAJECTORY_FORMATS)}"
             )
-    from structures.textcheck import CHECKS
-
     for path in (topology, *trajectories):
         check = CHECKS.get(_fmt(path))
         if check is not None and not path.lower().endswith((".gz", ".bz2")):

@@ -11,7 +11,7 @@ import os
 from collections.abc import Iterator
 from itertools import islice
 
-from structures.reader import StructureError
+from structures.errors import StructureError
 
 MAX_QUOTED = 60
 

@@ -36,3 +36,10 @@ def test_the_mp4_job_documented_in_the_server_docs_needs_only_the_demo_extra() -
     import av  # installed by the demo extra, as asserted above
 
     assert av.codec.Codec("libx264", "w").name == "libx264"
+
+
+def test_the_notebook_extra_installs_the_client_and_the_widget() -> None:
+    # docs/python.md: `pip install -e '.[notebook]'` is all the three-line start needs
+    assert {"httpx", "pillow", "anywidget", "ipywidgets", "mdanalysis"} <= extra("notebook")
+    # and `make test` (the dev extra) runs the widget in JupyterLab and the example notebooks
+    assert {"anywidget", "jupyterlab", "nbclient", "ipykernel", "mdtraj", "ase"} <= extra("dev")

@@ -121,7 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     from server.pipeline.selections import check_layers
     from server.render.camera import fit_camera
     from server.web.rest import unknown_keys
-    from structures.reader import StructureError, load
+    from structures.errors import StructureError
+    from structures.reader import load
     from structures.selection import default_layers
 
     if sum(x is not None for x in (args.select, args.layers)) + args.all_atoms > 1:

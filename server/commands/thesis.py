@@ -1,14 +1,18 @@
 """`scalesteer thesis`: regenerate the reproduction of the thesis's chapters 3-4.
 
 The reproduction is not part of the installed package: it lives in the source checkout's
-`thesis/` folder beside `benchmarks/`. This command finds it there, checks the extras it needs
-(matplotlib, scikit-image, scipy) and says which are missing before anything runs.
+`thesis/` folder beside `benchmarks/`. This command checks the extras it needs (matplotlib,
+scikit-image, scipy) and says which are missing before anything runs, then runs it as
+`python -m thesis.reproduce` from the checkout, where `thesis` is importable without touching
+this process's import path. Its report goes to the checkout's `docs/thesis/` unless `--out`
+says otherwise (a relative `--out` is taken from where the command was given).
 """
 
 from __future__ import annotations
 
-import importlib
+import argparse
 import importlib.util
+import subprocess
 import sys
 from pathlib import Path
 
@@ -21,11 +25,20 @@ def missing_extras() -> list[str]:
     return [dist for module, dist in EXTRAS.items() if importlib.util.find_spec(module) is None]
 
 
+def from_here(args: list[str], here: Path) -> list[str]:
+    """`args` with a relative `--out` made absolute from `here` (the reproduction runs in the
+    checkout, so it would read a relative folder from there)."""
+    parser = argparse.ArgumentParser(prog="scalesteer thesis", add_help=False)
+    parser.add_argument("--out", type=Path)
+    known, rest = parser.parse_known_args(args)
+    if known.out is None:
+        return args
+    return [*rest, "--out", str(here / known.out)]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
-    if (CHECKOUT / "thesis" / "reproduce.py").is_file() and str(CHECKOUT) not in sys.path:
-        sys.path.insert(0, str(CHECKOUT))
-    if importlib.util.find_spec("thesis") is None:
+    if not (CHECKOUT / "thesis" / "reproduce.py").is_file():
         print(
             "scalesteer thesis: the thesis reproduction ships with the source checkout, not the "
             "installed package; run it from a clone: python -m thesis.reproduce",
@@ -39,6 +52,5 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 3
-    reproduce = importlib.import_module("thesis.reproduce")
-    result: int = reproduce.main(args)
-    return result
+    command = [sys.executable, "-m", "thesis.reproduce", *from_here(args, Path.cwd())]
+    return subprocess.run(command, cwd=CHECKOUT, check=False).returncode

@@ -191,7 +191,7 @@ class ChunkInputs:
 def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequence[int]) -> Any:
     """Render `indices` on this actor (body of `RenderWorker.render`, kept importable)."""
     from server.pipeline.encoder import encode_image
-    from server.pipeline.jobs import time_window
+    from server.pipeline.history import time_window
     from server.pipeline.overlay import draw_overlay
     from server.pipeline.selections import FrameLayers
     from server.render import Renderer

@@ -159,6 +159,8 @@ class GpuQueue:
     )
     tuning: Tuning | None = None
     """The renderers' tuning (benchmarks and tests; None: the defaults)."""
+    prefetch: bool = True
+    """Upload the newest staged frame while a live render runs (off: the baseline)."""
     _lanes: list[_Lane] = field(default_factory=list)
     _lane_of: dict[str, int] = field(default_factory=dict)
     _spread: str | None = None
@@ -387,7 +389,9 @@ class GpuQueue:
         upload during a render, and frames without a history to smooth over."""
         renderer = slot.renderer
         stager = slot.stager
-        if stager is None or request.snapshot.history or not getattr(renderer, "pipelined", False):
+        if not self.prefetch or stager is None or request.snapshot.history:
+            return
+        if not getattr(renderer, "pipelined", False):
             return
         newest = stager.newest(slot.positions_id)
         if newest is None:

@@ -25,24 +25,22 @@ import secrets
 import shutil
 import threading
 import time
-from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import protocol as p
 from server.metrics import Metrics
+from server.pipeline.distributed import ChunkInputs, RayBatch, upload_refs
 from server.pipeline.encoder import encode_image
 from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
+from server.pipeline.history import time_window
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
 from server.pipeline.overlay import draw_overlay
 from server.pipeline.selections import FrameLayers, LayerError
+from structures.errors import StructureError
 from structures.isolated import IsolatedStructure, ReadLimits
-
-if TYPE_CHECKING:
-    from server.pipeline.distributed import RayBatch
-from structures.reader import StructureError
 from structures.selection_pool import Held, SelectionPool
 
 log = logging.getLogger("scalesteer.jobs")
@@ -229,19 +227,6 @@ class _FrameCache:
     def forget_before(self, first: int) -> None:
         for i in [i for i in self.frames if i < first]:
             del self.frames[i]
-
-
-def time_window(params: p.RenderParams, n_frames: int) -> Callable[[int], tuple[int, int]] | None:
-    """For temporal smoothing: the trajectory frames around output frame `i` its filter
-    sees (the causal kernel: the window before it; otherwise centred on it, as the file holds
-    the future too), or None without smoothing."""
-    if not params.needs_history():
-        return None
-    w = params.time_window
-    if params.time_kernel == "causal":
-        return lambda i: (max(0, i - w + 1), i)
-    half = (w - 1) // 2
-    return lambda i: (max(0, i - half), min(n_frames - 1, i + half))
 
 
 class LiveSource(Protocol):
@@ -631,8 +616,6 @@ class JobManager:
     ) -> bool:
         """The frames of `job` rendered by the Ray pool and written here in order; False when
         the job was cancelled."""
-        from server.pipeline.distributed import ChunkInputs, upload_refs
-
         assert self.batch is not None
         spec = job.spec
         loop = asyncio.get_running_loop()

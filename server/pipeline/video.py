@@ -54,14 +54,14 @@ TIME_BASE = Fraction(1, 1000)
 
 def _threads() -> int:
     """Slices (threads) per encode: zero-latency encoders split each frame and never pipeline
-    frames; at 1080p 16 slices were slower than 8 (benchmarks/README.md, "Video")."""
+    frames; at 1080p 16 slices were slower than 8 (benchmarks/HISTORY.md, "Video")."""
     return max(1, min(8, os.cpu_count() or 1))
 
 
 X264_PRESET = "superfast"
 """libx264's speed/quality trade. At 1080p on an H100 host, superfast with 8 slices encoded in
 10.5 ms (1M atoms) at the same bit rate and PSNR as veryfast (12.1 ms) and faster (15.7 ms);
-benchmarks/README.md, "Video", has every variant."""
+benchmarks/HISTORY.md, "Video", has every variant."""
 
 
 def _options(

@@ -25,6 +25,7 @@ import numpy.typing as npt
 import warp
 
 from protocol import Camera, RenderParams, Topology
+from protocol.messages import MAX_CUTOFF_SIGMAS, MIN_CUTOFF_SIGMAS
 from server.render import carved, colors, geodesic_field, raycast, temporal, transfer, visibility
 from server.render import device as devmod
 from server.render.camera import CameraFrame, band_planes, camera_frame
@@ -44,6 +45,7 @@ from server.render.errors import RenderError
 from server.render.geodesic import GAIN, BondGraph, GeodesicScales
 from server.render.grid import CellGrid, Cull, cell_threads
 from server.render.outputs import ImageOutputs
+from server.render.reach import reach_sigmas
 from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
 from server.render.tuning import (
     BOUND_KEEP_FROM,
@@ -500,8 +502,11 @@ class Renderer(ImageOutputs):
             raise RenderError(f"mode must be 'iso' or 'volume', got {params.mode!r}")
         if params.radius_mode not in ("uniform", "vdw"):
             raise RenderError(f"radius_mode must be 'uniform' or 'vdw', got {params.radius_mode!r}")
-        if params.cutoff_sigmas > 10:
-            raise RenderError(f"cutoff_sigmas must be <= 10, got {params.cutoff_sigmas}")
+        if not MIN_CUTOFF_SIGMAS <= params.cutoff_sigmas <= MAX_CUTOFF_SIGMAS:
+            raise RenderError(
+                f"cutoff_sigmas must be within {MIN_CUTOFF_SIGMAS}..{MAX_CUTOFF_SIGMAS}, "
+                f"got {params.cutoff_sigmas}"
+            )
 
     @staticmethod
     def _check_camera(camera: Camera, width: int, height: int) -> CameraFrame:
@@ -524,7 +529,10 @@ class Renderer(ImageOutputs):
         if p.scale_space in ("carved", "warped") and p.warp_strength > 0.0:
             warp = WarpScales.of(float(p.sigma_A), float(p.warp_strength))
         sigma = warp.space if warp is not None else float(p.sigma_A)
-        k = float(p.cutoff_sigmas)
+        # the reach the surface's accuracy needs at this sigma, at most cutoff_sigmas (reach.py;
+        # measured for the Gaussian density: the carved density keeps cutoff_sigmas)
+        fixed = warp is not None or self.tuning.fixed_cutoff
+        k = float(p.cutoff_sigmas) if fixed else reach_sigmas(sigma, p.cutoff_sigmas)
         if p.radius_mode == "vdw":
             spr = sigma / colors.R_REF
             s_max = spr * self._r_max

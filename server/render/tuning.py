@@ -79,7 +79,8 @@ VIEWS_KEPT = 64
 class Tuning:
     """The renderer's switches; None picks the rule above. None of them changes an image except
     `taper` (off: each Gaussian cut at the cutoff, a baseline for the taper's cost) and
-    `empty_space_skipping` (off: every lattice sample marched, the same image slower)."""
+    `empty_space_skipping` (off: every lattice sample marched, the same image slower) and
+    `fixed_cutoff` (the surface moves within the accuracy bound)."""
 
     cells_per_cutoff: float | None = None
     """Grid cell = cutoff / this (>= 1; the cell grows where memory caps the count)."""
@@ -103,6 +104,9 @@ class Tuning:
     count_passes: bool = False
     """Rays count their density passes (`Renderer.read_pass_counts`; kernels of their own)."""
     taper: bool = True
+    fixed_cutoff: bool = False
+    """Reach cutoff_sigmas exactly, not the least the surface's accuracy needs (reach.py): the
+    baseline of the accuracy reach's gain."""
 
     def __post_init__(self) -> None:
         if self.march_budget is not None and self.march_budget < 0:

@@ -49,7 +49,7 @@ def stride_for(width: int, height: int) -> int:
     above in proportion to the image's linear size, so a larger image casts about as many
     marking rays (a cell covers more of its pixels). One H200, 3840x2160 iso: stride 4 against
     2, 1M atoms 14.44 / 14.35 ms against 14.52 / 14.50, 3M 19.25 / 19.21 against 19.46 / 19.43
-    (benchmarks/README.md, "Render core, round six")."""
+    (benchmarks/HISTORY.md, "Render core, round six")."""
     scale = math.sqrt(width * height / STRIDE_PIXELS)
     return max(STRIDE, round(STRIDE * scale))
 

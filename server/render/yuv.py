@@ -3,7 +3,7 @@ on the device from the packed RGBA image and scaled to the stream's size on the 
 
 Why on the device: a stream keeps its size while renders shrink (an interaction renders half
 the canvas), so every interactive frame is scaled up and converted before it is encoded. On the
-host that is a swscale pass as long as the encode itself (benchmarks/README.md, "Video"); here
+host that is a swscale pass as long as the encode itself (benchmarks/HISTORY.md, "Video"); here
 it is one small kernel and a read-back of the planes (3 MB at 1080p).
 """
 

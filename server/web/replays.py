@@ -26,8 +26,8 @@ from server.web.access import GatedRoute, steerer_access, viewer_access
 from server.web.children import ReplayManager
 from server.web.rest import State, save_upload
 from server.web.state import AppState
+from structures.errors import StructureError
 from structures.isolated import IsolatedStructure
-from structures.reader import StructureError
 
 router = APIRouter(route_class=GatedRoute)
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")

@@ -32,8 +32,8 @@ from server.web.access import (
     viewer_access,
 )
 from server.web.state import AppState
+from structures.errors import StructureError
 from structures.isolated import IsolatedStructure
-from structures.reader import StructureError
 
 router = APIRouter(route_class=GatedRoute)
 State = Annotated[AppState, Depends(app_state)]

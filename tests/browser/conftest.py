@@ -48,8 +48,11 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.skip(reason=reason))
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def chromium() -> Iterator[Any]:
+    """One browser for the browser tests, closed after the last of them: Playwright's
+    synchronous API holds this thread's event loop while it is open, and later tests run
+    their own loops here."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as pw:

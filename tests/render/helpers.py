@@ -11,6 +11,7 @@ import numpy as np
 from protocol import Camera, RenderParams, Topology
 from server.render import colors
 from server.render.density import GAUSSIAN
+from server.render.reach import reach_sigmas
 from server.render.renderer import MEAN_SAMPLES, Renderer
 from server.render.skeleton import Skeleton, carved_density
 from server.render.tuning import Tuning
@@ -30,7 +31,7 @@ def oracle_molecule(topology: Topology, positions: np.ndarray, params: RenderPar
         positions=np.asarray(positions, dtype=np.float64),
         weights=colors.atom_weights(topology, params.density_weights).astype(np.float64),
         sigmas=sig,
-        k=params.cutoff_sigmas,
+        k=reach_sigmas(params.sigma_A, params.cutoff_sigmas),
         colors=rgb,
     )
     if params.level_scale == "absolute" or n == 0:

@@ -16,6 +16,7 @@ import timewarp
 from protocol import RenderParams
 from server.render import colors, raycast
 from server.render.camera import camera_frame, fit_camera, image_rays, orbit
+from server.render.reach import reach_sigmas
 from server.render.renderer import Renderer
 from server.render.skeleton import (
     GAIN,
@@ -32,9 +33,11 @@ from tests.render.molecules import Mol, benzene, chain, hairpin, three_atoms, vi
 CARVED = RenderParams(scale_space="carved", sigma_A=1.5)
 
 
-def _render(device: str, mol: Mol, params: RenderParams, w: int = 48, h: int = 36) -> Renderer:
+def _render(
+    device: str, mol: Mol, params: RenderParams, w: int = 48, h: int = 36, **kw: object
+) -> Renderer:
     cam = orbit(fit_camera(mol.positions, w, h, margin=1.0), 30.0, 20.0)
-    return render(device, mol.topology, mol.positions, params, cam, w, h)
+    return render(device, mol.topology, mol.positions, params, cam, w, h, **kw)
 
 
 def _points_around(mol: Mol, m: int, seed: int, spread: float) -> np.ndarray:
@@ -121,9 +124,11 @@ def test_strength_zero_is_the_classical_renderer(device: str, mode: str) -> None
     a = _render(device, mol, classical).read_rgba()
     b = _render(device, mol, zero).read_rgba()
     np.testing.assert_array_equal(a, b)
+    # the carved density keeps cutoff_sigmas as its reach (reach.py measured the Gaussian's)
+    full = _render(device, mol, classical, fixed_cutoff=True).read_rgba()
     weak = classical.model_copy(update={"scale_space": "carved", "warp_strength": 1e-4})
     c = _render(device, mol, weak).read_rgba()
-    assert np.abs(c.astype(int) - a.astype(int)).max() <= 2
+    assert np.abs(c.astype(int) - full.astype(int)).max() <= 2
 
 
 def test_rigid_motion_leaves_the_density_unchanged(device: str) -> None:
@@ -297,14 +302,14 @@ def test_structure_only_simplifies_as_sigma_grows(maker: object) -> None:
 
 
 def test_the_default_cutoff_keeps_the_surface_in_place() -> None:
-    """Tapering each Gaussian to zero at the default cutoff moves villin's iso-surface by at
-    most max(0.05 A, 1 % of sigma) against the untruncated float64 density, from sigma 0.3 to
-    12 A (relative levels: the level follows the truncated density too). Crossings are taken
-    along rays from the molecule's centre."""
+    """Tapering each Gaussian to zero at the reach the renderer takes by default (reach.py:
+    the least the accuracy bound needs at each sigma) moves villin's iso-surface by at most
+    max(0.05 A, 1 % of sigma) against the untruncated float64 density, from sigma 0.3 to 12 A
+    (relative levels: the level follows the truncated density too). Crossings are taken along
+    rays from the molecule's centre."""
     mol = villin()
     pos = mol.positions.astype(np.float64)
     center = pos.mean(axis=0)
-    k = RenderParams().cutoff_sigmas
     level = RenderParams().iso_level
     rng = np.random.default_rng(11)
     dirs = rng.normal(size=(32, 3))
@@ -317,6 +322,7 @@ def test_the_default_cutoff_keeps_the_surface_in_place() -> None:
     for sigma in (0.3, 0.6, 1.0, 1.5, 3.0, 6.0, 12.0):
         radii = np.linspace(0.0, 30.0 + 4 * sigma, 900)
         shift = 0.0
+        k = reach_sigmas(sigma, RenderParams().cutoff_sigmas)
         mols = {cut: molecule(sigma, cut) for cut in (1e3, k)}  # 1e3 sigmas: untruncated
         levels = {cut: level * oracle.density_of(m, pos).mean() for cut, m in mols.items()}
         for v in dirs:

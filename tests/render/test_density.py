@@ -21,6 +21,7 @@ from server.render.density import GaussianField, UnsortedAtoms
 from server.render.errors import RenderError
 from server.render.grid import SORTED_IN_CELL, CellGrid, order_cells_kernel
 from server.render.raycast import kernels_for
+from server.render.reach import reach_sigmas
 from server.render.renderer import Renderer
 from server.render.tuning import Tuning
 from tests.render import oracle
@@ -782,7 +783,8 @@ def test_untapered_gaussians_are_cut_at_the_cutoff(device: str) -> None:
     got = r.evaluate(pts)[0]
     d2 = ((pts[:, None, :].astype(np.float64) - pos[None]) ** 2).sum(-1)
     e = d2 / (2 * 1.2**2)
-    want = np.where(e < 0.5 * 4.0**2, np.exp(-e), 0.0).sum(axis=1)
+    k = reach_sigmas(1.2, params.cutoff_sigmas)
+    want = np.where(e < 0.5 * k**2, np.exp(-e), 0.0).sum(axis=1)
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-7)
     tapered = render(device, top, pos, params, fit_camera(pos, 8, 6), 8, 6).evaluate(pts)[0]
     assert not np.allclose(tapered, want, rtol=1e-6)  # the default does taper

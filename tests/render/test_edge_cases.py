@@ -161,6 +161,9 @@ def test_invalid_positions(device: str, bad: np.ndarray, match: str, no_launch: 
         (RenderParams.model_construct(sigma_A=-1.0), (8, 8), "sigma_A"),
         (RenderParams.model_construct(iso_level=float("nan")), (8, 8), "iso_level"),
         (RenderParams.model_construct(step_sigmas=0.0), (8, 8), "step_sigmas"),
+        # the protocol's range, from the same constants: a Gaussian reaches at most 6 sigma
+        (RenderParams.model_construct(cutoff_sigmas=8.0), (8, 8), r"cutoff_sigmas .* 1\.\.6"),
+        (RenderParams.model_construct(cutoff_sigmas=0.5), (8, 8), r"cutoff_sigmas .* 1\.\.6"),
         (RenderParams(), (0, 8), "at least 1x1"),
         (RenderParams(), (8, 0), "at least 1x1"),
         (RenderParams(), (200, 200), "limit"),

@@ -19,6 +19,7 @@ from server.render.geodesic import (
     best_classical_sigma,
     classical_density,
 )
+from server.render.reach import reach_sigmas
 from server.render.renderer import Renderer
 from tests.render.helpers import render
 from tests.render.molecules import Mol, benzene, hairpin, three_atoms, villin
@@ -225,14 +226,17 @@ def test_value_and_gradient_match_the_reference(
     cam = fit_camera(mol.positions, 32, 24)
     r = render(device, mol.topology, mol.positions, params, cam, 32, 24)
     sigma = params.sigma_A
-    scales = GeodesicScales.of(sigma, params.warp_strength, 4.0 * sigma)
+    k = reach_sigmas(sigma, params.cutoff_sigmas)
+    lam = params.warp_strength
+    scales = GeodesicScales.of(sigma, lam, k * sigma)
     from server.render import colors
 
     d = colors.atom_weights(mol.topology, params.density_weights).astype(np.float64)
     geo = geodesic_of(mol, scales.table_reach, d)
     rng = np.random.default_rng(11)
     pts = mol.positions[rng.integers(0, len(mol.positions), 40)] + rng.normal(size=(40, 3))
-    ref = geo.density(pts, sigma, strength=params.warp_strength) / r.density_scale()
+    ref = geo.density(pts, sigma, strength=params.warp_strength, cutoff_sigmas=k)
+    ref = ref / r.density_scale()
     val, vg, _col, ids = r.evaluate(pts)
     np.testing.assert_allclose(val, ref, rtol=2e-5, atol=2e-6 * float(ref.max()))
     h = 1e-4
@@ -240,8 +244,8 @@ def test_value_and_gradient_match_the_reference(
         np.stack(
             [
                 (
-                    geo.density(pts + h * e, sigma, strength=params.warp_strength)
-                    - geo.density(pts - h * e, sigma, strength=params.warp_strength)
+                    geo.density(pts + h * e, sigma, strength=lam, cutoff_sigmas=k)
+                    - geo.density(pts - h * e, sigma, strength=lam, cutoff_sigmas=k)
                 )
                 / (2 * h)
                 for e in np.eye(3)
@@ -334,7 +338,7 @@ def test_route_tables_follow_the_reach_and_report_their_bytes(device: str) -> No
     tables = r._geo
     assert tables is not None and tables.key == (
         "uniform",
-        GeodesicScales.of(1.5, 1, 6.0).table_reach,
+        GeodesicScales.of(1.5, 1, 1.5 * reach_sigmas(1.5, 4.0)).table_reach,
     )
     small = r.memory_bytes()["geodesic"]
     assert small > 0

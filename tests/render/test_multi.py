@@ -12,6 +12,7 @@ from server.render import Renderer
 from server.render import device as render_device
 from server.render.camera import band_planes, camera_frame, fit_camera
 from server.render.multi import MultiRenderer, balance, split_rows
+from server.render.reach import reach_sigmas
 from tests.render.molecules import Mol, villin
 
 PARAMS = [
@@ -101,7 +102,7 @@ def test_a_band_grid_holds_the_atoms_its_rays_reach(device: str, params: RenderP
     band.set_positions(mol.positions)
     frame = camera_frame(cam, w, h)
     n = len(mol.positions)
-    reach = params.cutoff_sigmas * params.sigma_A
+    reach = reach_sigmas(params.sigma_A, params.cutoff_sigmas) * params.sigma_A
     kept_counts = []
     for y0 in range(0, h, 24):
         band.render(params, cam, w, h, tile=(0, y0, w, 24))

@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 from MDAnalysisTests.datafiles import DCD, GRO, MMCIF, PDBX, PSF, XTC, PDB_multiframe
 
-from structures.reader import StructureError, lammps_atom_style, load
+from structures.errors import StructureError
+from structures.reader import lammps_atom_style, load
 from tests.adapters.lammps_helpers import write_argon_data
 
 

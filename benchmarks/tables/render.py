@@ -1,0 +1,321 @@
+"""Tables of the renderer's own benchmarks: render_bench.py (today's frame against its
+controls, the densities, the sizes, the baselines, graph replay, passes per ray),
+reach_accuracy.py, multi_device_bench.py, temporal_bench.py and layers_bench.py."""
+
+from __future__ import annotations
+
+from .markdown import Results, Source, block, count, num, size, stem, table
+
+
+def params(res: Results) -> str:
+    """The render parameters a run was set to (the frames' and its controls')."""
+    p = res["params"]
+    return (
+        f"sigma {p['sigma_A']:g} A, iso {p['iso_level']:g} ({p.get('level_scale', 'absolute')} "
+        f"level), cutoff {p['cutoff_sigmas']:g} sigma, step {p['step_sigmas']:g} sigma"
+    )
+
+
+def _variant_case(v: Results, file_params: Results) -> str:
+    mode = v.get("params", {}).get("mode", file_params.get("mode", "iso"))
+    case = f"{count(v['n_atoms'])} atoms {size(v['width'], v['height'])}"
+    return case if mode == "iso" else f"{case} {mode}"
+
+
+def render_variants(sources: list[Source]) -> str:
+    """Variants of one frame in one run: the first label of a file is today's code, the control
+    every other variant is divided by (ratio in brackets)."""
+    labels: list[str] = []
+    cases: dict[str, dict[str, Results]] = {}
+    for _, res in sources:
+        for v in res["variants"]:
+            if v["label"] not in labels:
+                labels.append(v["label"])
+            cases.setdefault(_variant_case(v, res["params"]), {})[v["label"]] = v
+    first = labels[0]
+    rows = []
+    for case, by in cases.items():
+        ref = by[first]
+        st = ref["stages_ms"]
+        row = [case, num(ref["median_ms"], 3), num(ref["fps"], 0)]
+        row.append(f"{num(st['grid'])} / {num(st['raycast'])}")
+        for label in labels[1:]:
+            v = by.get(label)
+            row.append(
+                ""
+                if v is None
+                else f"{num(v['median_ms'], 3)} ({v['median_ms'] / ref['median_ms']:.2f})"
+            )
+        rows.append(row)
+    header = ["case", f"{first} ms", "fps", "grid / cast ms", *labels[1:]]
+    return block(
+        sources, table(header, "lrrr" + "r" * (len(labels) - 1), rows), params(sources[0][1])
+    )
+
+
+def render_densities(sources: list[Source]) -> str:
+    """The classical, geodesic and carved densities on the same frames; the classical one is the
+    control of the ratios."""
+    ((_, res),) = sources
+    rows = []
+    for r in res["densities"]:
+        rows.append(
+            [
+                count(r["n_atoms"]),
+                size(r["width"], r["height"]),
+                num(r["classical"]["median_ms"], 3),
+                num(r["geodesic"]["median_ms"], 2),
+                num(r["geodesic_over_classical_fps"], 3),
+                num(r["carved"]["median_ms"], 3),
+                num(r["carved_over_classical_fps"], 2),
+                " / ".join(
+                    num(r[f"{d}_bytes_per_atom"], 0) for d in ("classical", "geodesic", "carved")
+                ),
+            ]
+        )
+    header = [
+        "atoms",
+        "image",
+        "classical ms",
+        "geodesic ms",
+        "geodesic fps / classical",
+        "carved ms",
+        "carved fps / classical",
+        "B/atom classical / geodesic / carved",
+    ]
+    return block(sources, table(header, "rlrrrrrr", rows), params(res))
+
+
+def render_sizes(sources: list[Source]) -> str:
+    """The main table: median ms per frame for every size, image and mode, the stages of one
+    column, bytes per atom, and the grid rebuild against `wp.HashGrid.build` (its control)."""
+    ((_, res),) = sources
+    columns: list[tuple[int, int, str]] = []
+    frames: dict[tuple[int, str], dict[tuple[int, int, str], Results]] = {}
+    for f in res["frames"]:
+        key = (f["width"], f["height"], f["mode"])
+        if key not in columns:
+            columns.append(key)
+        frames.setdefault((f["n_atoms"], f["system"]), {})[key] = f
+    grid = {g["n_atoms"]: g for g in res["grid_build"]}
+    staged = max(columns, key=lambda c: (c[2] == "iso", c[0] * c[1]))
+    rows = []
+    for (n, system), by in frames.items():
+        row = [f"{n:,}", system]
+        row += [num(by[c]["median_ms"], 3) if c in by else "" for c in columns]
+        st = by[staged]["stages_ms"] if staged in by else {}
+        row.append(" / ".join(num(st.get(k), 2) for k in ("upload", "grid", "raycast")))
+        row.append(num(next(iter(by.values()))["bytes_per_atom"], 1))
+        g = grid.get(n)
+        row.append("" if g is None else f"{num(g['dense_ms'], 3)} / {num(g['hashgrid_ms'], 3)}")
+        rows.append(row)
+    header = ["atoms", "system", *(f"{size(w, h)} {m}" for w, h, m in columns)]
+    header += [f"{size(*staged[:2])} {staged[2]} upload / grid / cast", "B/atom"]
+    header += ["grid rebuild: ours / wp.HashGrid"]
+    return block(sources, table(header, "rl" + "r" * (len(columns) + 3), rows), params(res))
+
+
+def render_baselines(sources: list[Source]) -> str:
+    """Our frame against its controls in the same run (iso): the same kernel without
+    empty-space skipping, a `wp.HashGrid` fixed-step march, and resampling onto voxel grids,
+    each cell median ms, how many times ours is faster, and the image error against a 5x finer
+    step; then graph replay against launching the kernels one by one."""
+    ((_, res),) = sources
+    voxels: list[float] = []
+    for b in res["baselines"]:
+        for rs in b.get("resample", []):
+            if rs["voxel_A"] not in voxels:
+                voxels.append(rs["voxel_A"])
+    rows = []
+    for b in res["baselines"]:
+        ours = b["ours_uniform"]
+        row = [
+            f"{b['n_atoms']:,}",
+            size(b["width"], b["height"]),
+            f"{num(ours['median_ms'])} (error {ours['error_vs_fine']['mean_abs_rgb']:.4f})",
+        ]
+        nv = b.get("naive")
+        row.append("" if nv is None else f"{num(nv['median_ms'])} ({nv['speedup_of_ours']:.1f}x)")
+        hg = b.get("hashgrid")
+        row.append(
+            ""
+            if hg is None
+            else f"{num(hg['median_ms'])} ({hg['speedup_of_ours']:.1f}x, "
+            f"{hg['error_vs_fine']['mean_abs_rgb']:.4f})"
+        )
+        by = {rs["voxel_A"]: rs for rs in b.get("resample", [])}
+        for vx in voxels:
+            rs = by.get(vx)
+            if rs is None:
+                row.append("")
+            elif "skipped" in rs:
+                row.append("skipped: " + str(rs["skipped"]))
+            else:
+                row.append(
+                    f"{num(rs['median_ms'])} ({rs['speedup_of_ours']:.1f}x, "
+                    f"{rs['error_vs_fine']['mean_abs_rgb']:.4f})"
+                )
+        rows.append(row)
+    header = ["atoms", "image", "ours ms", "no skipping", "wp.HashGrid march"]
+    header += [f"resample {vx:g} A" for vx in voxels]
+    lines = table(header, "rl" + "r" * (3 + len(voxels)), rows)
+    return block(sources, [*lines, "", *_graphs(res)], params(res))
+
+
+def _graphs(res: Results) -> list[str]:
+    """Graph replay against launching the frame's kernels one by one (its control)."""
+    by = {(g["n_atoms"], g["width"], g["height"], g["graphs"]): g for g in res["graphs"]}
+    rows = []
+    for (n, w, h, replay), g in by.items():
+        other = by.get((n, w, h, False))
+        if replay and other:
+            rows.append(
+                [
+                    f"{n:,}",
+                    size(w, h),
+                    num(g["median_ms"], 3),
+                    num(other["median_ms"], 3),
+                    f"{other['median_ms'] / g['median_ms']:.2f}x",
+                ]
+            )
+    header = ["atoms", "image", "graph replay ms", "one by one ms", "ratio"]
+    return table(header, "rlrrr", rows)
+
+
+def render_passes(sources: list[Source]) -> str:
+    """Density passes per ray (four samples each), iso against volume, and the share of a warp's
+    pass slots that do work (a count, the same on any device)."""
+    ((_, res),) = sources
+    rows = []
+    for r in res["passes"]:
+        iso, vol = r["iso"], r["volume"]
+        rows.append(
+            [
+                count(r["n_atoms"]),
+                size(r["width"], r["height"]),
+                num(iso["per_ray"]),
+                num(iso["per_ray_reaching"]),
+                num(iso["tile_use"]),
+                num(vol["per_ray"]),
+                num(vol["per_ray_reaching"]),
+                num(vol["tile_use"]),
+                num(r["volume_over_iso"]),
+            ]
+        )
+    header = ["atoms", "image", "iso per ray", "iso per ray reaching", "iso tile use"]
+    header += ["volume per ray", "volume per ray reaching", "volume tile use", "volume / iso"]
+    return block(sources, table(header, "rl" + "r" * 7, rows), params(res))
+
+
+def reach(sources: list[Source]) -> str:
+    """The least reach that keeps the surface within the bound of the untruncated density (the
+    control), per sigma and protein, and the shift at 3 and 4 sigmas."""
+    ((_, res),) = sources
+    proteins = list(res["rows"][0]["least_k"])
+    rows = []
+    for r in res["rows"]:
+        row = [f"{r['sigma']:g}", f"{r['bound_A']:g}"]
+        row += [
+            "none tried" if r["least_k"][p] is None else f"{r['least_k'][p]:g}" for p in proteins
+        ]
+        for k in ("3", "4"):
+            row.append(" / ".join(f"{r['shift_A'][p][k]:.3f}" for p in proteins))
+        rows.append(row)
+    header = ["sigma A", "bound A", *(f"least k, {p}" for p in proteins)]
+    header += [f"shift A at {k} sigmas, {' / '.join(proteins)}" for k in ("3", "4")]
+    return block(sources, table(header, "rr" + "r" * (len(proteins) + 2), rows))
+
+
+def _by_devices(run: Results) -> dict[int, float]:
+    if "by_devices" in run:
+        return {int(k): v["frame_ms"] for k, v in run["by_devices"].items()}
+    return {1: run["one_device_ms"], len(run["per_device_ms"]): run["devices_ms"]}
+
+
+def multi_device(sources: list[Source]) -> str:
+    """One image across several devices against the same frames on one (the control)."""
+    counts = sorted({n for _, res in sources for run in res["runs"] for n in _by_devices(run)})
+    rows = []
+    for name, res in sources:
+        for run in res["runs"]:
+            by = _by_devices(run)
+            one = by[1]
+            row = [stem(name, "multi_device_"), count(run["atoms"]), size(*run["size"])]
+            for n in counts:
+                ms = by.get(n)
+                row.append(
+                    ""
+                    if ms is None
+                    else num(ms, 1)
+                    if n == 1
+                    else f"{num(ms, 1)} ({one / ms:.2f}x)"
+                )
+            rows.append(row)
+    header = ["run", "atoms", "image", *(f"{n} device{'s' * (n > 1)} ms" for n in counts)]
+    return block(sources, table(header, "lrl" + "r" * len(counts), rows))
+
+
+def temporal(sources: list[Source]) -> str:
+    """The temporal filter and its frame, against the frame with smoothing off (the control)."""
+    ((_, res),) = sources
+    rows = []
+    for s in res["sizes"]:
+        for w in s["windows"]:
+            rows.append(
+                [
+                    count(s["atoms"]),
+                    str(w["window"]),
+                    str(w["ring_bytes_per_atom"]),
+                    num(w["smooth_ms_classical"], 3),
+                    num(w["smooth_ms_warped"], 3),
+                    num(w["frame_ms"], 2),
+                    num(s["baseline_frame_ms"], 2),
+                    f"{w['frame_ratio']:.2f}",
+                ]
+            )
+    header = ["atoms", "W", "ring B/atom", "filter ms, classical", "filter ms, warped"]
+    header += ["frame ms", "frame without smoothing", "ratio"]
+    return block(sources, table(header, "rrrrrrrr", rows))
+
+
+LAYER_ROWS = (
+    ("protein_only", "protein only, plain renderer (the control)", None, ""),
+    (
+        "protein_layer",
+        "solvated, one layer `protein`",
+        "protein_layer_over_protein_only",
+        "x protein only",
+    ),
+    ("protein_ligand", "+ ligand as a finer layer", "two_layers_over_one", "x one layer"),
+    (
+        "protein_licorice",
+        "protein at half opacity + ligand as sticks",
+        "licorice_pair_over_one",
+        "x one layer",
+    ),
+)
+"""Each case of the file, what it is, the ratio the file records for it and what that divides by."""
+
+
+def layers(sources: list[Source]) -> str:
+    """The layered frame of a solvated system against the protein alone in a plain renderer."""
+    ((_, res),) = sources
+    rows = []
+    for key, label, ratio, against in LAYER_ROWS:
+        r = res["results"][key]
+        target = res["targets"].get(ratio) if ratio else None
+        rows.append(
+            [
+                label,
+                num(r["median_ms"]),
+                num(r["fps"], 0),
+                "" if ratio is None else f"{res['ratios'][ratio]:.2f}{against}",
+                "" if target is None else f"<= {target:g}",
+            ]
+        )
+    header = ["case", "median ms", "fps", "ratio", "target"]
+    note = (
+        f"{res['atoms']:,} atoms ({res['protein_atoms']:,} protein, {res['ligand_atoms']} "
+        f"ligand), {size(*res['size'])}"
+    )
+    return block(sources, table(header, "lrrll", rows), note)

@@ -1,0 +1,247 @@
+"""Tables of the benchmarks that run the server or its pipeline: latency_bench.py,
+pipeline_bench.py, multi_session_bench.py, video_bench.py, batch_bench.py,
+cpu_interactive_bench.py, ws_parse_bench.py and widget_bench.py."""
+
+from __future__ import annotations
+
+from .markdown import Source, block, count, num, size, stem, table
+
+STAGES = ("total", "queue", "render", "encode", "send", "decode")
+
+
+def latency_steer(sources: list[Source]) -> str:
+    """Steer-to-photon by stage, p50 / p95 / p99 ms, one column group per file."""
+    header = ["stage (ms)"]
+    for name, res in sources:
+        lat = res["latency"]
+        w, h = lat["image"]
+        canvas = size(*res["size"])
+        header += [
+            f"{stem(name, 'latency_')}: {lat['n_atoms']:,} atoms, {size(w, h)} of {canvas} p50",
+            "p95",
+            "p99",
+        ]
+    rows = []
+    for stage in STAGES:
+        row = [stage]
+        for _, res in sources:
+            st = res["latency"][stage]
+            row += [num(st["p50"], 1), num(st["p95"], 1), num(st["p99"], 1)]
+        rows.append(row)
+    return block(sources, table(header, "l" + "r" * (3 * len(sources)), rows))
+
+
+def latency_delivery(sources: list[Source]) -> str:
+    """Frames delivered per viewer of a streamed system; rows with the upload overlap on and off
+    (`--prefetch-control`) are each other's control."""
+    rows = []
+    for name, res in sources:
+        for t in res["throughput"]:
+            rt = t["render_timings_ms"]
+            overlap = {True: "on", False: "off (control)"}.get(t.get("prefetch"), "not recorded")
+            rows.append(
+                [
+                    stem(name, "latency_"),
+                    count(t["n_atoms"]),
+                    str(t["viewers"]),
+                    "own camera each" if t["own_camera"] else "shared",
+                    overlap,
+                    num(t["fps_per_viewer_mean"], 1),
+                    num(t["sim_frames_per_s"], 1),
+                    " / ".join(num(rt[k], 2) for k in ("upload", "grid", "raycast")),
+                    num(t["encode_ms"], 1),
+                ]
+            )
+    header = ["run", "atoms", "viewers", "view", "upload overlap", "fps per viewer"]
+    header += ["frames taken/s", "render upload / grid / cast ms", "encode ms"]
+    return block(sources, table(header, "lrrllrrrr", rows))
+
+
+def pipeline(sources: list[Source]) -> str:
+    """A session's live path with the next frame's upload overlapped, against it serial."""
+    ((_, res),) = sources
+    rows = []
+    for r in res["rows"]:
+        st = r["overlapped"]["median_stage_ms"]
+        rows.append(
+            [
+                count(r["atoms"]),
+                size(*r["size"]),
+                num(r["serial"]["fps"], 1),
+                num(r["overlapped"]["fps"], 1),
+                f"{r['overlapped_over_serial']:.3f}",
+                " / ".join(num(st[k], 2) for k in ("upload", "grid", "raycast", "total")),
+            ]
+        )
+    header = ["atoms", "image", "serial fps (control)", "overlapped fps", "ratio"]
+    header += ["upload / grid / cast / frame ms"]
+    return block(sources, table(header, "rlrrrr", rows))
+
+
+def multi_session(sources: list[Source]) -> str:
+    """Sessions on several devices against one session alone on one device (the control)."""
+    rows = []
+    for _, res in sources:
+        each = res["sessions_one_device_each"]
+        rows.append(
+            [
+                count(res["atoms"]),
+                size(*res["size"]),
+                num(res["one_session_one_device"]["fps"], 1),
+                f"{num(res['one_session_all_devices']['fps'], 1)} ({res['spread_over_one']:.2f}x)",
+                ", ".join(
+                    f"{num(s['fps'], 1)} ({r:.2f})"
+                    for s, r in zip(each, res["each_over_one"], strict=True)
+                ),
+            ]
+        )
+    header = ["atoms", "image", "one session, one device fps", "one session on all devices"]
+    header += ["a session on each device, fps (over one alone)"]
+    return block(sources, table(header, "rlrrr", rows))
+
+
+ENCODINGS = ("jpeg", "h264", "h264-swscale")
+"""The server's encodings (H.264 from the device's planes) and their controls; the files' x264
+preset rows are a sweep (HISTORY.md, "Video")."""
+
+
+def video_quality(sources: list[Source]) -> str:
+    """Each encoding of the same 1080p frames: bit rate at 60 fps, encode time, PSNR against the
+    raw render; JPEG is the control of the video stream."""
+    ((_, res),) = sources
+    systems = list(res["quality"])
+    rows = []
+    for e in ENCODINGS:
+        row = [e]
+        for s in systems:
+            q = res["quality"][s].get(e)
+            row.append(
+                ""
+                if q is None
+                else f"{num(q['mbit_per_s_at_60fps'], 1)} / {num(q['encode_ms_p50'], 1)} / "
+                f"{num(q['psnr_db_mean'], 1)} ({num(q['psnr_db_min'], 1)})"
+            )
+        rows.append(row)
+    header = ["encoding", *(f"{s}: Mbit/s / encode ms p50 / PSNR dB mean (min)" for s in systems)]
+    return block(sources, table(header, "l" + "r" * len(systems), rows))
+
+
+VIDEO_STAGES = ("up", "queued", "render", "encoder", "encode", "down", "decode")
+
+
+def video_live(sources: list[Source]) -> str:
+    """The live server, steer-to-photon p50 / p99 and its stages' p50; the JPEG rows are the
+    video stream's control on the same link."""
+    ((_, res),) = sources
+    rows = []
+    for r in res["live"]:
+        st = r["stages_ms"]
+        rows.append(
+            [
+                r["system"],
+                r["link"],
+                r["transport"],
+                num(r["delivered_mbit_per_s"], 1),
+                num(r["delivered_fps"], 0),
+                num(r["steer_to_photon_ms_p50"], 0),
+                num(r["steer_to_photon_ms_p99"], 0),
+                *(num(st[k]["p50"], 1) for k in VIDEO_STAGES),
+            ]
+        )
+    header = ["system", "link", "stream", "Mbit/s", "fps", "p50 ms", "p99 ms", *VIDEO_STAGES]
+    note = f"the emulated link: {res['link']}"
+    return block(sources, table(header, "lll" + "r" * 11, rows), note)
+
+
+def batch(sources: list[Source]) -> str:
+    """One movie job in-process (the control) and on Ray actors, in one run per machine."""
+    rows = []
+    for name, res in sources:
+        for r in res["runs"]:
+            engine = r["engine"]
+            if engine == "ray":
+                engine = f"Ray, {r['workers']} actor{'s' * (r['workers'] > 1)}"
+            rows.append(
+                [
+                    stem(name, "batch_"),
+                    engine,
+                    f"{r['frames']:,} at {size(*res['size'])}",
+                    num(r["wall_s"], 1),
+                    num(r["frames_per_s"], 2),
+                    f"{r.get('time_vs_in_process', 1.0):.2f}",
+                ]
+            )
+    header = ["run", "engine", "frames", "wall s", "frames/s", "time / in-process"]
+    return block(sources, table(header, "llrrrr", rows))
+
+
+def cpu_interactive(sources: list[Source]) -> str:
+    """The demo on a machine without a GPU: each configuration in one run; `baseline` renders
+    every image at the canvas's size (the control of the frame-time budget)."""
+    ((_, res),) = sources
+    rows = [
+        [
+            r["config"],
+            num(r["fps"], 1),
+            num(r["steer"]["median"], 0),
+            num(r["pick"]["median"], 0),
+            num(r["pull"]["median"], 0),
+            num(r["pull_ack"]["median"], 0),
+        ]
+        for r in res["rows"]
+    ]
+    ratios = res["ratios_budget_over_baseline"]
+    rows.append(
+        ["budget / baseline"]
+        + [f"{ratios[k]:.2f}" for k in ("fps", "steer", "pick", "pull")]
+        + [""]
+    )
+    header = ["config", "fps while dragging", "steer-to-photon ms", "pick ms", "pull shown ms"]
+    header += ["pull acked by the MD ms"]
+    note = f"{res['system']}, canvas {size(*res['canvas'])}, medians"
+    return block(sources, table(header, "lrrrrr", rows), note)
+
+
+def ws_parse(sources: list[Source]) -> str:
+    """The server's WebSocket parser fed one large frame whole (the control) and in fragments."""
+    rows = []
+    for name, res in sources:
+        whole, frag = res["whole"], res["fragments"]
+        rows.append(
+            [
+                stem(name, "ws_parse_"),
+                f"{res['message_bytes']:,}",
+                f"{num(whole['total_ms_median'], 1)} / {num(whole['longest_step_ms_median'], 1)}",
+                f"{num(frag['total_ms_median'], 1)} / {num(frag['longest_step_ms_median'], 1)}",
+                f"{res['ratio_total']:.1f}x",
+            ]
+        )
+    header = ["host", "message bytes", "whole: loop ms / longest step"]
+    header += ["fragments: loop ms / longest step", "ratio"]
+    return block(sources, table(header, "lrrrr", rows))
+
+
+def widget(sources: list[Source]) -> str:
+    """The notebook widget as the page measures it, beside its controls in the same run: the
+    pictures the kernel forwarded and the dashboard on the same session."""
+    rows = []
+    for name, res in sources:
+        runs = ", ".join(num(s, 2) for s in res["first_picture_runs_s"])
+        load = " / ".join(num(x, 1) for x in res["load_average"])
+        rows.append(
+            [
+                stem(name, "widget_"),
+                count(res["atoms"]),
+                f"{size(*res['size'])} {res['widget_format']}",
+                load,
+                f"{num(res['first_picture_s'], 2)} ({runs})",
+                num(res["cold_s"], 1),
+                num(res["widget_fps"], 2),
+                num(res["forwarded_fps"], 2),
+                f"{num(res['dashboard_fps'], 2)} ({res['dashboard_image_size']})",
+            ]
+        )
+    header = ["run", "atoms", "view", "load avg start / end", "first picture s, median (runs)"]
+    header += ["first picture with the server's start s", "widget drew/s"]
+    header += ["kernel forwarded/s (control)", "dashboard drew/s (control)"]
+    return block(sources, table(header, "lrlrrrrrr", rows))

