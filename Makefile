@@ -1,5 +1,6 @@
-# scalesteer: `make demo` runs the OpenMM villin demo; `make test` runs the whole suite
-# (ruff and mypy, then pytest and node --test).
+# scalesteer: `make demo` runs the OpenMM villin demo (`make demo PORT=8001` on another port,
+# `make demo ARGS="--no-browser --device cpu"` with any `scalesteer demo --help` option);
+# `make test` runs the whole suite (ruff and mypy, then pytest and node --test).
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
@@ -38,8 +39,10 @@ chromium:
 	  echo "note: browser tests need Debian's chromium (sudo apt-get install chromium); skipping them"; \
 	fi
 
+PORT ?=
+ARGS ?=
 demo: $(VENV)/.demo-installed client
-	$(BIN)/scalesteer demo
+	$(BIN)/scalesteer demo $(if $(PORT),--port $(PORT)) $(ARGS)
 
 # lint and types first: a style or type error fails the suite like a failing test
 test: check client chromium

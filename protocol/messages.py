@@ -64,9 +64,12 @@ class Hello(Message):
     client: Annotated[str, Field(max_length=128)] = "unknown"
     session: Annotated[str, Field(pattern=SESSION_NAME)] | None = None
     instance: Annotated[str, Field(max_length=64)] | None = None
-    """A simulation's identity across its reconnections (random per adapter process): a new
-    connection of the same instance replaces the old one; another instance is refused while
-    the session has a simulation, unless it asks to `takeover`."""
+    """The client's identity across its reconnections. A simulation's (random per adapter
+    process): a new connection of the same instance replaces the old one; another instance is
+    refused while the session has a simulation, unless it asks to `takeover`. A dashboard
+    page's (random per browser tab): recordings and movies it starts naming it as their
+    `owner` end once no connection of it has been in the session for the server's
+    `owner_grace_s`."""
     takeover: bool = False
 
 

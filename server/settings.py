@@ -104,6 +104,15 @@ class ServerSettings:
     recording_queue_bytes: int = 128 << 20
     """Positions a recording holds while they wait for the disk; frames that come while it is
     full are skipped, counted and listed in the recording (`skipped`, `skipped_spans`)."""
+    movie_queue_bytes: int = 128 << 20
+    """Positions of a live movie's frames waiting to be rendered (a device slower than the
+    simulation renders them after the stop); frames that come while it is full are skipped,
+    counted and listed by step (`movie.skipped_spans`)."""
+    movie_max_s: float = 600.0
+    """How long a live movie takes frames unless its request says otherwise (`max_s`)."""
+    owner_grace_s: float = 15.0
+    """Recordings and movies a dashboard page started (`owner`) end when the page has been
+    gone from its session this long (a reconnection within it keeps them going)."""
     gpus: str | None = None
     """Render each session's images across several devices: 'all', '0,1', 'cpu,cpu'."""
     batch_engine: Literal["auto", "ray", "local"] = "auto"

@@ -36,6 +36,7 @@ from .render import (
 )
 from .server import (
     batch,
+    cpu_demo_chromium,
     cpu_interactive,
     latency_delivery,
     latency_steer,
@@ -90,6 +91,10 @@ TABLES: dict[str, Table] = {
     "batch": Table(("batch_h100.json", "batch_cpu_2core.json"), batch),
     "cpu-interactive": Table(("cpu_interactive_2core.json",), cpu_interactive),
     "ws-parse": Table(("ws_parse_h200_host.json", "ws_parse_cpu_2core.json"), ws_parse),
+    "cpu-demo-chromium": Table(
+        ("cpu_demo_chromium_2core.json", "cpu_demo_chromium_2core_as_loaded.json"),
+        cpu_demo_chromium,
+    ),
     "widget": Table(("widget_cpu_2core.json",), widget),
 }
 """Each README table and the results files it reads: the newest full run of its benchmark on

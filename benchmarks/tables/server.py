@@ -1,8 +1,10 @@
 """Tables of the benchmarks that run the server or its pipeline: latency_bench.py,
 pipeline_bench.py, multi_session_bench.py, video_bench.py, batch_bench.py,
-cpu_interactive_bench.py, ws_parse_bench.py and widget_bench.py."""
+cpu_interactive_bench.py, cpu_demo_chromium.py, ws_parse_bench.py and widget_bench.py."""
 
 from __future__ import annotations
+
+from typing import Any
 
 from .markdown import Source, block, count, num, size, stem, table
 
@@ -219,6 +221,57 @@ def ws_parse(sources: list[Source]) -> str:
     header = ["host", "message bytes", "whole: loop ms / longest step"]
     header += ["fragments: loop ms / longest step", "ratio"]
     return block(sources, table(header, "lrrrr", rows))
+
+
+def cpu_demo_chromium(sources: list[Source]) -> str:
+    """`scalesteer demo` as its dashboard in Chromium shows it on the CPU machine; each run of a
+    file (the baseline checkout first, when it ran one) is a column."""
+    cols: list[tuple[str, dict[str, Any]]] = []
+    for name, res in sources:
+        tag = f"--priority {res['priority']}" if res.get("priority") else "as loaded"
+        for label, run in res["runs"].items():
+            load = run["load_average_before"][0], run["load_average_after"][0]
+            head = f"{stem(name, 'cpu_demo_chromium_')} {label} ({run['commit']}, {tag}, load"
+            cols.append((f"{head} {num(load[0], 0)}-{num(load[1], 0)})", run))
+
+    def pct(stats: dict[str, float], key: str = "p50") -> str:
+        return num(stats[key], 0) if stats else "n/a"
+
+    def lat(run: dict[str, Any], phase: str, kind: str) -> str:
+        st = run["phases"][phase]["latency_ms"].get(kind)
+        return f"{pct(st)} / {pct(st, 'p90')}" if st else "n/a"
+
+    lines = [
+        (
+            "images shown/s, simulation running",
+            lambda r: num(r["phases"]["running"]["images_per_s"], 1),
+        ),
+        (
+            "simulation frames among them/s",
+            lambda r: num(r["phases"]["running"]["simulation_frames_shown_per_s"], 1),
+        ),
+        ("images shown/s, orbiting", lambda r: num(r["phases"]["orbit"]["images_per_s"], 1)),
+        ("sigma steer-to-photon ms, p50 / p90", lambda r: lat(r, "steer", "render_params")),
+        ("orbit (camera move to its image) ms, p50 / p90", lambda r: lat(r, "orbit", "view")),
+        (
+            "pixels of a running image (p50), transport",
+            lambda r: f"{r['phases']['running']['pixels_rendered']['p50']:,.0f} {r['transport']}",
+        ),
+        (
+            "render / encode / decode per running image ms (p50)",
+            lambda r: " / ".join(
+                num(r["phases"]["running"][k]["p50"], 1)
+                for k in ("render_ms", "encode_ms", "decode_ms")
+            ),
+        ),
+        (
+            "simulation steps/s, running",
+            lambda r: num(r["phases"]["running"]["sim_steps_per_s"], 0),
+        ),
+    ]
+    rows = [[label] + [get(run) for _, run in cols] for label, get in lines]
+    header = ["measure"] + [head for head, _ in cols]
+    return block(sources, table(header, "l" + "r" * len(cols), rows))
 
 
 def widget(sources: list[Source]) -> str:

@@ -2,13 +2,13 @@
 // Pure logic lives in the other modules; this one holds the session state and the DOM wiring.
 
 import { DEFAULT_CAMERA, lookAlong, normalizeCamera, project, setProjection, unprojectToPlane } from "./camera.js";
-import { apiFetch, finishRecording, openReplay, startRecording } from "./api.js";
+import { apiFetch, openReplay, replayFiles } from "./api.js";
 import { ConnState, Connection, viewUrl } from "./connection.js";
 import { $, downloadBlob, el, setText, throttle } from "./dom.js";
 import { integer, milliseconds, nanoseconds, position, sig } from "./format.js";
 import { LatencyTracker, RateMeter, clockSample } from "./latency.js";
 import { showLegend } from "./legend.js";
-import { Picks, atomLabel, measurement } from "./measure.js";
+import { Picks, atomLabel, measurement, trackedAtoms, trackedPosition } from "./measure.js";
 import { Notices } from "./notices.js";
 import { RENDER_DEFAULTS, SIGMA_SLIDER, clamp, diffRender, mergeRender } from "./params.js";
 import { LayersPanel } from "./layers.js";
@@ -18,6 +18,7 @@ import { RenderPanel } from "./renderpanel.js";
 import { TimePanel } from "./timepanel.js";
 import { requestScreenshot, screenshotName } from "./screenshot.js";
 import { Shortcuts } from "./shortcuts.js";
+import { MovieButton } from "./movies.js";
 import { Recordings } from "./recordings.js";
 import { Timeline } from "./timeline.js";
 import { Unconfirmed } from "./unconfirmed.js";
@@ -29,6 +30,7 @@ import { decodeHash, encodeHash, readQuery } from "./urlstate.js";
 import { readViewFile, viewFile, viewFileName } from "./viewfile.js";
 import { DeliveryMeter, decodableCodecs, describeStream } from "./video.js";
 import { Viewport } from "./viewport.js";
+import { RunningWork, pageInstance } from "./work.js";
 
 const RENDER_SEND_MS = 50;
 const PULL_SEND_MS = 50;
@@ -68,7 +70,7 @@ class Dashboard {
     this.screenshotBusy = false;
     this.picks = new Picks();
     this.engine = null;
-    this.recording = null; // {job, started, timer} while recording a movie
+    this.instance = pageInstance(); // names this tab to the server across reconnections
 
     this.flushRenderSoon = throttle(() => this.flushRender(), RENDER_SEND_MS);
     this.sendPullSoon = throttle(() => this.sendPull(), PULL_SEND_MS);
@@ -120,15 +122,32 @@ class Dashboard {
       onControl: (action, extra, label) => this.control(action, extra, label),
       onApplyRender: (changes) => this.steerRender(changes, true),
     });
-    this.recordings = new Recordings({
+    const session = () => this.welcome?.session_id ?? this.sessionName;
+    const movieSize = () => {
+      const { viewW, viewH } = this.viewport.size;
+      const scale = Math.min(1, 1920 / viewW, 1080 / viewH);
+      return { width: 2 * Math.round((viewW * scale) / 2), height: 2 * Math.round((viewH * scale) / 2) };
+    };
+    const notify = (n) => this.notices.notify(n);
+    this.work = new RunningWork({
       token: this.token,
-      session: () => this.welcome?.session_id ?? this.sessionName,
-      viewSize: () => {
-        const { viewW, viewH } = this.viewport.size;
-        const scale = Math.min(1, 1920 / viewW, 1080 / viewH);
-        return { width: 2 * Math.round((viewW * scale) / 2), height: 2 * Math.round((viewH * scale) / 2) };
+      instance: this.instance,
+      notify,
+      onUpdate: (work) => {
+        this.movie.adopt(work.jobs, this.instance, session());
+        this.recordings.adopt(work.recordings, this.instance);
       },
-      notify: (n) => this.notices.notify(n),
+    });
+    const owner = () => this.work.owner();
+    this.recordings = new Recordings({ token: this.token, session, viewSize: movieSize, owner, notify });
+    this.movie = new MovieButton({
+      token: this.token,
+      session,
+      camera: () => this.camera,
+      size: movieSize,
+      owner,
+      steering: () => this.role === "steerer",
+      notify,
     });
     this.viewport = new Viewport({
       container: $("viewport"),
@@ -162,6 +181,7 @@ class Dashboard {
       role: this.role,
       session: this.sessionName,
       client: "dashboard",
+      instance: this.instance,
       onMessage: (m) => this.receive(m),
       onStatus: (s) => this.connectionStatus(s),
       onProtocolError: (e) =>
@@ -211,9 +231,15 @@ class Dashboard {
         this.notices.serverError(m);
         return undefined;
       }
-      case "tracked":
+      case "tracked": {
         if (this.picks.track(m)) this.showPicks();
+        const pulled = this.pull?.state === "active" ? trackedPosition(m, this.pull.atom) : null;
+        if (pulled) {
+          this.pull.position = pulled; // the arrow starts at the atom as it moves
+          this.viewport.setPullLine({ from: pulled, to: this.pull.pointer });
+        }
         return undefined;
+      }
       case "event":
         this.notices.notify({
           level: m.level,
@@ -239,7 +265,10 @@ class Dashboard {
     this.viewport.setLimits(m.limits);
     this.latency.reset();
     this.applyRole(m.role, true);
-    if (m.role === "steerer") this.recordings.refresh();
+    if (m.role === "steerer") {
+      this.recordings.refresh();
+      this.work.start();
+    } else this.work.stop();
     if (this.camera) this.sendView(false);
     this.showSession();
   }
@@ -559,7 +588,7 @@ class Dashboard {
       height: viewH,
       device_pixel_ratio: clamp(dpr, 0.1, 8),
       interacting,
-      track: this.picks.indices,
+      track: trackedAtoms(this.picks.indices, this.pull?.state === "active" ? this.pull.atom : null),
       video: this.offeredVideo(),
     });
     if (seq !== null) this.latency.sent(seq, "view", performance.now());
@@ -688,7 +717,8 @@ class Dashboard {
       setText($("range-pull-k"), "not available");
       setText($("range-pull-max"), "not available");
     }
-    const why = e && !e.pull ? `${e.name} cannot be pulled: ${e.unavailable?.pull || "it takes no external forces"}` : "";
+    const why =
+      e && !e.pull ? `${e.name} cannot be pulled: ${e.unavailable?.pull || "it takes no external forces"}` : "";
     $("pull-reason").hidden = !why;
     setText($("pull-reason"), why);
   }
@@ -724,6 +754,7 @@ class Dashboard {
     $("pull-hint").hidden = false;
     this.viewport.setPullLine({ from: pull.position, to: pull.pointer });
     this.sendPull();
+    this.sendView(false); // track the pulled atom
   }
 
   pullMove(x, y) {
@@ -763,7 +794,10 @@ class Dashboard {
     $("pull-hint").hidden = true;
     this.viewport.setPullLine(null);
     this.viewport.setPending(null);
-    if (pull?.state === "active" && !silent) this.connection.send({ type: "pull", atom: pull.atom, release: true });
+    if (pull?.state === "active" && !silent) {
+      this.connection.send({ type: "pull", atom: pull.atom, release: true });
+      this.sendView(false); // no longer tracked
+    }
   }
 
   releaseAll() {
@@ -913,7 +947,6 @@ class Dashboard {
     $("btn-save-view").addEventListener("click", () => this.saveView());
     $("btn-open-view").addEventListener("click", () => $("open-view-file").click());
     $("open-view-file").addEventListener("change", (e) => this.openView(e.target));
-    $("btn-record").addEventListener("click", () => this.toggleRecording());
     $("btn-open-files").addEventListener("click", () => $("open-files").click());
     $("open-files").addEventListener("change", (e) => this.openFiles(e.target));
     $("plot-window").addEventListener("change", (e) => this.plots.setWindow(Number(e.target.value)));
@@ -968,62 +1001,17 @@ class Dashboard {
     this.notices.notify({ level: "info", code: "view", message: `opened ${file.name}` });
   }
 
-  async toggleRecording() {
-    const button = $("btn-record");
-    const session = this.welcome?.session_id ?? this.sessionName;
-    if (!this.recording) {
-      const { viewW, viewH } = this.viewport.size;
-      const scale = Math.min(1, 1920 / viewW, 1080 / viewH);
-      try {
-        const job = await startRecording({
-          token: this.token,
-          session,
-          camera: this.camera,
-          width: 2 * Math.round((viewW * scale) / 2),
-          height: 2 * Math.round((viewH * scale) / 2),
-        });
-        const started = performance.now();
-        const timer = setInterval(() => {
-          const secs = Math.round((performance.now() - started) / 1000);
-          setText(button, `Stop recording ${Math.floor(secs / 60)}:${String(secs % 60).padStart(2, "0")}`);
-        }, 500);
-        this.recording = { job: job.id, timer };
-        button.setAttribute("aria-pressed", "true");
-        setText(button, "Stop recording 0:00");
-        this.notices.notify({ level: "info", code: "record", message: "recording this view on the server" });
-      } catch (err) {
-        this.notices.notify({ level: "error", code: "record", message: err.message });
-      }
-      return;
-    }
-    const { job, timer } = this.recording;
-    this.recording = null;
-    clearInterval(timer);
-    button.setAttribute("aria-pressed", "false");
-    button.disabled = true;
-    setText(button, "Saving…");
-    try {
-      const onWarning = (message) => this.notices.notify({ level: "warning", code: "record", message });
-      const blob = await finishRecording({ token: this.token, job, onWarning });
-      downloadBlob(blob, `scalesteer-${session}-${job}.mp4`);
-      this.notices.notify({ level: "info", code: "record", message: "movie downloaded" });
-    } catch (err) {
-      this.notices.notify({ level: "error", code: "record", message: err.message });
-    } finally {
-      button.disabled = this.role !== "steerer";
-      setText(button, "Record movie");
-    }
-  }
-
   async openFiles(input) {
     const files = [...(input.files ?? [])];
     input.value = "";
     if (!files.length) return;
-    // the structure first: a trajectory format cannot carry a topology on its own
-    const trajectory = /\.(dcd|xtc|trr|nc|ncdf|lammpstrj)$/i;
-    files.sort((a, b) => Number(trajectory.test(a.name)) - Number(trajectory.test(b.name)));
-    this.notices.notify({ level: "info", code: "open", message: `uploading ${files.map((f) => f.name).join(", ")}…` });
     try {
+      replayFiles(files); // refused here, naming the files, before anything is uploaded
+      this.notices.notify({
+        level: "info",
+        code: "open",
+        message: `uploading ${files.map((f) => f.name).join(", ")}…`,
+      });
       const opened = await openReplay({ token: this.token, files });
       const url = new URL(window.location.href);
       url.searchParams.set("session", opened.session);

@@ -35,6 +35,7 @@ export class Connection {
     role = "steerer",
     session = "default",
     client = "dashboard",
+    instance = null,
     WebSocketImpl = globalThis.WebSocket,
     timers = globalThis,
     now = () => Date.now(),
@@ -45,7 +46,7 @@ export class Connection {
     onStatus = () => {},
     onProtocolError = () => {},
   }) {
-    Object.assign(this, { url, token, client, session, WebSocketImpl, timers, now, random });
+    Object.assign(this, { url, token, client, session, instance, WebSocketImpl, timers, now, random });
     Object.assign(this, { pingIntervalMs, staleMs, onMessage, onStatus, onProtocolError });
     this.requestedRole = role;
     this.role = role;
@@ -143,6 +144,7 @@ export class Connection {
         token: this.token ?? undefined,
         client: this.client,
         session: this.session,
+        instance: this.instance ?? undefined,
         protocol_version: PROTOCOL_VERSION,
       });
     };

@@ -48,6 +48,18 @@ export function measurement(atoms) {
   return { kind: "dihedral", value: dihedral(pts[0], pts[1], pts[2], pts[3]), unit: "°" };
 }
 
+/** The atoms a view asks the server to track: the picked ones and an atom being pulled (its
+ * arrow starts where the atom is now, not where it was picked). */
+export function trackedAtoms(picked, pulled = null) {
+  return pulled === null || pulled === undefined || picked.includes(pulled) ? [...picked] : [...picked, pulled];
+}
+
+/** Where a `tracked` message puts `atom` (null when it does not name it). */
+export function trackedPosition(message, atom) {
+  const i = (message.atoms ?? []).indexOf(atom);
+  return i < 0 ? null : (message.positions?.[i] ?? null);
+}
+
 /** The picked atoms: `pick` replaces them, `extend` adds one (the oldest goes past four). */
 export class Picks {
   constructor() {

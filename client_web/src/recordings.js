@@ -28,11 +28,14 @@ export function formatElapsed(seconds) {
 }
 
 export class Recordings {
-  /** `session()` names the session, `viewSize()` gives the movie size, `notify` shows notices. */
-  constructor({ token, session, viewSize, notify }) {
+  /** `session()` names the session, `viewSize()` gives the movie size, `owner()` the page to
+   * name as the recording's owner (undefined: keep it running when the page closes), `notify`
+   * shows notices. */
+  constructor({ token, session, viewSize, owner = () => undefined, notify }) {
     this.token = token;
     this.session = session;
     this.viewSize = viewSize;
+    this.owner = owner;
     this.notify = notify;
     this.active = null; // {id, timer, started}
     this.button = $("btn-record-run");
@@ -43,14 +46,30 @@ export class Recordings {
   async start() {
     try {
       const path = `/api/sessions/${encodeURIComponent(this.session())}/recordings`;
-      const rec = await (await apiFetch(path, { token: this.token, method: "POST", json: {} })).json();
-      this.active = { id: rec.id, started: performance.now(), timer: setInterval(() => this.poll(), POLL_MS) };
-      this.button.setAttribute("aria-pressed", "true");
-      setText(this.button, "Stop run 0:00");
+      const rec = await (
+        await apiFetch(path, { token: this.token, method: "POST", json: { owner: this.owner() } })
+      ).json();
+      this.follow(rec.id, performance.now());
       this.notify({ level: "info", code: "record", message: "recording this run (frames and steering) on the server" });
     } catch (err) {
       this.notify({ level: "error", code: "record", message: err.message });
     }
+  }
+
+  follow(id, started) {
+    this.active = { id, started, timer: setInterval(() => this.poll(), POLL_MS) };
+    this.button.setAttribute("aria-pressed", "true");
+    setText(this.button, `Stop run ${formatElapsed((performance.now() - started) / 1000)}`);
+  }
+
+  /** A recording of this page's session that names this page its owner (found again after a
+   * reload): the button stops it. */
+  adopt(recordings, instance) {
+    if (this.active) return;
+    const mine = recordings.find(
+      (r) => r.state === "recording" && r.owner === instance && r.session === this.session(),
+    );
+    if (mine) this.follow(mine.id, performance.now() - Math.max(0, Date.now() / 1000 - mine.started) * 1000);
   }
 
   async poll() {
@@ -62,7 +81,10 @@ export class Recordings {
         this.ended(rec);
         return;
       }
-      setText(this.button, `Stop run ${formatElapsed((performance.now() - started) / 1000)} · ${formatBytes(rec.bytes)}`);
+      setText(
+        this.button,
+        `Stop run ${formatElapsed((performance.now() - started) / 1000)} · ${formatBytes(rec.bytes)}`,
+      );
     } catch (err) {
       this.notify({ level: "warning", code: "record", message: err.message });
     }
@@ -87,8 +109,13 @@ export class Recordings {
     this.active = null;
     this.button.setAttribute("aria-pressed", "false");
     setText(this.button, "Record run");
-    const why = rec.state === "capped" ? " (stopped at its size limit)" : "";
-    this.notify({ level: "info", code: "record", message: `recorded ${rec.frames} frames, ${formatBytes(rec.bytes)}${why}` });
+    const why =
+      rec.state === "capped" ? " (stopped at its size limit)" : rec.ended_because ? ` (${rec.ended_because})` : "";
+    this.notify({
+      level: "info",
+      code: "record",
+      message: `recorded ${rec.frames} frames, ${formatBytes(rec.bytes)}${why}`,
+    });
     if (rec.warning) this.notify({ level: "warning", code: "record", message: rec.warning });
     // show where the new recording can be replayed, filmed or downloaded
     $("panel-session").open = true;
@@ -107,11 +134,14 @@ export class Recordings {
       ...recs.map((rec) => {
         const when = new Date(rec.started * 1000).toLocaleTimeString();
         const label = `${rec.session} ${when} · ${rec.frames} frames · ${formatBytes(rec.bytes)}${rec.state === "recording" ? " · recording" : ""}`;
-        const actions = rec.state === "recording" || !rec.frames ? [] : [
-          this.action("Replay", `Replay ${rec.id}`, () => this.replay(rec)),
-          this.action("Movie", `Render ${rec.id} to an MP4 with its steering`, () => this.movie(rec)),
-          this.action("Download", `Download ${rec.id} (PDB, XTC, steering log)`, () => this.download(rec)),
-        ];
+        const actions =
+          rec.state === "recording" || !rec.frames
+            ? []
+            : [
+                this.action("Replay", `Replay ${rec.id}`, () => this.replay(rec)),
+                this.action("Movie", `Render ${rec.id} to an MP4 with its steering`, () => this.movie(rec)),
+                this.action("Download", `Download ${rec.id} (PDB, XTC, steering log)`, () => this.download(rec)),
+              ];
         return el("li", { "data-recording": rec.id }, [el("span", { text: label }), ...actions]);
       }),
     );
@@ -125,7 +155,9 @@ export class Recordings {
 
   async replay(rec) {
     try {
-      const opened = await (await apiFetch(`/api/recordings/${rec.id}/replay`, { token: this.token, method: "POST" })).json();
+      const opened = await (
+        await apiFetch(`/api/recordings/${rec.id}/replay`, { token: this.token, method: "POST" })
+      ).json();
       const url = new URL(window.location.href);
       url.searchParams.set("session", opened.session);
       url.hash = "";
@@ -140,7 +172,11 @@ export class Recordings {
     this.notify({ level: "info", code: "record", message: `rendering ${rec.frames} frames to an MP4…` });
     try {
       const job = await (
-        await apiFetch(`/api/recordings/${rec.id}/movie`, { token: this.token, method: "POST", json: { width, height } })
+        await apiFetch(`/api/recordings/${rec.id}/movie`, {
+          token: this.token,
+          method: "POST",
+          json: { width, height },
+        })
       ).json();
       const onWarning = (message) => this.notify({ level: "warning", code: "record", message });
       downloadBlob(await jobResult({ token: this.token, job: job.id, onWarning }), `scalesteer-${rec.id}.mp4`);
@@ -151,7 +187,10 @@ export class Recordings {
 
   async download(rec) {
     try {
-      downloadBlob(await (await apiFetch(`/api/recordings/${rec.id}/download`, { token: this.token })).blob(), `${rec.id}.zip`);
+      downloadBlob(
+        await (await apiFetch(`/api/recordings/${rec.id}/download`, { token: this.token })).blob(),
+        `${rec.id}.zip`,
+      );
     } catch (err) {
       this.notify({ level: "error", code: "record", message: err.message });
     }

@@ -43,6 +43,13 @@ export class Timeline {
     this.play.addEventListener("click", () => this.onControl(this.paused ? "resume" : "pause", {}, "play"));
     this.speed.addEventListener("change", () => this.onControl("speed", { speed: Number(this.speed.value) }, "speed"));
     this.loop.addEventListener("change", () => this.onControl("loop", { loop: this.loop.checked }, "loop"));
+    // the view's status line (the HUD) sits above the bar, however tall it wraps
+    new ResizeObserver(() => this.makeRoom()).observe(this.root);
+  }
+
+  makeRoom() {
+    const space = this.root.hidden ? 0 : this.root.offsetHeight + 10;
+    this.root.parentElement.style.setProperty("--timeline-space", `${space}px`);
   }
 
   seek() {
@@ -54,6 +61,7 @@ export class Timeline {
     const replay = engine?.kind === "replay" && engine.n_frames > 0;
     this.root.hidden = !replay;
     document.body.classList.toggle("has-timeline", replay);
+    this.makeRoom();
     if (!replay) return;
     this.nFrames = engine.n_frames;
     this.scrub.max = String(Math.max(0, this.nFrames - 1));

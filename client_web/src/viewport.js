@@ -3,6 +3,7 @@
 // arrow, and the pointer, wheel, touch and keyboard gestures that move the camera.
 
 import { orbit, pan, project, zoom } from "./camera.js";
+import { placeLabels } from "./labels.js";
 import { VIDEO_FORMATS, VideoPipe } from "./video.js";
 
 const CLICK_SLOP_PX = 4;
@@ -265,6 +266,8 @@ export class Viewport {
       }
     }
     const shown = (this.annotations ?? []).map((a) => ({ ...a, at: a.position ? this.toOverlay(a.position) : null }));
+    const labels = []; // {anchor, text, color}: placed together below, none over another
+    let measuredLabel = null;
     if (shown.length > 1 && shown.every((a) => a.at)) {
       g.save();
       g.strokeStyle = "#7fd1a6";
@@ -276,7 +279,7 @@ export class Viewport {
       g.restore();
       if (this.measured) {
         const mid = shown.length === 2 ? midpoint(shown[0].at, shown[1].at) : shown[1].at;
-        drawLabel(g, mid, this.measured.text, dpr, "#7fd1a6");
+        measuredLabel = { anchor: mid, text: this.measured.text, color: "#7fd1a6" };
       }
     }
     shown.forEach((a, i) => {
@@ -288,8 +291,10 @@ export class Viewport {
       g.arc(a.at[0], a.at[1], 7 * dpr, 0, 2 * Math.PI);
       g.stroke();
       g.restore();
-      drawLabel(g, [a.at[0] + 10 * dpr, a.at[1] - 10 * dpr], shown.length > 1 ? `${i + 1} ${a.label}` : a.label, dpr);
+      labels.push({ anchor: a.at, text: shown.length > 1 ? `${i + 1} ${a.label}` : a.label, color: "#ffd166" });
     });
+    if (measuredLabel) labels.push(measuredLabel);
+    this.drawLabels(g, labels, shown, dpr);
     if (this.pending) {
       const { viewW, viewH } = this.size;
       g.save();
@@ -309,7 +314,38 @@ export class Viewport {
         (this.pullLine.to[1] / viewH) * this.overlay.height,
       ];
       if (a) drawArrow(g, a, b, dpr);
-    }
+      this.arrowFrom = a; // overlay pixels, for automation
+    } else this.arrowFrom = null;
+  }
+
+  /** The labels, placed beside their anchors without covering each other or the markers;
+   * their rectangles (overlay pixels) stay in `labelRects` for automation. */
+  drawLabels(g, labels, shown, dpr) {
+    g.save();
+    g.font = `${12 * dpr}px system-ui, sans-serif`;
+    const items = labels
+      .filter((l) => l.text)
+      .map((l) => ({ ...l, w: g.measureText(l.text).width + 8 * dpr, h: 16 * dpr }));
+    const r = 8 * dpr; // an atom's marker
+    const obstacles = shown.filter((a) => a.at).map((a) => ({ x: a.at[0] - r, y: a.at[1] - r, w: 2 * r, h: 2 * r }));
+    const rects = placeLabels(items, { w: this.overlay.width, h: this.overlay.height }, { gap: 6 * dpr, obstacles });
+    items.forEach((item, i) => {
+      const rect = rects[i];
+      if (rect.moved) {
+        g.strokeStyle = "rgba(230, 230, 230, 0.6)";
+        g.lineWidth = dpr;
+        g.beginPath();
+        g.moveTo(item.anchor[0], item.anchor[1]);
+        g.lineTo(rect.x + rect.w / 2, rect.y + rect.h / 2);
+        g.stroke();
+      }
+      g.fillStyle = "rgba(10, 12, 14, 0.75)";
+      g.fillRect(rect.x, rect.y, rect.w, rect.h);
+      g.fillStyle = item.color;
+      g.fillText(item.text, rect.x + 4 * dpr, rect.y + rect.h - 4 * dpr);
+    });
+    g.restore();
+    this.labelRects = rects.map(({ x, y, w, h }, i) => ({ x, y, w, h, text: items[i].text }));
   }
 
   // ------------------------------------------------------------------ gestures
@@ -475,19 +511,6 @@ export class Viewport {
 
 function midpoint(a, b) {
   return [(a[0] + b[0]) / 2, (a[1] + b[1]) / 2];
-}
-
-function drawLabel(g, at, text, dpr, color = "#ffd166") {
-  if (!text) return;
-  g.save();
-  g.font = `${12 * dpr}px system-ui, sans-serif`;
-  const w = g.measureText(text).width + 8 * dpr;
-  const h = 16 * dpr;
-  g.fillStyle = "rgba(10, 12, 14, 0.75)";
-  g.fillRect(at[0], at[1] - h + 4 * dpr, w, h);
-  g.fillStyle = color;
-  g.fillText(text, at[0] + 4 * dpr, at[1]);
-  g.restore();
 }
 
 function drawArrow(g, a, b, dpr) {

@@ -207,3 +207,26 @@ test("backoff doubles up to a cap and the view URL follows the page", () => {
   assert.equal(viewUrl({ protocol: "http:", host: "127.0.0.1:8765" }), "ws://127.0.0.1:8765/ws/view");
   assert.equal(viewUrl({ protocol: "https:", host: "x.org" }), "wss://x.org/ws/view");
 });
+
+test("a page names its instance in every hello, reconnections included", () => {
+  FakeSocket.all = [];
+  const timers = new ManualTimers();
+  const conn = new Connection({
+    url: "ws://h/ws/view",
+    token: "tok",
+    session: "s1",
+    instance: "page-1234abcd",
+    WebSocketImpl: FakeSocket,
+    timers,
+    now: () => timers.now,
+    random: () => 0.5,
+  });
+  conn.start();
+  FakeSocket.all.at(-1).open();
+  assert.equal(FakeSocket.all.at(-1).sent[0].instance, "page-1234abcd");
+  FakeSocket.all.at(-1).close(1006, "");
+  timers.advance(1000);
+  FakeSocket.all.at(-1).open();
+  assert.equal(FakeSocket.all.length, 2);
+  assert.equal(FakeSocket.all.at(-1).sent[0].instance, "page-1234abcd");
+});

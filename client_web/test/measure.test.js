@@ -32,3 +32,14 @@ test("picks grow into measurements and follow tracked positions", () => {
   picks.clear();
   assert.deepEqual(picks.indices, []);
 });
+
+test("a pulled atom is tracked with the picked ones, and its tracked position is found", async () => {
+  const { trackedAtoms, trackedPosition } = await import("../src/measure.js");
+  assert.deepEqual(trackedAtoms([3, 7]), [3, 7]);
+  assert.deepEqual(trackedAtoms([3, 7], 12), [3, 7, 12]);
+  assert.deepEqual(trackedAtoms([3, 7], 7), [3, 7]);
+  assert.deepEqual(trackedAtoms([], 0), [0]); // atom 0 is an atom
+  const message = { type: "tracked", atoms: [3, 12], positions: [[0, 0, 0], [1, 2, 3]] };
+  assert.deepEqual(trackedPosition(message, 12), [1, 2, 3]);
+  assert.equal(trackedPosition(message, 5), null);
+});

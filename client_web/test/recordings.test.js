@@ -42,3 +42,25 @@ test("a finished job's warning reaches the page with its output", async () => {
   assert.equal(blob.size, 3);
   assert.deepEqual(warnings, ["frames.xtc: 20 readable frame(s) of the 40 it should hold"]);
 });
+
+test("a structure alone opens without a trajectory field; the structure goes first", async () => {
+  const { formOf, openReplay, replayFiles } = await import("../src/api.js");
+  const gro = new File(["x"], "box.gro");
+  const xtc = new File(["y"], "run.xtc");
+  assert.deepEqual(replayFiles([xtc, gro]), { topology: gro, trajectory: [xtc] });
+  assert.deepEqual(replayFiles([gro]), { topology: gro, trajectory: [] });
+  assert.throws(() => replayFiles([xtc]), /^Error: run\.xtc: a trajectory holds coordinates only/);
+  const alone = formOf({ topology: gro, trajectory: [], fps: 30 });
+  assert.deepEqual([...alone.keys()], ["topology", "fps"]); // no trajectory="[]"
+  const sent = [];
+  const fetchImpl = async (url, init) => {
+    sent.push([...init.body.entries()].map(([k, v]) => [k, typeof v === "string" ? v : v.name]));
+    return new Response(JSON.stringify({ session: "replay-box" }), { status: 201 });
+  };
+  assert.equal((await openReplay({ token: "t", files: [xtc, gro], fetchImpl })).session, "replay-box");
+  assert.deepEqual(sent[0], [
+    ["topology", "box.gro"],
+    ["trajectory", "run.xtc"],
+    ["fps", "30"],
+  ]);
+});

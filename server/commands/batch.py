@@ -20,7 +20,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from server.commands.render import _size
+from server.commands.render import _size, add_layer_options, layer_option
 from server.settings import ray_cluster_address
 
 
@@ -37,7 +37,15 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--stop", type=int, default=None)
     ap.add_argument("--stride", type=int, default=1)
     ap.add_argument("--fps", type=float, default=30.0)
-    ap.add_argument("--params", default="{}", help="render parameters as JSON")
+    ap.add_argument(
+        "--params",
+        default="{}",
+        metavar="JSON",
+        help='render parameters as JSON, e.g. \'{"sigma_A": 3, "mode": "volume"}\' (every field: '
+        'docs/protocol.schema.json, RenderParams); a "layers" list in it draws parts of the '
+        "system, as --layers does",
+    )
+    add_layer_options(ap)
     ap.add_argument("--camera", default=None, help="camera as JSON (default: fit the first frame)")
     ap.add_argument("--device", default="auto", help="render device of the in-process engine")
     ap.add_argument(
@@ -61,6 +69,7 @@ async def run(args: argparse.Namespace) -> int:
     from server.metrics import Metrics
     from server.pipeline.gpu import GpuQueue
     from server.pipeline.jobs import JobManager, JobSpec, JobState
+    from server.pipeline.selections import check_layers
     from server.settings import ServerSettings
     from server.web.app import batch_engine
     from server.web.rest import unknown_keys
@@ -78,6 +87,12 @@ async def run(args: argparse.Namespace) -> int:
         if unknown:
             raise ValueError(f"{unknown}: unknown field")
         params = p.RenderParams.model_validate(raw)
+        layers = layer_option(args)
+        if layers is not None:
+            if "layers" in params.model_fields_set:
+                raise ValueError("--params names layers: leave out --select, --layers, --all-atoms")
+            params = params.model_copy(update={"layers": layers})
+        check_layers(params)
         camera = p.Camera.model_validate(json.loads(args.camera)) if args.camera else None
     except ValueError as exc:  # JSON errors and validation errors are ValueErrors
         print(f"scalesteer batch: {exc}", file=sys.stderr)

@@ -11,6 +11,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from typing import Any
 
 from server.render.errors import RenderError
 
@@ -83,25 +84,59 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--tf-preset", choices=("cloud", "shells", "iso-like"), default="cloud")
     p.add_argument("--projection", choices=("perspective", "orthographic"), default="perspective")
     p.add_argument("--ao", action="store_true", help="density-based ambient occlusion")
-    p.add_argument(
+    add_layer_options(p)
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda:N")
+    p.add_argument("--frame", type=int, default=0, help="trajectory frame index")
+    return p
+
+
+def add_layer_options(ap: argparse.ArgumentParser) -> None:
+    """--select, --layers, --all-atoms: what part of the system is drawn (the same for
+    `render` and `batch`)."""
+    ap.add_argument(
         "--select",
         metavar="SELECTION",
         help="draw only these atoms (MDAnalysis selection syntax, e.g. 'protein and not name H*')",
     )
-    p.add_argument(
+    ap.add_argument(
         "--layers",
         metavar="JSON",
         help='a JSON list of layers, e.g. \'[{"selection": "protein", "opacity": 0.5}, '
-        '{"selection": "resname LIG", "mode": "licorice"}]\'',
+        '{"selection": "resname LIG", "mode": "licorice"}]\' (fields: docs/dashboard.md, "Layers")',
     )
-    p.add_argument(
+    ap.add_argument(
         "--all-atoms",
         action="store_true",
-        help="draw every atom (by default solvent and ions are hidden and a ligand is finer)",
+        help="draw every atom; without --select, --layers or --all-atoms a solvated system "
+        "opens on its molecule: solvent and ions hidden, a ligand at half the sigma",
     )
-    p.add_argument("--device", default="auto", help="auto, cpu or cuda:N")
-    p.add_argument("--frame", type=int, default=0, help="trajectory frame index")
-    return p
+
+
+def layer_option(args: argparse.Namespace) -> list[Any] | None:
+    """The layers --select, --layers or --all-atoms name (None: none of them, so the default
+    layers apply); ValueError naming the option when one is wrong."""
+    from protocol import Layer
+    from server.web.rest import unknown_keys
+
+    if sum(x is not None for x in (args.select, args.layers)) + args.all_atoms > 1:
+        raise ValueError("give at most one of --select, --layers and --all-atoms")
+    if args.select is not None:
+        return [Layer(name="selection", selection=args.select)]
+    if args.all_atoms:
+        return []
+    if args.layers is None:
+        return None
+    try:
+        raw = json.loads(args.layers)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--layers is not valid JSON: {exc.msg}") from None
+    if not isinstance(raw, list):
+        raise ValueError("--layers must be a JSON list of layers")
+    for i, item in enumerate(raw):
+        unknown = unknown_keys(Layer, item, f"layers.{i}")
+        if unknown:
+            raise ValueError(f"{unknown}: unknown field")
+    return [Layer.model_validate(item) for item in raw]
 
 
 def _fail(msg: str) -> int:
@@ -117,34 +152,17 @@ def main(argv: list[str] | None = None) -> int:
 
     from pydantic import ValidationError
 
-    from protocol import Layer, Lighting, RenderParams
-    from server.pipeline.selections import check_layers
+    from protocol import Lighting, RenderParams
+    from server.pipeline.selections import check_layers, opening_params
     from server.render.camera import fit_camera
-    from server.web.rest import unknown_keys
     from structures.errors import StructureError
     from structures.reader import load
-    from structures.selection import default_layers
 
-    if sum(x is not None for x in (args.select, args.layers)) + args.all_atoms > 1:
-        return _fail("give at most one of --select, --layers and --all-atoms")
     try:
-        layers: list[Layer] = []
-        if args.select is not None:
-            layers = [Layer(name="selection", selection=args.select)]
-        elif args.layers is not None:
-            try:
-                raw = json.loads(args.layers)
-            except json.JSONDecodeError as exc:
-                return _fail(f"--layers is not valid JSON: {exc.msg}")
-            if not isinstance(raw, list):
-                return _fail("--layers must be a JSON list of layers")
-            for i, item in enumerate(raw):
-                unknown = unknown_keys(Layer, item, f"layers.{i}")
-                if unknown:
-                    return _fail(f"{unknown}: unknown field")
-            layers = [Layer.model_validate(item) for item in raw]
+        layers = layer_option(args)
+        named: dict[str, Any] = {} if layers is None else {"layers": layers}
         params = RenderParams(
-            layers=layers,
+            **named,
             mode=args.mode,
             sigma_A=args.sigma,
             iso_level=args.iso,
@@ -162,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         first = exc.errors()[0]
         where = ".".join(str(x) for x in first["loc"])
         return _fail(f"invalid {where}: {first['msg']}")
+    except ValueError as exc:
+        return _fail(str(exc))
     try:
         check_layers(params)  # a user's own files on their own machine: no cost limits
     except ValueError as exc:
@@ -171,9 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         structure = load(args.structure, args.trajectory)
     except StructureError as exc:
         return _fail(str(exc))
-    if not params.layers and not args.all_atoms:  # open on the molecule, as a session does
-        defaults = default_layers(structure.topology, params.sigma_A)
-        params = params.model_copy(update={"layers": [Layer(**f) for f in defaults]})
+    params = opening_params(params, structure.topology)  # as every entry point opens a system
     if not 0 <= args.frame < structure.n_frames:
         return _fail(f"frame {args.frame} out of range: the input has {structure.n_frames} frames")
 

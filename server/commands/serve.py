@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from server.settings import ServerSettings, is_loopback, persistent_tokens, ray_cluster_address
+from server.threads import name_thread
 
 
 def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
@@ -229,7 +230,7 @@ class ServerThread:
 
         self._app = create_app(settings)
         self._server = uvicorn.Server(_config(settings, log_level, self._app))
-        self._thread = threading.Thread(target=self._server.run, name="uvicorn", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="uvicorn", daemon=True)
         try:
             self._thread.start()
             deadline = time.monotonic() + 60
@@ -248,6 +249,10 @@ class ServerThread:
             if self._thread.is_alive():
                 self._thread.join(timeout=30)
             raise
+
+    def _run(self) -> None:
+        name_thread()
+        self._server.run()
 
     @property
     def app_state(self) -> Any:

@@ -34,6 +34,7 @@ import numpy.typing as npt
 
 import protocol as p
 from server.pipeline.staging import FrameStager
+from server.threads import name_thread
 
 STAGE_ATOMS = 100_000
 """Frames of at least this many atoms are copied to page-locked memory as they arrive."""
@@ -155,7 +156,9 @@ class GpuQueue:
     stage_atoms: int = STAGE_ATOMS
     """Frames of at least this many atoms are staged in page-locked memory as they arrive."""
     _stage_pool: ThreadPoolExecutor = field(
-        default_factory=lambda: ThreadPoolExecutor(max_workers=1, thread_name_prefix="stage")
+        default_factory=lambda: ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="stage", initializer=name_thread
+        )
     )
     tuning: Tuning | None = None
     """The renderers' tuning (benchmarks and tests; None: the defaults)."""
@@ -171,7 +174,11 @@ class GpuQueue:
     def __post_init__(self) -> None:
         names = self.devices if self.devices else (self.device,)
         self._lanes = [
-            _Lane(d, ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"gpu{i}"))
+            _Lane(
+                d,
+                # one thread a device, named for it: gpu_0, gpu_1, ...
+                ThreadPoolExecutor(max_workers=1, initializer=name_thread, initargs=(f"gpu_{i}",)),
+            )
             for i, d in enumerate(names)
         ]
 

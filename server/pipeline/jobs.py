@@ -25,10 +25,11 @@ import secrets
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Executor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Literal
 
 import protocol as p
 from server.metrics import Metrics
@@ -36,12 +37,16 @@ from server.pipeline.distributed import ChunkInputs, RayBatch, upload_refs
 from server.pipeline.encoder import encode_image
 from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.pipeline.history import time_window
+from server.pipeline.livemovie import MovieQueue
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
 from server.pipeline.overlay import draw_overlay
-from server.pipeline.selections import FrameLayers, LayerError
+from server.pipeline.selections import FrameLayers, LayerError, opening_params
 from structures.errors import StructureError
 from structures.isolated import IsolatedStructure, ReadLimits
 from structures.selection_pool import Held, SelectionPool
+
+SelectionsOf = Callable[[], Held | None]
+"""The live session's selection worker, where a movie's layers are evaluated."""
 
 log = logging.getLogger("scalesteer.jobs")
 
@@ -83,6 +88,8 @@ class JobSpec:
     expected_frames: int | None = None
     """Frames the input should hold (a recording's count): fewer readable ones (a file cut
     short) make the output partial, and the job says so."""
+    max_s: float | None = None
+    """A movie of a live session takes frames for at most this long (seconds)."""
 
     def record(self) -> dict[str, Any]:
         """A JSON-able form, to survive restarts."""
@@ -90,7 +97,8 @@ class JobSpec:
             "session": self.session,
             "topology": str(self.topology),
             "trajectories": [str(t) for t in self.trajectories],
-            "params": self.params.model_dump(mode="json"),
+            # unset fields stay unset: parameters that name no layers get the default ones
+            "params": self.params.model_dump(mode="json", exclude_unset=True),
             "camera": self.camera.model_dump(mode="json") if self.camera else None,
             "width": self.width,
             "height": self.height,
@@ -102,6 +110,7 @@ class JobSpec:
             "workdir": str(self.workdir) if self.workdir else None,
             "overlay": self.overlay,
             "expected_frames": self.expected_frames,
+            "max_s": self.max_s,
         }
 
     @classmethod
@@ -124,6 +133,7 @@ class JobSpec:
             session=raw.get("session"),
             overlay=raw.get("overlay"),
             expected_frames=raw.get("expected_frames"),
+            max_s=raw.get("max_s"),
         )
 
 
@@ -146,8 +156,11 @@ class Job:
     partial: bool = False
     """The output holds fewer frames than its input should have given (`warning` says why)."""
     warning: str | None = None
+    owner: str | None = None
+    """The page (`hello.instance`) whose leaving ends this job (None: nobody's)."""
+    frames: MovieQueue | None = None
+    """A movie of a live session: the frames taken and not yet rendered."""
     cancel: threading.Event = field(default_factory=threading.Event)
-    finish: asyncio.Event = field(default_factory=asyncio.Event)
     task: asyncio.Task[None] | None = None
 
     def record(self) -> dict[str, Any]:
@@ -206,7 +219,25 @@ class Job:
             "partial": self.partial,
             "warning": self.warning,
             "result": f"/api/jobs/{self.id}/result" if self.state is JobState.DONE else None,
+            "kind": self.kind,
+            "owner": self.owner,
+            **({"movie": self.movie()} if self.spec.session is not None else {}),
         }
+
+    @property
+    def kind(self) -> str:
+        """`live` (a movie of a live session), `recording` (a movie of a recorded run) or
+        `trajectory`."""
+        if self.spec.session is not None:
+            return "live"
+        return "recording" if self.spec.expected_frames is not None else "trajectory"
+
+    def movie(self) -> dict[str, Any]:
+        """A live movie's frames (taken, waiting to render, skipped) and its bounds."""
+        out: dict[str, Any] = {"max_frames": self.spec.stop, "max_s": self.spec.max_s}
+        if self.frames is not None:
+            out.update(self.frames.describe())
+        return out
 
 
 class _FrameCache:
@@ -227,15 +258,6 @@ class _FrameCache:
     def forget_before(self, first: int) -> None:
         for i in [i for i in self.frames if i < first]:
             del self.frames[i]
-
-
-class LiveSource(Protocol):
-    """A live session as a recording sees it: its frames as they arrive, and how it renders."""
-
-    @property
-    def render_params(self) -> p.RenderParams: ...
-
-    async def next_frame(self, after: int, timeout: float) -> Snapshot | None: ...
 
 
 class JobError(Exception):
@@ -414,25 +436,40 @@ class JobManager:
         job.task = asyncio.create_task(self._run(job), name=f"job-{job.id}")
         return job
 
-    def record(self, source: LiveSource, spec: JobSpec) -> Job:
-        """Start recording a live session to an MP4: each new frame, rendered with the
-        session's render parameters as they are at that moment and the spec's camera, until
-        `spec.stop` frames or `finish`."""
+    def record(
+        self, spec: JobSpec, frames: MovieQueue, selections: SelectionsOf, owner: str | None = None
+    ) -> Job:
+        """Start a movie of a live session: every frame put into `frames` (by whoever hooked
+        the session's frames), rendered with its own render parameters and the spec's camera,
+        until the queue closes (`finish`, `spec.stop` frames, `spec.max_s` seconds) and the
+        frames waiting in it are rendered. `selections` gives the session's selection worker,
+        for the layers."""
         if spec.session is None or spec.output != "mp4" or spec.camera is None:
             raise ValueError("a recording needs a session, a camera and MP4 output")
         self.reap()
-        job = Job(id=f"j{secrets.token_urlsafe(16)}", spec=spec)
+        job = Job(id=f"j{secrets.token_urlsafe(16)}", spec=spec, owner=owner, frames=frames)
         self.jobs[job.id] = job
         self._save(job)
-        job.task = asyncio.create_task(self._record(job, source), name=f"recording-{job.id}")
+        if spec.max_s is not None:
+            timer = asyncio.get_running_loop().call_later(
+                spec.max_s, frames.close, f"it recorded for its {spec.max_s:g} s (max_s)"
+            )
+            frames.when_closed(timer.cancel)
+        job.task = asyncio.create_task(
+            self._record(job, frames, selections), name=f"recording-{job.id}"
+        )
         return job
 
-    def finish(self, job: Job) -> None:
-        """End a recording now, keeping what it recorded (`cancel` discards it)."""
-        job.finish.set()
+    def finish(self, job: Job, why: str = "it was stopped") -> None:
+        """End a movie of a live session: it takes no more frames, renders those waiting and
+        keeps the movie (`cancel` discards it)."""
+        if job.frames is not None:
+            job.frames.close(why)
 
     def cancel(self, job: Job) -> None:
         job.cancel.set()
+        if job.frames is not None:
+            job.frames.close("it was cancelled")
         if job.state is JobState.QUEUED:
             job.state = JobState.CANCELLED
             job.finished = time.time()
@@ -548,6 +585,10 @@ class JobManager:
                 )
             except StructureError as exc:
                 raise JobError(str(exc)) from None
+            opening = await asyncio.to_thread(opening_params, spec.params, structure.topology)
+            if opening is not spec.params:  # the default layers, kept for a restart
+                job.spec = spec = replace(spec, params=opening)
+                self._save(job)
             expected = spec.expected_frames
             if expected is not None and structure.n_frames < expected:
                 job.partial = True
@@ -678,64 +719,56 @@ class JobManager:
         except RuntimeError as exc:
             raise JobError(str(exc)) from None
 
-    async def _record(self, job: Job, source: LiveSource) -> None:
+    async def _record(self, job: Job, frames: MovieQueue, selections: SelectionsOf) -> None:
         spec = job.spec
         assert spec.camera is not None
         slot = f"job:{job.id}"
         loop = asyncio.get_running_loop()
         job.state, job.started = JobState.RUNNING, time.time()
-        job.total = spec.stop or 0
+        job.stage = "rendering"
         self._save(job)
         final = self.directory / f"{job.id}.mp4"
         writer: Mp4Writer | None = None
         outcome, error, result = JobState.DONE, None, None
+        layers: FrameLayers | None = None
         try:
             writer = await loop.run_in_executor(
                 self.encoders, Mp4Writer, final, spec.fps, spec.width, spec.height
             )
-            after = first = -1
-            while not job.finish.is_set() and (spec.stop is None or job.done < spec.stop):
+            while (frame := await frames.next()) is not None:
                 if job.cancel.is_set():
-                    outcome = JobState.CANCELLED
                     break
-                waiter = asyncio.ensure_future(source.next_frame(after, 1.0))
-                finish = asyncio.ensure_future(job.finish.wait())
-                done, _ = await asyncio.wait({waiter, finish}, return_when=asyncio.FIRST_COMPLETED)
-                finish.cancel()
-                if waiter not in done:
-                    waiter.cancel()
-                    break
-                snapshot = waiter.result()
-                if snapshot is None:
-                    continue
-                if first < 0:
-                    first = snapshot.positions_id
-                after = snapshot.positions_id
+                job.total = frames.taken
+                snap = frame.snapshot
+                if layers is None or layers.params is not frame.params:
+                    layers = FrameLayers(frame.params, snap.topology, selections())
+                try:  # the session's worker, with its frames' keys
+                    plans = await layers.plans_async(snap.positions, snap.positions_id, frame.box)
+                except LayerError as exc:
+                    raise JobError(f"params.{exc}") from None
+                started = time.monotonic()
                 out = await self.gpu.render(
                     RenderRequest(
-                        slot, snapshot, source.render_params, spec.camera, spec.width, spec.height
+                        slot, snap, frame.params, spec.camera, spec.width, spec.height, layers=plans
                     )
                 )
-                await loop.run_in_executor(
-                    self.encoders, writer.add, snapshot.step, out.image(), None
-                )
+                await loop.run_in_executor(self.encoders, writer.add, snap.step, out.image(), None)
+                frames.rendered(time.monotonic() - started)
                 job.done += 1
-            if outcome is JobState.DONE and job.done == 0:
+            job.total = frames.taken
+            if job.cancel.is_set():
+                outcome = JobState.CANCELLED
+            elif job.done == 0:
                 raise JobError("the session sent no frame while recording")
-            sent = after - first + 1  # the session's frames from the first image to the last
-            if outcome is JobState.DONE and sent > job.done:
-                job.partial = True
-                job.warning = (
-                    f"the session sent {sent} frames while recording; {job.done} of them are in "
-                    "the movie (each image took longer to render than the next frame took to "
-                    "come, and a movie image is always of the newest frame)"
-                )
-            if outcome is JobState.DONE:
+            else:
+                job.warning = frames.skip_warning()
+                job.partial = job.warning is not None
                 await loop.run_in_executor(self.encoders, writer.close)
                 result = final
         except JobError as exc:
             outcome, error = JobState.FAILED, str(exc)
         except asyncio.CancelledError:
+            frames.close("the server stopped")
             if writer is not None:
                 with contextlib.suppress(Exception):
                     writer.abort()
@@ -744,13 +777,13 @@ class JobManager:
             log.exception("recording %s failed", job.id)
             outcome = JobState.FAILED
             error = f"internal error ({type(exc).__name__}); see the server log"
+        frames.close("it ended")
         if outcome is not JobState.DONE and writer is not None:
             with contextlib.suppress(Exception):
                 writer.abort()
         with contextlib.suppress(Exception):
             await self.gpu.release(slot)
         job.state, job.error, job.result = outcome, error, result
-        job.total = job.done
         job.finished = time.time()
         self.metrics.jobs.labels(job.state.value).inc()
         self._save(job)

@@ -94,6 +94,10 @@ class Recording:
     """[first step, last step, frames skipped] of each run of skipped frames."""
     queued_bytes: int = 0
     """Positions taken and not yet on disk."""
+    owner: str | None = None
+    """The page (`hello.instance`) whose leaving ends the recording (None: nobody's)."""
+    ended_because: str | None = None
+    """Why it stopped, when something other than a stop request ended it."""
     _last_kept: bool = True
     _queue_lock: threading.Lock = field(default_factory=threading.Lock)
     detach: Callable[[], tuple[int, Future[None]]] | None = None
@@ -128,6 +132,8 @@ class Recording:
             "skipped": self.skipped,
             "skipped_spans": self.skipped_spans,
             "error": self.error,
+            "owner": self.owner,
+            "ended_because": self.ended_because,
         }
 
     def skip_warning(self) -> str | None:
@@ -192,6 +198,8 @@ class Recording:
             frames=int(raw["frames"]),
             bytes=int(raw["bytes"]),
             error=raw.get("error"),
+            owner=raw.get("owner"),
+            ended_because=raw.get("ended_because"),
         )
 
 
@@ -367,6 +375,7 @@ class RecordingStore:
         stride: int,
         max_bytes: int,
         queue_bytes: int = 128 << 20,
+        owner: str | None = None,
     ) -> Recording:
         rec_id = f"r{secrets.token_urlsafe(16)}"
         folder = self.directory / rec_id
@@ -382,6 +391,7 @@ class RecordingStore:
             camera=camera.model_dump(mode="json") if camera is not None else None,
             first_log_id=first_log_id,
             queue_bytes=queue_bytes,
+            owner=owner,
         )
         self._save(rec)
         rec._thread = threading.Thread(

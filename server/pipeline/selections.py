@@ -52,6 +52,20 @@ def check_layers(params: p.RenderParams, limits: SelectionLimits | None = None) 
             raise LayerError(f"layers.{i}.selection", exc) from None
 
 
+def opening_params(params: p.RenderParams, topology: p.Topology) -> p.RenderParams:
+    """The one rule for what a system opens on, for every entry point (sessions, REST renders
+    and jobs, `scalesteer render` and `batch`, movies): parameters that do not name `layers`
+    get the default layers (`structures.selection.default_layers`: solvent and ions hidden, a
+    ligand at a finer scale, at these parameters' sigma); parameters that name them, even as
+    an empty list (every atom), keep them."""
+    if "layers" in params.model_fields_set:
+        return params
+    from structures.selection import default_layers
+
+    defaults = [p.Layer(**fields) for fields in default_layers(topology, params.sigma_A)]
+    return params.model_copy(update={"layers": defaults})
+
+
 class Selections(Protocol):
     """Where selections are evaluated: `structures.selection_pool.Held` (a worker) or
     `InProcess`."""

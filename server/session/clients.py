@@ -68,7 +68,8 @@ class Client:
     name: str
     ws: Transport
     instance: str | None = None
-    """A simulation adapter's identity across reconnections (`hello.instance`)."""
+    """The client's identity across its reconnections (`hello.instance`): a simulation
+    adapter's, or a dashboard page's (what it starts is tied to it: `server.web.owners`)."""
     view: p.View | None = None
     view_ref: int | None = None
     interacting_until: float = 0.0

@@ -107,6 +107,9 @@ class Session:
         self.roster = Roster()
         self.topology: p.Topology | None = None
         self.legend: p.Legend | None = None
+        self._legend_key: Any = None
+        self._legend_plans: tuple[LayerPlan, ...] | None = None
+        """The layers the legend was made for (it lists only the atoms they show)."""
         self.engine: p.EngineInfo | None = None
         """What the simulation declared it can be steered with (kept until a new one says)."""
         self.topology_id = 0
@@ -139,7 +142,6 @@ class Session:
         self._image_ids = itertools.count(1)
         self._roster_flush: asyncio.TimerHandle | None = None
         self._status_flush: asyncio.TimerHandle | None = None
-        self._frame_arrived = asyncio.Event()
         self._step_rate = StepRate()
         self._dirty = asyncio.Event()
         self._closed = False
@@ -265,6 +267,7 @@ class Session:
             update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": "running"}
         )
         self.broadcast(p.State(sim=self.status))
+        self._legend_plans = None  # the last layers' atoms were of the last topology
         self._legend_changed()
         if topology.n_atoms >= heap.LARGE_TOPOLOGY:
             heap.settle()  # its per-atom lists leave the collector's walk (server.heap)
@@ -383,8 +386,6 @@ class Session:
         if self.frame_sinks:
             for sink in list(self.frame_sinks):
                 sink(frame.step, frame.time_ps, self.positions, self.box)
-        self._frame_arrived.set()  # wakes `next_frame` waiters; the next frame gets a new event
-        self._frame_arrived = asyncio.Event()
         if self.camera is None:
             self._fit_camera()
         paused = self.status.state == "paused"
@@ -457,13 +458,32 @@ class Session:
             )
 
     def _legend_changed(self) -> None:
+        """The colouring changed, or the topology: the legend again, for the atoms shown."""
+        self._legend_key = None
+        self._show_legend(self._legend_plans)
+
+    def _show_legend(self, plans: tuple[LayerPlan, ...] | None) -> None:
+        """What the colours of the atoms the layers show mean (hidden solvent and ions are
+        not in it), sent when it changes."""
         if self.topology is None:
             return
-        from server.render.colors import legend
-
         rp = self.render_params
-        self.legend = legend(self.topology, rp.color_by, rp.uniform_color)
-        self.broadcast(p.State(legend=self.legend))
+        atoms = None if plans is None else tuple(plan.atoms_key for plan in plans)
+        key = (self.topology_id, rp.color_by, rp.uniform_color, atoms)
+        if key == self._legend_key:
+            return
+        self._legend_key, self._legend_plans = key, plans
+        from server.render.colors import legend
+        from server.render.layerplan import subset_topology
+
+        topology = self.topology
+        shown = visible_atoms(plans, topology.n_atoms)
+        if 0 < len(shown) < topology.n_atoms:
+            topology = subset_topology(topology, shown)
+        drawn = legend(topology, rp.color_by, rp.uniform_color)
+        if drawn != self.legend:
+            self.legend = drawn
+            self.broadcast(p.State(legend=self.legend))
 
     def on_ack(self, ack: p.ParamsAck) -> None:
         pending = self.acks.take(ack.ref)
@@ -760,20 +780,6 @@ class Session:
     def mark_dirty(self) -> None:
         self._dirty.set()
 
-    async def next_frame(self, after: int, timeout: float) -> Snapshot | None:
-        """The first snapshot whose `positions_id` is above `after`, waiting up to `timeout`
-        seconds for the simulation to send it (None if it does not)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            snap = self.snapshot()
-            if snap is not None and snap.positions_id > after:
-                return snap
-            left = deadline - time.monotonic()
-            if left <= 0 or self._closed:
-                return None
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._frame_arrived.wait(), left)
-
     def snapshot(self) -> Snapshot | None:
         """The molecule as it is now, for one render pass."""
         if self.topology is None or self.positions is None:
@@ -890,6 +896,7 @@ class Session:
         layers = self._layer_plans(snap)
         if not self.layers.ready:
             return None  # a layer's atoms are still being evaluated; they call again
+        self._show_legend(layers)
         params = self.render_params
         device = self.services.backend.actual_device or self.settings.device
         on_cpu = device.startswith("cpu")
@@ -937,7 +944,7 @@ class Session:
         metrics = self.services.metrics
         metrics.frames_rendered.inc()
         metrics.render_ms.observe(out.timings.get("total", 0.0))
-        quality = self.scheduler.jpeg_quality(key, params)
+        quality = self.scheduler.jpeg_quality(key, params, (width, height))
         return Rendered(
             out,
             next(self._image_ids),

@@ -10,10 +10,11 @@ running twice costs nothing and charges a budget once.
 from __future__ import annotations
 
 from collections.abc import Callable, Coroutine
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import HTTPException, Request
+from fastapi import Depends, HTTPException, Request
 from fastapi.routing import APIRoute
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.responses import Response
 
 import protocol as p
@@ -23,6 +24,15 @@ from server.web.state import AppState
 
 _ROLE = "scalesteer.role"
 _CHARGED = "scalesteer.render_charged"
+BEARER = HTTPBearer(
+    scheme_name="token",
+    description="The server token (every route), or the viewer token (reading and rendering); "
+    "`?token=` in the address works too.",
+    auto_error=False,
+)
+"""Declares the token to the API description, so `/docs` has an Authorize button; the token
+itself is checked below, from the headers (`request_token`)."""
+Token = Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)]
 
 
 def app_state(request: Request) -> AppState:
@@ -38,7 +48,7 @@ def request_token(request: Request) -> str | None:
     return request.headers.get("x-scalesteer-token") or request.query_params.get("token")
 
 
-def viewer_access(request: Request) -> p.Role:
+def viewer_access(request: Request, _token: Token = None) -> p.Role:
     """Any valid token (401 without one); the role it carries."""
     role: p.Role | None = request.scope.get(_ROLE)
     if role is None:
@@ -51,7 +61,7 @@ def viewer_access(request: Request) -> p.Role:
     return role
 
 
-def steerer_access(request: Request) -> p.Role:
+def steerer_access(request: Request, _token: Token = None) -> p.Role:
     """The server token (403 for the read-only viewer token)."""
     role = viewer_access(request)
     if role != "steerer":
@@ -59,7 +69,7 @@ def steerer_access(request: Request) -> p.Role:
     return role
 
 
-def render_access(request: Request) -> p.Role:
+def render_access(request: Request, _token: Token = None) -> p.Role:
     """Any valid token; a viewer-token holder's call is charged to the viewers' shared render
     budget (429 with `Retry-After` when it is spent)."""
     role = viewer_access(request)
@@ -78,7 +88,7 @@ def render_access(request: Request) -> p.Role:
     return role
 
 
-HEADER_CHECKS: frozenset[Callable[[Request], p.Role]] = frozenset(
+HEADER_CHECKS: frozenset[Callable[..., p.Role]] = frozenset(
     {viewer_access, steerer_access, render_access}
 )
 """Dependencies that need nothing but the request's headers: run before its body is read."""

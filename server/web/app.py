@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fastapi import FastAPI, WebSocket
+from fastapi.exceptions import RequestValidationError
 from fastapi.staticfiles import StaticFiles
 
 from server.metrics import Metrics
@@ -27,15 +28,18 @@ from server.session.services import Services
 from server.session.session import Session
 from server.session.steering_log import SteeringLog
 from server.settings import ServerSettings
+from server.threads import name_thread
 from server.web import ws as ws_endpoints
 from server.web.apidocs import add_docs
 from server.web.auth import RateLimiter
 from server.web.middleware import HostCheck, OriginCheck, SecurityHeaders, UploadLimit
+from server.web.owners import Owners
 from server.web.recordings import router as recordings_router
 from server.web.replays import router as replays_router
 from server.web.rest import router
 from server.web.spool import Spool
 from server.web.state import AppState, SessionRegistry
+from server.web.validation import validation_failed
 from structures.selection_pool import SelectionPool
 
 log = logging.getLogger("scalesteer.app")
@@ -110,7 +114,9 @@ def create_app(settings: ServerSettings) -> FastAPI:
             max_pixels=settings.limits.max_image_pixels,
         )
         encoders = ThreadPoolExecutor(
-            max_workers=settings.encode_workers, thread_name_prefix="encode"
+            max_workers=settings.encode_workers,
+            thread_name_prefix="encode",
+            initializer=name_thread,
         )
         encoder = await asyncio.to_thread(select_encoder, settings.device)
         # shared by all sessions: encodes in flight never outnumber the encoder threads
@@ -164,6 +170,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             ),
             recordings=RecordingStore(state_dir / "recordings", steering_log.read),
             upload_dir=upload_dir,
+            owners=Owners(settings.owner_grace_s),
             readers=asyncio.Semaphore(settings.max_readers),
             viewer_renders=RateLimiter(
                 settings.viewer_renders_per_min / 60.0,
@@ -189,6 +196,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             yield
         finally:
             reaping.cancel()
+            state.owners.close()
             await asyncio.to_thread(state.replays.close)
             await asyncio.to_thread(state.recordings.close)
             await state.jobs.close()
@@ -208,6 +216,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         docs_url=None,
         redoc_url=None,
     )
+    app.add_exception_handler(RequestValidationError, validation_failed)
     app.include_router(router)
     app.include_router(replays_router)
     app.include_router(recordings_router)

@@ -24,20 +24,22 @@ from server.pipeline.jobs import JobSpec
 from server.pipeline.marks import pull_path
 from server.pipeline.recordings import FILES, Recording
 from server.web.access import GatedRoute, steerer_access
-from server.web.rest import State, check_layer_texts, check_size
+from server.web.rest import SKIP_NOTICE_S, State, check_layer_texts, check_size
 
 router = APIRouter(route_class=GatedRoute)
 Steerer = Annotated[p.Role, Depends(steerer_access)]
-SKIP_NOTICE_S = 5.0
-"""While a recording skips frames, how often the session is told."""
 
 
 class RecordingRequest(BaseModel):
-    """How to record: every `stride`-th frame, up to `max_bytes` of trajectory."""
+    """How to record: every `stride`-th frame, up to `max_bytes` of trajectory; `owner` ties
+    the recording to a page (`hello.instance`): it stops when that page leaves."""
 
     model_config = ConfigDict(extra="forbid")
     stride: int = Field(1, ge=1, le=100_000)
     max_bytes: int | None = Field(None, ge=1 << 16, description="default: the server's limit")
+    owner: str | None = Field(
+        None, max_length=64, description="a page's hello.instance: stopped when it leaves"
+    )
 
 
 class MovieRequest(BaseModel):
@@ -107,6 +109,7 @@ async def start_recording(
             body.stride,
             limit,
             state.settings.recording_queue_bytes,
+            body.owner,
         )
     finally:
         state.recordings.starting.discard(session_id)
@@ -126,10 +129,11 @@ async def start_recording(
             )
         if not rec.running and sink in live.frame_sinks:  # capped
             live.frame_sinks.remove(sink)
+            state.owners.done(rec.id)
 
     async def session_closed() -> None:
         if rec.running:  # (the server's shutdown may have ended it already)
-            await _stop(state, rec)
+            await _stop(state, rec, f"session {session_id!r} closed")
 
     def detach() -> tuple[int, Future[None]]:
         if sink in live.frame_sinks:
@@ -141,13 +145,24 @@ async def start_recording(
     rec.detach = detach
     live.frame_sinks.append(sink)
     live.close_hooks.append(session_closed)  # a reaped session ends its recording
+    if body.owner is not None:
+
+        async def owner_left(why: str) -> None:
+            if rec.running:
+                await _stop(state, rec, why)
+
+        state.owners.own(live, body.owner, rec.id, owner_left)
     return JSONResponse(
         rec.describe(), status_code=201, headers={"Location": f"/api/recordings/{rec.id}"}
     )
 
 
-async def _stop(state: State, rec: Recording) -> None:
-    """Unhook the recording, mark its end in the session's log, write what is queued."""
+async def _stop(state: State, rec: Recording, why: str | None = None) -> None:
+    """Unhook the recording, mark its end in the session's log, write what is queued; `why`
+    says what ended it when no one asked (kept in `ended_because`)."""
+    state.owners.done(rec.id)
+    if why is not None and rec.running:
+        rec.ended_because = why
     last_id = None
     if rec.detach is not None:
         last_id, written = rec.detach()
@@ -262,7 +277,10 @@ async def recording_movie(
     rec = _recording(state, rec_id)
     _finished(rec)
     check_size(state, body.width, body.height)
-    params = body.params or p.RenderParams.model_validate(rec.render_params)
+    started = p.RenderParams.model_validate(rec.render_params)
+    params = body.params or started
+    if "layers" not in params.model_fields_set:  # the layers of the recording's start
+        params = params.model_copy(update={"layers": started.layers})
     check_layer_texts(state, params, "params")
     camera = body.camera or (p.Camera.model_validate(rec.camera) if rec.camera else None)
     overlay = None

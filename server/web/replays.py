@@ -39,6 +39,30 @@ def _library(state: AppState) -> Path:
     return root / "opened"
 
 
+def _taken(state: AppState, name: str) -> bool:
+    """Whether session `name` has a simulation, or a replay child that is still running."""
+    running = state.replays.processes.get(name)
+    live = state.sessions.get(name)
+    return (running is not None and running.process.poll() is None) or (
+        live is not None and live.sim is not None
+    )
+
+
+def _fresh_name(state: AppState, base: str) -> str:
+    """`base`, or `base-2`, `base-3`, ... : the first that no simulation plays (the same
+    files opened twice play side by side)."""
+    base = base if re.match(SESSION_NAME, base) and base != "replay-" else "replay-upload"
+    for n in range(1, state.settings.max_sessions + 2):
+        name = base if n == 1 else f"{base}-{n}"
+        if not _taken(state, name):
+            return name
+    raise HTTPException(
+        409,
+        f"{base}: {state.settings.max_sessions} sessions of that name play already "
+        "(max_sessions); stop one of them first",
+    )
+
+
 @router.post("/api/replays", status_code=201, summary="Open files as a replay session")
 async def open_replay(
     request: Request,
@@ -48,20 +72,27 @@ async def open_replay(
     trajectory: Annotated[
         list[UploadFile] | None, File(description="trajectory files (DCD, XTC, TRR, ...)")
     ] = None,
-    session: Annotated[str | None, Form(description="session name (default from the file)")] = None,
+    session: Annotated[
+        str | None,
+        Form(description="session name (default: replay-<file>, numbered when that one plays)"),
+    ] = None,
     fps: Annotated[float, Form(gt=0, le=240)] = 30.0,
     loop: Annotated[bool, Form()] = False,
 ) -> dict[str, Any]:
     manager: ReplayManager = state.replays
-    name = session or "replay-" + _SAFE.sub("-", Path(topology.filename or "upload").stem)[:40]
-    if not re.match(SESSION_NAME, name):
-        raise HTTPException(422, f"session: {name!r} is not a usable session name")
-    running = manager.processes.get(name)
-    live = state.sessions.get(name)
-    if (running is not None and running.process.poll() is None) or (
-        live is not None and live.sim is not None
-    ):
-        raise HTTPException(409, f"session {name!r} already has a simulation; pick another name")
+    filename = topology.filename or "upload"
+    if session is not None:
+        name = session
+        if not re.match(SESSION_NAME, name):
+            raise HTTPException(422, f"session: {name!r} is not a usable session name")
+        if _taken(state, name):
+            raise HTTPException(
+                409,
+                f"session {name!r} already plays a simulation; name another session to open "
+                f"{filename} in, or leave the name out to get a fresh one",
+            )
+    else:
+        name = _fresh_name(state, "replay-" + _SAFE.sub("-", Path(filename).stem).strip("-.")[:40])
     folder = _library(state) / f"{name}-{int(time.time())}"
     folder.mkdir(parents=True, exist_ok=True)
     try:

@@ -11,19 +11,22 @@ import json
 import re
 import shutil
 import tempfile
+import time
 import typing
 import uuid
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, UploadFile
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
 import protocol as p
 from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
-from server.pipeline.selections import FrameLayers, LayerError, check_layers
+from server.pipeline.livemovie import MovieFrame, MovieQueue
+from server.pipeline.selections import FrameLayers, LayerError, check_layers, opening_params
 from server.web.access import (
     GatedRoute,
     app_state,
@@ -37,6 +40,8 @@ from structures.isolated import IsolatedStructure
 
 router = APIRouter(route_class=GatedRoute)
 State = Annotated[AppState, Depends(app_state)]
+SKIP_NOTICE_S = 5.0
+"""While a recording or a movie skips frames, how often the session is told."""
 
 
 def check_layer_texts(state: AppState, params: p.RenderParams, field: str) -> None:
@@ -122,14 +127,18 @@ _UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
 
 
 async def save_upload(upload: UploadFile, directory: Path, limit: int, index: int = 0) -> Path:
-    """Stream an upload to `directory` under a unique, safe name that keeps its extension."""
+    """Stream an upload to `directory` under a safe name that keeps its extension: the name it
+    came with (so what the reader says about it names the user's file), prefixed with `index`
+    only when an earlier file of the request took that name."""
     name = _UNSAFE.sub("_", Path(upload.filename or "upload").name).lstrip(".")
     if not name:
         raise HTTPException(422, f"unusable file name {upload.filename!r}")
     if len(name) > 120:  # keep the extension, which names the format
         stem, dot, ext = name.rpartition(".")
         name = stem[: 100 - len(ext)] + dot + ext[:16] if dot else name[:120]
-    target = directory / f"{index}-{name}"
+    target = directory / name
+    if target.exists():
+        target = directory / f"{index}-{name}"
     size = 0
     with open(target, "wb") as out:
         while chunk := await upload.read(1 << 20):
@@ -224,7 +233,10 @@ async def render_image(
         if live.topology is None or live.positions is None:
             raise HTTPException(409, f"session {session!r} has no frame yet")
         topology, positions, box = live.topology, live.positions, live.box
-        render_params = render_params or live.render_params
+        if render_params is None:
+            render_params = live.render_params
+        elif "layers" not in render_params.model_fields_set:  # the session's layers
+            render_params = render_params.model_copy(update={"layers": live.render_params.layers})
         cam = cam or live.camera
         held, frame_key = live.layers.held, live.positions_id  # its worker has them
     else:
@@ -239,11 +251,10 @@ async def render_image(
             box = None
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
-    if render_params is None:  # a file opens on its molecule, as a session does
-        from structures.selection import default_layers
-
-        defaults = await asyncio.to_thread(default_layers, topology, p.RenderParams().sigma_A)
-        render_params = p.RenderParams(layers=[p.Layer(**f) for f in defaults])
+    # a file opens on its molecule, as a session does, unless the parameters name layers
+    render_params = await asyncio.to_thread(
+        opening_params, render_params or p.RenderParams(), topology
+    )
     own = held is None and bool(render_params.layers)
     if own:
         held = state.selections.hold(topology)
@@ -350,6 +361,21 @@ async def create_job(
     )
 
 
+@router.get("/api/jobs", summary="Jobs, newest first (running and queued ones first)")
+async def list_jobs(
+    state: State,
+    _role: Annotated[p.Role, Depends(steerer_access)],
+    active: Annotated[
+        bool, Query(description="only those queued or running (a movie still recording)")
+    ] = False,
+) -> list[dict[str, Any]]:
+    jobs = sorted(
+        state.jobs.jobs.values(),
+        key=lambda j: (j.state in FINAL, -j.created),
+    )
+    return [j.describe() for j in jobs if not (active and j.state in FINAL)]
+
+
 def _job(state: AppState, job_id: str) -> Any:
     job = state.jobs.get(job_id)
     if job is None:
@@ -380,7 +406,7 @@ async def get_job_result(
 
 @router.delete(
     "/api/jobs/{job_id}",
-    summary="Cancel a job, end a recording (keeping it), or delete a finished job's output",
+    summary="Cancel a job, stop a live movie (keeping it; again: cancel it), or delete an output",
 )
 async def delete_job(
     job_id: str, state: State, _role: Annotated[p.Role, Depends(steerer_access)]
@@ -389,9 +415,10 @@ async def delete_job(
     if job.state in FINAL:
         state.jobs.forget(job)
         return {"id": job_id, "deleted": True}
-    if job.spec.session is not None and job.state is JobState.RUNNING:
-        state.jobs.finish(job)  # a recording ends here and keeps its movie
-        return {"id": job_id, "finishing": True}
+    recording = job.frames is not None and not job.frames.closed
+    if job.state is JobState.RUNNING and recording:
+        state.jobs.finish(job)  # a live movie takes no more frames and keeps its movie
+        return {**job.describe(), "finishing": True}
     state.jobs.cancel(job)
     described: dict[str, Any] = job.describe()
     return described
@@ -475,10 +502,23 @@ async def record_session(
     height: Annotated[int, Form()] = 480,
     fps: Annotated[float, Form(gt=0, le=120)] = 30.0,
     max_frames: Annotated[int, Form(ge=1, le=100_000)] = 1800,
+    max_s: Annotated[
+        float | None,
+        Form(gt=0, le=86_400, description="seconds of recording (default: movie_max_s, 600)"),
+    ] = None,
+    owner: Annotated[
+        str | None,
+        Form(
+            max_length=64,
+            description="a page's hello.instance: the movie ends when that page leaves",
+        ),
+    ] = None,
 ) -> JSONResponse:
-    """Each frame the simulation sends from now on, drawn with the session's render
-    parameters of that moment (what the dashboard shows) and this camera; the movie ends after
-    `max_frames` frames or when `DELETE /api/jobs/{id}` finishes it (the movie is kept)."""
+    """The frame shown now and each frame the simulation sends from now on, every one, drawn
+    with the session's render parameters and layers of its moment (what the dashboard shows)
+    and this camera. It takes frames until `max_frames`, `max_s`, `DELETE /api/jobs/{id}`, its
+    `owner` leaving the session or the session closing, then renders those still waiting
+    and keeps the movie."""
     check_size(state, width, height)
     live = state.sessions.get(session_id)
     if live is None:
@@ -497,8 +537,62 @@ async def record_session(
         stop=max_frames,
         fps=fps,
         session=session_id,
+        max_s=max_s or state.settings.movie_max_s,
     )
-    job = state.jobs.record(live, spec)
+    told = [-SKIP_NOTICE_S]
+
+    def skipped(frames: MovieQueue, step: int) -> None:
+        if time.monotonic() - told[0] >= SKIP_NOTICE_S:  # at once, then once in a while
+            told[0] = time.monotonic()
+            live.broadcast(
+                p.Event(
+                    level="warning",
+                    code="movie_skipped",
+                    message=f"movie {job.id}: {frames.skip_warning()}",
+                    step=step,
+                )
+            )
+
+    def behind(frames: MovieQueue) -> None:
+        live.broadcast(
+            p.Event(
+                level="info",
+                code="movie_behind",
+                message=f"movie {job.id}: {frames.behind_notice()}",
+            )
+        )
+
+    frames = MovieQueue(state.settings.movie_queue_bytes, max_frames, skipped, behind)
+
+    def take(step: int, time_ps: float, positions: Any, box: Any) -> None:
+        snap = live.snapshot()
+        if snap is not None:
+            frames.offer(MovieFrame(replace(snap, step=step), live.render_params, box))
+
+    now = live.snapshot()
+    if now is not None:  # the frame on the screen when the movie starts
+        frames.offer(MovieFrame(now, live.render_params, live.box))
+
+    async def session_closed() -> None:
+        frames.close(f"session {session_id!r} closed")
+
+    def unhook() -> None:
+        if take in live.frame_sinks:
+            live.frame_sinks.remove(take)
+        if session_closed in live.close_hooks:
+            live.close_hooks.remove(session_closed)
+
+    live.frame_sinks.append(take)
+    live.close_hooks.append(session_closed)
+    job = state.jobs.record(spec, frames, lambda: live.layers.held, owner)
+    frames.when_closed(unhook)
+    if owner is not None:
+
+        async def end(why: str) -> None:
+            state.jobs.finish(job, why)
+
+        state.owners.own(live, owner, job.id, end)
+        frames.when_closed(lambda: state.owners.done(job.id))
     return JSONResponse(
         job.describe(), status_code=202, headers={"Location": f"/api/jobs/{job.id}"}
     )

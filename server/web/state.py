@@ -27,6 +27,7 @@ from server.session.steering_log import SteeringLog
 from server.settings import ServerSettings
 from server.web.auth import ClientBudgets, RateLimiter
 from server.web.children import ReplayManager
+from server.web.owners import Owners
 from structures.selection_pool import SelectionPool
 
 _SESSION_NAME = re.compile(SESSION_NAME)
@@ -116,6 +117,8 @@ class AppState:
     """WebSocket rate limits per client (role and remote address), across its connections."""
     replays: ReplayManager = field(default_factory=ReplayManager)
     """Replays opened from the dashboard (child processes)."""
+    owners: Owners = field(default_factory=lambda: Owners(15.0))
+    """Recordings and movies tied to the page that started them (ended when it leaves)."""
 
     @property
     def selections(self) -> SelectionPool:

@@ -184,6 +184,7 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
             client.run_sender(state.metrics.images_sent.inc), name=f"send-{client.client_id}"
         )
         session.attach(client)
+        state.owners.joined(session, client.instance)
         log.info("%s %s joined session %s as %s", endpoint, client.client_id, session.id, role)
         await _receive_loop(ws, state, session, client, guard, limits)
     except RefusedError as refused:
@@ -206,6 +207,7 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
         if client is not None:
             if session is not None:
                 session.detach(client)
+                state.owners.left(session, client.instance)
             if client.state is ClientState.CLOSING and sender is not None:
                 # dropped for not reading: let the sender deliver the error and the close frame
                 with contextlib.suppress(Exception):

@@ -66,6 +66,11 @@ def test_the_legend_names_the_colours(
     dash.page.select_option("#color-by", "residue")
     expect(legend.locator(".legend-title")).to_have_text("Residue class")
     expect(legend.locator(".legend-entries")).to_contain_text("hydrophobic")
+    # motion's unit had been a bare "γ′": the legend says what it is and what sets it
+    dash.page.select_option("#color-by", "motion")
+    expect(legend.locator(".legend-title")).to_have_text("Motion: warp rate γ′")
+    expect(legend.locator(".legend-ends")).to_have_text(re.compile(r"1 γ′ at rest\s*3 γ′ fast"))
+    expect(legend.locator(".legend-note")).to_contain_text("frames of warped time per frame")
 
 
 def test_shift_clicking_atoms_measures_and_the_markers_follow_them(
@@ -99,6 +104,18 @@ def test_shift_clicking_atoms_measures_and_the_markers_follow_them(
     page.mouse.click(x3, y3)
     page.keyboard.up("Shift")
     expect(page.locator("#pick-measure")).to_have_text(re.compile(r"^angle [\d.]+ °"))
+    # the three atoms' labels and the angle's: none covers another (they had overlapped)
+    rects = dash.evaluate("() => window.scalesteer.viewport.labelRects")
+    assert [r["text"].split()[0] for r in rects[:3]] == ["1", "2", "3"] and len(rects) == 4
+    for i, a in enumerate(rects):
+        for b in rects[i + 1 :]:
+            apart = (
+                a["x"] + a["w"] <= b["x"]
+                or b["x"] + b["w"] <= a["x"]
+                or a["y"] + a["h"] <= b["y"]
+                or b["y"] + b["h"] <= a["y"]
+            )
+            assert apart, (a, b)
     page.keyboard.press("Escape")
     expect(page.locator("#pick-measure")).to_have_text(re.compile("^Shift-click"))
 
@@ -166,6 +183,10 @@ def test_files_opened_from_the_browser_replay_with_a_timeline(
     timeline = page.locator("#timeline")
     expect(timeline).to_be_visible(timeout=60_000)
     expect(page.locator("#tl-frame")).to_have_text(re.compile(r"^frame \d+ / 98$"))
+    # the bar had covered the view's status line (step, fps, latency)
+    hud, bar = page.locator("#hud").bounding_box(), timeline.bounding_box()
+    assert hud is not None and bar is not None
+    assert hud["y"] + hud["height"] <= bar["y"], (hud, bar)
     page.click("#tl-play")  # pause, then seek to frame 50
     expect(page.locator("#tl-play")).to_have_text("Play")
     page.locator("#tl-scrub").fill("49")

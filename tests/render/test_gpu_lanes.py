@@ -100,7 +100,7 @@ def test_each_device_has_a_thread_of_its_own(
     finally:
         held.set()
         queue.close()
-    assert names == {"gpu0_0"}
+    assert names == {"gpu_0"}
 
 
 @pytest.mark.gpu

@@ -7,8 +7,10 @@ import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+import protocol as p
 from server.commands.batch import main as batch_main
 
 
@@ -58,3 +60,43 @@ def test_batch_renders_here_unless_ray_is_asked_for(
     assert code == 0
     printed = capsys.readouterr().out
     assert "rendering on this process (cpu)" in printed and "3 frames" in printed
+
+
+def test_batch_opens_a_solvated_system_on_its_protein(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`batch` of a GRO/XTC rendered the water box: it follows the rule every entry point
+    follows (docs/batch.md), and --select, --layers, --all-atoms and --params say so in --help."""
+    import io
+
+    from MDAnalysisTests.datafiles import GRO, XTC
+    from PIL import Image
+
+    from server.commands.batch import parser
+
+    helped = parser().format_help()
+    for option in ("--select", "--layers", "--all-atoms", "--params"):
+        assert option in helped
+    assert "solvent and ions hidden" in " ".join(helped.split())
+
+    from tests.server.web.test_solvated import solvated
+
+    camera = solvated()[2].model_dump_json()  # framing the protein
+
+    out = tmp_path / "frames.zip"
+    argv = [GRO, XTC, "-o", str(out), "--size", "64x48", "--stop", "1", "--engine", "local",
+            "--device", "cpu", "--params", '{"sigma_A": 2}', "--camera", camera]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    rgb = np.asarray(Image.open(io.BytesIO(zipfile.ZipFile(out).read("frame_000000.png"))))
+    background = np.asarray(p.RenderParams().background) * 255
+    # water and ions hidden: the protein on the background (the water box fills the picture,
+    # tests/server/web/test_solvated.py)
+    assert (np.abs(rgb[..., :3] - background).max(axis=-1) < 16).mean() > 0.75
+    for wrong in (["--select", "protein and ("], ["--layers", '[{"selection": "protein and ("}]']):
+        argv = [GRO, XTC, "-o", str(tmp_path / "x.zip"), "--engine", "local", *wrong]
+        assert main(argv) == 2
+        assert "layers.0.selection" in capsys.readouterr().err
+    argv = [GRO, XTC, "-o", str(tmp_path / "x.zip"), "--engine", "local", "--params",
+            '{"layers": []}', "--select", "protein"]  # fmt: skip
+    assert main(argv) == 2
+    assert "--params names layers" in capsys.readouterr().err

@@ -15,6 +15,7 @@ import httpx
 import pytest
 
 import protocol as p
+from server.commands.villin import MD_NICE
 from server.supervisor import descendants
 from tests.server.peers import Peer
 from tests.server.processes import command_line, wait_gone
@@ -28,6 +29,17 @@ def _interruptible() -> None:
     Python then raises no KeyboardInterrupt for it: run late in the whole suite, the demo
     inherited one and ran on after the test's Ctrl-C (alone the test passed)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _thread_nices(pid: int) -> dict[str, int]:
+    """The nice value of each thread of `pid`, by name (the main thread by its id)."""
+    out = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        stat = (task / "stat").read_text()
+        nice = int(stat[stat.rfind(")") + 2 :].split()[16])
+        name = task.name if int(task.name) == pid else (task / "comm").read_text().strip()
+        out[name] = nice
+    return out
 
 
 def _small_job(port: int, token: str) -> dict[str, object]:
@@ -116,6 +128,24 @@ def test_demo_serves_frames_and_takes_steering(tmp_path: Path) -> None:
             p.Image, 180, where=lambda m: m.step is not None and m.step > first.step
         )
         assert later.width > 0 and later.data[:2] == b"\xff\xd8"
+        # on the CPU the simulation leaves the renderer room: frames paced by its speed (every
+        # 50 steps had come 2-4 times a second on two cores, and the page showed no more), in
+        # a process of its own (OpenMM holds the interpreter lock while it steps) that runs at
+        # a priority below the server's
+        steps = set()
+        while len(steps) < 6:
+            got = steerer.expect(p.State, 60, where=lambda m: m.sim is not None and m.sim.step)
+            assert got.sim is not None
+            steps.add(got.sim.step)
+        assert any(s % 50 for s in steps), steps
+        (simulation,) = [
+            q
+            for q in descendants(proc.pid)
+            if "commands.villin" in command_line(q) and "supervisor" not in command_line(q)
+        ]
+        nice = _thread_nices(proc.pid)
+        assert nice["gpu_0"] == nice["uvicorn"] == nice[str(proc.pid)], nice
+        assert _thread_nices(simulation)[str(simulation)] == nice[str(proc.pid)] + MD_NICE
         seq = steerer.send(p.SimParams(temperature_K=450.0))
         ack = steerer.expect(p.ParamsAck, 120, where=lambda m: m.ref == seq)
         assert ack.ok and ack.step is not None and ack.step >= first.step
@@ -175,3 +205,20 @@ def test_sigterm_stops_the_demo_as_ctrl_c_does(tmp_path: Path, after: str) -> No
             proc.communicate()
     assert proc.returncode == 0, "".join(out[-40:])
     assert "stopping..." in "".join(out)
+
+
+def test_demo_on_a_taken_port_says_how_to_pick_another(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import socket
+
+    from server.commands.demo import main
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["--port", str(port), "--no-browser", "--state-dir", "/nonexistent"]) == 2
+    err = capsys.readouterr().err
+    assert f"port {port} on 127.0.0.1 is in use" in err
+    assert f"make demo PORT={port + 1}" in err and f"--port {port + 1}" in err

@@ -8,7 +8,7 @@ from dataclasses import replace
 import pytest
 
 import protocol as p
-from server.session.scheduler import RenderScheduler
+from server.session.scheduler import MAGNIFIED_JPEG_QUALITY, RenderScheduler
 from server.settings import ServerSettings
 from tests.server.session.fakes import client
 
@@ -75,6 +75,18 @@ def test_interaction_renders_small_and_fast_then_a_still_follows() -> None:
     assert not still_key.interactive and later.come_back_in is None
     assert s.image_size(still_key, quality=1.0) == (200, 100)
     assert s.jpeg_quality(still_key, p.RenderParams(jpeg_quality=92)) == 92
+
+
+def test_an_image_the_browser_scales_up_keeps_its_blocks_small() -> None:
+    """A budget image on the CPU is drawn 2-5 times its size; at the parameters' quality 85
+    (4:2:0) its chroma blocks showed as tiles of colour."""
+    s = RenderScheduler(SETTINGS)
+    key = s.plan([viewer("a", p.Camera(), (880, 449))], 1.0, 1, None).groups[0][0]
+    params = p.RenderParams()
+    assert s.jpeg_quality(key, params, (880, 449)) == params.jpeg_quality  # drawn as it is
+    assert s.jpeg_quality(key, params, (500, 255)) == params.jpeg_quality  # 1.76x: as it is
+    assert s.jpeg_quality(key, params, (198, 101)) == MAGNIFIED_JPEG_QUALITY >= 90  # 4:4:4
+    assert s.jpeg_quality(key, p.RenderParams(jpeg_quality=97), (198, 101)) == 97
 
 
 def test_one_client_interacting_leaves_the_others_at_full_quality() -> None:

@@ -15,7 +15,7 @@ from tests.conftest import LiveServer
 from tests.server.peers import Peer, frame, molecule
 
 pytest.importorskip("MDAnalysisTests")
-from MDAnalysisTests.datafiles import DCD, PSF
+from MDAnalysisTests.datafiles import DCD, PSF, PDB_small
 
 AUTH = {"Authorization": "Bearer test-token"}
 
@@ -139,11 +139,48 @@ def test_files_opened_in_the_browser_become_a_replay_session(live_server: LiveSe
                 headers=AUTH,
                 files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
             )
-        assert again.status_code == 409
+        # the same files again play beside the first, under a fresh name
+        assert again.status_code == 201, again.text
+        assert again.json()["session"] == "replay-adk-2"
+        with open(PSF, "rb") as top:
+            named = c.post(
+                "/api/replays",
+                headers=AUTH,
+                files=[("topology", ("adk.psf", top))],
+                data={"session": "replay-adk"},
+            )
+        assert named.status_code == 409
+        assert "'replay-adk'" in named.json()["detail"] and "adk.psf" in named.json()["detail"]
         bad = c.post("/api/replays", headers=AUTH, files={"topology": ("x.pdb", b"junk\n")})
         assert bad.status_code == 422 and "x.pdb" in bad.json()["detail"]
+        assert "0-x.pdb" not in bad.json()["detail"]  # the user's file name, not the server's
         listed = c.get("/api/replays", headers=AUTH).json()
-        assert [r["session"] for r in listed] == ["replay-adk"] and listed[0]["running"]
+        assert [r["session"] for r in listed] == ["replay-adk", "replay-adk-2"]
+        assert all(r["running"] for r in listed)
         assert c.delete("/api/replays/replay-adk", headers=AUTH).status_code == 200
+        assert c.delete("/api/replays/replay-adk-2", headers=AUTH).status_code == 200
         assert not c.get("/api/replays", headers=AUTH).json()[0]["running"]
         viewer.close()
+
+
+def test_a_structure_opens_alone_and_a_refusal_is_a_sentence(live_server: LiveServer) -> None:
+    """What the dashboard's Open files sends for one structure file (no trajectory field),
+    and a form that gives text where a file belongs."""
+    with httpx.Client(base_url=live_server.url, timeout=120) as c:
+        with open(PDB_small, "rb") as top:
+            alone = c.post("/api/replays", headers=AUTH, files=[("topology", ("adk.pdb", top))])
+        assert alone.status_code == 201, alone.text
+        assert alone.json()["session"] == "replay-adk" and alone.json()["n_frames"] == 1
+        with open(PSF, "rb") as top:
+            lone = c.post("/api/replays", headers=AUTH, files=[("topology", ("adk.psf", top))])
+        assert lone.status_code == 422 and lone.json()["detail"].startswith("adk.psf has no coord")
+        with open(PDB_small, "rb") as top:
+            text = c.post(
+                "/api/replays",
+                headers=AUTH,
+                files=[("topology", ("adk.pdb", top))],
+                data={"trajectory": "[]"},
+            )
+        assert text.status_code == 422
+        assert text.json()["detail"] == "trajectory.0: expected a file, got the text '[]'"
+        assert c.delete("/api/replays/replay-adk", headers=AUTH).status_code == 200

@@ -1,0 +1,46 @@
+"""Request validation failures as one sentence naming each field (and the file a field held),
+instead of FastAPI's list of pydantic errors: the dashboard shows `detail` as it comes."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from fastapi import Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+MAX_SHOWN = 40
+"""Characters of a refused value quoted back."""
+
+
+def _where(loc: Sequence[Any]) -> str:
+    parts = [str(x) for x in loc if x not in ("body", "query", "path", "header")]
+    return ".".join(parts) or "the request"
+
+
+def _value(raw: Any) -> str:
+    text = repr(raw) if isinstance(raw, str) else type(raw).__name__
+    return text if len(text) <= MAX_SHOWN else text[: MAX_SHOWN - 1] + "…"
+
+
+def sentence(errors: Sequence[Any]) -> str:
+    """`trajectory: expected a file, got the text '[]'; fps: ...`"""
+    said = []
+    for err in errors:
+        where = _where(err.get("loc", ()))
+        msg = str(err.get("msg", "invalid"))
+        kind = err.get("type", "")
+        if "UploadFile" in msg:
+            said.append(f"{where}: expected a file, got the text {_value(err.get('input'))}")
+        elif kind == "missing":
+            said.append(f"{where}: required")
+        else:
+            msg = msg.removeprefix("Value error, ")
+            said.append(f"{where}: {msg[0].lower() + msg[1:] if msg else 'invalid'}")
+    return "; ".join(said) or "the request is not valid"
+
+
+async def validation_failed(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    return JSONResponse({"detail": sentence(exc.errors())}, status_code=422)
