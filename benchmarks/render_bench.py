@@ -367,29 +367,6 @@ class Clock:
         return self.end - time.perf_counter()
 
 
-def time_frames(
-    step: Callable[[int], dict[str, float] | None],
-    frames: int,
-    warmup: int,
-    clock: Clock,
-    max_s: float,
-) -> dict[str, Any]:
-    walls: list[float] = []
-    stages: list[dict[str, float]] = []
-    stop = time.perf_counter() + min(max_s, max(clock.left(), 0.0))
-    for i in range(warmup + frames):
-        t0 = time.perf_counter()
-        st = step(i)
-        wall = (time.perf_counter() - t0) * 1e3
-        if i >= warmup:
-            walls.append(wall)
-            if st is not None:
-                stages.append(st)
-        if time.perf_counter() > stop and len(walls) >= 3:
-            break
-    return summarize(walls, stages)
-
-
 def image_error(a: np.ndarray, b: np.ndarray, da: np.ndarray, db: np.ndarray) -> dict[str, float]:
     """Mean |RGB difference| / 255, the share of pixels off by more than 16/255, disagreement
     on hit vs background, and the median depth difference where both hit."""

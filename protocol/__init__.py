@@ -16,11 +16,13 @@ from protocol.codec import (
 from protocol.errors import ErrorCode, ProtocolError
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import (
+    AUTO_CENTER,
     MAX_LAYERS,
     MESSAGE_TYPES,
     PROTOCOL_VERSION,
     AnyMessage,
     Camera,
+    Cell,
     ClientInfo,
     Control,
     EngineInfo,
@@ -63,6 +65,7 @@ from protocol.messages import (
 )
 
 __all__ = [
+    "AUTO_CENTER",
     "DEFAULT_LIMITS",
     "FRAGMENT_BYTES",
     "MAX_LAYERS",
@@ -70,6 +73,7 @@ __all__ = [
     "PROTOCOL_VERSION",
     "AnyMessage",
     "Camera",
+    "Cell",
     "ClientInfo",
     "Control",
     "EngineInfo",

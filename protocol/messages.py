@@ -15,7 +15,7 @@ from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
 from protocol.limits import Limits
 
-PROTOCOL_VERSION = "1.8"
+PROTOCOL_VERSION = "1.9"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -351,6 +351,9 @@ ScaleSpace = Literal["classical", "geodesic", "carved", "warped"]
 """`"warped"` is the name 1.1-1.7 gave `"carved"`, kept so saved views and recordings open."""
 ColorBy = Literal["element", "residue", "chain", "uniform", "bfactor", "charge", "motion"]
 TFPreset = Literal["cloud", "shells", "iso-like"]
+Periodic = Literal["off", "whole", "wrap", "molecules", "unwrap"]
+AUTO_CENTER = "protein or nucleic"
+"""What `center: "auto"` centres on (when a boxed frame has such atoms)."""
 
 
 MAX_LAYERS = 8
@@ -450,6 +453,24 @@ class RenderParams(Model):
     """Parts of the system each drawn at its own scale, in one image (surfaces occlude each
     other, translucent layers blend in depth order); empty: every atom, with the fields above.
     A patch that names `layers` replaces the whole list."""
+    periodic: Periodic = "molecules"
+    """How a frame with a periodic box is shown (a frame without one is drawn as sent):
+    `whole` joins every molecule the box cuts (bonds from the topology); `molecules` also puts
+    each molecule's centre of geometry in the box; `wrap` puts every atom in the box; `unwrap`
+    follows every atom across the box from frame to frame (molecules whole at the first);
+    `off` draws the positions as sent. One transform for the whole system: layers share it."""
+    center: Literal["off", "auto", "selection"] = "auto"
+    """Whose centre of geometry is moved to the centre of the box: `auto` the protein and
+    nucleic acids of a boxed frame that has some (else nothing), `selection` the atoms of
+    `center_selection` (a frame without a box: moved to the origin)."""
+    center_selection: SelectionText = "protein"
+    fit: Literal["off", "translation", "rotation"] = "off"
+    """Superpose every frame on a reference frame by `fit_selection` (after the box steps):
+    `rotation` rotates and translates it (least squares), `translation` only translates it.
+    The reference is the first frame drawn with this fit (in a file, its first frame)."""
+    fit_selection: SelectionText = "backbone"
+    show_cell: bool = False
+    """Draw the periodic box as an outline (a frame without a box has none)."""
 
     def needs_history(self) -> bool:
         """Whether a render needs the last frames too (smoothing over time, motion colours)."""
@@ -606,6 +627,14 @@ class Legend(Model):
     unit: Annotated[str, Field(max_length=16)] = ""
 
 
+class Cell(Model):
+    """The periodic box as displayed (moved with the frame by the fit): a corner and its three
+    edges, angstrom."""
+
+    origin: Vec3
+    vectors: tuple[Vec3, Vec3, Vec3]
+
+
 class Tracked(Message):
     """*->V: where the atoms a viewer tracks (`view.track`) are, at `step`; sent with new frames,
     at most every `state_interval_s`, so markers, labels and measurements follow the atoms."""
@@ -644,6 +673,9 @@ class State(Message):
     """What the colours mean (sent when the topology or the colouring changes)."""
     camera: Camera | None = None
     """The session's default camera (framing the molecule), for viewers without their own."""
+    cell: Cell | None = None
+    """The periodic box of the frame shown (sent with the simulation's status when it
+    changes), for drawing it as an outline (`render_params.show_cell`)."""
 
 
 class Stats(Message):

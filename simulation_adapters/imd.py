@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from protocol import (
     Control,
@@ -48,12 +49,14 @@ from simulation_adapters.imd_session import (
     IMDError,
     IMDSession,
 )
+from simulation_adapters.runaway import RunawayGuard
 from structures.errors import StructureError
-from structures.reader import Structure, load
+from structures.reader import Structure, element_mass, load
 
 log = logging.getLogger("scalesteer.imd")
 
 KCAL = 4.184  # kJ per kcal
+R_KJ_PER_MOL_K = 0.00831446261815324  # the gas constant
 EV = 96.48533212  # kJ/mol per eV
 
 
@@ -121,6 +124,7 @@ class IMDBridge:
         max_force: float = 50.0,
         max_spring_k: float = 10.0,
         runaway_K: float | None = None,
+        thermostat_K: float | None = None,
         connect_timeout: float = 30.0,
         handshake_timeout: float = 30.0,
         give_up_after: float | None = None,
@@ -138,9 +142,11 @@ class IMDBridge:
         self.units = UNITS["imdv3"]
         self.max_force = float(max_force)
         self.max_spring_k = float(max_spring_k)
-        self.runaway_K = runaway_K
+        self.runaway = RunawayGuard(runaway_K)
+        self.thermostat_K = thermostat_K
+        """The engine's thermostat target, when the user knows it (IMD does not say)."""
+        self._mass_cache: npt.NDArray[np.float64] | None = None
         self.guard_trips = 0
-        self._first_temperature: float | None = None
         self._guarded = False  # the guard paused the engine; cleared by resume
         self.connect_timeout = connect_timeout
         self.handshake_timeout = handshake_timeout
@@ -279,7 +285,8 @@ class IMDBridge:
             params={"frame_interval": ParamRange(min=1, max=1_000_000, unit="steps")},
             unavailable=unavailable,
             pull=PullLimits(max_force=self.max_force, max_spring_k=self.max_spring_k),
-            guard="on NaN or a temperature runaway: release the forces and pause the engine",
+            guard="on NaN or a temperature runaway (far above the thermostat and the run's recent "
+            "temperature): release the forces and pause the engine",
         )
 
     def _guard(self, step: int, problem: str) -> None:
@@ -305,17 +312,12 @@ class IMDBridge:
         self.connection.send_event(Event(level="error", code="guard", message=text, step=step))
 
     def _runaway(self, temperature: float | None) -> str:
-        if temperature is None or not math.isfinite(temperature):
-            return "" if temperature is None else "non-finite temperature"
-        if self._first_temperature is None:
-            self._first_temperature = temperature
-        base = self._first_temperature
-        limit = self.runaway_K if self.runaway_K is not None else max(2 * base, base + 300.0)
-        return (
-            f"temperature {temperature:.3g} K, above the guard's {limit:.0f} K"
-            if (temperature > limit)
-            else ""
-        )
+        """Why the engine's temperature is a runaway ('' if it is not): judged against the
+        thermostat target the user gave, else against the run's own recent level, so a cold
+        start heating to its thermostat is no blow-up (`simulation_adapters.runaway`)."""
+        if temperature is None:
+            return ""
+        return self.runaway.check(temperature, self.thermostat_K)
 
     def _frame(self, raw: EngineFrame) -> Frame | None:
         """The frame to forward, or None for one the guard stopped (non-finite)."""
@@ -326,6 +328,11 @@ class IMDBridge:
             self._guard(int(step), "non-finite coordinates")
             return None
         temperature = raw.energies.get("temperature") if raw.energies else None
+        kinetic = None
+        if temperature is None and "velocities" in raw.extras:
+            kinetic = self._kinetic_energy(raw.extras["velocities"])
+            if kinetic is not None:
+                temperature = 2.0 * kinetic / (self._dof() * R_KJ_PER_MOL_K)
         problem = self._runaway(temperature)
         if problem:
             self._guard(int(step), problem)
@@ -339,19 +346,52 @@ class IMDBridge:
             time_ps=float(time_ps) if math.isfinite(time_ps) else 0.0,
             positions=WireArray.from_numpy(pos, "<f4"),
             box=box,
-            observables=self._observables(raw.energies),
+            observables=self._observables(raw.energies, temperature, kinetic),
         )
 
-    def _observables(self, energies: dict[str, float] | None) -> dict[str, float]:
-        if not energies:
-            return {}
-        e = self.units.energy_kJmol
-        values = {
-            "temperature_K": energies["temperature"],
-            "potential_kJmol": energies["potential_energy"] * e,
-            "kinetic_kJmol": (energies["total_energy"] - energies["potential_energy"]) * e,
-        }
-        return {k: float(v) for k, v in values.items() if math.isfinite(v)}
+    def _masses(self) -> npt.NDArray[np.float64] | None:
+        """Each atom's mass (g/mol) from the topology file, or from its element; None when
+        an atom has neither."""
+        if self._mass_cache is None:
+            atoms = self.structure.universe.atoms
+            try:
+                masses = np.asarray(atoms.masses, dtype=np.float64)
+            except Exception:  # a format without masses: MDAnalysis raises NoDataError
+                masses = np.zeros(self.n_atoms)
+            if masses.shape != (self.n_atoms,) or not (masses > 0).all():
+                by_element = [element_mass(e) for e in self.structure.topology.elements]
+                masses = np.where(masses > 0, masses, np.asarray(by_element, dtype=np.float64))
+            self._mass_cache = masses
+        return self._mass_cache if (self._mass_cache > 0).all() else None
+
+    def _dof(self) -> int:
+        """Degrees of freedom as the engines count them without constraints (3N - 3)."""
+        return max(3 * self.n_atoms - 3, 1)
+
+    def _kinetic_energy(self, velocities: npt.NDArray[np.float32]) -> float | None:
+        """The kinetic energy of the engine's velocities (engine units), for engines that send
+        velocities but no energies (LAMMPS): None without masses or for non-finite ones."""
+        masses = self._masses()
+        if masses is None or velocities.shape != (self.n_atoms, 3):
+            return None
+        u = self.units
+        v = velocities.astype(np.float64) * (u.length_A / u.time_ps)  # A/ps
+        # (g/mol) (A/ps)^2 = 0.01 kJ/mol
+        value = float(0.5 * 0.01 * np.einsum("i,ij,ij->", masses, v, v))
+        return value if math.isfinite(value) else math.inf
+
+    def _observables(
+        self, energies: dict[str, float] | None, temperature: float | None, kinetic: float | None
+    ) -> dict[str, float]:
+        values: dict[str, float | None] = {"temperature_K": temperature, "kinetic_kJmol": kinetic}
+        if energies:
+            e = self.units.energy_kJmol
+            values = {
+                "temperature_K": energies["temperature"],
+                "potential_kJmol": energies["potential_energy"] * e,
+                "kinetic_kJmol": (energies["total_energy"] - energies["potential_energy"]) * e,
+            }
+        return {k: float(v) for k, v in values.items() if v is not None and math.isfinite(v)}
 
     def _shutdown(self) -> None:
         with self._cond:
@@ -493,6 +533,13 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--max-force", type=float, default=50.0, help="cap per atom, kJ/mol/A (default 50)"
     )
+    ap.add_argument(
+        "--thermostat-K",
+        type=float,
+        default=None,
+        help="the engine's thermostat temperature (IMD does not send it): the guard judges "
+        "runaways against it as well as against the run's own recent temperature",
+    )
     ap.add_argument("--connect-timeout", type=float, default=30.0, help="seconds to keep trying")
     add_retry(ap)
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -508,6 +555,8 @@ def main(argv: list[str] | None = None) -> int:
         host, port = parse_address(args.connect)
         if not args.max_force > 0:
             raise ValueError("--max-force must be positive")
+        if args.thermostat_K is not None and not args.thermostat_K > 0:
+            raise ValueError("--thermostat-K must be positive")
         bridge = IMDBridge(
             host,
             port,
@@ -519,6 +568,7 @@ def main(argv: list[str] | None = None) -> int:
             units=args.units,
             lossless=args.lossless,
             max_force=args.max_force,
+            thermostat_K=args.thermostat_K,
             connect_timeout=args.connect_timeout,
             takeover=args.takeover,
             give_up_after=args.retry,

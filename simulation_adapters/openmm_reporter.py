@@ -50,6 +50,7 @@ from simulation_adapters.openmm_topology import (
     positions_angstrom,
     topology_message,
 )
+from simulation_adapters.runaway import RunawayGuard
 
 log = logging.getLogger("scalesteer.openmm")
 
@@ -74,7 +75,9 @@ class SteeringReporter:
 
     The guard rolls back to the last calm report (temperature within 25 % or 50 K of the
     thermostat's) when the run blows up: non-finite positions or energy, or a temperature above
-    `runaway_K` (default: twice the thermostat's temperature, at least 300 K above it). Calm is
+    `runaway_K` (default: twice the thermostat's temperature and 300 K more, and as much above
+    the run's own recent temperature, so that a hot start or a steered cooling that comes down
+    to its thermostat is no blow-up; `simulation_adapters.runaway`). Calm is
     judged again at the rollback, against the thermostat of that moment: a state calm only for a
     hotter thermostat, or one that has blown up again since, is given up for the start's
     positions (with velocities drawn at today's temperature if the start's are too hot), so the
@@ -107,7 +110,7 @@ class SteeringReporter:
         self.interval = int(interval)
         self.max_force = float(max_force)
         self.max_spring_k = float(max_spring_k)
-        self.runaway_K = runaway_K
+        self.runaway = RunawayGuard(runaway_K)
         self.force_group = force_group
         self.title = title
         self.resume_on_disconnect = resume_on_disconnect
@@ -188,7 +191,7 @@ class SteeringReporter:
         """Restore a state calm for the thermostat of now: the last calm report, unless it is
         too hot for today's thermostat or has blown up again since, else the start's positions.
         Returns what was done, for the event."""
-        target = _thermostat_kelvin(simulation) or 300.0
+        target = self._reference_temperature(simulation)
         limit = self._calm_limit(simulation)
         good, fresh = self._good, self._good_fresh
         self._good_fresh = False
@@ -220,31 +223,25 @@ class SteeringReporter:
         potential = state.getPotentialEnergy().value_in_unit(unit.kilojoule_per_mole)
         if not math.isfinite(potential):
             return "non-finite energy"
-        kinetic = state.getKineticEnergy().value_in_unit(unit.kilojoule_per_mole)
-        temperature = 2.0 * kinetic / (self._dof * R_KJ_PER_MOL_K)
-        limit = self._runaway_limit(simulation)
-        if not math.isfinite(temperature) or temperature > limit:
-            return f"temperature {temperature:.3g} K, above the guard's {limit:.0f} K"
-        return ""
+        return self.runaway.check(self._temperature(state), _thermostat_kelvin(simulation))
 
     def _calm(self, simulation: app.Simulation, state: openmm.State) -> bool:
         """Close enough to the thermostat to roll back to: a state just under the runaway
         limit would only blow up again."""
         return self._temperature(state) <= self._calm_limit(simulation)
 
+    def _reference_temperature(self, simulation: app.Simulation) -> float:
+        """The temperature the run should be at: its thermostat's, without one the run's
+        recent level (300 K before any report)."""
+        return _thermostat_kelvin(simulation) or self.runaway.level or 300.0
+
     def _calm_limit(self, simulation: app.Simulation) -> float:
-        target = _thermostat_kelvin(simulation) or 300.0
+        target = self._reference_temperature(simulation)
         return max(1.25 * target, target + 50.0)
 
     def _temperature(self, state: openmm.State) -> float:
         kinetic = state.getKineticEnergy().value_in_unit(unit.kilojoule_per_mole)
         return float(2.0 * kinetic / (self._dof * R_KJ_PER_MOL_K))
-
-    def _runaway_limit(self, simulation: app.Simulation) -> float:
-        if self.runaway_K is not None:
-            return self.runaway_K
-        target = _thermostat_kelvin(simulation) or 300.0
-        return max(2.0 * target, target + 300.0)
 
     def _checkpoint(self, simulation: app.Simulation) -> None:
         # without the context's parameters: a rollback must not restore an old thermostat
@@ -316,6 +313,7 @@ class SteeringReporter:
             getPositions=True, getVelocities=True, getEnergy=True
         )
         self._initial_K = self._temperature(self._initial_state)
+        self.runaway.check(self._initial_K)  # where the run starts: its first level
         self.connection.send_topology(
             topology_message(simulation.topology, simulation.system, self.title)
         )

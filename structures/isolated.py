@@ -137,6 +137,20 @@ class IsolatedStructure:
         positions: npt.NDArray[np.float32] = self._answer(self.limits.frame_s, f"frame {index}")
         return positions
 
+    def frame(self, index: int) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None]:
+        """Positions (angstrom) of frame `index` and its periodic box (None without one), read
+        by the child."""
+        if not 0 <= index < self.n_frames:
+            raise StructureError(f"frame {index} out of range: {self.label} has {self.n_frames}")
+        try:
+            self._conn.send(("frame", index))
+        except OSError:
+            raise self._crashed() from None
+        found: tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None] = self._answer(
+            self.limits.frame_s, f"frame {index}"
+        )
+        return found
+
     def _answer(self, timeout: float, what: str) -> Any:
         try:
             ready = self._conn.poll(timeout)
@@ -236,10 +250,13 @@ def _serve(
             kind, value = conn.recv()
         except (EOFError, OSError):
             return
-        if kind != "positions":
+        if kind not in ("positions", "frame"):
             return
         try:
-            conn.send(("ok", structure.positions(int(value))))
+            if kind == "frame":
+                conn.send(("ok", structure.frame(int(value))))
+            else:
+                conn.send(("ok", structure.positions(int(value))))
         except MemoryError:
             conn.send(("error", f"frame {value}: too large to read here"))
         except Exception as exc:  # a reader's own error for one frame, sent as text

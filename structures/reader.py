@@ -7,6 +7,7 @@ accepts, all of them accept. MDAnalysis is imported lazily: `pip install scalest
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -32,8 +33,33 @@ STRUCTURE_FORMATS = (
     "pqr",
     "mol2",
     "crd",
+    "tpr",
+    "prmtop",
+    "parm7",
 )
-TRAJECTORY_FORMATS = ("dcd", "xtc", "trr", "pdb", "nc", "ncdf", "xyz", "lammpsdump")
+TRAJECTORY_FORMATS = (
+    "dcd",
+    "xtc",
+    "trr",
+    "pdb",
+    "nc",
+    "ncdf",
+    "xyz",
+    "lammpsdump",
+    "lammpstrj",
+    "dump",
+    "mdcrd",
+    "inpcrd",
+    "rst7",
+    "gro",
+)
+MDANALYSIS_FORMATS = {
+    "pdbx": "MMCIF",
+    "lammpstrj": "LAMMPSDUMP",
+    "dump": "LAMMPSDUMP",
+    "rst7": "INPCRD",
+}
+"""Suffixes MDAnalysis does not know by that name, and the format they hold."""
 
 
 @dataclass
@@ -54,6 +80,20 @@ class Structure:
             warnings.simplefilter("ignore")
             ts = self.universe.trajectory[index]
             return np.ascontiguousarray(ts.positions, dtype=np.float32)
+
+    def frame(
+        self, index: int = 0
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None]:
+        """Positions (angstrom) of frame `index` and its periodic box (rows are the box
+        vectors; None without one, or for a placeholder)."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ts = self.universe.trajectory[index]
+            positions = np.ascontiguousarray(ts.positions, dtype=np.float32)
+            box = None
+            if cell_of(self.universe) is not None:
+                box = np.asarray(ts.triclinic_dimensions, dtype=np.float32)
+        return positions, box
 
     def frames(
         self, start: int = 0, stop: int | None = None, stride: int = 1
@@ -146,11 +186,14 @@ def load(
             )
     for path in (topology, *trajectories):
         check = CHECKS.get(_fmt(path))
-        if check is not None and not path.lower().endswith((".gz", ".bz2")):
+        if check is not None:
             check(path)
     kwargs: dict[str, Any] = {}
-    if fmt == "pdbx":
-        kwargs["topology_format"] = "MMCIF"
+    if fmt in MDANALYSIS_FORMATS:
+        kwargs["topology_format"] = MDANALYSIS_FORMATS[fmt]
+    named = {MDANALYSIS_FORMATS.get(_fmt(t)) for t in trajectories} - {None}
+    if len(named) == 1 and all(_fmt(t) in MDANALYSIS_FORMATS for t in trajectories):
+        kwargs["format"] = named.pop()
     if fmt == "data":
         style = atom_style or lammps_atom_style(topology)
         if style is not None:
@@ -160,7 +203,7 @@ def load(
             warnings.simplefilter("ignore")
             u = mda.Universe(topology, *trajectories, **kwargs)
     except Exception as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        msg = reason(exc, (topology, *trajectories))
         names = ", ".join(os.path.basename(f) for f in (topology, *trajectories))
         hint = ""
         if fmt == "data" and "atom_style" in str(exc):
@@ -190,6 +233,45 @@ def load(
     return Structure(topology=topo, universe=u)
 
 
+MIN_CELL_SIDE_A = 6.0
+"""A box with a side shorter than this is a placeholder (a PDB's CRYST1 of 1 A), no cell."""
+
+
+def cell_of(u: Any) -> npt.NDArray[np.float32] | None:
+    """The universe's current box as MDAnalysis' dimensions (a, b, c, alpha, beta, gamma), or
+    None when it has none or a placeholder."""
+    try:
+        dims = u.dimensions
+    except Exception:  # a reader without a box
+        return None
+    if dims is None:
+        return None
+    dims = np.asarray(dims, dtype=np.float32)
+    if dims.shape != (6,) or not np.isfinite(dims).all() or (dims[:3] < MIN_CELL_SIDE_A).any():
+        return None
+    if (dims[3:] <= 0).any() or (dims[3:] >= 180).any():
+        return None
+    return dims
+
+
+def reason(exc: BaseException, paths: Sequence[str]) -> str:
+    """What a reader's error says: the innermost cause (MDAnalysis wraps a parser's own words
+    in "Failed to construct topology from file ..."), its first line, with the files named by
+    their names alone (never the server's directories)."""
+    inner = exc
+    while True:
+        cause = inner.__cause__ or inner.__context__
+        if cause is None or cause is inner or not str(cause).strip():
+            break
+        inner = cause
+    lines = [line.strip() for line in str(inner).splitlines() if line.strip()]
+    text = " ".join(lines[:2]) if lines else type(inner).__name__
+    for path in paths:
+        text = text.replace(os.path.abspath(path), os.path.basename(path))
+        text = text.replace(path, os.path.basename(path))
+    return re.sub(r"(?:/[^/\s'\"]+)+/([^/\s'\"]+)", r"\1", text)
+
+
 def _strings(atoms: Any, attr: str, default: str, width: int) -> list[str]:
     values = getattr(atoms, attr, None) if _has(atoms, attr) else None
     if values is None:
@@ -207,6 +289,7 @@ def _has(atoms: Any, attr: str) -> bool:
 
 def _elements(u: Any) -> list[str]:
     atoms = u.atoms
+    raw: list[str] = []
     if _has(atoms, "elements"):
         raw = [str(e).strip().capitalize() for e in atoms.elements]
         if all(raw):
@@ -214,11 +297,21 @@ def _elements(u: Any) -> list[str]:
     if _has(atoms, "names"):
         from MDAnalysis.guesser.default_guesser import DefaultGuesser
 
-        guessed = DefaultGuesser(None).guess_types(atoms.names)
-        return [str(e).strip().capitalize() or "X" for e in guessed]
+        missing = [i for i, e in enumerate(raw) if not e] if raw else range(int(atoms.n_atoms))
+        names = np.asarray(atoms.names)[np.asarray(missing, dtype=np.int64)]
+        guessed = DefaultGuesser(None).guess_types(names)  # only those the file left blank
+        out = raw or [""] * int(atoms.n_atoms)
+        for i, e in zip(missing, guessed, strict=True):
+            out[i] = str(e).strip().capitalize() or "X"
+        return out
     if _has(atoms, "masses"):
         return [_element_of_mass(float(m)) for m in atoms.masses]
     return ["X"] * int(atoms.n_atoms)
+
+
+def element_mass(element: str) -> float:
+    """The standard atomic mass (g/mol) of an element symbol; 0 for one not in the table."""
+    return _MASSES.get(element.strip().capitalize(), 0.0)
 
 
 def _element_of_mass(mass: float) -> str:
@@ -232,8 +325,12 @@ def topology_of(u: Any, *, guess_bonds: bool = True, title: str = "") -> Topolog
     n = int(atoms.n_atoms)
     elements = [e[:3] for e in _elements(u)]
     bonds = np.zeros((0, 2), dtype=np.int32)
-    if _has(u, "bonds") and len(u.bonds):
-        bonds = np.asarray(u.bonds.indices, dtype=np.int32).reshape(-1, 2)
+    try:
+        found = u.bonds  # built once: a bond group of 25,000 bonds takes half a second
+    except Exception:  # MDAnalysis raises NoDataError for a topology without bonds
+        found = None
+    if found is not None and len(found):
+        bonds = np.asarray(found.indices, dtype=np.int32).reshape(-1, 2)
     # a PDB's CONECT records cover only hetero groups and disulfides: guess the rest too
     if guess_bonds and len(bonds) < n // 2 and n <= 500_000:
         from MDAnalysis.topology.guessers import guess_bonds as guess
@@ -241,7 +338,8 @@ def topology_of(u: Any, *, guess_bonds: bool = True, title: str = "") -> Topolog
         # the guesser looks radii up by atom type; map each type to its element's radius
         types = atoms.types if _has(atoms, "types") else np.array(elements)
         radii = {str(t): _VDW_GUESS.get(e, 1.5) for t, e in zip(types, elements, strict=True)}
-        pairs = guess(atoms, atoms.positions, box=None, vdwradii=radii)
+        # across a periodic box too: a molecule the box cuts is still one molecule
+        pairs = guess(atoms, atoms.positions, box=cell_of(u), vdwradii=radii)
         if len(pairs):
             guessed = np.asarray(sorted(pairs), dtype=np.int32).reshape(-1, 2)
             both = np.sort(np.concatenate([bonds, guessed]), axis=1)

@@ -9,6 +9,7 @@ The layers are docs/architecture.md's ("Checking the layers").
 from __future__ import annotations
 
 import ast
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -242,3 +243,25 @@ def test_an_import_path_edit_is_found(tmp_path: Path) -> None:
         "print(sys.path[0])\n"
     )
     assert path_edits(source) == [2, 3, 4, 5]
+
+
+def documented_layers(text: str) -> dict[str, set[str]]:
+    """docs/architecture.md's table of layers: layer -> what the table says it may import."""
+    section = text.split("## Checking the layers", 1)[1]
+    table: dict[str, set[str]] = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 2 or not cells[0].startswith("`"):
+            continue
+        names = set(re.findall(r"`([\w.]+)`", cells[1]))
+        if "all of `server`" in cells[1]:
+            names |= SERVER | {"server"}
+        for layer_name in re.findall(r"`([\w.]+)`", cells[0]):
+            table[layer_name] = names
+    return table
+
+
+def test_the_documented_layers_are_the_checked_ones() -> None:
+    """The table a reader sees is the one this file enforces, row for row."""
+    text = (ROOT / "docs" / "architecture.md").read_text(encoding="utf-8")
+    assert documented_layers(text) == MAY_IMPORT

@@ -624,9 +624,23 @@ def sigma_sweep(
     return SigmaSweep(sigmas, {m: v / len(seeds) for m, v in sums.items()})
 
 
+MATCHED = "classical_matched"
+"""The classical filter at the noisy warp's mean width, sigma / mean noisy `gamma'`: the control
+that tells adaptation to the edges from a filter that is merely narrower everywhere."""
+
+ADAPT_MARGIN = 0.1
+"""How much better at the edges (relative) a filter must be to count as keeping the edges' local
+bandwidth that another flattens: 10 % more of the clean high-band energy and a 10 % smaller
+short-time spectrum error."""
+
+
 @dataclass
 class DenoiseSpectra:
-    """Short-time spectra of one denoising trial (seed 0) and edge statistics over all seeds."""
+    """Short-time spectra of one denoising trial (seed 0) and edge statistics over all seeds.
+
+    `kept` and `error` hold each of METHODS and MATCHED, near the edges; `kept_far` and
+    `error_far` the same far from every edge.
+    """
 
     label: str
     level: float
@@ -635,34 +649,56 @@ class DenoiseSpectra:
     cutoff: float
     kept: dict[str, float]  # method -> clean high-band energy near edges kept (mean over seeds)
     error: dict[str, float]  # method -> relative short-time spectrum error near edges (mean)
+    kept_far: dict[str, float]
+    error_far: dict[str, float]
+    matched_sigma: float  # the sigma of MATCHED
+
+    def adapts(self, method: str, control: str) -> tuple[bool, bool]:
+        """Whether `method` keeps at least ADAPT_MARGIN more of the edges' high band than
+        `control`, and whether its spectrum error there is at least ADAPT_MARGIN smaller."""
+        return (
+            self.kept[method] >= (1.0 + ADAPT_MARGIN) * self.kept[control],
+            self.error[method] <= (1.0 - ADAPT_MARGIN) * self.error[control],
+        )
 
 
 def run_denoise_spectra(
     label: str, clean: FloatArray, level: float, seeds: Sequence[int]
 ) -> DenoiseSpectra:
-    """Fig. 4.8: whether warped denoising keeps the edges' local bandwidth that classical loses."""
+    """Fig. 4.8: whether warped denoising keeps the edges' local bandwidth that classical loses,
+    beside the classical filter at the noisy warp's mean width."""
     t = uniform_lattice(clean.size)
+    mid = t[:-1] + 0.5
     truth_warp = arclength_warp(t, clean)
-    near, _ = edge_regions(truth_warp.dgamma(t[:-1] + 0.5))
+    near, far = edge_regions(truth_warp.dgamma(mid))
     k, s_clean = short_time_spectrum(clean)
     cutoff = half_power_frequency(DENOISE_SIGMA)
     high = k > cutoff
-    ref = float(np.linalg.norm(s_clean[near]))
-    kept = {m: 0.0 for m in METHODS}
-    err = {m: 0.0 for m in METHODS}
+    noisy_all = [add_noise(clean, level, np.random.default_rng(seed)) for seed in seeds]
+    mean_gamma = float(np.mean([arclength_warp(t, v).dgamma(mid).mean() for v in noisy_all]))
+    matched = DENOISE_SIGMA / mean_gamma
+    names = (*METHODS, MATCHED)
+    ref = {"near": float(np.linalg.norm(s_clean[near])), "far": float(np.linalg.norm(s_clean[far]))}
+    kept = {r: {m: 0.0 for m in names} for r in ref}
+    err = {r: {m: 0.0 for m in names} for r in ref}
     first: dict[str, FloatArray] = {}
-    for i, seed in enumerate(seeds):
-        noisy = add_noise(clean, level, np.random.default_rng(seed))
-        specs = {
-            m: short_time_spectrum(v)[1]
-            for m, v in _filter_all(noisy, DENOISE_SIGMA, truth_warp).items()
+    for i, noisy in enumerate(noisy_all):
+        out = {
+            **_filter_all(noisy, DENOISE_SIGMA, truth_warp),
+            MATCHED: gaussian_denoise(noisy, matched),
         }
+        specs = {m: short_time_spectrum(v)[1] for m, v in out.items()}
         for m, spec in specs.items():
-            kept[m] += high_band_share(spec, s_clean, high, near) / len(seeds)
-            err[m] += float(np.linalg.norm((spec - s_clean)[near])) / ref / len(seeds)
+            for region, rows in (("near", near), ("far", far)):
+                kept[region][m] += high_band_share(spec, s_clean, high, rows) / len(seeds)
+                diff = float(np.linalg.norm((spec - s_clean)[rows]))
+                err[region][m] += diff / ref[region] / len(seeds)
         if i == 0:
-            first = {"clean": s_clean, "noisy": short_time_spectrum(noisy)[1], **specs}
-    return DenoiseSpectra(label, level, k, first, cutoff, kept, err)
+            first = {"clean": s_clean, "noisy": short_time_spectrum(noisy)[1]}
+            first.update({m: specs[m] for m in METHODS})
+    return DenoiseSpectra(
+        label, level, k, first, cutoff, kept["near"], err["near"], kept["far"], err["far"], matched
+    )
 
 
 @dataclass

@@ -26,6 +26,7 @@ from .markdown import Results, Source, TableError
 from .render import (
     layers,
     multi_device,
+    periodic,
     reach,
     render_baselines,
     render_densities,
@@ -35,6 +36,7 @@ from .render import (
     temporal,
 )
 from .server import (
+    adapter,
     batch,
     cpu_demo_chromium,
     cpu_interactive,
@@ -91,11 +93,13 @@ TABLES: dict[str, Table] = {
     "batch": Table(("batch_h100.json", "batch_cpu_2core.json"), batch),
     "cpu-interactive": Table(("cpu_interactive_2core.json",), cpu_interactive),
     "ws-parse": Table(("ws_parse_h200_host.json", "ws_parse_cpu_2core.json"), ws_parse),
+    "periodic": Table(("periodic_h200.json", "periodic_cpu_2core.json"), periodic),
     "cpu-demo-chromium": Table(
         ("cpu_demo_chromium_2core.json", "cpu_demo_chromium_2core_as_loaded.json"),
         cpu_demo_chromium,
     ),
     "widget": Table(("widget_cpu_2core.json",), widget),
+    "adapter": Table(("adapter_cpu_2core.json",), adapter),
 }
 """Each README table and the results files it reads: the newest full run of its benchmark on
 each GPU it shows (older runs are in results/archive/)."""

@@ -1,6 +1,7 @@
 """Tables of the renderer's own benchmarks: render_bench.py (today's frame against its
 controls, the densities, the sizes, the baselines, graph replay, passes per ray),
-reach_accuracy.py, multi_device_bench.py, temporal_bench.py and layers_bench.py."""
+reach_accuracy.py, multi_device_bench.py, temporal_bench.py, layers_bench.py and
+periodic_bench.py."""
 
 from __future__ import annotations
 
@@ -319,3 +320,40 @@ def layers(sources: list[Source]) -> str:
         f"ligand), {size(*res['size'])}"
     )
     return block(sources, table(header, "lrrll", rows), note)
+
+
+def periodic(sources: list[Source]) -> str:
+    """The periodic steps of a frame per system size and mode, beside copying the frame to the
+    device (the control in the same run); MDAnalysis' own transformations of adenylate kinase
+    beside the kernels, where the run timed them."""
+    rows = []
+    for name, res in sources:
+        for sz in res["sizes"]:
+            for m in sz["modes"]:
+                rows.append(
+                    [
+                        stem(name, "periodic_"),
+                        count(sz["atoms"]),
+                        m["mode"],
+                        num(m["device_ms"], 2),
+                        num(m["round_trip_ms"], 2),
+                        num(sz["upload_ms"], 3),
+                        num(m["device_per_upload"], 1),
+                    ]
+                )
+        md = res.get("mdanalysis")
+        if md:
+            rows.append(
+                [
+                    stem(name, "periodic_"),
+                    f"adk {md['atoms']:,}",
+                    "MDAnalysis unwrap + center_in_box + wrap (control)",
+                    "",
+                    f"{num(md['mdanalysis_ms'], 1)} against {num(md['round_trip_ms'], 2)}",
+                    "",
+                    f"{num(md['mdanalysis_per_device'], 0)}x",
+                ]
+            )
+    header = ["run", "atoms", "mode", "kernels ms", "with copy and read-back ms"]
+    header += ["frame copy ms (control)", "kernels / copy"]
+    return block(sources, table(header, "lrlrrrr", rows))

@@ -1,6 +1,7 @@
 """Tables of the benchmarks that run the server or its pipeline: latency_bench.py,
 pipeline_bench.py, multi_session_bench.py, video_bench.py, batch_bench.py,
-cpu_interactive_bench.py, cpu_demo_chromium.py, ws_parse_bench.py and widget_bench.py."""
+cpu_interactive_bench.py, cpu_demo_chromium.py, ws_parse_bench.py, widget_bench.py and
+adapter_bench.py."""
 
 from __future__ import annotations
 
@@ -298,3 +299,28 @@ def widget(sources: list[Source]) -> str:
     header += ["first picture with the server's start s", "widget drew/s"]
     header += ["kernel forwarded/s (control)", "dashboard drew/s (control)"]
     return block(sources, table(header, "lrlrrrrrr", rows))
+
+
+def adapter(sources: list[Source]) -> str:
+    """The OpenMM adapter's MD step rate beside a server that never reads, against the same
+    reporter unconnected (the control, in the same run)."""
+    ((_, res),) = sources
+    rates = res["steps_per_s"]
+    rows = [
+        [label, num(rates[key]["best"], 1), num(rates[key]["median"], 1)]
+        for label, key in (
+            ("no server (control)", "unconnected"),
+            ("a server that never reads", "never_reads"),
+        )
+    ]
+    rows.append(
+        ["never reads / no server", f"{res['ratio_best']:.2f}", f"{res['ratio_median']:.2f}"]
+    )
+    low, high = min(res["load_average"]), max(res["load_average"])
+    note = (
+        f"{res['n_atoms']:,} atoms, a report every {res['interval']} steps, {res['rounds']} "
+        f"rounds of {res['steps_per_round']} steps, load average {low:.1f}-{high:.1f}; the "
+        f"stuck adapter sent {res['frames_sent']} frames and replaced {res['frames_dropped']} "
+        f"of {res['frames_reported']}"
+    )
+    return block(sources, table(["MD", "best steps/s", "median steps/s"], "lrr", rows), note)

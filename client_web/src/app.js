@@ -16,6 +16,7 @@ import { Plots } from "./plots.js";
 import { applyRoster } from "./roster.js";
 import { RenderPanel } from "./renderpanel.js";
 import { TimePanel } from "./timepanel.js";
+import { PeriodicPanel } from "./periodicpanel.js";
 import { requestScreenshot, screenshotName } from "./screenshot.js";
 import { Shortcuts } from "./shortcuts.js";
 import { MovieButton } from "./movies.js";
@@ -105,6 +106,8 @@ class Dashboard {
       onChange: (patch, final) => this.steerRender(patch, final),
       replay: () => this.engine?.kind === "replay",
     });
+    this.periodicPanel = new PeriodicPanel({ onChange: (patch, final) => this.steerRender(patch, final) });
+    this.cell = null;
     this.tfEditor = new TransferEditor({
       svgRoot: $("tf-editor"),
       colorInput: $("tf-color"),
@@ -320,6 +323,10 @@ class Dashboard {
       if (m.engine.kind === "replay") this.loadMarks();
     }
     if (m.legend) showLegend($("legend"), m.legend);
+    if (m.cell) {
+      this.cell = m.cell;
+      this.showCell();
+    }
     if (m.camera) {
       this.sessionCamera = normalizeCamera(m.camera);
       if (!this.camera || !this.cameraCustom) {
@@ -341,8 +348,15 @@ class Dashboard {
     this.renderPanel.update(this.render);
     this.layersPanel.update(this.render.layers);
     this.timePanel.update(this.render);
+    this.periodicPanel.update(this.render);
+    this.showCell();
     this.showTransferFunction();
     this.writeHashSoon();
+  }
+
+  /** The periodic box's outline over the picture, when the session shows it. */
+  showCell() {
+    this.viewport.setCell(this.render?.show_cell ? this.cell : null);
   }
 
   /** A shared link named render params: make the session use them (steerers only). */
@@ -413,6 +427,7 @@ class Dashboard {
     }
     this.tfEditor.setEnabled(steering);
     this.renderPanel.setDisabled(!steering);
+    this.periodicPanel.setDisabled(!steering);
     this.layersPanel.setDisabled(!steering);
     this.simPanel.setDisabled(!steering);
     $("pull-release-all").disabled = !steering;

@@ -116,12 +116,6 @@ export function orbit(cam, dx, dy, height, turn = Math.PI) {
   return { ...cam, orientation: quatNormalize(quatMul(quatMul(cam.orientation, yaw), pitch)) };
 }
 
-/** Roll about the viewing axis (radians, counter-clockwise on screen). */
-export function roll(cam, angle) {
-  const r = quatAxisAngle([0, 0, 1], -angle);
-  return { ...cam, orientation: quatNormalize(quatMul(cam.orientation, r)) };
-}
-
 /** Pan: the molecule follows the pointer (dx, dy pixels of a view `height` pixels tall). */
 export function pan(cam, dx, dy, height) {
   const s = viewHeightAtTarget(cam) / Math.max(1, height);
@@ -218,7 +212,7 @@ export function lookAlong(cam, axis) {
   return q ? { ...cam, orientation: quatNormalize(q) } : { ...cam };
 }
 
-/** Whether two cameras differ by more than rounding. */
+/** Whether two cameras are the same up to rounding (relative `eps`). */
 export function sameCamera(a, b, eps = 1e-6) {
   if (!a || !b) return a === b;
   const close = (x, y) => Math.abs(x - y) <= eps * Math.max(1, Math.abs(x), Math.abs(y));

@@ -38,6 +38,12 @@ export const RENDER_DEFAULTS = Object.freeze({
   time_kernel: "auto",
   rigid_fit: false,
   layers: Object.freeze([]),
+  periodic: "molecules",
+  center: "auto",
+  center_selection: "protein",
+  fit: "off",
+  fit_selection: "backbone",
+  show_cell: false,
 });
 
 export const ENUMS = Object.freeze({
@@ -51,6 +57,9 @@ export const ENUMS = Object.freeze({
   level_scale: ["mean", "absolute"],
   time_smoothing: ["off", "classical", "warped"],
   time_kernel: ["auto", "causal", "centred"],
+  periodic: ["off", "whole", "wrap", "molecules", "unwrap"],
+  center: ["off", "auto", "selection"],
+  fit: ["off", "translation", "rotation"],
 });
 
 /** Numeric ranges [min, max] (inclusive where the protocol allows; open ends nudged in). */

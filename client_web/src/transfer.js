@@ -215,7 +215,3 @@ export function hexToRgb(hex) {
   const n = parseInt(m[1], 16);
   return [(n >> 16) & 255, (n >> 8) & 255, n & 255].map((v) => Math.round((v / 255) * 1000) / 1000);
 }
-
-export function samePoints(a, b) {
-  return JSON.stringify(normalizePoints(a)) === JSON.stringify(normalizePoints(b));
-}

@@ -43,6 +43,10 @@ const FIELDS = [
   ["tk", "time_kernel", "enum"],
   ["fit", "rigid_fit", "bool"],
   ["layers", "layers", "layers"],
+  ["pbc", "periodic", "enum"],
+  ["ctr", "center", "enum"],
+  ["pfit", "fit", "enum"],
+  ["cell", "show_cell", "bool"],
 ];
 
 /** A number in at most `digits` significant digits, without trailing zeros. */

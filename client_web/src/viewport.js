@@ -3,6 +3,7 @@
 // arrow, and the pointer, wheel, touch and keyboard gestures that move the camera.
 
 import { orbit, pan, project, zoom } from "./camera.js";
+import { cellEdges } from "./cell.js";
 import { placeLabels } from "./labels.js";
 import { VIDEO_FORMATS, VideoPipe } from "./video.js";
 
@@ -229,6 +230,12 @@ export class Viewport {
     this.drawOverlay();
   }
 
+  /** The periodic box {origin, vectors} drawn as an outline (null: none). */
+  setCell(cell) {
+    this.cellEdges = cellEdges(cell);
+    this.drawOverlay();
+  }
+
   setPullLine(line) {
     this.pullLine = line;
     this.drawOverlay();
@@ -255,6 +262,21 @@ export class Viewport {
     const g = this.octx;
     const { dpr } = this.size;
     g.clearRect(0, 0, this.overlay.width, this.overlay.height);
+    if (this.cellEdges?.length) {
+      g.save();
+      g.strokeStyle = "rgba(200, 205, 215, 0.8)";
+      g.lineWidth = dpr;
+      g.beginPath();
+      for (const [a, b] of this.cellEdges) {
+        const p = this.toOverlay(a);
+        const q = this.toOverlay(b);
+        if (!p || !q) continue; // an edge behind the camera
+        g.moveTo(p[0], p[1]);
+        g.lineTo(q[0], q[1]);
+      }
+      g.stroke();
+      g.restore();
+    }
     if (this.marker) {
       const p = this.toOverlay(this.marker);
       if (p) {

@@ -11,6 +11,7 @@ import {
   project,
   quatAxisAngle,
   rayThrough,
+  sameCamera,
   setProjection,
   unprojectToPlane,
   viewHeightAtTarget,
@@ -115,4 +116,14 @@ test("normalizeCamera repairs what a hash or a server may hand over", () => {
   assert.ok(c.distance > 0);
   assert.equal(c.projection, "perspective");
   assert.deepEqual(normalizeCamera(null).orientation, [1, 0, 0, 0]);
+});
+
+test("sameCamera ignores rounding and sees any real change", () => {
+  const echoed = { ...cam, target: cam.target.map((v) => v * (1 + 1e-9)) };
+  assert.ok(sameCamera(cam, echoed));
+  assert.ok(!sameCamera(cam, { ...cam, distance: cam.distance + 0.01 }));
+  assert.ok(!sameCamera(cam, setProjection(cam, "orthographic")));
+  assert.ok(!sameCamera(cam, orbit(cam, 5, 0, 100)));
+  assert.ok(sameCamera(null, null));
+  assert.ok(!sameCamera(cam, null));
 });

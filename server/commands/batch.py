@@ -20,7 +20,13 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from server.commands.render import _size, add_layer_options, layer_option
+from server.commands.render import (
+    _size,
+    add_layer_options,
+    add_periodic_options,
+    layer_option,
+    periodic_fields,
+)
 from server.settings import ray_cluster_address
 
 
@@ -61,6 +67,7 @@ def parser() -> argparse.ArgumentParser:
         help="a Ray cluster to join, HOST:PORT (env SCALESTEER_RAY_ADDRESS or RAY_ADDRESS)",
     )
     ap.add_argument("--ray-workers", type=int, default=None, help="Ray render actors at most")
+    add_periodic_options(ap)
     return ap
 
 
@@ -69,6 +76,7 @@ async def run(args: argparse.Namespace) -> int:
     from server.metrics import Metrics
     from server.pipeline.gpu import GpuQueue
     from server.pipeline.jobs import JobManager, JobSpec, JobState
+    from server.pipeline.periodic import check_periodic
     from server.pipeline.selections import check_layers
     from server.settings import ServerSettings
     from server.web.app import batch_engine
@@ -86,15 +94,16 @@ async def run(args: argparse.Namespace) -> int:
         unknown = unknown_keys(p.RenderParams, raw, "params")
         if unknown:
             raise ValueError(f"{unknown}: unknown field")
-        params = p.RenderParams.model_validate(raw)
+        params = p.RenderParams.model_validate({**raw, **periodic_fields(args)})
         layers = layer_option(args)
         if layers is not None:
             if "layers" in params.model_fields_set:
                 raise ValueError("--params names layers: leave out --select, --layers, --all-atoms")
             params = params.model_copy(update={"layers": layers})
         check_layers(params)
+        check_periodic(params)
         camera = p.Camera.model_validate(json.loads(args.camera)) if args.camera else None
-    except ValueError as exc:  # JSON errors and validation errors are ValueErrors
+    except ValueError as exc:  # JSON, validation and selection errors are ValueErrors
         print(f"scalesteer batch: {exc}", file=sys.stderr)
         return 2
     settings = ServerSettings(

@@ -87,6 +87,7 @@ def parser() -> argparse.ArgumentParser:
     add_layer_options(p)
     p.add_argument("--device", default="auto", help="auto, cpu or cuda:N")
     p.add_argument("--frame", type=int, default=0, help="trajectory frame index")
+    add_periodic_options(p)
     return p
 
 
@@ -139,6 +140,51 @@ def layer_option(args: argparse.Namespace) -> list[Any] | None:
     return [Layer.model_validate(item) for item in raw]
 
 
+def add_periodic_options(p: argparse.ArgumentParser) -> None:
+    """The periodic options (protocol `render_params`), shared with `scalesteer batch`."""
+    p.add_argument(
+        "--periodic",
+        choices=("off", "whole", "wrap", "molecules", "unwrap"),
+        default=None,
+        help="a periodic box's frames: molecules made whole (whole), also put in the box "
+        "(molecules, the default), atoms put in the box (wrap), followed across it (unwrap), "
+        "or as read (off)",
+    )
+    p.add_argument(
+        "--center",
+        default=None,
+        metavar="SELECTION",
+        help="centre the box on these atoms ('auto', the default: protein and nucleic acids; "
+        "'off': none)",
+    )
+    p.add_argument(
+        "--fit",
+        default=None,
+        metavar="SELECTION",
+        help="superpose each frame on the first one by these atoms (rotation and translation)",
+    )
+    p.add_argument("--fit-translation", action="store_true", help="--fit translates only")
+    p.add_argument("--show-cell", action="store_true", help="draw the periodic box's outline")
+
+
+def periodic_fields(args: argparse.Namespace) -> dict[str, object]:
+    """The render parameters the periodic options set (those given)."""
+    out: dict[str, object] = {}
+    if args.periodic is not None:
+        out["periodic"] = args.periodic
+    if args.center is not None:
+        if args.center in ("off", "auto"):
+            out["center"] = args.center
+        else:
+            out.update(center="selection", center_selection=args.center)
+    if args.fit is not None:
+        out.update(fit="translation" if args.fit_translation else "rotation")
+        out["fit_selection"] = args.fit
+    if args.show_cell:
+        out["show_cell"] = True
+    return out
+
+
 def _fail(msg: str) -> int:
     print(f"scalesteer render: error: {msg}", file=sys.stderr)
     return 2
@@ -153,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     from pydantic import ValidationError
 
     from protocol import Lighting, RenderParams
+    from server.pipeline.periodic import PeriodicError, check_periodic
     from server.pipeline.selections import check_layers, opening_params
     from server.render.camera import fit_camera
     from structures.errors import StructureError
@@ -175,6 +222,7 @@ def main(argv: list[str] | None = None) -> int:
             radius_mode=args.radius_mode,
             tf_preset=args.tf_preset,
             lighting=Lighting(ambient_occlusion=args.ao),
+            **periodic_fields(args),
         )
     except ValidationError as exc:
         first = exc.errors()[0]
@@ -188,6 +236,10 @@ def main(argv: list[str] | None = None) -> int:
         # --select is drawn as the one layer: say which option the text came from
         return _fail(f"--select: {exc}" if args.select is not None else str(exc))
     try:
+        check_periodic(params)
+    except PeriodicError as exc:
+        return _fail(_periodic_option(exc))
+    try:
         structure = load(args.structure, args.trajectory)
     except StructureError as exc:
         return _fail(str(exc))
@@ -197,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from PIL import Image
 
+    from server.pipeline.overlay import draw_cell
+    from server.pipeline.periodic import displayed_cell
     from server.pipeline.selections import FrameLayers, LayerError
     from server.render.layerplan import visible_atoms
     from server.render.layers import LayeredRenderer
@@ -208,10 +262,12 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings():
             # re-reading a frame repeats the reader's format notes (e.g. placeholder CRYST1)
             warnings.simplefilter("ignore")
-            positions = structure.positions(args.frame)
+            raw, box = structure.frame(args.frame)
         topology = structure.topology
         n = topology.n_atoms
-        plans = FrameLayers(params, topology, InProcess(topology)).plans(positions, args.frame)
+        selections = InProcess(topology)
+        plans = FrameLayers(params, topology, selections).plans(raw, args.frame, box)
+        positions, how = _displayed(structure, params, selections, raw, box, args.device)
         shown = visible_atoms(plans, n)
         if not len(shown):
             return _fail("the selection takes no atoms: nothing to draw")
@@ -228,10 +284,15 @@ def main(argv: list[str] | None = None) -> int:
             layered.render(plans, topology, 1, positions, 1, camera, width, height)
             rgba = layered.read_rgba()
         ms = (time.perf_counter() - t0) * 1e3
+        cell = displayed_cell(how, box) if params.show_cell else None
+        if cell is not None:
+            rgba = draw_cell(rgba, camera, cell)
     except RenderError as exc:
         return _fail(str(exc))
     except LayerError as exc:
         return _fail(str(exc.error))
+    except PeriodicError as exc:
+        return _fail(_periodic_option(exc))
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(rgba[..., :3]).save(out)
@@ -240,6 +301,35 @@ def main(argv: list[str] | None = None) -> int:
     drawn = f"{len(shown)} of {n} atoms" if len(shown) < n else f"{n} atoms"
     print(f"{out}: {width}x{height}, {drawn}, {args.mode}, {renderer.device}, {ms:.1f} ms")
     return 0
+
+
+def _displayed(
+    structure: Any, params: Any, selections: Any, raw: Any, box: Any, device: str
+) -> tuple[Any, Any]:
+    """The frame as the periodic options display it (the fit's reference: the first frame),
+    and how (None: as read)."""
+    from server.pipeline.periodic import REFERENCE_FRAME, PeriodicOptions, needs_display
+    from server.render import device as render_device
+    from server.render.periodic import PeriodicTransform
+
+    if not needs_display(params, box):
+        return raw, None
+    options = PeriodicOptions(params, selections)
+    how = options.get(box)
+    transform = PeriodicTransform(render_device.resolve(device))
+    transform.set_topology(structure.topology)
+    if how.fit != "off":
+        ref_raw, ref_box = structure.frame(REFERENCE_FRAME)
+        transform.apply(ref_raw, ref_box, options.get(ref_box), reference=True)
+        transform.restart()
+    shown = transform.apply(raw, box, how)
+    return shown.positions, shown
+
+
+def _periodic_option(exc: Any) -> str:
+    """A periodic selection's refusal, naming the option it came from."""
+    option = "--center" if exc.path == "center_selection" else "--fit"
+    return f"{option}: {exc.reason}"
 
 
 if __name__ == "__main__":

@@ -192,7 +192,8 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
     """Render `indices` on this actor (body of `RenderWorker.render`, kept importable)."""
     from server.pipeline.encoder import encode_image
     from server.pipeline.history import time_window
-    from server.pipeline.overlay import draw_overlay
+    from server.pipeline.overlay import draw_cell, draw_overlay
+    from server.pipeline.periodic import displayed_cell, needs_selections
     from server.pipeline.selections import FrameLayers
     from server.render import Renderer
     from server.render.layers import LayeredRenderer
@@ -220,28 +221,35 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
         if state.get("held") is not None:
             state["held"].release()
         pool = _selection_pool(inputs.selection_limits)
-        held = state["held"] = pool.hold(structure.topology) if params.layers else None
+        wanted = bool(params.layers) or needs_selections(params)
+        held = state["held"] = pool.hold(structure.topology) if wanted else None
         layers = state["layers"] = FrameLayers(params, structure.topology, held, reference)
+        state["periodic"] = _periodic_frames(structure, params, held, state_device_name())
+        cache.clear()
     camera = p.Camera.model_validate(inputs.camera)
     window = time_window(params, inputs.n_frames)
+    displayed = state["periodic"]
 
-    def frame(i: int) -> Any:
+    def frame(i: int) -> tuple[Any, Any, Any, Any]:
         if i not in cache:
             if len(cache) > 256:
                 cache.clear()
-            cache[i] = np.ascontiguousarray(structure.positions(i), dtype=np.float32)
-        return cache[i]
+            raw, box = structure.frame(i)
+            shown, how = displayed(raw, box)
+            cache[i] = (raw, box, shown, how)
+        found: tuple[Any, Any, Any, Any] = cache[i]
+        return found
 
     out: list[tuple[int, bytes | None, bytes | None]] = []
     for index in indices:
-        positions = frame(index)
+        raw, box, positions, how = frame(index)
         history: list[tuple[int, Any]] = []
         lag = None
         if window is not None:
             first, last = window(index)
-            history = [(i + 1, frame(i)) for i in range(first, last + 1)]
+            history = [(i + 1, frame(i)[2]) for i in range(first, last + 1)]
             lag = last - index
-        plans = layers.plans(positions, index)
+        plans = layers.plans(raw, index, box)
         if plans is not None:
             layered = state["layered"]
             layered.render(
@@ -255,6 +263,9 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
                 renderer.set_history(history, index, params, live=False, lag=lag)
             renderer.render(params, camera, inputs.width, inputs.height)
             rgba = renderer.read_rgba()
+        cell = displayed_cell(how, box) if params.show_cell else None
+        if cell is not None:
+            rgba = draw_cell(rgba, camera, cell)
         if inputs.overlay is not None:
             rgba = draw_overlay(rgba, index, inputs.overlay, camera, positions)
         if inputs.png:
@@ -263,6 +274,34 @@ def _render_chunk_impl(state: dict[str, Any], inputs: ChunkInputs, indices: Sequ
         else:
             out.append((index, np.ascontiguousarray(rgba).tobytes(), None))
     return out
+
+
+def _periodic_frames(
+    structure: Any, params: p.RenderParams, held: Any, device: str
+) -> Callable[[Any, Any], tuple[Any, Any]]:
+    """(positions, box) -> (positions as displayed, how), on this actor's device, the fit's
+    reference the file's first frame as on the server (jobs that unwrap stay there)."""
+    from server.pipeline.periodic import REFERENCE_FRAME, PeriodicOptions, needs_display
+    from server.render.periodic import PeriodicTransform
+
+    options = PeriodicOptions(params, held)
+    transform = PeriodicTransform(device)
+    transform.set_topology(structure.topology)
+    referenced = [False]
+
+    def display(raw: Any, box: Any) -> tuple[Any, Any]:
+        if not needs_display(params, box):
+            return raw, None
+        how = options.get(box)
+        if how.fit != "off" and not referenced[0]:
+            ref_raw, ref_box = structure.frame(REFERENCE_FRAME)
+            transform.apply(ref_raw, ref_box, options.get(ref_box), reference=True)
+            referenced[0] = True
+        transform.restart()
+        shown = transform.apply(raw, box, how)
+        return shown.positions, shown
+
+    return display
 
 
 _POOLS: dict[Any, Any] = {}

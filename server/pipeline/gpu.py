@@ -44,9 +44,11 @@ before uploading from the frame itself."""
 
 if TYPE_CHECKING:
     from server.render import Renderer
+    from server.render.boxes import Options, Shown
     from server.render.layerplan import LayerPlan
     from server.render.layers import LayeredRenderer
     from server.render.multi import MultiRenderer
+    from server.render.periodic import PeriodicTransform
     from server.render.tuning import Tuning
 
 T = TypeVar("T")
@@ -100,6 +102,23 @@ class RenderRequest:
     image is not read back (`RenderOutput.rgba` is then None)."""
 
 
+@dataclass(frozen=True)
+class DisplayRequest:
+    """One frame of `slot` to show as `options` say (molecules made whole, centred, wrapped,
+    followed, fitted; `server.render.periodic`), on the device the slot renders on, which keeps
+    what spans its frames (where each atom was, the fit's reference). `restart`: this frame
+    does not follow the last one (a seek, new options); `reference`: the fit superposes the
+    frames that follow onto this one."""
+
+    slot: str
+    topology: p.Topology
+    positions: npt.NDArray[np.float32]
+    box: npt.NDArray[np.float32] | None
+    options: Options
+    restart: bool = False
+    reference: bool = False
+
+
 @dataclass
 class RenderOutput:
     rgba: npt.NDArray[np.uint8] | None
@@ -128,6 +147,8 @@ class _Slot:
     """`on_cuda` and its last request had no layers: its new frames are staged."""
     stager: FrameStager | None = None
     """Its page-locked frames (made on the stage thread; gone with the slot)."""
+    periodic: PeriodicTransform | None = None
+    """Its frames' periodic steps (made at its first `display`)."""
     prefetched: tuple[FrameStager, Any] | None = None
     """A staged frame uploaded while the last render ran, released after the next render."""
 
@@ -288,6 +309,12 @@ class GpuQueue:
             if self._spread == slot:
                 self._spread = None
             await self._spread_again()
+
+    async def display(self, request: DisplayRequest) -> Shown:
+        """A frame as displayed (periodic steps on the slot's device, on its thread), read
+        back."""
+        lane = await self._lane(request.slot)
+        return await self._run(lane, self.display_sync, request)
 
     def stage(self, slot: str, positions_id: int, positions: npt.NDArray[np.float32]) -> None:
         """A new frame for `slot` arrived (called on the event loop): copy it into page-locked
@@ -500,6 +527,19 @@ class GpuQueue:
         with self._staged() as held:
             atom, depth = self._prepare(request, held).pick(x, y)
         return atom, depth, None
+
+    def display_sync(self, request: DisplayRequest) -> Shown:
+        slot = self._slot(request.slot)
+        transform = slot.periodic
+        if transform is None:
+            from server.render.periodic import PeriodicTransform
+
+            # a session drawn across several devices displays on the first, its lane's
+            transform = slot.periodic = PeriodicTransform(slot.renderer.device.split(",")[0])
+        transform.set_topology(request.topology)
+        if request.restart:
+            transform.restart()
+        return transform.apply(request.positions, request.box, request.options, request.reference)
 
     def _drop_sync(self, key: str) -> None:
         """(On the slot's thread.) Forget the slot's renderer (its next request makes one

@@ -25,7 +25,7 @@ import secrets
 import shutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -35,11 +35,19 @@ import protocol as p
 from server.metrics import Metrics
 from server.pipeline.distributed import ChunkInputs, RayBatch, upload_refs
 from server.pipeline.encoder import encode_image
-from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
+from server.pipeline.gpu import DisplayRequest, GpuQueue, RenderRequest, Snapshot
 from server.pipeline.history import time_window
 from server.pipeline.livemovie import MovieQueue
 from server.pipeline.movie import FrameWriter, Mp4Writer, ZipWriter
-from server.pipeline.overlay import draw_overlay
+from server.pipeline.overlay import draw_cell, draw_overlay
+from server.pipeline.periodic import (
+    REFERENCE_FRAME,
+    PeriodicError,
+    PeriodicOptions,
+    displayed_cell,
+    needs_display,
+    needs_selections,
+)
 from server.pipeline.selections import FrameLayers, LayerError, opening_params
 from structures.errors import StructureError
 from structures.isolated import IsolatedStructure, ReadLimits
@@ -241,18 +249,42 @@ class Job:
 
 
 class _FrameCache:
-    """Trajectory frames read once each (a temporal filter needs its neighbours too)."""
+    """Trajectory frames read once each (a temporal filter needs its neighbours too): as read
+    (with their box, for the selections) and as displayed (`display`: the periodic steps,
+    frames taken in the order they are first asked for)."""
 
-    def __init__(self, structure: IsolatedStructure) -> None:
+    def __init__(
+        self,
+        structure: IsolatedStructure,
+        display: Callable[[int, Any, Any], Awaitable[tuple[Any, Any]]] | None = None,
+    ) -> None:
         self.structure = structure
-        self.frames: dict[int, Any] = {}
+        self.display = display
+        self.frames: dict[int, tuple[Any, Any, Any, Any]] = {}
+
+    async def read(self, index: int) -> tuple[Any, Any]:
+        """Positions and box of frame `index` as the file holds them."""
+        raw, box, _shown, _how = await self._frame(index)
+        return raw, box
 
     async def get(self, index: int) -> Any:
+        """Positions of frame `index` as displayed."""
+        return (await self._frame(index))[2]
+
+    async def shown(self, index: int) -> Any:
+        """How frame `index` was displayed (None: as read)."""
+        return (await self._frame(index))[3]
+
+    async def _frame(self, index: int) -> tuple[Any, Any, Any, Any]:
         if index not in self.frames:
             try:
-                self.frames[index] = await asyncio.to_thread(self.structure.positions, index)
+                raw, box = await asyncio.to_thread(self.structure.frame, index)
             except StructureError as exc:
                 raise JobError(str(exc)) from None
+            shown, how = raw, None
+            if self.display is not None:
+                shown, how = await self.display(index, raw, box)
+            self.frames[index] = (raw, box, shown, how)
         return self.frames[index]
 
     def forget_before(self, first: int) -> None:
@@ -488,13 +520,52 @@ class JobManager:
     ) -> bool:
         """Render the frames on this server's GPU queue, in order, into `writer`; False when
         the job was cancelled before the last frame."""
-        frames = _FrameCache(structure)
-        held = self.selections.hold(structure.topology) if job.spec.params.layers else None
+        params = job.spec.params
+        wanted = bool(params.layers) or needs_selections(params)
+        held = self.selections.hold(structure.topology) if wanted else None
         try:
+            display = await self._display(job, structure, held)
+            frames = _FrameCache(structure, display)
             return await self._frames_here(job, structure, indices, writer, frames, held)
         finally:
             if held is not None:
                 held.release()
+
+    async def _display(
+        self, job: Job, structure: IsolatedStructure, held: Held | None
+    ) -> Callable[[int, Any, Any], Awaitable[tuple[Any, Any]]] | None:
+        """How the job's frames are displayed (the periodic steps on the GPU queue's device),
+        or None when they are drawn as read. A fit first takes the file's first frame as its
+        reference."""
+        params = job.spec.params
+        if params.periodic == "off" and params.center == "off" and params.fit == "off":
+            return None
+        slot = f"job:{job.id}"
+        topology = structure.topology
+        options = PeriodicOptions(params, held)
+        state = {"last": -2}
+
+        async def display(index: int, raw: Any, box: Any) -> tuple[Any, Any]:
+            if not needs_display(params, box):
+                return raw, None
+            try:
+                how = await options.get_async(box)
+            except PeriodicError as exc:
+                raise JobError(f"params.{exc}") from None
+            if how.fit != "off" and state["last"] == -2:
+                ref_raw, ref_box = await asyncio.to_thread(structure.frame, REFERENCE_FRAME)
+                ref_how = await options.get_async(ref_box)
+                await self.gpu.display(
+                    DisplayRequest(slot, topology, ref_raw, ref_box, ref_how, True, True)
+                )
+            restart = index <= state["last"] or state["last"] < 0
+            state["last"] = index
+            shown = await self.gpu.display(
+                DisplayRequest(slot, topology, raw, box, how, restart=restart)
+            )
+            return shown.positions, shown
+
+        return display
 
     async def _frames_here(
         self,
@@ -515,9 +586,10 @@ class JobManager:
         for n, index in enumerate(indices):
             if job.cancel.is_set():
                 return False
+            raw, box = await frames.read(index)
             positions = await frames.get(index)
             try:  # evaluated by a selection worker, awaited here
-                plans = await layers.plans_async(positions, index)
+                plans = await layers.plans_async(raw, index, box)
             except LayerError as exc:
                 raise JobError(f"params.{exc}") from None
             if camera is None:
@@ -550,6 +622,10 @@ class JobManager:
                 )
             )
             rgba = out.image()
+            if spec.params.show_cell:
+                cell = displayed_cell(await frames.shown(index), box)
+                if cell is not None:
+                    rgba = await loop.run_in_executor(self.encoders, draw_cell, rgba, camera, cell)
             if spec.overlay is not None:
                 rgba = await loop.run_in_executor(
                     self.encoders, draw_overlay, rgba, index, spec.overlay, camera, positions
@@ -612,7 +688,12 @@ class JobManager:
                 writer = await loop.run_in_executor(
                     self.encoders, Mp4Writer, final, spec.fps, spec.width, spec.height
                 )
-            if self.batch is not None and len(indices) >= self.batch.min_frames:
+            # `unwrap` follows atoms from frame to frame: only one process can
+            if (
+                self.batch is not None
+                and len(indices) >= self.batch.min_frames
+                and spec.params.periodic != "unwrap"
+            ):
                 completed = await self._render_on_ray(job, structure, indices, writer)
             else:
                 job.stage = "rendering"
@@ -662,14 +743,17 @@ class JobManager:
         loop = asyncio.get_running_loop()
         camera = spec.camera
         plans = None
-        if camera is None or spec.params.layers:
+        if camera is None or spec.params.layers or needs_selections(spec.params):
             # the first frame's layers here: a layer past the selection limits fails the job
-            # now, not in every chunk; and the camera frames what they show
-            held = self.selections.hold(structure.topology) if spec.params.layers else None
+            # now, not in every chunk; and the camera frames what they show, as displayed
+            wanted = bool(spec.params.layers) or needs_selections(spec.params)
+            held = self.selections.hold(structure.topology) if wanted else None
             try:
-                first = await asyncio.to_thread(structure.positions, indices[0])
+                raw, box = await asyncio.to_thread(structure.frame, indices[0])
                 layers = FrameLayers(spec.params, structure.topology, held)
-                plans = await layers.plans_async(first, indices[0])
+                plans = await layers.plans_async(raw, indices[0], box)
+                display = await self._display(job, structure, held)
+                first = raw if display is None else (await display(indices[0], raw, box))[0]
             except StructureError as exc:
                 raise JobError(str(exc)) from None
             except LayerError as exc:

@@ -18,6 +18,7 @@ import protocol as p
 from server.pipeline.marks import active_pulls
 from server.render.camera import camera_frame, project
 
+CELL = (200, 205, 215, 255)
 CAPTION = (255, 255, 255, 255)
 SHADOW = (0, 0, 0, 200)
 ARROW = (239, 71, 111, 255)
@@ -78,3 +79,38 @@ def _head(
     left = tip - size * d + 0.5 * size * side
     right = tip - size * d - 0.5 * size * side
     draw.polygon([tuple(tip), tuple(left), tuple(right)], fill=ARROW)
+
+
+def cell_edges(cell: p.Cell) -> npt.NDArray[np.float64]:
+    """The 12 edges (12, 2, 3) of a periodic box: its corners joined along its vectors."""
+    origin = np.asarray(cell.origin, dtype=np.float64)
+    vectors = np.asarray(cell.vectors, dtype=np.float64)
+    corners = {
+        (i, j, k): origin + i * vectors[0] + j * vectors[1] + k * vectors[2]
+        for i in (0, 1)
+        for j in (0, 1)
+        for k in (0, 1)
+    }
+    edges = []
+    for corner, point in corners.items():
+        for axis in range(3):
+            if corner[axis] == 0:
+                other = tuple(1 if a == axis else c for a, c in enumerate(corner))
+                edges.append((point, corners[other]))  # type: ignore[index]
+    return np.asarray(edges)
+
+
+def draw_cell(rgba: npt.NDArray[np.uint8], camera: p.Camera, cell: p.Cell) -> npt.NDArray[np.uint8]:
+    """`rgba` (H, W, 4) with the periodic box drawn as an outline over it (an edge that
+    reaches behind the camera is left out)."""
+    h, w = rgba.shape[:2]
+    view = camera_frame(camera, w, h)
+    image = Image.fromarray(np.ascontiguousarray(rgba), "RGBA")
+    draw = ImageDraw.Draw(image)
+    width = max(1, round(min(w, h) / 400))
+    for a, b in cell_edges(cell):
+        ends = project(view, np.array([a, b]))
+        if not np.all(np.isfinite(ends)) or np.any(ends[:, 2] <= 0):
+            continue
+        draw.line([tuple(ends[0, :2]), tuple(ends[1, :2])], fill=CELL, width=width)
+    return np.asarray(image)

@@ -3,18 +3,24 @@
     S(P) = sum_i w_i K(|P - a_i|^2 / (2 s_i^2)),   K(e) = exp(-e) (1 - (e / ek)^16)^2,
     only atoms with |P - a_i| < k s_i (e < ek = k^2 / 2)
 
-`s_i` is sigma (uniform mode) or sigma * r_i / R_REF (vdw mode). The taper brings each atom's
-Gaussian to zero with zero slope at the cutoff, so S is smooth where atoms enter reach (a
-hard cut leaves a step of w exp(-ek) there). Each atom's K differs from its Gaussian by at most
-1.04 w exp(-k^2 / 2) (0.04 % of the peak for k = 4, the default); for atoms spread with number
-density rho the missing tail is about rho w (2 pi s^2)^(3/2) P(chi_3 > k): 0.1 % of the fully
-overlapped density for k = 4 (docs/rendering.md).
+`s_i` is sigma (uniform mode) or sigma * r_i / R_REF (vdw mode); k is the reach at that sigma
+(reach.py), at most `cutoff_sigmas` (default 4). The taper brings each atom's Gaussian to zero
+with zero slope at the cutoff, so S is smooth where atoms enter reach (a hard cut leaves a step
+of w exp(-ek) there). Each atom's K differs from its Gaussian by at most c_k w exp(-k^2 / 2),
+c_k = max over e in [0, ek] of exp(ek - e) (1 - (1 - (e / ek)^16)^2), reached just inside the
+cutoff: 1.023 at k = 3, 1.063 at 3.75, 1.086 at 4 (0.036 % of the peak), 2.13 at 6. K leaves out
+part of the Gaussian's mass w (2 pi s^2)^(3/2): the tail beyond the cutoff, P(chi_3 > k), and
+what the taper takes inside it; together 0.25 % at k = 4 (0.11 % + 0.14 %), 0.55 % at 3.75
+(0.28 % + 0.27 %), 4.3 % at 3 (2.9 % + 1.4 %). Where atoms overlap fully S is low by that share,
+a uniform loss the relative level (level_scale="mean") divides out (docs/rendering.md;
+tests/render/test_density.py holds the device kernel to these numbers).
 
 A density is a `DensityModel`: a field struct plus four functions with fixed signatures. The
-ray caster (raycast.py) is generated from a model, so another density (the bond-graph warped
-one, warped.py) plugs in by providing its own struct and functions; the struct must carry
-`info` (GridInfo, one entry), `bound` (one float per cell) and `brick_bound` (one per brick)
-because the caster walks bricks and cells to skip empty space.
+ray caster (raycast.py) is generated from a model, so another density (the geodesic one,
+geodesic_field.py, or the carved one, carved.py) plugs in by providing its own struct and
+functions; the struct must carry `info` (GridInfo, one entry), `bound` (one float per cell),
+`parts` (one word per cell) and `brick_bound` (one per brick) because the caster walks bricks,
+cells and parts of cells to skip empty space.
 (No `from __future__ import annotations`: `cell_rows` makes functions whose annotations name
 its arguments, which warp resolves eagerly.)
 """

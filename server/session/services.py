@@ -14,8 +14,9 @@ import numpy.typing as npt
 
 from server.metrics import Metrics
 from server.pipeline.encoder import ImageEncoder
-from server.pipeline.gpu import RenderOutput, RenderRequest
+from server.pipeline.gpu import DisplayRequest, RenderOutput, RenderRequest
 from server.pipeline.video import VideoEncoders
+from server.render.boxes import Shown
 from server.session.steering_log import SteeringLog
 from structures.selection_pool import SelectionPool
 
@@ -33,6 +34,9 @@ class RenderBackend(Protocol):
     ) -> tuple[int | None, float | None, str | None]: ...
 
     async def release(self, slot: str) -> None: ...
+
+    async def display(self, request: DisplayRequest) -> Shown:
+        """A frame as displayed (the periodic steps), on the slot's device."""
 
     def stage(self, slot: str, positions_id: int, positions: npt.NDArray[np.float32]) -> None:
         """A new frame arrived for `slot`: the backend may start moving it towards the device

@@ -31,12 +31,22 @@ from pydantic import ValidationError
 import protocol as p
 from server import heap
 from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
+from server.pipeline.periodic import (
+    PERIODIC_FIELDS,
+    PeriodicError,
+    check_periodic,
+    displayed_cell,
+    needs_display,
+    selection_fields,
+)
+from server.render.boxes import Shown
 from server.render.layerplan import LayerPlan, visible_atoms
 from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
 from server.session.engine_limits import check_control, check_pull, check_sim_params
 from server.session.forces import ForceBook
 from server.session.layers import LayerBook
+from server.session.periodic import PeriodicFrames
 from server.session.roster import Roster
 from server.session.scheduler import RenderScheduler, ViewKey
 from server.session.services import Services
@@ -117,6 +127,14 @@ class Session:
         self.positions_id = 0
         self.box: npt.NDArray[np.float32] | None = None
         """The last frame's periodic box vectors (3x3, angstrom), if it sent any."""
+        self.raw_positions: npt.NDArray[np.float32] | None = None
+        """The last frame's positions as the simulation sent them (`positions` are the ones
+        displayed: molecules whole, centred, fitted, as the render parameters say)."""
+        self.shown: Shown | None = None
+        """How `positions` were displayed (None: as sent)."""
+        self._cell_sent: p.Cell | None = None
+        self._frame_step: int | None = None
+        self._frame_delta = 0
         self.status = p.SimStatus(state="waiting")
         self.render_params = settings.render_defaults
         self.sim_params = p.SimParams()
@@ -129,12 +147,17 @@ class Session:
         self._last_step: int | None = None
         self._step_delta = 0
         self.frame_sinks: list[FrameSink] = []
+        """Called with each frame as the simulation sent it (a recording keeps these)."""
+        self.shown_sinks: list[Callable[[int], None]] = []
+        """Called with a frame's step once it is displayed (`snapshot()` holds it then): a
+        movie of the view takes these, after the periodic steps."""
         self.close_hooks: list[Callable[[], Awaitable[None]]] = []
         """Run (in order, each once) when the session closes: reaped, or the server stops.
         A recording hooks its stop here, so it never stays "recording" without a session."""
         """Called with every frame the simulation sends (recordings): they must only queue."""
         self.acks = AckBook()
         self.layers = LayerBook(self._selection_moved, services.selections)
+        self.periodic = PeriodicFrames(self.slot, services.backend, self._publish)
         self.scheduler = RenderScheduler(settings)
         self.delivery = Delivery(session_id, services)
         self.version = 0
@@ -229,9 +252,6 @@ class Session:
         for pending in self.acks.take_all():
             self._settle(pending, p.ParamsAck(ref=0, ok=False, detail=why))
 
-    def client_infos(self) -> list[p.ClientInfo]:
-        return self.roster.infos()
-
     def full_state(self) -> p.State:
         return p.State(
             render_params=self.render_params,
@@ -242,6 +262,7 @@ class Session:
             engine=self.engine,
             legend=self.legend,
             camera=self.camera,
+            cell=self._cell(),
         )
 
     def broadcast(self, message: p.Message) -> None:
@@ -256,8 +277,11 @@ class Session:
         if self.layers.auto:
             self._default_layers(topology)
         self.layers.topology(topology, self.topology_id, prepare=bool(self.render_params.layers))
+        self.periodic.held = self.layers.held
         if changed:
             self.positions = None
+            self.raw_positions = None
+            self.shown = None
             self.camera = None
             self.forces.clear()
             self._history.clear()  # frames of another system: the window starts again
@@ -300,7 +324,7 @@ class Session:
             return
         n = self.topology.n_atoms
         plans = self.layers.plans(
-            self.render_params, n, self.positions, self.positions_id, self.box
+            self.render_params, n, self._selected_positions(), self.positions_id, self.box
         )
         if not self.layers.ready:
             return  # once the layers' atoms arrive (`_selection_moved`)
@@ -313,8 +337,14 @@ class Session:
 
     def _layer_plans(self, snap: Snapshot) -> tuple[LayerPlan, ...] | None:
         return self.layers.plans(
-            self.render_params, snap.topology.n_atoms, snap.positions, snap.positions_id, self.box
-        )
+            self.render_params, snap.topology.n_atoms, self._selected_positions(),
+            snap.positions_id, self.box,
+        )  # fmt: skip
+
+    def _selected_positions(self) -> npt.NDArray[np.float32] | None:
+        """The positions selections read (`around`, `point`): the frame as the simulation sent
+        it, with its box (a fit rotates the displayed frame off the box's axes)."""
+        return self.raw_positions if self.raw_positions is not None else self.positions
 
     async def select(self, client: Client, message: p.Select) -> p.Selected:
         """Count the atoms a selection takes now (nothing changes): priced, then evaluated by
@@ -325,7 +355,7 @@ class Session:
             )
         try:
             count = await self.layers.count(
-                message.text, self.positions, self.positions_id, self.box
+                message.text, self._selected_positions(), self.positions_id, self.box
             )
         except SelectionError as exc:
             return p.Selected(
@@ -378,16 +408,18 @@ class Session:
             )
         now = time.monotonic()
         rate = self._step_rate.add(now, frame.step)
-        self.positions = frame.positions.to_numpy()
-        self.positions_id += 1
-        self.services.backend.stage(self.slot, self.positions_id, self.positions)
+        raw = frame.positions.to_numpy()
+        self.raw_positions = raw
         self.box = None if frame.box is None else frame.box.to_numpy()
-        self._remember(frame.step)
+        jumped = self._frame_step is not None and is_jump(
+            self._frame_step, self._frame_delta, frame.step
+        )
+        if self._frame_step is not None and not jumped:
+            self._frame_delta = frame.step - self._frame_step
+        self._frame_step = frame.step
         if self.frame_sinks:
             for sink in list(self.frame_sinks):
-                sink(frame.step, frame.time_ps, self.positions, self.box)
-        if self.camera is None:
-            self._fit_camera()
+                sink(frame.step, frame.time_ps, raw, self.box)
         paused = self.status.state == "paused"
         self.status = p.SimStatus(
             state="paused" if paused else "running",
@@ -399,16 +431,46 @@ class Session:
             observables=dict(frame.observables),
         )
         self.services.metrics.sim_frames.inc()
-        self.version += 1
         if self.clients:
-            self._frame_taken.clear()
-        if self.forces.springs:
-            self._send_forces()
+            self._frame_taken.clear()  # taken by the render that draws it, once displayed
+        if needs_display(self.render_params, self.box):
+            self.periodic.submit(
+                self.topology, self.topology_id, raw, self.box, frame.step, self.render_params,
+                jumped,
+            )  # fmt: skip
+        else:
+            self.periodic.drop()
+            self._publish(raw, None, frame.step)
+        self._report(now)
+
+    def _report(self, now: float) -> None:
+        """Send the status (and the tracked atoms, the cell) now, or once `state_interval_s`
+        has passed since the last: the last frame of a burst is reported too."""
         wait = self.settings.state_interval_s - (now - self._last_state_sent)
         if wait <= 0:
             self._send_status()
-        elif self._status_flush is None:  # the last frame of a burst is reported too
+        elif self._status_flush is None:
             self._status_flush = asyncio.get_running_loop().call_later(wait, self._send_status)
+
+    def _publish(self, positions: npt.NDArray[np.float32], shown: Shown | None, step: int) -> None:
+        """A frame is ready to draw: `positions` as displayed (`shown` says how; None: as
+        the simulation sent them)."""
+        if self._closed or self.topology is None or len(positions) != self.topology.n_atoms:
+            return
+        self.positions = positions
+        self.shown = shown
+        self.positions_id += 1
+        self.services.backend.stage(self.slot, self.positions_id, positions)
+        self._remember(step)
+        for shown_sink in list(self.shown_sinks):
+            shown_sink(step)
+        if self.camera is None:
+            self._fit_camera()
+        self.version += 1
+        if self.forces.springs:
+            self._send_forces()
+        if shown is not None or self._cell_sent is not None:
+            self._report(time.monotonic())  # markers and the cell as displayed now
         self.mark_dirty()
 
     def _remember(self, step: int) -> None:
@@ -436,8 +498,17 @@ class Session:
             self._status_flush.cancel()
             self._status_flush = None
         self._last_state_sent = time.monotonic()
-        self.broadcast(p.State(sim=self.status))
+        cell = self._cell()
+        if cell is not None and cell != self._cell_sent:
+            self._cell_sent = cell
+            self.broadcast(p.State(sim=self.status, cell=cell))
+        else:
+            self.broadcast(p.State(sim=self.status))
         self._send_tracked()
+
+    def _cell(self) -> p.Cell | None:
+        """The periodic box of the frame shown, as displayed (moved with it by a fit)."""
+        return displayed_cell(self.shown, self.box)
 
     def _send_tracked(self, only: Client | None = None) -> None:
         """Where each viewer's tracked atoms are now (markers and measurements follow them)."""
@@ -590,6 +661,8 @@ class Session:
             merged, changes = merge_patch(self.render_params, message.changes())
         except ValidationError as exc:
             raise _invalid(exc, "render_params.params", message.seq) from None
+        if any(f in changes for f in PERIODIC_FIELDS):
+            await self._check_periodic(merged, message.seq)
         if "layers" in changes:
             await self._check_layers(merged, message.seq)
             # other steering may have landed meanwhile: the patch applies to what is now
@@ -610,9 +683,51 @@ class Session:
         self.broadcast(p.State(render_params=merged, ref=message.seq, by=client.client_id))
         if "color_by" in changes or "uniform_color" in changes:
             self._legend_changed()
+        if any(f in changes for f in PERIODIC_FIELDS):
+            self._redisplay()
         self.version += 1
         self.scheduler.interacting(time.monotonic())
         self.mark_dirty()
+
+    def _redisplay(self) -> None:
+        """The periodic options changed: the last frame is displayed again with them (also
+        while the simulation is paused)."""
+        raw = self.raw_positions
+        if raw is None or self.topology is None:
+            return
+        step = self.status.step
+        if needs_display(self.render_params, self.box):
+            self.periodic.submit(
+                self.topology, self.topology_id, raw, self.box, step, self.render_params, True
+            )
+        else:
+            self.periodic.drop()
+            self._publish(raw, None, step)
+
+    async def _check_periodic(self, params: p.RenderParams, seq: int | None) -> None:
+        """The centre and fit selections in use must parse, name fixed atoms (a distance-based
+        selection changes from frame to frame) and evaluate on this topology; the first that
+        does not is named, and nothing changes."""
+        try:
+            check_periodic(params, self.services.selections.limits.selection)
+        except PeriodicError as exc:
+            raise p.ProtocolError(
+                p.ErrorCode.INVALID_MESSAGE, str(exc), f"render_params.params.{exc.path}", seq
+            ) from None
+        if self.topology is None:
+            return
+        for field, text in selection_fields(params):
+            try:
+                (error,) = await self.layers.check([text], None, self.positions_id)
+            except SelectionError as exc:
+                error = exc
+            if error is not None:
+                if isinstance(error, SelectionBusyError):
+                    code = p.ErrorCode.NOT_READY
+                else:
+                    code = p.ErrorCode.TOO_LARGE if error.limit else p.ErrorCode.INVALID_MESSAGE
+                path = f"render_params.params.{field}"
+                raise p.ProtocolError(code, f"{field}: {error}", path, seq)
 
     async def _check_layers(self, params: p.RenderParams, seq: int | None) -> None:
         """Every layer's selection must parse, keep to the selection limits and evaluate on
@@ -639,8 +754,8 @@ class Session:
             if not checked:
                 return
             found = await self.layers.check(
-                [layer.selection for _, layer in checked], self.positions, self.positions_id,
-                self.box,
+                [layer.selection for _, layer in checked], self._selected_positions(),
+                self.positions_id, self.box,
             )  # fmt: skip
         except SelectionError as exc:  # the request as a whole: its time or memory
             if len(checked) == 1:  # the one layer it was
@@ -721,6 +836,10 @@ class Session:
 
     def _merged_forces(self) -> p.Forces:
         idx, forces = self.forces.merged(self.positions)
+        shown = self.shown
+        if shown is not None and len(forces):
+            # given in the displayed frame: a fit rotated it (F_engine = R^T F_displayed)
+            forces = (np.asarray(forces, dtype=np.float64) @ shown.rotation).astype(np.float32)
         return p.Forces(
             indices=p.WireArray.from_numpy(idx, "<i4"),
             forces=p.WireArray.from_numpy(forces, "<f4"),
@@ -1069,5 +1188,6 @@ class Session:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self.delivery.close()
+        await self.periodic.close()
         self.layers.close()
         await self.services.backend.release(self.slot)

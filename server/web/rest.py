@@ -23,10 +23,22 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
 import protocol as p
-from server.pipeline.gpu import RenderRequest, Snapshot
+from server.pipeline.gpu import DisplayRequest, RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
 from server.pipeline.livemovie import MovieFrame, MovieQueue
+from server.pipeline.overlay import draw_cell
+from server.pipeline.periodic import (
+    PERIODIC_FIELDS,
+    REFERENCE_FRAME,
+    PeriodicError,
+    PeriodicOptions,
+    check_periodic,
+    displayed_cell,
+    needs_display,
+    needs_selections,
+)
 from server.pipeline.selections import FrameLayers, LayerError, check_layers, opening_params
+from server.render.boxes import Shown
 from server.web.access import (
     GatedRoute,
     app_state,
@@ -152,9 +164,10 @@ async def save_upload(upload: UploadFile, directory: Path, limit: int, index: in
 
 
 async def _read_frame(
-    state: AppState, path: Path, frame: int, role: p.Role
-) -> tuple[p.Topology, Any]:
-    """Topology and positions of one frame of an untrusted file, read in a child process."""
+    state: AppState, path: Path, frame: int, role: p.Role, reference: int | None = None
+) -> tuple[p.Topology, Any, Any, Any]:
+    """Topology, positions and box of one frame of an untrusted file, read in a child process;
+    with `reference`, that frame too (positions and box: a fit's reference), else None."""
     async with state.readers:
         try:
             structure = await asyncio.to_thread(
@@ -167,12 +180,53 @@ async def _read_frame(
                 raise HTTPException(
                     422, f"frame {frame} out of range: the file has {structure.n_frames}"
                 )
-            positions = await asyncio.to_thread(structure.positions, frame)
+            positions, box = await asyncio.to_thread(structure.frame, frame)
+            ref = None
+            if reference is not None and reference != frame:
+                ref = await asyncio.to_thread(structure.frame, reference)
         except StructureError as exc:
             raise HTTPException(422, str(exc)) from None
         finally:
             await asyncio.to_thread(structure.close)
-    return structure.topology, positions
+    return structure.topology, positions, box, ref
+
+
+def check_periodic_texts(state: AppState, params: p.RenderParams, field: str) -> None:
+    """The centre and fit selections must parse, keep to the selection limits and name fixed
+    atoms: a 422 naming the field."""
+    try:
+        check_periodic(params, state.selections.limits.selection)
+    except PeriodicError as exc:
+        raise HTTPException(422, f"{field}.{exc}") from None
+
+
+async def _displayed(
+    state: AppState,
+    slot: str,
+    render_params: p.RenderParams,
+    topology: p.Topology,
+    positions: Any,
+    box: Any,
+    held: Any,
+    reference: Any = None,
+) -> tuple[Any, Shown | None]:
+    """The frame as `render_params` display it (on the GPU queue's device), with how."""
+    if not needs_display(render_params, box):
+        return positions, None
+    try:
+        options = await PeriodicOptions(render_params, held).get_async(box)
+    except PeriodicError as exc:
+        raise HTTPException(422, f"params.{exc}") from None
+    if reference is not None and options.fit != "off":
+        ref_positions, ref_box = reference
+        ref_options = await PeriodicOptions(render_params, held).get_async(ref_box)
+        await state.gpu.display(
+            DisplayRequest(slot, topology, ref_positions, ref_box, ref_options, True, True)
+        )
+    shown = await state.gpu.display(
+        DisplayRequest(slot, topology, positions, box, options, restart=True)
+    )
+    return shown.positions, shown
 
 
 def check_size(state: AppState, width: int, height: int) -> None:
@@ -226,13 +280,15 @@ async def render_image(
     cam = _model(p.Camera, camera, "camera")
     held = None
     frame_key = frame
+    reference = None
+    live = None
     if session is not None:
         live = state.sessions.get(session)
         if live is None:
             raise HTTPException(404, f"no session named {session!r}")
-        if live.topology is None or live.positions is None:
+        if live.topology is None or live.positions is None or live.raw_positions is None:
             raise HTTPException(409, f"session {session!r} has no frame yet")
-        topology, positions, box = live.topology, live.positions, live.box
+        topology, positions, box = live.topology, live.raw_positions, live.box
         if render_params is None:
             render_params = live.render_params
         elif "layers" not in render_params.model_fields_set:  # the session's layers
@@ -240,6 +296,9 @@ async def render_image(
         cam = cam or live.camera
         held, frame_key = live.layers.held, live.positions_id  # its worker has them
     else:
+        if render_params is not None:
+            check_periodic_texts(state, render_params, "params")
+        fits = render_params is not None and render_params.fit != "off"
         workdir = Path(tempfile.mkdtemp(prefix="render-", dir=state.upload_dir))
         try:
             path = (
@@ -247,23 +306,38 @@ async def render_image(
                 if file
                 else _dataset(state, dataset or "")
             )
-            topology, positions = await _read_frame(state, path, frame, role)
-            box = None
+            topology, positions, box, reference = await _read_frame(
+                state, path, frame, role, REFERENCE_FRAME if fits else None
+            )
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
     # a file opens on its molecule, as a session does, unless the parameters name layers
     render_params = await asyncio.to_thread(
         opening_params, render_params or p.RenderParams(), topology
     )
-    own = held is None and bool(render_params.layers)
+    own = held is None and (bool(render_params.layers) or needs_selections(render_params))
     if own:
         held = state.selections.hold(topology)
-    try:  # evaluated by a selection worker (priced first, bounded in time and memory)
-        plans = await FrameLayers(render_params, topology, held).plans_async(
-            positions, frame_key, box
-        )
-    except LayerError as exc:
-        raise HTTPException(422, f"params.{exc}") from None
+    slot = f"rest:{uuid.uuid4().hex}"
+    try:
+        try:  # evaluated by a selection worker (priced first, bounded in time and memory)
+            plans = await FrameLayers(render_params, topology, held).plans_async(
+                positions, frame_key, box
+            )
+        except LayerError as exc:
+            raise HTTPException(422, f"params.{exc}") from None
+        if (
+            live is not None
+            and live.positions is not None
+            and all(
+                getattr(render_params, f) == getattr(live.render_params, f) for f in PERIODIC_FIELDS
+            )
+        ):
+            shown, cell = live.positions, live.shown  # displayed already, as asked
+        else:
+            shown, cell = await _displayed(
+                state, slot, render_params, topology, positions, box, held, reference
+            )
     finally:
         if own and held is not None:
             held.release()
@@ -271,18 +345,22 @@ async def render_image(
         from server.render.camera import fit_camera
         from server.render.layerplan import visible_atoms
 
-        shown = visible_atoms(plans, topology.n_atoms)
-        cam = fit_camera(positions[shown] if len(shown) else positions, width, height)
-    slot = f"rest:{uuid.uuid4().hex}"
+        drawn = visible_atoms(plans, topology.n_atoms)
+        cam = fit_camera(shown[drawn] if len(drawn) else shown, width, height)
     request = RenderRequest(
-        slot, Snapshot(topology, positions), render_params, cam, width, height, layers=plans
+        slot, Snapshot(topology, shown), render_params, cam, width, height, layers=plans
     )
     try:
         out = await state.gpu.render(request)
     finally:
         await state.gpu.release(slot)
-    data, _ms = await asyncio.get_running_loop().run_in_executor(
-        state.encoders, state.encoder.encode, out.image(), format, render_params.jpeg_quality
+    image = out.image()
+    outline = displayed_cell(cell, box) if render_params.show_cell else None
+    loop = asyncio.get_running_loop()
+    if outline is not None:
+        image = await loop.run_in_executor(state.encoders, draw_cell, image, cam, outline)
+    data, _ms = await loop.run_in_executor(
+        state.encoders, state.encoder.encode, image, format, render_params.jpeg_quality
     )
     return Response(data, media_type=f"image/{format}")
 
@@ -314,6 +392,7 @@ async def create_job(
         raise HTTPException(422, "give exactly one of topology (upload) or dataset")
     render_params = _model(p.RenderParams, params, "params") or p.RenderParams()
     check_layer_texts(state, render_params, "params")
+    check_periodic_texts(state, render_params, "params")
     cam = _model(p.Camera, camera, "camera")
     workdir = Path(tempfile.mkdtemp(prefix="job-", dir=state.upload_dir))
     try:
@@ -564,10 +643,10 @@ async def record_session(
 
     frames = MovieQueue(state.settings.movie_queue_bytes, max_frames, skipped, behind)
 
-    def take(step: int, time_ps: float, positions: Any, box: Any) -> None:
+    def take(step: int) -> None:  # a frame as displayed (periodic steps done)
         snap = live.snapshot()
         if snap is not None:
-            frames.offer(MovieFrame(replace(snap, step=step), live.render_params, box))
+            frames.offer(MovieFrame(replace(snap, step=step), live.render_params, live.box))
 
     now = live.snapshot()
     if now is not None:  # the frame on the screen when the movie starts
@@ -577,12 +656,12 @@ async def record_session(
         frames.close(f"session {session_id!r} closed")
 
     def unhook() -> None:
-        if take in live.frame_sinks:
-            live.frame_sinks.remove(take)
+        if take in live.shown_sinks:
+            live.shown_sinks.remove(take)
         if session_closed in live.close_hooks:
             live.close_hooks.remove(session_closed)
 
-    live.frame_sinks.append(take)
+    live.shown_sinks.append(take)
     live.close_hooks.append(session_closed)
     job = state.jobs.record(spec, frames, lambda: live.layers.held, owner)
     frames.when_closed(unhook)

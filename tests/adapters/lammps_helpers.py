@@ -33,6 +33,37 @@ run ${nsteps}
 write_dump all custom final.dump id xu yu zu modify sort id
 """
 
+COLD_START = """
+units real
+atom_style atomic
+atom_modify map array
+boundary p p p
+read_data argon.data
+mass 1 39.948
+pair_style lj/cut 8.0
+pair_coeff 1 1 0.2381 3.405
+minimize 1.0e-8 1.0e-10 1000 10000
+velocity all set 0.0 0.0 0.0
+fix 1 all nve
+fix 2 all langevin 400.0 400.0 500.0 699483
+timestep 5.0
+thermo 100
+fix 3 all imd ${port} version ${version} unwrap on nowait off trate ${trate} ${extra}
+run ${nsteps}
+"""
+"""Argon minimised, all velocities zero, heated by a Langevin thermostat at 400 K: a run
+straight after minimisation."""
+
+BLOW_UP = """
+set atom 1 x $(x[2]+1.7) y $(y[2]) z $(z[2])
+timestep 1.0
+run ${nsteps}
+"""
+"""Appended to COLD_START: atom 1 put 1.7 A from atom 2 (Lennard-Jones sigma 3.4 A), and the
+run goes on: the pair's repulsion heats the run by thousands of kelvin in a few steps. At the
+cold start's 5 fs steps the pushed atom crossed the box in one step and LAMMPS stopped ("Lost
+atoms") before a frame showed the heat; at 1 fs it stays in the box and the heat shows."""
+
 
 def write_argon_data(path: Path, n_side: int, spacing: float = 3.9) -> None:
     length = n_side * spacing
@@ -68,13 +99,23 @@ def free_port() -> int:
 class Lammps:
     """One LAMMPS run in a subprocess, serving IMD on a free port."""
 
-    def __init__(self, workdir: Path, nsteps: int, version: int = 3, trate: int = 20) -> None:
+    def __init__(
+        self,
+        workdir: Path,
+        nsteps: int,
+        version: int = 3,
+        trate: int = 20,
+        *,
+        script: str = INPUT,
+        velocities: bool = False,
+    ) -> None:
         self.workdir = workdir
         self.port = free_port()
         workdir.mkdir(parents=True, exist_ok=True)
         write_argon_data(workdir / "argon.data", 6)
-        (workdir / "in.argon").write_text(INPUT)
-        extra = "velocities off forces off" if version == 3 else ""
+        (workdir / "in.argon").write_text(script)
+        sent = "on" if velocities else "off"
+        extra = f"velocities {sent} forces off" if version == 3 else ""
         args = {"port": self.port, "version": version, "trate": trate, "nsteps": nsteps}
         cmd = [str(LMP), "-in", "in.argon", "-log", "none", "-nocite"]
         for name, value in {**args, "extra": extra}.items():
@@ -101,6 +142,18 @@ class Lammps:
 
     def log(self) -> str:
         return (self.workdir / "lammps.out").read_text()
+
+    def thermo(self) -> dict[int, float]:
+        """The temperature LAMMPS printed at each thermo step (its own `compute temp`)."""
+        out: dict[int, float] = {}
+        for line in self.log().splitlines():
+            fields = line.split()
+            if len(fields) == 6 and fields[0].isdigit():
+                try:
+                    out[int(fields[0])] = float(fields[1])
+                except ValueError:
+                    continue
+        return out
 
     def final_positions(self) -> np.ndarray:
         rows = (self.workdir / "final.dump").read_text().splitlines()[9:]

@@ -15,9 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol import Control, Forces, SimParams, WireArray
+from protocol import Control, Event, Forces, SimParams, WireArray
 from simulation_adapters.imd import BridgeError, IMDBridge
-from tests.adapters.lammps_helpers import Lammps, lammps_usable, write_argon_data
+from tests.adapters.lammps_helpers import (
+    BLOW_UP,
+    COLD_START,
+    Lammps,
+    lammps_usable,
+    write_argon_data,
+)
 from tests.adapters.sim_peer import SimPeer
 
 WHY_NOT = lammps_usable()
@@ -156,5 +162,65 @@ def test_lammps_with_the_wrong_topology_is_a_clear_error(
         assert bridge.wait(60)
         assert isinstance(bridge.error, BridgeError)
         assert "coordinates for 216 atoms but the topology has 125" in str(bridge.error)
+    finally:
+        bridge.close()
+
+
+def test_a_cold_start_heating_to_its_thermostat_is_no_blow_up(
+    tmp_path: Path, peer: SimPeer, runs: list[Lammps]
+) -> None:
+    """Straight after minimisation, every velocity zero, a Langevin thermostat heats argon to
+    400 K. LAMMPS sends no energies over IMD, so the bridge takes the temperature from the
+    velocities it sends; the guard had judged against the first frame's temperature (a few
+    kelvin) and paused this healthy run at about 300 K above it."""
+    run = Lammps(tmp_path / "cold", nsteps=3000, trate=2, script=COLD_START, velocities=True)
+    runs.append(run)
+    bridge = bridge_for(run.data, run.port, peer, lossless=True)
+    try:
+        # ends by itself, unless the guard pauses it
+        peer.wait_for(lambda: run.proc.poll() is not None or peer.of_type(Event), 120)
+        assert not peer.of_type(Event), [e.message for e in peer.of_type(Event)]
+        assert run.wait() == 0, run.log()
+        assert bridge.wait(30) and bridge.error is None
+        temps = {f.step: f.observables["temperature_K"] for f in peer.frames}
+        first = min(temps)
+        assert temps[first] < 50.0, temps[first]  # it starts cold
+        assert max(temps.values()) > temps[first] + 300.0  # where the old guard tripped
+        # the bridge's temperature is LAMMPS' own (3N - 3 degrees of freedom, real units)
+        thermo = run.thermo()
+        shared = [s for s in temps if s in thermo and s > first]
+        assert len(shared) >= 10, (sorted(temps)[:5], sorted(thermo)[:5])
+        for step in shared:
+            assert temps[step] == pytest.approx(thermo[step], rel=1e-4, abs=1e-3), step
+        assert bridge.guard_trips == 0
+    finally:
+        bridge.close()
+
+
+def test_a_real_blow_up_still_pauses_the_engine(
+    tmp_path: Path, peer: SimPeer, runs: list[Lammps]
+) -> None:
+    """The same cold start, then an atom pushed 1.7 A from its neighbour: thousands of kelvin
+    in a few steps. The guard releases the forces, pauses LAMMPS and says why."""
+    run = Lammps(
+        tmp_path / "blown",
+        nsteps=2000,
+        trate=10,
+        script=COLD_START + BLOW_UP,
+        velocities=True,
+    )
+    runs.append(run)
+    bridge = bridge_for(run.data, run.port, peer)
+    try:
+        (event,) = peer.wait_for(lambda: [e for e in peer.of_type(Event) if e.code == "guard"], 90)
+        assert event.level == "error" and "above the guard's" in event.message
+        assert "engine paused" in event.message and bridge.guard_trips == 1
+        start = min(f.step for f in peer.frames) - 10  # where the first run began
+        assert event.step is not None and event.step > start + 2000  # in the second run
+        time.sleep(1.0)  # frames already on the wire drain
+        held = len(peer.frames)
+        time.sleep(1.0)
+        assert len(peer.frames) == held and run.proc.poll() is None  # paused, not ended
+        assert "Pausing run on IMD client request" in run.log()
     finally:
         bridge.close()

@@ -406,14 +406,24 @@ def test_the_guard_rolls_back_a_blown_up_run_releases_the_pulls_and_pauses(
         runner.join(60)
 
 
-def test_the_guard_never_rolls_back_into_a_state_hot_for_the_thermostat_of_now(
-    steered: tuple[app.Simulation, SteeringReporter], peer: SimPeer
-) -> None:
-    """A run held at 1000 K reports states calm for that thermostat, and the guard took one as
-    its rollback point; with the thermostat back at 300 K that state is a runaway, so the guard
-    rolled back into it after every resume (five resumes, five trips; only reset recovered).
-    Now the rollback point must be calm for the thermostat of the moment."""
-    sim, reporter = steered
+def _running(sim: app.Simulation, reporter: SteeringReporter, steps: int) -> threading.Thread:
+    runner = threading.Thread(target=run_steered, args=(sim, steps, reporter))
+    runner.start()
+    return runner
+
+
+def _stop(reporter: SteeringReporter, runner: threading.Thread) -> None:
+    reporter.stop_requested = True
+    reporter.resume()
+    runner.join(60)
+
+
+def _guard_events(peer: SimPeer) -> list[Event]:
+    return [e for e in peer.of_type(Event) if e.code == "guard"]
+
+
+def _heat_to_1000(sim: app.Simulation, reporter: SteeringReporter, peer: SimPeer) -> None:
+    """Steer the thermostat to 1000 K and start the run there (a report calm for it)."""
     send_and_wait_arrival(peer, reporter, SimParams(temperature_K=1000.0))
     sim.step(5)  # applied at this report
     # the heating, at once (constraints and the potential energy take a third of it back)
@@ -421,11 +431,91 @@ def test_the_guard_never_rolls_back_into_a_state_hot_for_the_thermostat_of_now(
     sim.step(5)  # a report calm for a 1000 K thermostat (under 1250 K): a rollback point
     hot = peer.wait_for(lambda: [f for f in peer.frames if f.step == sim.currentStep])[-1]
     assert 700.0 < hot.observables["temperature_K"] < 1250.0  # a runaway at 300 K (600 K)
+
+
+def test_a_steered_cooling_is_no_blow_up(
+    steered: tuple[app.Simulation, SteeringReporter], peer: SimPeer
+) -> None:
+    """A run held at 1000 K, steered back to 300 K, cools through the 600 K that is a runaway
+    for a 300 K thermostat; the guard judged it against the new thermostat alone and took the
+    cooling for a blow-up (rolled back, paused)."""
+    sim, reporter = steered
+    _heat_to_1000(sim, reporter, peer)
+    held = _running(sim, reporter, 300)  # the run's level follows it to 1000 K
+    held.join(120)
+    assert not held.is_alive() and not _guard_events(peer)
     send_and_wait_arrival(peer, reporter, SimParams(temperature_K=300.0))
-    runner = threading.Thread(target=run_steered, args=(sim, 100_000))
-    runner.start()
+    runner = _running(sim, reporter, 1500)
     try:
-        (event,) = peer.wait_for(lambda: [e for e in peer.of_type(Event) if e.code == "guard"], 60)
+        runner.join(120)
+        assert not runner.is_alive() and not _guard_events(peer), [
+            e.message for e in _guard_events(peer)
+        ]
+        temps = [f.observables["temperature_K"] for f in peer.frames if f.step > 310]
+        assert max(temps) > 650.0 and temps[-1] < 450.0  # through 600 K, down to 300 K
+        assert reporter.guard_trips == 0 and not reporter.paused
+    finally:
+        _stop(reporter, runner)
+
+
+@pytest.mark.parametrize(
+    ("integrator", "start_K"),
+    [("langevin", 0.0), ("langevin", 1200.0), ("verlet", 900.0)],
+    ids=["cold-thermostat", "hot-thermostat", "hot-no-thermostat"],
+)
+def test_a_run_that_starts_cold_or_hot_is_no_blow_up(
+    peer: SimPeer, integrator: str, start_K: float
+) -> None:
+    """Argon started at 0 K or far above its 120 K thermostat, or hot without a thermostat
+    (the guard had assumed 300 K for one and tripped at 600 K): the guard judges it against
+    where it started and where it goes, and lets it run."""
+    recipe = argon_recipe()
+    if integrator == "verlet":
+        verlet = openmm.VerletIntegrator(0.002)
+        recipe.integrator_xml = openmm.XmlSerializer.serialize(verlet)
+    sim = recipe.make("CPU")
+    if start_K:
+        sim.context.setVelocitiesToTemperature(start_K * unit.kelvin, 11)
+    else:
+        sim.context.setVelocities(
+            np.zeros((sim.system.getNumParticles(), 3)) * unit.nanometer / unit.picosecond
+        )
+    reporter = SteeringReporter(peer.ws_url, token="secret", interval=10, session="argon")
+    sim.reporters.append(reporter)
+    runner = _running(sim, reporter, 1000)
+    try:
+        runner.join(120)
+        assert not runner.is_alive() and not _guard_events(peer), [
+            e.message for e in _guard_events(peer)
+        ]
+        temps = [f.observables["temperature_K"] for f in peer.frames]
+        assert len(temps) >= 90
+        if start_K == 0.0:
+            assert temps[0] < 60.0 and temps[-1] > 80.0  # heated by its thermostat
+        else:
+            assert temps[0] > 600.0  # what the guard took for a runaway
+        assert reporter.guard_trips == 0
+    finally:
+        _stop(reporter, runner)
+        reporter.close()
+
+
+def test_the_guard_never_rolls_back_into_a_state_hot_for_the_thermostat_of_now(
+    steered: tuple[app.Simulation, SteeringReporter], peer: SimPeer
+) -> None:
+    """A run held at 1000 K reports states calm for that thermostat, and the guard took one as
+    its rollback point; with the thermostat back at 300 K that state is a runaway, so a guard
+    that caught a blow-up soon after rolled back into it after every resume (only reset
+    recovered). Now the rollback point must be calm for the thermostat of the moment."""
+    sim, reporter = steered
+    _heat_to_1000(sim, reporter, peer)
+    send_and_wait_arrival(peer, reporter, SimParams(temperature_K=300.0))
+    n = sim.system.getNumParticles()
+    vectors = np.random.default_rng(5).normal(size=(n, 3)) * 1e3  # capped at max_force each
+    forces_pull(peer, reporter, list(range(n)), vectors)  # a real blow-up, while still hot
+    runner = _running(sim, reporter, 100_000)
+    try:
+        (event,) = peer.wait_for(lambda: _guard_events(peer), 60)
         assert "the start's positions" in event.message and "too hot" in event.message
         for _ in range(3):  # every resume goes on calmly, none trips the guard again
             wait_until(lambda: reporter.paused or reporter.guard_trips > 1, 30)
@@ -437,9 +527,7 @@ def test_the_guard_never_rolls_back_into_a_state_hot_for_the_thermostat_of_now(
         calm = peer.wait_for(lambda: [f for f in peer.frames if f.step > held])[-1]
         assert calm.observables["temperature_K"] < 450.0
     finally:
-        reporter.stop_requested = True
-        reporter.resume()
-        runner.join(60)
+        _stop(reporter, runner)
 
 
 def test_the_engine_declares_what_it_can_be_steered_with(

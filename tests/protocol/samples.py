@@ -116,6 +116,10 @@ def samples() -> dict[str, p.Message]:
             ),
             sim=p.SimStatus(state="running", step=1000, time_ps=2.0, n_atoms=3),
             clients=[p.ClientInfo(client_id="c1", role="steerer", client="golden")],
+            cell=p.Cell(
+                origin=(0.0, 0.0, 0.0),
+                vectors=((40.0, 0.0, 0.0), (0.0, 40.0, 0.0), (20.0, 20.0, 28.25)),
+            ),
         ),
         "stats": p.Stats(
             seq=16, render_fps=60.0, render_ms=12.5, frames_sent=100, frames_dropped=3

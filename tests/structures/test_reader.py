@@ -6,6 +6,7 @@ import os
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 from MDAnalysisTests.datafiles import DCD, GRO, MMCIF, PDBX, PSF, XTC, PDB_multiframe
 
@@ -111,3 +112,20 @@ def test_damaged_text_files_name_the_file_the_line_and_the_problem(
     path.write_text(text)
     with pytest.raises(StructureError, match=re.escape(says)):
         load(str(path))
+
+
+def test_bonds_are_guessed_across_the_periodic_box() -> None:
+    """A GRO file has no bonds: they are guessed from distances, the box's minimum image
+    included, so a molecule the box cuts stays one molecule (every bond of the TPR found)."""
+    import MDAnalysis as mda
+    from MDAnalysisTests.datafiles import TPR
+
+    guessed = load(GRO).topology.bonds.to_numpy()
+    found = {tuple(sorted(b)) for b in guessed.tolist()}
+    u = mda.Universe(TPR, GRO)
+    x = u.atoms.positions
+    bonds = u.atoms.bonds.indices
+    cut = bonds[np.linalg.norm(x[bonds[:, 0]] - x[bonds[:, 1]], axis=1) > 40.0]
+    assert len(cut) > 10  # the box cuts these
+    assert all(tuple(sorted(b)) in found for b in cut.tolist())
+    assert all(tuple(sorted(b)) in found for b in bonds.tolist())

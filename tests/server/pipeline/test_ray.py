@@ -93,7 +93,8 @@ def test_a_job_on_ray_equals_the_in_process_job_and_survives_a_killed_worker(
     on_ray, local = servers
     fields = {"start": "0", "stop": "40",
               "params": json.dumps({"scale_space": "warped", "time_smoothing": "warped",
-                                    "time_window": 5})}  # fmt: skip
+                                    "time_window": 5, "fit": "rotation",
+                                    "fit_selection": "name CA"})}  # fmt: skip
     reference = submit(local, **fields)
     job = submit(on_ray, **fields)
     info = wait(on_ray, job, ("running", "done"))

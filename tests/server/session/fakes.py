@@ -17,7 +17,8 @@ import numpy as np
 import protocol as p
 from server.metrics import Metrics
 from server.pipeline.encoder import ImageEncoder
-from server.pipeline.gpu import RenderOutput, RenderRequest
+from server.pipeline.gpu import DisplayRequest, RenderOutput, RenderRequest
+from server.render.boxes import Shown
 from server.session.clients import Client
 from server.session.services import Services
 from server.session.steering_log import SteeringLog
@@ -48,6 +49,8 @@ class PaintBackend:
     requests: list[RenderRequest] = field(default_factory=list)
     released: list[str] = field(default_factory=list)
     staged: list[tuple[str, int]] = field(default_factory=list)
+    displayed: list[DisplayRequest] = field(default_factory=list)
+    transforms: dict[str, Any] = field(default_factory=dict)
     actual_device: str = "paint"
     gate: asyncio.Event | None = None
     """When set, renders wait for it (to hold a render in flight)."""
@@ -69,6 +72,18 @@ class PaintBackend:
 
     async def release(self, slot: str) -> None:
         self.released.append(slot)
+        self.transforms.pop(slot, None)
+
+    async def display(self, request: DisplayRequest) -> Shown:
+        """The periodic steps themselves, on warp's CPU device."""
+        from server.render.periodic import PeriodicTransform
+
+        self.displayed.append(request)
+        transform = self.transforms.setdefault(request.slot, PeriodicTransform("cpu"))
+        transform.set_topology(request.topology)
+        if request.restart:
+            transform.restart()
+        return transform.apply(request.positions, request.box, request.options, request.reference)
 
     def stage(self, slot: str, positions_id: int, positions: np.ndarray) -> None:
         self.staged.append((slot, positions_id))

@@ -1,0 +1,101 @@
+"""The formats chemists have, read through MDAnalysis (and gemmi for PDBx/mmCIF), each on files
+MDAnalysisTests ships: GROMACS TPR with its XTC, AMBER prmtop/parm7 with NetCDF and ASCII
+trajectories, LAMMPS data with dumps (a triclinic one too), PDBx/mmCIF and multi-model PDB. A
+broken file of each is refused naming the file and the line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from structures.reader import StructureError, load
+
+datafiles = pytest.importorskip("MDAnalysisTests.datafiles")
+DATA = Path(datafiles.__file__).parent / "data"
+
+
+@pytest.mark.parametrize(
+    ("files", "atoms", "frames", "boxed"),
+    [
+        ((datafiles.TPR, datafiles.XTC), 47681, 10, True),
+        ((datafiles.TPR2024,), 2263, 1, True),
+        ((datafiles.PRMncdf, datafiles.NCDF), 2661, 30, True),
+        ((datafiles.PRM7, datafiles.NCDFtruncoct), 5827, 10, True),
+        ((datafiles.PRM, datafiles.TRJ), 252, 11, False),
+        ((str(DATA / "lammps/chain_initial.data"), str(DATA / "lammps/chain_dump_1.lammpstrj")),
+         22, 6, True),
+        ((datafiles.LAMMPSdata_triclinic, datafiles.LAMMPSDUMP_triclinic), 17, 1, True),
+        ((str(DATA / "mmcif/1YJP.cif"),), 66, 1, False),
+        ((str(DATA / "mmcif/5PTI.cif.gz"),), 1104, 1, True),
+        ((datafiles.PDBX,), 60, 1, False),
+        ((datafiles.PDB_multiframe,), 392, 24, False),
+    ],
+    ids=["tpr-xtc", "tpr-2024", "prmtop-ncdf", "parm7-nc-truncoct", "prmtop-mdcrd",
+         "lammps-data-dump", "lammps-triclinic-dump", "mmcif", "mmcif-gz", "pdbx",
+         "pdb-models"],
+)  # fmt: skip
+def test_each_format_opens_with_its_topology_frames_and_box(
+    files: tuple[str, ...], atoms: int, frames: int, boxed: bool
+) -> None:
+    s = load(files[0], files[1:])
+    assert s.topology.n_atoms == atoms and s.n_frames == frames
+    assert s.topology.bonds.shape[0] > 0  # from the file, or guessed
+    last, box = s.frame(frames - 1)
+    assert last.shape == (atoms, 3) and np.isfinite(last).all()
+    assert (box is not None) == boxed
+    if box is not None:
+        assert box.shape == (3, 3) and abs(np.linalg.det(box)) > 0
+
+
+def test_a_triclinic_lammps_dump_keeps_its_tilted_box() -> None:
+    s = load(datafiles.LAMMPSdata_triclinic, [datafiles.LAMMPSDUMP_triclinic])
+    _positions, box = s.frame(0)
+    assert box is not None and abs(box[1, 0]) > 1.0 and abs(box[2, 0]) > 1.0  # xy and xz tilts
+
+
+@pytest.mark.parametrize(
+    ("files", "expected"),
+    [
+        (("mmcif/1YJP_invalid.cif.gz",),
+         r"1YJP_invalid\.cif\.gz, line 793: group_PDB is 'WRONG', not ATOM or HETATM"),
+        (("Amber/ace_mbondi3.error1.parm7", "Amber/ace_mbondi3.nc"),
+         r"ace_mbondi3\.error1\.parm7, line 1: a prmtop starts with %VERSION"),
+        (("Amber/ace_mbondi3.error2.parm7", "Amber/ace_mbondi3.nc"),
+         r"ace_mbondi3\.error2\.parm7 has no %FLAG TITLE section"),
+        (("Amber/ace_mbondi3.error3.parm7", "Amber/ace_mbondi3.nc"),
+         r"ace_mbondi3\.error3\.parm7, line 14: ATOM_NAME goes on past the NATOM = 6 values"),
+        (("Amber/ace_mbondi3.error4.parm7", "Amber/ace_mbondi3.nc"),
+         r"ace_mbondi3\.error4\.parm7, line 16: a header line that is not %FLAG"),
+        (("Amber/ache_chainid.error5.prmtop.bz2", "Amber/ache.mdcrd"),
+         r"ache_chainid\.error5\.prmtop\.bz2, line 4289: RESIDUE_CHAINID holds 37 values, "
+         r"POINTERS declares NRES = 38"),
+        (("lammps/chain_initial.data", "lammps/spce_no_coords.lammpstrj.bz2"),
+         r"spce_no_coords\.lammpstrj\.bz2, line 9: the ATOMS columns name no x, y, z"),
+    ],
+    ids=["mmcif-group", "parm7-version", "parm7-title", "parm7-overrun", "parm7-header",
+         "prmtop-chain-ids", "lammps-dump-columns"],
+)  # fmt: skip
+def test_a_broken_file_is_refused_naming_the_file_and_the_line(
+    files: tuple[str, ...], expected: str
+) -> None:
+    paths = [str(DATA / f) for f in files]
+    with pytest.raises(StructureError, match=expected) as caught:
+        load(paths[0], paths[1:])
+    assert str(DATA) not in str(caught.value)  # names, never the directories
+
+
+def test_a_reader_error_says_its_cause_without_directories(tmp_path: Path) -> None:
+    """What MDAnalysis wraps ("Failed to construct topology from file /full/path ...") is
+    unwrapped to the parser's own words, with the file's name alone."""
+    broken = tmp_path / "broken.prmtop"
+    source = (DATA / "Amber/ace_mbondi3.parm7").read_text().splitlines(keepends=True)
+    at = next(i for i, line in enumerate(source) if line.startswith("%FLAG CHARGE")) + 2
+    source[at] = source[at].replace("2.04636429E+00", "not-a-charge!!", 1)  # same width
+    broken.write_text("".join(source))
+    with pytest.raises(StructureError) as caught:
+        load(str(broken), [str(DATA / "Amber/ace_mbondi3.nc")])
+    message = str(caught.value)
+    assert "not-a-charge" in message and "broken.prmtop" in message, message
+    assert str(tmp_path) not in message and "Failed to construct" not in message
