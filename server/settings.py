@@ -83,6 +83,11 @@ class ServerSettings:
     max_spool_bytes: int = 2 << 30
     """Request bodies being received at once, together (uploads wait in `<state-dir>/spool`
     while they are parsed); a body that would pass it is refused with 503."""
+    viewer_spool_bytes: int = 1 << 30
+    """The part of `max_spool_bytes` that requests without the server token may hold."""
+    body_timeout_s: float = 30.0
+    """Longest pause in a request's body (after its headers, or between two of its pieces):
+    a body that stalls longer is answered 408 and lets go of its part of the spool."""
     max_sessions: int = 64
     max_connections: int = 1024
     """Open WebSockets, all endpoints together (a connection counts from its first byte)."""
@@ -264,6 +269,8 @@ class ServerSettings:
                 f"max_spool_bytes ({self.max_spool_bytes}) must be at least max_upload_bytes "
                 f"({self.max_upload_bytes}): a whole upload must fit in the spool"
             )
+        if not self.body_timeout_s > 0:
+            raise ValueError("body_timeout_s must be more than 0 seconds")
         if self.selection_workers < 1:
             raise ValueError("selection_workers must be at least 1")
         if not self.video_steer_hold_s >= 0:

@@ -212,12 +212,21 @@ class Density:
 # measured with MDAnalysis 2.11 on 1M atoms (one core): a distance pair costs about 1 us; a term's
 # pass over the system costs this many pair checks per atom
 _CHEAP = 1 / 32  # keyword terms (`name`, `resname`, `index`, `protein`): 2-20 ns an atom
-_SET = 1 / 16  # `and`, `not`, `byres`, `same resname as`, `prop`, one-centre zones: 25-50 ns
+_SET = 1 / 16  # `and`, `not`, `byres`, `same resid as`, `prop`, one-centre zones: 25-50 ns
 _OR = 2.0  # `or` (its union and regrouping): 0.7-1.7 us an atom
-_BONDED = 2.0  # `bonded`: about 1.5 us an atom
+_BONDED = 2.0  # `bonded`: about 1.5 us an atom, and per bond:
+_BOND = 16.0  # MDAnalysis gathers the group's bonds in Python, twice: 8-14 us a bond (40,000 to
+# 200,000 atoms, a bond each); four nested `bonded` on 47,681 atoms ran past 10 s
+_FRAGMENTS = 64.0  # `same fragment as`, per atom: the fragments traced through the bonds, 2.6 s
+# on 40,000 atoms, 6.7 s on 100,000 (cached by the universe afterwards, priced every time)
 _GRID = 1.0  # a neighbour grid over the system, for `around` (`isolayer` builds two)
 _CHEMISTRY = 16.0  # `smarts`, `aromatic`: the whole system converted for RDKit
 _UNKNOWN = 2.0  # a term this table does not know (a newer MDAnalysis): priced as `or`
+_SAME_SORTED = frozenset(
+    ["residue", "segment", "resid", "resnum", "mass", "charge", "radius", "bfactor"]
+)
+"""`same P as` properties held as numbers, which numpy's `isin` sorts (one pass); any other is
+compared atom by atom (`_Pricer._same_by_comparison`)."""
 
 
 def _classes() -> dict[str, type]:
@@ -244,6 +253,7 @@ class _Pricer:
         self.universe = universe
         self.n = int(universe.atoms.n_atoms)
         self.density = density
+        self.bonds = _bond_count(universe)
         self.where = positions_of(text, tree)
         self._bounds: dict[int, tuple[int, npt.NDArray[np.int64] | None]] = {}
         self._countable: dict[int, bool] = {}
@@ -251,8 +261,11 @@ class _Pricer:
     def _is(self, node: Any, *names: str) -> bool:
         return any(isinstance(node, self.c[n]) for n in names if n in self.c)
 
-    def _same_by_position(self, node: Any) -> bool:
-        return self._is(node, "SameSelection") and node.prop in ("x", "y", "z", "fragment")
+    def _same_by_comparison(self, node: Any) -> bool:
+        """`same P as sel` that compares every atom with each atom of `sel`: by position
+        (`x`, `y`, `z`, `fragment`), or by a text property (`name`, `type`, `resname`,
+        `segid`), which numpy's `isin` cannot sort and so compares one value at a time."""
+        return self._is(node, "SameSelection") and node.prop not in _SAME_SORTED
 
     def weight(self, node: Any) -> float:
         """Pair checks per atom of this node's own pass over the system."""
@@ -287,9 +300,18 @@ class _Pricer:
             return _CHEAP
         return None
 
+    def _through_bonds(self, node: Any) -> float:
+        """Pair checks of a pass that walks the bonds (beyond its per-atom weight)."""
+        if self._is(node, "BondedSelection"):
+            return _BOND * self.bonds
+        if self._is(node, "SameSelection") and node.prop == "fragment":
+            return _FRAGMENTS * self.n
+        return 0.0
+
     def passes(self, estimate: Estimate) -> None:
         for node, _depth in _in_text_order(self.tree):
-            estimate.add(self.weight(node) * self.n, self._name(node), self._at(node))
+            cost = self.weight(node) * self.n + self._through_bonds(node)
+            estimate.add(cost, self._name(node), self._at(node))
 
     def _name(self, node: Any) -> str:
         return str(getattr(node, "token", "") or type(node).__name__)
@@ -304,7 +326,7 @@ class _Pricer:
             own = not (
                 self._is(node, "AroundSelection", "IsoLayerSelection")
                 or self._is(node, "SmartsSelection", "AromaticSelection")
-                or self._same_by_position(node)
+                or self._same_by_comparison(node)
                 or self._weight(node) is None
             )
             self._countable[key] = own and all(self.countable(c) for c in _children(node))
@@ -348,12 +370,19 @@ class _Pricer:
                 cost = self._near(node.sel, node.cutoff)
             elif self._is(node, "IsoLayerSelection"):
                 cost = self._near(node.sel, node.exRadius) + self._near(node.sel, node.inRadius)
-            elif self._same_by_position(node):
-                # `same x as`: one comparison of every atom per atom of `sel`, all held at once
+            elif self._same_by_comparison(node):
+                # one comparison of every atom per atom of `sel` (about 20-60 ns for names on
+                # 40,000 atoms: `same resname as all` took 37 s), positions all held at once
                 cost = self.bound(node.sel)[0] * _SET * self.n
             else:
                 continue
             estimate.add(cost, self._name(node), self._at(node))
+
+
+def _bond_count(universe: Any) -> int:
+    """The universe's bonds, counted without building MDAnalysis's bond objects."""
+    bonds = getattr(getattr(universe, "_topology", None), "bonds", None)
+    return len(getattr(bonds, "values", None) or ())
 
 
 def estimate(

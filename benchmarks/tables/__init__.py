@@ -44,6 +44,7 @@ from .server import (
     latency_steer,
     multi_session,
     pipeline,
+    trajectory,
     video_live,
     video_quality,
     widget,
@@ -93,6 +94,7 @@ TABLES: dict[str, Table] = {
     "batch": Table(("batch_h100.json", "batch_cpu_2core.json"), batch),
     "cpu-interactive": Table(("cpu_interactive_2core.json",), cpu_interactive),
     "ws-parse": Table(("ws_parse_h200_host.json", "ws_parse_cpu_2core.json"), ws_parse),
+    "trajectory": Table(("trajectory_cpu_2core.json",), trajectory),
     "periodic": Table(("periodic_h200.json", "periodic_cpu_2core.json"), periodic),
     "cpu-demo-chromium": Table(
         ("cpu_demo_chromium_2core.json", "cpu_demo_chromium_2core_as_loaded.json"),

@@ -1,7 +1,7 @@
 """Tables of the benchmarks that run the server or its pipeline: latency_bench.py,
 pipeline_bench.py, multi_session_bench.py, video_bench.py, batch_bench.py,
-cpu_interactive_bench.py, cpu_demo_chromium.py, ws_parse_bench.py, widget_bench.py and
-adapter_bench.py."""
+cpu_interactive_bench.py, cpu_demo_chromium.py, ws_parse_bench.py, widget_bench.py,
+adapter_bench.py and trajectory_bench.py."""
 
 from __future__ import annotations
 
@@ -324,3 +324,30 @@ def adapter(sources: list[Source]) -> str:
         f"of {res['frames_reported']}"
     )
     return block(sources, table(["MD", "best steps/s", "median steps/s"], "lrr", rows), note)
+
+
+def trajectory(sources: list[Source]) -> str:
+    """Generated multi-GB trajectories: opening one and its first frame, a seek to any frame
+    against reading in order (the control), through the server's isolated reader too, and the
+    memory the reader keeps."""
+    rows = []
+    for _, res in sources:
+        for f in res["files"]:
+            rows.append(
+                [
+                    f["file"],
+                    f"{f['bytes'] / (1 << 30):.2f}",
+                    f"{f['frames']:,}",
+                    num(f["open_cold_s"], 2),
+                    num(f["first_frame_s"] * 1e3, 1),
+                    num(f["seek_ms"], 2),
+                    num(f["sequential_ms"], 2),
+                    num(f["seek_per_sequential"], 2),
+                    f"{num(f['isolated_open_s'], 1)} / {num(f['isolated_frame_ms'], 1)}",
+                    num(f["rss_growth_mb"], 0),
+                ]
+            )
+    header = ["file", "GiB", "frames", "open s (offsets built)", "first frame ms"]
+    header += ["seek to any frame ms", "in order ms (control)", "seek / in order"]
+    header += ["isolated reader: open s / frame ms", "memory growth MB"]
+    return block(sources, table(header, "lrrrrrrrrr", rows))

@@ -96,6 +96,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         clean_spool(settings.spool_dir),
         settings.max_upload_bytes + 1024 * 1024,  # the form's own bytes around the files
         settings.max_spool_bytes,
+        settings.viewer_spool_bytes,
     )
 
     @contextlib.asynccontextmanager
@@ -232,7 +233,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
     if (settings.client_dir / "index.html").is_file():
         app.mount("/", StaticFiles(directory=settings.client_dir, html=True), name="client")
     # the last added runs first: headers on every answer, then Host, Origin, the body limits
-    app.add_middleware(UploadLimit, spool=spool)
+    app.add_middleware(UploadLimit, spool=spool, settings=settings)
     app.add_middleware(OriginCheck, settings=settings)
     app.add_middleware(HostCheck, settings=settings)
     app.add_middleware(SecurityHeaders, settings=settings)

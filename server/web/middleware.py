@@ -3,14 +3,17 @@ request body limits (per request and for all bodies being received at once)."""
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
 from fastapi import HTTPException
+from starlette.requests import Request
 from starlette.responses import JSONResponse, PlainTextResponse
 
 from server.settings import ServerSettings
-from server.web.auth import host_allowed, origin_allowed
+from server.web.access import request_token
+from server.web.auth import host_allowed, origin_allowed, token_role
 from server.web.spool import SPOOL, Spool
 
 Scope = MutableMapping[str, Any]
@@ -24,12 +27,17 @@ SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 class UploadLimit:
     """Refuses request bodies over the upload limit while they stream in (413), so an oversized
     upload is never spooled to disk whole; and bodies that would take the bytes being received
-    at once past the spool's total (503 with `Retry-After`), a declared length from its start.
-    The spool rides in the scope for `server.web.spool.SpoolingRequest`."""
+    at once past the spool's total, or past the share of requests without the server token
+    (503 with `Retry-After`), a declared length from its start. A body that pauses longer than
+    `body_timeout_s` is answered 408 and lets go of its share: four uploads with the viewer
+    token that declared 512 MiB each and then sent a byte now and then had held the whole
+    spool, and every other upload was refused, for as long as they stayed open. The spool
+    rides in the scope for `server.web.spool.SpoolingRequest`."""
 
-    def __init__(self, app: Any, spool: Spool) -> None:
+    def __init__(self, app: Any, spool: Spool, settings: ServerSettings) -> None:
         self.app = app
         self.spool = spool
+        self.settings = settings
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -43,46 +51,56 @@ class UploadLimit:
         if declared > spool.limit:
             await _too_large(spool.limit)(scope, receive, send)
             return
-        if not spool.take(declared):
-            await _spool_full(spool)(scope, receive, send)
+        viewer = token_role(self.settings, request_token(Request(scope))) != "steerer"
+        if (refused := spool.take(declared, viewer)) is not None:
+            await _spool_full(refused)(scope, receive, send)
             return
         held = declared
         seen = 0
+        ended = False
+        timeout = self.settings.body_timeout_s
 
         async def counted() -> Any:
-            nonlocal seen, held
-            message = await receive()
+            nonlocal seen, held, ended
+            if ended:  # the body is in; what follows (a disconnect) may wait as long as it likes
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), timeout)
+            except TimeoutError:
+                raise _BodyStalledError(timeout) from None
             if message["type"] == "http.request":
+                ended = not message.get("more_body", False)
                 seen += len(message.get("body", b""))
                 if seen > spool.limit:
                     raise _BodyTooLargeError(spool.limit)
                 if seen > held:  # past its declared length (or sent without one)
-                    if not spool.take(seen - held):
-                        raise _SpoolFullError(spool)
+                    if (refused := spool.take(seen - held, viewer)) is not None:
+                        raise _SpoolFullError(refused)
                     held = seen
+            else:
+                ended = True
             return message
 
         try:
             await self.app(scope, counted, send)
         except _BodyTooLargeError:
             await _too_large(spool.limit)(scope, receive, send)
-        except _SpoolFullError:
-            await _spool_full(spool)(scope, receive, send)
+        except _SpoolFullError as exc:
+            await _spool_full(exc.detail)(scope, receive, send)
+        except _BodyStalledError as exc:
+            await PlainTextResponse(exc.detail, 408, headers={"Connection": "close"})(
+                scope, receive, send
+            )
         finally:
-            spool.give_back(held)
+            spool.give_back(held, viewer)
 
 
 def _too_large(limit: int) -> PlainTextResponse:
     return PlainTextResponse(f"request body exceeds the upload limit of {limit} bytes", 413)
 
 
-def _spool_full(spool: Spool) -> PlainTextResponse:
-    return PlainTextResponse(
-        f"the server is receiving {spool.held} bytes of uploads already, its limit is "
-        f"{spool.total} (max_spool_bytes); try again later",
-        503,
-        headers={"Retry-After": "5"},
-    )
+def _spool_full(reason: str) -> PlainTextResponse:
+    return PlainTextResponse(reason, 503, headers={"Retry-After": "5"})
 
 
 class _BodyTooLargeError(HTTPException):
@@ -95,12 +113,18 @@ class _BodyTooLargeError(HTTPException):
 class _SpoolFullError(HTTPException):
     """Raised while a body streams in past what the spool has left; answered as a 503."""
 
-    def __init__(self, spool: Spool) -> None:
+    def __init__(self, reason: str) -> None:
+        super().__init__(503, reason, headers={"Retry-After": "5"})
+
+
+class _BodyStalledError(HTTPException):
+    """Raised when a body pauses past its time; answered as a 408 (the connection closes)."""
+
+    def __init__(self, timeout: float) -> None:
         super().__init__(
-            503,
-            f"the server is receiving {spool.held} bytes of uploads already, its limit is "
-            f"{spool.total} (max_spool_bytes); try again later",
-            headers={"Retry-After": "5"},
+            408,
+            f"the request's body stopped arriving for {timeout:g} s (body_timeout_s)",
+            headers={"Connection": "close"},
         )
 
 

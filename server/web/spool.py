@@ -34,23 +34,42 @@ MAX_FIELDS = 64
 @dataclass
 class Spool:
     """The spool directory and what may wait in it: `limit` bytes per request body, `total`
-    bytes of all the bodies being received at once."""
+    bytes of all the bodies being received at once, `viewer_total` of them for requests that
+    do not hold the server token (the read-only link is handed out widely: its holders must
+    not be able to take the whole spool from the server token's uploads)."""
 
     directory: Path
     limit: int
     total: int
+    viewer_total: int | None = None
+    """None: as `total`."""
     held: int = 0
     """Bytes of bodies being received now (declared lengths are held from the start)."""
+    viewer_held: int = 0
 
-    def take(self, size: int) -> bool:
-        """Hold `size` more bytes of body; False (nothing held) when that passes `total`."""
+    def take(self, size: int, viewer: bool = False) -> str | None:
+        """Hold `size` more bytes of body (`viewer`: of a request without the server token);
+        the reason, naming the limit, when that would pass one (and nothing is held)."""
+        viewer_total = self.total if self.viewer_total is None else self.viewer_total
         if self.held + size > self.total:
-            return False
+            return (
+                f"the server is receiving {self.held} bytes of uploads already, its limit is "
+                f"{self.total} (max_spool_bytes); try again later"
+            )
+        if viewer and self.viewer_held + size > viewer_total:
+            return (
+                f"uploads without the server token take {self.viewer_held} bytes of the spool "
+                f"already, their limit is {viewer_total} (viewer_spool_bytes); try again later"
+            )
         self.held += size
-        return True
+        if viewer:
+            self.viewer_held += size
+        return None
 
-    def give_back(self, size: int) -> None:
+    def give_back(self, size: int, viewer: bool = False) -> None:
         self.held -= size
+        if viewer:
+            self.viewer_held -= size
 
 
 class SpoolingParser(MultiPartParser):

@@ -11,7 +11,7 @@ import MDAnalysis as mda
 import numpy as np
 
 import protocol as p
-from server.pipeline.recordings import RecordingStore
+from server.pipeline.recordings import RecordingStore, write_topology_pdb
 from tests.server.peers import molecule
 
 
@@ -78,3 +78,27 @@ def test_frames_of_another_size_are_not_recorded(tmp_path: Path) -> None:
     s.stop(rec, None)
     assert rec.frames == 1
     assert s.restore() == []  # ended cleanly: nothing to finish at the next start
+
+
+def test_the_topology_is_written_as_mdanalysis_writes_it(tmp_path: Path) -> None:
+    """The CONECT records are made from the bond array (MDAnalysis's writer took 32 s for the
+    bonds of 47,681 atoms): they are MDAnalysis's own, byte for byte, and no partial file is
+    left beside the topology."""
+    topo, pos = molecule(40)
+    bonds = topo.bonds.to_numpy()
+    extra = np.array([[5, 2], [2, 5], [0, 39], [39, 0], [7, 30]])  # reversed and repeated
+    topo = topo.model_copy(
+        update={"bonds": p.WireArray.from_numpy(np.concatenate([bonds, extra]), "<i4")}
+    )
+    write_topology_pdb(tmp_path / "topology.pdb", topo, pos)
+    ours = (tmp_path / "topology.pdb").read_bytes()
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["topology.pdb"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        u = mda.Universe(str(tmp_path / "topology.pdb"))
+        u.atoms.write(str(tmp_path / "theirs.pdb"), bonds="conect")
+    theirs = (tmp_path / "theirs.pdb").read_bytes()
+    conect = [line for line in ours.splitlines() if line.startswith(b"CONECT")]
+    assert conect and conect == [x for x in theirs.splitlines() if x.startswith(b"CONECT")]
+    assert ours.splitlines()[-1] == b"END" and ours.index(conect[-1]) > ours.rindex(b"ATOM")
+    assert len(u.bonds) == len({tuple(sorted(b)) for b in np.concatenate([bonds, extra])})

@@ -690,6 +690,43 @@ def test_uploads_are_refused_from_their_headers_and_spool_into_the_servers_own_f
         server.stop()
 
 
+def test_slow_uploads_with_the_viewer_token_leave_the_spool_to_others(tmp_path: Path) -> None:
+    """Four uploads with the viewer token that declared 512 MiB each and then sent nothing more
+    held the whole spool (max_spool_bytes, 2 GiB), and every other upload, the server token's
+    too, was answered 503 for as long as they stayed open. Requests without the server token
+    now hold at most viewer_spool_bytes (1 GiB) of it, and a body that stalls for
+    body_timeout_s is answered 408 and lets go of its part."""
+    server = ServerProcess(tmp_path / "state", "--set", "body_timeout_s=2")
+    try:
+        declared = 512 << 20
+        start = file_part("a.pdb", 6)
+        slow = [partial_request(server.port, "/api/render", VIEWER, declared, start)]
+        slow += [partial_request(server.port, "/api/render", VIEWER, declared, start)]
+        status, headers, body = answer(
+            partial_request(server.port, "/api/render", VIEWER, declared, start), 5
+        )
+        assert status == 503 and "viewer_spool_bytes" in body and headers["retry-after"], body
+        with open(PDB_small, "rb") as fh:  # the server token's upload is received meanwhile
+            r = httpx.post(
+                f"{server.url}/api/render", headers=AUTH, files={"file": ("a.pdb", fh)}, timeout=60
+            )
+        assert r.status_code == 200, r.text
+        for sock in slow:  # stalled: answered, and their part of the spool given back
+            status, _, body = answer(sock, 10)
+            assert status == 408 and "body_timeout_s" in body, body
+        with open(PDB_small, "rb") as fh:
+            r = httpx.post(
+                f"{server.url}/api/render",
+                headers=VIEWER,
+                files={"file": ("a.pdb", fh)},
+                data={"width": "32", "height": "24"},
+                timeout=60,
+            )
+        assert r.status_code == 200, r.text
+    finally:
+        server.stop()
+
+
 def test_a_page_of_another_origin_cannot_change_state(tmp_path: Path) -> None:
     """Round three: in the no-token loopback mode any web page could start recordings (201),
     jobs (202) and replays (201): REST had no Origin check."""
@@ -910,9 +947,10 @@ def test_video_encoders_are_bounded_and_given_back_when_their_viewers_leave(
 SELECT_ATOMS = 40_000
 
 
-def crowded(n: int) -> tuple[p.Topology, np.ndarray]:
+def crowded(n: int, chained: bool = False) -> tuple[p.Topology, np.ndarray]:
     """`n` atoms of alanine backbone (N, CA, C, O; a quarter of them CA) packed as densely as
-    water (0.1 atoms per cubic angstrom), each near a point of a grid."""
+    water (0.1 atoms per cubic angstrom), each near a point of a grid; `chained`: each atom
+    bonded to the next (a bond per atom, as in a protein)."""
     side = math.ceil(n ** (1 / 3))
     grid = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
     rng = np.random.default_rng(3)
@@ -925,7 +963,10 @@ def crowded(n: int) -> tuple[p.Topology, np.ndarray]:
         residue_ids=p.WireArray.from_numpy(np.arange(n) // 4 + 1, "<i4"),
         residue_names=["ALA"] * n,
         chain_ids=["A"] * n,
-        bonds=p.WireArray.from_numpy(np.zeros((0, 2)), "<i4"),
+        bonds=p.WireArray.from_numpy(
+            np.stack([np.arange(n - 1), np.arange(1, n)], 1) if chained else np.zeros((0, 2)),
+            "<i4",
+        ),
     )
     return topo, pos
 
@@ -1049,6 +1090,44 @@ def test_a_viewers_selection_of_every_pair_is_refused_before_it_allocates(
     assert crowded_server.rss_bytes() - rss < 100 * 2**20
     assert ping_rtt(viewer) < 2.0
     viewer.close()
+
+
+def test_a_viewers_same_text_selection_is_priced_as_the_comparisons_it_makes(
+    crowded_server: ServerProcess,
+) -> None:
+    """`same resname as all` was priced as one pass over the system, but numpy compares text
+    properties (names, types, residue names, segments) one value at a time: on 40,000 atoms it
+    held a worker until its 10 s ran out (37 s unbounded), and the session's other selections
+    waited behind it."""
+    viewer = joined(crowded_server, "crowded")
+    reply, _ = select(viewer, "same resname as all")
+    assert reply.count is None and "selection_max_pairs" in reply.error, reply
+    assert "`same` at character 1" in reply.error
+    reply, _ = select(viewer, "same name as index 0:99")  # 100 x 40,000 comparisons: allowed
+    assert reply.count == SELECT_ATOMS and not reply.error, reply
+    reply, _ = select(viewer, "same residue as all")  # numbers are sorted, one pass
+    assert reply.count == SELECT_ATOMS and not reply.error, reply
+    viewer.close()
+
+
+def test_a_viewers_bonded_selection_is_priced_by_the_bonds_it_walks(
+    crowded_server: ServerProcess,
+) -> None:
+    """`bonded` was priced at two pair checks per atom, but MDAnalysis gathers the group's bonds
+    in Python (8-14 us a bond): four nested `bonded` on 47,681 atoms with 58,766 bonds ran past
+    the worker's 10 s, and the session's other selections waited behind it."""
+    sim = Peer(crowded_server.ws_url, "simulation", TOKEN, "chained")
+    topo, pos = crowded(SELECT_ATOMS, chained=True)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    viewer = joined(crowded_server, "chained")
+    reply, _ = select(viewer, "bonded " * 8 + "index 0")
+    assert reply.count is None and "selection_max_pairs" in reply.error, reply
+    assert "`bonded` at character" in reply.error
+    reply, _ = select(viewer, "bonded index 0:9")  # one walk through the bonds: allowed
+    assert reply.count == 11 and not reply.error, reply
+    viewer.close()
+    sim.close()
 
 
 def test_a_viewers_render_with_a_layer_of_every_pair_is_a_422_naming_the_limit(
@@ -1213,3 +1292,43 @@ def test_selection_workers_end_with_the_server(tmp_path: Path) -> None:
         viewer.close()
     finally:
         server.stop()
+
+
+# ---------------------------------------------------------------- recordings of large systems
+
+
+def test_a_large_bonded_recording_reaches_the_disk_and_survives_a_kill(tmp_path: Path) -> None:
+    """A recording writes its topology before its first frame. MDAnalysis's PDB writer walked
+    every atom's bonds in Python (32 s for 47,681 atoms): no frame reached the disk meanwhile,
+    and a `kill -9` then left a truncated `topology.pdb` and none of the frames received."""
+    from server.pipeline.recordings import xtc_steps
+
+    server = ServerProcess(tmp_path / "state")
+    sim = Peer(server.ws_url, "simulation", TOKEN, "big")
+    try:
+        topo, pos = crowded(SELECT_ATOMS, chained=True)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        c = httpx.Client(base_url=server.url, headers=AUTH, timeout=30)
+        deadline = time.monotonic() + 30
+        while (r := c.post("/api/sessions/big/recordings", json={})).status_code == 409:
+            assert time.monotonic() < deadline, r.text  # until the topology has arrived
+            time.sleep(0.2)
+        assert r.status_code == 201, r.text
+        folder = tmp_path / "state" / "recordings" / r.json()["id"]
+        step, deadline = 0, time.monotonic() + 20
+        while (frames := c.get(f"/api/recordings/{folder.name}").json()["frames"]) < 2:
+            assert time.monotonic() < deadline, "no frame of the recording reached the disk"
+            step += 1
+            sim.send(frame(pos, step))
+            time.sleep(0.2)
+        server.stop(signal.SIGKILL)
+        c.close()
+    finally:
+        sim.close()
+        server.stop()
+    lines = (folder / "topology.pdb").read_bytes().splitlines()
+    assert sum(x.startswith(b"ATOM") for x in lines) == SELECT_ATOMS
+    assert sum(x.startswith(b"CONECT") for x in lines) == SELECT_ATOMS  # bonded, each
+    assert lines[-1] == b"END"  # whole
+    assert len(xtc_steps(folder / "frames.xtc", SELECT_ATOMS)) >= frames
