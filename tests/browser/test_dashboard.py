@@ -313,9 +313,14 @@ def test_ctrl_drag_pulls_an_atom_and_release_stops_the_force(
     open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
     dash = open_dashboard()
+    page = dash.page
+    # paused, so the atom stays where it was picked: the spring's plane goes through the atom
+    # as it is when each pull is sent (the dashboard follows a moving atom)
+    expect(page.locator("#sim-state")).to_have_text("running")
+    page.click("#sim-play")
+    expect(page.locator("#sim-state")).to_have_text("paused")
     wait_for_full_view(dash)
     x, y = front_atom_on_page(dash, live_server)
-    page = dash.page
     page.keyboard.down("Control")
     page.mouse.move(x, y)
     page.mouse.down()
@@ -634,7 +639,14 @@ def test_help_overlay_and_keyboard_operation(
 def test_page_reconnects_after_a_server_restart(
     open_dashboard: OpenDashboard, simulation: OpenMMSimulation, live_server: LiveServer
 ) -> None:
-    dash = open_dashboard(allow=(r"WebSocket connection to .* failed",))
+    # while the server is down the browser logs the page's failed requests (its WebSocket, and
+    # the Session panel's poll of what runs on the server) as console errors
+    dash = open_dashboard(
+        allow=(
+            r"WebSocket connection to .* failed",
+            r"Failed to load resource: net::ERR_CONNECTION_REFUSED",
+        )
+    )
     page = dash.page
     wait_for_frame(dash)
     simulation.stop()
