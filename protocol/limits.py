@@ -19,3 +19,9 @@ class Limits(BaseModel):
 
 
 DEFAULT_LIMITS = Limits()
+
+MAX_COORDINATE_A = 1.0e6
+"""The largest |coordinate| drawn (Angstrom; 100 micrometres, past any simulation box): float32
+steps along a ray lose their meaning far beyond it (at 1e30 A a step no longer moves the ray,
+and a frame there had held its render thread for good). A frame with a coordinate beyond it
+is drawn as background, and a file with one is refused."""

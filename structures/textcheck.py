@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import bz2
 import gzip
+import math
 import os
 import re
 import shlex
 from collections.abc import Iterator
 from itertools import islice
 
+from protocol.limits import MAX_COORDINATE_A
 from structures.errors import StructureError
 
 MAX_QUOTED = 60
@@ -47,6 +49,26 @@ def _number(text: str) -> bool:
     return True
 
 
+def _coordinate(text: str) -> str | None:
+    """What is wrong with a coordinate's text (None: nothing): not a number, not finite, or
+    past `MAX_COORDINATE_A` from the origin, where no ray can be marched."""
+    try:
+        value = float(text)
+    except ValueError:
+        return "is not a number"
+    if not math.isfinite(value):
+        return "is not a finite number"
+    if abs(value) > MAX_COORDINATE_A:
+        return f"lies past {MAX_COORDINATE_A:g} A from the origin (the limit)"
+    return None
+
+
+def _check_xyz_values(path: str, number: int, line: str, values: list[str]) -> None:
+    for axis, value in zip("xyz", values, strict=True):
+        if (why := _coordinate(value)) is not None:
+            raise _fail(path, number, line, f"{axis} {why}: {value!r}")
+
+
 def check_pdb(path: str) -> None:
     """ATOM/HETATM records need numeric x, y, z in columns 31-54; the file needs at least one."""
     atoms = 0
@@ -59,12 +81,9 @@ def check_pdb(path: str) -> None:
                 path, number, line, "an atom record shorter than its coordinates (54 columns)"
             )
         for axis, (a, b) in zip("xyz", ((30, 38), (38, 46), (46, 54)), strict=True):
-            if not _number(line[a:b]):
+            if (why := _coordinate(line[a:b])) is not None:
                 raise _fail(
-                    path,
-                    number,
-                    line,
-                    f"{axis} (columns {a + 1}-{b}) is not a number: {line[a:b]!r}",
+                    path, number, line, f"{axis} (columns {a + 1}-{b}) {why}: {line[a:b]!r}"
                 )
     if atoms == 0:
         raise StructureError(
@@ -91,6 +110,7 @@ def check_gro(path: str) -> None:
         fields = line[20:].split()
         if len(fields) < 3 or not all(_number(f) for f in fields[:3]):
             raise _fail(path, number, line, "an atom line without numeric x, y, z after column 20")
+        _check_xyz_values(path, number, line, fields[:3])
     if seen < count:
         raise StructureError(
             f"{os.path.basename(path)} declares {count} atoms on line 2 but has {seen} atom lines"
@@ -115,6 +135,7 @@ def check_xyz(path: str) -> None:
         fields = line.split()
         if len(fields) < 4 or not all(_number(f) for f in fields[1:4]):
             raise _fail(path, number, line, "an atom line should read 'element x y z'")
+        _check_xyz_values(path, number, line, fields[1:4])
     if seen < count:
         raise StructureError(
             f"{os.path.basename(path)} declares {count} atoms on line 1 but has {seen} atom lines"
@@ -196,8 +217,8 @@ def _check_atom_row(path: str, number: int, line: str, tags: list[str], values: 
         raise _fail(path, number, line, f"group_PDB is {group!r}, not ATOM or HETATM")
     for axis in ("Cartn_x", "Cartn_y", "Cartn_z"):
         value = row.get(f"_atom_site.{axis}")
-        if value is not None and not _number(value):
-            raise _fail(path, number, line, f"{axis} is not a number: {value!r}")
+        if value is not None and (why := _coordinate(value)) is not None:
+            raise _fail(path, number, line, f"{axis} {why}: {value!r}")
 
 
 _FORMAT = re.compile(r"%FORMAT\((\d+)([aAiIeEfF])(\d+)")
@@ -313,8 +334,8 @@ def check_lammps_dump(path: str) -> None:
         if len(values) < len(columns):
             raise _fail(path, number, line, f"{len(values)} values for {len(columns)} columns")
         for name, value in zip(columns, values, strict=False):
-            if name in axes and not _number(value):
-                raise _fail(path, number, line, f"{name} is not a number: {value!r}")
+            if name in axes and (why := _coordinate(value)) is not None:
+                raise _fail(path, number, line, f"{name} {why}: {value!r}")
     if seen < count:
         raise StructureError(
             f"{os.path.basename(path)} declares {count} atoms but its first frame has {seen}"

@@ -23,10 +23,14 @@ from typing import Any, no_type_check
 
 import warp
 
+from protocol.limits import MAX_COORDINATE_A
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.cells import BRICK, GridInfo, cell_at
 
 wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
+
+FAR = wp.constant(float(MAX_COORDINATE_A))
+"""A coordinate past this flags its frame (`protocol.limits.MAX_COORDINATE_A`)."""
 
 wp.set_module_options({"enable_backward": False})
 
@@ -154,7 +158,7 @@ def bbox_kernel(
 ):
     """Strided min/max per thread, reduced over the block, then one atomic per axis and block:
     enough threads to keep the memory busy, few atomics, exact result. A non-finite coordinate
-    flags the frame (it then draws background only)."""
+    flags the frame (it then draws background only), as does one past `MAX_COORDINATE_A`."""
     t = wp.tid()
     lo = wp.vec3(wp.inf, wp.inf, wp.inf)
     hi = wp.vec3(-wp.inf, -wp.inf, -wp.inf)
@@ -162,7 +166,8 @@ def bbox_kernel(
     i = t
     while i < n:
         p = positions[i]
-        if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
+        # NaN fails every comparison, so this also refuses NaN and Inf
+        if not (wp.abs(p[0]) <= FAR and wp.abs(p[1]) <= FAR and wp.abs(p[2]) <= FAR):
             finite = 0
         lo = wp.min(lo, p)
         hi = wp.max(hi, p)

@@ -4,15 +4,17 @@ The dashboard's links carry the token in their query (`/?token=...`, like Jupyte
 uvicorn writes every request's path and query to its access log (and every WebSocket handshake's
 to its error log), where anyone who reads the logs would find a token that grants every role.
 `RedactTokens` replaces the value of every query parameter whose name holds `token` before a
-record is formatted.
+record is formatted, the name read as the server reads it (percent-decoded: `?tok%65n=` is a
+token too).
 """
 
 from __future__ import annotations
 
 import logging
 import re
+from urllib.parse import unquote_plus
 
-_TOKEN = re.compile(r"([?&][^=&#\s\"]*token=)[^&#\s\"]*", re.IGNORECASE)
+_PARAM = re.compile(r"([?&])([^=&#\s\"]*)=([^&#\s\"]*)")
 REDACTED = "[redacted]"
 LOGGERS = ("uvicorn.access", "uvicorn.error")
 """uvicorn's request lines (HTTP) and handshake lines (WebSocket)."""
@@ -20,7 +22,13 @@ LOGGERS = ("uvicorn.access", "uvicorn.error")
 
 def redact(text: str) -> str:
     """`text` with the values of `token` query parameters replaced."""
-    return _TOKEN.sub(r"\g<1>" + REDACTED, text)
+
+    def value(m: re.Match[str]) -> str:
+        if "token" in unquote_plus(m.group(2)).lower():
+            return f"{m.group(1)}{m.group(2)}={REDACTED}"
+        return m.group(0)
+
+    return _PARAM.sub(value, text)
 
 
 class RedactTokens(logging.Filter):

@@ -47,7 +47,9 @@ class UploadLimit:
         scope[SPOOL] = spool
         headers = dict(scope.get("headers") or [])
         raw = headers.get(b"content-length")
-        declared = int(raw) if raw is not None and raw.isdigit() and len(raw) < 19 else 0
+        # h11 refuses a length that is not a number; 19 digits or more are past any limit
+        digits = b"" if raw is None or not raw.strip().isdigit() else raw.strip()
+        declared = 0 if not digits else int(digits) if len(digits) < 19 else spool.limit + 1
         if declared > spool.limit:
             await _too_large(spool.limit)(scope, receive, send)
             return

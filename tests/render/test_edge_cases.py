@@ -187,7 +187,8 @@ def test_unchecked_non_finite_positions_draw_background(device: str) -> None:
     cam = fit_camera(pos, 16, 12)
     r = render(device, top, pos, RenderParams(background=BG), cam, 16, 12)
     assert np.isfinite(r.read_depth()).any()
-    for bad in (np.nan, np.inf, -np.inf):
+    # 1e30 A: a step along a ray no longer moved it, and the render thread was held for good
+    for bad in (np.nan, np.inf, -np.inf, 1e30, -2e6):
         broken = pos.copy()
         broken[5, 1] = bad
         r.set_positions(broken, check_finite=False)

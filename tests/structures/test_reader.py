@@ -84,6 +84,16 @@ def test_a_bare_topology_is_enough_for_the_imd_bridge() -> None:
         ),
         ("prose.pdb", "hello world\nthis is not a pdb\n", "no ATOM or HETATM records"),
         (
+            "far.pdb",
+            "ATOM      1  CA  ALA A   1    1.00e+30   0.000   0.000  1.00  0.00           C\n",
+            "far.pdb, line 1: x (columns 31-38) lies past 1e+06 A from the origin",
+        ),
+        (
+            "far.xyz",
+            "1\ncomment\nC 0 0 -5e7\n",
+            "far.xyz, line 3: z lies past 1e+06 A",
+        ),
+        (
             "short.gro",
             "t\n  2\n    1ALA      N    1   0.1   0.2   0.3\n",
             "declares 2 atoms on line 2 but has 1",

@@ -723,6 +723,11 @@ def test_slow_uploads_with_the_viewer_token_leave_the_spool_to_others(tmp_path: 
                 timeout=60,
             )
         assert r.status_code == 200, r.text
+        # a Content-Length past any limit is answered at once (round four: 20 digits waited for
+        # body_timeout_s; h11 reads a list of one value, "5, 5", as 5, as RFC 9110 allows)
+        head = {**AUTH, "Content-Length": "9" * 20}
+        status, _, body = answer(partial_request(server.port, "/api/render", head, 0, b""), 1.5)
+        assert status == 413 and "limit" in body, (status, body)
     finally:
         server.stop()
 
@@ -826,6 +831,9 @@ def test_tokens_stay_out_of_the_logs_and_pages_send_no_referrer(tmp_path: Path) 
             assert page.status_code == 200
             r = c.get("/api/sessions", params={"role": "viewer", "token": VIEWER_TOKEN})
             assert r.status_code == 200
+            # a percent-encoded name is the token too (round four: it reached the log whole)
+            encoded = c.get(f"/api/sessions?tok%65n={TOKEN}")
+            assert encoded.status_code == 200
             refused = c.get("/healthz", headers={"Host": "evil.example"})
             assert refused.status_code == 403
         peer = Peer(f"{server.view_url}?token={TOKEN}", "viewer", VIEWER_TOKEN)
@@ -842,6 +850,7 @@ def test_tokens_stay_out_of_the_logs_and_pages_send_no_referrer(tmp_path: Path) 
     assert len(requests) >= 4, logged
     assert "/?token=[redacted]" in logged and "/ws/view?token=[redacted]" in logged
     assert "role=viewer&token=[redacted]" in logged
+    assert "/api/sessions?tok%65n=[redacted]" in logged
     assert TOKEN not in logged and VIEWER_TOKEN not in logged
 
 
