@@ -36,6 +36,7 @@ from protocol import (
     SimStatus,
     View,
 )
+from protocol.fields import unknown_keys
 from scalesteer import background, images
 from scalesteer.callbacks import Subscription
 from scalesteer.errors import ScalesteerError
@@ -172,6 +173,9 @@ class Session:
         """Change render parameters (`sigma_A=3`, `iso_level=0.3`, `scale_space="geodesic"`,
         `lighting={"ambient": 0.4}`, `layers=[...]`, ...): only what is named changes. Returns
         the session's parameters with the change."""
+        unknown = unknown_keys(RenderParams, params, "render_params.params")
+        if unknown is not None:
+            raise ScalesteerError(ErrorCode.INVALID_MESSAGE, f"{unknown}: unknown field", unknown)
         try:
             message = SetRenderParams(params=params)
         except ValidationError as exc:
@@ -181,6 +185,11 @@ class Session:
 
     def set_layers(self, layers: Sequence[Layer | Mapping[str, Any]]) -> list[Layer]:
         """Replace the session's layers (an empty list draws every atom alike)."""
+        if isinstance(layers, str | bytes | Mapping | Layer):
+            raise TypeError(
+                "set_layers takes a list of layers, e.g. [{'selection': 'protein'}], not "
+                f"{type(layers).__name__}"
+            )
         plain = [lay.model_dump(exclude_none=True) if isinstance(lay, Layer) else dict(lay)
                  for lay in layers]  # fmt: skip
         self.set(layers=plain)

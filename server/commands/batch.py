@@ -19,6 +19,7 @@ import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 from server.commands.render import (
     _size,
@@ -41,8 +42,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--size", type=_size, default=(1280, 720), help="WxH (default 1280x720)")
     ap.add_argument("--start", type=int, default=0)
     ap.add_argument("--stop", type=int, default=None)
-    ap.add_argument("--stride", type=int, default=1)
-    ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--stride", type=_positive_int, default=1, help="every Nth frame (N >= 1)")
+    ap.add_argument("--fps", type=_frame_rate, default=30.0, help="the movie's frames a second")
     ap.add_argument(
         "--params",
         default="{}",
@@ -73,6 +74,7 @@ def parser() -> argparse.ArgumentParser:
 
 async def run(args: argparse.Namespace) -> int:
     import protocol as p
+    from protocol.fields import unknown_keys
     from server.metrics import Metrics
     from server.pipeline.gpu import GpuQueue
     from server.pipeline.jobs import JobManager, JobSpec, JobState
@@ -80,7 +82,6 @@ async def run(args: argparse.Namespace) -> int:
     from server.pipeline.selections import check_layers
     from server.settings import ServerSettings
     from server.web.app import batch_engine
-    from server.web.rest import unknown_keys
     from structures.selection_pool import SelectionPool
 
     suffix = args.output.suffix.lower()
@@ -90,7 +91,10 @@ async def run(args: argparse.Namespace) -> int:
         )
         return 2
     try:
-        raw = json.loads(args.params)
+        try:
+            raw = json.loads(args.params)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--params is not valid JSON: {exc.msg}") from None
         unknown = unknown_keys(p.RenderParams, raw, "params")
         if unknown:
             raise ValueError(f"{unknown}: unknown field")
@@ -102,7 +106,7 @@ async def run(args: argparse.Namespace) -> int:
             params = params.model_copy(update={"layers": layers})
         check_layers(params)
         check_periodic(params)
-        camera = p.Camera.model_validate(json.loads(args.camera)) if args.camera else None
+        camera = _camera(args.camera)
     except ValueError as exc:  # JSON, validation and selection errors are ValueErrors
         print(f"scalesteer batch: {exc}", file=sys.stderr)
         return 2
@@ -180,6 +184,50 @@ async def run(args: argparse.Namespace) -> int:
     shutil.rmtree(work, ignore_errors=True)
     print(f"scalesteer batch: {job.done} frames -> {args.output}")
     return 0
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _frame_rate(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.1 <= value <= 240:
+        raise argparse.ArgumentTypeError(f"must be between 0.1 and 240 frames a second, got {text}")
+    return value
+
+
+def _camera(text: str | None) -> Any:
+    """--camera's JSON as a `protocol.Camera`; ValueError naming the option and the field."""
+    from pydantic import ValidationError
+
+    import protocol as p
+    from protocol.fields import unknown_keys
+
+    if not text:
+        return None
+    try:
+        raw = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--camera is not valid JSON ({exc.msg}): {text!r}") from None
+    unknown = unknown_keys(p.Camera, raw, "camera")
+    if unknown:
+        raise ValueError(f"--camera: {unknown}: unknown field")
+    try:
+        return p.Camera.model_validate(raw)
+    except ValidationError as exc:
+        err = exc.errors(include_url=False)[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise ValueError(f"--camera: {where or 'camera'}: {err['msg']}") from None
 
 
 def main(argv: list[str] | None = None) -> int:

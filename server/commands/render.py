@@ -117,7 +117,7 @@ def layer_option(args: argparse.Namespace) -> list[Any] | None:
     """The layers --select, --layers or --all-atoms name (None: none of them, so the default
     layers apply); ValueError naming the option when one is wrong."""
     from protocol import Layer
-    from server.web.rest import unknown_keys
+    from protocol.fields import unknown_keys
 
     if sum(x is not None for x in (args.select, args.layers)) + args.all_atoms > 1:
         raise ValueError("give at most one of --select, --layers and --all-atoms")

@@ -15,7 +15,6 @@ import re
 import shutil
 import tempfile
 import time
-import typing
 import uuid
 from dataclasses import replace
 from pathlib import Path
@@ -26,6 +25,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
 import protocol as p
+from protocol.fields import unknown_keys
 from server.pipeline.gpu import DisplayRequest, RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
 from server.pipeline.livemovie import MovieFrame, MovieQueue
@@ -93,32 +93,6 @@ def _model(cls: type[BaseModel], raw: str | None, field: str) -> Any:
         raise HTTPException(
             422, f"{field}.{where}: {err['msg']}" if where else f"{field}: {err['msg']}"
         ) from None
-
-
-def unknown_keys(cls: type[BaseModel], data: Any, where: str) -> str | None:
-    """The path of the first key in `data` that `cls` (or a model nested in it) has no field
-    for, or None."""
-    if not isinstance(data, dict):
-        return None
-    for key, value in data.items():
-        info = cls.model_fields.get(str(key))
-        if info is None:
-            return f"{where}.{key}"
-        for model in _models_in(info.annotation):
-            items = enumerate(value) if isinstance(value, list) else [(None, value)]
-            for i, item in items:
-                path = f"{where}.{key}" if i is None else f"{where}.{key}.{i}"
-                found = unknown_keys(model, item, path)
-                if found:
-                    return found
-    return None
-
-
-def _models_in(annotation: Any) -> list[type[BaseModel]]:
-    """The models an annotation holds: itself, or inside Optional, list[...], Annotated."""
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return [annotation]
-    return [m for arg in typing.get_args(annotation) for m in _models_in(arg)]
 
 
 def _dataset(state: AppState, name: str) -> Path:

@@ -45,6 +45,14 @@ def test_a_bad_value_is_refused_before_anything_is_sent(
     with pytest.raises(ScalesteerError) as unknown:
         session.control("jump")
     assert unknown.value.path == "control.action"
+    with pytest.raises(ScalesteerError) as typo:  # a key no field has is named, not dropped
+        session.set(sigmaa=2.0)
+    assert typo.value.path == "render_params.params.sigmaa" and "unknown field" in str(typo.value)
+    with pytest.raises(ScalesteerError) as nested:
+        session.set(lighting={"ambiant": 0.4})
+    assert nested.value.path == "render_params.params.lighting.ambiant"
+    with pytest.raises(TypeError, match="a list of layers"):
+        session.set_layers("protein")  # type: ignore[arg-type]
     assert not [e for e in session.log() if e["event"] == "render_params"]
 
 

@@ -41,6 +41,22 @@ def test_batch_names_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main([PSF, DCD, "-o", str(tmp_path / "x.zip"), "--params", '{"sigma": 2}',
                  "--engine", "local"]) == 2  # fmt: skip
     assert "params.sigma: unknown field" in capsys.readouterr().err
+    zipped = str(tmp_path / "x.zip")
+    # refused before anything is read (they had failed after the frames, as internal errors)
+    for option, says in (
+        (["--stride", "0"], "--stride: must be at least 1"),
+        (["--fps", "-3"], "--fps: must be between 0.1 and 240"),
+    ):
+        with pytest.raises(SystemExit) as stopped:
+            main([PSF, DCD, "-o", zipped, *option])
+        assert stopped.value.code == 2 and says in capsys.readouterr().err
+    for camera, says in (
+        ("front", "--camera is not valid JSON"),
+        ('{"distance": -1}', "--camera: distance:"),
+        ('{"zoom": 2}', "--camera: camera.zoom: unknown field"),
+    ):
+        assert main([PSF, DCD, "-o", zipped, "--camera", camera, "--engine", "local"]) == 2
+        assert says in capsys.readouterr().err, camera
     bad = tmp_path / "broken.pdb"
     bad.write_text("ATOM  garbage\n")
     assert main([str(bad), "-o", str(tmp_path / "x.zip"), "--engine", "local", "--device",
