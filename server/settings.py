@@ -95,6 +95,9 @@ class ServerSettings:
     """Connections holding one token (the server token, or the viewer token) at once."""
     max_clients_per_session: int = 64
     """Viewers and steerers of one session at once."""
+    steerer_places: int = 4
+    """Places of `max_clients_per_session` only steerers take: viewers (whose link is handed out
+    widely) cannot fill a session and shut its steerers out."""
     job_retention_s: float = 24 * 3600.0
     """How long a finished job's output stays downloadable."""
     job_max_bytes: int = 2 << 30
@@ -271,6 +274,10 @@ class ServerSettings:
             )
         if not self.body_timeout_s > 0:
             raise ValueError("body_timeout_s must be more than 0 seconds")
+        if not 0 <= self.steerer_places < self.max_clients_per_session:
+            raise ValueError(
+                "steerer_places must be at least 0 and less than max_clients_per_session"
+            )
         if self.selection_workers < 1:
             raise ValueError("selection_workers must be at least 1")
         if not self.video_steer_hold_s >= 0:

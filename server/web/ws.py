@@ -22,6 +22,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 import protocol as p
 from server.session.clients import Client, ClientState
 from server.session.session import Session
+from server.settings import ServerSettings
 from server.web.auth import (
     SIMULATION_TYPES,
     STEERING_TYPES,
@@ -151,16 +152,9 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
             )
         except p.ProtocolError as err:
             raise RefusedError(err.with_ref(hello.seq), 1008) from None
-        if role != "simulation" and len(session.clients) >= settings.max_clients_per_session:
+        if role != "simulation" and (full := _session_full(session, role, settings)):
             raise RefusedError(
-                p.ProtocolError(
-                    p.ErrorCode.CAPACITY,
-                    f"session {session.id!r} holds its limit of "
-                    f"{settings.max_clients_per_session} viewers and steerers",
-                    "hello.session",
-                    hello.seq,
-                ),
-                1013,
+                p.ProtocolError(p.ErrorCode.CAPACITY, full, "hello.session", hello.seq), 1013
             )
         if role == "simulation":
             claim_session(session, hello)
@@ -389,3 +383,18 @@ async def _dispatch(session: Session, client: Client, guard: Guard, message: p.M
                 )
         case _:
             await session.steer(client, message)
+
+
+def _session_full(session: Session, role: p.Role, settings: ServerSettings) -> str | None:
+    """Why `session` has no place for a new `role` client (None: it has): all its places are
+    taken, or, for a viewer, all but the `steerer_places` kept for steerers."""
+    limit = settings.max_clients_per_session
+    if len(session.clients) >= limit:
+        return f"session {session.id!r} holds its limit of {limit} viewers and steerers"
+    viewers = sum(1 for c in session.clients.values() if c.role == "viewer")
+    if role == "viewer" and viewers >= limit - settings.steerer_places:
+        return (
+            f"session {session.id!r} holds its limit of {limit - settings.steerer_places} viewers "
+            f"(max_clients_per_session less the steerer_places kept for steerers)"
+        )
+    return None

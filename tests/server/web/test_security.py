@@ -329,3 +329,28 @@ def test_the_steering_budget_is_the_clients_not_the_connections(tmp_path) -> Non
         viewer.close()
     finally:
         server.stop()
+
+
+def test_viewers_cannot_shut_the_steerers_out_of_a_session(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Round four: 64 connections with the viewer token filled the session, and the steerer
+    with the server token was refused (`capacity`). Viewers now leave `steerer_places`."""
+    from tests.conftest import make_settings, start_server
+
+    server = start_server(make_settings(tmp_path, max_clients_per_session=4, steerer_places=1))
+    try:
+        sim = Peer(server.ws_url, "simulation", server.token)
+        sim.send(molecule(6)[0])
+        viewers = [Peer(server.view_url, "viewer", server.viewer_token) for _ in range(3)]
+        late = Peer(server.view_url, "viewer", server.viewer_token, hello=False)
+        late.send(p.Hello(role="viewer", token=server.viewer_token, client="late"))
+        refused = late.expect(p.Error, timeout=20)
+        assert refused.code == "capacity" and "steerer_places" in refused.message
+        steerer = Peer(server.view_url, "steerer", server.token)  # the kept place
+        assert steerer.welcome is not None
+        full = Peer(server.view_url, "steerer", server.token, hello=False)
+        full.send(p.Hello(role="steerer", token=server.token, client="fifth"))
+        assert full.expect(p.Error, timeout=20).code == "capacity"
+        for peer in (*viewers, late, steerer, full, sim):
+            peer.close()
+    finally:
+        server.stop()
