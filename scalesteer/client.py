@@ -3,9 +3,12 @@ server itself (`LocalServer`)."""
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import os
 import secrets
 import threading
+import weakref
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 from urllib.parse import parse_qs, urlsplit, urlunsplit
@@ -24,6 +27,9 @@ CLIENT_NAME = "scalesteer-python"
 
 _default_lock = threading.Lock()
 _default_server: LocalServer | None = None
+_local_clients: weakref.WeakSet[Client] = weakref.WeakSet()
+"""Clients of the process's own server: `shutdown()` closes them (and what feeds their
+sessions) before the server stops, so no replay is left reconnecting to it."""
 
 
 def default_server(device: str = "auto") -> LocalServer:
@@ -68,6 +74,9 @@ class Client:
         if url is None:
             self.local = default_server(device)
             base, token, self.default_session = self.local.url, self.local.token, None
+            if not _local_clients:  # after the server's own: runs before the server stops
+                atexit.register(_close_local_clients)
+            _local_clients.add(self)
         else:
             base, given, self.default_session = split_url(url)
             token = token if token is not None else given or os.environ.get("SCALESTEER_TOKEN")
@@ -261,9 +270,17 @@ class Client:
         return f"Client({self.url}, {where}, {len(self._sessions)} sessions)"
 
 
+def _close_local_clients() -> None:
+    """Close the clients of the process's own server, and what feeds their sessions."""
+    for client in list(_local_clients):
+        with contextlib.suppress(Exception):
+            client.close()
+
+
 def shutdown() -> None:
     """Stop the server this process started (`connect()` without a URL), if any."""
     global _default_server
+    _close_local_clients()
     with _default_lock:
         server, _default_server = _default_server, None
     if server is not None:

@@ -247,7 +247,7 @@ class ReplaySource:
         from simulation_adapters.replay import TrajectoryReplay
 
         self.replay = TrajectoryReplay(structure, url, token, session, **options)
-        self.replay.start()
+        self.replay.start(daemon=True)  # it ends with the process, as the process's server does
 
     def close(self) -> None:
         self.replay.close()

@@ -102,8 +102,10 @@ class TrajectoryReplay:
         finally:
             self.connection.close()
 
-    def start(self) -> TrajectoryReplay:
-        """Play on a background thread; an error that ends it is kept in `error`."""
+    def start(self, daemon: bool = False) -> TrajectoryReplay:
+        """Play on a background thread; an error that ends it is kept in `error`. `daemon`:
+        the thread does not keep the process alive (a script that showed a trajectory ends
+        when its last line has run)."""
 
         def target() -> None:
             try:
@@ -112,7 +114,7 @@ class TrajectoryReplay:
                 log.error("scalesteer replay stopped: %s", exc)
                 self.error = exc
 
-        self._thread = threading.Thread(target=target, name="scalesteer-replay")
+        self._thread = threading.Thread(target=target, name="scalesteer-replay", daemon=daemon)
         self._thread.start()
         return self
 

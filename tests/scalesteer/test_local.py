@@ -93,3 +93,30 @@ def test_the_client_imports_without_the_servers_packages() -> None:
     )
     assert out.returncode == 0, out.stderr
     assert "light-ok" in out.stdout
+
+
+SCRIPT = """
+import MDAnalysis as mda, scalesteer
+from MDAnalysisTests.datafiles import PSF, DCD
+session = scalesteer.connect(device="cpu").open(mda.Universe(PSF, DCD), loop=True)
+session.image(32, 24)
+print("last line", flush=True)
+"""
+
+
+def test_a_script_that_replays_a_universe_ends_with_its_last_line() -> None:
+    """A plain script (no notebook) that opened a looping replay on its own server had stayed
+    alive for good (the replay's thread kept it), and after `scalesteer.shutdown()` the replay
+    retried its connection for ever; now it ends, and nothing is left reconnecting."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run(
+        [sys.executable, "-W", "ignore", "-c", SCRIPT],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "last line" in done.stdout
+    assert "retry" not in done.stderr, done.stderr[-2000:]
