@@ -114,8 +114,11 @@ class LocalRay:
         self.log_path = log_path
         self.token = secrets.token_hex(32)
         # a folder of its own: `ray start` records its address in its temporary folder, where
-        # another program's `ray.init()` on this host would find it and try to join
-        self.temp_dir = Path(tempfile.mkdtemp(prefix="scalesteer-ray-"))
+        # another program's `ray.init()` on this host would find it and try to join. Ray makes
+        # its folder writable by everyone (its sockets too): it goes inside one only this
+        # user may enter (mkdtemp's 0700), so no other user of the host reaches them
+        self.private_dir = Path(tempfile.mkdtemp(prefix="scalesteer-ray-"))
+        self.temp_dir = self.private_dir / "ray"
         command = [
             sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block",
             f"--port={self.port}", f"--temp-dir={self.temp_dir}", "--include-dashboard=false",
@@ -128,9 +131,9 @@ class LocalRay:
         if log_path is not None:
             log_path.parent.mkdir(parents=True, exist_ok=True)
             with open(log_path, "ab") as out:
-                self.process = Supervised(command, env=env, output=out, remove=self.temp_dir)
+                self.process = Supervised(command, env=env, output=out, remove=self.private_dir)
         else:
-            self.process = Supervised(command, env=env, remove=self.temp_dir)
+            self.process = Supervised(command, env=env, remove=self.private_dir)
         self._saved = [os.environ.get(name) for name in AUTH_VARIABLES]
         _use_token(self.token)
 

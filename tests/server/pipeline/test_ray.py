@@ -229,6 +229,8 @@ def test_a_ray_instance_of_the_servers_own_is_authenticated_and_ends_with_it(
         port = re.search(r"--port=(\d+)", command_line(supervisor))
         temp_dir = re.search(r"--temp-dir=(\S+)", command_line(supervisor))
         assert port is not None and temp_dir is not None
+        # Ray makes its folder writable by everyone: it sits in one only this user enters
+        assert Path(temp_dir.group(1)).parent.stat().st_mode & 0o777 == 0o700
         environ = Path(f"/proc/{supervisor}/environ").read_bytes().split(b"\0")
         token = next(v[15:].decode() for v in environ if v.startswith(b"RAY_AUTH_TOKEN="))
         address = f"127.0.0.1:{port.group(1)}"
@@ -240,5 +242,5 @@ def test_a_ray_instance_of_the_servers_own_is_authenticated_and_ends_with_it(
         server.stop(sig)
     left = wait_gone(tree)
     assert not left, [command_line(p) for p in left]
-    assert not Path(temp_dir.group(1)).exists()  # its sockets and logs: removed too
+    assert not Path(temp_dir.group(1)).parent.exists()  # its sockets and logs: removed too
     assert "SIGTERM received" not in server.log.read_text()  # no crash dump on a stop
