@@ -590,7 +590,18 @@ class JobManager:
         for n, index in enumerate(indices):
             if job.cancel.is_set():
                 return False
-            raw, box = await frames.read(index)
+            try:
+                raw, box = await frames.read(index)
+            except (OSError, StructureError) as exc:  # a file damaged from here on
+                if n == 0:
+                    raise JobError(f"frame {index} could not be read: {exc}") from None
+                job.partial = True
+                job.warning = (
+                    f"frame {index} could not be read ({exc}); the output holds the {n} "
+                    "frame(s) before it"
+                )
+                log.warning("job %s: %s", job.id, job.warning)
+                return True
             positions = await frames.get(index)
             try:  # evaluated by a selection worker, awaited here
                 plans = await layers.plans_async(raw, index, box)
