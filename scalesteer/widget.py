@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import re
 import threading
 import time
 from pathlib import Path
@@ -66,8 +67,9 @@ class Viewed(Protocol):
 
 HERE = Path(__file__).resolve().parent
 CLIENT_SRC = HERE.parent / "client_web" / "src"
-MODULES = ("camera.js", "video.js", "viewport.js", "video.worker.js")
-"""The dashboard's modules the widget runs, in dependency order."""
+ENTRIES = ("camera.js", "video.js", "viewport.js", "video.worker.js")
+"""The dashboard's modules the widget runs itself; the modules they import come with them."""
+_IMPORT = re.compile(r"""(?:from|import)\s*["']\./([\w.-]+\.js)["']""")
 HEARTBEAT_S = 1.0
 CODECS = get_args(VideoCodec)
 # trait -> the render parameter it shows
@@ -75,8 +77,24 @@ STEERED = {"sigma": "sigma_A", "iso": "iso_level", "scale_space": "scale_space",
 
 
 def dashboard_modules() -> list[list[str]]:
-    """[name, source] of the dashboard modules the widget loads (client_web/src)."""
-    return [[name, (CLIENT_SRC / name).read_text()] for name in MODULES]
+    """[name, source] of the dashboard modules the widget loads (client_web/src), each after
+    the modules it imports: a module the dashboard's viewport comes to import comes along (the
+    widget had shown no picture once the viewport imported cell.js and labels.js)."""
+    ordered: dict[str, str] = {}
+
+    def visit(name: str, path: tuple[str, ...]) -> None:
+        if name in ordered:
+            return
+        if name in path:
+            raise RuntimeError(f"client_web/src: an import cycle through {name}")
+        source = (CLIENT_SRC / name).read_text()
+        for dependency in _IMPORT.findall(source):
+            visit(dependency, (*path, name))
+        ordered[name] = source
+
+    for entry in ENTRIES:
+        visit(entry, ())
+    return [[name, source] for name, source in ordered.items()]
 
 
 class SessionView(anywidget.AnyWidget):

@@ -837,8 +837,11 @@ class Session:
             )
 
     def _merged_forces(self) -> p.Forces:
-        idx, forces = self.forces.merged(self.positions)
-        shown = self.shown
+        # before its first frame is displayed (the periodic steps wait for the selection
+        # worker) a session pulls from the frame as sent, in the engine's own frame
+        shown_yet = self.positions is not None
+        idx, forces = self.forces.merged(self.positions if shown_yet else self.raw_positions)
+        shown = self.shown if shown_yet else None
         if shown is not None and len(forces):
             # given in the displayed frame: a fit rotated it (F_engine = R^T F_displayed)
             forces = (np.asarray(forces, dtype=np.float64) @ shown.rotation).astype(np.float32)

@@ -82,8 +82,14 @@ def test_a_notebook_widget_streams_steers_and_survives_a_kernel_restart(
 
     run_cell(page, 0)
     first = wait_still(page)
+    # the kernel says how its link is once a second (its first word may precede the view)
+    page.wait_for_function(
+        "() => document.querySelector('.scalesteer-view')?.dataset.status !== undefined",
+        timeout=30_000,
+    )
     shown = page.evaluate(VIEW, 0)
-    assert shown["status"] == "connected" and "h264" in shown["codecs"].split()
+    assert shown.get("status") == "connected", (shown, errors)
+    assert "h264" in shown["codecs"].split()
     before = snapshot(page)
     assert before.std() > 5, "the molecule is drawn"
 
@@ -124,6 +130,7 @@ def test_a_notebook_widget_streams_steers_and_survives_a_kernel_restart(
     assert told["sigma"] == 4.0, "the second widget shows the session's sigma"
     assert told["camera"] and told["picked"] is not None
 
+    assert not errors, errors
     page.evaluate(RESTART)
     page.wait_for_function(
         "() => [...document.querySelectorAll('.scalesteer-view')]"
@@ -138,4 +145,6 @@ def test_a_notebook_widget_streams_steers_and_survives_a_kernel_restart(
         " return v.status === 'connected' && Number(v.frames) >= 1; }",
         timeout=120_000,
     )
-    assert not errors, errors
+    # the dying kernel's last messages may reach JupyterLab after it dropped their widgets
+    late = [e for e in errors if not e.startswith("Comm not found for comm id")]
+    assert not late, late

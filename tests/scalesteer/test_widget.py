@@ -86,3 +86,17 @@ def widgets(client: scalesteer.Client, name: str) -> int:
     """The widgets' connections in session `name`, as the server lists its clients."""
     summary = next(s for s in client.sessions() if s["id"] == name)
     return sum(c["client"] == "scalesteer-widget" for c in summary["clients"])
+
+
+def test_the_widget_loads_every_module_the_viewport_imports_before_it() -> None:
+    """The viewport came to import cell.js and labels.js, which the widget did not load: it
+    showed no picture. Each module now comes after every module it imports."""
+    import re
+
+    from scalesteer.widget import ENTRIES, dashboard_modules
+
+    names = [name for name, _ in dashboard_modules()]
+    assert set(ENTRIES) <= set(names) and {"cell.js", "labels.js"} <= set(names)
+    for i, (name, source) in enumerate(dashboard_modules()):
+        for imported in re.findall(r"""from\s*["']\./([\w.-]+\.js)["']""", source):
+            assert imported in names[:i], f"{name} imports {imported} before it is loaded"
