@@ -6,9 +6,18 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import functools
 import threading
 
 _PR_SET_NAME = 15
+
+
+@functools.cache
+def _libc() -> ctypes.CDLL:
+    """The C library, loaded once: `find_library` runs a subprocess, which a pool's threads
+    starting together beside warp's CPU kernels must not each do (two device threads doing so
+    crashed the process)."""
+    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
 
 
 def name_thread(name: str | None = None) -> None:
@@ -18,6 +27,6 @@ def name_thread(name: str | None = None) -> None:
     if name is not None:
         threading.current_thread().name = name
     with contextlib.suppress(OSError, AttributeError, TypeError):
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc = _libc()
         native = threading.current_thread().name.encode("utf-8", "replace")[:15]
         libc.prctl(_PR_SET_NAME, ctypes.c_char_p(native), 0, 0, 0)

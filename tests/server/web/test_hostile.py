@@ -1255,7 +1255,9 @@ def test_a_selection_past_the_workers_time_is_stopped_and_the_worker_replaced(
 ) -> None:
     viewer = joined(backstop_server, "crowded")
     other = joined(backstop_server, "crowded")
-    seq = viewer.send(p.Select(text=nested(20)))
+    # 30 levels (the depth limit is 32): past 4 s, where 20 levels
+    # had finished within it on a quiet 2-core machine
+    seq = viewer.send(p.Select(text=nested(30)))
     rtts = [ping_rtt(other) for _ in range(10) if time.sleep(0.2) is None]
     reply = viewer.expect(p.Selected, 60, where=lambda m: m.ref == seq)
     assert reply.count is None and "selection_timeout_s" in reply.error, reply
