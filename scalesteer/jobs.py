@@ -23,11 +23,8 @@ class JobFailedError(RuntimeError):
         super().__init__(f"job {job.id} is {job.state}" + (f": {why}" if why else ""))
 
 
-class Job:
-    """A batch render (trajectory -> zip of PNGs or MP4) or a movie of a live session.
-
-    `info` is the server's latest description (`state`, `progress` {done, total}, `eta_s`,
-    `error`, `stage`, `partial`, `warning`); `refresh()` asks again."""
+class _Described:
+    """Something the server describes by an id and a state (`info`: its latest answer)."""
 
     def __init__(self, rest: Rest, info: dict[str, Any]) -> None:
         self._rest = rest
@@ -40,6 +37,13 @@ class Job:
     @property
     def state(self) -> str:
         return str(self.info["state"])
+
+
+class Job(_Described):
+    """A batch render (trajectory -> zip of PNGs or MP4) or a movie of a live session.
+
+    `info` is the server's latest description (`state`, `progress` {done, total}, `eta_s`,
+    `error`, `stage`, `partial`, `warning`); `refresh()` asks again."""
 
     @property
     def progress(self) -> tuple[int, int]:
@@ -91,20 +95,8 @@ class Job:
         return f"Job({self.id[:8]}, {self.state}, {done}/{total})"
 
 
-class Recording:
+class Recording(_Described):
     """A recording of a session's run: its frames (XTC), topology (PDB) and steering."""
-
-    def __init__(self, rest: Rest, info: dict[str, Any]) -> None:
-        self._rest = rest
-        self.info = info
-
-    @property
-    def id(self) -> str:
-        return str(self.info["id"])
-
-    @property
-    def state(self) -> str:
-        return str(self.info["state"])
 
     @property
     def frames(self) -> int:
