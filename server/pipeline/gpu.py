@@ -57,6 +57,16 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 log = logging.getLogger("scalesteer.gpu")
 
+CPU_KERNELS = threading.Lock()
+"""Held by a lane on the CPU device while it works. Warp's CPU kernels keep state in statics of
+their JIT-compiled code (its JIT has no thread-local storage), and two threads running them at
+once crash the process: lanes on CPU devices (`--gpus cpu,cpu`) take turns."""
+
+
+def _serial(fn: Callable[..., T], *args: Any) -> T:
+    with CPU_KERNELS:
+        return fn(*args)
+
 
 @dataclass(frozen=True)
 class Snapshot:
@@ -217,8 +227,10 @@ class GpuQueue:
         return None if lane is None else self._lanes[lane].device
 
     async def _run(self, lane: int, fn: Callable[..., T], *args: Any) -> T:
-        pool = self._lanes[lane].pool
-        return await asyncio.get_running_loop().run_in_executor(pool, fn, *args)
+        pool, device = self._lanes[lane].pool, self._lanes[lane].device
+        if device.startswith("cuda"):
+            return await asyncio.get_running_loop().run_in_executor(pool, fn, *args)
+        return await asyncio.get_running_loop().run_in_executor(pool, _serial, fn, *args)
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
         """Run `fn` on the first device's thread."""

@@ -13,7 +13,7 @@ stream), every device's render is queued, and each band is copied into one page-
 image as its device finishes. The host never holds a device while another waits, and no copy
 runs through a pageable bounce buffer. Band edges move in whole row quanta, so a balanced frame
 set-up repeats and each device replays its captured graph. CPU devices (which stand in for GPUs
-in tests, and use one core each) render their bands on threads of their own.
+in tests) render their bands one after another on the calling thread.
 
 A device that fails is dropped with an error in the log; its band goes to the others from then
 on, and the frame is rendered again without it.
@@ -25,7 +25,6 @@ import contextlib
 import logging
 import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -113,9 +112,9 @@ class MultiRenderer:
         self.cuts = [k / n for k in range(1, n)]
         """Where the bands meet, as fractions of the height (balanced frame by frame)."""
         self.cuda = all(d.startswith("cuda") for d in self.devices)
-        """Every device is a CUDA device: frames are issued from the calling thread."""
-        # CPU devices run their kernels on the launching thread: one thread each
-        self._pool = None if self.cuda else ThreadPoolExecutor(n, thread_name_prefix="device")
+        """Every device is a CUDA device: bands are queued on each and run at once. CPU devices
+        run their bands one after another on the calling thread: warp's CPU kernels keep state in
+        statics of their JIT-compiled code, and two threads running them at once crash."""
         self._staging: list[tuple[Any, npt.NDArray[np.float32]]] = []
         self._next_staging = 0
         self._n = 0
@@ -198,12 +197,6 @@ class MultiRenderer:
         """Render every band; the error each device raised (None where it rendered)."""
         pairs = list(zip(self.renderers, bands, strict=False))
         errors: list[BaseException | None] = [None] * len(pairs)
-        if self._pool is not None:
-            jobs = [
-                self._pool.submit(r.render, params, camera, w, h, (0, y0, w, rows))
-                for r, (y0, rows) in pairs
-            ]
-            return [j.exception() for j in jobs]
         for i, (r, (y0, rows)) in enumerate(pairs):
             try:
                 r.render(params, camera, w, h, (0, y0, w, rows), wait=False)
@@ -416,5 +409,3 @@ class MultiRenderer:
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self.finish()
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)

@@ -10,6 +10,7 @@ that leaves takes its forces with it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -21,15 +22,33 @@ DEFAULT_MAX_FORCE = 1000.0
 """kJ/mol/A on one atom, for script forces (a pull carries its own `max_force`)."""
 
 
-def spring_force(pull: p.Pull, position: npt.ArrayLike) -> npt.NDArray[np.float64]:
+def nearest_image(
+    delta: npt.NDArray[np.float64], box: npt.NDArray[Any] | None
+) -> npt.NDArray[np.float64]:
+    """`delta` moved by whole box vectors (rows of `box`) to its shortest image: a displayed
+    frame wraps an atom that crosses the box, and a pull must not then drag it back across."""
+    if box is None:
+        return delta
+    vectors = np.asarray(box, dtype=np.float64).reshape(3, 3)
+    if abs(np.linalg.det(vectors)) < 1e-9:  # no usable box (a zero or flat one)
+        return delta
+    frac = np.linalg.solve(vectors.T, delta)
+    out: npt.NDArray[np.float64] = (frac - np.round(frac)) @ vectors
+    return out
+
+
+def spring_force(
+    pull: p.Pull, position: npt.ArrayLike, box: npt.NDArray[Any] | None = None
+) -> npt.NDArray[np.float64]:
     """The force (kJ/mol/A) of one pull at the atom's current position: the spring toward its
-    target, or its constant force, capped at the pull's `max_force`."""
+    target (its nearest image in a periodic `box`), or its constant force, capped at the pull's
+    `max_force`."""
     if pull.force is not None:
         f = np.asarray(pull.force, dtype=np.float64)
     else:
         assert pull.target is not None
         delta = np.asarray(pull.target, dtype=np.float64) - np.asarray(position, np.float64)
-        f = pull.spring_k * delta
+        f = pull.spring_k * nearest_image(delta, box)
     capped, _ = cap_forces(f, pull.max_force)
     out: npt.NDArray[np.float64] = capped[0]
     return out
@@ -96,11 +115,13 @@ class ForceBook:
         return [pull for _, pull in self.pulls.values()]
 
     def merged(
-        self, positions: npt.NDArray[np.float32] | None
+        self, positions: npt.NDArray[np.float32] | None, box: npt.NDArray[Any] | None = None
     ) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.float32]]:
         """The complete set to send: atom indices (sorted) and the summed force on each, every
         script force capped at `max_force` and every atom's total capped at the larger of that
-        and its pull's `max_force`. Spring pulls need `positions` (skipped without them)."""
+        and its pull's `max_force`. Spring pulls need `positions` (skipped without them) and
+        follow the periodic `box` (its vectors as rows, in the positions' frame) by the nearest
+        image."""
         total: dict[int, npt.NDArray[np.float64]] = {}
         limit: dict[int, float] = {}
         for mine in self.scripted.values():
@@ -112,7 +133,7 @@ class ForceBook:
             if pull.target is not None and (positions is None or atom >= len(positions)):
                 continue
             position = positions[atom] if positions is not None else np.zeros(3)
-            total[atom] = total.get(atom, np.zeros(3)) + spring_force(pull, position)
+            total[atom] = total.get(atom, np.zeros(3)) + spring_force(pull, position, box)
             limit[atom] = max(limit.get(atom, 0.0), pull.max_force)
         atoms = sorted(total)
         idx = np.asarray(atoms, dtype=np.int32)

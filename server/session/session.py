@@ -43,7 +43,7 @@ from server.pipeline.periodic import (
     needs_display,
     selection_fields,
 )
-from server.render.boxes import Shown
+from server.render.boxes import Shown, usable_box
 from server.render.layerplan import LayerPlan, visible_atoms
 from server.session.clients import Client
 from server.session.delivery import Delivery
@@ -840,8 +840,9 @@ class Session:
         # before its first frame is displayed (the periodic steps wait for the selection
         # worker) a session pulls from the frame as sent, in the engine's own frame
         shown_yet = self.positions is not None
-        idx, forces = self.forces.merged(self.positions if shown_yet else self.raw_positions)
         shown = self.shown if shown_yet else None
+        box = (shown.cell[1] if shown.cell is not None else None) if shown else usable_box(self.box)
+        idx, forces = self.forces.merged(self.positions if shown_yet else self.raw_positions, box)
         if shown is not None and len(forces):
             # given in the displayed frame: a fit rotated it (F_engine = R^T F_displayed)
             forces = (np.asarray(forces, dtype=np.float64) @ shown.rotation).astype(np.float32)

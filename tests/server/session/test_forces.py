@@ -29,6 +29,25 @@ def test_a_spring_pulls_toward_its_target_and_is_capped() -> None:
     np.testing.assert_allclose(spring_force(constant, [5.0, 5.0, 5.0]), [0.0, 1.5, 2.0])
 
 
+def test_a_spring_follows_the_nearest_image_of_an_atom_wrapped_across_the_box() -> None:
+    # the display wraps an atom that left the box at x = -0.5 to x = 29.5 (box 30 A): the pull
+    # toward x = 11 must still push it along +x, as it did before it crossed
+    pull = p.Pull(atom=0, target=(11.0, 3.0, 3.0), spring_k=1.0, max_force=100.0)
+    cube = np.diag([30.0, 30.0, 30.0])
+    np.testing.assert_allclose(spring_force(pull, [29.5, 3.0, 3.0], cube), [11.5, 0.0, 0.0])
+    np.testing.assert_allclose(spring_force(pull, [-0.5, 3.0, 3.0], cube), [11.5, 0.0, 0.0])
+    assert spring_force(pull, [29.5, 3.0, 3.0])[0] == pytest.approx(-18.5)  # no box: as given
+    # a triclinic box: the image one box vector away along the tilted axis
+    tilted = np.array([[30.0, 0.0, 0.0], [10.0, 30.0, 0.0], [0.0, 0.0, 30.0]])
+    np.testing.assert_allclose(
+        spring_force(pull, [11.0 + 10.0, 3.0 + 30.0, 3.0], tilted), [0.0, 0.0, 0.0], atol=1e-9
+    )
+    book = ForceBook()
+    book.pull("user", pull)
+    _, forces = book.merged(np.array([[29.5, 3.0, 3.0]], np.float32), cube)
+    np.testing.assert_allclose(forces, [[11.5, 0.0, 0.0]])
+
+
 def test_every_clients_forces_are_merged_and_summed_per_atom() -> None:
     book = ForceBook(max_force=100.0)
     book.set_scripted("script", [2, 4, 4], [[1, 0, 0], [0, 1, 0], [0, 1, 0]])
