@@ -35,7 +35,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Hashable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -82,6 +82,10 @@ class PoolLimits:
     """Atoms of the topologies one worker keeps at once (least recently used go first)."""
     max_waiting: int = 64
     """Requests queued for one worker; more are refused at once rather than kept waiting."""
+    owner_seconds_per_min: float = 30.0
+    """Worker time one owner (a client: its role and address) may use in any minute; past it
+    its requests are refused until the time is earned back, so that one client's costly (but
+    allowed) selections cannot hold the workers every session shares."""
 
 
 class Held:
@@ -105,13 +109,14 @@ class Held:
         positions_key: Hashable | None = None,
         counts: bool = False,
         strict: bool = False,
+        owner: Hashable | None = None,
     ) -> Future[list[Result]]:
         """Evaluate `texts` (one budget for them all; `strict`: none if any is refused) at
         `positions`; `positions_key` names these positions, so a worker that has them is
-        not sent them again."""
-        return self._worker.submit(
-            _Task("select", self, (list(texts), positions, box, counts, strict), positions_key)
-        )
+        not sent them again. The time it takes is charged to `owner` (None: to no one)."""
+        task = _Task("select", self, (list(texts), positions, box, counts, strict), positions_key)
+        task.owner = owner
+        return self._worker.submit(task)
 
     def submit_secondary(
         self, positions: npt.NDArray[np.float32], positions_key: Hashable | None = None
@@ -146,6 +151,8 @@ class _Task:
     args: tuple[Any, ...]
     positions_key: Hashable | None
     future: Future[Any] = field(default_factory=Future)
+    owner: Hashable | None = None
+    """Whose worker time it uses (`PoolLimits.owner_seconds_per_min`)."""
 
 
 class SelectionPool:
@@ -159,6 +166,27 @@ class SelectionPool:
         self.closed = False
         self.kills = 0
         """Workers killed or lost so far (a request past a limit)."""
+        self._spent: dict[Hashable, deque[tuple[float, float]]] = {}
+        """owner -> (when, seconds) of its requests that ended in the last minute."""
+
+    def used_s(self, owner: Hashable, now: float | None = None) -> float:
+        """Worker seconds `owner`'s requests took in the last minute."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            spent = self._spent.get(owner)
+            if spent is None:
+                return 0.0
+            while spent and now - spent[0][0] > 60.0:
+                spent.popleft()
+            if not spent:
+                del self._spent[owner]
+                return 0.0
+            return sum(seconds for _, seconds in spent)
+
+    def charge(self, owner: Hashable, seconds: float) -> None:
+        with self._lock:
+            spent = self._spent.setdefault(owner, deque(maxlen=4096))
+            spent.append((time.monotonic(), seconds))
 
     def hold(self, topology: Topology) -> Held:
         """Give `topology` to the worker with the fewest atoms held."""
@@ -213,6 +241,19 @@ class _Worker:
             why = "the server is stopping" if self.pool.closed else "the system changed meanwhile"
             task.future.set_exception(SelectionBusyError(None, f"{why}; not evaluated", 0))
             return task.future
+        if task.owner is not None:
+            used, allowed = self.pool.used_s(task.owner), self.limits.owner_seconds_per_min
+            if used >= allowed:
+                task.future.set_exception(
+                    SelectionBusyError(
+                        None,
+                        f"your selections took {used:.0f} s of the server's selection workers in "
+                        f"the last minute (selection_seconds_per_min: {allowed:g}); wait a "
+                        "little, or select fewer atoms",
+                        0,
+                    )
+                )
+                return task.future
         if self._queue.qsize() >= self.limits.max_waiting:
             task.future.set_exception(
                 SelectionBusyError(
@@ -267,6 +308,7 @@ class _Worker:
                     continue
                 if not task.future.set_running_or_notify_cancel():
                     continue
+                started = time.monotonic()
                 try:
                     task.future.set_result(self._serve(task))
                 except SelectionError as exc:
@@ -276,6 +318,9 @@ class _Worker:
                     task.future.set_exception(
                         SelectionError(None, f"the selection worker failed ({exc!r})", 0)
                     )
+                finally:
+                    if task.owner is not None:
+                        self.pool.charge(task.owner, time.monotonic() - started)
                 if self._process is None and self._restart and not self.pool.closed:
                     self._restart = False  # killed: a fresh worker is ready for what follows
                     with contextlib.suppress(SelectionError):

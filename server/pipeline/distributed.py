@@ -8,10 +8,11 @@ otherwise jobs render in the server's own process (`server.pipeline.jobs`), as d
 
 Asked for without a cluster, the server starts a Ray instance of its own (`LocalRay`): `ray
 start --head` under the server's supervisor (`server.supervisor`), so that every Ray process ends
-with the server, `kill -9` included, and none of them sees the terminal's Ctrl-C. Ray's servers
-listen on every interface (Ray has no setting to bind them to loopback), so the instance runs
-with Ray's token authentication and a fresh random token each start: a client without it is
-refused. Its dashboard is off. Joining a cluster, the server authenticates with `RAY_AUTH_TOKEN`
+with the server, `kill -9` included, and none of them sees the terminal's Ctrl-C. Its node
+address is loopback, which makes every Ray server (GCS, raylet, workers, object manager, agents,
+the autoscaler's metrics) listen on 127.0.0.1 only, and it runs with Ray's token authentication
+and a fresh random token each start, so that a local client without the token is refused too.
+Its dashboard is off. Joining a cluster, the server authenticates with `RAY_AUTH_TOKEN`
 when it is set (token authentication needs Ray 2.52 or later).
 
 Each actor owns a Renderer and reads its chunks with the project's reader (MDAnalysis): files
@@ -77,6 +78,13 @@ def available() -> bool:
 
 
 AUTH_VARIABLES = ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN")
+LOOPBACK = "127.0.0.1"
+"""The node address of the server's own Ray instance: Ray binds its servers to it."""
+SINGLE_HOST = ("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+"""Ray's switch for a host that is no cluster (on by default only where clusters are not
+supported): with it, a node address given as loopback stays loopback instead of being replaced
+by the host's network address, for the instance's processes and for this one's calls (the
+server never joins a cluster once it runs an instance of its own)."""
 TOKEN_AUTH_RAY = (2, 52)
 """The first Ray release with token authentication."""
 
@@ -108,9 +116,9 @@ class LocalRay:
                 "with --ray-address"
             )
         with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
+            s.bind((LOOPBACK, 0))
             self.port: int = s.getsockname()[1]
-        self.address = f"127.0.0.1:{self.port}"
+        self.address = f"{LOOPBACK}:{self.port}"
         self.log_path = log_path
         self.token = secrets.token_hex(32)
         # a folder of its own: `ray start` records its address in its temporary folder, where
@@ -122,11 +130,12 @@ class LocalRay:
         command = [
             sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block",
             f"--port={self.port}", f"--temp-dir={self.temp_dir}", "--include-dashboard=false",
-            "--disable-usage-stats",
+            "--disable-usage-stats", f"--node-ip-address={LOOPBACK}",
         ]  # fmt: skip
         if cpus is not None:
             command.append(f"--num-cpus={cpus}")
         env = dict(os.environ, RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=self.token)
+        env[SINGLE_HOST[0]] = SINGLE_HOST[1]
         env.pop("RAY_ADDRESS", None)
         if log_path is not None:
             log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -147,7 +156,12 @@ class LocalRay:
             if code is not None:
                 raise RuntimeError(f"the local Ray instance exited with code {code}{self._tail()}")
             try:
-                ray.init(address=self.address, _temp_dir=str(self.temp_dir), **options)
+                ray.init(
+                    address=self.address,
+                    _temp_dir=str(self.temp_dir),
+                    _node_ip_address=LOOPBACK,
+                    **options,
+                )
                 return
             except ConnectionError:
                 if time.monotonic() > deadline:
@@ -399,6 +413,8 @@ class RayBatch:
         # Ray's crash handler would take SIGTERM from the server's own graceful stop (a stack
         # dump, then the process killed before its jobs and recordings are closed)
         os.environ.setdefault("RAY_DISABLE_FAILURE_SIGNAL_HANDLER", "1")
+        if self.address is None:  # an instance of our own: Ray reads this as it is imported
+            os.environ[SINGLE_HOST[0]] = SINGLE_HOST[1]
         import ray
 
         if not ray.is_initialized():

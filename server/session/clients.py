@@ -77,6 +77,9 @@ class Client:
     """When its last interacting view came (monotonic seconds): its video stream stays at the
     steering size for `video_steer_hold_s` after it."""
     needs_image: bool = True
+    served_at: float = float("-inf")
+    """When a render for it was last planned (monotonic seconds): views that have waited
+    longest come first when a pass cannot render them all."""
     frames_sent: int = 0
     frames_dropped: int = 0
     newest_frame: int = 0

@@ -17,7 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -117,9 +117,10 @@ class LayerBook:
         positions: npt.NDArray[np.float32] | None,
         positions_id: int,
         box: npt.NDArray[np.float32] | None = None,
+        owner: Hashable | None = None,
     ) -> int:
         """How many atoms `text` selects now (raises SelectionError): for `select`, as a
-        selection is typed."""
+        selection is typed; its worker time is charged to `owner`."""
         held = self._held
         if held is None:
             raise SelectionError(text, "no topology yet", 0)
@@ -127,7 +128,9 @@ class LayerBook:
         if known is not None and not known.dynamic and known.atoms is not None:
             return len(known.atoms)
         moving = positions if is_dynamic(text) else None  # a frame is sent only when it counts
-        future = held.submit([text], moving, box, positions_key=positions_id, counts=True)
+        future = held.submit(
+            [text], moving, box, positions_key=positions_id, counts=True, owner=owner
+        )
         found = (await asyncio.wrap_future(future))[0]
         if isinstance(found, SelectionError):
             raise found

@@ -156,13 +156,20 @@ class RenderScheduler:
         default_camera: p.Camera | None,
     ) -> Plan:
         """The groups due for a render of `version`; a group is due when it has not drawn that
-        version yet or a member needs an image. Members are marked served here (a view that
-        arrives during the render marks its client again)."""
+        version yet or a member needs an image. At most `view_groups_per_pass` of them, those
+        with a steerer first, then the longest unserved (the others stay due: the plan says to
+        come back at once). Members are marked served here (a view that arrives during the
+        render marks its client again)."""
         due: list[tuple[ViewKey, list[Client]]] = []
         interactive = False
         refine_in: float | None = None
-        for key, members in self.groups(clients, now, default_camera).items():
+        more = False
+        cap = self.settings.view_groups_per_pass
+        for key, members in self._by_priority(self.groups(clients, now, default_camera)):
             interactive = interactive or key.interactive
+            if len(due) >= cap:  # left for the next pass, untouched
+                more = more or self._due(key, members, version)
+                continue
             if self._rendered.get(key) == version and not any(c.needs_image for c in members):
                 reduced = self._reduced.get(key)
                 if reduced is None or reduced[0] != version or key.interactive:
@@ -189,10 +196,33 @@ class RenderScheduler:
             for c in members:
                 c.needs_image = False
             due.append((key, members))
+        for _, members in due:
+            for c in members:
+                c.served_at = now
         come_back = self.settings.interactive_idle_s + 0.01 if interactive else None
         if refine_in is not None:
             come_back = min(come_back or refine_in, refine_in) + 0.01
+        if more:
+            come_back = 0.0
         return Plan(due, come_back)
+
+    @staticmethod
+    def _by_priority(
+        groups: dict[ViewKey, list[Client]],
+    ) -> list[tuple[ViewKey, list[Client]]]:
+        """Groups with a steerer first, then the one whose members have waited longest."""
+
+        def rank(item: tuple[ViewKey, list[Client]]) -> tuple[bool, float]:
+            members = item[1]
+            steered = any(c.role == "steerer" for c in members)
+            return (not steered, min(c.served_at for c in members))
+
+        return sorted(groups.items(), key=rank)
+
+    def _due(self, key: ViewKey, members: list[Client], version: int) -> bool:
+        """Whether a group has a version it has not drawn or a member waiting for an image (a
+        refinement or rest still to come has a timer of its own)."""
+        return self._rendered.get(key) != version or any(c.needs_image for c in members)
 
     def rendered(self, key: ViewKey, version: int) -> None:
         if len(self._rendered) >= MAX_REMEMBERED:

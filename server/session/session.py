@@ -24,7 +24,7 @@ import contextlib
 import logging
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Hashable
 from concurrent.futures import Future
 from typing import Any
 
@@ -62,39 +62,15 @@ from server.session.steering import (
     merge_patch,
     sim_params_changes,
 )
+from server.session.steps import StepRate, StepRun
 from server.settings import ServerSettings
 from structures.selection import SelectionError, check_syntax, is_dynamic
 from structures.selection_pool import SelectionBusyError
 
 log = logging.getLogger("scalesteer.session")
 
-RATE_WINDOW_S = 3.0
-
-
 FrameSink = Callable[[int, float, "npt.NDArray[np.float32]", "npt.NDArray[Any] | None"], None]
 """(step, time_ps, positions, box) of one frame."""
-
-
-def is_jump(last_step: int, delta: int, step: int) -> bool:
-    """Whether `step` does not continue a run whose steps grew by `delta`: it goes back (a
-    replay seeked or a simulation was reset) or skips ahead by more than 4 usual increments."""
-    return step <= last_step or (delta > 0 and step - last_step > 4 * delta)
-
-
-class StepRate:
-    """Simulation steps per second over the frames of the last few seconds."""
-
-    def __init__(self, window_s: float = RATE_WINDOW_S) -> None:
-        self.window_s = window_s
-        self._frames: deque[tuple[float, int]] = deque()
-
-    def add(self, now: float, step: int) -> float:
-        frames = self._frames
-        while frames and now - frames[0][0] >= self.window_s:
-            frames.popleft()
-        frames.append((now, step))
-        (t0, s0), (t1, s1) = frames[0], frames[-1]
-        return max(0.0, (s1 - s0) / (t1 - t0)) if t1 > t0 else 0.0
 
 
 def _invalid(exc: ValidationError, path: str, seq: int | None) -> p.ProtocolError:
@@ -138,8 +114,7 @@ class Session:
         self.shown: Shown | None = None
         """How `positions` were displayed (None: as sent)."""
         self._cell_sent: p.Cell | None = None
-        self._frame_step: int | None = None
-        self._frame_delta = 0
+        self._arrived = StepRun()
         self.status = p.SimStatus(state="waiting")
         self.render_params = settings.render_defaults
         self.sim_params = p.SimParams()
@@ -149,8 +124,7 @@ class Session:
         self._history: deque[tuple[int, npt.NDArray[np.float32]]] = deque(maxlen=1)
         """The last frames (positions_id, positions) for temporal smoothing."""
         self._history_epoch = 0
-        self._last_step: int | None = None
-        self._step_delta = 0
+        self._displayed = StepRun()
         self.frame_sinks: list[FrameSink] = []
         """Called with each frame as the simulation sent it (a recording keeps these)."""
         self.shown_sinks: list[Callable[[int], None]] = []
@@ -288,7 +262,7 @@ class Session:
             self.forces.clear()
             self._history.clear()  # frames of another system: the window starts again
             self._history_epoch += 1
-            self._last_step = None
+            self._displayed.reset()
         self.status = self.status.model_copy(
             update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": "running"}
         )
@@ -348,16 +322,19 @@ class Session:
         it, with its box (a fit rotates the displayed frame off the box's axes)."""
         return self.raw_positions if self.raw_positions is not None else self.positions
 
-    async def select(self, client: Client, message: p.Select) -> p.Selected:
+    async def select(
+        self, client: Client, message: p.Select, owner: Hashable | None = None
+    ) -> p.Selected:
         """Count the atoms a selection takes now (nothing changes): priced, then evaluated by
-        a selection worker; a selection past a limit is answered with the limit."""
+        a selection worker, its time charged to `owner` (the client across its connections);
+        a selection past a limit is answered with the limit."""
         if self.topology is None:
             raise p.ProtocolError(
                 p.ErrorCode.NOT_READY, "no topology to select from yet", "select", message.seq
             )
         try:
             count = await self.layers.count(
-                message.text, self._selected_positions(), self.positions_id, self.box
+                message.text, self._selected_positions(), self.positions_id, self.box, owner
             )
         except SelectionError as exc:
             return p.Selected(
@@ -413,12 +390,7 @@ class Session:
         raw = frame.positions.to_numpy()
         self.raw_positions = raw
         self.box = None if frame.box is None else frame.box.to_numpy()
-        jumped = self._frame_step is not None and is_jump(
-            self._frame_step, self._frame_delta, frame.step
-        )
-        if self._frame_step is not None and not jumped:
-            self._frame_delta = frame.step - self._frame_step
-        self._frame_step = frame.step
+        jumped = self._arrived.advance(frame.step)
         if self.frame_sinks:
             for sink in list(self.frame_sinks):
                 sink(frame.step, frame.time_ps, raw, self.box)
@@ -481,16 +453,13 @@ class Session:
         params = self.render_params
         if not params.needs_history():
             self._history.clear()
-            self._last_step = None
+            self._displayed.reset()
             return
         if self._history.maxlen != params.time_window:
             self._history = deque(self._history, maxlen=params.time_window)
-        if self._last_step is not None and is_jump(self._last_step, self._step_delta, step):
+        if self._displayed.advance(step):
             self._history.clear()
             self._history_epoch += 1
-        elif self._last_step is not None:
-            self._step_delta = step - self._last_step
-        self._last_step = step
         assert self.positions is not None
         self._history.append((self.positions_id, self.positions))
 

@@ -61,6 +61,16 @@ class UploadLimit:
         seen = 0
         ended = False
         timeout = self.settings.body_timeout_s
+        has_body = declared > 0 or b"transfer-encoding" in headers
+
+        async def closing(message: Any) -> None:
+            # a refusal sent before the body is in closes the connection: kept open, the
+            # server would read (and throw away) all the rest of a body it refused
+            start = message["type"] == "http.response.start"
+            if start and has_body and not ended and message["status"] >= 400:
+                close = [(b"connection", b"close")]
+                message = {**message, "headers": [*message.get("headers", []), *close]}
+            await send(message)
 
         async def counted() -> Any:
             nonlocal seen, held, ended
@@ -84,7 +94,7 @@ class UploadLimit:
             return message
 
         try:
-            await self.app(scope, counted, send)
+            await self.app(scope, counted, closing)
         except _BodyTooLargeError:
             await _too_large(spool.limit)(scope, receive, send)
         except _SpoolFullError as exc:
@@ -98,11 +108,15 @@ class UploadLimit:
 
 
 def _too_large(limit: int) -> PlainTextResponse:
-    return PlainTextResponse(f"request body exceeds the upload limit of {limit} bytes", 413)
+    return PlainTextResponse(
+        f"request body exceeds the upload limit of {limit} bytes",
+        413,
+        headers={"Connection": "close"},  # the rest of the body is not read
+    )
 
 
 def _spool_full(reason: str) -> PlainTextResponse:
-    return PlainTextResponse(reason, 503, headers={"Retry-After": "5"})
+    return PlainTextResponse(reason, 503, headers={"Retry-After": "5", "Connection": "close"})
 
 
 class _BodyTooLargeError(HTTPException):

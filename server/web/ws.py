@@ -52,11 +52,13 @@ class Guard:
 
     steer: RateLimiter
     any: RateLimiter
+    owner: tuple[str, str]
+    """The client (role, address) whose selection-worker time this connection uses."""
     errors: deque[float] = field(default_factory=lambda: deque(maxlen=64))
 
     @classmethod
-    def of(cls, budget: ClientBudget) -> Guard:
-        return cls(budget.steer, budget.any)
+    def of(cls, budget: ClientBudget, owner: tuple[str, str]) -> Guard:
+        return cls(budget.steer, budget.any, owner)
 
     def note_error(self) -> int:
         """Record a protocol error; returns how many happened in the last 10 s."""
@@ -170,7 +172,7 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
         )
         address = ws.client.host if ws.client is not None else ""
         budget = state.budgets.take(role, address, limits.max_steer_per_s)
-        guard = Guard.of(budget)
+        guard = Guard.of(budget, (role, address))
         client.send(
             p.Welcome(session_id=session.id, client_id=client.client_id, role=role, limits=limits)
         )
@@ -364,7 +366,7 @@ async def _dispatch(session: Session, client: Client, guard: Guard, message: p.M
         case p.Pick():
             client.send(await session.pick(client, message))
         case p.Select():
-            client.send(await session.select(client, message))
+            client.send(await session.select(client, message, guard.owner))
         case p.Ping():
             # pings are latency probes: under a flood, answer only while the peer keeps up
             if client.backlog < PONG_BACKLOG:

@@ -45,24 +45,36 @@ def wait_gone(pids: list[int], timeout: float = 15.0) -> list[int]:
     return [pid for pid in left if command_line(pid)]
 
 
-def listening_ports(pids: list[int]) -> set[int]:
-    """The TCP ports `pids` listen on (any address), from /proc."""
-    inodes: dict[str, int] = {}
+def listening_sockets(pids: list[int]) -> set[tuple[str, int]]:
+    """The TCP (address, port) pairs `pids` listen on, from /proc: IPv4 addresses dotted,
+    IPv6 ones as /proc writes them (32 hex digits)."""
+    inodes: dict[str, tuple[str, int]] = {}
     for table in ("/proc/net/tcp", "/proc/net/tcp6"):
         with contextlib.suppress(OSError):
             for line in Path(table).read_text().splitlines()[1:]:
                 fields = line.split()
                 if fields[3] == "0A":  # LISTEN
-                    inodes[fields[9]] = int(fields[1].rsplit(":", 1)[1], 16)
-    ports = set()
+                    host, port = fields[1].rsplit(":", 1)
+                    if len(host) == 8:  # IPv4, little-endian
+                        host = ".".join(str(b) for b in reversed(bytes.fromhex(host)))
+                    inodes[fields[9]] = (host, int(port, 16))
+    found = set()
     for pid in pids:
         with contextlib.suppress(OSError):
             for fd in os.listdir(f"/proc/{pid}/fd"):
                 with contextlib.suppress(OSError):
                     target = os.readlink(f"/proc/{pid}/fd/{fd}")
                     if target.startswith("socket:[") and target[8:-1] in inodes:
-                        ports.add(inodes[target[8:-1]])
-    return ports
+                        found.add(inodes[target[8:-1]])
+    return found
+
+
+LOOPBACK = {
+    "127.0.0.1",
+    "00000000000000000000000001000000",  # ::1 as /proc/net/tcp6 writes it
+    "0000000000000000FFFF00000100007F",  # ::ffff:127.0.0.1
+}
+"""Loopback listening addresses, as `listening_sockets` gives them."""
 
 
 def free_port() -> int:

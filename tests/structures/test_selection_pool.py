@@ -124,6 +124,36 @@ def test_a_full_queue_refuses_at_once() -> None:
         small.close()
 
 
+def test_one_owners_costly_selections_cannot_hold_the_worker_from_others() -> None:
+    """One client typing costly (but allowed) selections one after another kept the workers every
+    session shares busy: each owner now has `owner_seconds_per_min` of worker time."""
+    limits = PoolLimits(workers=1, timeout_s=1.0, owner_seconds_per_min=1.5, selection=UNPRICED)
+    shared = SelectionPool(limits)
+    try:
+        topo, pos = backbone(40_000)
+        held = shared.hold(topo)
+        assert held.submit(["name CA"], counts=True, owner="other").result() == [10_000]
+        refused, ran = None, 0
+        while refused is None and ran < 10:  # each runs to the 1 s limit and is charged for it
+            error = held.submit([SLOW], pos, positions_key=1, owner="greedy").exception(60)
+            if isinstance(error, SelectionBusyError):
+                refused = error
+            else:
+                assert isinstance(error, SelectionError), error
+                assert error.limit == "selection_timeout_s"
+                ran += 1
+        assert refused is not None and 1 <= ran <= 2, ran  # refused once 1.5 s are used
+        assert "selection_seconds_per_min" in refused.reason
+        assert shared.used_s("greedy") >= 1.5 and shared.used_s("other") < 1.5
+        # the control: another owner is answered, as is work charged to no one
+        assert held.submit(["name CA"], counts=True, owner="other").result() == [10_000]
+        assert held.submit(["name CA"], counts=True).result() == [10_000]
+        # the time is earned back a minute later
+        assert shared.used_s("greedy", now=time.monotonic() + 61.0) == 0.0
+    finally:
+        shared.close()
+
+
 PARENT = textwrap.dedent(
     """
     import sys, time

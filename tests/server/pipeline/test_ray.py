@@ -22,9 +22,10 @@ import pytest
 from server.supervisor import descendants
 from tests.conftest import LiveServer, make_settings, start_server
 from tests.server.processes import (
+    LOOPBACK,
     ServerProcess,
     command_line,
-    listening_ports,
+    listening_sockets,
     running,
     wait_gone,
 )
@@ -187,8 +188,9 @@ def test_a_ray_instance_of_the_servers_own_is_authenticated_and_ends_with_it(
     """The first job started a local Ray whose servers listen on every interface, with no
     authentication (whoever reached a port ran code as the server's user); two of its agents
     outlived the server, and a SIGTERM printed Ray's crash dump. Asked for without a cluster,
-    Ray now runs under the server's supervisor with Ray's token authentication and no
-    dashboard, and neither a stop nor a `kill -9` of the server leaves any of its processes."""
+    Ray now runs under the server's supervisor, every server of it on loopback, with Ray's token
+    authentication and no dashboard, and neither a stop nor a `kill -9` of the server leaves
+    any of its processes."""
     data = tmp_path / "data"
     data.mkdir()
     for src in (PSF, DCD):
@@ -224,8 +226,11 @@ def test_a_ray_instance_of_the_servers_own_is_authenticated_and_ends_with_it(
         assert any("gcs_server" in command_line(p) for p in ray)
         assert any("raylet" in command_line(p) for p in ray)
         assert {int(w["pid"]) for w in health["workers"]} <= set(ray)
-        ports = listening_ports(ray)
-        assert ports and 8265 not in ports  # Ray listens, but opens no dashboard
+        sockets = listening_sockets(ray)
+        assert sockets and 8265 not in {port for _, port in sockets}  # no dashboard
+        # every Ray server (GCS, raylet, workers, agents, autoscaler metrics) on loopback only
+        exposed = {s for s in sockets if s[0] not in LOOPBACK}
+        assert not exposed, exposed
         port = re.search(r"--port=(\d+)", command_line(supervisor))
         temp_dir = re.search(r"--temp-dir=(\S+)", command_line(supervisor))
         assert port is not None and temp_dir is not None

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 
 import protocol as p
-from server.session.session import is_jump
+from server.session.steps import StepRun, is_jump
 from tests.conftest import LiveServer
 from tests.server.peers import Peer, frame, molecule
 
@@ -18,6 +18,17 @@ def test_steps_that_go_back_or_skip_far_ahead_are_jumps() -> None:
     assert is_jump(100, 10, 90)  # back: a seek or a reset
     assert is_jump(5, 1, 5)
     assert not is_jump(0, 0, 500)  # the second frame sets the increment
+
+
+def test_a_run_of_steps_learns_its_increment_and_starts_again_after_a_jump() -> None:
+    run = StepRun()
+    assert [run.advance(s) for s in (0, 10, 20, 30)] == [False] * 4
+    assert run.delta == 10
+    assert run.advance(500)  # a seek ahead: a jump, the increment kept
+    assert run.delta == 10 and not run.advance(510)
+    assert run.advance(100)  # back
+    run.reset()
+    assert not run.advance(5)  # a new run's first step never jumps
 
 
 def wait(condition: object, what: str) -> None:

@@ -655,8 +655,17 @@ def test_uploads_are_refused_from_their_headers_and_spool_into_the_servers_own_f
         # no token, the viewer token where the server token is needed, a spent viewer budget:
         # each answered from the headers while the body has barely begun
         sock = partial_request(server.port, "/api/render", {}, big, file_part("a.pdb", 65536))
-        status, _, body = answer(sock)
+        status, headers, body = read_response(sock, 10.0)
         assert status == 401 and "token" in body
+        # and the connection closes: the server does not read the rest of a refused body
+        assert headers["connection"] == "close"
+        sock.settimeout(10.0)
+        try:
+            assert sock.recv(1) == b""
+        except ConnectionResetError:
+            pass  # closed with the unread part of the body still in its buffer
+        finally:
+            sock.close()
         sock = partial_request(server.port, "/api/jobs", VIEWER, big, file_part("a.pdb", 65536))
         status, _, body = answer(sock)
         assert status == 403 and "server token" in body
@@ -944,6 +953,68 @@ def test_video_encoders_are_bounded_and_given_back_when_their_viewers_leave(
         sim.close()
         jpeg.close()
     finally:
+        server.stop()
+
+
+def _renders(server: ServerProcess) -> int:
+    text = httpx.get(f"{server.url}/metrics", headers=AUTH, timeout=30).text
+    line = next(ln for ln in text.splitlines() if ln.startswith("scalesteer_frames_rendered_total"))
+    return int(float(line.split()[-1]))
+
+
+def _steerer_share(server: ServerProcess, sim: Peer, steerer: Peer, pos: np.ndarray) -> float:
+    """Images the steerer got per render of its session while frames streamed for 4 s."""
+    stop = threading.Event()
+
+    def stream() -> None:
+        step = 1000
+        while not stop.is_set():
+            step += 1
+            sim.send(frame(pos + np.float32(0.01 * (step % 7)), step))
+            time.sleep(0.02)
+
+    streamer = threading.Thread(target=stream)
+    steerer.drain(0.3)  # what came before
+    before = _renders(server)
+    streamer.start()
+    try:
+        images = sum(isinstance(m, p.Image) for m in steerer.drain(4.0))
+    finally:
+        stop.set()
+        streamer.join()
+    return images / max(1, _renders(server) - before)
+
+
+def test_viewers_with_cameras_of_their_own_leave_the_steerer_its_share(tmp_path: Path) -> None:
+    """Round three: 40 viewers, each with a camera of its own, made every frame of their session
+    wait for 40 renders (its steerer: 9.5 -> 0.27 images/s, one render in 41). A pass now renders
+    at most `view_groups_per_pass` views, the steerer's first."""
+    server = ServerProcess(tmp_path / "state")
+    crowd: list[Peer] = []
+    try:
+        sim = Peer(server.ws_url, "simulation", TOKEN)
+        topo, pos = molecule(24)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        steerer = Peer(server.view_url, "steerer", TOKEN, max_queue=None)
+        steerer.send(p.View(width=96, height=64))
+        steerer.expect(p.Image, 60)
+        alone = _steerer_share(server, sim, steerer, pos)
+        assert alone > 0.8  # the control: alone, every render is the steerer's
+        for i in range(40):
+            viewer = Peer(server.view_url, "viewer", VIEWER_TOKEN, max_queue=None)
+            turn = 0.05 * (i + 1)
+            camera = p.Camera(orientation=(float(np.cos(turn)), 0.0, float(np.sin(turn)), 0.0))
+            viewer.send(p.View(camera=camera, width=320, height=240))
+            crowd.append(viewer)
+        crowd[-1].expect(p.Image, 120)
+        shared = _steerer_share(server, sim, steerer, pos)
+        assert shared > 0.15, shared  # one render in 41 before (0.024); about one in 3 now
+        for viewer in crowd:  # and the viewers are all served, in turn
+            viewer.expect(p.Image, 60)
+    finally:
+        for viewer in crowd:
+            viewer.close()
         server.stop()
 
 
