@@ -142,15 +142,20 @@ class RenderLoop:
         now = time.monotonic()
         plan = self.scheduler.plan(host.clients.values(), now, host.version, host.camera)
         taken: list[Snapshot] = []  # the snapshot of this pass, taken when its first render starts
+        drew = False
         for key, members in plan.groups:
             planned = {c.client_id: (c.view, c.view_ref) for c in members}
             version = await self._render_group(key, members, planned, taken)
             if version is not None:
+                drew = True
                 self.scheduler.rendered(key, version)
                 if any(c.video_stream is not None for c in members):
                     self.scheduler.video_shown(key, version, time.monotonic())
                     if not key.rest:  # its rest still is due if nothing changes until then
                         self.mark_dirty_later(self.settings.rest_after_s + 0.01)
+        if plan.come_back_in == 0.0 and not drew:
+            return  # views left for the next pass, but nothing could be drawn: the session
+            # marks the loop dirty when it can (layers evaluated, a new frame)
         if plan.come_back_in is not None:  # the full-quality still once the interaction pauses
             asyncio.get_running_loop().call_later(plan.come_back_in, self.mark_dirty)
 

@@ -227,3 +227,26 @@ def test_without_viewers_nothing_is_rendered_and_no_frame_is_taken(tmp_path: Pat
         await settle(lambda: bool(images(a)))
 
     run(body, tmp_path)
+
+
+def test_views_a_pass_leaves_render_in_the_passes_that_follow_at_once(tmp_path: Path) -> None:
+    """`view_groups_per_pass` (3): five viewers each on a camera of their own get one image
+    each from one change, three in the first pass and two right after, and a pass that can
+    draw nothing (layers still being evaluated) does not come straight back and spin."""
+
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        viewers = [client(f"v{i}", "viewer") for i in range(5)]
+        for i, v in enumerate(viewers):
+            v.view = p.View(camera=p.Camera(distance=50.0 + i), width=40, height=30)
+            host.clients[v.client_id] = v
+        loop.mark_dirty()
+        await settle(lambda: all(images(v) for v in viewers))
+        assert len(backend.requests) == 5 and len(host.taken) == 2  # two passes
+        host.version = 2
+        host.drawable = False
+        loop.mark_dirty()
+        await settle(lambda: len(host.taken) == 3)
+        await quiet()
+        assert len(host.taken) == 3  # one pass that drew nothing, not one after another
+
+    run(body, tmp_path)
