@@ -159,8 +159,8 @@ class ServerSettings:
     """Wall time of one evaluation in a selection worker; past it the worker is killed."""
     selection_seconds_per_min: float = 30.0
     """Selection-worker time one client (its role and address, all its connections) may use in
-    any minute for the selections it types; past it they are answered with this limit until the
-    time is earned back."""
+    any minute for the selections it types and the layers of its REST renders; past it they are
+    answered with this limit until the time is earned back."""
     selection_memory_bytes: int = 4 << 30
     """Address space of one selection worker process."""
     selection_workers: int = 2

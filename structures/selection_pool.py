@@ -547,7 +547,9 @@ class InProcess:
         positions_key: Hashable | None = None,
         counts: bool = False,
         strict: bool = False,
+        owner: Hashable | None = None,
     ) -> Future[list[Result]]:
+        """As `Held.submit` (nobody's time is counted here)."""
         done: Future[list[Result]] = Future()
         found = self.selector.evaluate(list(texts), positions, box, strict=strict)
         out: list[Result] = [

@@ -79,6 +79,7 @@ class Selections(Protocol):
         positions_key: Hashable | None = None,
         counts: bool = False,
         strict: bool = False,
+        owner: Hashable | None = None,
     ) -> Future[list[Result]]: ...
 
     def submit_secondary(
@@ -95,14 +96,16 @@ class FrameLayers:
         topology: p.Topology,
         selections: Selections | None,
         reference: npt.NDArray[np.float32] | None = None,
+        owner: Hashable | None = None,
     ) -> None:
         """`selections`: where they are evaluated (None only for parameters without layers).
         `reference`: the positions secondary structure is assigned at (the job's reference
         frame, so every chunk of a distributed job draws the same helices); else the first
-        frame asked for."""
+        frame asked for. `owner`: the client whose selection-worker time the layers use."""
         self.params = params
         self.topology = topology
         self.selections = selections
+        self.owner = owner
         self._reference = reference
         self._codes: npt.NDArray[np.uint8] | None = None
         self._static: dict[str, npt.NDArray[np.int32]] = {}
@@ -158,7 +161,9 @@ class FrameLayers:
         assert self.selections is not None, "layers need somewhere to evaluate them"
         key = frame_key if isinstance(frame_key, Hashable) else None
         # a frame is drawn whole or not at all: nothing runs if any layer is refused
-        return self.selections.submit(texts, positions, box, positions_key=key, strict=True)
+        return self.selections.submit(
+            texts, positions, box, positions_key=key, strict=True, owner=self.owner
+        )
 
     def _submit_codes(self, positions: npt.NDArray[np.float32]) -> Future[npt.NDArray[np.uint8]]:
         assert self.selections is not None

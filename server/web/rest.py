@@ -20,7 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, UploadFile
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
@@ -229,6 +229,7 @@ def check_size(state: AppState, width: int, height: int) -> None:
     summary="Render one image of an uploaded structure, a dataset, or a live session",
 )
 async def render_image(
+    http: Request,
     state: State,
     role: Annotated[p.Role, Depends(render_access)],
     file: Annotated[UploadFile | None, File(description="PDB, mmCIF, GRO or XYZ")] = None,
@@ -292,13 +293,23 @@ async def render_image(
     render_params = await asyncio.to_thread(
         opening_params, render_params or p.RenderParams(), topology
     )
+    owner = (role, http.client.host if http.client else "")
+    if render_params.layers:
+        used, allowed = state.selections.used_s(owner), state.settings.selection_seconds_per_min
+        if used >= allowed:
+            raise HTTPException(
+                429,
+                f"your layers' selections took {used:.0f} s of the server's selection workers "
+                f"in the last minute (selection_seconds_per_min: {allowed:g}); wait a little",
+                headers={"Retry-After": "10"},
+            )
     own = held is None and (bool(render_params.layers) or needs_selections(render_params))
     if own:
         held = state.selections.hold(topology)
     slot = f"rest:{uuid.uuid4().hex}"
     try:
         try:  # evaluated by a selection worker (priced first, bounded in time and memory)
-            plans = await FrameLayers(render_params, topology, held).plans_async(
+            plans = await FrameLayers(render_params, topology, held, owner=owner).plans_async(
                 positions, frame_key, box
             )
         except LayerError as exc:

@@ -1304,6 +1304,50 @@ def test_a_job_with_a_costly_layer_fails_naming_the_limit(crowded_server: Server
     assert "selection_max_pairs" in str(info["error"])
 
 
+def test_one_clients_costly_selections_leave_the_workers_to_others(tmp_path: Path) -> None:
+    """Round three: one viewer kept the selection worker busy with selections priced under the
+    limit that ran 7-10 s each, and another client's `select` waited 13 s. Each client (a role
+    at an address, all its connections and its REST renders together) now has
+    `selection_seconds_per_min` of worker time; past it, it is told so, and others go on."""
+    server = ServerProcess(tmp_path / "state", "--set", "selection_seconds_per_min=1")
+    try:
+        sim = start_crowded(server, "crowded")
+        greedy = joined(server, "crowded")
+        refused = None
+        for _ in range(40):
+            reply, _seconds = select(greedy, "around 8 index 0:1999")
+            if reply.error:
+                refused = reply
+                break
+        assert refused is not None and "selection_seconds_per_min" in refused.error
+        # the same client on another connection, and through REST, is the same client
+        again = joined_quietly(server, "crowded")
+        reply, _seconds = select(again, "around 8 index 0:1999")
+        assert "selection_seconds_per_min" in reply.error
+        params = '{"layers": [{"selection": "around 3 index 0:9"}]}'
+        r = httpx.post(
+            f"{server.url}/api/render",
+            headers=VIEWER,
+            data={"session": "crowded", "width": "32", "height": "24", "params": params},
+            timeout=60,
+        )
+        assert r.status_code == 429 and "selection_seconds_per_min" in r.text, r.text
+        assert int(r.headers["retry-after"]) >= 1
+        # the control: another client (the steerer) is answered at once
+        steerer = joined(server, "crowded", "steerer")
+        reply, _seconds = select(steerer, "around 8 index 0:1999")
+        assert not reply.error and reply.count, reply
+        for peer in (greedy, again, steerer, sim):
+            peer.close()
+    finally:
+        server.stop()
+
+
+def joined_quietly(server: ServerProcess, name: str) -> Peer:
+    """A viewer of session `name` that has not selected anything (`joined` selects)."""
+    return Peer(server.view_url, "viewer", VIEWER_TOKEN, name)
+
+
 @pytest.fixture(scope="module")
 def backstop_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
     """A server whose estimate lets everything through: what it misses meets the worker's
