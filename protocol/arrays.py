@@ -78,8 +78,8 @@ def _check_wire(arr: WireArray, limits: Limits) -> None:
     if arr.dtype not in ALLOWED_DTYPES:
         raise PydanticCustomError(
             "invalid_array",
-            "dtype {dtype!r} not allowed (one of {allowed})",
-            {"dtype": arr.dtype, "allowed": ", ".join(sorted(ALLOWED_DTYPES))},
+            "dtype {dtype} not allowed (one of {allowed})",
+            {"dtype": repr(arr.dtype), "allowed": ", ".join(sorted(ALLOWED_DTYPES))},
         )
     count = arr.count  # python ints: a declared 10**12 cannot overflow
     cap = limits.max_atoms * 9

@@ -281,6 +281,9 @@ def _limit_resources(limits: ReadLimits) -> None:
 
 
 _OPENERS: dict[str, Callable[..., Any]] = {".gz": gzip.open, ".bz2": bz2.open}
+_PACKED_MAGIC = (b"\x1f\x8b", b"BZh", b"\xfd7zXZ\x00", b"\x28\xb5\x2f\xfd", b"PK\x03\x04")
+"""gzip, bzip2, xz, zstd and zip: content that is itself compressed."""
+_PACKED_SUFFIXES = (".gz", ".bz2", ".xz", ".lzma", ".zst", ".zip")
 
 
 def _prepare(path: str, scratch: str, limits: ReadLimits) -> str:
@@ -292,11 +295,19 @@ def _prepare(path: str, scratch: str, limits: ReadLimits) -> str:
     suffix = os.path.splitext(name)[1].lower()
     opener = _OPENERS.get(suffix)
     if opener is not None:
-        inner = os.path.join(scratch, name[: -len(suffix)] or "file")
+        inner_name = name[: -len(suffix)] or "file"
+        # the cap holds for one layer: a compressed file inside one (x.pdb.gz.gz) would be
+        # inflated again by the reader itself, past it
+        nested = f"{name} holds a compressed file; compress the structure once"
+        if inner_name.lower().endswith(_PACKED_SUFFIXES):
+            raise StructureError(nested)
+        inner = os.path.join(scratch, inner_name)
         written = 0
         try:
             with opener(path, "rb") as src, open(inner, "wb") as dst:
                 while block := src.read(1 << 20):
+                    if written == 0 and block.startswith(_PACKED_MAGIC):
+                        raise StructureError(nested)
                     written += len(block)
                     if written > limits.max_file_bytes:
                         raise StructureError(

@@ -206,7 +206,15 @@ def parse(text: str) -> Any:
     try:
         with _PARSE_LOCK, warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            return mda_selection.Parser.parse(text, {}, periodic=True, sorted=True)
+            tree = mda_selection.Parser.parse(text, {}, periodic=True, sorted=True)
+        if not _all_finite(tree, set()):  # `around nan`: a distance no one can mean
+            at = re.search(r"nan|inf", text, re.IGNORECASE)
+            raise SelectionError(
+                text, "a distance or coordinate is not a finite number", at.start() if at else 0
+            )
+        return tree
+    except SelectionError:
+        raise
     except MDASelectionError as exc:
         raise _named(text, str(exc)) from None
     except RecursionError:
@@ -215,6 +223,25 @@ def parse(text: str) -> Any:
         raise
     except Exception as exc:
         raise _named(text, f"{type(exc).__name__}: {exc}") from None
+
+
+def _all_finite(node: Any, seen: set[int]) -> bool:
+    """Whether every number in a parse tree (cutoffs, radii, points) is finite."""
+    if id(node) in seen:
+        return True
+    seen.add(id(node))
+    for value in vars(node).values() if hasattr(node, "__dict__") else ():
+        if isinstance(value, float | np.floating) and not np.isfinite(value):
+            return False
+        if isinstance(value, np.ndarray) and value.dtype.kind == "f":
+            if not np.isfinite(value).all():
+                return False
+        elif isinstance(value, list | tuple):
+            if not all(_all_finite(v, seen) for v in value if hasattr(v, "apply")):
+                return False
+        elif hasattr(value, "apply") and not _all_finite(value, seen):
+            return False
+    return True
 
 
 def _named(text: str, raw: str) -> SelectionError:

@@ -50,6 +50,13 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
         "--allow-origin", action="append", default=[], help="extra WebSocket Origin to accept"
     )
     ap.add_argument(
+        "--trusted-proxy",
+        action="append",
+        default=[],
+        help="address of a reverse proxy whose X-Forwarded-For names the client (repeat for "
+        "several; none by default: a client's address is its connection's)",
+    )
+    ap.add_argument(
         "--encode-workers",
         type=int,
         default=None,
@@ -151,6 +158,7 @@ def settings_from(args: argparse.Namespace) -> ServerSettings:
         "data_dir": args.data_dir,
         "state_dir": args.state_dir,
         "allowed_origins": tuple(args.allow_origin),
+        "trusted_proxies": tuple(args.trusted_proxy),
     }
     saved_token, saved_viewer = persistent_tokens(args.state_dir, renew=args.new_tokens)
     kwargs["token"] = args.token or saved_token
@@ -206,6 +214,10 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
         ws_ping_timeout=20.0,
         # frames are raw floats and images are JPEG: deflate costs CPU and saves nothing
         ws_per_message_deflate=False,
+        # a client's address is the socket's unless a configured proxy forwards it: rate limits
+        # and budgets follow it (uvicorn would believe any loopback client's X-Forwarded-For)
+        proxy_headers=bool(settings.trusted_proxies),
+        forwarded_allow_ips=",".join(settings.trusted_proxies) or None,
         lifespan="on",
         # a shutdown never waits on a client for more than this (open dashboards included)
         timeout_graceful_shutdown=5,

@@ -10,13 +10,42 @@ that leaves takes its forces with it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 import protocol as p
 from protocol.forces import cap_forces
+
+if TYPE_CHECKING:
+    from server.render.boxes import Shown
+
+
+class Positions(Protocol):
+    """Atom positions a spring reads one atom at a time (an array, or `DisplayedAtoms`)."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, atom: int) -> Any: ...
+
+
+class DisplayedAtoms:
+    """A frame as sent, each atom read in the displayed frame by the last display's rigid
+    motion (`Shown.to_display`): only the pulled atoms are moved, not the whole frame. An atom
+    the display wrapped into the box differs by a box vector, which the spring's nearest image
+    takes away."""
+
+    def __init__(self, raw: npt.NDArray[np.float32], shown: Shown) -> None:
+        self.raw = raw
+        self.shown = shown
+
+    def __len__(self) -> int:
+        return len(self.raw)
+
+    def __getitem__(self, atom: int) -> npt.NDArray[np.float64]:
+        return self.shown.to_display(np.asarray(self.raw[atom], dtype=np.float64))
+
 
 DEFAULT_MAX_FORCE = 1000.0
 """kJ/mol/A on one atom, for script forces (a pull carries its own `max_force`)."""
@@ -115,7 +144,7 @@ class ForceBook:
         return [pull for _, pull in self.pulls.values()]
 
     def merged(
-        self, positions: npt.NDArray[np.float32] | None, box: npt.NDArray[Any] | None = None
+        self, positions: Positions | None, box: npt.NDArray[Any] | None = None
     ) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.float32]]:
         """The complete set to send: atom indices (sorted) and the summed force on each, every
         script force capped at `max_force` and every atom's total capped at the larger of that

@@ -48,7 +48,7 @@ from server.render.layerplan import LayerPlan, visible_atoms
 from server.session.clients import Client
 from server.session.delivery import Delivery
 from server.session.engine_limits import check_control, check_pull, check_sim_params
-from server.session.forces import ForceBook
+from server.session.forces import DisplayedAtoms, ForceBook, Positions
 from server.session.layers import LayerBook
 from server.session.periodic import PeriodicFrames
 from server.session.render_loop import RenderLoop, Scene
@@ -405,6 +405,8 @@ class Session:
             observables=dict(frame.observables),
         )
         self.services.metrics.sim_frames.inc()
+        if self.forces.springs:  # from every frame: a spring that lags its atom pumps energy in
+            self._send_forces()
         if self.clients:
             self._frame_taken.clear()  # taken by the render that draws it, once displayed
         if needs_display(self.render_params, self.box):
@@ -441,8 +443,6 @@ class Session:
         if self.camera is None:
             self._fit_camera()
         self.version += 1
-        if self.forces.springs:
-            self._send_forces()
         if shown is not None or self._cell_sent is not None:
             self._report(time.monotonic())  # markers and the cell as displayed now
         self.mark_dirty()
@@ -806,12 +806,16 @@ class Session:
             )
 
     def _merged_forces(self) -> p.Forces:
-        # before its first frame is displayed (the periodic steps wait for the selection
-        # worker) a session pulls from the frame as sent, in the engine's own frame
-        shown_yet = self.positions is not None
-        shown = self.shown if shown_yet else None
+        # springs follow the newest frame as sent, taken into the displayed frame (where the
+        # targets are given) by the last display's transform; before a first display (the
+        # periodic steps wait for the selection worker) they pull in the engine's own frame
+        shown = self.shown if self.positions is not None else None
         box = (shown.cell[1] if shown.cell is not None else None) if shown else usable_box(self.box)
-        idx, forces = self.forces.merged(self.positions if shown_yet else self.raw_positions, box)
+        raw = self.raw_positions
+        at: Positions | None = self.positions if raw is None else raw
+        if raw is not None and shown is not None:
+            at = DisplayedAtoms(raw, shown)
+        idx, forces = self.forces.merged(at, box)
         if shown is not None and len(forces):
             # given in the displayed frame: a fit rotated it (F_engine = R^T F_displayed)
             forces = (np.asarray(forces, dtype=np.float64) @ shown.rotation).astype(np.float32)

@@ -22,6 +22,9 @@ Send = Callable[[Any], Awaitable[None]]
 
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 """Methods that change nothing on this server; every other one is checked for its Origin."""
+CLOSE = {"Connection": "close"}
+"""Sent with a refusal that comes before the request's body is read: the connection closes,
+where kept open the server would read (and throw away) the rest of a body it refused."""
 
 
 class UploadLimit:
@@ -64,11 +67,10 @@ class UploadLimit:
         has_body = declared > 0 or b"transfer-encoding" in headers
 
         async def closing(message: Any) -> None:
-            # a refusal sent before the body is in closes the connection: kept open, the
-            # server would read (and throw away) all the rest of a body it refused
+            # a refusal sent before the body is in closes the connection (`CLOSE`)
             start = message["type"] == "http.response.start"
             if start and has_body and not ended and message["status"] >= 400:
-                close = [(b"connection", b"close")]
+                close = [(b"connection", b"close")]  # CLOSE
                 message = {**message, "headers": [*message.get("headers", []), *close]}
             await send(message)
 
@@ -100,9 +102,7 @@ class UploadLimit:
         except _SpoolFullError as exc:
             await _spool_full(exc.detail)(scope, receive, send)
         except _BodyStalledError as exc:
-            await PlainTextResponse(exc.detail, 408, headers={"Connection": "close"})(
-                scope, receive, send
-            )
+            await PlainTextResponse(exc.detail, 408, headers=CLOSE)(scope, receive, send)
         finally:
             spool.give_back(held, viewer)
 
@@ -111,12 +111,12 @@ def _too_large(limit: int) -> PlainTextResponse:
     return PlainTextResponse(
         f"request body exceeds the upload limit of {limit} bytes",
         413,
-        headers={"Connection": "close"},  # the rest of the body is not read
+        headers=CLOSE,
     )
 
 
 def _spool_full(reason: str) -> PlainTextResponse:
-    return PlainTextResponse(reason, 503, headers={"Retry-After": "5", "Connection": "close"})
+    return PlainTextResponse(reason, 503, headers={"Retry-After": "5", **CLOSE})
 
 
 class _BodyTooLargeError(HTTPException):
@@ -140,7 +140,7 @@ class _BodyStalledError(HTTPException):
         super().__init__(
             408,
             f"the request's body stopped arriving for {timeout:g} s (body_timeout_s)",
-            headers={"Connection": "close"},
+            headers=CLOSE,
         )
 
 
@@ -160,7 +160,8 @@ class HostCheck:
                         {"type": "websocket.close", "code": 1008, "reason": "host not allowed"}
                     )
                     return
-                await PlainTextResponse(f"host {host!r} not allowed", 403)(scope, receive, send)
+                refusal = PlainTextResponse(f"host {host!r} not allowed", 403, headers=CLOSE)
+                await refusal(scope, receive, send)
                 return
         await self.app(scope, receive, send)
 
@@ -187,7 +188,7 @@ class OriginCheck:
                     f"origin {text!r} may not {scope['method']} on this server: only its own "
                     "pages and --allow-origin origins may change its state"
                 )
-                await JSONResponse({"detail": detail}, 403)(scope, receive, send)
+                await JSONResponse({"detail": detail}, 403, headers=CLOSE)(scope, receive, send)
                 return
         await self.app(scope, receive, send)
 

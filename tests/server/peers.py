@@ -30,8 +30,9 @@ class Peer:
         hello: bool = True,
         instance: str | None = None,
         takeover: bool = False,
+        headers: dict[str, str] | None = None,
     ) -> None:
-        headers = {"Origin": origin} if origin else None
+        headers = {**({"Origin": origin} if origin else {}), **(headers or {})} or None
         # entered as a context manager (the supported form); `close()` closes it
         self.ws: ClientConnection = connect(
             url,

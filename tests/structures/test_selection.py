@@ -16,6 +16,7 @@ from structures.selection import (
     check_syntax,
     default_layers,
     is_dynamic,
+    parse,
     polymer_atoms,
     solvent_atoms,
 )
@@ -183,3 +184,17 @@ def test_secondary_structure_is_mdanalysis_dssp_per_atom() -> None:
     for residue, code in zip(residues, want, strict=True):
         assert (codes[residue.atoms.indices] == code).all()
     assert (want == 1).sum() > 50 and (want == 2).sum() > 20  # adk: helices and a sheet
+
+
+@pytest.mark.parametrize(
+    ("text", "at"),
+    [("around nan name CA", 7), ("around inf name CA", 7), ("point 1 2 nan 3", 10)],
+)
+def test_a_number_that_is_not_finite_is_refused_by_name(text: str, at: int) -> None:
+    """`around nan` answered "ValueError: cannot convert float NaN to integer" (the pricing's
+    arithmetic), `around inf` an OverflowError."""
+    with pytest.raises(SelectionError) as info:
+        parse(text)
+    assert info.value.reason == "a distance or coordinate is not a finite number"
+    assert info.value.position == at
+    parse("around 5 name CA")  # the control

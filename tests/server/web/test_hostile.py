@@ -263,6 +263,86 @@ def test_a_gzip_bomb_through_the_viewer_link_is_refused_before_it_is_parsed(
         assert r.status_code == 200
 
 
+def test_a_compressed_file_inside_a_compressed_file_is_refused_unread(
+    server: ServerProcess,
+) -> None:
+    """Round three: x.pdb.gz.gz (1.4 MiB, 400 MiB inside) was answered 200 after 20 s of a
+    reader: the decompressed-size cap held for the outer layer only. Nested compression is
+    refused by name, whatever the inner file is called."""
+    inner = gzip.compress(Path(PDB_small).read_bytes(), 9)
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        for name in ("x.pdb.gz.gz", "x.pdb.gz"):  # by the name, and by the content
+            started = time.monotonic()
+            r = c.post(
+                "/api/render",
+                headers=AUTH,
+                files={"file": (name, gzip.compress(inner))},
+                data={"width": "32", "height": "24"},
+            )
+            assert r.status_code == 422, r.text
+            assert "holds a compressed file" in r.json()["detail"], r.text
+            assert time.monotonic() - started < 10
+        # the control: the same structure compressed once is read
+        r = c.post(
+            "/api/render",
+            headers=AUTH,
+            files={"file": ("x.pdb.gz", inner)},
+            data={"width": "32", "height": "24"},
+        )
+        assert r.status_code == 200, r.text
+
+
+def test_a_client_cannot_name_its_own_address(tmp_path: Path) -> None:
+    """Round three: uvicorn believed any loopback client's X-Forwarded-For, so each connection
+    could name an address of its own and get fresh rate limits and budgets (6x the steering
+    limit; a spent selection budget back at once). A client is its connection's address unless
+    a --trusted-proxy forwards it."""
+    server = ServerProcess(tmp_path / "state", "--set", "selection_seconds_per_min=0.2")
+    try:
+        sim = start_crowded(server, "crowded")
+        greedy = joined(server, "crowded")
+        for _ in range(60):
+            reply, _seconds = select(greedy, "around 8 index 0:1999")
+            if reply.error:
+                break
+        assert "selection_seconds_per_min" in reply.error
+        forged = Peer(
+            server.view_url, "viewer", VIEWER_TOKEN, "crowded",
+            headers={"X-Forwarded-For": "10.9.9.7"},
+        )  # fmt: skip
+        reply, _seconds = select(forged, "around 8 index 0:1999")
+        assert "selection_seconds_per_min" in reply.error  # the same client, still spent
+        for peer in (forged, greedy, sim):
+            peer.close()
+    finally:
+        server.stop()
+
+
+def test_a_page_of_another_origin_is_refused_without_its_body_being_read(
+    server: ServerProcess,
+) -> None:
+    """Round three: a POST with a foreign Origin got its 403 at once, but the server then read
+    the whole body (3 GiB past a 512 MiB limit, no token needed): a page could make a user's
+    browser send it. The refusal now closes the connection, as the other refusals do."""
+    sock = partial_request(
+        server.port,
+        "/api/render",
+        {"Origin": "http://evil.example"},
+        3 << 30,
+        file_part("a.pdb", 65536),
+    )
+    status, headers, body = read_response(sock, 10.0)
+    assert status == 403 and "evil.example" in body
+    assert headers["connection"] == "close"
+    sock.settimeout(10.0)
+    try:
+        assert sock.recv(1) == b""
+    except ConnectionResetError:
+        pass  # closed with the unread part of the body still in its buffer
+    finally:
+        sock.close()
+
+
 # ---------------------------------------------------------------- REST (item 8)
 
 

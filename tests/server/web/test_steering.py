@@ -152,6 +152,30 @@ def test_script_forces_and_pulls_reach_the_engine_as_one_set(live_server: LiveSe
     script.close()
 
 
+def test_a_spring_follows_every_frame_not_only_the_displayed_ones(live_server: LiveServer) -> None:
+    """Round three: a pull's spring was recomputed only from the frames the server displayed
+    (132 updates for 7,896 frames of a fast OpenMM run): the force lagged its atom by hundreds
+    of steps, pointed away from the target, flung the atom and blew the run up. Every frame
+    that comes now sends the spring's force computed from that frame, in the displayed frame
+    (a periodic box, molecules put in the box: the default display)."""
+    sim, steerer, pos = connect(live_server, "spring")
+    box = p.WireArray.from_numpy(np.diag([30.0, 30.0, 30.0]).astype(np.float32), "<f4")
+    steerer.send(p.Pull(atom=0, target=(5.0, 5.0, 5.0), spring_k=1.0, max_force=1000.0))
+    sim.expect(p.Forces)
+    n = 60
+    for step in range(1, n + 1):  # a burst, faster than the display takes frames
+        moved = pos.copy()
+        moved[0] = (float(step) * 0.1, 5.0, 5.0)
+        message = frame(moved, step)
+        sim.send(message.model_copy(update={"box": box}))
+    got = [forces_of(sim.expect(p.Forces, 30))[0] for _ in range(n)]
+    # one per frame, each from its own frame: the spring's x falls as the atom nears x = 5
+    expected = [round(5.0 - 0.1 * step, 4) for step in range(1, n + 1)]
+    assert [round(f[0], 4) for f in got] == expected
+    sim.close()
+    steerer.close()
+
+
 def test_a_fast_small_simulation_is_never_throttled(live_server: LiveServer) -> None:
     sim = Peer(live_server.ws_url, "simulation", live_server.token, "fast")
     topo, pos = molecule(4)
