@@ -155,6 +155,56 @@ class _Task:
     """Whose worker time it uses (`PoolLimits.owner_seconds_per_min`)."""
 
 
+class FairQueue:
+    """A worker's waiting requests, served one owner after another (round robin) rather than in
+    arrival order: one client's requests queued together wait behind each other, not in front
+    of everyone else's. Requests of no owner (layers of a session, jobs) are one owner of their
+    own; `None` (stop) goes to the front."""
+
+    def __init__(self) -> None:
+        self._lanes: OrderedDict[Hashable, deque[_Task]] = OrderedDict()
+        self._stop = False
+        self._size = 0
+        self._ready = threading.Condition()
+
+    def qsize(self) -> int:
+        return self._size
+
+    def put(self, task: _Task | None) -> None:
+        with self._ready:
+            if task is None:
+                self._stop = True
+            else:
+                self._lanes.setdefault(task.owner, deque()).append(task)
+                self._size += 1
+            self._ready.notify()
+
+    def get(self) -> _Task | None:
+        with self._ready:
+            while not self._stop and not self._size:
+                self._ready.wait()
+            return self._next()
+
+    def get_nowait(self) -> _Task | None:
+        """The next request; raises queue.Empty when none waits."""
+        with self._ready:
+            if not self._size:
+                raise queue.Empty
+            return self._next()
+
+    def _next(self) -> _Task | None:
+        if self._stop:
+            self._stop = False
+            return None
+        owner, lane = next(iter(self._lanes.items()))
+        task = lane.popleft()
+        del self._lanes[owner]
+        if lane:  # its next request goes behind every other owner's
+            self._lanes[owner] = lane
+        self._size -= 1
+        return task
+
+
 class SelectionPool:
     """Worker processes that evaluate selections under `limits`."""
 
@@ -220,7 +270,7 @@ class _Worker:
         self.limits = pool.limits
         self.assigned = 0
         """Atoms of the live topologies given to this worker."""
-        self._queue: queue.Queue[_Task | None] = queue.Queue()
+        self._queue = FairQueue()
         self._process: subprocess.Popen[bytes] | None = None
         self._conn: multiprocessing.connection.Connection | None = None
         self._loaded: OrderedDict[int, int] = OrderedDict()

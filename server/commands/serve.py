@@ -222,7 +222,7 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
         # a shutdown never waits on a client for more than this (open dashboards included)
         timeout_graceful_shutdown=5,
     )
-    accesslog.install()  # after the config set uvicorn's logging up
+    accesslog.install((settings.token, settings.viewer_token))  # after uvicorn's logging set-up
     return config
 
 

@@ -73,6 +73,11 @@ class Plan:
     come_back_in: float | None = None
 
 
+def _steered(members: list[Client]) -> bool:
+    """Whether a steerer is among a view's members."""
+    return any(c.role == "steerer" for c in members)
+
+
 @dataclass
 class FrameCost:
     """What one pixel costs to render on this device (an exponential moving average of
@@ -156,18 +161,19 @@ class RenderScheduler:
         default_camera: p.Camera | None,
     ) -> Plan:
         """The groups due for a render of `version`; a group is due when it has not drawn that
-        version yet or a member needs an image. At most `view_groups_per_pass` of them, those
-        with a steerer first, then the longest unserved (the others stay due: the plan says to
-        come back at once). Members are marked served here (a view that arrives during the
-        render marks its client again)."""
+        version yet or a member needs an image. Every view a steerer is in, then at most
+        `viewer_views_per_pass` others, the longest unserved first (the rest stay due: the plan
+        says to come back at once). Members are marked served here (a view that arrives during
+        the render marks its client again)."""
         due: list[tuple[ViewKey, list[Client]]] = []
         interactive = False
         refine_in: float | None = None
         more = False
-        cap = self.settings.view_groups_per_pass
+        cap = self.settings.viewer_views_per_pass
         for key, members in self._by_priority(self.groups(clients, now, default_camera)):
             interactive = interactive or key.interactive
-            if len(due) >= cap:  # left for the next pass, untouched
+            others = sum(1 for _, planned in due if not _steered(planned))
+            if not _steered(members) and others >= cap:  # left for the next pass, untouched
                 more = more or self._due(key, members, version)
                 continue
             if self._rendered.get(key) == version and not any(c.needs_image for c in members):
@@ -214,8 +220,7 @@ class RenderScheduler:
 
         def rank(item: tuple[ViewKey, list[Client]]) -> tuple[bool, float]:
             members = item[1]
-            steered = any(c.role == "steerer" for c in members)
-            return (not steered, min(c.served_at for c in members))
+            return (not _steered(members), min(c.served_at for c in members))
 
         return sorted(groups.items(), key=rank)
 

@@ -5,7 +5,7 @@ uvicorn writes every request's path and query to its access log (and every WebSo
 to its error log), where anyone who reads the logs would find a token that grants every role.
 `RedactTokens` replaces the value of every query parameter whose name holds `token` before a
 record is formatted, the name read as the server reads it (percent-decoded: `?tok%65n=` is a
-token too).
+token too), and the server's own tokens wherever else they appear (`/api/sessions/<token>`).
 """
 
 from __future__ import annotations
@@ -20,31 +20,44 @@ LOGGERS = ("uvicorn.access", "uvicorn.error")
 """uvicorn's request lines (HTTP) and handshake lines (WebSocket)."""
 
 
-def redact(text: str) -> str:
-    """`text` with the values of `token` query parameters replaced."""
+def redact(text: str, secrets: tuple[str, ...] = ()) -> str:
+    """`text` with the values of `token` query parameters replaced, and `secrets` (the server's
+    own tokens) wherever else they appear (a client that put one in a path)."""
 
     def value(m: re.Match[str]) -> str:
         if "token" in unquote_plus(m.group(2)).lower():
             return f"{m.group(1)}{m.group(2)}={REDACTED}"
         return m.group(0)
 
-    return _PARAM.sub(value, text)
+    text = _PARAM.sub(value, text)
+    for secret in secrets:
+        text = text.replace(secret, REDACTED)
+    return text
 
 
 class RedactTokens(logging.Filter):
     """Replaces tokens in a record's message and arguments (it never drops a record)."""
 
+    def __init__(self, secrets: tuple[str, ...] = ()) -> None:
+        super().__init__()
+        self.secrets = tuple(s for s in secrets if s)
+
     def filter(self, record: logging.LogRecord) -> bool:
         if isinstance(record.msg, str):
-            record.msg = redact(record.msg)
+            record.msg = redact(record.msg, self.secrets)
         if isinstance(record.args, tuple):
-            record.args = tuple(redact(a) if isinstance(a, str) else a for a in record.args)
+            record.args = tuple(
+                redact(a, self.secrets) if isinstance(a, str) else a for a in record.args
+            )
         return True
 
 
-def install() -> None:
-    """Add the filter to uvicorn's loggers (once; after uvicorn configured its logging)."""
+def install(secrets: tuple[str | None, ...] = ()) -> None:
+    """Add the filter to uvicorn's loggers (after uvicorn configured its logging); `secrets`:
+    the tokens, redacted wherever they appear."""
+    known = tuple(s for s in secrets if s)
     for name in LOGGERS:
         logger = logging.getLogger(name)
-        if not any(isinstance(f, RedactTokens) for f in logger.filters):
-            logger.addFilter(RedactTokens())
+        for old in [f for f in logger.filters if isinstance(f, RedactTokens)]:
+            logger.removeFilter(old)
+        logger.addFilter(RedactTokens(known))

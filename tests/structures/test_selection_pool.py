@@ -5,6 +5,7 @@ follows; workers end with the process that started them, also when it is killed.
 from __future__ import annotations
 
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -18,7 +19,13 @@ import pytest
 
 from structures.selection import SelectionError, Selector
 from structures.selection_cost import SelectionLimits
-from structures.selection_pool import PoolLimits, SelectionBusyError, SelectionPool
+from structures.selection_pool import (
+    FairQueue,
+    PoolLimits,
+    SelectionBusyError,
+    SelectionPool,
+    _Task,
+)
 from tests.structures.test_selection_cost import backbone
 
 pytest.importorskip("MDAnalysis")
@@ -152,6 +159,26 @@ def test_one_owners_costly_selections_cannot_hold_the_worker_from_others() -> No
         assert shared.used_s("greedy", now=time.monotonic() + 61.0) == 0.0
     finally:
         shared.close()
+
+
+def test_waiting_requests_are_served_one_owner_after_another() -> None:
+    """Three selections a greedy client queued together had kept a steerer's one waiting behind
+    all three (22-45 s for a layer change): each owner now takes its turn."""
+    waiting = FairQueue()
+    held = object()
+    tasks = [_Task("select", held, (name,), None, owner=owner) for name, owner in
+             [("g1", "greedy"), ("g2", "greedy"), ("g3", "greedy"), ("s1", "steerer"),
+              ("n1", None)]]  # fmt: skip
+    for task in tasks:
+        waiting.put(task)
+    assert waiting.qsize() == 5
+    order = [waiting.get().args[0] for _ in range(5)]  # type: ignore[union-attr]
+    assert order == ["g1", "s1", "n1", "g2", "g3"]
+    with pytest.raises(queue.Empty):
+        waiting.get_nowait()
+    waiting.put(tasks[0])
+    waiting.put(None)  # a stop goes first
+    assert waiting.get() is None and waiting.get() is tasks[0]
 
 
 PARENT = textwrap.dedent(

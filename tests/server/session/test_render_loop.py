@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +23,9 @@ from server.settings import ServerSettings
 from tests.server.peers import molecule
 from tests.server.session.fakes import PaintBackend, client, run_on_own_loop, sent, services
 
-SETTINGS = ServerSettings(token="t", default_size=(40, 30), stats_interval_s=60.0)
+SETTINGS = ServerSettings(
+    token="t", default_size=(40, 30), stats_interval_s=60.0, viewer_views_per_pass=64
+)
 
 
 @dataclass
@@ -75,7 +77,13 @@ class FailingOnce(PaintBackend):
 Body = Callable[[RenderLoop, Host, PaintBackend], Coroutine[Any, Any, None]]
 
 
-def run(body: Body, tmp: Path, backend: PaintBackend | None = None, slots: int = 2) -> None:
+def run(
+    body: Body,
+    tmp: Path,
+    backend: PaintBackend | None = None,
+    slots: int = 2,
+    settings: ServerSettings = SETTINGS,
+) -> None:
     async def main() -> None:
         back = backend or PaintBackend()
         svc = services(tmp, back, slots)
@@ -83,7 +91,7 @@ def run(body: Body, tmp: Path, backend: PaintBackend | None = None, slots: int =
         host = Host(topo, pos.astype(np.float32))
         delivery = Delivery("s", svc)
         loop = RenderLoop(
-            host, "s", "session:s", SETTINGS, svc, RenderScheduler(SETTINGS), delivery
+            host, "s", "session:s", settings, svc, RenderScheduler(settings), delivery
         )
         task = loop.start()
         try:
@@ -230,9 +238,9 @@ def test_without_viewers_nothing_is_rendered_and_no_frame_is_taken(tmp_path: Pat
 
 
 def test_views_a_pass_leaves_render_in_the_passes_that_follow_at_once(tmp_path: Path) -> None:
-    """`view_groups_per_pass` (3): five viewers each on a camera of their own get one image
-    each from one change, three in the first pass and two right after, and a pass that can
-    draw nothing (layers still being evaluated) does not come straight back and spin."""
+    """`viewer_views_per_pass` (1): five viewers each on a camera of their own get one image
+    each from one change, one pass after another, and a pass that can draw nothing (layers
+    still being evaluated) does not come straight back and spin."""
 
     async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
         viewers = [client(f"v{i}", "viewer") for i in range(5)]
@@ -241,12 +249,12 @@ def test_views_a_pass_leaves_render_in_the_passes_that_follow_at_once(tmp_path: 
             host.clients[v.client_id] = v
         loop.mark_dirty()
         await settle(lambda: all(images(v) for v in viewers))
-        assert len(backend.requests) == 5 and len(host.taken) == 2  # two passes
+        assert len(backend.requests) == 5 and len(host.taken) == 5  # five passes
         host.version = 2
         host.drawable = False
         loop.mark_dirty()
-        await settle(lambda: len(host.taken) == 3)
+        await settle(lambda: len(host.taken) == 6)
         await quiet()
-        assert len(host.taken) == 3  # one pass that drew nothing, not one after another
+        assert len(host.taken) == 6  # one pass that drew nothing, not one after another
 
-    run(body, tmp_path)
+    run(body, tmp_path, settings=replace(SETTINGS, viewer_views_per_pass=1))

@@ -13,7 +13,11 @@ from server.settings import ServerSettings
 from tests.server.session.fakes import client
 
 SETTINGS = ServerSettings(
-    token="t", default_size=(200, 100), interactive_idle_s=0.15, interactive_scale=0.5
+    token="t",
+    default_size=(200, 100),
+    interactive_idle_s=0.15,
+    interactive_scale=0.5,
+    viewer_views_per_pass=64,
 )
 
 
@@ -202,10 +206,9 @@ def test_a_hold_that_is_not_a_duration_is_refused_by_name() -> None:
 
 def test_viewers_with_cameras_of_their_own_take_turns_and_never_hold_up_the_steerer() -> None:
     """40 viewers, each with its own camera, made every frame of their session wait for 40
-    renders: its steerer went from 9.5 to 0.27 images/s. A pass now renders at most
-    `view_groups_per_pass` views, the steerer's first, the viewers in turn."""
-    settings = replace(SETTINGS, view_groups_per_pass=3)
-    s = RenderScheduler(settings)
+    renders: its steerer went from 9.5 to 0.27 images/s. A pass now renders the steerer's view
+    and `viewer_views_per_pass` others, the viewers in turn."""
+    s = RenderScheduler(replace(SETTINGS, viewer_views_per_pass=2))
     steerer = client("steerer", "steerer")
     crowd = [viewer(f"v{i}", p.Camera(distance=100.0 + i)) for i in range(40)]
     everyone = [*crowd, steerer]
@@ -222,11 +225,17 @@ def test_viewers_with_cameras_of_their_own_take_turns_and_never_hold_up_the_stee
     assert served["steerer"] == 20
     # the viewers in turn: 40 images over 20 passes, each viewer one, none twice
     assert sorted(served.get(c.client_id, 0) for c in crowd) == [1] * 40
+    # two steerers on cameras of their own are both in every pass
+    other = client("other", "steerer")
+    other.view = p.View(camera=p.Camera(distance=7.0), width=200, height=100)
+    plan = s.plan([*everyone, other], 30.0, 30, default_camera=None)
+    assert {steerer, other} <= {c for _, members in plan.groups for c in members}
+    assert len(plan.groups) == 4
     # the control: with room for every view, one pass serves all 41
-    everyone_at_once = RenderScheduler(replace(SETTINGS, view_groups_per_pass=64))
+    everyone_at_once = RenderScheduler(replace(SETTINGS, viewer_views_per_pass=64))
     assert len(everyone_at_once.plan(everyone, 1.0, 1, None).groups) == 41
 
 
 def test_the_views_a_pass_renders_must_be_at_least_one() -> None:
-    with pytest.raises(ValueError, match="view_groups_per_pass"):
-        replace(SETTINGS, view_groups_per_pass=0)
+    with pytest.raises(ValueError, match="viewer_views_per_pass"):
+        replace(SETTINGS, viewer_views_per_pass=0)
