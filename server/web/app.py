@@ -154,7 +154,11 @@ def create_app(settings: ServerSettings) -> FastAPI:
             settings=settings,
             gpu=gpu,
             services=services,
-            sessions=SessionRegistry(new_session, settings.max_sessions),
+            sessions=SessionRegistry(
+                new_session,
+                settings.max_sessions,
+                tuple(t for t in (settings.token, settings.viewer_token) if t),
+            ),
             jobs=JobManager(
                 state_dir / "jobs",
                 gpu,

@@ -116,6 +116,20 @@ class RateLimiter:
         return self.tokens < 0 or self.tokens + (now - self.stamp) * self.rate >= self.burst
 
 
+LOOPBACK_CLIENT = "loopback"
+"""The one address every loopback client is counted as."""
+
+
+def client_address(host: str | None) -> str:
+    """The address a client's rate limits and budgets follow: its connection's, with every
+    loopback address (all of 127.0.0.0/8 and ::1) counted as one, since a local process may
+    bind any of them and would otherwise get a fresh budget from each."""
+    if not host:
+        return ""
+    ip = host[7:] if host.startswith("::ffff:") else host  # IPv4 written as IPv6
+    return LOOPBACK_CLIENT if is_loopback(ip) else host
+
+
 ANY_PER_STEER = 20
 """Other messages (views, picks, pings) a client may send per steering message allowed."""
 

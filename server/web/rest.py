@@ -49,6 +49,7 @@ from server.web.access import (
     steerer_access,
     viewer_access,
 )
+from server.web.auth import client_address
 from server.web.state import AppState
 from structures.errors import StructureError
 from structures.isolated import IsolatedStructure
@@ -293,7 +294,7 @@ async def render_image(
     render_params = await asyncio.to_thread(
         opening_params, render_params or p.RenderParams(), topology
     )
-    owner = (role, http.client.host if http.client else "")
+    owner = (role, client_address(http.client.host if http.client else None))
     if render_params.layers:
         used, allowed = state.selections.used_s(owner), state.settings.selection_seconds_per_min
         if used >= allowed:

@@ -39,6 +39,8 @@ class SessionRegistry:
 
     factory: Callable[[str], Session]
     limit: int
+    secrets: tuple[str, ...] = ()
+    """The server's tokens: no session is named after one (names reach logs and file names)."""
     _sessions: dict[str, Session] = field(default_factory=dict)
     _lock: asyncio.Lock = field(default_factory=asyncio.Lock)
 
@@ -48,6 +50,12 @@ class SessionRegistry:
         if not _SESSION_NAME.match(name):
             raise ProtocolError(
                 ErrorCode.INVALID_MESSAGE, f"invalid session name {name!r}", "hello.session"
+            )
+        if name in self.secrets:
+            raise ProtocolError(
+                ErrorCode.INVALID_MESSAGE,
+                "a session may not be named after a token (its name reaches logs and files)",
+                "hello.session",
             )
         async with self._lock:
             session = self._sessions.get(name)

@@ -28,6 +28,7 @@ from server.web.auth import (
     STEERING_TYPES,
     ClientBudget,
     RateLimiter,
+    client_address,
     grant,
     may_send,
     origin_allowed,
@@ -170,7 +171,7 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
             ws=ws,
             instance=hello.instance,
         )
-        address = ws.client.host if ws.client is not None else ""
+        address = client_address(ws.client.host if ws.client is not None else None)
         budget = state.budgets.take(role, address, limits.max_steer_per_s)
         guard = Guard.of(budget, (role, address))
         client.send(

@@ -295,8 +295,9 @@ def test_a_compressed_file_inside_a_compressed_file_is_refused_unread(
 def test_a_client_cannot_name_its_own_address(tmp_path: Path) -> None:
     """Round three: uvicorn believed any loopback client's X-Forwarded-For, so each connection
     could name an address of its own and get fresh rate limits and budgets (6x the steering
-    limit; a spent selection budget back at once). A client is its connection's address unless
-    a --trusted-proxy forwards it."""
+    limit; a spent selection budget back at once), and a local process could bind another
+    loopback address for the same. A client is its connection's address unless a
+    --trusted-proxy forwards it, and every loopback address is one client."""
     server = ServerProcess(tmp_path / "state", "--set", "selection_seconds_per_min=0.2")
     try:
         sim = start_crowded(server, "crowded")
@@ -312,10 +313,27 @@ def test_a_client_cannot_name_its_own_address(tmp_path: Path) -> None:
         )  # fmt: skip
         reply, _seconds = select(forged, "around 8 index 0:1999")
         assert "selection_seconds_per_min" in reply.error  # the same client, still spent
+        # nor by binding another loopback address (every one of 127.0.0.0/8 reaches the server)
+        params = '{"layers": [{"selection": "around 3 index 0:9"}]}'
+        with httpx.Client(transport=httpx.HTTPTransport(local_address="127.0.0.2")) as other:
+            r = other.post(
+                f"{server.url}/api/render",
+                headers=VIEWER,
+                data={"session": "crowded", "width": "32", "height": "24", "params": params},
+                timeout=60,
+            )
+        assert r.status_code == 429 and "selection_seconds_per_min" in r.text, r.text
         for peer in (forged, greedy, sim):
             peer.close()
+        # a session named after a token would carry it into the logs and file names
+        named = Peer(server.view_url, "steerer", TOKEN, TOKEN, hello=False)
+        named.send(p.Hello(role="steerer", token=TOKEN, client="t", session=TOKEN))
+        refused = named.expect(p.Error, 20)
+        assert "named after a token" in refused.message
+        named.close()
     finally:
         server.stop()
+    assert TOKEN not in server.log.read_text().split("read-only viewer link", 1)[1]
 
 
 def test_a_page_of_another_origin_is_refused_without_its_body_being_read(
