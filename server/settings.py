@@ -167,11 +167,12 @@ class ServerSettings:
     """Selection worker processes (each keeps the universes of the topologies it serves)."""
     session_idle_s: float = 600.0
     viewer_views_per_pass: int = 1
-    """Views without a steerer (distinct cameras and canvas sizes) one pass of a session renders
-    besides every view a steerer is in; the longest unserved go first, the rest in the passes
-    that follow. Viewers each with a camera of their own then share half of the session's
-    renders instead of making every frame wait for one render each (40 such viewers had taken
-    a steerer from 9.5 to 0.27 images/s)."""
+    """In a session with a steerer, the views without one (distinct cameras and canvas sizes)
+    that one pass renders besides every view a steerer is in; the longest unserved go first,
+    the rest in the passes that follow. Viewers each with a camera of their own then share half
+    of the session's renders instead of making every frame wait for one render each (40 such
+    viewers had taken a steerer from 9.5 to 0.27 images/s). Without a steerer, a pass renders
+    every due view from one frame."""
     interactive_idle_s: float = 0.15
     interactive_scale: float = 0.5
     interactive_jpeg_quality: int = 60

@@ -161,19 +161,22 @@ class RenderScheduler:
         default_camera: p.Camera | None,
     ) -> Plan:
         """The groups due for a render of `version`; a group is due when it has not drawn that
-        version yet or a member needs an image. Every view a steerer is in, then at most
-        `viewer_views_per_pass` others, the longest unserved first (the rest stay due: the plan
-        says to come back at once). Members are marked served here (a view that arrives during
-        the render marks its client again)."""
+        version yet or a member needs an image. In a session with a steerer: every view a
+        steerer is in, then at most `viewer_views_per_pass` others, the longest unserved first
+        (the rest stay due: the plan says to come back at once). Members are marked served here
+        (a view that arrives during the render marks its client again)."""
         due: list[tuple[ViewKey, list[Client]]] = []
         interactive = False
         refine_in: float | None = None
         more = False
-        cap = self.settings.viewer_views_per_pass
-        for key, members in self._by_priority(self.groups(clients, now, default_camera)):
+        ordered = self._by_priority(self.groups(clients, now, default_camera))
+        # with a steerer in the session, other views take turns; without, a pass renders
+        # them all from one frame (one upload and grid, the same step in every view)
+        cap = self.settings.viewer_views_per_pass if any(_steered(m) for _, m in ordered) else None
+        for key, members in ordered:
             interactive = interactive or key.interactive
             others = sum(1 for _, planned in due if not _steered(planned))
-            if not _steered(members) and others >= cap:  # left for the next pass, untouched
+            if cap is not None and not _steered(members) and others >= cap:  # left for later
                 more = more or self._due(key, members, version)
                 continue
             if self._rendered.get(key) == version and not any(c.needs_image for c in members):

@@ -238,18 +238,22 @@ def test_without_viewers_nothing_is_rendered_and_no_frame_is_taken(tmp_path: Pat
 
 
 def test_views_a_pass_leaves_render_in_the_passes_that_follow_at_once(tmp_path: Path) -> None:
-    """`viewer_views_per_pass` (1): five viewers each on a camera of their own get one image
-    each from one change, one pass after another, and a pass that can draw nothing (layers
-    still being evaluated) does not come straight back and spin."""
+    """`viewer_views_per_pass` (1): with a steerer in the session, five viewers each on a
+    camera of their own get one image each from one change, one pass after another (the first
+    with the steerer's view), and a pass that can draw nothing (layers still being evaluated)
+    does not come straight back and spin."""
 
     async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        steerer = client("s", "steerer")
         viewers = [client(f"v{i}", "viewer") for i in range(5)]
+        host.clients["s"] = steerer
         for i, v in enumerate(viewers):
             v.view = p.View(camera=p.Camera(distance=50.0 + i), width=40, height=30)
             host.clients[v.client_id] = v
         loop.mark_dirty()
-        await settle(lambda: all(images(v) for v in viewers))
-        assert len(backend.requests) == 5 and len(host.taken) == 5  # five passes
+        await settle(lambda: all(images(v) for v in [steerer, *viewers]))
+        assert len(backend.requests) == 6 and len(host.taken) == 5  # five passes
+        assert backend.requests[0].camera.distance == 40.0  # the steerer's view first
         host.version = 2
         host.drawable = False
         loop.mark_dirty()

@@ -231,6 +231,9 @@ def test_viewers_with_cameras_of_their_own_take_turns_and_never_hold_up_the_stee
     plan = s.plan([*everyone, other], 30.0, 30, default_camera=None)
     assert {steerer, other} <= {c for _, members in plan.groups for c in members}
     assert len(plan.groups) == 4
+    # without a steerer, a pass renders every due view from one frame
+    viewers_only = RenderScheduler(replace(SETTINGS, viewer_views_per_pass=2))
+    assert len(viewers_only.plan(crowd, 1.0, 1, None).groups) == 40
     # the control: with room for every view, one pass serves all 41
     everyone_at_once = RenderScheduler(replace(SETTINGS, viewer_views_per_pass=64))
     assert len(everyone_at_once.plan(everyone, 1.0, 1, None).groups) == 41
