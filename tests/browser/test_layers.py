@@ -76,6 +76,12 @@ def test_a_typed_selection_is_counted_checked_and_drawn(
     page.click("#layer-add")
     wait_until(lambda: len(session(live_server).render_params.layers) == 2, "two layers")
     enter(page, "#layer-1-selection", "resid 13-35")
+    # as a user would: the next field once the panel shows the applied selection's count
+    wait_until(
+        lambda: session(live_server).render_params.layers[1].selection == "resid 13-35",
+        "the second selection was applied",
+    )
+    expect(page.locator("#layer-1-status")).to_contain_text("atoms")
     enter(page, "#layer-1-sigma", "0.6")
     wait_until(lambda: session(live_server).render_params.layers[1].sigma_A == 0.6, "layer 2 sigma")
     page.screenshot(path=str(artifacts / "dashboard-layers.png"))
