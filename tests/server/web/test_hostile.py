@@ -351,14 +351,7 @@ def test_a_page_of_another_origin_is_refused_without_its_body_being_read(
     )
     status, headers, body = read_response(sock, 10.0)
     assert status == 403 and "evil.example" in body
-    assert headers["connection"] == "close"
-    sock.settimeout(10.0)
-    try:
-        assert sock.recv(1) == b""
-    except ConnectionResetError:
-        pass  # closed with the unread part of the body still in its buffer
-    finally:
-        sock.close()
+    assert_closed(sock, headers)
 
 
 # ---------------------------------------------------------------- REST (item 8)
@@ -695,6 +688,19 @@ def read_response(sock: socket.socket, timeout: float) -> tuple[int, dict[str, s
     return int(status.split()[1]), {k.lower(): v for k, v in parsed.items()}, body.decode()
 
 
+def assert_closed(sock: socket.socket, headers: dict[str, str]) -> None:
+    """The response said `Connection: close` and the server closed: it does not read the rest
+    of a body it refused. `sock` is closed then."""
+    assert headers["connection"] == "close"
+    sock.settimeout(10.0)
+    try:
+        assert sock.recv(1) == b""
+    except ConnectionResetError:
+        pass  # closed with the unread part of the body still in its buffer
+    finally:
+        sock.close()
+
+
 def _length(data: bytes) -> int:
     for line in data.split(b"\r\n\r\n", 1)[0].split(b"\r\n"):
         if line.lower().startswith(b"content-length:"):
@@ -756,14 +762,7 @@ def test_uploads_are_refused_from_their_headers_and_spool_into_the_servers_own_f
         status, headers, body = read_response(sock, 10.0)
         assert status == 401 and "token" in body
         # and the connection closes: the server does not read the rest of a refused body
-        assert headers["connection"] == "close"
-        sock.settimeout(10.0)
-        try:
-            assert sock.recv(1) == b""
-        except ConnectionResetError:
-            pass  # closed with the unread part of the body still in its buffer
-        finally:
-            sock.close()
+        assert_closed(sock, headers)
         sock = partial_request(server.port, "/api/jobs", VIEWER, big, file_part("a.pdb", 65536))
         status, _, body = answer(sock)
         assert status == 403 and "server token" in body
