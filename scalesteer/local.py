@@ -14,6 +14,7 @@ import atexit
 import contextlib
 import os
 import secrets
+import signal
 import socket
 import subprocess
 import sys
@@ -39,6 +40,14 @@ def free_port(host: str = "127.0.0.1") -> int:
         return port
 
 
+def _exit_text(code: int) -> str:
+    """`Popen.returncode` in words: a negative one is the signal that ended the process."""
+    if code < 0:
+        with contextlib.suppress(ValueError):
+            return f"killed by {signal.Signals(-code).name}"
+    return f"exit code {code}"
+
+
 class LocalServer:
     """`scalesteer serve` on 127.0.0.1 in a child process that ends with this one.
 
@@ -61,7 +70,12 @@ class LocalServer:
         self.state_dir = Path(
             tempfile.mkdtemp(prefix="scalesteer-") if state_dir is None else state_dir
         )
-        self.log_path = self.state_dir / "server.log"
+        if self._temporary:  # beside the folder, which the supervisor removes when it ends
+            handle, log_name = tempfile.mkstemp(prefix="scalesteer-", suffix=".log")
+            os.close(handle)
+            self.log_path = Path(log_name)
+        else:
+            self.log_path = self.state_dir / "server.log"
         self._lock = threading.Lock()
         self._lifeline = -1
         self.process: subprocess.Popen[bytes] | None = None
@@ -123,8 +137,11 @@ class LocalServer:
         deadline = time.monotonic() + timeout
         while True:
             assert self.process is not None
-            if self.process.poll() is not None:
-                raise ServerStartError(f"the scalesteer server exited:\n{self.log_tail()}")
+            code = self.process.poll()
+            if code is not None:
+                raise ServerStartError(
+                    f"the scalesteer server exited ({_exit_text(code)}):\n{self.log_tail()}"
+                )
             try:
                 with urllib.request.urlopen(f"{self.url}/healthz", timeout=2) as answer:
                     if answer.status == 200:
@@ -162,6 +179,9 @@ class LocalServer:
                 process.wait()
         with contextlib.suppress(Exception):
             atexit.unregister(self.stop)
+        if self._temporary:
+            with contextlib.suppress(OSError):
+                self.log_path.unlink()
 
     def __repr__(self) -> str:
         state = "running" if self.alive() else "stopped"

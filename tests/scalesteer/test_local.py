@@ -9,10 +9,12 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import httpx
+import pytest
 
 from server.supervisor import descendants
 from tests.server.processes import wait_gone
@@ -120,3 +122,18 @@ def test_a_script_that_replays_a_universe_ends_with_its_last_line() -> None:
     assert done.returncode == 0, done.stderr[-2000:]
     assert "last line" in done.stdout
     assert "retry" not in done.stderr, done.stderr[-2000:]
+
+
+def test_a_server_that_cannot_start_says_why_and_leaves_no_file() -> None:
+    """The server's temporary folder is removed when it ends, so its log lives beside it: the
+    reason reaches the caller (which is also how a port taken between the probe and the bind
+    is told apart, and another one tried), and nothing is left behind."""
+    from scalesteer.errors import ServerStartError
+    from scalesteer.local import LocalServer
+
+    before = set(Path(tempfile.gettempdir()).glob("scalesteer-*"))
+    with pytest.raises(ServerStartError) as caught:
+        LocalServer(device="cpu", extra=("--set", "no_such_setting=1"), timeout=60)
+    text = str(caught.value)
+    assert "exit code 2" in text and "no_such_setting" in text, text
+    assert set(Path(tempfile.gettempdir()).glob("scalesteer-*")) <= before
