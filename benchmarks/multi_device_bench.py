@@ -12,9 +12,12 @@ Sections (`--sections`, default all):
           a stream of its own, issued from one thread), device -> host, and device -> device
           (peer) copies: the ceilings a frame's upload and gather live under
   frames  each system and image size on one device, then on 2, 4, ... (powers of two up to
-          --devices) in the same run; per frame the host wall time of the three phases a
-          session's render goes through (set_positions on every device, the render, the
-          gather of the image) and each device's own stage times. Frames are written into the
+          --devices) in the same run, each count with the frame's upload split across the
+          devices (1/N each from the host, the rest device to device) and, as its control,
+          every device uploading all of it (`whole_upload`); per frame the host wall time of
+          the three phases a session's render goes through (set_positions on every device,
+          the render, the gather of the image), each device's own stage times and the host
+          time each device's render took to queue. Frames are written into the
           renderer's page-locked buffer before the clock starts, and images are read into
           page-locked buffers of the benchmark's, for one device as for several
 
@@ -89,13 +92,14 @@ def frame_phases(
                 }
             )
             inner = getattr(renderer, "renderers", [renderer])
-            devices.append(
-                {
-                    f"{k}:{j}": float(r.timings.get(k, 0.0))
-                    for j, r in enumerate(inner)
-                    for k in ("upload", "grid", "raycast", "total")
-                }
-            )
+            stages = {
+                f"{k}:{j}": float(r.timings.get(k, 0.0))
+                for j, r in enumerate(inner)
+                for k in ("upload", "grid", "raycast", "total")
+            }
+            # the host time each device's render took to queue (several devices)
+            issue = getattr(renderer, "issue_ms", [])
+            devices.append({**stages, **{f"issue:{j}": float(t) for j, t in enumerate(issue)}})
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     dev = {k: float(np.median([r[k] for r in devices])) for k in devices[0]}
     return {**{f"{k}_ms": v for k, v in med.items()}, "device_stage_ms": dev}
@@ -156,12 +160,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--devices", default="cpu,cpu")
     ap.add_argument("--atoms", default="5684")
     ap.add_argument("--sizes", default="480x270")
-    ap.add_argument("--frames", type=int, default=8)
+    ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--sections", default="links,frames")
     ap.add_argument("--link-mb", type=int, default=256)
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument(
+        "--upload",
+        default="split,whole",
+        help="how several CUDA devices get a frame: split (each uploads 1/N from the host, the "
+        "rest device to device; the default) and/or whole (each uploads all: the control)",
+    )
+    ap.add_argument(
+        "--warm",
+        type=int,
+        default=10,
+        help="frames before the clock starts (bands balance and graphs are captured in them)",
+    )
     args = ap.parse_args(argv)
     devices = resolve_many(args.devices)
+    uploads = [u.strip() for u in args.upload.split(",") if u.strip()]
+    if not uploads or not set(uploads) <= {"split", "whole"}:
+        ap.error("--upload takes split and/or whole")
     sections = {s.strip() for s in args.sections.split(",") if s.strip()}
     unknown = sections - {"links", "frames"}
     if unknown:
@@ -182,21 +201,26 @@ def main(argv: list[str] | None = None) -> int:
         for n in [int(a) for a in args.atoms.split(",")]:
             pos, elements, bonds = build_system(n)
             topo = topology_of(elements, bonds)
-            frames = frames_of(pos, args.frames + 2)
+            frames = frames_of(pos, args.frames + args.warm)
             for text in args.sizes.split(","):
                 size = (int(text.split("x")[0]), int(text.split("x")[1]))
                 cap = max(n, 1)
                 row: dict[str, Any] = {"atoms": n, "size": list(size), "by_devices": {}}
                 for k in counts:
-                    r: Any = (
-                        Renderer(devices[0], max_atoms=cap)
-                        if k == 1
-                        else MultiRenderer(devices[:k], max_atoms=cap)
-                    )
-                    row["by_devices"][str(k)] = frame_phases(r, frames, topo, size, 2)
-                    if k > 1:
-                        r.close()
-                    del r
+                    for upload in ["one"] if k == 1 else uploads:
+                        r: Any = (
+                            Renderer(devices[0], max_atoms=cap)
+                            if k == 1
+                            else MultiRenderer(devices[:k], upload=upload, max_atoms=cap)
+                        )
+                        phases = frame_phases(r, frames, topo, size, args.warm)
+                        if upload in ("one", "split"):
+                            row["by_devices"][str(k)] = phases
+                        else:  # every device uploading all of every frame: the control
+                            row.setdefault("whole_upload", {})[str(k)] = phases
+                        if k > 1:
+                            r.close()
+                        del r
                 one = row["by_devices"]["1"]["frame_ms"]
                 row["speedup"] = {
                     k: one / v["frame_ms"] for k, v in row["by_devices"].items() if k != "1"

@@ -81,7 +81,7 @@ TABLES: dict[str, Table] = {
     ),
     "pipeline": Table(("pipeline_h200.json",), pipeline),
     "multi-device": Table(
-        ("multi_device_cpu_2core.json", "multi_device_h200x2.json", "multi_device_h200x4.json"),
+        ("multi_device_cpu_2core.json", "multi_device_h200x4.json"),
         multi_device,
     ),
     "multi-session": Table(

@@ -234,8 +234,10 @@ def _by_devices(run: Results) -> dict[int, float]:
 
 
 def multi_device(sources: list[Source]) -> str:
-    """One image across several devices against the same frames on one (the control)."""
+    """One image across several devices against the same frames on one (the control), and
+    where a run has it, the same devices each uploading whole frames (`whole_upload`)."""
     counts = sorted({n for _, res in sources for run in res["runs"] for n in _by_devices(run)})
+    several = [n for n in counts if n > 1]
     rows = []
     for name, res in sources:
         for run in res["runs"]:
@@ -251,9 +253,14 @@ def multi_device(sources: list[Source]) -> str:
                     if n == 1
                     else f"{num(ms, 1)} ({one / ms:.2f}x)"
                 )
+            whole = run.get("whole_upload", {})
+            row.append(
+                " / ".join(num(whole[str(n)]["frame_ms"], 1) for n in several if str(n) in whole)
+            )
             rows.append(row)
     header = ["run", "atoms", "image", *(f"{n} device{'s' * (n > 1)} ms" for n in counts)]
-    return block(sources, table(header, "lrl" + "r" * len(counts), rows))
+    header.append("control: each device uploads all, ms")
+    return block(sources, table(header, "lrl" + "r" * len(counts) + "l", rows))
 
 
 def temporal(sources: list[Source]) -> str:

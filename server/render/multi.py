@@ -7,13 +7,19 @@ device would render, bit for bit. Bands are balanced by the last frame's cost: e
 rows in proportion to the rows per millisecond it managed, so a band over the molecule and a band
 over the background take about as long.
 
-On CUDA devices a frame is issued from one thread without waiting in between: the positions go
-to every device at once from one page-locked host buffer (each device copies on its own
-stream), every device's render is queued, and each band is copied into one page-locked host
-image as its device finishes. The host never holds a device while another waits, and no copy
-runs through a pageable bounce buffer. Band edges move in whole row quanta, so a balanced frame
-set-up repeats and each device replays its captured graph. CPU devices (which stand in for GPUs
-in tests) render their bands one after another on the calling thread.
+On CUDA devices a frame is issued from one thread without waiting in between. The positions go
+to every device at once from one page-locked host buffer, each device copying on its own stream;
+with `upload="split"` (the default where every pair of devices has peer access) each copies
+only 1/N of the atoms from the host and the rest from the other devices over their peer links,
+so the host's memory bandwidth is shared by 1/N of the bytes. Every device's render is then
+queued in turn, and each band is copied into one page-locked host image as its device finishes.
+Queueing from one thread is cheap once a frame set-up repeats and each device replays its graph
+(0.1-0.3 ms per device at 1M atoms on H200s); a host thread per device was measured slower (6-9
+ms to queue, the threads contending for the interpreter). The host never holds a device while
+another waits, and no copy runs through a pageable bounce buffer. Band edges move in whole row
+quanta, so a balanced frame set-up repeats and each device replays its captured graph. CPU
+devices (which stand in for GPUs in tests) render their bands one after another on the calling
+thread.
 
 A device that fails is dropped with an error in the log; its band goes to the others from then
 on, and the frame is rendered again without it.
@@ -22,6 +28,7 @@ on, and the frame is rendered again without it.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import time
 from collections.abc import Sequence
@@ -43,6 +50,9 @@ MIN_ROWS = 4
 ROW_QUANTUM = 8
 """Band edges fall on multiples of this many rows (two rows of 8x4 tiles): balancing moves them
 in steps, so a frame set-up repeats and each device replays its captured graph of it."""
+UNEVEN = 1.05
+"""Bands are balanced again only when the slowest device's work exceeds the mean by this
+factor."""
 STAGING = 2
 """Page-locked positions buffers a CUDA multi-device renderer writes frames into in turn."""
 
@@ -82,6 +92,32 @@ def balance(
     return cuts
 
 
+def split_atoms(n: int, devices: int) -> list[tuple[int, int]]:
+    """Contiguous atom ranges [a, b), one per device, covering all `n` atoms (the part of a
+    frame each device uploads from the host)."""
+    edges = [n * k // devices for k in range(devices + 1)]
+    return list(itertools.pairwise(edges))
+
+
+def _peer_access(devices: Sequence[str]) -> bool:
+    """Let every pair of distinct CUDA devices read each other's memory, pooled allocations
+    (warp's default allocator) included; False where a pair cannot (copies between them would
+    be staged through host memory, slower than uploading from the host)."""
+    distinct = sorted(set(devices))
+    for a in distinct:
+        for b in distinct:
+            if a == b:
+                continue
+            if not wp.is_peer_access_supported(a, b):
+                return False
+            wp.set_peer_access_enabled(a, b, True)
+            if wp.is_mempool_enabled(a):
+                if not wp.is_mempool_access_supported(a, b):
+                    return False
+                wp.set_mempool_access_enabled(a, b, True)
+    return True
+
+
 def _pinned(count: int, dtype: Any) -> tuple[Any, npt.NDArray[Any]]:
     """A page-locked host array (warp's allocation, portable to every device of the host) and
     its numpy view."""
@@ -96,10 +132,15 @@ def _address(a: npt.NDArray[Any]) -> int:
 class MultiRenderer:
     """The `Renderer` interface over several devices; the image is split in bands."""
 
-    def __init__(self, devices: Sequence[str], **options: Any) -> None:
-        """`options` are the `Renderer`'s (max_atoms, max_pixels, tuning), for every device."""
+    def __init__(self, devices: Sequence[str], *, upload: str = "split", **options: Any) -> None:
+        """`options` are the `Renderer`'s (max_atoms, max_pixels, tuning), for every device.
+        `upload` (CUDA devices): "split" (each device uploads 1/N of a frame and takes the
+        rest from the others, device to device, where every pair has peer access), or "whole"
+        (every device uploads all of it: the control the benchmark measures against)."""
         if len(devices) < 2:
             raise ValueError("a multi-device renderer needs at least two devices")
+        if upload not in ("split", "whole"):
+            raise ValueError(f"upload must be 'split' or 'whole', not {upload!r}")
         self.renderers = [Renderer(device=d, **options) for d in devices]
         for r in self.renderers:
             r.cull_to_tile = True  # each device's grid holds the atoms its band reaches
@@ -115,6 +156,9 @@ class MultiRenderer:
         """Every device is a CUDA device: bands are queued on each and run at once. CPU devices
         run their bands one after another on the calling thread: warp's CPU kernels keep state in
         statics of their JIT-compiled code, and two threads running them at once crash."""
+        self.split_upload = upload == "split" and (not self.cuda or _peer_access(self.devices))
+        """Each device uploads 1/N of a frame from the host, and copies the rest from the
+        other devices (NVLink or PCIe peer copies), instead of N uploads of all of it."""
         self._staging: list[tuple[Any, npt.NDArray[np.float32]]] = []
         self._next_staging = 0
         self._n = 0
@@ -125,6 +169,8 @@ class MultiRenderer:
         self._pending: Any = None
         self.timings: dict[str, float] = {}
         self.device_ms: dict[str, float] = {}
+        self.issue_ms: list[float] = []
+        """Host time each device's render took to queue in the last frame."""
 
     @property
     def device(self) -> str:
@@ -173,7 +219,7 @@ class MultiRenderer:
         """Positions for the next render on every device; the first device checks them.
         `staged`: the same positions already in page-locked memory."""
         first, rest = self.renderers[0], self.renderers[1:]
-        if not self.cuda:
+        if not self.cuda and not self.split_upload:
             first.set_positions(positions, check_finite=check_finite)
             for r in rest:
                 r.set_positions(positions, check_finite=False)
@@ -184,24 +230,44 @@ class MultiRenderer:
             first.set_positions(arr, check_finite=check_finite)  # raises the renderer's error
         if check_finite and self._n and not np.isfinite(arr).all():
             first.set_positions(arr, check_finite=True)  # raises the renderer's error
-        src = staged if staged is not None else self._staged(arr)
+        src = arr if not self.cuda else staged if staged is not None else self._staged(arr)
+        if not self.split_upload or not self._n:
+            for r in self.renderers:
+                r.set_positions(src, check_finite=False)
+            return
+        parts = split_atoms(self._n, len(self.renderers))
+        for r, part in zip(self.renderers, parts, strict=True):
+            r.set_positions(src, check_finite=False, part=part)
+        owners = list(zip(self.renderers, parts, strict=True))
         for r in self.renderers:
-            r.set_positions(src, check_finite=False)
+            r.receive([(o, a, b) for o, (a, b) in owners if o is not r])
 
     def set_history(self, *args: Any, **kwargs: Any) -> None:
         self._all("set_history", *args, **kwargs)
+
+    def _queue(
+        self, params: RenderParams, camera: Camera, w: int, h: int, bands: list[tuple[int, int]]
+    ) -> list[BaseException | None]:
+        """Queue every band's render (`wait=False`) in turn, timing each; the error each device
+        raised (None where it queued)."""
+        pairs = list(zip(self.renderers, bands, strict=False))
+        errors: list[BaseException | None] = [None] * len(pairs)
+        self.issue_ms = [0.0] * len(pairs)
+        for i, (r, (y0, rows)) in enumerate(pairs):
+            t0 = time.perf_counter()
+            try:
+                r.render(params, camera, w, h, (0, y0, w, rows), wait=False)
+            except Exception as exc:  # a device's failure, judged by the caller
+                errors[i] = exc
+            self.issue_ms[i] = (time.perf_counter() - t0) * 1e3
+        return errors
 
     def _issue(
         self, params: RenderParams, camera: Camera, w: int, h: int, bands: list[tuple[int, int]]
     ) -> list[BaseException | None]:
         """Render every band; the error each device raised (None where it rendered)."""
         pairs = list(zip(self.renderers, bands, strict=False))
-        errors: list[BaseException | None] = [None] * len(pairs)
-        for i, (r, (y0, rows)) in enumerate(pairs):
-            try:
-                r.render(params, camera, w, h, (0, y0, w, rows), wait=False)
-            except Exception as exc:  # a device's failure, judged below
-                errors[i] = exc
+        errors = self._queue(params, camera, w, h, bands)
         for i, (r, _band) in enumerate(pairs):
             if errors[i] is None:
                 try:
@@ -228,11 +294,8 @@ class MultiRenderer:
         if self.cuda and not wait and len(self.renderers) > 1:
             bands = split_rows(h, self.cuts)
             pairs = list(zip(self.renderers, bands, strict=False))
-            try:
-                for r, (y0, rows) in pairs:
-                    r.render(params, camera, w, h, (0, y0, w, rows), wait=False)
-            except Exception:  # a device's failure: the blocking path judges it
-                for r, _band in pairs:
+            if any(e is not None for e in self._queue(params, camera, w, h, bands)):
+                for r, _band in pairs:  # a device's failure: the blocking path judges it
                     with contextlib.suppress(Exception):
                         r.finish()
             else:
@@ -300,15 +363,18 @@ class MultiRenderer:
         times = [max(r.timings.get("total", 0.0), 1e-3) for r in used]
         if len(bands) == len(self.renderers) > 1:
             # the devices' own work (their totals also hold the wait for the host to queue
-            # them), halfway to the balanced cuts: a frame's noise does not swing the bands,
-            # and they move only by more than a row quantum, so set-ups repeat
+            # them), halfway to the balanced cuts: a frame's noise does not swing the bands;
+            # they move only when the slowest device is more than `UNEVEN` over the mean and
+            # by more than a row quantum, so set-ups repeat and graphs replay (a band that
+            # moves every frame launches eagerly, at a host cost per device)
             work = [
                 max(r.timings.get("grid", 0.0) + r.timings.get("raycast", 0.0), 1e-3) for r in used
             ]
+            uneven = max(work) > UNEVEN * (sum(work) / len(work))
             target = balance(self._bands, work, h, len(self.renderers))
             cuts = [0.5 * (a + b) for a, b in zip(self.cuts, target, strict=True)]
             moved = max(abs(a - b) * h for a, b in zip(cuts, self.cuts, strict=True))
-            if moved > ROW_QUANTUM:
+            if uneven and moved > ROW_QUANTUM:
                 self.cuts = cuts
         self.device_ms = dict(zip(self.labels, times, strict=False))
         self.timings = {
@@ -317,6 +383,7 @@ class MultiRenderer:
             "raycast": max(r.timings.get("raycast", 0.0) for r in used),
             "total": (time.perf_counter() - t0) * 1e3,
             **{f"device:{d}": t for d, t in self.device_ms.items()},
+            **{f"issue:{d}": t for d, t in zip(self.labels, self.issue_ms, strict=False)},
         }
 
     @property

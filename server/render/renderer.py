@@ -209,6 +209,11 @@ class Renderer(ImageOutputs):
             self._upload_events = [
                 [wp.Event(self.device, enable_timing=True) for _ in range(2)] for _ in range(2)
             ]
+            self._part_event = wp.Event(self.device)
+        self._upload_open: tuple[Any, Any, Any, bool] | None = None
+        """An upload begun and not yet closed: (buffer, stream, end event, swap buffers)."""
+        self._part_source: wp.array | None = None
+        """The buffer this device's part of the last split frame went into."""
 
     # ------------------------------------------------------------------ buffers
 
@@ -216,6 +221,7 @@ class Renderer(ImageOutputs):
         d = self.device
         m = max(n, 1)
         self._pos = wp.zeros(m, dtype=wp.vec3, device=d)
+        self._part_source = None
         # CUDA, large systems: a second positions buffer and a second page-locked staging
         # buffer, so the next frame uploads while the last one renders (`render(wait=False)`,
         # then set_positions); small systems keep one of each (one graph per frame set-up)
@@ -341,6 +347,7 @@ class Renderer(ImageOutputs):
         *,
         check_finite: bool = True,
         staged: npt.NDArray[np.float32] | None = None,
+        part: tuple[int, int] | None = None,
     ) -> None:
         """Positions (n, 3) in angstrom for the next render; n must match the topology.
 
@@ -348,7 +355,9 @@ class Renderer(ImageOutputs):
         positions already validated upstream, e.g. by the protocol decoder; the device still
         refuses a non-finite frame by drawing background only. `staged`: the same positions,
         already copied to page-locked memory (`server.pipeline.staging`), uploaded from there
-        asynchronously; keep it unwritten until this render has finished."""
+        asynchronously; keep it unwritten until this render has finished. `part` (a, b):
+        only atoms [a, b) are copied from the host; `receive` brings the others from the
+        devices that copied them (`MultiRenderer`: each device uploads 1/N of a frame)."""
         if self._topology is None:
             raise RenderError("set_topology must come before set_positions")
         arr = np.asarray(positions)
@@ -383,7 +392,9 @@ class Renderer(ImageOutputs):
             )
             if own:
                 self._next_staging = (own[0] + 1) % len(self._stagings)
-            if self._cuda:
+            if part is not None:
+                self._upload_part(src, part)
+            elif self._cuda:
                 self._upload(src, n)
             else:
                 wp.copy(self._pos, src, count=n)
@@ -406,24 +417,70 @@ class Renderer(ImageOutputs):
         waits for the copy, the queued render keeps its buffer. Otherwise (the last render has
         finished, or must finish first) the frame replaces the current buffer in order on the
         render stream, so blocking callers keep one buffer and one graph per frame set-up."""
+        dest, stream = self._upload_begin()
+        wp.copy(dest, src, count=n, stream=stream)
+        self._upload_end()
+
+    def _upload_begin(self) -> tuple[wp.array, Any]:
+        """The buffer the next frame goes into and the stream that writes it (`_upload`'s
+        rules; no stream on the CPU); `_upload_end` closes the upload."""
+        if not self._cuda:
+            self._upload_open = (self._pos, None, None, False)
+            return self._pos, None
         front = 0 if self._pos is self._pos_buffers[0] else 1
         if self._pending is None or len(self._pos_buffers) == 1:
             self.finish()
             start, end = self._upload_events[front]
             self._stream.record_event(start)
-            wp.copy(self._pos, src, count=n)
-            self._stream.record_event(end)
-            return
+            self._upload_open = (self._pos, self._stream, end, False)
+            return self._pos, self._stream
         spare = 1 - front
         dest = self._pos_buffers[spare]
         if self._released[spare]:
             self._copy_stream.wait_event(self._release[spare])
         start, end = self._upload_events[spare]
         self._copy_stream.record_event(start)
-        wp.copy(dest, src, count=n, stream=self._copy_stream)
-        self._copy_stream.record_event(end)
-        self._stream.wait_event(end)
-        self._pos = dest
+        self._upload_open = (dest, self._copy_stream, end, True)
+        return dest, self._copy_stream
+
+    def _upload_end(self) -> None:
+        assert self._upload_open is not None
+        dest, stream, end, swap = self._upload_open
+        self._upload_open = None
+        if stream is None:
+            return
+        stream.record_event(end)
+        if swap:
+            self._stream.wait_event(end)
+            self._pos = dest
+
+    def _upload_part(self, src: wp.array, part: tuple[int, int]) -> None:
+        """Copy atoms [a, b) of a frame from the host and leave the upload open: `receive`
+        copies the rest from the devices that uploaded it and closes it."""
+        dest, stream = self._upload_begin()
+        a, b = part
+        if b > a:
+            wp.copy(dest, src, dest_offset=a, src_offset=a, count=b - a, stream=stream)
+        if stream is not None:
+            stream.record_event(self._part_event)
+        self._part_source = dest
+
+    def receive(self, parts: Sequence[tuple[Renderer, int, int]]) -> None:
+        """The rest of a frame whose part this renderer uploaded (`set_positions(...,
+        part=...)`): atoms [a, b) from each renderer that uploaded them, device to device,
+        each copy after that renderer's own part has landed."""
+        if self._upload_open is None:
+            raise RenderError("receive follows set_positions with a part")
+        dest, stream, _end, _swap = self._upload_open
+        for other, a, b in parts:
+            source = other._part_source
+            if source is None:
+                raise RenderError("receive from a renderer that holds no part of a frame")
+            if b > a:
+                if stream is not None:
+                    stream.wait_event(other._part_event)
+                wp.copy(dest, source, dest_offset=a, src_offset=a, count=b - a, stream=stream)
+        self._upload_end()
 
     def set_history(
         self,
@@ -1107,6 +1164,8 @@ class Renderer(ImageOutputs):
         frame = cam_seen[3]
         if self._n and not self._have_positions:
             raise RenderError("no positions: call set_positions after set_topology")
+        if self._upload_open is not None:
+            raise RenderError("a frame uploaded in part: receive the rest before rendering")
         d = self._derive(params)
         if params.mode == "volume":
             self._update_tf(params)

@@ -130,24 +130,58 @@ def multi_devices() -> list[str]:
 
 @pytest.mark.parametrize("params", PARAMS, ids=IDS)
 @pytest.mark.parametrize("projection", ["perspective", "orthographic"])
-def test_several_devices_render_the_one_device_image(params: RenderParams, projection: str) -> None:
+@pytest.mark.parametrize("upload", ["split", "whole"])
+def test_several_devices_render_the_one_device_image(
+    params: RenderParams, projection: str, upload: str
+) -> None:
+    """Bit-equal to one device, whether each device uploads 1/N of every frame and takes the
+    rest from the others or uploads all of it."""
     mol = villins(2)
     cam = fit_camera(mol.positions, 128, 96, projection)  # type: ignore[arg-type]
     one = Renderer(multi_devices()[0])
     one.set_topology(mol.topology)
     one.set_positions(mol.positions)
     one.render(params, cam, 128, 96)
-    multi = MultiRenderer(multi_devices())
+    multi = MultiRenderer(multi_devices(), upload=upload)
+    assert multi.split_upload == (upload == "split")
     multi.set_topology(mol.topology)
-    multi.set_positions(mol.positions)
-    for _ in range(3):  # the bands move as they are balanced; the image does not
-        multi.render(params, cam, 128, 96)
+    moved = [mol.positions + np.float32(0.3 * k) for k in range(3)]
+    for k in range(3):  # the bands move as they are balanced; the image does not
+        for r in (one, multi):
+            r.set_positions(moved[k])
+            r.render(params, cam, 128, 96)
         assert np.array_equal(multi.read_rgba(), one.read_rgba())
         assert np.array_equal(multi.read_atom_ids(), one.read_atom_ids())
     x, y = 64, 60
     assert multi.pick(x, y) == one.pick(x, y)
     assert len(multi.device_ms) == len(multi_devices())
+    assert len(multi.issue_ms) == len(multi_devices())
     multi.close()
+
+
+def test_a_frame_uploaded_in_part_renders_only_once_whole() -> None:
+    """`set_positions(part=...)` copies a slice from the host; rendering before `receive` has
+    brought the rest is refused, and so is receiving from a renderer that holds no part."""
+    mol = villin()
+    cam = fit_camera(mol.positions, 32, 24)
+    n = len(mol.positions)
+    a, b = Renderer("cpu"), Renderer("cpu")
+    for r in (a, b):
+        r.set_topology(mol.topology)
+    a.set_positions(mol.positions, part=(0, n // 2))
+    with pytest.raises(ValueError, match="receive the rest"):
+        a.render(RenderParams(), cam, 32, 24)
+    with pytest.raises(ValueError, match="holds no part"):
+        a.receive([(b, n // 2, n)])
+    b.set_positions(mol.positions, part=(n // 2, n))
+    a.set_positions(mol.positions, part=(0, n // 2))
+    a.receive([(b, n // 2, n)])
+    a.render(RenderParams(), cam, 32, 24)
+    whole = Renderer("cpu")
+    whole.set_topology(mol.topology)
+    whole.set_positions(mol.positions)
+    whole.render(RenderParams(), cam, 32, 24)
+    assert np.array_equal(a.read_rgba(), whole.read_rgba())
 
 
 def test_a_failing_device_is_dropped_and_the_others_render(
