@@ -6,11 +6,17 @@ host's links between memory and devices allow.
         --out benchmarks/results/multi_device_cpu_2core.json
     python benchmarks/multi_device_bench.py --devices all --atoms 1000000,10000000 \\
         --sizes 1920x1080,3840x2160 --out benchmarks/results/multi_device_h200x4.json
+    python benchmarks/multi_device_bench.py --devices all --atoms 1000000,10000000 \\
+        --sizes 3840x2160 --frames 9 --warm 3 --sections profile \\
+        --out benchmarks/results/multi_device_h200x4_profile.json
 
-Sections (`--sections`, default all):
+Sections (`--sections`, default links and frames):
   links   page-locked host -> device copies, one device alone and every device at once (each on
           a stream of its own, issued from one thread), device -> host, and device -> device
           (peer) copies: the ceilings a frame's upload and gather live under
+  profile every kernel and copy of a frame, per device (CUDA) (warp's activity timing, graphs off so
+          each launch is timed; median ms per frame over the frames), one device against all:
+          where the time goes that does not shrink with more devices
   frames  each system and image size on one device, then on 2, 4, ... (powers of two up to
           --devices) in the same run, each count with the frame's upload split across the
           devices (1/N each from the host, the rest device to device) and, as its control,
@@ -47,6 +53,7 @@ from server.render import Renderer
 from server.render.camera import fit_camera
 from server.render.device import resolve_many
 from server.render.multi import MultiRenderer
+from server.render.tuning import Tuning
 
 wp: Any = warp
 
@@ -103,6 +110,53 @@ def frame_phases(
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     dev = {k: float(np.median([r[k] for r in devices])) for k in devices[0]}
     return {**{f"{k}_ms": v for k, v in med.items()}, "device_stage_ms": dev}
+
+
+def profile(
+    devices: tuple[str, ...], n: int, size: tuple[int, int], count: int, warm: int
+) -> dict[str, Any]:
+    """Median ms per frame of each kernel and copy on each device, one device against all."""
+    pos, elements, bonds = build_system(n)
+    topo = topology_of(elements, bonds)
+    frames = frames_of(pos, count + warm)
+    cam = fit_camera(frames[0], *size)
+    untimed = Tuning(graphs=False)  # a captured graph's kernels are not timed one by one
+    out: dict[str, Any] = {"atoms": n, "size": list(size), "by_devices": {}}
+    for k in sorted({1, len(devices)}):
+        r: Any = (
+            Renderer(devices[0], max_atoms=n, tuning=untimed)
+            if k == 1
+            else MultiRenderer(devices[:k], max_atoms=n, tuning=untimed)
+        )
+        r.set_topology(topo)
+        sums: list[dict[str, dict[str, float]]] = []
+        for i, x in enumerate(frames):
+            np.copyto(r.host_positions(), x)
+            if i >= warm:
+                wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+            r.set_positions(r.host_positions(), check_finite=False)
+            r.render(RenderParams(), cam, *size)
+            r.read_rgba()
+            if i >= warm:
+                frame: dict[str, dict[str, float]] = {}
+                for t in wp.timing_end():
+                    per = frame.setdefault(str(t.device), {})
+                    per[t.name] = per.get(t.name, 0.0) + float(t.elapsed)
+                sums.append(frame)
+        table: dict[str, dict[str, float]] = {}
+        for dev in sorted({d for f in sums for d in f}):
+            names = {name for f in sums for name in f.get(dev, {})}
+            med = {
+                name: float(np.median([f.get(dev, {}).get(name, 0.0) for f in sums]))
+                for name in names
+            }
+            ranked = sorted(med.items(), key=lambda kv: -kv[1])
+            table[dev] = {"total_ms": float(sum(med.values())), **dict(ranked[:16])}
+        out["by_devices"][str(k)] = table
+        if k > 1:
+            r.close()
+        del r
+    return out
 
 
 def links(devices: tuple[str, ...], mbytes: int) -> dict[str, Any]:
@@ -182,9 +236,9 @@ def main(argv: list[str] | None = None) -> int:
     if not uploads or not set(uploads) <= {"split", "whole"}:
         ap.error("--upload takes split and/or whole")
     sections = {s.strip() for s in args.sections.split(",") if s.strip()}
-    unknown = sections - {"links", "frames"}
+    unknown = sections - {"links", "profile", "frames"}
     if unknown:
-        ap.error(f"unknown sections: {', '.join(sorted(unknown))} (links, frames)")
+        ap.error(f"unknown sections: {', '.join(sorted(unknown))} (links, profile, frames)")
     names = [str(warp.get_device(d).name) for d in devices]
     counts = [k for k in (1, 2, 4, 8, 16) if k <= len(devices)]
     out: dict[str, Any] = {
@@ -197,6 +251,15 @@ def main(argv: list[str] | None = None) -> int:
     if "links" in sections:
         out["links"] = links(devices, args.link_mb)
         print(json.dumps({"links": out["links"]}), flush=True)
+    if "profile" in sections:
+        out["profile"] = []
+        for n in [int(a) for a in args.atoms.split(",")]:
+            for text in args.sizes.split(","):
+                size = (int(text.split("x")[0]), int(text.split("x")[1]))
+                found = profile(devices, n, size, max(args.frames // 3, 3), args.warm)
+                out["profile"].append(found)
+                print(json.dumps(found), flush=True)
+                args.out.write_text(json.dumps(out, indent=1))
     if "frames" in sections:
         for n in [int(a) for a in args.atoms.split(",")]:
             pos, elements, bonds = build_system(n)

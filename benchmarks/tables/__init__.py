@@ -28,10 +28,8 @@ from .render import (
     multi_device,
     periodic,
     reach,
-    render_baselines,
     render_densities,
     render_passes,
-    render_sizes,
     render_variants,
     temporal,
 )
@@ -71,8 +69,6 @@ TABLES: dict[str, Table] = {
         ("render_h200_shares.json", "render_h200_shares_volume.json"), render_variants
     ),
     "render-densities": Table(("render_h200_densities.json",), render_densities),
-    "render-sizes": Table(("render_h100_round2.json",), render_sizes),
-    "render-baselines": Table(("render_h100.json",), render_baselines),
     "render-passes": Table(("render_cpu_round7_passes.json",), render_passes),
     "reach": Table(("reach_accuracy.json",), reach),
     "latency-steer": Table(("latency_h200_live_1m.json", "latency_h200_960.json"), latency_steer),
