@@ -165,6 +165,12 @@ class ServerSettings:
     """Address space of one selection worker process."""
     selection_workers: int = 2
     """Selection worker processes (each keeps the universes of the topologies it serves)."""
+    warm_up_render: int = 1
+    """1: the server renders a small molecule once as it starts, so the render kernels are
+    loaded before the first session's picture waits for them; 0: not."""
+    selection_prestart: int = 1
+    """Selection workers started with the server (the others at their first request), so the
+    first session's layers and periodic steps do not wait for a worker to start."""
     session_idle_s: float = 600.0
     viewer_views_per_pass: int = 1
     """In a session with a steerer, the views without one (distinct cameras and canvas sizes)
@@ -297,6 +303,10 @@ class ServerSettings:
             )
         if self.selection_workers < 1:
             raise ValueError("selection_workers must be at least 1")
+        if self.warm_up_render not in (0, 1):
+            raise ValueError("warm_up_render must be 0 or 1")
+        if not 0 <= self.selection_prestart <= self.selection_workers:
+            raise ValueError("selection_prestart must be between 0 and selection_workers")
         if not self.video_steer_hold_s >= 0:
             raise ValueError("video_steer_hold_s must be 0 or more seconds")
         if self.data_dir is not None and not self.data_dir.is_dir():

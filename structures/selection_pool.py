@@ -246,6 +246,13 @@ class SelectionPool:
             worker.assigned += held.n_atoms
         return held
 
+    def start(self, workers: int) -> None:
+        """Start the first `workers` worker processes now, each from its own thread, rather
+        than at their first request: a fresh interpreter importing MDAnalysis takes about a
+        second, which a new session's first picture would otherwise wait for."""
+        for worker in self._workers[: max(0, workers)]:
+            worker.prestart()
+
     def pids(self) -> list[int]:
         """The worker processes running now."""
         return [pid for w in self._workers if (pid := w.pid) is not None]
@@ -280,6 +287,7 @@ class _Worker:
         self._thread: threading.Thread | None = None
         self._thread_lock = threading.Lock()
         self._restart = False
+        self._prestart = False
 
     @property
     def pid(self) -> int | None:
@@ -325,6 +333,12 @@ class _Worker:
             self._ensure_thread()
             self._queue.put(_Task("drop", held, (), None))
 
+    def prestart(self) -> None:
+        """Start the child before any request asks for it (a request that comes meanwhile
+        waits for it as it would have anyway)."""
+        self._prestart = True
+        self._ensure_thread()
+
     def _ensure_thread(self) -> None:
         with self._thread_lock:
             if self._thread is None:
@@ -349,6 +363,9 @@ class _Worker:
 
     def _run(self) -> None:
         try:
+            if self._prestart and not self.pool.closed:
+                with contextlib.suppress(SelectionError):  # its first request tries again
+                    self._ensure_child()
             while True:
                 task = self._queue.get()
                 if task is None or self.pool.closed:

@@ -56,6 +56,11 @@ def make_settings(tmp_path: Path, **overrides: object) -> ServerSettings:
         default_size=(64, 48),
         stats_interval_s=0.5,
         batch_engine="local",  # the Ray tests ask for Ray (tests/server/pipeline/test_ray.py)
+        # the suite's many servers start nothing ahead of their first session (each would
+        # cost the 2-core machine about a second); tests/server/web/test_warm_start.py
+        # starts them as `scalesteer serve` does
+        warm_up_render=0,
+        selection_prestart=0,
     )
     return replace(base, **overrides)  # type: ignore[arg-type]
 

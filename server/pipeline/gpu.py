@@ -175,6 +175,27 @@ class _Lane:
     slots: set[str] = field(default_factory=set)
 
 
+WARM_UP_SLOT = "warm-up"
+
+
+def _warm_up_request() -> RenderRequest:
+    """A bonded water molecule at the default parameters (its own slot, never a session's)."""
+    n = 3
+    topology = p.Topology(
+        n_atoms=n,
+        elements=["O", "H", "H"],
+        names=["OW", "HW1", "HW2"],
+        residue_ids=p.WireArray.from_numpy(np.ones(n, np.int32), "<i4"),
+        residue_names=["SOL"] * n,
+        chain_ids=["W"] * n,
+        bonds=p.WireArray.from_numpy(np.array([[0, 1], [0, 2]], np.int32), "<i4"),
+    )
+    positions = np.array([[0.0, 0.0, 0.0], [0.96, 0.0, 0.0], [-0.24, 0.93, 0.0]], np.float32)
+    camera = p.Camera(target=(0.2, 0.3, 0.0), distance=12.0)
+    snapshot = Snapshot(topology, positions)
+    return RenderRequest(WARM_UP_SLOT, snapshot, p.RenderParams(), camera, 64, 48)
+
+
 @dataclass
 class GpuQueue:
     """Device work, each device's on its own thread (`_Lane`); methods named `*_sync` run on
@@ -198,6 +219,8 @@ class GpuQueue:
     """The renderers' tuning (benchmarks and tests; None: the defaults)."""
     prefetch: bool = True
     """Upload the newest staged frame while a live render runs (off: the baseline)."""
+    warmed: bool = False
+    """The warm-up render (`warm_up`) has drawn its molecule."""
     _lanes: list[_Lane] = field(default_factory=list)
     _lane_of: dict[str, int] = field(default_factory=dict)
     _spread: str | None = None
@@ -302,6 +325,18 @@ class GpuQueue:
     async def render(self, request: RenderRequest) -> RenderOutput:
         lane = await self._lane(request.slot)
         return await self._run(lane, self.render_sync, request)
+
+    async def warm_up(self) -> None:
+        """Render a small molecule once and forget it, so the render kernels are loaded from
+        warp's kernel cache before a first session's picture waits for them (about 0.7 s on
+        the CPU device of a 2-core machine)."""
+        try:
+            await self.render(_warm_up_request())
+            self.warmed = True
+        except Exception:  # the first session loads them instead; nothing else depends on it
+            log.exception("the warm-up render failed")
+        finally:
+            await self.release(WARM_UP_SLOT)
 
     async def pick(
         self, request: RenderRequest, x: int, y: int

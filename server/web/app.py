@@ -131,6 +131,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
         # before a worker evaluates them)
         asyncio.get_running_loop().run_in_executor(None, _load_selections)
         selections = SelectionPool(settings.selection_limits())
+        selections.start(settings.selection_prestart)
         services = Services(
             gpu,
             encoders,
@@ -196,10 +197,18 @@ def create_app(settings: ServerSettings) -> FastAPI:
                 await state.sessions.reap(settings.session_idle_s)
 
         reaping = asyncio.create_task(reaper(), name="session-reaper")
+        warming = (
+            asyncio.create_task(gpu.warm_up(), name="warm-up-render")
+            if settings.warm_up_render
+            else None
+        )
         try:
             yield
         finally:
             reaping.cancel()
+            if warming is not None:
+                with contextlib.suppress(asyncio.CancelledError):
+                    await warming
             state.owners.close()
             await asyncio.to_thread(state.replays.close)
             await asyncio.to_thread(state.recordings.close)

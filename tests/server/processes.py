@@ -93,9 +93,14 @@ class ServerProcess:
         *extra: str,
         port: int | None = None,
         env: dict[str, str] | None = None,
+        warm: bool = False,
     ) -> None:
+        """`warm`: start as `scalesteer serve` does by default, with a warm-up render and a
+        selection worker started ahead (off: the suite's many servers spare the 2-core
+        machine that second each)."""
         self.state_dir = state_dir
         self.extra = extra
+        self.warm = warm
         self.env = env
         self.port = port or free_port()
         self.log = state_dir.parent / f"server-{self.port}.log"
@@ -107,6 +112,8 @@ class ServerProcess:
             "--state-dir", str(state_dir), "--log-level", "warning",
             "--batch-engine", "local", *extra,
         ]  # fmt: skip
+        if not warm:
+            command += ["--set", "warm_up_render=0", "--set", "selection_prestart=0"]
         with open(self.log, "ab") as out:
             self.process = subprocess.Popen(
                 command, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT
@@ -153,4 +160,6 @@ class ServerProcess:
 
     def restart(self) -> ServerProcess:
         """A new server on the same port and state directory (this one must be stopped)."""
-        return ServerProcess(self.state_dir, *self.extra, port=self.port, env=self.env)
+        return ServerProcess(
+            self.state_dir, *self.extra, port=self.port, env=self.env, warm=self.warm
+        )
