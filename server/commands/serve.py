@@ -113,6 +113,10 @@ def tunable_limits() -> dict[str, type]:
     }
 
 
+MAY_BE_ZERO = frozenset({"warm_up_render", "selection_prestart"})
+"""Settings `--set` may turn off with 0 (every other must be positive)."""
+
+
 def _overrides(pairs: list[str]) -> dict[str, object]:
     tunable = tunable_limits()
     out: dict[str, object] = {}
@@ -128,8 +132,9 @@ def _overrides(pairs: list[str]) -> dict[str, object]:
         except ValueError:
             kind = "an integer" if tunable[name] is int else "a number"
             raise ValueError(f"--set {name}: {raw!r} is not {kind}") from None
-        if value <= 0:
-            raise ValueError(f"--set {name}: must be positive, got {raw}")
+        if value < 0 or (value == 0 and name not in MAY_BE_ZERO):
+            least = "0 or more" if name in MAY_BE_ZERO else "positive"
+            raise ValueError(f"--set {name}: must be {least}, got {raw}")
         out[name] = value
     return out
 

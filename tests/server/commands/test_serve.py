@@ -39,6 +39,14 @@ def test_limits_are_set_by_name_and_bad_ones_are_named(tmp_path: Path) -> None:
         settings("--state-dir", state, "--set", "bogus=1")
     with pytest.raises(ValueError, match="not an integer"):
         settings("--state-dir", state, "--set", "max_connections=lots")
+    with pytest.raises(ValueError, match="max_connections: must be positive, got 0"):
+        settings("--state-dir", state, "--set", "max_connections=0")
+    cold = settings(
+        "--state-dir", state, "--set", "warm_up_render=0", "--set", "selection_prestart=0"
+    )
+    assert (cold.warm_up_render, cold.selection_prestart) == (0, 0)
+    with pytest.raises(ValueError, match="selection_prestart: must be 0 or more, got -1"):
+        settings("--state-dir", state, "--set", "selection_prestart=-1")
 
 
 def test_video_codecs_are_chosen_by_name_or_turned_off(tmp_path: Path) -> None:
