@@ -93,7 +93,11 @@ TABLES: dict[str, Table] = {
     "trajectory": Table(("trajectory_cpu_2core.json",), trajectory),
     "periodic": Table(("periodic_h200.json", "periodic_cpu_2core.json"), periodic),
     "cpu-demo-chromium": Table(
-        ("cpu_demo_chromium_2core.json", "cpu_demo_chromium_2core_as_loaded.json"),
+        (
+            "cpu_demo_chromium_2core.json",
+            "cpu_demo_chromium_2core_as_loaded.json",
+            "cpu_demo_chromium_2core_quiet.json",
+        ),
         cpu_demo_chromium,
     ),
     "widget": Table(("widget_cpu_2core.json",), widget),
