@@ -18,7 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("server.commands.render", "render one structure to an image file"),
     "batch": (
         "server.commands.batch",
-        "render a trajectory to an MP4 or PNG zip (Ray if installed)",
+        "render a trajectory to an MP4 or PNG zip (on Ray with --engine ray or a cluster)",
     ),
     "replay": ("simulation_adapters.replay", "stream a trajectory file to a render server"),
     "imd": ("simulation_adapters.imd", "bridge an MD engine speaking IMD to a render server"),

@@ -35,10 +35,22 @@ def sentence(errors: Sequence[Any]) -> str:
             said.append(f"{where}: expected a file, got the text {_value(err.get('input'))}")
         elif kind == "missing":
             said.append(f"{where}: required")
+        elif kind == "json_invalid":  # its loc is a character offset, not a field
+            why = str((err.get("ctx") or {}).get("error", "")).strip()
+            at = [x for x in err.get("loc", ()) if isinstance(x, int)]
+            place = f" at character {at[0]}" if at else ""
+            said.append(f"the body is not valid JSON{place}" + (f" ({why})" if why else ""))
         else:
             msg = msg.removeprefix("Value error, ")
-            said.append(f"{where}: {msg[0].lower() + msg[1:] if msg else 'invalid'}")
+            said.append(f"{where}: {_lower_first(msg) if msg else 'invalid'}")
     return "; ".join(said) or "the request is not valid"
+
+
+def _lower_first(msg: str) -> str:
+    """`Input should be ...` -> `input should be ...`, but a word in capitals (`JSON`,
+    `URL`) stays as it is."""
+    first = msg.split(" ", 1)[0]
+    return msg if first.isupper() else msg[0].lower() + msg[1:]
 
 
 async def validation_failed(request: Request, exc: Exception) -> JSONResponse:

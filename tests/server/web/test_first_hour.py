@@ -184,3 +184,16 @@ def test_a_structure_opens_alone_and_a_refusal_is_a_sentence(live_server: LiveSe
         assert text.status_code == 422
         assert text.json()["detail"] == "trajectory.0: expected a file, got the text '[]'"
         assert c.delete("/api/replays/replay-adk", headers=AUTH).status_code == 200
+
+
+def test_a_body_that_is_not_json_is_named_so(live_server: LiveServer) -> None:
+    """Malformed JSON had answered `4: jSON decode error` (an offset as if it were a field)."""
+    with httpx.Client(base_url=live_server.url, timeout=30) as c:
+        bad = c.post(
+            "/api/sessions/default/recordings",
+            headers={**AUTH, "Content-Type": "application/json"},
+            content=b"[1,2",
+        )
+    assert bad.status_code == 422
+    detail = bad.json()["detail"]
+    assert detail.startswith("the body is not valid JSON at character 4"), detail
