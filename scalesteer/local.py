@@ -105,7 +105,8 @@ class LocalServer:
         command = [
             sys.executable, "-m", "server.commands.cli", "serve",
             "--host", "127.0.0.1", "--port", str(self.port), "--device", self.device,
-            "--token", self.token, "--viewer-token", self.viewer_token,
+            # NAME=VALUE: a token may begin with "-", which argparse would take for an option
+            f"--token={self.token}", f"--viewer-token={self.viewer_token}",
             "--state-dir", str(self.state_dir), "--log-level", "warning", *extra,
         ]  # fmt: skip
         supervisor = [sys.executable, "-m", "server.supervisor", "--lifeline", str(read_end)]

@@ -127,7 +127,7 @@ def _simulation_command(args: argparse.Namespace, settings: ServerSettings) -> l
     command = [sys.executable, "-m", "server.commands.villin", "--session", "default",
                "--url", f"ws://127.0.0.1:{settings.port}/ws/sim"]  # fmt: skip
     if settings.token:
-        command += ["--token", settings.token]
+        command += [f"--token={settings.token}"]  # a token may begin with "-"
     if args.platform:
         command += ["--platform", args.platform]
     if args.interval:

@@ -220,7 +220,7 @@ class GpuQueue:
     prefetch: bool = True
     """Upload the newest staged frame while a live render runs (off: the baseline)."""
     warmed: bool = False
-    """The warm-up render (`warm_up`) has drawn its molecule."""
+    """The warm-up render (`warm_up`) has drawn its molecule and given its slot back."""
     _lanes: list[_Lane] = field(default_factory=list)
     _lane_of: dict[str, int] = field(default_factory=dict)
     _spread: str | None = None
@@ -330,13 +330,15 @@ class GpuQueue:
         """Render a small molecule once and forget it, so the render kernels are loaded from
         warp's kernel cache before a first session's picture waits for them (about 0.7 s on
         the CPU device of a 2-core machine)."""
+        drawn = False
         try:
             await self.render(_warm_up_request())
-            self.warmed = True
+            drawn = True
         except Exception:  # the first session loads them instead; nothing else depends on it
             log.exception("the warm-up render failed")
         finally:
             await self.release(WARM_UP_SLOT)
+        self.warmed = drawn
 
     async def pick(
         self, request: RenderRequest, x: int, y: int

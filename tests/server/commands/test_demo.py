@@ -222,3 +222,35 @@ def test_demo_on_a_taken_port_says_how_to_pick_another(
     err = capsys.readouterr().err
     assert f"port {port} on 127.0.0.1 is in use" in err
     assert f"make demo PORT={port + 1}" in err and f"--port {port + 1}" in err
+
+
+def test_a_token_that_begins_with_a_dash_reaches_the_simulation() -> None:
+    """Tokens are URL-safe base64, so one in 64 begins with "-": passed as `--token VALUE`,
+    argparse took it for an option and the demo's simulation (or a notebook's own server)
+    did not start."""
+    import argparse
+
+    from server.commands.demo import _simulation_command
+    from server.commands.villin import build_parser
+    from server.settings import ServerSettings
+
+    settings = ServerSettings(token="-Xy_secret", port=8123)
+    command = _simulation_command(argparse.Namespace(platform=None, interval=None), settings)
+    args = build_parser().parse_args(command[3:])
+    assert args.token == "-Xy_secret"
+
+
+def test_a_local_server_starts_with_tokens_that_begin_with_a_dash(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import scalesteer.local as local
+
+    tokens = iter(["-server_token_value", "-viewer_token_value"])
+    monkeypatch.setattr(local.secrets, "token_urlsafe", lambda _n: next(tokens))
+    server = local.LocalServer(device="cpu", extra=("--set", "warm_up_render=0"))
+    try:
+        assert server.alive() and server.token == "-server_token_value"
+        answer = httpx.get(f"{server.url}/api/sessions", params={"token": server.token})
+        assert answer.status_code == 200, answer.text
+    finally:
+        server.stop()
