@@ -292,6 +292,18 @@ def test_a_compressed_file_inside_a_compressed_file_is_refused_unread(
         assert r.status_code == 200, r.text
 
 
+def layered_render(client: httpx.Client, url: str) -> httpx.Response:
+    """A viewer's REST render of session `crowded` whose one layer costs selection-worker time
+    (charged to the client that asks)."""
+    params = '{"layers": [{"selection": "around 3 index 0:9"}]}'
+    return client.post(
+        f"{url}/api/render",
+        headers=VIEWER,
+        data={"session": "crowded", "width": "32", "height": "24", "params": params},
+        timeout=60,
+    )
+
+
 def test_a_client_cannot_name_its_own_address(tmp_path: Path) -> None:
     """Round three: uvicorn believed any loopback client's X-Forwarded-For, so each connection
     could name an address of its own and get fresh rate limits and budgets (6x the steering
@@ -314,14 +326,8 @@ def test_a_client_cannot_name_its_own_address(tmp_path: Path) -> None:
         reply, _seconds = select(forged, "around 8 index 0:1999")
         assert "selection_seconds_per_min" in reply.error  # the same client, still spent
         # nor by binding another loopback address (every one of 127.0.0.0/8 reaches the server)
-        params = '{"layers": [{"selection": "around 3 index 0:9"}]}'
         with httpx.Client(transport=httpx.HTTPTransport(local_address="127.0.0.2")) as other:
-            r = other.post(
-                f"{server.url}/api/render",
-                headers=VIEWER,
-                data={"session": "crowded", "width": "32", "height": "24", "params": params},
-                timeout=60,
-            )
+            r = layered_render(other, server.url)
         assert r.status_code == 429 and "selection_seconds_per_min" in r.text, r.text
         for peer in (forged, greedy, sim):
             peer.close()
@@ -1425,13 +1431,8 @@ def test_one_clients_costly_selections_leave_the_workers_to_others(tmp_path: Pat
         again = joined_quietly(server, "crowded")
         reply, _seconds = select(again, "around 8 index 0:1999")
         assert "selection_seconds_per_min" in reply.error
-        params = '{"layers": [{"selection": "around 3 index 0:9"}]}'
-        r = httpx.post(
-            f"{server.url}/api/render",
-            headers=VIEWER,
-            data={"session": "crowded", "width": "32", "height": "24", "params": params},
-            timeout=60,
-        )
+        with httpx.Client() as client:
+            r = layered_render(client, server.url)
         assert r.status_code == 429 and "selection_seconds_per_min" in r.text, r.text
         assert int(r.headers["retry-after"]) >= 1
         # the control: another client (the steerer) is answered at once
