@@ -14,8 +14,8 @@ only 1/N of the atoms from the host and the rest from the other devices over the
 so the host's memory bandwidth is shared by 1/N of the bytes. Every device's render is then
 queued in turn, and each band is copied into one page-locked host image as its device finishes.
 Queueing from one thread is cheap once a frame set-up repeats and each device replays its graph
-(0.1-0.3 ms per device at 1M atoms on H200s); a host thread per device was measured slower (6-9
-ms to queue, the threads contending for the interpreter). The host never holds a device while
+(0.1-0.7 ms per device at 1M-10M atoms on H200s); a host thread per device was measured slower
+(6-9 ms to queue, the threads contending for the interpreter). The host never holds a device while
 another waits, and no copy runs through a pageable bounce buffer. Band edges move in whole row
 quanta, so a balanced frame set-up repeats and each device replays its captured graph. CPU
 devices (which stand in for GPUs in tests) render their bands one after another on the calling
