@@ -13,12 +13,20 @@ box. Each mode runs on frames that move every atom a little, and three figures a
 * `upload_ms`: the baseline in the same run, the frame copied to the device alone;
   `device_per_upload` = device_ms / upload_ms.
 
+With `--live`, the same system goes through the server's GPU queue as a live session's frames
+do, each frame drawn at 1920x1080 after it arrives, three ways in one run: `plain_ms` (no box
+steps: the frame staged in page-locked memory and uploaded, the baseline), `on_device_ms` (the
+frame displayed on the device and drawn from there) and `host_copy_ms` (the control: displayed,
+then drawn from a host copy, so uploaded again as before). `overhead_ms` = on_device - plain is
+what the box steps add to a live frame.
+
 With `--mdanalysis`, MDAnalysisTests' adenylate kinase (47,681 atoms, GROMACS TPR/XTC) is also
 transformed by MDAnalysis' own transformations (unwrap, center_in_box, wrap of fragments) and by
 this device's kernels, frame for frame: `mdanalysis_per_device` is their ratio.
 
     python benchmarks/periodic_bench.py --device cuda:0 --out benchmarks/results/periodic_h200.json
     python benchmarks/periodic_bench.py --quick --device cpu --out /tmp/periodic_quick.json
+    python benchmarks/periodic_bench.py --device cuda:0 --sizes 1000000 --live --out ...
 """
 
 from __future__ import annotations
@@ -166,6 +174,61 @@ def bench_size(device: str, n: int, frames: int) -> dict[str, Any]:
     return out
 
 
+def bench_live(device: str, n: int, frames: int, size: tuple[int, int]) -> dict[str, Any]:
+    """Live frames through `GpuQueue`: plain, displayed on the device, displayed then drawn from
+    a host copy (one slot each, the variants taking turns frame by frame)."""
+    from protocol import Camera, RenderParams
+    from server.pipeline.gpu import DisplayRequest, GpuQueue, RenderRequest, Snapshot
+
+    topology, pos, box = build_system(n)
+    chain = np.flatnonzero(np.asarray(topology.residue_names) != "SOL").astype(np.int32)
+    options = options_for(MODES["molecules+centre"], chain)
+    rng = np.random.default_rng(2)
+    frame = [pos + rng.normal(scale=0.05, size=pos.shape).astype(np.float32) for _ in range(4)]
+    centre = tuple(float(c) for c in box.sum(axis=0) / 2)
+    camera = Camera(target=centre, distance=float(2.2 * np.linalg.norm(box[0])))
+    params = RenderParams()
+    width, height = size
+    queue = GpuQueue(device=device)
+    ids = {"plain": 0, "on_device": 0, "host_copy": 0}
+
+    def one(variant: str, i: int) -> float:
+        slot = f"session:{variant}"
+        raw = frame[i % len(frame)]
+        t0 = time.perf_counter()
+        ids[variant] += 1
+        if variant == "plain":
+            shown = raw
+        else:
+            request = DisplayRequest(slot, topology, raw, box, options)
+            shown = queue.display_sync(request).positions
+            if variant == "host_copy":
+                shown = shown.copy()
+        queue.stage(slot, ids[variant], shown)
+        snap = Snapshot(topology, shown, positions_id=ids[variant])
+        queue.render_sync(RenderRequest(slot, snap, params, camera, width, height))
+        return (time.perf_counter() - t0) * 1e3
+
+    times: dict[str, list[float]] = {k: [] for k in ids}
+    try:
+        for i in range(frames + 5):
+            for variant in ids:
+                ms = one(variant, i)
+                if i >= 5:
+                    times[variant].append(ms)
+        froms = {v: queue._slots[f"session:{v}"].renderer.uploaded_from for v in ids}
+    finally:
+        queue.close()
+    out: dict[str, Any] = {"atoms": topology.n_atoms, "image": f"{width}x{height}"}
+    for variant, ms in times.items():
+        out[f"{variant}_ms"] = median(ms)
+    out["uploaded_from"] = froms
+    out["overhead_ms"] = out["on_device_ms"] - out["plain_ms"]
+    out["host_copy_overhead_ms"] = out["host_copy_ms"] - out["plain_ms"]
+    print(f"  live {topology.n_atoms} atoms: {out}", flush=True)
+    return out
+
+
 def bench_mdanalysis(device: str, frames: int) -> dict[str, Any]:
     """MDAnalysis' transformations against this device's kernels on adenylate kinase."""
     import MDAnalysis as mda
@@ -222,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--quick", action="store_true", help="one small size, few frames")
     ap.add_argument("--mdanalysis", action="store_true", help="also time MDAnalysis on adk")
+    ap.add_argument("--live", action="store_true", help="also time live frames, GPU queue")
+    ap.add_argument("--image", default="1920x1080", help="the live frames' image, WxH")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     device = render_device.resolve(args.device)
@@ -238,6 +303,9 @@ def main(argv: list[str] | None = None) -> int:
         "frames": frames,
         "sizes": [bench_size(device, n, frames) for n in sizes],
     }
+    if args.live:
+        w, h = (int(v) for v in args.image.lower().split("x"))
+        result["live"] = [bench_live(device, n, frames, (w, h)) for n in sizes]
     if args.mdanalysis:
         result["mdanalysis"] = bench_mdanalysis(device, frames)
         print(f"  adk vs MDAnalysis: {result['mdanalysis']}", flush=True)

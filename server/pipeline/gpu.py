@@ -162,6 +162,9 @@ class _Slot:
     """Its page-locked frames (made on the stage thread; gone with the slot)."""
     periodic: PeriodicTransform | None = None
     """Its frames' periodic steps (made at its first `display`)."""
+    shown: npt.NDArray[np.float32] | None = None
+    """The host copy of the frame `periodic` displayed last, while its device copy is on the
+    renderer's device: a render of this very array copies it there device to device."""
     prefetched: tuple[FrameStager, Any] | None = None
     """A staged frame uploaded while the last render ran, released after the next render."""
 
@@ -377,6 +380,8 @@ class GpuQueue:
         n = len(positions)
         if target is None or not target.stageable or n < self.stage_atoms:
             return
+        if positions is target.shown:
+            return  # displayed on the device already: its render copies it from there
         stager = target.stager
         if stager is not None and stager.n == n:
             stager.offer(positions_id, positions)
@@ -453,9 +458,18 @@ class GpuQueue:
             # frames were checked finite when decoded; skip the host-side scan
             stager = slot.stager
             staged = None
-            if stager is not None and stager.n == len(snap.positions):
+            shown = slot.periodic is not None and snap.positions is slot.shown
+            if not shown and stager is not None and stager.n == len(snap.positions):
                 staged = stager.take(snap.positions_id, STAGE_WAIT_S)
-            if stager is None or staged is None:
+            if shown:
+                from server.render import Renderer
+
+                single = slot.renderer
+                assert slot.periodic is not None and isinstance(single, Renderer)
+                single.set_positions(
+                    snap.positions, check_finite=False, on_device=slot.periodic.device_result
+                )
+            elif stager is None or staged is None:
                 slot.renderer.set_positions(snap.positions, check_finite=False)
             else:  # only a slot CUDA devices draw has a stager
                 held.append((stager, staged))
@@ -591,7 +605,11 @@ class GpuQueue:
         transform.set_topology(request.topology)
         if request.restart:
             transform.restart()
-        return transform.apply(request.positions, request.box, request.options, request.reference)
+        slot.shown = None
+        shown = transform.apply(request.positions, request.box, request.options, request.reference)
+        if "," not in slot.renderer.device:  # one device: the transform's own
+            slot.shown = shown.positions
+        return shown
 
     def _drop_sync(self, key: str) -> None:
         """(On the slot's thread.) Forget the slot's renderer (its next request makes one

@@ -32,7 +32,10 @@ chunks of consecutive atoms with one atomic add per chunk (per molecule run).
 
 from __future__ import annotations
 
+import logging
 import math
+from collections import OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, no_type_check
 
@@ -43,8 +46,14 @@ import warp
 from protocol import Topology
 from server.render import device as _device  # noqa: F401  (warp initialised quietly)
 from server.render.boxes import Options, Shown, usable_box
+from server.render.loans import HostLoans
 
 wp: Any = warp
+
+log = logging.getLogger("scalesteer.render")
+
+GRAPHS = 4
+"""Captured launch sequences a transform keeps (one per recent set of steps and box)."""
 
 CHUNK = wp.constant(64)
 """Atoms one thread sums before its atomic add."""
@@ -453,7 +462,8 @@ class PeriodicTransform:
     """A stream of frames of one topology shown as `Options` say, on `device`. Keeps what
     spans frames: where each atom was (unwrap) and the fit's reference."""
 
-    def __init__(self, device: str = "cpu") -> None:
+    def __init__(self, device: str = "cpu", graphs: bool | None = None) -> None:
+        """`graphs`: replay repeated frames as CUDA graphs (None: on a CUDA device)."""
         self.device = device
         self._topology: Topology | None = None
         self._molecules: Molecules | None = None
@@ -480,6 +490,14 @@ class PeriodicTransform:
         self._reference_centre = np.zeros(3)
         self._reference_key: tuple[Any, ...] | None = None
         self._cell: npt.NDArray[np.float64] | None = None
+        self._loans: HostLoans | None = None
+        self._graphs: OrderedDict[tuple[Any, ...], Any] | None = (
+            OrderedDict() if (device.startswith("cuda") if graphs is None else graphs) else None
+        )
+        self.replays = 0
+        """Frames whose kernels were replayed as a graph."""
+        self._recent: deque[tuple[Any, ...]] = deque(maxlen=GRAPHS)
+        """Page-locked buffers the displayed frames are read back into (CUDA devices)."""
 
     # ------------------------------------------------------------------ set-up
 
@@ -490,6 +508,9 @@ class PeriodicTransform:
         mol = Molecules.of(topology)
         d = self.device
         n = mol.n_atoms
+        if self._graphs is not None:  # they hold the old buffers' addresses
+            self._graphs.clear()
+        self._recent.clear()
         self._topology = topology
         self._molecules = mol
         self._n = n
@@ -584,11 +605,11 @@ class PeriodicTransform:
 
     def run(self, box: npt.ArrayLike | None, options: Options, reference: bool = False) -> None:
         """Launch the frame's kernels (asynchronous on a CUDA device): the displayed positions
-        go to `device_result`."""
+        go to `device_result`. On a CUDA device a frame that launches what one of the last few
+        launched (the same steps, box and selections: a trajectory in a box of fixed shape)
+        replays them as one CUDA graph, without the host's cost per launch."""
         cell = usable_box(box)
         self._cell = cell
-        d = self.device
-        n = self._n
         mode = options.mode if cell is not None else "off"
         if cell is None:
             to_cart = np.eye(3)
@@ -599,40 +620,93 @@ class PeriodicTransform:
             to_frac = np.asarray(np.linalg.inv(cell.T), dtype=np.float64)
             target = cell.sum(axis=0) / 2.0
         centre = options.centre if options.centre is not None and len(options.centre) else None
-        whole = mode in ("whole", "molecules") or (mode == "wrap" and centre is not None)
+        fit = {"translation": 1, "rotation": 2}.get(options.fit, 0)
+        fit_atoms = options.fit_atoms if fit and options.fit_atoms is not None else None
+        step = _Step(
+            mode=mode,
+            start=mode == "unwrap" and not self._following,
+            whole=mode in ("whole", "molecules") or (mode == "wrap" and centre is not None),
+            wrap={"wrap": 1, "molecules": 2}.get(mode, 0),
+            cart=to_cart.astype(np.float32),
+            frac=to_frac.astype(np.float32),
+            target=target.astype(np.float32),
+            centre=self._atoms(centre) if centre is not None else None,
+            fit=fit if fit_atoms is not None and len(fit_atoms) else 0,
+            fit_atoms=self._atoms(fit_atoms) if fit_atoms is not None and len(fit_atoms) else None,
+        )
+        self._following = mode == "unwrap"
+        take = False
+        if step.fit_atoms is not None:
+            key = (*options.key(), cell is None)
+            take = reference or self._reference_key != key
+            self._reference_key = key
+        if take or self._graphs is None:
+            self._launch(step, take)
+            return
+        replay_key = (
+            self._n, step.mode, step.start, step.whole, step.wrap, step.fit,
+            step.cart.tobytes(), step.frac.tobytes(), step.target.tobytes(),
+            _address(step.centre), _address(step.fit_atoms), _address(self._reference),
+            _length(step.centre), _length(step.fit_atoms),
+            self._reference_centre.tobytes(),
+        )  # fmt: skip
+        self._replay_or_launch(replay_key, lambda: self._launch(step, False))
+
+    def _replay_or_launch(self, key: tuple[Any, ...], launch: Callable[[], None]) -> None:
+        graphs = self._graphs
+        assert graphs is not None
+        graph = graphs.get(key)
+        if graph is None and key in self._recent:
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                    launch()
+                graph = graphs[key] = cap.graph
+                while len(graphs) > GRAPHS:
+                    graphs.pop(next(iter(graphs)))
+            except Exception as exc:  # launch one by one from now on
+                log.warning("periodic steps: graph capture failed (%s); launching each", exc)
+                self._graphs = None
+                launch()
+                return
+        self._recent.append(key)
+        if graph is None:
+            launch()
+            return
+        graphs.move_to_end(key)
+        wp.capture_launch(graph)
+        self.replays += 1
+
+    def _launch(self, step: _Step, take_reference: bool) -> None:
+        d = self.device
+        n = self._n
         images = self._images_a
-        wp_cart = wp.mat33(*to_cart.astype(np.float32).ravel())
-        wp_frac = wp.mat33(*to_frac.astype(np.float32).ravel())
-        if mode == "unwrap":
-            start = not self._following
-            if start:
+        wp_cart = wp.mat33(*step.cart.ravel())
+        wp_frac = wp.mat33(*step.frac.ravel())
+        if step.mode == "unwrap":
+            if step.start:
                 images = self._whole(wp_frac)
             wp.launch(
-                nojump_kernel, n, inputs=[self._pos, wp_frac, self._prev, images, int(start)],
+                nojump_kernel, n, inputs=[self._pos, wp_frac, self._prev, images, int(step.start)],
                 device=d,
             )  # fmt: skip
             if images is not self._images_a:
                 wp.copy(self._images_a, images)  # the followed images live in buffer a
                 images = self._images_a
-            self._following = True
+        elif step.whole:
+            images = self._whole(wp_frac)
         else:
-            self._following = False
-            if whole:
-                images = self._whole(wp_frac)
-            else:
-                images.zero_()
-        wrap = {"wrap": 1, "molecules": 2}.get(mode, 0)
+            images.zero_()
         small = self._small
-        count = len(centre) if centre is not None else 0
+        count = 0 if step.centre is None else len(step.centre)
         small["centre_sums"].zero_()
         if count:
             wp.launch(
                 selection_sum_kernel, _chunks(count),
-                inputs=[self._pos, images, wp_cart, self._atoms(centre), small["centre_sums"]],
+                inputs=[self._pos, images, wp_cart, step.centre, small["centre_sums"]],
                 device=d,
             )  # fmt: skip
-        wp_target = wp.vec3(*target.astype(np.float32))
-        if wrap == 2:
+        wp_target = wp.vec3(*step.target)
+        if step.wrap == 2:
             self._mol_sums.zero_()
             wp.launch(
                 molecule_sum_kernel, _chunks(n),
@@ -640,31 +714,27 @@ class PeriodicTransform:
                 device=d,
             )  # fmt: skip
         common = [
-            self._pos, images, wp_cart, wp_frac, small["centre_sums"], count, wp_target, wrap,
+            self._pos, images, wp_cart, wp_frac, small["centre_sums"], count, wp_target, step.wrap,
             self._molecule, self._mol_sums, self._mol_counts,
         ]  # fmt: skip
-        fit = {"translation": 1, "rotation": 2}.get(options.fit, 0)
-        fit_atoms = options.fit_atoms if fit and options.fit_atoms is not None else None
-        fit_count = 0 if fit_atoms is None else len(fit_atoms)
+        fit_count = 0 if step.fit_atoms is None else len(step.fit_atoms)
         if fit_count:
-            atoms = self._atoms(fit_atoms)
-            key = (*options.key(), cell is None)
-            if reference or self._reference_key != key:
-                self._take_reference(common, atoms, fit_count)
-                self._reference_key = key
+            if take_reference:
+                self._take_reference(common, step.fit_atoms, fit_count)
             small["fit_sums"].zero_()
             small["correlation"].zero_()
             wp.launch(
                 fit_sum_kernel, _chunks(fit_count),
-                inputs=[*common, atoms, self._reference, small["fit_sums"], small["correlation"]],
+                inputs=[*common, step.fit_atoms, self._reference, small["fit_sums"],
+                        small["correlation"]],
                 device=d,
             )  # fmt: skip
         ref_centre = wp.vec3(*self._reference_centre.astype(np.float32))
         wp.launch(
             solve_kernel, 1,
-            inputs=[small["centre_sums"], count, wp_target, fit if fit_count else 0, fit_count,
-                    small["fit_sums"], small["correlation"], ref_centre, small["motion"],
-                    small["rotation"]],
+            inputs=[small["centre_sums"], count, wp_target, step.fit if fit_count else 0,
+                    fit_count, small["fit_sums"], small["correlation"], ref_centre,
+                    small["motion"], small["rotation"]],
             device=d,
         )  # fmt: skip
         if n:
@@ -674,9 +744,10 @@ class PeriodicTransform:
             )  # fmt: skip
 
     def result(self) -> Shown:
-        """The last `run`'s frame, read back to the host (waits for the device)."""
-        n = self._n
-        out = self._out.numpy().reshape(-1, 3) if n else np.zeros((0, 3), np.float32)
+        """The last `run`'s frame, read back to the host (waits for the device) into an array
+        no later frame writes: from a CUDA device into a lent page-locked buffer (`HostLoans`),
+        on the CPU a copy."""
+        out = self._read_back()
         motion = self._small["motion"].numpy().astype(np.float64)
         rotation = self._small["rotation"].numpy().reshape(3, 3).astype(np.float64)
         shown_cell = None
@@ -685,12 +756,26 @@ class PeriodicTransform:
             origin = (np.zeros(3) - motion[1]) @ rotation.T + motion[2]
             shown_cell = (origin, cell @ rotation.T)
         return Shown(
-            positions=np.ascontiguousarray(out, dtype=np.float32),
+            positions=out,
             rotation=rotation,
             centre=motion[1],
             reference_centre=motion[2],
             cell=shown_cell,
         )
+
+    def _read_back(self) -> npt.NDArray[np.float32]:
+        n = self._n
+        if not n:
+            return np.zeros((0, 3), np.float32)
+        if not self.device.startswith("cuda"):
+            return np.array(self._out.numpy().reshape(-1, 3), dtype=np.float32)
+        loans = self._loans
+        if loans is None or loans.n != n:
+            loans = self._loans = HostLoans(n)
+        owner, array = loans.lend()
+        wp.copy(owner, self._out, count=n)
+        wp.synchronize_stream(wp.get_stream(self.device))
+        return array
 
     def _whole(self, to_frac: Any) -> Any:
         """Every molecule whole: each atom's image summed along its tree (returns the buffer
@@ -724,6 +809,31 @@ class PeriodicTransform:
         self._reference = wp.array(
             (ref - centre).astype(np.float32), dtype=wp.vec3, device=self.device
         )
+
+
+@dataclass(frozen=True, eq=False)
+class _Step:
+    """What one frame's kernels do (host values, decided before any launch)."""
+
+    mode: str
+    start: bool
+    """`unwrap` makes this frame whole (it follows no frame)."""
+    whole: bool
+    wrap: int
+    cart: npt.NDArray[np.float32]
+    frac: npt.NDArray[np.float32]
+    target: npt.NDArray[np.float32]
+    centre: Any
+    fit: int
+    fit_atoms: Any
+
+
+def _address(array: Any) -> int:
+    return 0 if array is None else int(array.ptr or 0)
+
+
+def _length(array: Any) -> int:
+    return 0 if array is None else len(array)
 
 
 def _chunks(count: int) -> int:

@@ -190,6 +190,8 @@ class Renderer(ImageOutputs):
         self._last: tuple[RenderParams, Derived] | None = None
         self._uploaded = False
         self._upload_ms = 0.0
+        self.uploaded_from = "host"
+        """Where the last frame came from: the host, page-locked host memory or the device."""
         # per-frame host work between the upload and the launch leaves the GPU idle: reuse
         # what the last frame computed from the same (immutable) parameter and camera objects
         self._params_seen: tuple[RenderParams, str] | None = None
@@ -348,6 +350,7 @@ class Renderer(ImageOutputs):
         check_finite: bool = True,
         staged: npt.NDArray[np.float32] | None = None,
         part: tuple[int, int] | None = None,
+        on_device: wp.array | None = None,
     ) -> None:
         """Positions (n, 3) in angstrom for the next render; n must match the topology.
 
@@ -357,7 +360,10 @@ class Renderer(ImageOutputs):
         already copied to page-locked memory (`server.pipeline.staging`), uploaded from there
         asynchronously; keep it unwritten until this render has finished. `part` (a, b):
         only atoms [a, b) are copied from the host; `receive` brings the others from the
-        devices that copied them (`MultiRenderer`: each device uploads 1/N of a frame)."""
+        devices that copied them (`MultiRenderer`: each device uploads 1/N of a frame).
+        `on_device`: the same positions, already on this renderer's device (a periodic
+        display's result, `server.render.periodic`), copied device to device; the work that
+        wrote them must be done."""
         if self._topology is None:
             raise RenderError("set_topology must come before set_positions")
         arr = np.asarray(positions)
@@ -378,8 +384,21 @@ class Renderer(ImageOutputs):
                 )
             raise RenderError("positions are too large (beyond ±1e30 angstrom)")
         t0 = time.perf_counter()
-        if n:
+        self.uploaded_from = "host"
+        if n and on_device is not None:
+            if part is not None or on_device.device != self._dev or len(on_device) < n:
+                raise RenderError(
+                    f"a device copy of {len(on_device)} atoms on {on_device.device} for "
+                    f"{n} atoms on {self.device}, whole"
+                )
+            self.uploaded_from = "device"
+            if self._cuda:
+                self._upload(on_device, n)
+            else:
+                wp.copy(self._pos, on_device, count=n)
+        elif n:
             if staged is not None:
+                self.uploaded_from = "page-locked"
                 if staged.shape != arr.shape or staged.dtype != np.float32:
                     raise RenderError(f"a staged copy of shape {staged.shape} for {arr.shape}")
                 arr = staged

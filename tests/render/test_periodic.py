@@ -218,3 +218,19 @@ def test_a_box_that_is_no_cell_leaves_the_frame_as_sent(device: str) -> None:
     shown = transform.apply(raw, np.eye(3), Options(mode="molecules"))
     np.testing.assert_array_equal(shown.positions, raw)
     assert shown.cell is None
+
+
+def test_a_displayed_frame_is_never_written_again(device: str) -> None:
+    """A shown frame lives on (the session's newest positions, a temporal filter's frames, a
+    movie's queue): the next frame's display must not write into it."""
+    u = universe("tz2")
+    topology = topology_of(u, guess_bonds=False)
+    transform = PeriodicTransform(device)
+    transform.set_topology(topology)
+    box = np.asarray(mda.lib.mdamath.triclinic_vectors(u.dimensions), np.float32)
+    first = transform.apply(u.atoms.positions.copy(), box, Options(mode="molecules"))
+    kept = first.positions.copy()
+    for shift in (3.0, 7.0):
+        later = transform.apply(u.atoms.positions + shift, box, Options(mode="molecules"))
+        assert not np.shares_memory(later.positions, first.positions)
+    np.testing.assert_array_equal(first.positions, kept)
