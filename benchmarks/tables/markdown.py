@@ -104,5 +104,5 @@ def stem(name: str, prefix: str) -> str:
 
 
 def block(sources: list[Source], lines: list[str], note: str = "") -> str:
-    """A table under its caption."""
-    return "\n".join([caption(sources, note), "", *lines]) + "\n"
+    """A table right under its caption line (GitHub's markdown starts a table there)."""
+    return "\n".join([caption(sources, note), *lines]) + "\n"

@@ -134,21 +134,29 @@ def render_passes(sources: list[Source]) -> str:
 
 def reach(sources: list[Source]) -> str:
     """The least reach that keeps the surface within the bound of the untruncated density (the
-    control), per sigma and protein, and the shift at 3 and 4 sigmas."""
+    control), per sigma and protein, and the shift at 3 and 4 sigmas; a column per sigma."""
     ((_, res),) = sources
     proteins = list(res["rows"][0]["least_k"])
-    rows = []
-    for r in res["rows"]:
-        row = [f"{r['sigma']:g}", f"{r['bound_A']:g}"]
-        row += [
-            "none tried" if r["least_k"][p] is None else f"{r['least_k'][p]:g}" for p in proteins
-        ]
-        for k in ("3", "4"):
-            row.append(" / ".join(f"{r['shift_A'][p][k]:.3f}" for p in proteins))
-        rows.append(row)
-    header = ["sigma A", "bound A", *(f"least k, {p}" for p in proteins)]
-    header += [f"shift A at {k} sigmas, {' / '.join(proteins)}" for k in ("3", "4")]
-    return block(sources, table(header, "rr" + "r" * (len(proteins) + 2), rows))
+    rows = [["bound A", *(f"{r['bound_A']:g}" for r in res["rows"])]]
+    for p in proteins:
+        rows.append(
+            [
+                f"least k, {p}",
+                *(
+                    "none tried" if r["least_k"][p] is None else f"{r['least_k'][p]:g}"
+                    for r in res["rows"]
+                ),
+            ]
+        )
+    for k in ("3", "4"):
+        rows.append(
+            [
+                f"shift A at {k} sigmas, {' / '.join(proteins)}",
+                *(" / ".join(f"{r['shift_A'][p][k]:.3f}" for p in proteins) for r in res["rows"]),
+            ]
+        )
+    header = ["sigma A", *(f"{r['sigma']:g}" for r in res["rows"])]
+    return block(sources, table(header, "l" + "r" * len(res["rows"]), rows))
 
 
 def _by_devices(run: Results) -> dict[int, float]:
@@ -188,26 +196,25 @@ def multi_device(sources: list[Source]) -> str:
 
 
 def temporal(sources: list[Source]) -> str:
-    """The temporal filter and its frame, against the frame with smoothing off (the control)."""
+    """The temporal filter and its frame, against the frame with smoothing off (the control);
+    a column per ring of W frames."""
     ((_, res),) = sources
+    windows = [(w["window"], w["ring_bytes_per_atom"]) for w in res["sizes"][0]["windows"]]
     rows = []
     for s in res["sizes"]:
-        for w in s["windows"]:
-            rows.append(
-                [
-                    count(s["atoms"]),
-                    str(w["window"]),
-                    str(w["ring_bytes_per_atom"]),
-                    num(w["smooth_ms_classical"], 3),
-                    num(w["smooth_ms_warped"], 3),
-                    num(w["frame_ms"], 2),
-                    num(s["baseline_frame_ms"], 2),
-                    f"{w['frame_ratio']:.2f}",
-                ]
-            )
-    header = ["atoms", "W", "ring B/atom", "filter ms, classical", "filter ms, warped"]
-    header += ["frame ms", "frame without smoothing", "ratio"]
-    return block(sources, table(header, "rrrrrrrr", rows))
+        if [(w["window"], w["ring_bytes_per_atom"]) for w in s["windows"]] != windows:
+            raise ValueError(f"windows of {s['atoms']} atoms differ from the first size's")
+        row = [count(s["atoms"]), num(s["baseline_frame_ms"], 2)]
+        row += [
+            f"{num(w['smooth_ms_classical'], 3)} / {num(w['smooth_ms_warped'], 3)}, "
+            f"{num(w['frame_ms'], 2)} ({w['frame_ratio']:.2f})"
+            for w in s["windows"]
+        ]
+        rows.append(row)
+    header = ["atoms", "frame without smoothing ms"]
+    header += [f"W {w} ({b} B/atom)" for w, b in windows]
+    note = "each W: filter ms classical / warped, frame ms (over the frame without smoothing)"
+    return block(sources, table(header, "r" * len(header), rows), note)
 
 
 LAYER_ROWS = (
@@ -254,37 +261,36 @@ def layers(sources: list[Source]) -> str:
 
 
 def periodic(sources: list[Source]) -> str:
-    """The periodic steps of a frame per system size and mode, beside copying the frame to the
-    device (the control in the same run); MDAnalysis' own transformations of adenylate kinase
-    beside the kernels, where the run timed them."""
+    """The periodic steps of a frame per system size, a column per mode, beside copying the
+    frame to the device (the control in the same run), with the time the topology's molecules
+    took to build and the bytes per atom the device keeps; MDAnalysis' own transformations of
+    adenylate kinase beside the kernels, where the run timed them, in the caption."""
+    modes: list[str] = []
+    for _, res in sources:
+        for sz in res["sizes"]:
+            modes += [m["mode"] for m in sz["modes"] if m["mode"] not in modes]
     rows = []
+    notes = ["each mode: kernels ms / with copy and read-back ms (kernels / copy)"]
     for name, res in sources:
         for sz in res["sizes"]:
-            for m in sz["modes"]:
-                rows.append(
-                    [
-                        stem(name, "periodic_"),
-                        count(sz["atoms"]),
-                        m["mode"],
-                        num(m["device_ms"], 2),
-                        num(m["round_trip_ms"], 2),
-                        num(sz["upload_ms"], 3),
-                        num(m["device_per_upload"], 1),
-                    ]
-                )
+            by = {m["mode"]: m for m in sz["modes"]}
+            row = [stem(name, "periodic_"), count(sz["atoms"]), num(sz["upload_ms"], 3)]
+            row += [
+                ""
+                if mode not in by
+                else f"{num(by[mode]['device_ms'], 2)} / {num(by[mode]['round_trip_ms'], 2)} "
+                f"({num(by[mode]['device_per_upload'], 1)})"
+                for mode in modes
+            ]
+            row += [num(sz["topology_ms"] / 1e3, 2), num(sz["device_bytes_per_atom"], 0)]
+            rows.append(row)
         md = res.get("mdanalysis")
         if md:
-            rows.append(
-                [
-                    stem(name, "periodic_"),
-                    f"adk {md['atoms']:,}",
-                    "MDAnalysis unwrap + center_in_box + wrap (control)",
-                    "",
-                    f"{num(md['mdanalysis_ms'], 1)} against {num(md['round_trip_ms'], 2)}",
-                    "",
-                    f"{num(md['mdanalysis_per_device'], 0)}x",
-                ]
+            notes.append(
+                f"{stem(name, 'periodic_')}: MDAnalysis unwrap + center_in_box + wrap of adk "
+                f"({md['atoms']:,} atoms, the second control) {num(md['mdanalysis_ms'], 1)} ms "
+                f"against {num(md['round_trip_ms'], 2)} ({num(md['mdanalysis_per_device'], 0)}x)"
             )
-    header = ["run", "atoms", "mode", "kernels ms", "with copy and read-back ms"]
-    header += ["frame copy ms (control)", "kernels / copy"]
-    return block(sources, table(header, "lrlrrrr", rows))
+    header = ["run", "atoms", "frame copy ms (control)", *modes, "molecules built s"]
+    header.append("device B/atom")
+    return block(sources, table(header, "lrr" + "r" * (len(modes) + 2), rows), "; ".join(notes))

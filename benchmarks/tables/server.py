@@ -5,6 +5,7 @@ adapter_bench.py and trajectory_bench.py."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from .markdown import Source, block, count, num, size, stem, table
@@ -13,25 +14,22 @@ STAGES = ("total", "queue", "render", "encode", "send", "decode")
 
 
 def latency_steer(sources: list[Source]) -> str:
-    """Steer-to-photon by stage, p50 / p95 / p99 ms, one column group per file."""
-    header = ["stage (ms)"]
+    """Steer-to-photon by stage, p50 / p95 / p99 ms, one row per file."""
+    rows = []
     for name, res in sources:
         lat = res["latency"]
         w, h = lat["image"]
-        canvas = size(*res["size"])
-        header += [
-            f"{stem(name, 'latency_')}: {lat['n_atoms']:,} atoms, {size(w, h)} of {canvas} p50",
-            "p95",
-            "p99",
+        row = [
+            stem(name, "latency_"),
+            f"{lat['n_atoms']:,}",
+            f"{size(w, h)} of {size(*res['size'])}",
         ]
-    rows = []
-    for stage in STAGES:
-        row = [stage]
-        for _, res in sources:
-            st = res["latency"][stage]
-            row += [num(st["p50"], 1), num(st["p95"], 1), num(st["p99"], 1)]
+        row += [
+            " / ".join(num(lat[stage][p], 1) for p in ("p50", "p95", "p99")) for stage in STAGES
+        ]
         rows.append(row)
-    return block(sources, table(header, "l" + "r" * (3 * len(sources)), rows))
+    header = ["run", "atoms", "image", *STAGES]
+    return block(sources, table(header, "lrl" + "r" * len(STAGES), rows), "ms, p50 / p95 / p99")
 
 
 def latency_delivery(sources: list[Source]) -> str:
@@ -110,14 +108,13 @@ preset rows are a sweep (HISTORY.md, "Video")."""
 
 def video_quality(sources: list[Source]) -> str:
     """Each encoding of the same 1080p frames: bit rate at 60 fps, encode time, PSNR against the
-    raw render; JPEG is the control of the video stream."""
+    raw render; JPEG is the control of the video stream. A row per system."""
     ((_, res),) = sources
-    systems = list(res["quality"])
     rows = []
-    for e in ENCODINGS:
-        row = [e]
-        for s in systems:
-            q = res["quality"][s].get(e)
+    for s, by in res["quality"].items():
+        row = [s]
+        for e in ENCODINGS:
+            q = by.get(e)
             row.append(
                 ""
                 if q is None
@@ -125,8 +122,8 @@ def video_quality(sources: list[Source]) -> str:
                 f"{num(q['psnr_db_mean'], 1)} ({num(q['psnr_db_min'], 1)})"
             )
         rows.append(row)
-    header = ["encoding", *(f"{s}: Mbit/s / encode ms p50 / PSNR dB mean (min)" for s in systems)]
-    return block(sources, table(header, "l" + "r" * len(systems), rows))
+    note = "each encoding: Mbit/s / encode ms p50 / PSNR dB mean (min)"
+    return block(sources, table(["system", *ENCODINGS], "l" + "r" * len(ENCODINGS), rows), note)
 
 
 VIDEO_STAGES = ("up", "queued", "render", "encoder", "encode", "down", "decode")
@@ -156,26 +153,36 @@ def video_live(sources: list[Source]) -> str:
     return block(sources, table(header, "lll" + "r" * 11, rows), note)
 
 
+def _engine(r: dict[str, Any]) -> str:
+    if r["engine"] == "ray":
+        return f"Ray, {r['workers']} actor{'s' * (r['workers'] > 1)}"
+    return str(r["engine"])
+
+
 def batch(sources: list[Source]) -> str:
-    """One movie job in-process (the control) and on Ray actors, in one run per machine."""
+    """One movie job in-process (the control) and on Ray actors, in one run per machine; a row
+    per machine, a column per engine."""
+    engines: list[str] = []
+    for _, res in sources:
+        engines += [e for e in map(_engine, res["runs"]) if e not in engines]
     rows = []
     for name, res in sources:
-        for r in res["runs"]:
-            engine = r["engine"]
-            if engine == "ray":
-                engine = f"Ray, {r['workers']} actor{'s' * (r['workers'] > 1)}"
-            rows.append(
-                [
-                    stem(name, "batch_"),
-                    engine,
-                    f"{r['frames']:,} at {size(*res['size'])}",
-                    num(r["wall_s"], 1),
-                    num(r["frames_per_s"], 2),
-                    f"{r.get('time_vs_in_process', 1.0):.2f}",
-                ]
-            )
-    header = ["run", "engine", "frames", "wall s", "frames/s", "time / in-process"]
-    return block(sources, table(header, "llrrrr", rows))
+        by = {_engine(r): r for r in res["runs"]}
+        frames = {r["frames"] for r in res["runs"]}
+        if len(frames) != 1:
+            raise ValueError(f"frames differ between the engines of {name}: {sorted(frames)}")
+        row = [stem(name, "batch_"), f"{frames.pop():,} at {size(*res['size'])}"]
+        for e in engines:
+            r = by.get(e)
+            if r is None:
+                row.append("")
+                continue
+            ratio = r.get("time_vs_in_process")
+            cell = f"{num(r['wall_s'], 1)} / {num(r['frames_per_s'], 2)}"
+            row.append(cell if ratio is None else f"{cell} ({ratio:.2f})")
+        rows.append(row)
+    note = "each engine: wall s / frames/s (time over in-process)"
+    return block(sources, table(["run", "frames", *engines], "lr" + "r" * len(engines), rows), note)
 
 
 def cpu_interactive(sources: list[Source]) -> str:
@@ -226,14 +233,14 @@ def ws_parse(sources: list[Source]) -> str:
 
 def cpu_demo_chromium(sources: list[Source]) -> str:
     """`scalesteer demo` as its dashboard in Chromium shows it on the CPU machine; each run of a
-    file (the baseline checkout first, when it ran one) is a column."""
-    cols: list[tuple[str, dict[str, Any]]] = []
+    file (the baseline checkout first, when it ran one) is a row."""
+    runs: list[tuple[str, dict[str, Any]]] = []
     for name, res in sources:
         tag = f"--priority {res['priority']}" if res.get("priority") else "as loaded"
         for label, run in res["runs"].items():
             load = run["load_average_before"][0], run["load_average_after"][0]
             head = f"{stem(name, 'cpu_demo_chromium_')} {label} ({run['commit']}, {tag}, load"
-            cols.append((f"{head} {num(load[0], 0)}-{num(load[1], 0)})", run))
+            runs.append((f"{head} {num(load[0], 0)}-{num(load[1], 0)})", run))
 
     def pct(stats: dict[str, float], key: str = "p50") -> str:
         return num(stats[key], 0) if stats else "n/a"
@@ -242,7 +249,7 @@ def cpu_demo_chromium(sources: list[Source]) -> str:
         st = run["phases"][phase]["latency_ms"].get(kind)
         return f"{pct(st)} / {pct(st, 'p90')}" if st else "n/a"
 
-    lines = [
+    lines: list[tuple[str, Callable[[dict[str, Any]], str]]] = [
         (
             "images shown/s, simulation running",
             lambda r: num(r["phases"]["running"]["images_per_s"], 1),
@@ -270,9 +277,9 @@ def cpu_demo_chromium(sources: list[Source]) -> str:
             lambda r: num(r["phases"]["running"]["sim_steps_per_s"], 0),
         ),
     ]
-    rows = [[label] + [get(run) for _, run in cols] for label, get in lines]
-    header = ["measure"] + [head for head, _ in cols]
-    return block(sources, table(header, "l" + "r" * len(cols), rows))
+    header = ["run"] + [label for label, _ in lines]
+    rows = [[head] + [get(run) for _, get in lines] for head, run in runs]
+    return block(sources, table(header, "l" + "r" * len(lines), rows))
 
 
 def widget(sources: list[Source]) -> str:
