@@ -27,6 +27,7 @@ from .render import (
     layers,
     multi_device,
     periodic,
+    periodic_live,
     reach,
     render_densities,
     render_passes,
@@ -92,6 +93,7 @@ TABLES: dict[str, Table] = {
     "ws-parse": Table(("ws_parse_h200_host.json", "ws_parse_cpu_2core.json"), ws_parse),
     "trajectory": Table(("trajectory_cpu_2core.json",), trajectory),
     "periodic": Table(("periodic_h200.json", "periodic_cpu_2core.json"), periodic),
+    "periodic-live": Table(("periodic_h200.json",), periodic_live),
     "cpu-demo-chromium": Table(
         (
             "cpu_demo_chromium_2core.json",

@@ -294,3 +294,25 @@ def periodic(sources: list[Source]) -> str:
     header = ["run", "atoms", "frame copy ms (control)", *modes, "molecules built s"]
     header.append("device B/atom")
     return block(sources, table(header, "lrr" + "r" * (len(modes) + 2), rows), "; ".join(notes))
+
+
+def periodic_live(sources: list[Source]) -> str:
+    """Live frames through the GPU queue (molecules whole and centred, then drawn): plain
+    frames (the control), displayed on the device and drawn from there, and displayed then
+    drawn from a host copy (the second control, as before); what the steps add to a frame."""
+    rows = []
+    for name, res in sources:
+        for live in res["live"]:
+            rows.append(
+                [
+                    stem(name, "periodic_"), count(live["atoms"]), live["image"],
+                    num(live["plain_ms"], 2), num(live["on_device_ms"], 2),
+                    num(live["host_copy_ms"], 2), num(live["overhead_ms"], 2),
+                    num(live["host_copy_overhead_ms"], 2),
+                ]
+            )  # fmt: skip
+    header = [
+        "run", "atoms", "image", "plain ms (control)", "on the device ms", "host copy ms",
+        "added on the device ms", "added with a host copy ms",
+    ]  # fmt: skip
+    return block(sources, table(header, "lrl" + "r" * 5, rows))
