@@ -25,7 +25,6 @@ import tempfile
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,9 +32,9 @@ import numpy.typing as npt
 
 from protocol import Topology
 from structures.errors import StructureError
+from structures.interpreters import child_environment
 from structures.reader import load
 
-_ROOT = str(Path(__file__).resolve().parents[1])
 _SPARE: tuple[subprocess.Popen[bytes], multiprocessing.connection.Connection] | None = None
 _SPARE_LOCK = threading.Lock()
 
@@ -62,9 +61,10 @@ def _start_child() -> tuple[subprocess.Popen[bytes], multiprocessing.connection.
     """A fresh interpreter (never a fork of the server, whose GPU context and threads must not
     be copied) that imports the readers and waits for its files."""
     ours, theirs = socket.socketpair()
-    code = f"import sys; sys.path.insert(0, {_ROOT!r}); import structures.isolated as m; m._main()"
+    code = "import structures.isolated as m; m._main()"
     process = subprocess.Popen(
         [sys.executable, "-c", code, str(theirs.fileno())],
+        env=child_environment(),
         pass_fds=(theirs.fileno(),),
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,

@@ -39,19 +39,18 @@ from collections import OrderedDict, deque
 from collections.abc import Hashable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from protocol import Topology
+from structures.interpreters import child_environment
 from structures.selection import SelectionError, Selector
 from structures.selection_cost import SelectionLimits
 
 log = logging.getLogger("scalesteer.selections")
 
-_ROOT = str(Path(__file__).resolve().parents[1])
 START_TIMEOUT_S = 60.0
 """A worker must be ready (its imports done) within this; about 1 s on an idle machine."""
 LOAD_S_PER_ATOM = 2e-5
@@ -470,17 +469,10 @@ class _Worker:
 
     def _start(self) -> None:
         ours, theirs = socket.socketpair()
-        code = (
-            f"import sys; sys.path.insert(0, {_ROOT!r}); "
-            "import structures.selection_pool as m; m._main()"
+        code = "import structures.selection_pool as m; m._main()"
+        env = child_environment(
+            OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", MALLOC_ARENA_MAX="2"
         )
-        env = {
-            **os.environ,
-            "OMP_NUM_THREADS": "1",
-            "OPENBLAS_NUM_THREADS": "1",
-            "MKL_NUM_THREADS": "1",
-            "MALLOC_ARENA_MAX": "2",
-        }
         process = subprocess.Popen(
             [
                 sys.executable, "-c", code, str(theirs.fileno()), str(os.getpid()),
