@@ -6,8 +6,10 @@ accepts, all of them accept. MDAnalysis is imported lazily: `pip install scalest
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import tempfile
 import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -17,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from protocol import Topology, WireArray
+from structures.binarycif import to_mmcif
 from structures.errors import StructureError
 from structures.textcheck import CHECKS
 
@@ -25,6 +28,7 @@ STRUCTURE_FORMATS = (
     "ent",
     "cif",
     "mmcif",
+    "bcif",
     "gro",
     "xyz",
     "psf",
@@ -199,9 +203,16 @@ def load(
         if style is not None:
             kwargs["atom_style"] = style
     try:
-        with warnings.catch_warnings():
+        with contextlib.ExitStack() as stack, warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            u = mda.Universe(topology, *trajectories, **kwargs)
+            source = topology
+            if fmt == "bcif":  # as mmCIF text, read whole while the folder lasts
+                folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="bcif-"))
+                source = to_mmcif(topology, folder)
+                kwargs["topology_format"] = "MMCIF"
+            u = mda.Universe(source, *trajectories, **kwargs)
+    except StructureError:
+        raise
     except Exception as exc:
         msg = reason(exc, (topology, *trajectories))
         names = ", ".join(os.path.basename(f) for f in (topology, *trajectories))

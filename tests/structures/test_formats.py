@@ -1,7 +1,8 @@
 """The formats chemists have, read through MDAnalysis (and gemmi for PDBx/mmCIF), each on files
 MDAnalysisTests ships: GROMACS TPR with its XTC, AMBER prmtop/parm7 with NetCDF and ASCII
-trajectories, LAMMPS data with dumps (a triclinic one too), PDBx/mmCIF and multi-model PDB. A
-broken file of each is refused naming the file and the line."""
+trajectories, LAMMPS data with dumps (a triclinic one too), PDBx/mmCIF, BinaryCIF (py-mmcif's
+own test file) and multi-model PDB. A broken file of each is refused naming the file (and the
+line, in a text format)."""
 
 from __future__ import annotations
 
@@ -99,3 +100,64 @@ def test_a_reader_error_says_its_cause_without_directories(tmp_path: Path) -> No
     message = str(caught.value)
     assert "not-a-charge" in message and "broken.prmtop" in message, message
     assert str(tmp_path) not in message and "Failed to construct" not in message
+
+
+BCIF = Path(__file__).parent / "data" / "1bna.bcif.gz"
+"""B-DNA dodecamer 1BNA as the PDB packs it in BinaryCIF, from py-mmcif's own test data
+(wwPDB, Apache-2.0)."""
+
+
+def test_a_binarycif_model_opens_as_its_mmcif_does(tmp_path: Path) -> None:
+    """The PDB's own packing (its column encodings) read by py-mmcif; and the same model as
+    mmCIF text and as BinaryCIF written by py-mmcif open to the same atoms."""
+    from mmcif.io.BinaryCifReader import BinaryCifReader
+    from mmcif.io.BinaryCifWriter import BinaryCifWriter
+    from mmcif.io.PdbxWriter import PdbxWriter
+
+    s = load(str(BCIF))
+    assert s.topology.n_atoms == 566 and s.n_frames == 1
+    assert {"DA", "DC", "DG", "DT", "HOH"} == set(s.topology.residue_names)
+    assert set(s.topology.chain_ids) == {"A", "B"} and s.topology.bonds.shape[0] > 500
+    positions, box = s.frame(0)
+    assert box is not None and np.allclose(np.diag(box), [24.87, 40.39, 66.2])
+    np.testing.assert_allclose(positions[0], [18.935, 34.195, 25.617], atol=1e-3)
+    block = BinaryCifReader().deserialize(str(BCIF))
+    text = tmp_path / "1bna.cif"
+    with open(text, "w") as fh:
+        PdbxWriter(fh).write(block)
+    np.testing.assert_array_equal(load(str(text)).positions(0), positions)
+    packed = tmp_path / "1yjp.bcif"
+    from mmcif.io.PdbxReader import PdbxReader
+
+    source: list[object] = []
+    with open(DATA / "mmcif/1YJP.cif") as fh:
+        PdbxReader(fh).read(source)
+    assert BinaryCifWriter(dictionaryApi=None).serialize(str(packed), source)
+    np.testing.assert_array_equal(
+        load(str(packed)).positions(0), load(str(DATA / "mmcif/1YJP.cif")).positions(0)
+    )
+
+
+@pytest.mark.parametrize("damage", ["truncated", "not-msgpack", "no-atoms"])
+def test_a_broken_binarycif_is_refused_naming_the_file(tmp_path: Path, damage: str) -> None:
+    import gzip
+
+    import msgpack
+
+    raw = gzip.decompress(BCIF.read_bytes())
+    bad = tmp_path / "model.bcif"
+    if damage == "truncated":
+        bad.write_bytes(raw[: len(raw) // 2])
+        expected = r"cannot read model\.bcif: it is not BinaryCIF \(or it is damaged\)"
+    elif damage == "not-msgpack":
+        bad.write_bytes(b"data_1BNA\nloop_\n_atom_site.id\n1\n")
+        expected = r"cannot read model\.bcif: it is not BinaryCIF \(or it is damaged\)"
+    else:
+        doc = msgpack.unpackb(raw, raw=False)
+        for block in doc["dataBlocks"]:
+            block["categories"] = [c for c in block["categories"] if c["name"] != "_atom_site"]
+        bad.write_bytes(msgpack.packb(doc))
+        expected = r"model\.bcif has no atom_site rows; is it a BinaryCIF model file\?"
+    with pytest.raises(StructureError, match=expected) as caught:
+        load(str(bad))
+    assert str(tmp_path) not in str(caught.value)
