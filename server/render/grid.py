@@ -125,7 +125,8 @@ def gap(q: float, i: int) -> float:
 
 
 def cell_capacity(n_atoms: int) -> int:
-    """Most cells a grid for `n_atoms` may use: bounds device memory at 8 bytes per cell."""
+    """Most cells a grid for `n_atoms` may use: bounds device memory at 8 bytes per cell (12
+    for a grid with more cells than twice its atoms, which lists the cells it walks apart)."""
     return max(int(CELLS_PER_ATOM * n_atoms), MIN_CELLS)
 
 
@@ -457,10 +458,13 @@ class CellGrid:
 
     `cell_values` (float, capacity + 1) is scratch that the counts use during the build and
     the caller may fill with per-cell data afterwards (the density bound): sharing it keeps
-    the grid at 8 bytes per cell.
+    the grid at 8 bytes per cell (and 4 more for the list of cells the bound walks when the
+    grid has more than twice as many cells as atoms).
     """
 
-    def __init__(self, device: str, n_atoms: int, sort: str = "counting"):
+    def __init__(
+        self, device: str, n_atoms: int, sort: str = "counting", *, cell_list: bool = True
+    ):
         if sort not in GRID_SORTS:
             raise ValueError(f"grid sort must be one of {', '.join(GRID_SORTS)}, got {sort!r}")
         self.device = device
@@ -477,8 +481,14 @@ class CellGrid:
         self.brick_values = wp.zeros(self.brick_capacity, dtype=float, device=device)
         self._counts = _view(self.cell_values, 0, wp.int32, self.capacity + 1)
         # the second half of the sort's values is free once it is done: the cells the bound
-        # walks are listed there
-        self.work = _view(self.order, self.n_atoms, wp.int32, max(self.n_atoms, 1))
+        # walks are listed there; a small molecule's grid has more cells than atoms, and the
+        # cells a full list leaves out are walked one thread each, out of step: such a grid
+        # lists its cells in a buffer of its own (128 KB at the least capacity)
+        self._own_work: wp.array | None = None
+        if self.n_atoms >= self.capacity // 2 or not cell_list:
+            self.work = _view(self.order, self.n_atoms, wp.int32, self.n_atoms)
+        else:
+            self.work = self._own_work = wp.zeros(self.capacity, dtype=wp.int32, device=device)
         self.work_count = wp.zeros(1, dtype=wp.int32, device=device)
         # the counting sort's ranks: the second half of the keys (no double buffer to keep)
         self._ranks = _view(self.keys, self.n_atoms, wp.int32, max(self.n_atoms, 1))
@@ -502,6 +512,7 @@ class CellGrid:
             self.brick_values,
             self.bmin,
             self.bmax,
+            *(() if self._own_work is None else (self._own_work,)),
         )
         return sum(int(a.capacity) for a in arrays) + 64
 

@@ -31,6 +31,7 @@ from server.render import device as devmod
 from server.render.camera import CameraFrame, band_planes, camera_frame
 from server.render.density import (
     GAUSSIAN,
+    LANES_PER_SAMPLE,
     MEAN_BLOCK,
     MEAN_LANES,
     DensityModel,
@@ -197,7 +198,11 @@ class Renderer(ImageOutputs):
         self._params_seen: tuple[RenderParams, str] | None = None
         self._camera_seen: tuple[Camera, int, int, CameraFrame, tuple[Any, ...]] | None = None
         self._field_seen: tuple[Derived, Any] | None = None
-        self._density_samples = wp.zeros(MEAN_SAMPLES, dtype=float, device=self.device)
+        lanes = t.mean_lanes
+        self._mean_lanes = lanes if lanes is not None else LANES_PER_SAMPLE if self._cuda else 1
+        self._density_samples = wp.zeros(
+            MEAN_SAMPLES * self._mean_lanes, dtype=float, device=self.device
+        )
         self._density_partial = wp.zeros(MEAN_LANES, dtype=float, device=self.device)
         self._density_total = wp.zeros(1, dtype=float, device=self.device)
         self._pending: tuple[float, float, float, bool, int] | None = None
@@ -242,7 +247,7 @@ class Renderer(ImageOutputs):
         self._colors = wp.zeros(m, dtype=wp.uint32, device=d)
         self._sorted = wp.zeros(m, dtype=wp.vec4, device=d)
         self._inv2s2 = wp.zeros(m, dtype=float, device=d)
-        self._grid = CellGrid(d, n, self.tuning.grid_sort)
+        self._grid = CellGrid(d, n, self.tuning.grid_sort, cell_list=self.tuning.cell_list)
         self._grid.invalidate()
         self._weights_key: tuple[Any, ...] | None = None
         self._skeleton: Skeleton | None = None
@@ -947,9 +952,10 @@ class Renderer(ImageOutputs):
         if classical_mean:
             # the density's own scale, from the atoms in their original order through the
             # grid, so the gather below writes the scaled weights in one pass
-            mean = (self._unsorted(d), n // samples, self._density_samples)
-            wp.launch(mean_density_kernel, samples, mean, device=dev, block_dim=MEAN_BLOCK)
-            partial = (self._density_samples, samples, self._density_partial)
+            lanes = self._mean_lanes
+            mean = (self._unsorted(d), n // samples, lanes, self._density_samples)
+            wp.launch(mean_density_kernel, samples * lanes, mean, device=dev, block_dim=MEAN_BLOCK)
+            partial = (self._density_samples, samples * lanes, self._density_partial)
             wp.launch(partial_sums_kernel, MEAN_LANES, partial, device=dev)
             wp.launch(total_kernel, 1, (self._density_partial, self._density_total), device=dev)
         wp.launch(

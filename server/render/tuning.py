@@ -107,6 +107,13 @@ class Tuning:
     fixed_cutoff: bool = False
     """Reach cutoff_sigmas exactly, not the least the surface's accuracy needs (reach.py): the
     baseline of the accuracy reach's gain."""
+    mean_lanes: int | None = None
+    """Threads per sampled atom of the mean density (None: density.LANES_PER_SAMPLE on CUDA,
+    1 on the CPU; 1 is the baseline)."""
+    cell_list: bool = True
+    """A grid with more cells than twice its atoms lists the cells its bound walks in a buffer
+    of its own (off: in the atoms' spare buffer, the baseline: the cells it leaves out are
+    walked one thread each)."""
 
     def __post_init__(self) -> None:
         if self.march_budget is not None and self.march_budget < 0:
@@ -123,6 +130,8 @@ class Tuning:
             raise RenderError(
                 f"part_bounds must be one of {', '.join(PART_MODES)}, got {self.part_bounds!r}"
             )
+        if self.mean_lanes is not None and self.mean_lanes < 1:
+            raise RenderError(f"mean_lanes must be >= 1, got {self.mean_lanes}")
         if self.cells_per_cutoff is not None and not self.cells_per_cutoff >= 1.0:
             raise RenderError(f"cells_per_cutoff must be >= 1, got {self.cells_per_cutoff}")
 
