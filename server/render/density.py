@@ -681,8 +681,8 @@ _LANES = wp.constant(MEAN_LANES)  # type: ignore[no-untyped-call]
 LANES_PER_SAMPLE = 8
 """Threads that take one sampled atom's density together on a CUDA device (each a share of
 every row's atoms): one thread walking a neighbourhood alone waits on hundreds of dependent
-loads, the few thousand samples leave most of the device idle, and a small molecule's frame
-waited about 0.08 ms on it (NVIDIA H200)."""
+loads while the few thousand samples leave most of the device idle
+(benchmarks/results/archive/render_h200_fixed_costs.json)."""
 
 
 @wp.kernel
