@@ -281,10 +281,8 @@ class _FrameCache:
 
     async def _frame(self, index: int) -> tuple[Any, Any, Any, Any]:
         if index not in self.frames:
-            try:
-                raw, box = await asyncio.to_thread(self.structure.frame, index)
-            except StructureError as exc:
-                raise JobError(str(exc)) from None
+            # a damaged frame raises StructureError as it is: the job keeps the frames before it
+            raw, box = await asyncio.to_thread(self.structure.frame, index)
             shown, how = raw, None
             if self.display is not None:
                 shown, how = await self.display(index, raw, box)
@@ -718,7 +716,7 @@ class JobManager:
                 result = final
             else:
                 outcome = JobState.CANCELLED
-        except JobError as exc:
+        except (JobError, StructureError) as exc:
             outcome, error = JobState.FAILED, str(exc)
         except asyncio.CancelledError:
             # shutting down: the record stays `running`, so the next start runs the job again
@@ -864,7 +862,7 @@ class JobManager:
                 job.partial = job.warning is not None
                 await loop.run_in_executor(self.encoders, writer.close)
                 result = final
-        except JobError as exc:
+        except (JobError, StructureError) as exc:
             outcome, error = JobState.FAILED, str(exc)
         except asyncio.CancelledError:
             frames.close("the server stopped")

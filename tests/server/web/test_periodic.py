@@ -225,3 +225,34 @@ def test_a_job_draws_every_frame_fitted_and_outlined(live_server: LiveServer) ->
         timeout=60,
     )
     assert bad.status_code == 422 and "params.center_selection" in bad.text, bad.text
+
+
+def test_a_job_over_a_trajectory_damaged_at_its_end_keeps_the_frames_before(
+    live_server: LiveServer, tmp_path: object
+) -> None:
+    """An XTC cut short: the frames before the damage are rendered, the job is done and marked
+    partial, its warning names the frame (it had failed, losing every frame)."""
+    with open(XTC, "rb") as fh:
+        data = fh.read()
+    cut = data[: int(len(data) * 0.85)]  # frames 0-7 whole, frame 8 cut
+    with open(TPR, "rb") as top:
+        r = httpx.post(
+            f"{live_server.url}/api/jobs",
+            headers=AUTH,
+            files=[("topology", ("adk.tpr", top)), ("trajectory", ("cut.xtc", cut))],
+            data={"width": "64", "height": "48", "output": "zip",
+                  "params": json.dumps({"layers": [{"name": "p", "selection": "protein"}]})},
+            timeout=180,
+        )  # fmt: skip
+    assert r.status_code == 202, r.text
+    job = r.json()["id"]
+    deadline = time.monotonic() + 180
+    while (info := httpx.get(f"{live_server.url}/api/jobs/{job}", headers=AUTH).json())[
+        "state"
+    ] not in ("done", "failed"):
+        assert time.monotonic() < deadline, info
+        time.sleep(0.2)
+    assert info["state"] == "done" and info["partial"], info
+    assert "frame 8 could not be read" in info["warning"], info
+    body = httpx.get(f"{live_server.url}/api/jobs/{job}/result", headers=AUTH, timeout=60)
+    assert len(zipfile.ZipFile(io.BytesIO(body.content)).namelist()) == 8
