@@ -208,7 +208,7 @@ def load(
             source = topology
             if fmt == "bcif":  # as mmCIF text, read whole while the folder lasts
                 folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="bcif-"))
-                source = to_mmcif(topology, folder)
+                source = to_mmcif(topology, folder, max_atoms)
                 kwargs["topology_format"] = "MMCIF"
             u = mda.Universe(source, *trajectories, **kwargs)
     except StructureError:

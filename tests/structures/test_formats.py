@@ -138,6 +138,44 @@ def test_a_binarycif_model_opens_as_its_mmcif_does(tmp_path: Path) -> None:
     )
 
 
+@pytest.mark.parametrize(
+    ("damage", "expected"),
+    [
+        ("rows", r"model\.bcif: atom_site declares 2,000,000,000 rows, the limit is 20,000,000"),
+        ("runs", r"model\.bcif: atom_site\.id expands to 2,000,000,000 values, the limit is"),
+        ("short", r"model\.bcif: atom_site\.id decodes to 3 values for 566 rows"),
+        ("encoding", r"model\.bcif: atom_site\.id has an unknown encoding 'Zip'"),
+    ],
+)
+def test_a_binarycif_that_declares_more_than_it_holds_is_refused_at_once(
+    tmp_path: Path, damage: str, expected: str
+) -> None:
+    """A 600-byte file declaring two billion rows (a run-length column, or a row count) is
+    refused before any column is expanded, as is a column that does not fill its rows."""
+    import gzip
+
+    import msgpack
+
+    doc = msgpack.unpackb(gzip.decompress(BCIF.read_bytes()), raw=False)
+    (atoms,) = [c for c in doc["dataBlocks"][0]["categories"] if c["name"] == "_atom_site"]
+    column = next(c for c in atoms["columns"] if c["name"] == "id")
+    if damage == "rows":
+        atoms["rowCount"] = 2_000_000_000
+    pairs = {"runs": [1, 2_000_000_000], "short": [1, 3]}.get(damage, [1, 566])
+    column["data"] = {
+        "data": np.asarray(pairs, "<i4").tobytes(),
+        "encoding": [
+            {"kind": "Zip" if damage == "encoding" else "RunLength", "srcType": 3,
+             "srcSize": pairs[1]},
+            {"kind": "ByteArray", "type": 3},
+        ],
+    }  # fmt: skip
+    bad = tmp_path / "model.bcif"
+    bad.write_bytes(msgpack.packb(doc))
+    with pytest.raises(StructureError, match=expected):  # by the check, before any expansion
+        load(str(bad))
+
+
 @pytest.mark.parametrize("damage", ["truncated", "not-msgpack", "no-atoms"])
 def test_a_broken_binarycif_is_refused_naming_the_file(tmp_path: Path, damage: str) -> None:
     import gzip
