@@ -181,11 +181,9 @@ class TrajectoryReplay:
             next_due = max(next_due + period, time.monotonic() - period)
 
     def _send(self, index: int) -> None:
-        ts = self.structure.universe.trajectory[index]
-        pos = np.ascontiguousarray(ts.positions, dtype=np.float32)
-        box = None
-        if ts.dimensions is not None and np.all(np.asarray(ts.dimensions[:3]) > 0):
-            box = WireArray.from_numpy(ts.triclinic_dimensions, "<f4")
+        pos, cell = self.structure.frame(index)
+        ts = self.structure.universe.trajectory.ts
+        box = None if cell is None else WireArray.from_numpy(cell, "<f4")
         if not np.isfinite(pos).all():
             log.error("frame %d has non-finite coordinates; skipped", index)
             return

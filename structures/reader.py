@@ -66,12 +66,21 @@ MDANALYSIS_FORMATS = {
 """Suffixes MDAnalysis does not know by that name, and the format they hold."""
 
 
+CRYSTAL_FORMATS = ("pdb", "ent", "cif", "mmcif", "pdbx", "bcif")
+"""Formats of deposited models: one such file read alone, with one model, is a crystal's
+asymmetric unit, and its cell (CRYST1, `_cell`) is the crystal's unit cell, not a simulation's
+box. Wrapping each chain into it would take a deposited complex apart (1BD2, 3KPR), and bonds
+guessed across it would join atoms of neighbouring unit cells, so it is no periodic box."""
+
+
 @dataclass
 class Structure:
     """A loaded universe: the topology message, and access to its frames."""
 
     topology: Topology
     universe: Any
+    crystal: bool = False
+    """A deposited model read alone (`CRYSTAL_FORMATS`): its cell is no periodic box."""
 
     @property
     def n_frames(self) -> int:
@@ -95,7 +104,7 @@ class Structure:
             ts = self.universe.trajectory[index]
             positions = np.ascontiguousarray(ts.positions, dtype=np.float32)
             box = None
-            if cell_of(self.universe) is not None:
+            if not self.crystal and cell_of(self.universe) is not None:
                 box = np.asarray(ts.triclinic_dimensions, dtype=np.float32)
         return positions, box
 
@@ -233,15 +242,19 @@ def load(
         raise StructureError(
             f"{os.path.basename(topology)} has {n} atoms, the limit is {max_atoms}"
         )
+    crystal = fmt in CRYSTAL_FORMATS and not trajectories and len(u.trajectory) == 1
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             topo = topology_of(
-                u, guess_bonds=guess_bonds and has_coordinates, title=os.path.basename(topology)
+                u,
+                guess_bonds=guess_bonds and has_coordinates,
+                title=os.path.basename(topology),
+                periodic=not crystal,
             )
     except (ValueError, TypeError) as exc:
         raise StructureError(f"cannot use {os.path.basename(topology)}: {exc}") from None
-    return Structure(topology=topo, universe=u)
+    return Structure(topology=topo, universe=u, crystal=crystal)
 
 
 MIN_CELL_SIDE_A = 6.0
@@ -330,7 +343,9 @@ def _element_of_mass(mass: float) -> str:
     return best if abs(_MASSES[best] - mass) < 0.05 * max(mass, 1.0) else "X"
 
 
-def topology_of(u: Any, *, guess_bonds: bool = True, title: str = "") -> Topology:
+def topology_of(
+    u: Any, *, guess_bonds: bool = True, title: str = "", periodic: bool = True
+) -> Topology:
     """Build the `topology` message of an MDAnalysis universe, guessing elements and bonds."""
     atoms = u.atoms
     n = int(atoms.n_atoms)
@@ -350,7 +365,8 @@ def topology_of(u: Any, *, guess_bonds: bool = True, title: str = "") -> Topolog
         types = atoms.types if _has(atoms, "types") else np.array(elements)
         radii = {str(t): _VDW_GUESS.get(e, 1.5) for t, e in zip(types, elements, strict=True)}
         # across a periodic box too: a molecule the box cuts is still one molecule
-        pairs = guess(atoms, atoms.positions, box=cell_of(u), vdwradii=radii)
+        box = cell_of(u) if periodic else None
+        pairs = guess(atoms, atoms.positions, box=box, vdwradii=radii)
         if len(pairs):
             guessed = np.asarray(sorted(pairs), dtype=np.int32).reshape(-1, 2)
             both = np.sort(np.concatenate([bonds, guessed]), axis=1)

@@ -48,6 +48,23 @@ def selection_fields(params: p.RenderParams) -> list[tuple[str, str]]:
     return used
 
 
+MIN_ROTATION_ATOMS = 3
+"""A rotation fit on fewer atoms (or on atoms along one line) is undetermined."""
+
+
+def atoms_problem(field: str, text: str, count: int, params: p.RenderParams) -> str | None:
+    """Why a centre or fit selection that matched `count` atoms cannot be used (None: it
+    can): it matches nothing, or too few atoms to fix a rotation."""
+    if count == 0:
+        return f"{text!r} matches no atom"
+    if field == "fit_selection" and params.fit == "rotation" and count < MIN_ROTATION_ATOMS:
+        return (
+            f"{text!r} matches {count} atom{'s' if count > 1 else ''}; a rotation fit needs at "
+            f"least {MIN_ROTATION_ATOMS} (fit 'translation' takes one)"
+        )
+    return None
+
+
 def check_periodic(params: p.RenderParams, limits: SelectionLimits | None = None) -> None:
     """Raise PeriodicError naming the centre or fit selection that does not parse (or crosses
     `limits`), or that reads coordinates (the centre and the fit need fixed atoms)."""
@@ -110,6 +127,11 @@ class PeriodicOptions:
                     continue
                 raise PeriodicError(fields.get(text, "center_selection"), result.reason)
             self._atoms[text] = np.asarray(result, dtype=np.int32)
+        for field, text in selection_fields(self.params):  # those the user named
+            atoms = self._atoms.get(text)
+            problem = None if atoms is None else atoms_problem(field, text, len(atoms), self.params)
+            if problem is not None:
+                raise PeriodicError(field, problem)
 
     def _options(self, boxed: bool) -> Options:
         centre_text, fit_text = self.texts(boxed)

@@ -303,7 +303,8 @@ def solve_kernel(
     rotation: wp.array(dtype=wp.mat33),
 ):
     """One thread: the centring shift t, and the fit's rotation R and centres c, c_ref
-    (R = identity, c = c_ref = 0 without a fit; R = identity for a translation only)."""
+    (R = identity, c = c_ref = 0 without a fit; R = identity for a translation only, and for
+    fit atoms along one line)."""
     motion[0] = _centre_shift(centre_sums, centre_count, target)
     rot = wp.identity(n=3, dtype=float)
     c = wp.vec3(0.0, 0.0, 0.0)
@@ -319,6 +320,14 @@ def solve_kernel(
             sigma = wp.vec3d()
             v = wp.mat33d()
             wp.svd3(h, u, sigma, v)
+            s0 = wp.abs(sigma[0])
+            s1 = wp.abs(sigma[1])
+            s2 = wp.abs(sigma[2])
+            top = wp.max(s0, wp.max(s1, s2))
+            middle = s0 + s1 + s2 - top - wp.min(s0, wp.min(s1, s2))
+            # atoms on one line (or fewer than three) leave the rotation about it free: the
+            # fit then translates only, rather than turn the frame by an arbitrary angle
+            solved = middle > wp.float64(1.0e-6) * top
             d = wp.float64(1.0)
             if wp.determinant(v * wp.transpose(u)) < wp.float64(0.0):
                 d = wp.float64(-1.0)
@@ -327,7 +336,9 @@ def solve_kernel(
                 wp.float64(0.0), wp.float64(1.0), wp.float64(0.0),
                 wp.float64(0.0), wp.float64(0.0), d,
             )  # fmt: skip
-            r = v * flip * wp.transpose(u)
+            r = wp.identity(n=3, dtype=wp.float64)
+            if solved:
+                r = v * flip * wp.transpose(u)
             rot = wp.mat33(
                 float(r[0, 0]), float(r[0, 1]), float(r[0, 2]),
                 float(r[1, 0]), float(r[1, 1]), float(r[1, 2]),

@@ -146,6 +146,17 @@ class LayerBook:
         """Evaluate `texts` together (the layers a steerer sets, under one budget): why each
         cannot be drawn, or None. Raises SelectionError when the request as a whole failed
         (its time or memory). What was found is kept for the first render."""
+        found = await self.evaluate(texts, positions, positions_id, box)
+        return [r if isinstance(r, SelectionError) else None for r in found]
+
+    async def evaluate(
+        self,
+        texts: Sequence[str],
+        positions: npt.NDArray[np.float32] | None,
+        positions_id: int,
+        box: npt.NDArray[np.float32] | None = None,
+    ) -> list[SelectionError | npt.NDArray[np.int32]]:
+        """`check`, with the atoms each text selects where it can be drawn."""
         held = self._held
         if held is None:
             raise SelectionError(None, "no topology yet", 0)
@@ -158,7 +169,7 @@ class LayerBook:
                     self._entries[text.strip()] = _Entry(
                         is_dynamic(text), result, positions_id=positions_id, evaluated=now
                     )
-        return [r if isinstance(r, SelectionError) else None for r in found]
+        return [r if isinstance(r, SelectionError) else np.asarray(r, np.int32) for r in found]
 
     def plans(
         self,

@@ -38,6 +38,7 @@ from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.periodic import (
     PERIODIC_FIELDS,
     PeriodicError,
+    atoms_problem,
     check_periodic,
     displayed_cell,
     needs_display,
@@ -689,16 +690,25 @@ class Session:
             return
         for field, text in selection_fields(params):
             try:
-                (error,) = await self.layers.check([text], None, self.positions_id)
+                (found,) = await self.layers.evaluate([text], None, self.positions_id)
             except SelectionError as exc:
-                error = exc
-            if error is not None:
-                if isinstance(error, SelectionBusyError):
-                    code = p.ErrorCode.NOT_READY
-                else:
-                    code = p.ErrorCode.TOO_LARGE if error.limit else p.ErrorCode.INVALID_MESSAGE
-                path = f"render_params.params.{field}"
-                raise p.ProtocolError(code, f"{field}: {error}", path, seq)
+                found = exc
+            if not isinstance(found, SelectionError):
+                problem = atoms_problem(field, text, len(found), params)
+                if problem is not None:
+                    raise p.ProtocolError(
+                        p.ErrorCode.INVALID_MESSAGE,
+                        f"{field}: {problem}",
+                        f"render_params.params.{field}",
+                        seq,
+                    )
+                continue
+            if isinstance(found, SelectionBusyError):
+                code = p.ErrorCode.NOT_READY
+            else:
+                code = p.ErrorCode.TOO_LARGE if found.limit else p.ErrorCode.INVALID_MESSAGE
+            path = f"render_params.params.{field}"
+            raise p.ProtocolError(code, f"{field}: {found}", path, seq)
 
     async def _check_layers(self, params: p.RenderParams, seq: int | None) -> None:
         """Every layer's selection must parse, keep to the selection limits and evaluate on

@@ -234,3 +234,25 @@ def test_a_displayed_frame_is_never_written_again(device: str) -> None:
         later = transform.apply(u.atoms.positions + shift, box, Options(mode="molecules"))
         assert not np.shares_memory(later.positions, first.positions)
     np.testing.assert_array_equal(first.positions, kept)
+
+
+def test_a_rotation_fit_on_atoms_along_a_line_translates_only(device: str) -> None:
+    """Atoms on one line leave the turn about it free: the fit moves the frame onto the
+    reference without turning it (it had turned frames by arbitrary angles)."""
+    u = universe("tz2")
+    topology = topology_of(u, guess_bonds=False)
+    transform = PeriodicTransform(device)
+    transform.set_topology(topology)
+    line = np.arange(0, 40, 10, dtype=np.int32)
+    raw = u.atoms.positions.copy()
+    raw[line] = np.array([[10.0, 10.0, 10.0]]) + np.outer(np.arange(4), [1.5, 0.0, 0.0])
+    options = Options(mode="off", fit="rotation", fit_atoms=line)
+    first = transform.apply(raw, None, options)
+    np.testing.assert_allclose(first.rotation, np.eye(3), atol=1e-6)
+    turned = raw.copy()
+    turned[line] = raw[line][:, [1, 0, 2]] + 3.0  # the line turned by 90 degrees and moved
+    later = transform.apply(turned, None, options)
+    np.testing.assert_allclose(later.rotation, np.eye(3), atol=1e-6)
+    np.testing.assert_allclose(
+        later.positions[line].mean(axis=0), raw[line].mean(axis=0), atol=1e-3
+    )

@@ -29,7 +29,7 @@ DATA = Path(datafiles.__file__).parent / "data"
          22, 6, True),
         ((datafiles.LAMMPSdata_triclinic, datafiles.LAMMPSDUMP_triclinic), 17, 1, True),
         ((str(DATA / "mmcif/1YJP.cif"),), 66, 1, False),
-        ((str(DATA / "mmcif/5PTI.cif.gz"),), 1104, 1, True),
+        ((str(DATA / "mmcif/5PTI.cif.gz"),), 1104, 1, False),  # a crystal's cell: no box
         ((datafiles.PDBX,), 60, 1, False),
         ((datafiles.PDB_multiframe,), 392, 24, False),
     ],
@@ -119,7 +119,8 @@ def test_a_binarycif_model_opens_as_its_mmcif_does(tmp_path: Path) -> None:
     assert {"DA", "DC", "DG", "DT", "HOH"} == set(s.topology.residue_names)
     assert set(s.topology.chain_ids) == {"A", "B"} and s.topology.bonds.shape[0] > 500
     positions, box = s.frame(0)
-    assert box is not None and np.allclose(np.diag(box), [24.87, 40.39, 66.2])
+    assert box is None and s.crystal  # a crystal's unit cell (24.87 x 40.39 x 66.2 A)
+    assert np.allclose(s.universe.dimensions[:3], [24.87, 40.39, 66.2])
     np.testing.assert_allclose(positions[0], [18.935, 34.195, 25.617], atol=1e-3)
     block = BinaryCifReader().deserialize(str(BCIF))
     text = tmp_path / "1bna.cif"
@@ -199,3 +200,20 @@ def test_a_broken_binarycif_is_refused_naming_the_file(tmp_path: Path, damage: s
     with pytest.raises(StructureError, match=expected) as caught:
         load(str(bad))
     assert str(tmp_path) not in str(caught.value)
+
+
+def test_a_deposited_crystal_structure_keeps_its_chains_together() -> None:
+    """A PDB entry read alone is a crystal's asymmetric unit: its unit cell is no periodic box
+    (wrapping each chain into it took 1BD2's complex apart), and no bond is guessed across it.
+    Its own coordinates are shown; a trajectory's box is a box as before."""
+    s = load(str(DATA / "mmcif/1BD2.cif.gz"))
+    assert s.crystal and s.universe.dimensions is not None  # the file has a cell
+    positions, box = s.frame(0)
+    assert box is None
+    bonds = s.topology.bonds.to_numpy()
+    lengths = np.linalg.norm(positions[bonds[:, 0]] - positions[bonds[:, 1]], axis=1)
+    assert lengths.max() < 3.0  # no bond across the cell
+    pdb = load(datafiles.PDB_sub_sol)
+    assert pdb.crystal and pdb.frame(0)[1] is None
+    moving = load(datafiles.PDB_sub_sol, [datafiles.XTC_sub_sol])
+    assert not moving.crystal and moving.frame(0)[1] is not None

@@ -156,12 +156,22 @@ def test_centre_and_fit_selections_must_name_fixed_atoms(tmp_path: Path, adk: An
             ({"center": "selection", "center_selection": "around 5 protein"}, "center_selection"),
             ({"fit": "rotation", "fit_selection": "backbone and"}, "fit_selection"),
             ({"fit": "rotation", "fit_selection": "resname NOPE and name XX or bynum"}, "fit_"),
+            # atoms it cannot use: none at all, or too few to fix a rotation
+            ({"center": "selection", "center_selection": "resname NOPE"}, "center_selection"),
+            ({"fit": "translation", "fit_selection": "index 999999"}, "fit_selection"),
+            ({"fit": "rotation", "fit_selection": "name CA and resid 1 2"}, "fit_selection"),
         ]
         for seq, (params, field) in enumerate(bad):
             with pytest.raises(p.ProtocolError) as caught:
                 await session.steer(steerer, p.SetRenderParams(seq=seq, params=params))
             assert caught.value.path.startswith(f"render_params.params.{field}")
             assert caught.value.code == p.ErrorCode.INVALID_MESSAGE
+        message = str(caught.value)
+        assert "matches 2 atoms; a rotation fit needs at least 3" in message, message
+        ok = {"fit": "translation", "fit_selection": "name CA and resid 1"}  # one atom will do
+        await session.steer(steerer, p.SetRenderParams(seq=9, params=ok))
+        assert session.render_params.fit == "translation"
+        await session.steer(steerer, p.SetRenderParams(seq=10, params={"fit": "off"}))
         assert session.render_params.center == "auto" and session.render_params.fit == "off"
 
     run(body, tmp_path)

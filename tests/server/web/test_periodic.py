@@ -225,6 +225,21 @@ def test_a_job_draws_every_frame_fitted_and_outlined(live_server: LiveServer) ->
         timeout=60,
     )
     assert bad.status_code == 422 and "params.center_selection" in bad.text, bad.text
+    for params, field, words in (
+        ({"center": "selection", "center_selection": "resname NOPE"}, "center_selection",
+         "matches no atom"),
+        ({"fit": "rotation", "fit_selection": "index 0"}, "fit_selection",
+         "a rotation fit needs at least 3"),
+    ):  # fmt: skip
+        bad = httpx.post(
+            f"{live_server.url}/api/render",
+            headers=AUTH,
+            files=[("file", ("adk.tpr", TPR_BYTES()))],
+            data={"params": json.dumps(params), "width": "32", "height": "24"},
+            timeout=60,
+        )
+        assert bad.status_code == 422, bad.text
+        assert f"params.{field}" in bad.text and words in bad.text, bad.text
 
 
 def test_a_job_over_a_trajectory_damaged_at_its_end_keeps_the_frames_before(
