@@ -46,8 +46,13 @@ const FIELDS = [
   ["pbc", "periodic", "enum"],
   ["ctr", "center", "enum"],
   ["pfit", "fit", "enum"],
+  ["csel", "center_selection", "text"],
+  ["fsel", "fit_selection", "text"],
   ["cell", "show_cell", "bool"],
 ];
+
+/** The longest selection text a link carries (the server checks it again). */
+const MAX_TEXT = 2000;
 
 /** A number in at most `digits` significant digits, without trailing zeros. */
 export function shortNumber(v, digits = 4) {
@@ -75,6 +80,8 @@ function encodeValue(kind, value) {
         .join(",");
     case "layers":
       return encodeURIComponent(JSON.stringify(normalizeLayers(value) ?? []));
+    case "text":
+      return encodeURIComponent(String(value));
     default:
       return String(value);
   }
@@ -106,6 +113,8 @@ function decodeValue(kind, path, text) {
         return null;
       }
     }
+    case "text":
+      return text.trim() && text.length <= MAX_TEXT ? text : null;
     default:
       return null;
   }

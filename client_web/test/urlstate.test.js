@@ -53,6 +53,23 @@ test("render params and camera survive the round trip", () => {
   assert.equal(encodeHash({ render: back.render, camera: back.camera }), hash);
 });
 
+test("a link carries the centre and fit selections with the periodic options", () => {
+  const render = mergeRender(RENDER_DEFAULTS, {
+    periodic: "wrap",
+    center: "selection",
+    center_selection: "name CA and resid 10-20",
+    fit: "rotation",
+    fit_selection: "name CA & resname 'ALA'",
+  });
+  const hash = encodeHash({ render });
+  const back = decodeHash(`#${hash}`);
+  assert.deepEqual(back.invalid, []);
+  assert.equal(back.render.center_selection, "name CA and resid 10-20");
+  assert.equal(back.render.fit_selection, "name CA & resname 'ALA'");
+  assert.equal(encodeHash({ render: back.render }), hash);
+  assert.deepEqual(decodeHash(`#v=1&csel=${"x".repeat(2001)}&fsel=%20`).invalid, ["csel", "fsel"]);
+});
+
 test("a hash without state, or with junk, is handled", () => {
   assert.deepEqual(decodeHash(""), { render: null, camera: null, invalid: [] });
   const junk = decodeHash("#v=1&sigma=abc&mode=cubes&bg=zz&cam=1,2&tf=1:xyz:1");
