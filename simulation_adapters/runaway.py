@@ -10,6 +10,12 @@ It is a runaway only when it is far above both (`runaway_limit`: twice the refer
 least 300 K above it). A rise that slows down never doubles its own trailing mean (the mean of
 a concave rise over any window is at least half its end), so a cold start heating to its
 thermostat never trips the guard, whatever its target; an accelerating rise does.
+
+That holds for reports dense enough to follow the rise. An engine that reports every few
+picoseconds may report 3 K and then 311 K: a step no trailing mean can tell from a blow-up. So
+without a thermostat target, a temperature that thermostats hold runs at (up to `ORDINARY_K`)
+is never a runaway by itself; a blow-up passes it within a few steps (thousands of kelvin).
+With a target the target's limit stands alone (a cold start cannot pass twice its target).
 """
 
 from __future__ import annotations
@@ -19,6 +25,9 @@ from collections import deque
 
 WINDOW = 32
 """Calm reports the run's recent level is the mean of."""
+ORDINARY_K = 1000.0
+"""Without a thermostat target, no temperature up to this trips the guard (high-temperature
+unfolding runs at 500-800 K)."""
 
 
 def runaway_limit(reference_K: float) -> float:
@@ -47,7 +56,9 @@ class RunawayGuard:
         level = self.level
         if level is None:
             return None
-        return max(runaway_limit(level), runaway_limit(target_K) if target_K else 0.0)
+        if target_K:
+            return max(runaway_limit(level), runaway_limit(target_K))
+        return max(runaway_limit(level), ORDINARY_K)
 
     def check(self, temperature_K: float, target_K: float | None = None) -> str:
         """Why this temperature is a runaway, or '' when it is not (it then joins the run's
