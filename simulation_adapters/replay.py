@@ -24,7 +24,16 @@ from typing import Any
 
 import numpy as np
 
-from protocol import Control, EngineInfo, Frame, Message, ParamRange, SimParams, WireArray
+from protocol import (
+    Control,
+    EngineInfo,
+    Event,
+    Frame,
+    Message,
+    ParamRange,
+    SimParams,
+    WireArray,
+)
 from simulation_adapters.cli_support import add_retry, configure_logging, parse
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from structures.errors import StructureError
@@ -73,7 +82,7 @@ class TrajectoryReplay:
         self.shown: int | None = None  # the last frame sent
         self.frames_sent = 0
         self.error: Exception | None = None
-        self._budget = 0
+        self._budget = 1 if start_paused else 0  # a paused start shows its first frame
         self._stopped = False
         self._cond = threading.Condition()
         self._wakeups = 0
@@ -97,6 +106,10 @@ class TrajectoryReplay:
         self.connection.start()
         self.connection.send_topology(self.structure.topology)
         self.connection.send_engine(self.engine_info())
+        if self.paused:
+            self.connection.send_event(
+                Event(level="info", code="paused", message="the replay starts paused", step=0)
+            )
         try:
             self._play()
         finally:

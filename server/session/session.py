@@ -364,10 +364,11 @@ class Session:
             {"event": "sim_event", "level": event.level, "code": event.code,
              "message": event.message, "step": event.step}
         )  # fmt: skip
-        if event.code == "guard":  # the adapter paused and dropped every external force
-            if self.forces.pulls or self.forces.scripted:
-                self.forces.clear()
-                self.broadcast(p.State(pulling=self.forces.pulling()))
+        # a guard that fired paused the adapter and dropped every external force
+        if event.code == "guard" and (self.forces.pulls or self.forces.scripted):
+            self.forces.clear()
+            self.broadcast(p.State(pulling=self.forces.pulling()))
+        if event.code in ("guard", "paused"):  # the adapter is paused (a replay may start so)
             self.status = self.status.model_copy(update={"state": "paused", "steps_per_s": 0.0})
             self.broadcast(p.State(sim=self.status))
         self.broadcast(event.model_copy(update={"seq": None}))

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import itertools
 import os
+import time
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
 from MDAnalysisTests.datafiles import DCD, GRO, MMCIF, PSF, XTC, PDB_multiframe
 
-from protocol import Control, SimParams
+from protocol import Control, Event, SimParams
 from simulation_adapters import replay
 from simulation_adapters.replay import TrajectoryReplay
 from structures.reader import load
@@ -112,12 +113,18 @@ def test_steering_that_arrives_right_after_a_poll_is_applied(
 def test_seek_step_speed_loop_and_stop(peer: SimPeer, replays: list[TrajectoryReplay]) -> None:
     r = play(replays, peer, PSF, DCD, fps=50, start_paused=True)
     assert r.connection.wait_connected(10)
+    # a paused start says so and shows its first frame, then waits
+    (paused,) = peer.wait_for(lambda: [e for e in peer.of_type(Event) if e.code == "paused"])
+    assert paused.step == 0
+    peer.wait_for(lambda: [f.step for f in peer.frames] == [0])
+    time.sleep(0.3)
+    assert [f.step for f in peer.frames] == [0]
     seq = peer.send(Control(action="seek", frame=40))
     ack = peer.wait_ack(seq)
     assert ack.ok and ack.applied == {"action": "seek", "frame": 40}
-    peer.wait_for(lambda: [f.step for f in peer.frames] == [40])
+    peer.wait_for(lambda: [f.step for f in peer.frames] == [0, 40])
     seq = peer.send(Control(action="step", n_steps=2))
-    peer.wait_for(lambda: [f.step for f in peer.frames] == [40, 41, 42])
+    peer.wait_for(lambda: [f.step for f in peer.frames] == [0, 40, 41, 42])
     assert peer.wait_ack(seq).step in (40, 41, 42)
     bad = peer.wait_ack(peer.send(Control(action="seek", frame=98)))
     assert not bad.ok and "out of range" in bad.detail
@@ -131,7 +138,7 @@ def test_seek_step_speed_loop_and_stop(peer: SimPeer, replays: list[TrajectoryRe
     )
     steps = [f.step for f in peer.frames]
     wrap = next(i for i in range(1, len(steps)) if steps[i] < steps[i - 1])
-    assert steps[wrap] == 0 and all(b - a == 5 for a, b in itertools.pairwise(steps[3:wrap]))
+    assert steps[wrap] == 0 and all(b - a == 5 for a, b in itertools.pairwise(steps[4:wrap]))
     refused = peer.wait_ack(peer.send(SimParams(temperature_K=300.0)))
     assert not refused.ok and "temperature_K" in refused.detail
     stop = peer.send(Control(action="stop"))

@@ -304,3 +304,22 @@ def test_while_someone_steers_video_streams_at_the_interactive_size(tmp_path: Pa
         assert (mixed.width, mixed.height, mixed.video_size) == (40, 30, (20, 15))
 
     run(body, tmp_path)
+
+
+def test_an_adapter_that_starts_paused_is_shown_paused_with_its_first_frame(
+    tmp_path: Path,
+) -> None:
+    """`scalesteer replay --paused` says it starts paused, then sends its first frame: the
+    status is paused (it had read `running` until someone paused it again)."""
+
+    async def body(session: Session, backend: PaintBackend) -> None:
+        topo, pos = molecule()
+        viewer = client("a", "viewer")
+        session.attach(viewer)
+        session.on_topology(topo)
+        session.on_event(p.Event(level="info", code="paused", message="starts paused", step=0))
+        session.on_frame(frame(pos, 0))
+        await settle(lambda: bool(images(viewer)))
+        assert session.status.state == "paused" and session.status.step == 0
+
+    run(body, tmp_path)
