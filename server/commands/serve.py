@@ -67,8 +67,8 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="NAME=VALUE",
-        help="any numeric server limit, e.g. --set max_connections=256 "
-        "(names and defaults: docs/server.md)",
+        help="any numeric server setting, e.g. --set max_connections=256 (a wrong name is "
+        "refused with the list of names; what each limits: docs/server.md, Limits)",
     )
     ap.add_argument(
         "--gpus",
