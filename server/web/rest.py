@@ -233,7 +233,10 @@ async def render_image(
     http: Request,
     state: State,
     role: Annotated[p.Role, Depends(render_access)],
-    file: Annotated[UploadFile | None, File(description="a structure: PDB, mmCIF, BinaryCIF, GRO, TPR, XYZ, ... (gzipped too)")] = None,
+    file: Annotated[
+        UploadFile | None,
+        File(description="a structure: PDB, mmCIF, BinaryCIF, GRO, TPR, XYZ, ... (gzipped too)"),
+    ] = None,
     dataset: Annotated[
         str | None, Form(description="file name under the server's --data-dir")
     ] = None,
