@@ -10,9 +10,13 @@ reconnect to the next one.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import os
+import signal
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,12 +48,25 @@ class ReplayProcess:
             "recording": self.recording,
         }
 
+    stopping: bool = False
+    """The server asked it to stop (its end is no failure)."""
+
     def last_words(self) -> str:
         """The end of the child's output (why it stopped), for the API's answer."""
         try:
             return self.log_path.read_text(errors="replace").strip().splitlines()[-1][:300]
         except (OSError, IndexError):
             return ""
+
+    def why_ended(self) -> str:
+        """Why an ended child ended, in words: its last line, else its signal or status."""
+        code = self.process.poll()
+        words = self.last_words()
+        if code is not None and code < 0:
+            with contextlib.suppress(ValueError):
+                name = signal.Signals(-code).name
+                return f"{words} (killed by {name})" if words else f"killed by {name}"
+        return words or f"exit status {code}"
 
 
 @dataclass
@@ -98,10 +115,29 @@ class ReplayManager:
         self.processes[session] = replay
         return replay
 
+    watchers: set[asyncio.Task[None]] = field(default_factory=set)
+
+    def watch(
+        self, replay: ReplayProcess, on_failure: Callable[[str], None], every_s: float = 0.5
+    ) -> None:
+        """Call `on_failure(why)` if the child ends with a failure, not by a stop the server
+        asked for or a `stop` its session sent (status 0): a damaged file, a crash."""
+
+        async def poll() -> None:
+            while (code := replay.process.poll()) is None:
+                await asyncio.sleep(every_s)
+            if code != 0 and not replay.stopping:
+                on_failure(replay.why_ended())
+
+        task = asyncio.get_running_loop().create_task(poll(), name=f"watch-{replay.session}")
+        self.watchers.add(task)
+        task.add_done_callback(self.watchers.discard)
+
     def stop(self, session: str, timeout: float | None = None) -> bool:
         replay = self.processes.get(session)
         if replay is None:
             return False
+        replay.stopping = True
         if replay.process.poll() is None:
             replay.process.stop(timeout)
         return True
@@ -109,3 +145,5 @@ class ReplayManager:
     def close(self) -> None:
         for session in list(self.processes):
             self.stop(session)
+        for task in list(self.watchers):
+            task.cancel()

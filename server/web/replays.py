@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
+import logging
 import re
 import shutil
 import time
@@ -28,6 +30,8 @@ from server.web.rest import State, save_upload
 from server.web.state import AppState
 from structures.errors import StructureError
 from structures.isolated import IsolatedStructure
+
+log = logging.getLogger("scalesteer.replays")
 
 router = APIRouter(route_class=GatedRoute)
 _SAFE = re.compile(r"[^A-Za-z0-9._-]+")
@@ -120,10 +124,21 @@ async def open_replay(
     replay = manager.start(
         name, files, port, state.settings.token, fps, loop, state.settings.state_dir / "replays"
     )
+    manager.watch(replay, functools.partial(_replay_failed, state, name))
     await asyncio.sleep(0)
     described = replay.describe()
     described["n_frames"] = n_frames
     return described
+
+
+def _replay_failed(state: AppState, session: str, why: str) -> None:
+    """A replay child ended with a failure: said in the log and to its session's viewers
+    (their dashboard had only shown the simulation as gone)."""
+    log.warning("the replay of session %s stopped: %s", session, why)
+    live = state.sessions.get(session)
+    if live is not None:
+        message = f"the replay stopped: {why}"[:1024]
+        live.broadcast(p.Event(level="error", code="replay_failed", message=message))
 
 
 @router.get("/api/replays", summary="Replays opened from the dashboard")

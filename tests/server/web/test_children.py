@@ -12,13 +12,17 @@ from pathlib import Path
 import httpx
 import pytest
 
+import protocol as p
 from server.supervisor import descendants
+from tests.conftest import LiveServer
+from tests.server.peers import Peer
 from tests.server.processes import TOKEN, ServerProcess, command_line, running, wait_gone
 
 pytest.importorskip("MDAnalysisTests")
 from MDAnalysisTests.datafiles import DCD, PSF
 
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
+AUTH_LIVE = {"Authorization": "Bearer test-token"}
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["stopped", "killed"])
@@ -77,3 +81,34 @@ def test_jobs_render_here_unless_ray_is_asked_for(tmp_path: Path) -> None:
         assert started and all("structures.isolated" in line for line in started), started
     finally:
         server.stop()
+
+
+def test_a_replay_that_dies_tells_its_viewers_why(live_server: LiveServer) -> None:
+    """A replay child that ends on its own with a failure (here killed; a damaged trajectory
+    or a crash of a reader alike) is said to the session's viewers and in the server's log;
+    their dashboard had only shown the simulation as gone."""
+    with httpx.Client(base_url=live_server.url, timeout=120) as c, open(PSF, "rb") as top:
+        with open(DCD, "rb") as traj:
+            r = c.post(
+                "/api/replays",
+                headers=AUTH_LIVE,
+                files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                data={"fps": "5", "loop": "true"},
+            )
+        assert r.status_code == 201, r.text
+        name = r.json()["session"]
+        deadline = time.monotonic() + 60
+        while c.get(f"/api/sessions/{name}", headers=AUTH_LIVE).status_code != 200:
+            assert time.monotonic() < deadline, "the replay did not connect"
+            time.sleep(0.1)
+        viewer = Peer(live_server.view_url, "viewer", live_server.token, name)
+        try:
+            child = live_server.app_state.replays.processes[name].process.process
+            os.kill(child.pid, signal.SIGKILL)
+            event = viewer.expect(p.Event, 30, where=lambda m: m.code == "replay_failed")
+            assert event.level == "error" and "killed by SIGKILL" in event.message, event
+            listed = c.get("/api/replays", headers=AUTH_LIVE).json()
+            assert any(x["session"] == name and x["exit_code"] == -9 for x in listed), listed
+        finally:
+            viewer.close()
+            c.delete(f"/api/replays/{name}", headers=AUTH_LIVE)
