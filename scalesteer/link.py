@@ -168,7 +168,7 @@ class ViewLink:
         if self.closed is not None:
             return
         self.closed = reason
-        error = ScalesteerError(ErrorCode.NOT_READY, f"the link to the session is {reason}")
+        error = ScalesteerError(ErrorCode.NOT_READY, _ended(reason))
         for future in self._pending.values():
             if not future.done():
                 future.set_exception(error)
@@ -235,7 +235,8 @@ class ViewLink:
     def _check_open(self) -> ClientConnection:
         if self.closed is not None or self._ws is None:
             raise ScalesteerError(
-                ErrorCode.NOT_READY, f"the link to the session is {self.closed or 'not open'}"
+                ErrorCode.NOT_READY,
+                _ended(self.closed) if self.closed else "the link to the session is not open",
             )
         return self._ws
 
@@ -300,3 +301,12 @@ class ViewLink:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._reader
         self._finish("closed")
+
+
+def _ended(reason: str) -> str:
+    """Why the link ended, as a sentence ("closed", "failed: ...", or the server's words)."""
+    if reason == "closed":
+        return "the link to the session is closed"
+    if reason.startswith("failed"):
+        return f"the link to the session {reason}"
+    return f"the link to the session ended: {reason}"

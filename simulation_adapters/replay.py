@@ -194,9 +194,12 @@ class TrajectoryReplay:
             next_due = max(next_due + period, time.monotonic() - period)
 
     def _send(self, index: int) -> None:
-        pos, cell = self.structure.frame(index)
-        ts = self.structure.universe.trajectory.ts
-        box = None if cell is None else WireArray.from_numpy(cell, "<f4")
+        ts = self.structure.universe.trajectory[index]
+        pos = np.ascontiguousarray(ts.positions, dtype=np.float32)
+        box = None
+        boxed = ts.dimensions is not None and np.all(np.asarray(ts.dimensions[:3]) > 0)
+        if boxed and not self.structure.crystal:  # a crystal's unit cell is no box
+            box = WireArray.from_numpy(ts.triclinic_dimensions, "<f4")
         if not np.isfinite(pos).all():
             log.error("frame %d has non-finite coordinates; skipped", index)
             return
