@@ -65,6 +65,11 @@ export class Timeline {
     if (!replay) return;
     this.nFrames = engine.n_frames;
     this.scrub.max = String(Math.max(0, this.nFrames - 1));
+    // the status may have come first (joining a paused or finished replay): draw it again
+    // now that the range is known
+    const frame = this.lastFrame ?? 0;
+    if (!this.scrubbing) this.scrub.value = String(frame);
+    this.showFrame(frame);
   }
 
   /** Steering marks of a recorded run: one button per action at its frame; a click seeks there. */

@@ -1,0 +1,44 @@
+import assert from "node:assert/strict";
+import { test } from "node:test";
+
+// The few DOM parts the timeline touches, enough to drive it without a browser.
+class FakeNode {
+  constructor() {
+    this.textContent = "";
+    this.value = "";
+    this.max = "";
+    this.hidden = false;
+    this.checked = false;
+    this.children = [];
+    this.style = { setProperty() {} };
+    this.parentElement = this;
+    this.offsetHeight = 40;
+    this.dataset = {};
+  }
+  addEventListener() {}
+  setAttribute() {}
+  replaceChildren(...nodes) {
+    this.children = nodes;
+  }
+}
+
+const nodes = new Map();
+globalThis.document = {
+  getElementById: (id) => nodes.get(id) ?? nodes.set(id, new FakeNode()).get(id),
+  body: { classList: { toggle() {} } },
+};
+globalThis.ResizeObserver = class {
+  observe() {}
+};
+
+const { Timeline } = await import("../src/timeline.js");
+
+test("joining a paused replay shows its frame once the engine's length is known", () => {
+  const timeline = new Timeline({ onControl: () => {} });
+  // the status comes first: frame 5 of a replay whose length is not known yet
+  timeline.update({ step: 4, state: "paused" });
+  timeline.setEngine({ kind: "replay", n_frames: 12 });
+  assert.equal(nodes.get("tl-frame").textContent, "frame 5 / 12");
+  assert.equal(nodes.get("tl-scrub").value, "4");
+  assert.equal(nodes.get("tl-play").textContent, "Play");
+});
