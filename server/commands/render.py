@@ -163,12 +163,17 @@ def add_periodic_options(p: argparse.ArgumentParser) -> None:
         metavar="SELECTION",
         help="superpose each frame on the first one by these atoms (rotation and translation)",
     )
-    p.add_argument("--fit-translation", action="store_true", help="--fit translates only")
+    p.add_argument(
+        "--fit-translation", action="store_true", help="--fit translates only (needs --fit)"
+    )
     p.add_argument("--show-cell", action="store_true", help="draw the periodic box's outline")
 
 
 def periodic_fields(args: argparse.Namespace) -> dict[str, object]:
-    """The render parameters the periodic options set (those given)."""
+    """The render parameters the periodic options set (those given; they win over the same
+    fields of a `--params`)."""
+    if args.fit_translation and args.fit is None:
+        raise ValueError("--fit-translation needs --fit SELECTION (the atoms to superpose)")
     out: dict[str, object] = {}
     if args.periodic is not None:
         out["periodic"] = args.periodic

@@ -42,6 +42,7 @@ def test_renders_structure_files(
         ([PDB_HOLE, "-o", "x.png", "--sigma", "0"], "sigma_A"),
         ([PDB_HOLE, "-o", "x.png", "--warp-strength", "2"], "warp_strength"),
         ([PDB_HOLE, "-o", "x.png", "--device", ABSENT_GPU], "device"),
+        ([PDB_HOLE, "-o", "x.png", "--fit-translation"], "--fit-translation needs --fit"),
     ],
 )
 def test_clear_errors(
