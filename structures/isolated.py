@@ -321,8 +321,11 @@ def _prepare(path: str, scratch: str, limits: ReadLimits) -> str:
     return path
 
 
+XTC_MAGIC = 1995
+
+
 def _count_atoms(path: str, name: str, max_atoms: int) -> None:
-    """Refuse a PDB, GRO or XYZ file with more than `max_atoms` atoms before parsing it."""
+    """Refuse a PDB, GRO, XYZ or XTC file with more than `max_atoms` atoms before parsing it."""
     fmt = os.path.basename(path).rsplit(".", 1)[-1].lower()
     if fmt in ("pdb", "ent", "pqr"):
         atoms = 0
@@ -349,3 +352,12 @@ def _count_atoms(path: str, name: str, max_atoms: int) -> None:
             ) from None
         if declared > max_atoms:
             raise StructureError(f"{name} declares {declared} atoms, the limit is {max_atoms}")
+    elif fmt == "xtc":  # each frame's header: magic 1995, then the atom count (big-endian)
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+        if len(head) == 8 and int.from_bytes(head[:4], "big") == XTC_MAGIC:
+            declared = int.from_bytes(head[4:], "big", signed=True)
+            if not 0 < declared <= max_atoms:
+                raise StructureError(
+                    f"{name} declares {declared} atoms a frame, the limit is {max_atoms}"
+                )

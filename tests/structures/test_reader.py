@@ -139,3 +139,20 @@ def test_bonds_are_guessed_across_the_periodic_box() -> None:
     assert len(cut) > 10  # the box cuts these
     assert all(tuple(sorted(b)) in found for b in cut.tolist())
     assert all(tuple(sorted(b)) in found for b in bonds.tolist())
+
+
+def test_an_xtc_declaring_more_atoms_than_the_limit_is_refused_before_reading(
+    tmp_path: Path,
+) -> None:
+    """The server's isolated reader checks an XTC's header against its atom limit (a header
+    claiming two billion atoms had the reader try to allocate 24 GiB)."""
+    from structures.isolated import IsolatedStructure, ReadLimits
+
+    data = bytearray(Path(XTC).read_bytes())
+    data[4:8] = (2_000_000_000).to_bytes(4, "big")
+    bad = tmp_path / "huge.xtc"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(StructureError, match=r"huge\.xtc declares 2000000000 atoms a frame"):
+        IsolatedStructure(GRO, [str(bad)], ReadLimits(max_atoms=100_000))
+    with IsolatedStructure(GRO, [XTC], ReadLimits(max_atoms=100_000)) as fine:
+        assert fine.n_frames == 10
