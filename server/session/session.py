@@ -264,8 +264,10 @@ class Session:
             self._history.clear()  # frames of another system: the window starts again
             self._history_epoch += 1
             self._displayed.reset()
+        # an adapter that said it starts paused (its events go out before its topology) stays so
+        state = "paused" if self.status.state == "paused" else "running"
         self.status = self.status.model_copy(
-            update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": "running"}
+            update={"n_atoms": topology.n_atoms, "engine": topology.engine, "state": state}
         )
         self.broadcast(p.State(sim=self.status))
         self._legend_plans = None  # the last layers' atoms were of the last topology

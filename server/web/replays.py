@@ -149,7 +149,7 @@ async def list_replays(
     for replay in state.replays.processes.values():
         described = replay.describe()
         if not described["running"]:
-            described["last_words"] = replay.last_words()
+            described["last_words"] = replay.why_ended()
         out.append(described)
     return out
 
@@ -162,6 +162,8 @@ async def get_replay(
     if replay is None:
         raise HTTPException(404, f"no replay for session {session!r}")
     described = replay.describe()
+    if not described["running"]:
+        described["last_words"] = replay.why_ended()
     rec = state.recordings.get(replay.recording) if replay.recording else None
     if rec is not None:  # the timeline's steering marks, for viewers too
         described["marks"] = rec.marks()

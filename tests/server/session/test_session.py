@@ -316,8 +316,9 @@ def test_an_adapter_that_starts_paused_is_shown_paused_with_its_first_frame(
         topo, pos = molecule()
         viewer = client("a", "viewer")
         session.attach(viewer)
-        session.on_topology(topo)
+        # the adapter's connection sends its queued events before its topology
         session.on_event(p.Event(level="info", code="paused", message="starts paused", step=0))
+        session.on_topology(topo)
         session.on_frame(frame(pos, 0))
         await settle(lambda: bool(images(viewer)))
         assert session.status.state == "paused" and session.status.step == 0

@@ -103,12 +103,20 @@ def test_a_replay_that_dies_tells_its_viewers_why(live_server: LiveServer) -> No
             time.sleep(0.1)
         viewer = Peer(live_server.view_url, "viewer", live_server.token, name)
         try:
-            child = live_server.app_state.replays.processes[name].process.process
-            os.kill(child.pid, signal.SIGKILL)
+            # the replay itself, under its supervisor: the supervisor dies of the same signal
+            supervisor = live_server.app_state.replays.processes[name].process.process
+            (child,) = [
+                pid
+                for pid in descendants(supervisor.pid)
+                if "simulation_adapters.replay" in command_line(pid)
+            ]
+            os.kill(child, signal.SIGKILL)
             event = viewer.expect(p.Event, 30, where=lambda m: m.code == "replay_failed")
             assert event.level == "error" and "killed by SIGKILL" in event.message, event
             listed = c.get("/api/replays", headers=AUTH_LIVE).json()
             assert any(x["session"] == name and x["exit_code"] == -9 for x in listed), listed
+            one = c.get(f"/api/replays/{name}", headers=AUTH_LIVE).json()
+            assert "killed by SIGKILL" in one["last_words"], one
         finally:
             viewer.close()
             c.delete(f"/api/replays/{name}", headers=AUTH_LIVE)
