@@ -354,9 +354,9 @@ def _count_atoms(path: str, name: str, max_atoms: int) -> None:
             raise StructureError(f"{name} declares {declared} atoms, the limit is {max_atoms}")
     elif fmt == "xtc":  # each frame's header: magic 1995, then the atom count (big-endian)
         with open(path, "rb") as fh:
-            head = fh.read(8)
-        if len(head) == 8 and int.from_bytes(head[:4], "big") == XTC_MAGIC:
-            declared = int.from_bytes(head[4:], "big", signed=True)
+            header = fh.read(8)
+        if len(header) == 8 and int.from_bytes(header[:4], "big") == XTC_MAGIC:
+            declared = int.from_bytes(header[4:], "big", signed=True)
             if not 0 < declared <= max_atoms:
                 raise StructureError(
                     f"{name} declares {declared} atoms a frame, the limit is {max_atoms}"
