@@ -7,6 +7,7 @@ accepts, all of them accept. MDAnalysis is imported lazily: `pip install scalest
 from __future__ import annotations
 
 import contextlib
+import gzip
 import os
 import re
 import tempfile
@@ -67,10 +68,31 @@ MDANALYSIS_FORMATS = {
 
 
 CRYSTAL_FORMATS = ("pdb", "ent", "cif", "mmcif", "pdbx", "bcif")
-"""Formats of deposited models: one such file read alone, with one model, is a crystal's
-asymmetric unit, and its cell (CRYST1, `_cell`) is the crystal's unit cell, not a simulation's
-box. Wrapping each chain into it would take a deposited complex apart (1BD2, 3KPR), and bonds
-guessed across it would join atoms of neighbouring unit cells, so it is no periodic box."""
+"""Formats of deposited models. One such file read alone, with one model, that says how its
+model was determined (PDB's EXPDTA, mmCIF's `_exptl.method`: every deposited entry does, a
+simulation's snapshot does not) is a crystal's asymmetric unit, and its cell (CRYST1, `_cell`)
+is the crystal's unit cell, not a simulation's box. Wrapping each chain into it would take a
+deposited complex apart (1BD2, 3KPR), and bonds guessed across it would join atoms of
+neighbouring unit cells, so it is no periodic box."""
+DEPOSITED_MARKS = ("EXPDTA", "_exptl.method")
+HEADER_LINES = 50_000
+"""Lines of a PDB or mmCIF file searched for `DEPOSITED_MARKS` before its atoms."""
+
+
+def deposited(path: str) -> bool:
+    """Whether a PDB or mmCIF file (gzipped too) says how its model was determined, before
+    its atoms: a deposited entry, not a simulation's snapshot."""
+    opener: Any = gzip.open if path.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rt", encoding="utf-8", errors="replace") as fh:
+            for count, line in enumerate(fh):
+                if line.startswith(DEPOSITED_MARKS):
+                    return True
+                if count > HEADER_LINES or line.startswith(("ATOM", "HETATM", "_atom_site.")):
+                    return False
+    except OSError:
+        return False
+    return False
 
 
 @dataclass
@@ -211,6 +233,7 @@ def load(
         style = atom_style or lammps_atom_style(topology)
         if style is not None:
             kwargs["atom_style"] = style
+    marked: bool | None = None  # a BinaryCIF's marks, read from its text while it lasts
     try:
         with contextlib.ExitStack() as stack, warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -220,6 +243,8 @@ def load(
                 source = to_mmcif(topology, folder, max_atoms)
                 kwargs["topology_format"] = "MMCIF"
             u = mda.Universe(source, *trajectories, **kwargs)
+            if fmt == "bcif":
+                marked = deposited(source)
     except StructureError:
         raise
     except Exception as exc:
@@ -242,7 +267,12 @@ def load(
         raise StructureError(
             f"{os.path.basename(topology)} has {n} atoms, the limit is {max_atoms}"
         )
-    crystal = fmt in CRYSTAL_FORMATS and not trajectories and len(u.trajectory) == 1
+    crystal = (
+        fmt in CRYSTAL_FORMATS
+        and not trajectories
+        and len(u.trajectory) == 1
+        and (deposited(topology) if marked is None else marked)
+    )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

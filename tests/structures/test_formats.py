@@ -203,9 +203,9 @@ def test_a_broken_binarycif_is_refused_naming_the_file(tmp_path: Path, damage: s
 
 
 def test_a_deposited_crystal_structure_keeps_its_chains_together() -> None:
-    """A PDB entry read alone is a crystal's asymmetric unit: its unit cell is no periodic box
-    (wrapping each chain into it took 1BD2's complex apart), and no bond is guessed across it.
-    Its own coordinates are shown; a trajectory's box is a box as before."""
+    """A PDB entry read alone (it says how it was determined) is a crystal's asymmetric unit:
+    its unit cell is no periodic box (wrapping each chain into it took 1BD2's complex apart),
+    and no bond is guessed across it. A simulation's snapshot, and a trajectory, keep theirs."""
     s = load(str(DATA / "mmcif/1BD2.cif.gz"))
     assert s.crystal and s.universe.dimensions is not None  # the file has a cell
     positions, box = s.frame(0)
@@ -213,7 +213,8 @@ def test_a_deposited_crystal_structure_keeps_its_chains_together() -> None:
     bonds = s.topology.bonds.to_numpy()
     lengths = np.linalg.norm(positions[bonds[:, 0]] - positions[bonds[:, 1]], axis=1)
     assert lengths.max() < 3.0  # no bond across the cell
-    pdb = load(datafiles.PDB_sub_sol)
-    assert pdb.crystal and pdb.frame(0)[1] is None
+    # a simulation's snapshot says nothing of an experiment: its box is a box, alone or not
+    snapshot = load(datafiles.PDB_sub_sol)
+    assert not snapshot.crystal and snapshot.frame(0)[1] is not None
     moving = load(datafiles.PDB_sub_sol, [datafiles.XTC_sub_sol])
     assert not moving.crystal and moving.frame(0)[1] is not None
