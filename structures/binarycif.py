@@ -4,8 +4,9 @@ py-mmcif and handed to the mmCIF reader as text: one reader of models, whatever 
 py-mmcif expands what a file declares (a run-length column of two billion rows from a 541-byte
 file) and logs and swallows a decoding failure; it also reads a locator that looks like a URL
 from the network. So the file is checked first (`check`: every category's row count within the
-limit, every column decoding to exactly its category's rows, the lengths found by decoding only
-the integer encodings that set them), only absolute local paths are passed on, and an empty
+limit and all values within `MAX_VALUES`, every column decoding to exactly its category's rows,
+the lengths found by decoding only the integer encodings that set them, each run length
+checked before any is summed), only absolute local paths are passed on, and an empty
 result is refused here, naming the file.
 """
 
@@ -28,6 +29,10 @@ MAX_ROWS = 20_000_000
 hold a few million atoms)."""
 MAX_BYTES = 1 << 30
 """The most a BinaryCIF may hold once inflated."""
+MAX_VALUES = 25_000_000
+"""Values (rows times columns, over every category) a BinaryCIF may decode to: py-mmcif keeps
+each as a Python object (about 75 bytes), so this is about 2 GB, a model of about a million
+atoms; a larger one is refused (convert it to mmCIF)."""
 
 _BYTE_TYPES = {1: "<i1", 2: "<i2", 3: "<i4", 4: "<u1", 5: "<u2", 6: "<u4", 32: "<f4", 33: "<f8"}
 """ByteArray's type codes."""
@@ -62,8 +67,9 @@ def to_mmcif(path: str, folder: str, max_rows: int | None = None) -> str:
 
 
 def check(path: str, max_rows: int) -> None:
-    """Refuse a file that is not BinaryCIF, declares more than `max_rows` rows in a category,
-    or has a column that does not decode to its category's rows."""
+    """Refuse a file that is not BinaryCIF, declares more than `max_rows` rows in a category
+    or more than `MAX_VALUES` values in all, or has a column that does not decode to its
+    category's rows."""
     import msgpack
 
     name = os.path.basename(path)
@@ -72,9 +78,13 @@ def check(path: str, max_rows: int) -> None:
         blocks = doc["dataBlocks"] if isinstance(doc, dict) else None
         if not isinstance(blocks, list):
             raise _BadError("it has no data blocks")
-        for block in blocks:
-            for category in block.get("categories") or []:
-                _check_category(category, max_rows)
+        categories = [c for block in blocks for c in block.get("categories") or []]
+        # what each category and all of them declare, before any column is decoded
+        declared = sum(_rows(c, max_rows) * len(c.get("columns") or []) for c in categories)
+        if declared > MAX_VALUES:
+            raise _BadError(f"it holds more than {MAX_VALUES:,} values; convert it to mmCIF")
+        for category in categories:
+            _check_category(category, max_rows)
     except _BadError as exc:
         raise StructureError(f"cannot read {name}: {exc}") from None
     except StructureError:
@@ -94,13 +104,20 @@ def _read(path: str) -> bytes:
     return data
 
 
-def _check_category(category: dict[str, Any], max_rows: int) -> None:
+def _rows(category: dict[str, Any], max_rows: int) -> int:
+    """The rows a category declares, refused past `max_rows`."""
     label = str(category.get("name", "?")).lstrip("_")
     rows = category.get("rowCount")
     if not isinstance(rows, int) or rows < 0:
         raise _BadError(f"{label} has no row count")
     if rows > max_rows:
         raise _BadError(f"{label} declares {rows:,} rows, the limit is {max_rows:,}")
+    return rows
+
+
+def _check_category(category: dict[str, Any], max_rows: int) -> None:
+    label = str(category.get("name", "?")).lstrip("_")
+    rows = _rows(category, max_rows)
     for column in category.get("columns") or []:
         where = f"{label}.{column.get('name', '?')}"
         for part in ("data", "mask"):
@@ -128,8 +145,10 @@ def _length(data: bytes, encodings: list[dict[str, Any]], limit: int, where: str
         elif kind == "RunLength":
             pairs = _ints(values, where)
             counts = pairs[1::2]
-            total = int(counts.sum()) if len(counts) else 0
-            if len(pairs) % 2 or (counts < 0).any() or total > limit:
+            if len(pairs) % 2 or (counts < 0).any() or (counts > limit).any():
+                raise _BadError(f"{where} has run lengths outside 0-{limit:,}")
+            total = int(counts.sum())  # each at most `limit`: no overflow
+            if total > limit:
                 raise _BadError(f"{where} expands to {total:,} values, the limit is {limit:,}")
             values = np.repeat(pairs[0::2], counts)
         elif kind == "Delta":

@@ -143,7 +143,9 @@ def test_a_binarycif_model_opens_as_its_mmcif_does(tmp_path: Path) -> None:
     ("damage", "expected"),
     [
         ("rows", r"model\.bcif: atom_site declares 2,000,000,000 rows, the limit is 20,000,000"),
-        ("runs", r"model\.bcif: atom_site\.id expands to 2,000,000,000 values, the limit is"),
+        ("runs", r"model\.bcif: atom_site\.id has run lengths outside 0-20,000,000"),
+        ("wrap", r"model\.bcif: atom_site\.id has run lengths outside 0-20,000,000"),
+        ("many", r"model\.bcif: it holds more than 25,000,000 values; convert it to mmCIF"),
         ("short", r"model\.bcif: atom_site\.id decodes to 3 values for 566 rows"),
         ("encoding", r"model\.bcif: atom_site\.id has an unknown encoding 'Zip'"),
     ],
@@ -162,15 +164,21 @@ def test_a_binarycif_that_declares_more_than_it_holds_is_refused_at_once(
     column = next(c for c in atoms["columns"] if c["name"] == "id")
     if damage == "rows":
         atoms["rowCount"] = 2_000_000_000
+    if damage == "many":  # 40 categories of 1M rows: each within its limit, not together
+        for k in range(40):
+            doc["dataBlocks"][0]["categories"].append(
+                {**atoms, "name": f"_extra_{k}", "rowCount": 1_000_000}
+            )
     pairs = {"runs": [1, 2_000_000_000], "short": [1, 3]}.get(damage, [1, 566])
-    column["data"] = {
-        "data": np.asarray(pairs, "<i4").tobytes(),
-        "encoding": [
-            {"kind": "Zip" if damage == "encoding" else "RunLength", "srcType": 3,
-             "srcSize": pairs[1]},
-            {"kind": "ByteArray", "type": 3},
-        ],
-    }  # fmt: skip
+    encoding = [
+        {"kind": "Zip" if damage == "encoding" else "RunLength", "srcType": 3,
+         "srcSize": pairs[1]},
+        {"kind": "ByteArray", "type": 3},
+    ]  # fmt: skip
+    if damage == "wrap":  # counts that sum past 2^64 back to a small number
+        pairs = [1, 0, 1, 0, 1, 0, 1, 0]
+        encoding.insert(1, {"kind": "Delta", "origin": 1 << 62, "srcType": 3})
+    column["data"] = {"data": np.asarray(pairs, "<i4").tobytes(), "encoding": encoding}
     bad = tmp_path / "model.bcif"
     bad.write_bytes(msgpack.packb(doc))
     with pytest.raises(StructureError, match=expected):  # by the check, before any expansion
