@@ -17,6 +17,7 @@ from server.render import Renderer
 from server.render import device as render_device
 from server.render.boxes import Options
 from tests.render.conftest import make_topology
+from tests.render.test_gpu_lanes import image_of
 
 BOX = 18.0
 
@@ -29,14 +30,6 @@ def chain(n: int, seed: int) -> tuple[Topology, np.ndarray]:
     walk = np.cumsum(steps, axis=0) + BOX / 2
     bonds = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
     return make_topology(n, bonds=bonds), np.mod(walk, BOX).astype(np.float32)
-
-
-def image_of(topology: Topology, positions: np.ndarray, camera: Camera, device: str) -> np.ndarray:
-    r = Renderer(device)
-    r.set_topology(topology)
-    r.set_positions(positions)
-    r.render(RenderParams(), camera, 48, 32)
-    return r.read_rgba()
 
 
 def test_a_displayed_frame_is_drawn_from_the_device(device: str) -> None:

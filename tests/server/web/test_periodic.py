@@ -96,6 +96,17 @@ def test_a_replayed_solvated_protein_is_shown_whole_with_its_cell(
             c.delete(f"/api/replays/{name}", headers=AUTH)
 
 
+def finished_job(live_server: LiveServer, job: str) -> dict[str, object]:
+    """The job's record once it is done or failed (within three minutes)."""
+    deadline = time.monotonic() + 180
+    while (info := httpx.get(f"{live_server.url}/api/jobs/{job}", headers=AUTH).json())[
+        "state"
+    ] not in ("done", "failed"):
+        assert time.monotonic() < deadline, info
+        time.sleep(0.2)
+    return dict(info)
+
+
 def _box() -> np.ndarray:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -201,12 +212,7 @@ def test_a_job_draws_every_frame_fitted_and_outlined(live_server: LiveServer) ->
         )  # fmt: skip
     assert r.status_code == 202, r.text
     job = r.json()["id"]
-    deadline = time.monotonic() + 180
-    while (info := httpx.get(f"{live_server.url}/api/jobs/{job}", headers=AUTH).json())[
-        "state"
-    ] not in ("done", "failed"):
-        assert time.monotonic() < deadline, info
-        time.sleep(0.2)
+    info = finished_job(live_server, job)
     assert info["state"] == "done", info
     body = httpx.get(f"{live_server.url}/api/jobs/{job}/result", headers=AUTH, timeout=60)
     z = zipfile.ZipFile(io.BytesIO(body.content))
@@ -261,12 +267,7 @@ def test_a_job_over_a_trajectory_damaged_at_its_end_keeps_the_frames_before(
         )  # fmt: skip
     assert r.status_code == 202, r.text
     job = r.json()["id"]
-    deadline = time.monotonic() + 180
-    while (info := httpx.get(f"{live_server.url}/api/jobs/{job}", headers=AUTH).json())[
-        "state"
-    ] not in ("done", "failed"):
-        assert time.monotonic() < deadline, info
-        time.sleep(0.2)
+    info = finished_job(live_server, job)
     assert info["state"] == "done" and info["partial"], info
     assert "frame 8 could not be read" in info["warning"], info
     body = httpx.get(f"{live_server.url}/api/jobs/{job}/result", headers=AUTH, timeout=60)
