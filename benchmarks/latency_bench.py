@@ -15,6 +15,7 @@ The simulation and the viewers run in two processes of their own, so the server'
 (and its GIL) holds only the server.
 
     python benchmarks/latency_bench.py                      # GPU run (results JSON + table)
+    python benchmarks/latency_bench.py --jpeg-control --no-throughput  # each JPEG path in turn
     python benchmarks/latency_bench.py --quick --device cpu # smoke test on the CPU device
 """
 
@@ -31,6 +32,7 @@ import platform
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +46,7 @@ from render_bench import build_system, topology_of
 
 import protocol as p
 from server.commands.serve import ServerThread
+from server.pipeline.encoder import PILLOW
 from server.settings import ServerSettings
 from tests.server.peers import Peer, frame
 
@@ -129,8 +132,8 @@ def _steer(url: str, n_atoms: int, changes: int, out: Any) -> None:
     out.put(rows)
 
 
-def latency(server: ServerThread, n_atoms: int, changes: int) -> dict[str, Any]:
-    """Steer-to-photon percentiles; the clients run in a process of their own."""
+def _steer_rows(server: ServerThread, n_atoms: int, changes: int) -> list[dict[str, float]]:
+    """The per-change stages; the clients run in a process of their own."""
     url = f"ws://127.0.0.1:{server.port}"
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
@@ -138,6 +141,56 @@ def latency(server: ServerThread, n_atoms: int, changes: int) -> dict[str, Any]:
     child.start()
     rows: list[dict[str, float]] = out.get(timeout=600)
     child.join(30)
+    return rows
+
+
+def latency(server: ServerThread, n_atoms: int, changes: int) -> dict[str, Any]:
+    """Steer-to-photon percentiles."""
+    return summarise(_steer_rows(server, n_atoms, changes), n_atoms)
+
+
+def jpeg_paths(server: ServerThread) -> dict[str, Callable[[], None]]:
+    """How the server can make a viewer's JPEG, each a switch to it: encoded on the render
+    device (the `gpu-jpeg` extra on a CUDA device), by that encoder from the host's copy, and
+    by Pillow (the default install; the control)."""
+    gpu = server.app_state.gpu
+    encoder = server.app_state.services.encoder
+    lane, chosen = gpu.jpeg, encoder.backend
+
+    def use(on_device: Any, host: Any) -> Callable[[], None]:
+        def switch() -> None:
+            gpu.jpeg = on_device
+            encoder.backend = host
+
+        return switch
+
+    paths: dict[str, Callable[[], None]] = {}
+    if lane is not None:
+        paths[f"on the device ({lane.name})"] = use(lane, chosen)
+    if chosen is not None:
+        paths[f"host copy ({chosen.name})"] = use(None, chosen)
+    paths[PILLOW] = use(None, None)
+    return paths
+
+
+def latency_by_encoder(
+    server: ServerThread, n_atoms: int, changes: int, rounds: int = 2
+) -> list[dict[str, Any]]:
+    """Steer-to-photon for each way of making the JPEG, taking turns in `rounds` (the
+    server's own choice restored after)."""
+    paths = jpeg_paths(server)
+    rows: dict[str, list[dict[str, float]]] = {label: [] for label in paths}
+    try:
+        for _ in range(rounds):
+            for label, switch in paths.items():
+                switch()
+                rows[label] += _steer_rows(server, n_atoms, max(1, changes // rounds))
+    finally:
+        next(iter(paths.values()))()
+    return [{"encoder": label, **summarise(r, n_atoms)} for label, r in rows.items()]
+
+
+def summarise(rows: list[dict[str, float]], n_atoms: int) -> dict[str, Any]:
     result: dict[str, Any] = {
         "n_atoms": n_atoms,
         "changes": len(rows),
@@ -308,6 +361,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--no-throughput", action="store_true", help="the latency part only")
     ap.add_argument(
+        "--jpeg-control",
+        action="store_true",
+        help="the latency again for each way of making the JPEG, taking turns (on the device, "
+        "from the host's copy, Pillow)",
+    )
+    ap.add_argument(
         "--viewers",
         default="1,10,50,4own",
         help="throughput cases: viewers sharing the view, or N'own' holding cameras of their own",
@@ -344,6 +403,12 @@ def main(argv: list[str] | None = None) -> int:
             )
             result["latency"] = latency(server, args.latency_atoms, args.changes)
             print(json.dumps(result["latency"], indent=1), flush=True)
+            if args.jpeg_control:
+                by = latency_by_encoder(server, args.latency_atoms, args.changes)
+                result["latency_by_encoder"] = by
+                for row in by:
+                    stages = {k: round(row[k]["p50"], 2) for k in ("total", "queue", "encode")}
+                    print(row["encoder"], stages, flush=True)
             result["interactive_scale"] = server.settings.interactive_scale
             result["throughput"] = []
             cases = [] if args.no_throughput else [

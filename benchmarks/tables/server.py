@@ -17,17 +17,18 @@ def latency_steer(sources: list[Source]) -> str:
     """Steer-to-photon by stage, p50 / p95 / p99 ms, one row per file."""
     rows = []
     for name, res in sources:
-        lat = res["latency"]
-        w, h = lat["image"]
-        row = [
-            stem(name, "latency_"),
-            f"{lat['n_atoms']:,}",
-            f"{size(w, h)} of {size(*res['size'])}",
+        runs = [(stem(name, "latency_"), res["latency"])]
+        runs += [  # `--jpeg-control`: each way of making the JPEG, taking turns
+            (f"{stem(name, 'latency_')}, JPEG {lat['encoder']}", lat)
+            for lat in res.get("latency_by_encoder", [])
         ]
-        row += [
-            " / ".join(num(lat[stage][p], 1) for p in ("p50", "p95", "p99")) for stage in STAGES
-        ]
-        rows.append(row)
+        for label, lat in runs:
+            w, h = lat["image"]
+            row = [label, f"{lat['n_atoms']:,}", f"{size(w, h)} of {size(*res['size'])}"]
+            row += [
+                " / ".join(num(lat[stage][p], 1) for p in ("p50", "p95", "p99")) for stage in STAGES
+            ]
+            rows.append(row)
     header = ["run", "atoms", "image", *STAGES]
     return block(sources, table(header, "lrl" + "r" * len(STAGES), rows), "ms, p50 / p95 / p99")
 

@@ -5,8 +5,10 @@ and encodes into a per-thread in-memory file: Pillow releases the GIL only when 
 file descriptor, so encoder threads then run in parallel with each other and the event loop.
 
 With the `gpu-jpeg` extra installed and a CUDA render device, JPEG goes through nvImageCodec
-(nvJPEG) on that GPU instead; if it fails at run time the server logs a warning and stays on
-Pillow. `ImageEncoder.describe()` names the encoder in use (shown by /healthz).
+(nvJPEG) on that GPU instead: a live session's render lane encodes its image where it was
+rendered and reads back only the JPEG (`GpuQueue.jpeg`), other images are encoded from the host.
+If it fails at run time the server logs a warning and stays on Pillow. `ImageEncoder.describe()`
+names the encoder in use (shown by /healthz).
 """
 
 from __future__ import annotations
@@ -18,11 +20,14 @@ import os
 import tempfile
 import threading
 import time
-from typing import Any, BinaryIO, Literal, Protocol
+from typing import TYPE_CHECKING, Any, BinaryIO, Literal, Protocol, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
 from PIL import Image
+
+if TYPE_CHECKING:
+    from server.render.rgb import DeviceImage
 
 log = logging.getLogger("scalesteer.encoder")
 
@@ -110,8 +115,21 @@ def encode_image(
     return data, (time.perf_counter() - t0) * 1000.0
 
 
+@runtime_checkable
+class DeviceJpeg(Protocol):
+    """A JPEG encoder that reads images in the memory of the device they were rendered on
+    (`server.render.rgb`), so that only the JPEG's bytes come back to the host."""
+
+    name: str
+    device: str
+    """The render device whose images it reads ("cuda:0")."""
+
+    def encode_on_device(self, image: DeviceImage, quality: int) -> bytes: ...
+
+
 class NvJpeg:
-    """nvImageCodec's JPEG encoder on one CUDA device; one nvimgcodec Encoder per thread.
+    """nvImageCodec's JPEG encoder on one CUDA device; one nvimgcodec Encoder per thread. It
+    encodes host images (`encode`) and images still on the device (`encode_on_device`).
 
     Raises ImportError when nvImageCodec is not installed, RuntimeError when it cannot run on
     the device (both at construction, so selection can fall back before any frame).
@@ -122,6 +140,7 @@ class NvJpeg:
 
         self._nv: Any = nvimgcodec
         self._device_id = device_id
+        self.device = f"cuda:{device_id}"
         self._local = threading.local()
         self.name = f"nvimagecodec-nvjpeg (cuda:{device_id})"
         probe = np.zeros((8, 8, 4), np.uint8)
@@ -146,21 +165,35 @@ class NvJpeg:
             )
         return enc
 
-    def encode(self, rgba: npt.NDArray[np.uint8], quality: int) -> bytes:
+    def _params(self, quality: int) -> Any:
         nv = self._nv
-        image = _as_pillow(rgba, "RGBX")
-        # Pillow packs RGBX to RGB several times faster than numpy copies the strided view
-        rgb = np.frombuffer(image.tobytes("raw", "RGB"), np.uint8).reshape(*rgba.shape[:2], 3)
         css = nv.ChromaSubsampling
-        params = nv.EncodeParams(
+        return nv.EncodeParams(
             quality_type=nv.QualityType.QUALITY,
             quality_value=float(quality),
             chroma_subsampling=css.CSS_444 if _subsampling_444(quality) else css.CSS_420,
         )
-        stream = self._encoder().encode(rgb, "jpeg", params=params)
-        if stream is None:
+
+    def encode(self, rgba: npt.NDArray[np.uint8], quality: int) -> bytes:
+        image = _as_pillow(rgba, "RGBX")
+        # Pillow packs RGBX to RGB several times faster than numpy copies the strided view
+        rgb = np.frombuffer(image.tobytes("raw", "RGB"), np.uint8).reshape(*rgba.shape[:2], 3)
+        return self._bytes(self._encoder().encode(rgb, "jpeg", params=self._params(quality)))
+
+    def encode_on_device(self, image: DeviceImage, quality: int) -> bytes:
+        """JPEG of an RGB image in this device's memory, read on the stream that wrote it."""
+        nv = self._nv
+        source = nv.as_image(image, cuda_stream=image.stream)
+        encoded = self._encoder().encode(
+            source, "jpeg", params=self._params(quality), cuda_stream=image.stream
+        )
+        return self._bytes(encoded)
+
+    @staticmethod
+    def _bytes(encoded: Any) -> bytes:
+        if encoded is None:
             raise RuntimeError("nvImageCodec could not encode the image")
-        return bytes(stream)
+        return bytes(encoded)
 
 
 class ImageEncoder:
@@ -174,9 +207,25 @@ class ImageEncoder:
         self._jpeg = jpeg
         self._lock = threading.Lock()
 
+    @property
+    def backend(self) -> JpegBackend | None:
+        """The JPEG encoder other than Pillow in use (None: Pillow)."""
+        return self._jpeg
+
+    @backend.setter
+    def backend(self, jpeg: JpegBackend | None) -> None:
+        with self._lock:
+            self._jpeg = jpeg
+
     def describe(self) -> str:
         backend = self._jpeg
         return backend.name if backend is not None else PILLOW
+
+    def on_device(self) -> DeviceJpeg | None:
+        """The backend that can also encode images where they were rendered, if the one in
+        use can (the render lanes of its device then encode their JPEGs themselves)."""
+        backend = self._jpeg
+        return backend if isinstance(backend, DeviceJpeg) else None
 
     def encode(
         self, rgba: npt.NDArray[np.uint8], fmt: Format, quality: int = 85

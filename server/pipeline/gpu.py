@@ -27,6 +27,7 @@ import asyncio
 import contextlib
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -46,6 +47,7 @@ STAGE_WAIT_S = 0.005
 before uploading from the frame itself."""
 
 if TYPE_CHECKING:
+    from server.pipeline.encoder import DeviceJpeg
     from server.render import Renderer
     from server.render.boxes import Options, Shown
     from server.render.layerplan import LayerPlan
@@ -113,6 +115,10 @@ class RenderRequest:
     rgba: bool = True
     """False: only video viewers take this image, so when its I420 planes come back the RGBA
     image is not read back (`RenderOutput.rgba` is then None)."""
+    jpeg_quality: int | None = None
+    """JPEG viewers take this image at this quality: where the queue has an encoder for the
+    render's device (`GpuQueue.jpeg`) the lane encodes it there and only the JPEG comes back
+    (`RenderOutput.jpeg`; the RGBA image then is not read back for them)."""
 
 
 @dataclass(frozen=True)
@@ -140,11 +146,16 @@ class RenderOutput:
     histogram: npt.NDArray[np.float32] | None = None
     i420: npt.NDArray[np.uint8] | None = None
     """The image at the request's `video_size` as I420 planes (CUDA devices only)."""
+    jpeg: bytes | None = None
+    """The image as JPEG at the request's `jpeg_quality`, encoded on its device."""
+    jpeg_ms: float = 0.0
+    """The time that encode took (packing the pixels included)."""
 
     def image(self) -> npt.NDArray[np.uint8]:
-        """The RGBA image, which every request has unless it said `rgba=False`."""
+        """The RGBA image, which every request has unless it said `rgba=False` or its JPEG
+        came back instead."""
         if self.rgba is None:
-            raise RuntimeError("this render was asked for video planes only")
+            raise RuntimeError("this render brought back no RGBA image (video planes or JPEG)")
         return self.rgba
 
 
@@ -224,6 +235,10 @@ class GpuQueue:
     """Upload the newest staged frame while a live render runs (off: the baseline)."""
     warmed: bool = False
     """The warm-up render (`warm_up`) has drawn its molecule and given its slot back."""
+    jpeg: DeviceJpeg | None = None
+    """An encoder that reads images on the device they were rendered on: renders there that
+    ask for a JPEG (`RenderRequest.jpeg_quality`) come back encoded (None: none is set, or
+    it failed)."""
     _lanes: list[_Lane] = field(default_factory=list)
     _lane_of: dict[str, int] = field(default_factory=dict)
     _spread: str | None = None
@@ -558,8 +573,41 @@ class GpuQueue:
                     i420 = read_i420(request.video_size)
                 except Exception:  # the encoder converts the RGBA image itself: slower
                     log.exception("converting a video frame on %s failed", self.actual_device)
-            rgba = renderer.read_rgba() if request.rgba or i420 is None else None
-            return RenderOutput(rgba, dict(renderer.timings), hist, i420)
+            jpeg = None
+            if request.rgba and request.jpeg_quality is not None:
+                jpeg = self._jpeg_on_device(renderer, request.jpeg_quality)
+            video_needs_rgba = i420 is None and (request.video_size is not None or not request.rgba)
+            rgba = None
+            if (request.rgba and jpeg is None) or video_needs_rgba:
+                rgba = renderer.read_rgba()
+            out = RenderOutput(rgba, dict(renderer.timings), hist, i420)
+            if jpeg is not None:
+                out.jpeg, out.jpeg_ms = jpeg
+            return out
+
+    def _jpeg_on_device(self, renderer: Any, quality: int) -> tuple[bytes, float] | None:
+        """(On the lane's thread.) The image as JPEG encoded where it was rendered, with the
+        time taken; None when this queue's encoder is for another device, or the renderer
+        draws across several. An encoder that fails is dropped for good (one warning): the
+        images are read back and encoded on the host from then on."""
+        encoder = self.jpeg
+        device_rgb = getattr(renderer, "device_rgb", None)  # a several-device render has none
+        if encoder is None or device_rgb is None or renderer.device != encoder.device:
+            return None
+        t0 = time.perf_counter()
+        try:
+            data = encoder.encode_on_device(device_rgb(), quality)
+        except Exception as exc:
+            if self.jpeg is encoder:
+                self.jpeg = None
+                log.warning(
+                    "JPEG on %s failed (%s: %s); images are encoded on the host from now on",
+                    encoder.device,
+                    type(exc).__name__,
+                    exc,
+                )
+            return None
+        return data, (time.perf_counter() - t0) * 1000.0
 
     @contextlib.contextmanager
     def _staged(self) -> Iterator[list[tuple[FrameStager, Any]]]:

@@ -10,6 +10,7 @@ import numpy.typing as npt
 import warp
 
 from server.render.errors import RenderError
+from server.render.rgb import DeviceImage, RgbPacker
 from server.render.yuv import I420Converter
 
 wp: Any = warp  # warp's host API is unannotated
@@ -21,6 +22,7 @@ class ImageOutputs:
 
     _image: tuple[int, int] | None = None
     _i420: I420Converter | None = None
+    _rgb: RgbPacker | None = None
     _host_reads: dict[Any, Any] | None = None
 
     def _outputs(self) -> tuple[Any, Any, Any]:
@@ -88,6 +90,15 @@ class ImageOutputs:
         if self._i420 is None or self._i420.device != rgba.device:
             self._i420 = I420Converter(rgba.device)
         return self._i420.convert(rgba, src, size)
+
+    def device_rgb(self) -> DeviceImage:
+        """The last image as (height, width, 3) RGB in device memory, for an encoder that
+        reads it there (`server.render.rgb`); valid until the next call."""
+        size = self._need_image()
+        rgba = self._outputs()[0]
+        if self._rgb is None or self._rgb.device != rgba.device:
+            self._rgb = RgbPacker(rgba.device)
+        return self._rgb.pack(rgba, size)
 
     def read_depth(self) -> npt.NDArray[np.float32]:
         """(height, width) float32 distance along each ray; inf where nothing was hit."""

@@ -314,7 +314,7 @@ class Delivery:
     ) -> None:
         services = self.services
         try:
-            if members and rendered.out.rgba is None:
+            if members and rendered.out.rgba is None and rendered.out.jpeg is None:
                 # rendered for video viewers only, and one of them now wants JPEG (its video
                 # failed, or it dropped video since): it gets the next render
                 for client in members:
@@ -338,13 +338,16 @@ class Delivery:
         services = self.services
         loop = asyncio.get_running_loop()
         try:
-            data, encode_ms = await loop.run_in_executor(
-                services.encoders,
-                services.encoder.encode,
-                rendered.out.image(),
-                "jpeg",
-                quality,
-            )
+            if rendered.out.jpeg is not None:  # encoded on the render's device
+                data, encode_ms = rendered.out.jpeg, rendered.out.jpeg_ms
+            else:
+                data, encode_ms = await loop.run_in_executor(
+                    services.encoders,
+                    services.encoder.encode,
+                    rendered.out.image(),
+                    "jpeg",
+                    quality,
+                )
         except Exception:
             log.exception("encoding failed in session %s", self.session_id)
             on_failure()

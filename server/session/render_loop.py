@@ -237,6 +237,7 @@ class RenderLoop:
         if steered:  # every member takes the stream: more pixels would be scaled away
             width, height = stream_size
         now = time.monotonic()
+        quality = self.scheduler.jpeg_quality(key, params, (width, height))
         request = RenderRequest(
             slot=self.slot,
             snapshot=snap,
@@ -248,6 +249,7 @@ class RenderLoop:
             layers=scene.layers,
             video_size=stream_size if video else None,
             rgba=not video_only,
+            jpeg_quality=None if video_only else quality,
         )
         out: RenderOutput = await self.services.backend.render(request)
         reduced = self.scheduler.note_render(
@@ -269,7 +271,6 @@ class RenderLoop:
         metrics = self.services.metrics
         metrics.frames_rendered.inc()
         metrics.render_ms.observe(out.timings.get("total", 0.0))
-        quality = self.scheduler.jpeg_quality(key, params, (width, height))
         return Rendered(
             out,
             next(self._image_ids),

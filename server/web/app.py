@@ -119,6 +119,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             initializer=name_thread,
         )
         encoder = await asyncio.to_thread(select_encoder, settings.device)
+        gpu.jpeg = encoder.on_device()  # the render lanes of its device encode their JPEGs
         # shared by all sessions: encodes in flight never outnumber the encoder threads
         encode_slots = asyncio.Semaphore(settings.encode_workers)
         steering_log = SteeringLog(state_dir / "logs")

@@ -158,7 +158,7 @@ def test_video_only_renders_come_back_without_the_rgba_image(
         monkeypatch.setattr(GpuQueue, "_on_cuda", lambda self: True)  # as on a GPU
         out = queue.render_sync(request)
         assert out.rgba is None and out.i420 is not None and out.i420.shape == (96, 96)
-        with pytest.raises(RuntimeError, match="video planes only"):
+        with pytest.raises(RuntimeError, match="no RGBA image"):
             out.image()
         out = queue.render_sync(replace(request, rgba=True))  # a JPEG viewer among them
         assert out.rgba is not None and out.i420 is not None

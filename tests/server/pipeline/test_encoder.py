@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+import protocol as p
 from server.pipeline.encoder import (
     PILLOW,
     ImageEncoder,
@@ -26,6 +27,8 @@ from server.pipeline.encoder import (
     select_encoder,
 )
 from tests.conftest import LiveServer
+from tests.render.test_device_jpeg import COMMENT, LaneEncoder
+from tests.server.peers import Peer, frame, molecule
 
 
 def picture(h: int = 60, w: int = 80, seed: int = 0) -> np.ndarray:
@@ -249,3 +252,32 @@ def test_healthz_names_the_encoder(live_server: LiveServer) -> None:
     health = httpx.get(f"{live_server.url}/healthz", timeout=30).json()
     assert health["encoder"] == PILLOW
     assert live_server.app_state.encoder.describe() == PILLOW
+
+
+def test_a_session_sends_the_jpeg_its_render_lane_encoded(
+    live_server: LiveServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    lane = LaneEncoder("cpu")
+    live_server.app_state.gpu.jpeg = lane
+    host_formats: list[str] = []
+    host_encode = ImageEncoder.encode
+
+    def counted(encoder: ImageEncoder, rgba: np.ndarray, fmt: Any, *args: Any) -> Any:
+        host_formats.append(fmt)
+        return host_encode(encoder, rgba, fmt, *args)
+
+    monkeypatch.setattr(ImageEncoder, "encode", counted)
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "lane")
+    topology, positions = molecule(24)
+    sim.send(topology)
+    sim.send(frame(positions, 0))
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "lane")
+    try:
+        image = viewer.expect(p.Image, 60)
+        assert image.format == "jpeg" and COMMENT in image.data
+        assert lane.calls >= 1 and image.encode_ms > 0
+        assert "jpeg" not in host_formats  # the encode threads had nothing to do
+        assert decode(image.data).shape == (image.height, image.width, 3)
+    finally:
+        viewer.close()
+        sim.close()
