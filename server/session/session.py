@@ -104,6 +104,9 @@ class Session:
         """The layers the legend was made for (it lists only the atoms they show)."""
         self.engine: p.EngineInfo | None = None
         """What the simulation declared it can be steered with (kept until a new one says)."""
+        self.stopped_why: p.Event | None = None
+        """Why the simulation stopped (`simulation_stopped`), told to every viewer who joins
+        until another simulation connects."""
         self.topology_id = 0
         self.positions: npt.NDArray[np.float32] | None = None
         self.positions_id = 0
@@ -187,7 +190,17 @@ class Session:
         self._roster_changed()
         # the newcomer gets the whole roster now (the coming delta repeats it, harmlessly)
         client.send(self.full_state())
+        if client.role == "simulation":
+            self.stopped_why = None
+        elif self.stopped_why is not None and self.sim is None:
+            client.send(self.stopped_why)
         self.mark_dirty()
+
+    def simulation_stopped(self, event: p.Event) -> None:
+        """Tell the viewers why the simulation stopped (a replay that failed), and each
+        viewer who joins before another simulation connects."""
+        self.stopped_why = event
+        self.broadcast(event)
 
     def _roster_changed(self) -> None:
         """Send the roster's changes soon, coalesced over `state_interval_s`."""

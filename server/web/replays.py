@@ -138,7 +138,7 @@ def _replay_failed(state: AppState, session: str, why: str) -> None:
     live = state.sessions.get(session)
     if live is not None:
         message = f"the replay stopped: {why}"[:1024]
-        live.broadcast(p.Event(level="error", code="replay_failed", message=message))
+        live.simulation_stopped(p.Event(level="error", code="replay_failed", message=message))
 
 
 @router.get("/api/replays", summary="Replays opened from the dashboard")

@@ -113,6 +113,21 @@ def test_a_replay_that_dies_tells_its_viewers_why(live_server: LiveServer) -> No
             os.kill(child, signal.SIGKILL)
             event = viewer.expect(p.Event, 30, where=lambda m: m.code == "replay_failed")
             assert event.level == "error" and "killed by SIGKILL" in event.message, event
+            # a viewer who opens the session afterwards is told too
+            late = Peer(live_server.view_url, "viewer", live_server.token, name)
+            try:
+                told = late.expect(p.Event, 30, where=lambda m: m.code == "replay_failed")
+                assert told.message == event.message
+            finally:
+                late.close()
+            session = live_server.app_state.sessions.get(name)
+            assert session is not None and session.stopped_why is not None
+            sim = Peer(live_server.ws_url, "simulation", live_server.token, name)
+            try:  # a simulation that connects again ends the story
+                sim.expect(p.State, 30)
+                assert session.stopped_why is None
+            finally:
+                sim.close()
             listed = c.get("/api/replays", headers=AUTH_LIVE).json()
             assert any(x["session"] == name and x["exit_code"] == -9 for x in listed), listed
             one = c.get(f"/api/replays/{name}", headers=AUTH_LIVE).json()
