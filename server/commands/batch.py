@@ -176,7 +176,8 @@ async def run(args: argparse.Namespace) -> int:
         await asyncio.to_thread(gpu.close)
         encoders.shutdown(wait=True)
     if job.state is not JobState.DONE or job.result is None:
-        print(f"scalesteer batch: {job.state.value}: {job.error or ''}", file=sys.stderr)
+        error = _as_option(job.error or "", args)
+        print(f"scalesteer batch: {job.state.value}: {error}", file=sys.stderr)
         shutil.rmtree(work, ignore_errors=True)
         return 1
     args.output.parent.mkdir(parents=True, exist_ok=True)
@@ -184,6 +185,18 @@ async def run(args: argparse.Namespace) -> int:
     shutil.rmtree(work, ignore_errors=True)
     print(f"scalesteer batch: {job.done} frames -> {args.output}")
     return 0
+
+
+def _as_option(error: str, args: argparse.Namespace) -> str:
+    """A job's error about a centre or fit selection the command line gave, naming the option
+    it came from (the job names the render parameter the option set)."""
+    for field, option, given in (
+        ("params.center_selection", "--center", args.center),
+        ("params.fit_selection", "--fit", args.fit),
+    ):
+        if given is not None and error.startswith(f"{field}:"):
+            return option + error[len(field) :]
+    return error
 
 
 def _positive_int(text: str) -> int:

@@ -116,3 +116,19 @@ def test_batch_opens_a_solvated_system_on_its_protein(
             '{"layers": []}', "--select", "protein"]  # fmt: skip
     assert main(argv) == 2
     assert "--params names layers" in capsys.readouterr().err
+
+
+def test_a_selection_from_an_option_is_named_by_that_option(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A --fit that matches nothing was reported as `params.fit_selection`, a name the command
+    line never used."""
+    from MDAnalysisTests.datafiles import GRO, XTC
+
+    argv = [GRO, XTC, "-o", str(tmp_path / "x.zip"), "--size", "32x24", "--stop", "1",
+            "--engine", "local", "--device", "cpu"]  # fmt: skip
+    assert main([*argv, "--fit", "resname NOPE"]) == 1
+    err = capsys.readouterr().err
+    assert "--fit: 'resname NOPE' matches no atom" in err and "params." not in err, err
+    assert main([*argv, "--center", "resname NOPE"]) == 1
+    assert "--center: 'resname NOPE' matches no atom" in capsys.readouterr().err
