@@ -180,6 +180,14 @@ class PullLimits(Model):
     max_spring_k: PositiveFloat
 
 
+class Playback(Model):
+    """A replay's playback as it is now: its speed (times the rate it was opened at) and
+    whether it starts again at its end."""
+
+    speed: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)] = 1.0
+    loop: bool = False
+
+
 class EngineInfo(Message):
     """S->*, and *->V in `state.engine`: what this simulation can be steered with.
 
@@ -201,6 +209,9 @@ class EngineInfo(Message):
     """A replay's trajectory length."""
     guard: Annotated[str, Field(max_length=256)] = ""
     """What the adapter does when the simulation blows up, in a sentence."""
+    playback: Playback | None = None
+    """A replay's speed and loop as it starts; the server keeps them current as its `speed`
+    and `loop` controls are acknowledged, so a viewer who joins later sees them as they are."""
 
 
 class Event(Message):

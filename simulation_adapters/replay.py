@@ -31,6 +31,7 @@ from protocol import (
     Frame,
     Message,
     ParamRange,
+    Playback,
     SimParams,
     WireArray,
 )
@@ -256,6 +257,7 @@ class TrajectoryReplay:
             },
             pull=None,
             n_frames=self.n_frames,
+            playback=Playback(speed=self.speed, loop=self.loop),
         )
 
     def _apply(self, messages: list[Message]) -> None:

@@ -65,6 +65,7 @@ export class Timeline {
     if (!replay) return;
     this.nFrames = engine.n_frames;
     this.scrub.max = String(Math.max(0, this.nFrames - 1));
+    if (engine.playback) this.acknowledged(engine.playback); // its speed and loop as they are
     // the status may have come first (joining a paused or finished replay): draw it again
     // now that the range is known
     const frame = this.lastFrame ?? 0;

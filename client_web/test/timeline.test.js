@@ -42,3 +42,13 @@ test("joining a paused replay shows its frame once the engine's length is known"
   assert.equal(nodes.get("tl-scrub").value, "4");
   assert.equal(nodes.get("tl-play").textContent, "Play");
 });
+
+test("a replay's speed and loop show as its engine says, also for a viewer who joins later", () => {
+  const timeline = new Timeline({ onControl: () => {} });
+  timeline.setEngine({ kind: "replay", n_frames: 12, playback: { speed: 2, loop: true } });
+  assert.equal(nodes.get("tl-speed").value, "2");
+  assert.equal(nodes.get("tl-loop").checked, true);
+  timeline.setEngine({ kind: "replay", n_frames: 12, playback: { speed: 0.5, loop: false } });
+  assert.equal(nodes.get("tl-speed").value, "0.5");
+  assert.equal(nodes.get("tl-loop").checked, false);
+});

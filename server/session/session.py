@@ -569,6 +569,8 @@ class Session:
                 state = "paused" if action == "pause" else "running"
                 self.status = self.status.model_copy(update={"state": state})
                 self.broadcast(p.State(sim=self.status))
+            elif action in ("speed", "loop"):
+                self._playback_changed(action, ack.applied.get(action))
         if pending.proposal is not None:
             if ack.ok:
                 self.sim_params = apply_sim_params(self.sim_params, pending.proposal)
@@ -577,6 +579,19 @@ class Session:
         client = self.clients.get(pending.client_id)
         if client is not None and pending.client_seq is not None:
             client.send(ack.model_copy(update={"ref": pending.client_seq, "seq": None}))
+
+    def _playback_changed(self, field: str, value: Any) -> None:
+        """A replay acknowledged a new speed or loop: its engine says so to every viewer (a
+        value the playback cannot hold leaves it as it was)."""
+        engine = self.engine
+        if engine is None or engine.playback is None:
+            return
+        try:
+            playback = p.Playback.model_validate({**engine.playback.model_dump(), field: value})
+        except ValidationError:
+            return
+        self.engine = engine.model_copy(update={"playback": playback})
+        self.broadcast(p.State(engine=self.engine))
 
     # ------------------------------------------------------------------ steering
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from MDAnalysisTests.datafiles import DCD, GRO, MMCIF, PSF, XTC, PDB_multiframe
 
-from protocol import Control, Event, SimParams
+from protocol import Control, EngineInfo, Event, Playback, SimParams
 from simulation_adapters import replay
 from simulation_adapters.replay import TrajectoryReplay
 from structures.reader import load
@@ -113,6 +113,8 @@ def test_steering_that_arrives_right_after_a_poll_is_applied(
 def test_seek_step_speed_loop_and_stop(peer: SimPeer, replays: list[TrajectoryReplay]) -> None:
     r = play(replays, peer, PSF, DCD, fps=50, start_paused=True)
     assert r.connection.wait_connected(10)
+    (engine,) = peer.wait_for(lambda: peer.of_type(EngineInfo))
+    assert engine.playback == Playback(speed=1.0, loop=False)  # as it starts
     # a paused start says so and shows its first frame, then waits
     (paused,) = peer.wait_for(lambda: [e for e in peer.of_type(Event) if e.code == "paused"])
     assert paused.step == 0
