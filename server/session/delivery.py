@@ -89,6 +89,9 @@ class Delivery:
         stills: list[Client] = []
         by_stream: dict[VideoStream, list[Client]] = {}
         group = frozenset(c.client_id for c in members)
+        # only its JPEG came back (encoded on the render's device for JPEG viewers): a viewer
+        # that asked for video since gets that JPEG, and its stream starts with the next render
+        no_frame = rendered.out.rgba is None and rendered.out.i420 is None
         for client in members:
             codec = self.streams.codec_for(client)
             if codec is None:
@@ -97,7 +100,7 @@ class Delivery:
                     self.streams.leave(client.client_id)
                 if not rendered.rest:  # a JPEG viewer has this picture already
                     stills.append(client)
-            elif rendered.rest:
+            elif rendered.rest or no_frame:
                 stills.append(client)
             else:
                 stream = self.streams.stream_for(client, codec, rendered.camera_json, now, group)
