@@ -47,6 +47,8 @@ class Rendered:
     width: int
     height: int
     jpeg_quality: int
+    """What its JPEG is encoded at (`RenderScheduler.jpeg_quality`; the render lane may have
+    encoded it already, `RenderOutput.jpeg`)."""
     still: bool
     camera_json: str = ""
     stream_size: tuple[int, int] = (0, 0)
@@ -117,9 +119,8 @@ class Delivery:
             stream.newest = max(stream.newest, rendered.image_id)
             coro = self._encode_video(rendered, stream, clients, refs)
             video.append(self._spawn(coro, f"video-{stream.stream_id}-{rendered.image_id}"))
-        quality = self.services.rest_jpeg_quality if rendered.rest else rendered.jpeg_quality
         self._spawn(
-            self._encode_and_offer(rendered, stills, refs, on_failure, quality, video),
+            self._encode_and_offer(rendered, stills, refs, on_failure, video),
             f"encode-{rendered.image_id}",
         )
 
@@ -312,7 +313,6 @@ class Delivery:
         members: list[Client],
         refs: dict[str, int | None],
         on_failure: Callable[[], None],
-        quality: int,
         video: list[asyncio.Task[None]],
     ) -> None:
         services = self.services
@@ -324,7 +324,7 @@ class Delivery:
                     client.needs_image = True
                 on_failure()
             elif members:
-                await self._encode_jpeg(rendered, members, refs, on_failure, quality)
+                await self._encode_jpeg(rendered, members, refs, on_failure)
             if video:
                 await asyncio.gather(*video, return_exceptions=True)
         finally:
@@ -336,7 +336,6 @@ class Delivery:
         members: list[Client],
         refs: dict[str, int | None],
         on_failure: Callable[[], None],
-        quality: int,
     ) -> None:
         services = self.services
         loop = asyncio.get_running_loop()
@@ -349,7 +348,7 @@ class Delivery:
                     services.encoder.encode,
                     rendered.out.image(),
                     "jpeg",
-                    quality,
+                    rendered.jpeg_quality,
                 )
         except Exception:
             log.exception("encoding failed in session %s", self.session_id)
