@@ -141,7 +141,8 @@ class DisplayRequest:
 @dataclass
 class RenderOutput:
     rgba: npt.NDArray[np.uint8] | None
-    """(h, w, 4) RGBA; None only when the request said it needs none and planes came back."""
+    """(h, w, 4) RGBA; None when the request said it needs none and planes came back, or when
+    only JPEG viewers take it and its JPEG came back (`jpeg`)."""
     timings: dict[str, float]
     histogram: npt.NDArray[np.float32] | None = None
     i420: npt.NDArray[np.uint8] | None = None

@@ -47,6 +47,8 @@ class Rendered:
     width: int
     height: int
     jpeg_quality: int
+    """What its JPEG is encoded at (`RenderScheduler.jpeg_quality`; the render lane may have
+    encoded it already, `RenderOutput.jpeg`)."""
     still: bool
     camera_json: str = ""
     stream_size: tuple[int, int] = (0, 0)
@@ -89,6 +91,9 @@ class Delivery:
         stills: list[Client] = []
         by_stream: dict[VideoStream, list[Client]] = {}
         group = frozenset(c.client_id for c in members)
+        # only its JPEG came back (encoded on the render's device for JPEG viewers): a viewer
+        # that asked for video since gets that JPEG, and its stream starts with the next render
+        no_frame = rendered.out.rgba is None and rendered.out.i420 is None
         for client in members:
             codec = self.streams.codec_for(client)
             if codec is None:
@@ -97,7 +102,7 @@ class Delivery:
                     self.streams.leave(client.client_id)
                 if not rendered.rest:  # a JPEG viewer has this picture already
                     stills.append(client)
-            elif rendered.rest:
+            elif rendered.rest or no_frame:
                 stills.append(client)
             else:
                 stream = self.streams.stream_for(client, codec, rendered.camera_json, now, group)
@@ -114,9 +119,8 @@ class Delivery:
             stream.newest = max(stream.newest, rendered.image_id)
             coro = self._encode_video(rendered, stream, clients, refs)
             video.append(self._spawn(coro, f"video-{stream.stream_id}-{rendered.image_id}"))
-        quality = self.services.rest_jpeg_quality if rendered.rest else rendered.jpeg_quality
         self._spawn(
-            self._encode_and_offer(rendered, stills, refs, on_failure, quality, video),
+            self._encode_and_offer(rendered, stills, refs, on_failure, video),
             f"encode-{rendered.image_id}",
         )
 
@@ -309,7 +313,6 @@ class Delivery:
         members: list[Client],
         refs: dict[str, int | None],
         on_failure: Callable[[], None],
-        quality: int,
         video: list[asyncio.Task[None]],
     ) -> None:
         services = self.services
@@ -321,7 +324,7 @@ class Delivery:
                     client.needs_image = True
                 on_failure()
             elif members:
-                await self._encode_jpeg(rendered, members, refs, on_failure, quality)
+                await self._encode_jpeg(rendered, members, refs, on_failure)
             if video:
                 await asyncio.gather(*video, return_exceptions=True)
         finally:
@@ -333,7 +336,6 @@ class Delivery:
         members: list[Client],
         refs: dict[str, int | None],
         on_failure: Callable[[], None],
-        quality: int,
     ) -> None:
         services = self.services
         loop = asyncio.get_running_loop()
@@ -346,7 +348,7 @@ class Delivery:
                     services.encoder.encode,
                     rendered.out.image(),
                     "jpeg",
-                    quality,
+                    rendered.jpeg_quality,
                 )
         except Exception:
             log.exception("encoding failed in session %s", self.session_id)

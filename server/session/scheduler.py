@@ -333,10 +333,14 @@ class RenderScheduler:
     def jpeg_quality(
         self, key: ViewKey, params: p.RenderParams, size: tuple[int, int] | None = None
     ) -> int:
-        """The JPEG quality of a group's image: the interactive one while interacting, else
-        the parameters'; an image of `size` the browser scales up twice or more (the CPU's
-        frame budget) at least `MAGNIFIED_JPEG_QUALITY`, whose 4:4:4 chroma and finer steps
-        keep its 8-pixel blocks from showing as 16-pixel or larger tiles of colour."""
+        """The JPEG quality of a group's image: a resting video view's still at
+        `rest_jpeg_quality`; the interactive one while interacting, else the parameters'; an
+        image of `size` the browser scales up twice or more (the CPU's frame budget) at least
+        `MAGNIFIED_JPEG_QUALITY`, whose 4:4:4 chroma and finer steps keep its 8-pixel blocks
+        from showing as 16-pixel or larger tiles of colour. Asked before the render: a render
+        lane that encodes its JPEG itself encodes it at this quality."""
+        if key.rest:
+            return self.settings.rest_jpeg_quality
         quality = self.settings.interactive_jpeg_quality if key.interactive else params.jpeg_quality
         if size is not None and 4 * size[0] * size[1] <= key.width * key.height:
             quality = max(quality, MAGNIFIED_JPEG_QUALITY)

@@ -60,6 +60,5 @@ class Services:
     video_min_kbps: float = 350.0
     video_streams_per_session: int = 8
     """Video streams (each with its encoder) one session may have open at once."""
-    rest_jpeg_quality: int = 95
     selections: SelectionPool = field(default_factory=SelectionPool)
     """The worker processes that evaluate layer selections (never the event loop)."""

@@ -144,7 +144,6 @@ def create_app(settings: ServerSettings) -> FastAPI:
             video_kbps_per_mpixel=settings.video_kbps_per_mpixel,
             video_min_kbps=settings.video_min_kbps,
             video_streams_per_session=settings.max_video_streams_per_session,
-            rest_jpeg_quality=settings.rest_jpeg_quality,
             selections=selections,
         )
         batch = batch_engine(settings, state_dir / "ray")

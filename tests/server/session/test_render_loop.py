@@ -14,12 +14,13 @@ import numpy as np
 import numpy.typing as npt
 
 import protocol as p
-from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
+from server.pipeline.gpu import GpuQueue, RenderOutput, RenderRequest, Snapshot
 from server.session.clients import Client
 from server.session.delivery import Delivery
 from server.session.render_loop import RenderLoop, Scene
 from server.session.scheduler import RenderScheduler
 from server.settings import ServerSettings
+from tests.render.test_device_jpeg import COMMENT, LaneEncoder
 from tests.server.peers import molecule
 from tests.server.session.fakes import PaintBackend, client, run_on_own_loop, sent, services
 
@@ -262,3 +263,55 @@ def test_views_a_pass_leaves_render_in_the_passes_that_follow_at_once(tmp_path: 
         assert len(host.taken) == 6  # one pass that drew nothing, not one after another
 
     run(body, tmp_path, settings=replace(SETTINGS, viewer_views_per_pass=1))
+
+
+@dataclass
+class LaneBackend(PaintBackend):
+    """The real render lane on warp's CPU device, whose JPEGs are encoded where they were
+    rendered (by the stand-in for nvJPEG) and come back without their pixels."""
+
+    queue: GpuQueue = field(default_factory=lambda: GpuQueue(device="cpu"))
+
+    def __post_init__(self) -> None:
+        self.queue.jpeg = LaneEncoder("cpu")
+        self.actual_device = "cpu"
+
+    async def render(self, request: RenderRequest) -> RenderOutput:
+        self.requests.append(request)
+        if self.gate is not None:
+            await self.gate.wait()
+        return await self.queue.render(request)
+
+
+def test_a_viewer_that_turns_video_on_while_its_jpeg_renders_on_the_lane_keeps_video(
+    tmp_path: Path,
+) -> None:
+    """The render was planned for a JPEG viewer, so only its JPEG comes back; the viewer asks
+    for video before it is delivered (a dashboard's view arrives just after it connects). It
+    gets that JPEG, and video from the next render: no stream is fed a render without pixels
+    (its encoder would fail, and the viewer be held to JPEG)."""
+    backend = LaneBackend(gate=asyncio.Event())
+
+    async def body(loop: RenderLoop, host: Host, lane: PaintBackend) -> None:
+        a = client("a", "viewer")
+        a.view = p.View(width=40, height=30)
+        host.clients["a"] = a
+        loop.mark_dirty()
+        await settle(lambda: len(lane.requests) == 1)
+        assert lane.requests[0].jpeg_quality is not None and lane.requests[0].video_size is None
+        # its new view, as the session takes it
+        a.view, a.view_ref, a.needs_image = p.View(width=40, height=30, video=["h264"]), 1, True
+        loop.mark_dirty()
+        assert lane.gate is not None
+        lane.gate.set()
+        await settle(lambda: bool(images(a)), timeout=30)
+        assert COMMENT in images(a)[0].data  # the JPEG the lane encoded
+        assert not a.force_jpeg
+        await settle(lambda: bool(a._video), timeout=30)
+        first = p.decode(a._video[0][1], p.Limits(max_message_bytes=1 << 30))
+        assert isinstance(first, p.Image) and first.format == "h264" and first.key
+
+    try:
+        run(body, tmp_path, backend)
+    finally:
+        backend.queue.close()

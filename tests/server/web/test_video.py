@@ -3,15 +3,18 @@
 
 from __future__ import annotations
 
+import io
 import itertools
 import time
 from pathlib import Path
 
 import httpx
 import numpy as np
+from PIL import Image
 
 import protocol as p
 from tests.conftest import LiveServer, make_settings, start_server
+from tests.render.test_device_jpeg import COMMENT, LaneEncoder
 from tests.server.peers import Peer, VideoViewer, frame
 from tests.server.web.test_streaming import LockStep, StalledTransport, start_sim
 
@@ -69,6 +72,26 @@ def test_resting_view_ends_with_a_near_lossless_still(live_server: LiveServer) -
     assert rest.still and rest.step == 1 and rest.frame_id > moving.frame_id
     assert (rest.width, rest.height) == (moving.width, moving.height)
     assert psnr(rest_px, moving_px) > 25  # the same picture, sharper
+    sim.close()
+    v.close()
+
+
+def test_a_still_its_render_lane_encoded_keeps_the_rest_quality(live_server: LiveServer) -> None:
+    # the lane encodes the JPEG as it renders (as nvJPEG does on a CUDA device), before
+    # delivery: it must encode a resting view's still at the rest quality, not the view's
+    lane = LaneEncoder("cpu")
+    live_server.app_state.gpu.jpeg = lane
+    sim, pos = start_sim(live_server)
+    v = VideoViewer(live_server.view_url, live_server.viewer_token)
+    sim.send(frame(pos + np.float32(0.5), 1))
+    video_frame(v, step=1)
+    rest, _ = v.next(10, where=lambda m: m.format == "jpeg")
+    assert rest.still and COMMENT in rest.data  # encoded by the render lane
+    quality = live_server.settings.rest_jpeg_quality
+    assert quality != p.RenderParams().jpeg_quality
+    made = io.BytesIO()  # Pillow's tables at that quality (the stand-in writes with Pillow)
+    Image.new("RGB", (8, 8)).save(made, format="JPEG", quality=quality)
+    assert Image.open(io.BytesIO(rest.data)).quantization == Image.open(made).quantization
     sim.close()
     v.close()
 
