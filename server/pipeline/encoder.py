@@ -178,7 +178,22 @@ class NvJpeg:
         image = _as_pillow(rgba, "RGBX")
         # Pillow packs RGBX to RGB several times faster than numpy copies the strided view
         rgb = np.frombuffer(image.tobytes("raw", "RGB"), np.uint8).reshape(*rgba.shape[:2], 3)
-        return self._bytes(self._encoder().encode(rgb, "jpeg", params=self._params(quality)))
+        encoded = self._encoder().encode(
+            rgb, "jpeg", params=self._params(quality), cuda_stream=self._stream()
+        )
+        return self._bytes(encoded)
+
+    def _stream(self) -> int:
+        """This thread's own CUDA stream for host images. Never the legacy default stream:
+        used while a render lane captures a CUDA graph on the device, it fails the encode and
+        the capture both (CUDA error 906, the legacy stream's implicit dependency)."""
+        stream = getattr(self._local, "stream", None)
+        if stream is None:
+            import warp as wp
+
+            stream = self._local.stream = wp.Stream(self.device)
+        handle: int = stream.cuda_stream
+        return handle
 
     def encode_on_device(self, image: DeviceImage, quality: int) -> bytes:
         """JPEG of an RGB image in this device's memory, read on the stream that wrote it."""

@@ -179,3 +179,45 @@ def test_nvjpeg_encodes_the_image_where_it_was_rendered(
         assert np.abs(decode(out.jpeg) - plain[..., :3]).mean() < 3.0  # at quality 95
     finally:
         queue.close()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(_nvjpeg_missing() is not None, reason=str(_nvjpeg_missing()))
+def test_a_host_image_encodes_while_a_lane_captures_a_graph() -> None:
+    """nvJPEG on the legacy default stream failed while a render lane captured a CUDA graph
+    on the same device (error 906), and broke the capture: the renderer then launched its
+    kernels one by one for good."""
+    import threading
+
+    import warp as wp
+
+    from server.render.rgb import rgb_kernel
+
+    nvjpeg = NvJpeg(0)
+    rgba = wp.zeros(64 * 48, dtype=wp.uint32, device="cuda:0")
+    rgb = wp.zeros(3 * 64 * 48, dtype=wp.uint8, device="cuda:0")
+    wp.launch(rgb_kernel, dim=64 * 48, inputs=[rgba], outputs=[rgb], device="cuda:0")
+    capturing, encoded = threading.Event(), threading.Event()
+    graphs: list[object] = []
+
+    def capture() -> None:
+        with wp.ScopedCapture(device="cuda:0", force_module_load=False) as cap:
+            wp.launch(rgb_kernel, dim=64 * 48, inputs=[rgba], outputs=[rgb], device="cuda:0")
+            capturing.set()
+            encoded.wait(30)
+        graphs.append(cap.graph)
+
+    lane = threading.Thread(target=capture)
+    lane.start()
+    try:
+        assert capturing.wait(30)
+        picture = np.zeros((48, 64, 4), np.uint8)
+        picture[..., 0] = np.arange(64, dtype=np.uint8)[None, :] * 4
+        data = nvjpeg.encode(picture, 90)
+    finally:
+        encoded.set()
+        lane.join(30)
+    assert np.abs(decode(data) - picture[..., :3]).mean() < 3.0
+    (graph,) = graphs
+    wp.capture_launch(graph)  # the capture survived
+    wp.synchronize_device("cuda:0")

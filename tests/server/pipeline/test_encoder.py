@@ -186,8 +186,9 @@ def fake_nvimgcodec(results: list[Any]) -> types.ModuleType:
         def __init__(self, **kw: Any) -> None:
             seen.append(("encoder", kw))
 
-        def encode(self, image: np.ndarray, codec: str, *, params: Any) -> Any:
+        def encode(self, image: np.ndarray, codec: str, *, params: Any, cuda_stream: int) -> Any:
             seen.append(("encode", image.shape, image.flags.c_contiguous, codec, params))
+            seen.append(("stream", cuda_stream))
             return results.pop(0)
 
     nv.Encoder = Encoder  # type: ignore[attr-defined]
@@ -202,11 +203,13 @@ def test_nvjpeg_passes_rgb_and_quality_and_a_failed_encode_falls_back(
     package.nvimgcodec = nv  # type: ignore[attr-defined]
     monkeypatch.setitem(sys.modules, "nvidia", package)
     monkeypatch.setitem(sys.modules, "nvidia.nvimgcodec", nv)
+    monkeypatch.setattr(NvJpeg, "_stream", lambda self: 17)  # no CUDA device here
     encoder = select_encoder("cuda:0")
     assert encoder.describe() == "nvimagecodec-nvjpeg (cuda:0)"
     rgba = picture()
     assert encoder.encode(rgba, "jpeg", 95)[0] == b"jpeg-bytes"
-    kind, shape, contiguous, codec, params = nv.seen[-1]  # type: ignore[attr-defined]
+    assert nv.seen[-1] == ("stream", 17)  # type: ignore[attr-defined]  # never the legacy 0
+    kind, shape, contiguous, codec, params = nv.seen[-2]  # type: ignore[attr-defined]
     assert (kind, shape, contiguous, codec) == ("encode", (60, 80, 3), True, "jpeg")
     assert params["quality_value"] == 95.0 and params["chroma_subsampling"] == 0
     made = nv.seen[0][1]  # type: ignore[attr-defined]
