@@ -364,7 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         "--jpeg-control",
         action="store_true",
         help="the latency again for each way of making the JPEG, taking turns (on the device, "
-        "from the host's copy, Pillow)",
+        "from the host's copy, Pillow); each throughput case runs with each of them",
     )
     ap.add_argument(
         "--viewers",
@@ -415,13 +415,21 @@ def main(argv: list[str] | None = None) -> int:
                 (int(c.removesuffix("own")), c.endswith("own")) for c in args.viewers.split(",")
             ]  # fmt: skip
             queue = server.app_state.gpu
+            # with --jpeg-control each case also takes turns over the ways of making the JPEG
+            paths = jpeg_paths(server) if args.jpeg_control else {}
             for viewers, own in cases:
-                for prefetch in (False, True) if args.prefetch_control else (True,):
-                    queue.prefetch = prefetch
-                    row = throughput(server, args.stream_atoms, viewers, own, args.seconds)
-                    row["prefetch"] = prefetch
-                    print(json.dumps(row), flush=True)
-                    result["throughput"].append(row)
+                for label, switch in paths.items() or [("", lambda: None)]:
+                    switch()
+                    for prefetch in (False, True) if args.prefetch_control else (True,):
+                        queue.prefetch = prefetch
+                        row = throughput(server, args.stream_atoms, viewers, own, args.seconds)
+                        row["prefetch"] = prefetch
+                        if label:
+                            row["jpeg"] = label
+                        print(json.dumps(row), flush=True)
+                        result["throughput"].append(row)
+            if paths:
+                next(iter(paths.values()))()  # the server's own choice again
             queue.prefetch = True
             del device
         finally:

@@ -46,7 +46,8 @@ def latency_delivery(sources: list[Source]) -> str:
                     stem(name, "latency_"),
                     count(t["n_atoms"]),
                     str(t["viewers"]),
-                    "own camera each" if t["own_camera"] else "shared",
+                    ("own camera each" if t["own_camera"] else "shared")
+                    + (f", JPEG {t['jpeg']}" if "jpeg" in t else ""),
                     overlap,
                     num(t["fps_per_viewer_mean"], 1),
                     num(t["sim_frames_per_s"], 1),
