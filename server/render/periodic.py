@@ -32,10 +32,7 @@ chunks of consecutive atoms with one atomic add per chunk (per molecule run).
 
 from __future__ import annotations
 
-import logging
 import math
-from collections import OrderedDict, deque
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, no_type_check
 
@@ -46,11 +43,11 @@ import warp
 from protocol import Topology
 from server.render import device as _device  # noqa: F401  (warp initialised quietly)
 from server.render.boxes import Options, Shown, usable_box
+from server.render.graphs import GraphCache
 from server.render.loans import HostLoans
 
 wp: Any = warp
 
-log = logging.getLogger("scalesteer.render")
 
 GRAPHS = 4
 """Captured launch sequences a transform keeps (one per recent set of steps and box)."""
@@ -502,13 +499,14 @@ class PeriodicTransform:
         self._reference_key: tuple[Any, ...] | None = None
         self._cell: npt.NDArray[np.float64] | None = None
         self._loans: HostLoans | None = None
-        self._graphs: OrderedDict[tuple[Any, ...], Any] | None = (
-            OrderedDict() if (device.startswith("cuda") if graphs is None else graphs) else None
-        )
-        self.replays = 0
-        """Frames whose kernels were replayed as a graph."""
-        self._recent: deque[tuple[Any, ...]] = deque(maxlen=GRAPHS)
+        enabled = device.startswith("cuda") if graphs is None else graphs
+        self._graphs = GraphCache(device, GRAPHS, enabled, "periodic steps")
         """Page-locked buffers the displayed frames are read back into (CUDA devices)."""
+
+    @property
+    def replays(self) -> int:
+        """Frames whose kernels were replayed as a graph."""
+        return self._graphs.replays
 
     # ------------------------------------------------------------------ set-up
 
@@ -519,9 +517,7 @@ class PeriodicTransform:
         mol = Molecules.of(topology)
         d = self.device
         n = mol.n_atoms
-        if self._graphs is not None:  # they hold the old buffers' addresses
-            self._graphs.clear()
-        self._recent.clear()
+        self._graphs.clear()  # they hold the old buffers' addresses
         self._topology = topology
         self._molecules = mol
         self._n = n
@@ -651,7 +647,7 @@ class PeriodicTransform:
             key = (*options.key(), cell is None)
             take = reference or self._reference_key != key
             self._reference_key = key
-        if take or self._graphs is None:
+        if take or not self._graphs.enabled:
             self._launch(step, take)
             return
         replay_key = (
@@ -661,31 +657,7 @@ class PeriodicTransform:
             _length(step.centre), _length(step.fit_atoms),
             self._reference_centre.tobytes(),
         )  # fmt: skip
-        self._replay_or_launch(replay_key, lambda: self._launch(step, False))
-
-    def _replay_or_launch(self, key: tuple[Any, ...], launch: Callable[[], None]) -> None:
-        graphs = self._graphs
-        assert graphs is not None
-        graph = graphs.get(key)
-        if graph is None and key in self._recent:
-            try:
-                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
-                    launch()
-                graph = graphs[key] = cap.graph
-                while len(graphs) > GRAPHS:
-                    graphs.pop(next(iter(graphs)))
-            except Exception as exc:  # launch one by one from now on
-                log.warning("periodic steps: graph capture failed (%s); launching each", exc)
-                self._graphs = None
-                launch()
-                return
-        self._recent.append(key)
-        if graph is None:
-            launch()
-            return
-        graphs.move_to_end(key)
-        wp.capture_launch(graph)
-        self.replays += 1
+        self._graphs.run(replay_key, lambda: self._launch(step, False))
 
     def _launch(self, step: _Step, take_reference: bool) -> None:
         d = self.device

@@ -15,7 +15,6 @@ import functools
 import logging
 import math
 import time
-from collections import OrderedDict, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -44,6 +43,7 @@ from server.render.density import (
 )
 from server.render.errors import RenderError
 from server.render.geodesic import GAIN, BondGraph, GeodesicScales
+from server.render.graphs import GraphCache
 from server.render.grid import CellGrid, Cull, cell_threads
 from server.render.outputs import ImageOutputs
 from server.render.reach import reach_sigmas
@@ -157,11 +157,9 @@ class Renderer(ImageOutputs):
         self._kernel_sets: dict[tuple[str, bool], raycast.RaycastKernels] = {}
         self._kernels_of_model(density, False)  # generated now: bad options fail here
         self.timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
-        self._graphs: OrderedDict[tuple[Any, ...], Any] | None = (
-            OrderedDict() if t.graphs or (t.graphs is None and self._cuda) else None
+        self._graphs = GraphCache(
+            self.device, GRAPH_CACHE, bool(t.graphs or (t.graphs is None and self._cuda)), "render"
         )
-        self._last_launch: tuple[Any, ...] | None = None
-        self._recent: deque[tuple[Any, ...]] = deque(maxlen=GRAPH_CACHE)
 
         self._topology: Topology | None = None
         self._n = 0
@@ -1118,40 +1116,14 @@ class Renderer(ImageOutputs):
     def _replay_or_launch(self, key: tuple[Any, ...], launch: Callable[[], float]) -> float:
         """Replay the frame's graph when one exists for exactly these launches, capture
         one when the same launches were among the last few (a streamed trajectory, a still
-        camera, viewers taking turns with their own cameras), else launch eagerly. A graph
-        replays every kernel, sort and scan with one call, which removes the per-launch host
-        cost that dominates small molecules."""
-        graphs = self._graphs
-        assert graphs is not None
-        graph = graphs.get(key)
-        if graph is None and key in self._recent:
-            try:
-                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
-                    launch()
-                graph = cap.graph
-            except Exception as exc:  # any capture failure: launch eagerly from now on
-                log.warning("graph capture failed, launching kernels one by one: %s", exc)
-                self._graphs = None
-                self._last_launch = None
-                self._recent.clear()
-                return launch()
-            graphs[key] = graph
-            while len(graphs) > GRAPH_CACHE:
-                graphs.pop(next(iter(graphs)))
-        self._last_launch = key
-        self._recent.append(key)
-        if graph is None:
-            return launch()
-        graphs.move_to_end(key)
-        wp.capture_launch(graph)
-        return time.perf_counter()
+        camera, viewers taking turns with their own cameras), else launch eagerly
+        (`server.render.graphs`); the time the cast was launched."""
+        launched = self._graphs.run(key, launch)
+        return time.perf_counter() if launched is None else launched
 
     def _drop_graphs(self) -> None:
         """Graphs hold buffer addresses: forget them when buffers are reallocated."""
-        if self._graphs is not None:
-            self._graphs.clear()
-        self._last_launch = None
-        self._recent.clear()
+        self._graphs.clear()
 
     def render(
         self,
@@ -1239,7 +1211,7 @@ class Renderer(ImageOutputs):
             walk_view,
             None if cull is None else cull[1],
         )
-        if self._graphs is not None:
+        if self._graphs.enabled:
             clipped = params.mode == "volume" and self.depth_limit is not None
             limit = self.depth_limit.ptr if clipped else None
             # graphs hold the address of the positions they read
