@@ -533,6 +533,8 @@ async def healthz(state: State) -> dict[str, Any]:
         "status": "ok",
         "device": state.gpu.actual_device or state.settings.device,
         "encoder": state.encoder.describe(),
+        # live sessions' JPEG made where they render (None: read back and encoded as above)
+        "encoder_on_device": None if state.gpu.jpeg is None else state.gpu.jpeg.name,
         "video": state.services.video.describe(),
         "sessions": len(state.sessions.all()),
         "batch": await _batch_info(state),

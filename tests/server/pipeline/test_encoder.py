@@ -253,7 +253,10 @@ def test_nvjpeg_on_the_gpu_encodes_what_pillow_decodes() -> None:
 
 def test_healthz_names_the_encoder(live_server: LiveServer) -> None:
     health = httpx.get(f"{live_server.url}/healthz", timeout=30).json()
-    assert health["encoder"] == PILLOW
+    assert health["encoder"] == PILLOW and health["encoder_on_device"] is None
+    live_server.app_state.gpu.jpeg = LaneEncoder("cpu")
+    health = httpx.get(f"{live_server.url}/healthz", timeout=30).json()
+    assert health["encoder_on_device"] == "lane-encoder"
     assert live_server.app_state.encoder.describe() == PILLOW
 
 
