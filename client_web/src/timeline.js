@@ -27,6 +27,7 @@ export class Timeline {
     this.speed = $("tl-speed");
     this.loop = $("tl-loop");
     this.nFrames = 0;
+    this.playback = null;
     this.paused = false;
     this.scrubbing = false;
     this.seekSoon = throttle(() => this.seek(), SEEK_MS);
@@ -62,10 +63,11 @@ export class Timeline {
     this.root.hidden = !replay;
     document.body.classList.toggle("has-timeline", replay);
     this.makeRoom();
+    this.playback = (replay && engine.playback) || null;
     if (!replay) return;
     this.nFrames = engine.n_frames;
     this.scrub.max = String(Math.max(0, this.nFrames - 1));
-    if (engine.playback) this.acknowledged(engine.playback); // its speed and loop as they are
+    if (this.playback) this.showPlayback(this.playback); // its speed and loop as they are
     // the status may have come first (joining a paused or finished replay): draw it again
     // now that the range is known
     const frame = this.lastFrame ?? 0;
@@ -109,10 +111,30 @@ export class Timeline {
     }
   }
 
-  /** An acknowledged replay control: keep speed and loop as the replay has them. */
+  /** An acknowledged replay control: keep speed and loop as the replay has them. The engine's
+   * playback, which the session keeps from the acknowledgements it can take, says so where
+   * there is one (a choice the replay refused goes back too); the acknowledgement itself only
+   * for an engine without one. */
   acknowledged(applied) {
-    if (applied?.speed !== undefined) this.speed.value = String(applied.speed);
-    if (applied?.loop !== undefined) this.loop.checked = Boolean(applied.loop);
+    this.showPlayback(this.playback ?? applied ?? {});
+  }
+
+  showPlayback({ speed, loop }) {
+    if (typeof speed === "number" && speed > 0) this.showSpeed(speed);
+    if (typeof loop === "boolean") this.loop.checked = loop;
+  }
+
+  /** Select `speed`, adding it to the list where the list lacks it (a script's 3x). */
+  showSpeed(speed) {
+    const value = String(speed);
+    const options = [...this.speed.options];
+    if (!options.some((o) => o.value === value)) {
+      const option = document.createElement("option");
+      option.value = value;
+      option.textContent = `${value}×`;
+      this.speed.add(option, options.find((o) => Number(o.value) > speed) ?? null);
+    }
+    this.speed.value = value;
   }
 
   showFrame(index) {
