@@ -12,6 +12,13 @@ export function crossedRenderMarks(marks, from, to) {
   return marks.filter((m) => m.kind === "render" && m.changes && m.frame > from && m.frame <= to);
 }
 
+/** A replay apart from how it plays: its speed and loop change as it is steered, the rest
+ * (and its steering marks) only with the replay itself. */
+export function replayIdentity(engine) {
+  const { playback, seq, ...replay } = engine ?? {};
+  return JSON.stringify(replay);
+}
+
 export class Timeline {
   constructor({ onControl, onApplyRender = () => {} }) {
     this.onControl = onControl;

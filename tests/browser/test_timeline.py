@@ -54,7 +54,12 @@ def test_every_page_shows_the_speed_and_loop_the_replay_plays_at(
     open_dashboard: OpenDashboard, replay: Peer, live_server: LiveServer
 ) -> None:
     steerer = open_dashboard(allow=NO_MARKS)
-    viewer = open_dashboard("viewer", allow=NO_MARKS)
+    asked: list[str] = []  # the viewer's requests for the timeline's steering marks
+
+    def count_marks(page: Any) -> None:
+        page.on("request", lambda r: asked.append(r.url) if "/api/replays/" in r.url else None)
+
+    viewer = open_dashboard("viewer", before_open=count_marks, allow=NO_MARKS)
     for dash in (steerer, viewer):
         # 3x is not in the list: the box had shown nothing
         expect(dash.page.locator("#tl-speed")).to_have_value("3")
@@ -75,3 +80,6 @@ def test_every_page_shows_the_speed_and_loop_the_replay_plays_at(
     for dash in (steerer, viewer):
         expect(dash.page.locator("#tl-speed")).to_have_value("0.5")
         expect(dash.page.locator("#tl-loop")).not_to_be_checked()
+    # the marks belong to the replay, not to its speed or loop: asked for once, not again
+    # with each change
+    assert len(asked) == 1, asked
