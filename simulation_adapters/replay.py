@@ -269,6 +269,10 @@ class TrajectoryReplay:
                 ok, applied, detail = self._params(msg)
             else:
                 ok, applied, detail = False, {}, "a trajectory replay cannot be pulled"
+            if ok and isinstance(msg, Control) and msg.action in ("speed", "loop"):
+                # the engine a reconnect declares again says how it plays now; declared before
+                # the ack, so an engine that follows an acknowledgement is never older than it
+                self.connection.send_engine(self.engine_info())
             step = self.shown if self.shown is not None else self.index
             self.connection.ack(msg.seq, step, None, ok=ok, applied=applied, detail=detail)
 

@@ -67,6 +67,7 @@ class Dashboard {
     this.screenshotBusy = false;
     this.picks = new Picks();
     this.engine = null;
+    this.marksOf = null; // the replay whose steering marks the timeline has (replayIdentity)
     this.instance = pageInstance(); // names this tab to the server across reconnections
 
     this.flushRenderSoon = throttle(() => this.flushRender(), RENDER_SEND_MS);

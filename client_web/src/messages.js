@@ -12,6 +12,7 @@ import { trackedPosition } from "./measure.js";
 import { RENDER_DEFAULTS, diffRender, mergeRender } from "./params.js";
 import { applyRoster } from "./roster.js";
 import { histogramRange } from "./transfer.js";
+import { replayIdentity } from "./timeline.js";
 
 const VIEWER_REASON =
   "Read-only: this page joined with the viewer link, so steering is disabled. Open the steering link (with the server token) to change the rendering or the simulation.";
@@ -73,6 +74,7 @@ export class DashboardMessages {
 
   welcomed(m) {
     this.welcome = m;
+    this.marksOf = null;
     this.unconfirmed.clear();
     this.viewport.resetFrames();
     this.viewport.resetVideo();
@@ -105,6 +107,7 @@ export class DashboardMessages {
       if (m.sim.n_atoms && this.nAtoms && m.sim.n_atoms !== this.nAtoms) this.cameraCustom = false; // a new molecule
       if (m.sim.n_atoms) this.nAtoms = m.sim.n_atoms;
       this.sim = m.sim;
+      if (m.sim.state === "disconnected") this.marksOf = null; // the next replay's are its own
       this.simPanel.updateStatus(m.sim);
       this.timeline.update(m.sim);
       if (!this.lastImage) {
@@ -131,7 +134,11 @@ export class DashboardMessages {
       this.simPanel.setEngine(m.engine);
       this.timeline.setEngine(m.engine);
       this.showPullLimits();
-      if (m.engine.kind === "replay") this.loadMarks();
+      // a replay's marks are asked for once, not again with each change of its speed or loop
+      if (m.engine.kind === "replay" && replayIdentity(m.engine) !== this.marksOf) {
+        this.marksOf = replayIdentity(m.engine);
+        this.loadMarks();
+      }
     }
     if (m.legend) showLegend($("legend"), m.legend);
     if (m.cell) {

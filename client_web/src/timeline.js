@@ -12,6 +12,13 @@ export function crossedRenderMarks(marks, from, to) {
   return marks.filter((m) => m.kind === "render" && m.changes && m.frame > from && m.frame <= to);
 }
 
+/** A replay apart from how it plays: its speed and loop change as it is steered, the rest
+ * (and its steering marks) only with the replay itself. */
+export function replayIdentity(engine) {
+  const { playback, seq, ...replay } = engine ?? {};
+  return JSON.stringify(replay);
+}
+
 export class Timeline {
   constructor({ onControl, onApplyRender = () => {} }) {
     this.onControl = onControl;
@@ -27,6 +34,7 @@ export class Timeline {
     this.speed = $("tl-speed");
     this.loop = $("tl-loop");
     this.nFrames = 0;
+    this.playback = null;
     this.paused = false;
     this.scrubbing = false;
     this.seekSoon = throttle(() => this.seek(), SEEK_MS);
@@ -62,10 +70,11 @@ export class Timeline {
     this.root.hidden = !replay;
     document.body.classList.toggle("has-timeline", replay);
     this.makeRoom();
+    this.playback = (replay && engine.playback) || null;
     if (!replay) return;
     this.nFrames = engine.n_frames;
     this.scrub.max = String(Math.max(0, this.nFrames - 1));
-    if (engine.playback) this.acknowledged(engine.playback); // its speed and loop as they are
+    if (this.playback) this.showPlayback(this.playback); // its speed and loop as they are
     // the status may have come first (joining a paused or finished replay): draw it again
     // now that the range is known
     const frame = this.lastFrame ?? 0;
@@ -109,10 +118,30 @@ export class Timeline {
     }
   }
 
-  /** An acknowledged replay control: keep speed and loop as the replay has them. */
+  /** An acknowledged replay control: keep speed and loop as the replay has them. The engine's
+   * playback, which the session keeps from the acknowledgements it can take, says so where
+   * there is one (a choice the replay refused goes back too); the acknowledgement itself only
+   * for an engine without one. */
   acknowledged(applied) {
-    if (applied?.speed !== undefined) this.speed.value = String(applied.speed);
-    if (applied?.loop !== undefined) this.loop.checked = Boolean(applied.loop);
+    this.showPlayback(this.playback ?? applied ?? {});
+  }
+
+  showPlayback({ speed, loop }) {
+    if (typeof speed === "number" && speed > 0) this.showSpeed(speed);
+    if (typeof loop === "boolean") this.loop.checked = loop;
+  }
+
+  /** Select `speed`, adding it to the list where the list lacks it (a script's 3x). */
+  showSpeed(speed) {
+    const value = String(speed);
+    const options = [...this.speed.options];
+    if (!options.some((o) => o.value === value)) {
+      const option = document.createElement("option");
+      option.value = value;
+      option.textContent = `${value}×`;
+      this.speed.add(option, options.find((o) => Number(o.value) > speed) ?? null);
+    }
+    this.speed.value = value;
   }
 
   showFrame(index) {

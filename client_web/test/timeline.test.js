@@ -14,6 +14,11 @@ class FakeNode {
     this.parentElement = this;
     this.offsetHeight = 40;
     this.dataset = {};
+    this.options = [];
+  }
+  add(option, before) {
+    const at = this.options.indexOf(before);
+    this.options.splice(at < 0 ? this.options.length : at, 0, option);
   }
   addEventListener() {}
   setAttribute() {}
@@ -25,6 +30,7 @@ class FakeNode {
 const nodes = new Map();
 globalThis.document = {
   getElementById: (id) => nodes.get(id) ?? nodes.set(id, new FakeNode()).get(id),
+  createElement: () => new FakeNode(),
   body: { classList: { toggle() {} } },
 };
 globalThis.ResizeObserver = class {

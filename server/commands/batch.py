@@ -27,6 +27,7 @@ from server.commands.render import (
     add_periodic_options,
     layer_option,
     periodic_fields,
+    periodic_refusal,
 )
 from server.settings import ray_cluster_address
 
@@ -78,7 +79,7 @@ async def run(args: argparse.Namespace) -> int:
     from server.metrics import Metrics
     from server.pipeline.gpu import GpuQueue
     from server.pipeline.jobs import JobManager, JobSpec, JobState
-    from server.pipeline.periodic import check_periodic
+    from server.pipeline.periodic import PeriodicError, check_periodic
     from server.pipeline.selections import check_layers
     from server.settings import ServerSettings
     from server.web.app import batch_engine
@@ -107,6 +108,9 @@ async def run(args: argparse.Namespace) -> int:
         check_layers(params)
         check_periodic(params)
         camera = _camera(args.camera)
+    except PeriodicError as exc:
+        print(f"scalesteer batch: {periodic_refusal(exc.path, exc.reason, args)}", file=sys.stderr)
+        return 2
     except ValueError as exc:  # JSON, validation and selection errors are ValueErrors
         print(f"scalesteer batch: {exc}", file=sys.stderr)
         return 2
@@ -188,14 +192,12 @@ async def run(args: argparse.Namespace) -> int:
 
 
 def _as_option(error: str, args: argparse.Namespace) -> str:
-    """A job's error about a centre or fit selection the command line gave, naming the option
-    it came from (the job names the render parameter the option set)."""
-    for field, option, given in (
-        ("params.center_selection", "--center", args.center),
-        ("params.fit_selection", "--fit", args.fit),
-    ):
-        if given is not None and error.startswith(f"{field}:"):
-            return option + error[len(field) :]
+    """A job's error about a centre or fit selection (the job names its render parameter,
+    `params.<field>`), named by the option it came from."""
+    for field in ("center_selection", "fit_selection"):
+        prefix = f"params.{field}: "
+        if error.startswith(prefix):
+            return periodic_refusal(field, error[len(prefix) :], args)
     return error
 
 

@@ -243,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_periodic(params)
     except PeriodicError as exc:
-        return _fail(_periodic_option(exc))
+        return _fail(periodic_refusal(exc.path, exc.reason, args))
     try:
         structure = load(args.structure, args.trajectory)
     except StructureError as exc:
@@ -297,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     except LayerError as exc:
         return _fail(str(exc.error))
     except PeriodicError as exc:
-        return _fail(_periodic_option(exc))
+        return _fail(periodic_refusal(exc.path, exc.reason, args))
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(rgba[..., :3]).save(out)
@@ -331,10 +331,16 @@ def _displayed(
     return shown.positions, shown
 
 
-def _periodic_option(exc: Any) -> str:
-    """A periodic selection's refusal, naming the option it came from."""
-    option = "--center" if exc.path == "center_selection" else "--fit"
-    return f"{option}: {exc.reason}"
+def periodic_refusal(field: str, reason: str, args: argparse.Namespace) -> str:
+    """A centre or fit selection's refusal (`field` names its render parameter), named by the
+    option that gave the selection, or as `params.<field>` when the render parameters did."""
+    from server.pipeline.periodic import TRANSLATION_FIT
+
+    if field == "fit_selection" and args.fit is not None:
+        return f"--fit: {reason.replace(TRANSLATION_FIT, '--fit-translation')}"
+    if field == "center_selection" and args.center not in (None, "off", "auto"):
+        return f"--center: {reason}"
+    return f"params.{field}: {reason}"
 
 
 if __name__ == "__main__":

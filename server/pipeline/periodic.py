@@ -50,6 +50,8 @@ def selection_fields(params: p.RenderParams) -> list[tuple[str, str]]:
 
 MIN_ROTATION_ATOMS = 3
 """A rotation fit on fewer atoms (or on atoms along one line) is undetermined."""
+TRANSLATION_FIT = "fit 'translation'"
+"""How a refusal names the fit that takes one atom (a command line names its own option)."""
 
 
 def atoms_problem(field: str, text: str, count: int, params: p.RenderParams) -> str | None:
@@ -60,7 +62,7 @@ def atoms_problem(field: str, text: str, count: int, params: p.RenderParams) -> 
     if field == "fit_selection" and params.fit == "rotation" and count < MIN_ROTATION_ATOMS:
         return (
             f"{text!r} matches {count} atom{'s' if count > 1 else ''}; a rotation fit needs at "
-            f"least {MIN_ROTATION_ATOMS} (fit 'translation' takes one)"
+            f"least {MIN_ROTATION_ATOMS} ({TRANSLATION_FIT} takes one)"
         )
     return None
 

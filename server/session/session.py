@@ -85,6 +85,11 @@ def _invalid(exc: ValidationError, path: str, seq: int | None) -> p.ProtocolErro
     )
 
 
+def _declared(engine: p.EngineInfo) -> p.EngineInfo:
+    """What an engine declares, apart from the sequence number it came with."""
+    return engine.model_copy(update={"seq": None})
+
+
 class Session:
     """State and behaviour of one session."""
 
@@ -367,6 +372,8 @@ class Session:
         )
 
     def on_engine(self, info: p.EngineInfo) -> None:
+        if self.engine is not None and _declared(self.engine) == _declared(info):
+            return  # declared again as the viewers have it (a replay's change, a reconnect)
         self.engine = info
         if info.pull is not None:
             self.forces.max_force = min(self.forces.max_force, info.pull.max_force)
@@ -590,6 +597,8 @@ class Session:
             playback = p.Playback.model_validate({**engine.playback.model_dump(), field: value})
         except ValidationError:
             return
+        if playback == engine.playback:
+            return  # the replay had declared it already, or nothing changed
         self.engine = engine.model_copy(update={"playback": playback})
         self.broadcast(p.State(engine=self.engine))
 

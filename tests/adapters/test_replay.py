@@ -148,6 +148,22 @@ def test_seek_step_speed_loop_and_stop(peer: SimPeer, replays: list[TrajectoryRe
     assert any(a.ref == stop for a in peer.of_type(type(refused)))
 
 
+def test_a_reconnect_declares_the_playback_as_it_is_now(
+    peer: SimPeer, replays: list[TrajectoryReplay]
+) -> None:
+    """The engine a replay declares again after a reconnect carries the speed and loop it
+    plays at: it had carried those it started with, so a restarted server (and every
+    dashboard) showed 1x and no loop while it played at 4x, looping."""
+    r = play(replays, peer, PSF, DCD, fps=50, start_paused=True)
+    assert r.connection.wait_connected(10)
+    peer.wait_for(lambda: peer.of_type(EngineInfo))
+    assert peer.wait_ack(peer.send(Control(action="speed", speed=4.0))).ok
+    assert peer.wait_ack(peer.send(Control(action="loop", loop=True))).ok
+    peer.restart()
+    (engine,) = peer.wait_for(lambda: peer.of_type(EngineInfo), timeout=30)
+    assert engine.playback == Playback(speed=4.0, loop=True)
+
+
 def test_multimodel_pdb_and_mmcif_with_guessed_bonds(
     peer: SimPeer, replays: list[TrajectoryReplay]
 ) -> None:

@@ -132,3 +132,28 @@ def test_a_selection_from_an_option_is_named_by_that_option(
     assert "--fit: 'resname NOPE' matches no atom" in err and "params." not in err, err
     assert main([*argv, "--center", "resname NOPE"]) == 1
     assert "--center: 'resname NOPE' matches no atom" in capsys.readouterr().err
+
+
+def test_a_selection_an_option_gave_is_named_by_that_option_when_it_cannot_be_used(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A --fit or --center that does not parse, or reads coordinates, was refused as
+    `fit_selection` or `center_selection`; a --fit on too few atoms for a rotation pointed to
+    `fit 'translation'`, a render parameter, instead of --fit-translation."""
+    from MDAnalysisTests.datafiles import DCD, PSF
+
+    argv = [PSF, DCD, "-o", str(tmp_path / "x.zip"), "--size", "32x24", "--stop", "1",
+            "--engine", "local", "--device", "cpu"]  # fmt: skip
+    assert main([*argv, "--fit", "resname ("]) == 2
+    err = capsys.readouterr().err
+    assert "scalesteer batch: --fit: selection 'resname ('" in err and "_selection" not in err
+    assert main([*argv, "--center", "around 3 resid 1"]) == 2
+    err = capsys.readouterr().err
+    assert "scalesteer batch: --center: 'around 3 resid 1' reads coordinates" in err, err
+    # the same selection from --params is named as --params names it
+    assert main([*argv, "--params", '{"fit": "rotation", "fit_selection": "resname ("}']) == 2
+    assert "scalesteer batch: params.fit_selection: selection" in capsys.readouterr().err
+    assert main([*argv, "--fit", "resid 1:2 and name CA"]) == 1
+    err = capsys.readouterr().err
+    assert "--fit: 'resid 1:2 and name CA' matches 2 atoms" in err, err
+    assert "(--fit-translation takes one)" in err and "fit 'translation'" not in err, err

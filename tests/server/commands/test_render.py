@@ -43,6 +43,12 @@ def test_renders_structure_files(
         ([PDB_HOLE, "-o", "x.png", "--warp-strength", "2"], "warp_strength"),
         ([PDB_HOLE, "-o", "x.png", "--device", ABSENT_GPU], "device"),
         ([PDB_HOLE, "-o", "x.png", "--fit-translation"], "--fit-translation needs --fit"),
+        ([PDB_HOLE, "-o", "x.png", "--fit", "resname ("], "--fit: selection 'resname ('"),
+        (
+            [PDB_HOLE, "-o", "x.png", "--fit", "resid 1 and name CA"],
+            "--fit: 'resid 1 and name CA' matches 2 atoms; a rotation fit needs at least 3 "
+            "(--fit-translation takes one)",
+        ),
     ],
 )
 def test_clear_errors(

@@ -47,3 +47,45 @@ def test_a_replays_speed_and_loop_reach_every_viewer(live_server: LiveServer) ->
     finally:
         steerer.close()
         sim.close()
+
+
+def engines_until_event(peer: Peer) -> list[p.EngineInfo]:
+    """The engines `peer` is sent before the next event (the simulation's marker: messages
+    reach a viewer in the order the session sends them)."""
+    seen: list[p.EngineInfo] = []
+    while not isinstance(message := peer.recv(30), p.Event):
+        if isinstance(message, p.State) and message.engine is not None:
+            seen.append(message.engine)
+    return seen
+
+
+def test_a_change_the_replay_declares_again_reaches_the_viewers_once(
+    live_server: LiveServer,
+) -> None:
+    """A replay declares its engine again as its speed changes, then acknowledges the change:
+    the viewers had been sent the new engine twice (and re-sent the same one after a
+    reconnect), each time one message more to every viewer."""
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "again")
+    engine = p.EngineInfo(name="replay of a test", kind="replay", n_frames=10,
+                          controls=["speed", "loop"], playback=p.Playback())  # fmt: skip
+    sim.send(engine)
+    topology, positions = molecule(12)
+    sim.send(topology)
+    sim.send(frame(positions, 0))
+    steerer = Peer(live_server.view_url, "steerer", live_server.token, "again")
+    try:
+        engine_state(steerer)
+        steerer.send(p.Control(action="speed", speed=2.0))
+        forwarded = sim.expect(p.Control)
+        faster = engine.model_copy(update={"playback": p.Playback(speed=2.0)})
+        sim.send(faster)  # as the replay does: declared, then acknowledged
+        sim.send(p.ParamsAck(ref=forwarded.seq, step=0, applied={"action": "speed", "speed": 2}))
+        marker = p.Event(code="marker", message="the steps above are in")
+        sim.send(marker)
+        assert [e.playback for e in engines_until_event(steerer)] == [p.Playback(speed=2.0)]
+        sim.send(faster)  # declared again as it is (a reconnect)
+        sim.send(marker)
+        assert engines_until_event(steerer) == []
+    finally:
+        steerer.close()
+        sim.close()
