@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import re
 import signal
 import sys
 import time
@@ -52,21 +53,28 @@ class ReplayProcess:
     """The server asked it to stop (its end is no failure)."""
 
     def last_words(self) -> str:
-        """The end of the child's output (why it stopped), for the API's answer."""
+        """The end of the child's output (why it stopped), for the API's answer; nothing when
+        all it said was the line it starts with (that says nothing of its end)."""
         try:
-            return self.log_path.read_text(errors="replace").strip().splitlines()[-1][:300]
+            last = self.log_path.read_text(errors="replace").strip().splitlines()[-1][:300]
         except (OSError, IndexError):
             return ""
+        return "" if _BANNER.match(last) else last
 
     def why_ended(self) -> str:
-        """Why an ended child ended, in words: its last line, else its signal or status."""
+        """Why an ended child ended, in words: its signal first, then its last line; else
+        its last line, else its exit status."""
         code = self.process.poll()
         words = self.last_words()
         if code is not None and code < 0:
             with contextlib.suppress(ValueError):
                 name = signal.Signals(-code).name
-                return f"{words} (killed by {name})" if words else f"killed by {name}"
+                return f"killed by {name}; it last said: {words}" if words else f"killed by {name}"
         return words or f"exit status {code}"
+
+
+_BANNER = re.compile(r"scalesteer replay: \d+ atoms, \d+ frames ")
+"""The line a replay prints as it starts (`simulation_adapters.replay`)."""
 
 
 @dataclass

@@ -113,6 +113,7 @@ def test_a_replay_that_dies_tells_its_viewers_why(live_server: LiveServer) -> No
             os.kill(child, signal.SIGKILL)
             event = viewer.expect(p.Event, 30, where=lambda m: m.code == "replay_failed")
             assert event.level == "error" and "killed by SIGKILL" in event.message, event
+            assert "atoms," not in event.message  # not the line it started with
             # a viewer who opens the session afterwards is told too
             late = Peer(live_server.view_url, "viewer", live_server.token, name)
             try:
