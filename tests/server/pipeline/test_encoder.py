@@ -27,7 +27,7 @@ from server.pipeline.encoder import (
     select_encoder,
 )
 from tests.conftest import LiveServer
-from tests.render.test_device_jpeg import COMMENT, LaneEncoder
+from tests.render.test_device_jpeg import COMMENT, LaneEncoder, _nvjpeg_missing
 from tests.server.peers import Peer, frame, molecule
 
 
@@ -223,18 +223,8 @@ def test_nvjpeg_passes_rgb_and_quality_and_a_failed_encode_falls_back(
     assert any("could not encode" in r.getMessage() for r in caplog.records)
 
 
-def _nvimgcodec_missing() -> str | None:
-    try:
-        import nvidia.nvimgcodec  # noqa: F401
-    except ImportError:
-        return "nvImageCodec is not installed (pip install 'scalesteer[gpu-jpeg]')"
-    if cuda_device_count() == 0:
-        return "no CUDA device"
-    return None
-
-
 @pytest.mark.gpu
-@pytest.mark.skipif(_nvimgcodec_missing() is not None, reason=str(_nvimgcodec_missing()))
+@pytest.mark.skipif(_nvjpeg_missing() is not None, reason=str(_nvjpeg_missing()))
 def test_nvjpeg_on_the_gpu_encodes_what_pillow_decodes() -> None:
     gpu = NvJpeg(0)
     encoder = ImageEncoder(gpu)

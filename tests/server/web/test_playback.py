@@ -15,16 +15,21 @@ def engine_state(peer: Peer) -> p.EngineInfo:
     return state.engine
 
 
-def test_a_replays_speed_and_loop_reach_every_viewer(live_server: LiveServer) -> None:
-    sim = Peer(live_server.ws_url, "simulation", live_server.token, "playback")
-    replay = p.EngineInfo(name="replay of a test", kind="replay", n_frames=10,
-                          controls=["pause", "resume", "speed", "loop"],
-                          playback=p.Playback(speed=1.0, loop=True))  # fmt: skip
-    sim.send(replay)
+def open_replay(server: LiveServer, session: str, engine: p.EngineInfo) -> tuple[Peer, Peer]:
+    """A simulation declaring `engine` with a frame of a small molecule, and a steerer."""
+    sim = Peer(server.ws_url, "simulation", server.token, session)
+    sim.send(engine)
     topology, positions = molecule(12)
     sim.send(topology)
     sim.send(frame(positions, 0))
-    steerer = Peer(live_server.view_url, "steerer", live_server.token, "playback")
+    return sim, Peer(server.view_url, "steerer", server.token, session)
+
+
+def test_a_replays_speed_and_loop_reach_every_viewer(live_server: LiveServer) -> None:
+    replay = p.EngineInfo(name="replay of a test", kind="replay", n_frames=10,
+                          controls=["pause", "resume", "speed", "loop"],
+                          playback=p.Playback(speed=1.0, loop=True))  # fmt: skip
+    sim, steerer = open_replay(live_server, "playback", replay)
     try:
         assert engine_state(steerer).playback == p.Playback(speed=1.0, loop=True)
         steerer.send(p.Control(action="loop", loop=False))
@@ -65,14 +70,9 @@ def test_a_change_the_replay_declares_again_reaches_the_viewers_once(
     """A replay declares its engine again as its speed changes, then acknowledges the change:
     the viewers had been sent the new engine twice (and re-sent the same one after a
     reconnect), each time one message more to every viewer."""
-    sim = Peer(live_server.ws_url, "simulation", live_server.token, "again")
     engine = p.EngineInfo(name="replay of a test", kind="replay", n_frames=10,
                           controls=["speed", "loop"], playback=p.Playback())  # fmt: skip
-    sim.send(engine)
-    topology, positions = molecule(12)
-    sim.send(topology)
-    sim.send(frame(positions, 0))
-    steerer = Peer(live_server.view_url, "steerer", live_server.token, "again")
+    sim, steerer = open_replay(live_server, "again", engine)
     try:
         engine_state(steerer)
         steerer.send(p.Control(action="speed", speed=2.0))
