@@ -22,10 +22,12 @@ where all rays of a warp refine together, instead of in the march, where each ra
 while its neighbours were still marching, took 13 % off the 1M-atom frame. A ray that
 starts inside the surface (camera inside the molecule) looks for the first way out instead;
 shading is two-sided.
-Volume mode: emission-absorption front to back through a transfer-function table with
-step-corrected opacity, stopping at accumulated alpha >= 0.99; its lattice is shifted per
-pixel by a fixed hash (`pixel_jitter`) so thin transfer-function features do not alias into
-rings.
+Volume mode: emission-absorption front to back over the segments between consecutive
+samples, each the transfer function integrated along the density's ramp from one sample to the
+next (pre-integrated, segments.py), stopping at accumulated alpha >= 0.99; a density where the
+transfer function is clear counts as its clear level, so skipped samples leave every segment as
+it was. Its lattice (`tuning.VOLUME_STEPS` iso steps) is shifted per pixel by a fixed hash
+(`pixel_jitter`) so thin transfer-function features do not alias into rings.
 """
 
 from dataclasses import dataclass
@@ -39,6 +41,7 @@ from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
 from server.render.cells import BRICK, PART_BITS, WALKED, GridInfo, cell_box, part_at
 from server.render.density import GAUSSIAN, DensityModel
+from server.render.segments import ramp
 
 wp.set_module_options({"enable_backward": False})
 
@@ -119,10 +122,18 @@ class March:
 
 @wp.struct
 class Volume:
-    table: wp.array[wp.vec4]
+    """What volume mode reads: the pre-integrated segments (segments.py), the factor from
+    density to their table entry, and the levels below which the transfer function is clear."""
+
+    seg: wp.array2d[wp.vec4]
     last: int
     x_to_u: float
-    dt_ref: float
+    flat: float
+    """Densities at or below it are transparent (-1: none are): a segment end there counts as
+    this level, so a segment reads the same whether its clear end was sampled or skipped."""
+    ramps: int
+    """1: a segment's density runs from its front sample's to its back one's; 0: its back
+    sample's is held over it (the sample sum, a baseline)."""
     clear_level: float
     shade: int
     limit: wp.array[float]
@@ -338,6 +349,43 @@ def fog(sh: Shading, g: GridInfo, cam: CameraData, t: float, c: wp.vec3) -> wp.v
     far = dc + radius
     f = sh.depth_cue * wp.clamp((t - near) / wp.max(far - near, 1.0e-6), 0.0, 1.0)
     return c * (1.0 - f) + sh.background * f
+
+
+@wp.func
+@no_type_check
+def add_segment(
+    vol: Volume,
+    sh: Shading,
+    g: GridInfo,
+    cam: CameraData,
+    d: wp.vec3,
+    n_raw: wp.vec3,
+    t: float,
+    vf: float,
+    vb: float,
+    acc: wp.vec3,
+    alpha: float,
+    t_depth: float,
+):
+    """Composite the segment ending at ray parameter t, its density running from vf to vb,
+    behind what `acc` and `alpha` hold; its shading normal from the gradient `n_raw`."""
+    uf = wp.max(vf * vol.x_to_u, 0.0)
+    ub = wp.max(vb * vol.x_to_u, 0.0)
+    e = ramp(vol.seg, vol.last, uf, ub)
+    a_s = wp.clamp(e[3], 0.0, 1.0)
+    out_acc = acc
+    out_alpha = alpha
+    out_depth = t_depth
+    if a_s > 0.0:
+        col = wp.vec3(e[0], e[1], e[2]) / a_s
+        if vol.shade != 0:
+            col = lit(sh, col, facing(n_raw, d), -d, 1.0)
+        col = fog(sh, g, cam, t, col)
+        out_acc = acc + col * ((1.0 - alpha) * a_s)
+        out_alpha = alpha + (1.0 - alpha) * a_s
+        if t_depth == wp.inf and out_alpha >= _DEPTH_ALPHA:
+            out_depth = t
+    return out_acc, out_alpha, out_depth
 
 
 @wp.func
@@ -1071,15 +1119,31 @@ def _make(
             t1 = wp.min(t1, vol.limit[pix])
         if g.valid != 0 and t0 < t1:
             dt = m.dt
+            flat = vol.flat
             jit = pixel_jitter(x + cam.x0, y + cam.y0)  # the whole image's pixel
             k = int(wp.ceil(t0 / dt - jit))
             cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left = walk_start(o, d, t0, g)
+            # the last sample composited: its lattice index (-2: none yet), value, gradient
+            prev_k = wp.int32(-2)
+            prev_v = float(0.0)
+            prev_g = wp.vec3(0.0, 0.0, 0.0)
             active = wp.int32(1)
             while active != 0:
                 k, cx, cy, cz, tx, ty, tz, left, _jumped, active = walk(
                     f.bound, f.parts, f.brick_bound, g, o, d, t1, dt, jit, vol.clear_level, 1,
                     1, split, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
                 )  # fmt: skip
+                t_next = (float(prev_k + 1) + jit) * dt
+                closing = prev_k >= 0 and k != prev_k + 1 and prev_v > flat and t_next < t1
+                if closing and vol.ramps != 0:
+                    # the walk skipped the sample after the last one (clear there): close the
+                    # segment that sample would have ended, at the clear level
+                    acc, alpha, t_depth = add_segment(
+                        vol, sh, g, cam, d, prev_g, t_next, prev_v, flat, acc, alpha, t_depth
+                    )
+                    prev_k = -2
+                    if alpha >= _STOP_ALPHA:
+                        active = 0
                 if active != 0:
                     passes += 1
                     # four samples per pass, with gradients when shaded
@@ -1104,33 +1168,47 @@ def _make(
                     for q in range(4):
                         tq = ts[q]
                         if active != 0 and tq < t1:
-                            u = wp.clamp(vals[q] * vol.x_to_u, 0.0, float(vol.last))
-                            i0 = wp.min(int(wp.floor(u)), vol.last)
-                            i1 = wp.min(i0 + 1, vol.last)
-                            fr = u - float(i0)
-                            e = vol.table[i0] * (1.0 - fr) + vol.table[i1] * fr
-                            a = wp.clamp(e[3], 0.0, 1.0)
-                            if a > 0.0:
-                                a_s = 1.0 - wp.pow(1.0 - a, vol.dt_ref)
-                                col = wp.vec3(e[0], e[1], e[2])
-                                if vol.shade != 0:
-                                    gq = g0
-                                    if q == 1:
-                                        gq = g1
-                                    elif q == 2:
-                                        gq = g2
-                                    elif q == 3:
-                                        gq = g3
-                                    n = facing(wp.vec3(gq[0], gq[1], gq[2]), d)
-                                    col = lit(sh, col, n, -d, 1.0)
-                                col = fog(sh, g, cam, tq, col)
-                                acc += col * ((1.0 - alpha) * a_s)
-                                alpha += (1.0 - alpha) * a_s
-                                if t_depth == wp.inf and alpha >= _DEPTH_ALPHA:
-                                    t_depth = tq
-                                if alpha >= _STOP_ALPHA:
-                                    active = 0
+                            gq = g0
+                            if q == 1:
+                                gq = g1
+                            elif q == 2:
+                                gq = g2
+                            elif q == 3:
+                                gq = g3
+                            grad = wp.vec3(gq[0], gq[1], gq[2])
+                            vq = wp.max(vals[q], flat)
+                            # the segment from the sample before: its value when it was taken,
+                            # else the clear level (it was skipped), else this one's (a ray's
+                            # first sample where nothing is clear). Its normal sums the
+                            # gradients of its ends above the clear level, which a skipped
+                            # sample is not: skipping leaves every segment as it was.
+                            vf = vq
+                            n_raw = grad
+                            if vol.ramps != 0:
+                                if vq <= flat:
+                                    n_raw = wp.vec3(0.0, 0.0, 0.0)
+                                if prev_k == k + q - 1:
+                                    vf = prev_v
+                                    if prev_v > flat:
+                                        n_raw = n_raw + prev_g
+                                elif flat >= 0.0:
+                                    vf = flat
+                            acc, alpha, t_depth = add_segment(
+                                vol, sh, g, cam, d, n_raw, tq, vf, vq, acc, alpha, t_depth
+                            )
+                            prev_k = k + q
+                            prev_v = vq
+                            prev_g = grad
+                            if alpha >= _STOP_ALPHA:
+                                active = 0
                     k += 4
+            t_next = (float(prev_k + 1) + jit) * dt
+            closing = prev_k >= 0 and alpha < _STOP_ALPHA and prev_v > flat and t_next < t1
+            if closing and vol.ramps != 0:
+                # the walk skipped the rest of the ray: close the last segment likewise
+                acc, alpha, t_depth = add_segment(
+                    vol, sh, g, cam, d, prev_g, t_next, prev_v, flat, acc, alpha, t_depth
+                )
         if sh.coverage != 0:
             rgba[pix] = pack_premultiplied(acc, alpha)
         else:

@@ -25,7 +25,16 @@ import warp
 
 from protocol import Camera, RenderParams, Topology
 from protocol.messages import MAX_CUTOFF_SIGMAS, MIN_CUTOFF_SIGMAS
-from server.render import carved, colors, geodesic_field, raycast, temporal, transfer, visibility
+from server.render import (
+    carved,
+    colors,
+    geodesic_field,
+    raycast,
+    segments,
+    temporal,
+    transfer,
+    visibility,
+)
 from server.render import device as devmod
 from server.render.camera import CameraFrame, band_planes, camera_frame
 from server.render.density import (
@@ -182,6 +191,9 @@ class Renderer(ImageOutputs):
         self._tf_key: tuple[Any, ...] | None = None
         self._tf = transfer.build_table()
         self._tf_table = wp.zeros(transfer.TABLE_SIZE, dtype=wp.vec4, device=self.device)
+        self._seg_table: wp.array | None = None
+        """Volume mode's pre-integrated segments (segments.py), made at its first volume frame."""
+        self._seg_key: tuple[Any, ...] | None = None
         self._hist = wp.zeros(4096, dtype=wp.int32, device=self.device)
         self._pixels = 0
         self._alloc_pixels(1)
@@ -294,12 +306,13 @@ class Renderer(ImageOutputs):
             self._found,
             self._counts,
         )
+        seg = 0 if self._seg_table is None else int(self._seg_table.capacity)
         return {
             "positions": sum(int(a.capacity) for a in self._pos_buffers),
             "per_atom": sum(int(a.capacity) for a in atom),
             "grid": int(self._grid.nbytes),
             "image": sum(int(a.capacity) for a in pix),
-            "other": int(self._tf_table.capacity + self._hist.capacity),
+            "other": int(self._tf_table.capacity + self._hist.capacity + seg),
             "skeleton": self._skel.nbytes if self._skel is not None else 0,
             "geodesic": self._geo.nbytes if self._geo is not None else 0,
         }
@@ -841,7 +854,8 @@ class Renderer(ImageOutputs):
             wp.copy(self._colors, wp.array(c, dtype=wp.uint32, device="cpu"), count=self._n)
             self._color_key = key
 
-    def _update_tf(self, p: RenderParams) -> None:
+    def _update_tf(self, p: RenderParams, d: Derived) -> None:
+        """The transfer table of `p`, and its segments at this frame's volume step."""
         pts = tuple((q.x, tuple(q.color), q.alpha) for q in p.transfer_function)
         key = (pts, p.tf_preset)
         if key != self._tf_key:
@@ -851,6 +865,22 @@ class Renderer(ImageOutputs):
                 raise RenderError(f"invalid transfer function: {exc}") from None
             wp.copy(self._tf_table, wp.array(self._tf.rgba, dtype=wp.vec4, device="cpu"))
             self._tf_key = key
+        seg_key = (key, self._volume_dt(d))
+        if seg_key != self._seg_key:
+            if self._seg_table is None:
+                size = transfer.TABLE_SIZE
+                self._seg_table = wp.empty((size, size), dtype=wp.vec4, device=self.device)
+            segments.build(self._tf_table, self._volume_dt(d), self._seg_table)
+            self._seg_key = seg_key
+
+    def _volume_dt(self, d: Derived) -> float:
+        """Volume mode's lattice step: `volume_steps` steps of the iso lattice."""
+        return d.dt * self.tuning.volume_steps
+
+    def _flat_level(self, d: Derived) -> float:
+        """The density at and below which the transfer function is clear (-1: none)."""
+        c = self._tf.clear_below
+        return -1.0 if c < 0 else (math.inf if math.isinf(c) else c * d.iso)
 
     def _stop_level(self, p: RenderParams, d: Derived) -> float:
         """Density level the cell bounds are compared with (-1: no skipping)."""
@@ -858,8 +888,7 @@ class Renderer(ImageOutputs):
             return -1.0
         if p.mode == "iso":
             return d.iso
-        c = self._tf.clear_below
-        return -1.0 if c < 0 else (math.inf if math.isinf(c) else c * d.iso)
+        return self._flat_level(d)
 
     def _cells_for(self, d: Derived) -> float:
         """Cells per cutoff of this frame's grid: the renderer's, else the density's best."""
@@ -1087,11 +1116,14 @@ class Renderer(ImageOutputs):
                 device=dev,
             )
         else:
+            assert self._seg_table is not None  # made by _update_tf
+            m.dt = self._volume_dt(d)
             vol = raycast.Volume()
-            vol.table = self._tf_table
+            vol.seg = self._seg_table
             vol.last = transfer.TABLE_SIZE - 1
             vol.x_to_u = (transfer.TABLE_SIZE - 1) / (self._tf.x_max * d.iso)
-            vol.dt_ref = d.dt / transfer.REFERENCE_LENGTH
+            vol.flat = self._flat_level(d)
+            vol.ramps = int(self.tuning.volume_ramps)
             vol.clear_level = stop
             lt = params.lighting
             vol.shade = int(lt.diffuse > 0 or lt.specular > 0)
@@ -1165,7 +1197,7 @@ class Renderer(ImageOutputs):
             raise RenderError("a frame uploaded in part: receive the rest before rendering")
         d = self._derive(params)
         if params.mode == "volume":
-            self._update_tf(params)
+            self._update_tf(params, d)
         self._apply_temporal(params)
         if self._n:
             self._update_colors(params)
@@ -1300,7 +1332,7 @@ class Renderer(ImageOutputs):
             raise RenderError("no positions: call set_positions after set_topology")
         d = self._derive(params)
         if params.mode == "volume":
-            self._update_tf(params)
+            self._update_tf(params, d)
         self._apply_temporal(params)
         if self._n:
             self._update_colors(params)

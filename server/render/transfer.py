@@ -3,7 +3,9 @@
 `x` is density in units of the iso level (x = S / iso_level). The table samples x uniformly on
 [0, x_max] (x_max = the largest control point); beyond x_max the last entry holds. Alpha is the
 opacity of a 1 angstrom thick slab (`REFERENCE_LENGTH`), so images do not change with the ray
-step: a sample of length dt gets alpha' = 1 - (1 - alpha) ** (dt / REFERENCE_LENGTH).
+step: a constant density over a length dt gets alpha' = 1 - (1 - alpha) ** (dt / REFERENCE_LENGTH).
+The caster reads the table through its segments (segments.py), the integral along a ray segment
+whose density changes from one sample to the next.
 """
 
 from __future__ import annotations
@@ -130,7 +132,7 @@ def build_table(
 
 
 def sample_alpha(alpha: npt.ArrayLike, dt: float) -> npt.NDArray[np.float64]:
-    """Opacity of one sample of length `dt` from a per-`REFERENCE_LENGTH` alpha."""
+    """Opacity of a constant density over a length `dt` from a per-`REFERENCE_LENGTH` alpha."""
     a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
     out: npt.NDArray[np.float64] = 1.0 - np.power(1.0 - a, dt / REFERENCE_LENGTH)
     return out

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from server.render.transfer import TransferTable, sample_alpha
+from server.render.segments import ramp_integral
+from server.render.transfer import TransferTable
 
 F = npt.NDArray[np.float64]
 
@@ -222,24 +223,32 @@ def composite(
     stop_alpha: float = 0.99,
     depth_alpha: float = 0.5,
 ) -> tuple[F, float]:
-    """Front-to-back emission-absorption of one ray: (rgb over the background, depth)."""
+    """Front-to-back emission-absorption of one ray: (rgb over the background, depth). The
+    segment ending at each lattice sample is the transfer function integrated along the
+    density's ramp from the sample before (float64, `segments.ramp_integral`); densities where
+    the transfer function is clear count as its clear level, and a ray's first sample has the
+    clear level before it (its own density where nothing is clear)."""
     k0 = int(np.ceil(max(t_range[0], 0.0) / dt - jitter))
     k1 = int(np.ceil(t_range[1] / dt))
     ts = (np.arange(k0, k1) + jitter) * dt
     pts = origin + ts[:, None] * direction
     val, grad = density(mol, pts)
-    rgba = table.lookup(val / iso)
+    flat = -1.0 if table.clear_below < 0 else table.clear_below * iso
+    val = np.maximum(val, flat)
     acc = np.zeros(3)
     alpha = 0.0
     depth = np.inf
     for i, t in enumerate(ts):
-        a = float(np.clip(rgba[i, 3], 0.0, 1.0))
-        if a <= 0:
+        front = val[i - 1] if i > 0 else (flat if flat >= 0 else val[i])
+        # the normal: the gradients of the segment's ends above the clear level
+        n_raw = grad[i] * (val[i] > flat) + (grad[i - 1] * (val[i - 1] > flat) if i > 0 else 0.0)
+        seg = ramp_integral(table, front / iso, val[i] / iso, dt, substeps=64)
+        a_s = float(np.clip(seg[3], 0.0, 1.0))
+        if a_s <= 0:
             continue
-        a_s = float(sample_alpha(a, dt))
-        col = rgba[i, :3]
+        col = seg[:3] / a_s
         if shade:
-            n = facing_normal(grad[i], direction)
+            n = facing_normal(n_raw, direction)
             col = lit(light, col[None, :], n[None, :], -direction[None, :])[0]
         col = fog(light, np.array([t]), col[None, :])[0]
         acc += col * (1.0 - alpha) * a_s

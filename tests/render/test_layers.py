@@ -12,6 +12,7 @@ from server.render.camera import fit_camera, orbit
 from server.render.layerplan import LayerPlan, plan_layers, subset_topology, visible_atoms
 from server.render.layers import LayeredRenderer
 from server.render.renderer import Renderer
+from server.render.tuning import VOLUME_STEPS
 from tests.render import oracle
 from tests.render.conftest import blob, make_topology
 from tests.render.golden_images import H, W, check_golden, gramicidin
@@ -289,7 +290,7 @@ def test_a_cloud_stops_at_the_nearest_opaque_surface(device: str) -> None:
     lt = oracle_light(params, frame, r)
     table = build_table(params.transfer_function, params.tf_preset)
     mol = oracle_molecule(top, pos, params)
-    dt = params.step_sigmas * params.sigma_A
+    dt = params.step_sigmas * params.sigma_A * VOLUME_STEPS  # volume's lattice
     for y in range(h):
         for x in range(w):
             jit = oracle.pixel_jitter(x, y)

@@ -13,7 +13,7 @@ from server.render.camera import camera_frame, fit_camera, image_rays, look_at, 
 from server.render.errors import RenderError
 from server.render.renderer import Renderer
 from server.render.transfer import build_table
-from server.render.tuning import Tuning
+from server.render.tuning import VOLUME_STEPS, Tuning
 from tests.render import oracle
 from tests.render.conftest import blob, make_topology
 from tests.render.helpers import oracle_light, oracle_molecule, render
@@ -117,7 +117,7 @@ def test_volume_matches_numpy_compositor(
     lt = oracle_light(params, frame, r)
     table = build_table(params.transfer_function, params.tf_preset)
     mol = oracle_molecule(top, pos, params)
-    dt = params.step_sigmas * params.sigma_A
+    dt = params.step_sigmas * params.sigma_A * VOLUME_STEPS  # volume's lattice
     t_range = _t_range(r, origins)
     shade = light.diffuse > 0 or light.specular > 0
     ref = np.zeros((h, w, 3))
