@@ -1091,7 +1091,8 @@ class Renderer(ImageOutputs):
         m.iso = d.iso
         m.dt = d.dt
         m.skip_below = stop if params.mode == "iso" else -1.0
-        m.refine = raycast.REFINE_PASSES
+        passes = self.tuning.refine_passes
+        m.refine = raycast.REFINE_PASSES if passes is None else passes
         m.budget = self._budget_for(w * h)
         sh = self._shading(params, d, frame)
         threads = raycast.launch_size(w, h)

@@ -29,7 +29,9 @@ than 80 for the classical and carved densities (render_h200_round4_regs_sizes.js
 geodesic density's route loop spills under a cap."""
 VOLUME_REGISTERS = 64
 """Register cap of the volume kernel: fewer registers, more warps
-(render_h200_round4_regs_volume.json)."""
+(render_h200_round4_regs_volume.json); measured again with segments (render_h200_volume_regs.json,
+render_h200_volume_regs_10k.json): 64 stays the fastest at 1M atoms (12.6 ms; 96: 14.9, 128:
+15.6, none: 24.4) and at villin; 96-128 would save 7 % at 10,000 atoms."""
 VOLUME_STEPS = 2
 """Volume mode marches twice the iso lattice's step, its segments integrating the density's ramp
 between samples: 1.5-1.6x faster than the sample sum at one step (render_h200_volume_segments.json).
@@ -116,6 +118,9 @@ class Tuning:
     mean_lanes: int | None = None
     """Threads per sampled atom of the mean density (None: density.LANES_PER_SAMPLE on CUDA,
     1 on the CPU; 1 is the baseline)."""
+    refine_passes: int | None = None
+    """Passes that cut an iso crossing's interval into fifths before its secant step (None:
+    raycast.REFINE_PASSES); each pass is one `value4` per pixel."""
     volume_steps: int = VOLUME_STEPS
     """Volume mode's step in steps of the iso lattice (`step_sigmas`); it changes the image
     within the accuracy `volume_accuracy.py` measures."""
@@ -144,6 +149,8 @@ class Tuning:
             )
         if self.mean_lanes is not None and self.mean_lanes < 1:
             raise RenderError(f"mean_lanes must be >= 1, got {self.mean_lanes}")
+        if self.refine_passes is not None and self.refine_passes < 0:
+            raise RenderError(f"refine_passes must be >= 0, got {self.refine_passes}")
         if self.volume_steps < 1:
             raise RenderError(f"volume_steps must be >= 1, got {self.volume_steps}")
         if self.cells_per_cutoff is not None and not self.cells_per_cutoff >= 1.0:
