@@ -231,6 +231,8 @@ def composite(
     its end (placed midway along it); the others are one step long."""
     t0, t1 = max(t_range[0], 0.0), t_range[1]
     flat = -1.0 if table.clear_below < 0 else table.clear_below * iso
+    if not np.isfinite(flat):  # nothing is visible
+        return light.background.astype(np.float64), np.inf
     k0 = int(np.ceil(t0 / dt - jitter))
     ts = (np.arange(k0, int(np.ceil(t1 / dt - jitter)) + 1) + jitter) * dt
     at = np.concatenate([[t0], ts[ts < t1], [t1]])
