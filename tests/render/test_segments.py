@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 import warp as wp
 
-from protocol import Camera, Lighting, RenderParams
+from protocol import Camera, Lighting, RenderParams, TFPoint
 from server.render import segments, transfer
-from server.render.camera import camera_frame, image_rays, look_at
+from server.render.camera import camera_frame, fit_camera, image_rays, look_at
 from server.render.renderer import Renderer
-from server.render.tuning import Tuning
+from server.render.tuning import VOLUME_STEPS, Tuning
+from tests.render.conftest import blob, make_topology
 from tests.render.helpers import render
 from tests.render.molecules import villin
 
@@ -163,3 +164,46 @@ def test_a_cloud_cut_at_a_surface_keeps_its_segment_up_to_it() -> None:
     err = _errors(cam, "cloud", plane)
     assert err["default"][0] < err["sum"][0], err
     assert abs(err["default"][1]) < 0.3, err
+
+
+def test_the_segments_are_made_again_when_their_table_or_step_changes_and_only_then(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """One renderer through changes of parameters: the segment table is rebuilt when the
+    transfer table or the volume step (sigma, step_sigmas) changes, and each image equals a
+    fresh renderer's; a preset named beside control points (which replace it) or an iso frame
+    in between rebuilds nothing."""
+    built: list[float] = []
+    real = segments.build
+
+    def build(table: object, length_A: float, out: object) -> None:
+        built.append(length_A)
+        real(table, length_A, out)
+
+    monkeypatch.setattr(segments, "build", build)
+    n = 40
+    top = make_topology(n)
+    pos = blob(n, seed=3)
+    cam = fit_camera(pos, 24, 18)
+    tf = [TFPoint(x=0.0), TFPoint(x=0.5), TFPoint(x=1.0, color=(1.0, 0.0, 0.0), alpha=0.6)]
+    steps: list[tuple[RenderParams, bool]] = [
+        (RenderParams(mode="volume", sigma_A=1.5), True),
+        (RenderParams(mode="volume", sigma_A=1.5, iso_level=0.4), False),
+        (RenderParams(mode="iso", sigma_A=1.2), False),
+        (RenderParams(mode="volume", sigma_A=1.5, iso_level=0.4), False),
+        (RenderParams(mode="volume", sigma_A=2.0), True),
+        (RenderParams(mode="volume", sigma_A=2.0, transfer_function=tf), True),
+        (RenderParams(mode="volume", sigma_A=2.0, transfer_function=tf, tf_preset="shells"), False),
+        (RenderParams(mode="volume", sigma_A=2.0, step_sigmas=0.4, transfer_function=tf), True),
+    ]
+    r = Renderer("cpu")
+    r.set_topology(top)
+    r.set_positions(pos)
+    for params, rebuilt in steps:
+        before = len(built)
+        r.render(params, cam, 24, 18)
+        assert len(built) - before == int(rebuilt), params
+        if rebuilt:
+            assert built[-1] == pytest.approx(params.step_sigmas * params.sigma_A * VOLUME_STEPS)
+        fresh = render("cpu", top, pos, params, cam, 24, 18)
+        np.testing.assert_array_equal(r.read_rgba(), fresh.read_rgba())
