@@ -17,7 +17,7 @@ S - iso (its index and the values at its ends); the shading kernel then cuts it 
 `REFINE_PASSES` times (four inner samples per pass, keeping the first sub-interval that
 changes sign) and finishes with a secant step, so the hit is within dt / 5^passes of the
 crossing; a Newton step from the shading sample (kept inside that bracket) then takes the
-depth of most rays to within about 1e-5 A of the surface. Refining in the shading kernel,
+depth of most rays to within about 1e-5 dt of the surface. Refining in the shading kernel,
 where all rays of a warp refine together, instead of in the march, where each ray refined
 while its neighbours were still marching, took 13 % off the 1M-atom frame. A ray that
 starts inside the surface (camera inside the molecule) looks for the first way out instead;
