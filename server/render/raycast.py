@@ -17,7 +17,7 @@ S - iso (its index and the values at its ends); the shading kernel then cuts it 
 `REFINE_PASSES` times (four inner samples per pass, keeping the first sub-interval that
 changes sign) and finishes with a secant step, so the hit is within dt / 5^passes of the
 crossing; a Newton step from the shading sample (kept inside that bracket) then takes the
-depth of most rays to within about 1e-5 A of the surface. Refining in the shading kernel,
+depth of most rays to within about 1e-5 dt of the surface. Refining in the shading kernel,
 where all rays of a warp refine together, instead of in the march, where each ray refined
 while its neighbours were still marching, took 13 % off the 1M-atom frame. A ray that
 starts inside the surface (camera inside the molecule) looks for the first way out instead;
@@ -26,8 +26,11 @@ Volume mode: emission-absorption front to back over the segments between consecu
 samples, each the transfer function integrated along the density's ramp from one sample to the
 next (pre-integrated, segments.py), stopping at accumulated alpha >= 0.99; a density where the
 transfer function is clear counts as its clear level, so skipped samples leave every segment as
-it was. Its lattice (`tuning.VOLUME_STEPS` iso steps) is shifted per pixel by a fixed hash
-(`pixel_jitter`) so thin transfer-function features do not alias into rings.
+it was. A ray's first segment starts at its origin when that lies inside the grid's box (the
+camera inside the molecule), and its last ends at its depth limit (a cloud layer stopped at an
+opaque surface), each sampled there. Its lattice (`tuning.VOLUME_STEPS` iso steps) is shifted
+per pixel by a fixed hash (`pixel_jitter`) so thin transfer-function features do not alias
+into rings.
 """
 
 from dataclasses import dataclass
@@ -41,7 +44,7 @@ from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
 from server.render.cells import BRICK, PART_BITS, WALKED, GridInfo, cell_box, part_at
 from server.render.density import GAUSSIAN, DensityModel
-from server.render.segments import ramp
+from server.render.segments import part, ramp
 
 wp.set_module_options({"enable_backward": False})
 
@@ -366,15 +369,19 @@ def add_segment(
     t: float,
     vf: float,
     vb: float,
+    fraction: float,
     acc: wp.vec3,
     alpha: float,
     t_depth: float,
 ):
     """Composite the segment ending at ray parameter t, its density running from vf to vb,
-    behind what `acc` and `alpha` hold; its shading normal from the gradient `n_raw`."""
+    behind what `acc` and `alpha` hold; its shading normal from the gradient `n_raw`. A
+    segment cut short by the ray's ends is `fraction` of a step long (1: a whole step)."""
     uf = wp.max(vf * vol.x_to_u, 0.0)
     ub = wp.max(vb * vol.x_to_u, 0.0)
     e = ramp(vol.seg, vol.last, uf, ub)
+    if fraction < 1.0:
+        e = part(e, fraction)
     a_s = wp.clamp(e[3], 0.0, 1.0)
     out_acc = acc
     out_alpha = alpha
@@ -1117,7 +1124,8 @@ def _make(
         t_depth = float(wp.inf)
         g = f.info[0]
         o, d = camera_ray(cam, x, y)
-        t0, t1 = clip_box(o, d, g.origin, g.box_hi)
+        t0, t_box = clip_box(o, d, g.origin, g.box_hi)
+        t1 = t_box
         if vol.clip != 0:
             t1 = wp.min(t1, vol.limit[pix])
         if g.valid != 0 and t0 < t1:
@@ -1130,6 +1138,17 @@ def _make(
             prev_k = wp.int32(-2)
             prev_v = float(0.0)
             prev_g = wp.vec3(0.0, 0.0, 0.0)
+            # a ray that starts inside the grid's box (the camera inside the molecule) starts
+            # with a sample at its origin: its first segment runs from there to its first
+            # lattice sample, a `lead` of a step (outside the box the density is zero)
+            k_first = k
+            lead = float(1.0)
+            if vol.ramps != 0 and t0 <= 0.0:
+                s0 = value_grad(f, o + d * t0)
+                prev_k = k_first - 1
+                prev_v = wp.max(s0[3], flat)
+                prev_g = wp.vec3(s0[0], s0[1], s0[2])
+                lead = (float(k_first) + jit) - t0 / dt
             active = wp.int32(1)
             while active != 0:
                 k, cx, cy, cz, tx, ty, tz, left, _jumped, active = walk(
@@ -1137,12 +1156,15 @@ def _make(
                     1, split, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
                 )  # fmt: skip
                 t_next = (float(prev_k + 1) + jit) * dt
-                closing = prev_k >= 0 and k != prev_k + 1 and prev_v > flat and t_next < t1
+                closing = prev_k != -2 and k != prev_k + 1 and prev_v > flat and t_next < t1
                 if closing and vol.ramps != 0:
                     # the walk skipped the sample after the last one (clear there): close the
                     # segment that sample would have ended, at the clear level
+                    fr = float(1.0)
+                    if prev_k + 1 == k_first:
+                        fr = lead
                     acc, alpha, t_depth = add_segment(
-                        vol, sh, g, cam, d, prev_g, t_next, prev_v, flat, acc, alpha, t_depth
+                        vol, sh, g, cam, d, prev_g, t_next, prev_v, flat, fr, acc, alpha, t_depth
                     )
                     prev_k = -2
                     if alpha >= _STOP_ALPHA:
@@ -1187,6 +1209,7 @@ def _make(
                             # sample is not: skipping leaves every segment as it was.
                             vf = vq
                             n_raw = grad
+                            fr = float(1.0)
                             if vol.ramps != 0:
                                 if vq <= flat:
                                     n_raw = wp.vec3(0.0, 0.0, 0.0)
@@ -1196,8 +1219,10 @@ def _make(
                                         n_raw = n_raw + prev_g
                                 elif flat >= 0.0:
                                     vf = flat
+                                if k + q == k_first:
+                                    fr = lead
                             acc, alpha, t_depth = add_segment(
-                                vol, sh, g, cam, d, n_raw, tq, vf, vq, acc, alpha, t_depth
+                                vol, sh, g, cam, d, n_raw, tq, vf, vq, fr, acc, alpha, t_depth
                             )
                             prev_k = k + q
                             prev_v = vq
@@ -1206,11 +1231,49 @@ def _make(
                                 active = 0
                     k += 4
             t_next = (float(prev_k + 1) + jit) * dt
-            closing = prev_k >= 0 and alpha < _STOP_ALPHA and prev_v > flat and t_next < t1
+            closing = prev_k != -2 and alpha < _STOP_ALPHA and prev_v > flat and t_next < t1
             if closing and vol.ramps != 0:
                 # the walk skipped the rest of the ray: close the last segment likewise
+                fr = float(1.0)
+                if prev_k + 1 == k_first:
+                    fr = lead
                 acc, alpha, t_depth = add_segment(
-                    vol, sh, g, cam, d, prev_g, t_next, prev_v, flat, acc, alpha, t_depth
+                    vol, sh, g, cam, d, prev_g, t_next, prev_v, flat, fr, acc, alpha, t_depth
+                )
+                prev_k = -2
+            if vol.ramps != 0 and alpha < _STOP_ALPHA and t1 < t_box:
+                # the ray ends at its depth limit (an opaque surface in front of the box's far
+                # side): the segment from the last lattice point before it to the limit, whose
+                # density is sampled there
+                s1 = value_grad(f, o + d * t1)
+                v1 = wp.max(s1[3], flat)
+                n_raw = wp.vec3(0.0, 0.0, 0.0)
+                if v1 > flat:
+                    n_raw = wp.vec3(s1[0], s1[1], s1[2])
+                vf = flat
+                t_front = t0
+                if prev_k != -2 and (float(prev_k + 1) + jit) * dt >= t1:
+                    # the last lattice point before the limit was composited (or the ray's
+                    # origin, when no lattice point lies before the limit)
+                    vf = prev_v
+                    if prev_k + 1 != k_first:
+                        t_front = (float(prev_k) + jit) * dt
+                    if prev_v > flat:
+                        n_raw = n_raw + prev_g
+                else:
+                    # it was skipped (clear there), or none lies before the limit
+                    k_last = int(wp.ceil(t1 / dt - jit)) - 1
+                    if (float(k_last + 1) + jit) * dt < t1:
+                        k_last += 1
+                    if (float(k_last) + jit) * dt >= t1:
+                        k_last -= 1
+                    if k_last >= k_first:
+                        t_front = (float(k_last) + jit) * dt
+                fr = wp.clamp((t1 - t_front) / dt, 0.0, 1.0)
+                # placed midway, in front of the surface that set the limit
+                t_mid = t_front + 0.5 * (t1 - t_front)
+                acc, alpha, t_depth = add_segment(
+                    vol, sh, g, cam, d, n_raw, t_mid, vf, v1, fr, acc, alpha, t_depth
                 )
         if sh.coverage != 0:
             rgba[pix] = pack_premultiplied(acc, alpha)

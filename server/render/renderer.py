@@ -857,7 +857,7 @@ class Renderer(ImageOutputs):
     def _update_tf(self, p: RenderParams, d: Derived) -> None:
         """The transfer table of `p`, and its segments at this frame's volume step."""
         pts = tuple((q.x, tuple(q.color), q.alpha) for q in p.transfer_function)
-        key = (pts, p.tf_preset)
+        key = (pts, None if pts else p.tf_preset)  # control points replace the preset
         if key != self._tf_key:
             try:
                 self._tf = transfer.build_table(p.transfer_function, p.tf_preset)

@@ -1,5 +1,6 @@
 """How the renderer trades its own work: every switch and threshold that changes how long a frame
-takes but not what it shows (the tests hold each one's image to the default's), in one place.
+takes but not what it shows (the tests hold each one's image to the default's, or within the
+accuracy its docstring names), in one place.
 
 `Tuning` is what a caller may set (benchmarks and tests do; the server keeps the defaults); the
 module constants below are the rules the defaults follow, each with the reason it holds and the
@@ -86,9 +87,11 @@ VIEWS_KEPT = 64
 @dataclass(frozen=True)
 class Tuning:
     """The renderer's switches; None picks the rule above. None of them changes an image except
-    `taper` (off: each Gaussian cut at the cutoff, a baseline for the taper's cost) and
-    `empty_space_skipping` (off: every lattice sample marched, the same image slower) and
-    `fixed_cutoff` (the surface moves within the accuracy bound)."""
+    `taper` (off: each Gaussian cut at the cutoff, a baseline for the taper's cost),
+    `fixed_cutoff` (the surface moves within the accuracy bound), `refine_passes` (an iso hit
+    moves within its bracket), `volume_steps` and `volume_ramps` (a volume image moves within
+    the accuracy `volume_accuracy.py` measures); `empty_space_skipping` off marches every
+    lattice sample, the same image slower."""
 
     cells_per_cutoff: float | None = None
     """Grid cell = cutoff / this (>= 1; the cell grows where memory caps the count)."""

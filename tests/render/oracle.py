@@ -223,32 +223,39 @@ def composite(
     stop_alpha: float = 0.99,
     depth_alpha: float = 0.5,
 ) -> tuple[F, float]:
-    """Front-to-back emission-absorption of one ray: (rgb over the background, depth). The
-    segment ending at each lattice sample is the transfer function integrated along the
-    density's ramp from the sample before (float64, `segments.ramp_integral`); densities where
-    the transfer function is clear count as its clear level, and a ray's first sample has the
-    clear level before it (its own density where nothing is clear)."""
-    k0 = int(np.ceil(max(t_range[0], 0.0) / dt - jitter))
-    k1 = int(np.ceil(t_range[1] / dt))
-    ts = (np.arange(k0, k1) + jitter) * dt
-    pts = origin + ts[:, None] * direction
-    val, grad = density(mol, pts)
+    """Front-to-back emission-absorption of one ray over `t_range`: (rgb over the background,
+    depth). The ray's lattice samples (`(k + jitter) dt`) and its two ends divide it into
+    segments, each the transfer function integrated along the density's linear ramp between
+    its ends (float64, `segments.ramp_integral`); densities where the transfer function is
+    clear count as its clear level. The first segment runs from the ray's start, the last to
+    its end (placed midway along it); the others are one step long."""
+    t0, t1 = max(t_range[0], 0.0), t_range[1]
     flat = -1.0 if table.clear_below < 0 else table.clear_below * iso
+    if not np.isfinite(flat):  # nothing is visible
+        return light.background.astype(np.float64), np.inf
+    k0 = int(np.ceil(t0 / dt - jitter))
+    ts = (np.arange(k0, int(np.ceil(t1 / dt - jitter)) + 1) + jitter) * dt
+    at = np.concatenate([[t0], ts[ts < t1], [t1]])
+    val, grad = density(mol, origin + at[:, None] * direction)
     val = np.maximum(val, flat)
+    above = (val > flat)[:, None]
     acc = np.zeros(3)
     alpha = 0.0
     depth = np.inf
-    for i, t in enumerate(ts):
-        front = val[i - 1] if i > 0 else (flat if flat >= 0 else val[i])
-        # the normal: the gradients of the segment's ends above the clear level
-        n_raw = grad[i] * (val[i] > flat) + (grad[i - 1] * (val[i - 1] > flat) if i > 0 else 0.0)
-        seg = ramp_integral(table, front / iso, val[i] / iso, dt, substeps=64)
+    last = len(at) - 2
+    for i in range(last + 1):
+        length = at[i + 1] - at[i]
+        if length <= 0:
+            continue
+        seg = ramp_integral(table, val[i] / iso, val[i + 1] / iso, length, substeps=64)
         a_s = float(np.clip(seg[3], 0.0, 1.0))
         if a_s <= 0:
             continue
         col = seg[:3] / a_s
+        t = at[i + 1] if i < last else 0.5 * (at[i] + at[i + 1])
         if shade:
-            n = facing_normal(n_raw, direction)
+            # the normal: the gradients of the segment's ends above the clear level
+            n = facing_normal(grad[i] * above[i] + grad[i + 1] * above[i + 1], direction)
             col = lit(light, col[None, :], n[None, :], -direction[None, :])[0]
         col = fog(light, np.array([t]), col[None, :])[0]
         acc += col * (1.0 - alpha) * a_s

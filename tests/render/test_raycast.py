@@ -89,6 +89,25 @@ def test_iso_depth_matches_root_finder(device: str, projection: str) -> None:
             "cloud",
             Lighting(diffuse=0.0, specular=0.0),
         ),
+        (  # a step: two points at one x
+            (
+                TFPoint(x=0.0, alpha=0.0),
+                TFPoint(x=0.6, alpha=0.0),
+                TFPoint(x=0.6, color=(1, 0, 0), alpha=0.5),
+                TFPoint(x=1.5, color=(0, 1, 0), alpha=0.5),
+            ),
+            "cloud",
+            Lighting(),
+        ),
+        (  # x_max far below the densities: most ramps run past the table's end
+            (
+                TFPoint(x=0.0, alpha=0.0),
+                TFPoint(x=0.01, alpha=0.0),
+                TFPoint(x=0.02, color=(0, 1, 0), alpha=0.4),
+            ),
+            "cloud",
+            Lighting(diffuse=0.0, specular=0.0),
+        ),
     ],
 )
 def test_volume_matches_numpy_compositor(
@@ -147,6 +166,34 @@ def test_volume_matches_numpy_compositor(
     assert np.allclose(depth[both], ref_depth[both], atol=dt * 1.01)
 
 
+def test_a_transfer_function_clear_everywhere_draws_the_background(device: str) -> None:
+    """Alpha 0 at every x: the clear level is infinite, every region is skipped, and the image
+    is the background, as the numpy compositor draws it."""
+    n = 30
+    top = make_topology(n)
+    pos = blob(n, seed=4)
+    tf = [TFPoint(x=0.0, alpha=0.0), TFPoint(x=2.0, color=(1, 0, 0), alpha=0.0)]
+    params = RenderParams(mode="volume", sigma_A=1.3, transfer_function=tf)
+    cam = fit_camera(pos, 12, 10)
+    r = render(device, top, pos, params, cam, 12, 10)
+    frame = camera_frame(cam, 12, 10)
+    origins, dirs = image_rays(frame)
+    lt = oracle_light(params, frame, r)
+    table = build_table(params.transfer_function, params.tf_preset)
+    mol = oracle_molecule(top, pos, params)
+    dt = params.step_sigmas * params.sigma_A * VOLUME_STEPS
+    for y, x in ((0, 0), (5, 6), (9, 11)):
+        want, depth = oracle.composite(
+            mol, origins[y, x], dirs[y, x], _t_range(r, origins), dt, params.iso_level, table,
+            lt, True,
+        )  # fmt: skip
+        assert depth == np.inf
+        np.testing.assert_allclose(want, params.background)
+    bg = np.round(np.asarray(params.background) * 255.0)
+    assert np.all(r.read_rgba()[..., :3] == bg)
+    assert np.all(np.isinf(r.read_depth())) and np.all(r.read_atom_ids() == -1)
+
+
 @pytest.mark.parametrize("sparse", [False, True])
 @pytest.mark.parametrize("mode", ["iso", "volume"])
 def test_empty_space_skipping_changes_nothing(device: str, mode: str, sparse: bool) -> None:
@@ -163,6 +210,58 @@ def test_empty_space_skipping_changes_nothing(device: str, mode: str, sparse: bo
     np.testing.assert_array_equal(fast.read_rgba(), naive.read_rgba())
     np.testing.assert_array_equal(fast.read_depth(), naive.read_depth())
     np.testing.assert_array_equal(fast.read_atom_ids(), naive.read_atom_ids())
+
+
+_ENDS_TFS = {
+    "step": [
+        TFPoint(x=0.0, alpha=0.0),
+        TFPoint(x=0.6, alpha=0.0),
+        TFPoint(x=0.6, color=(1, 0, 0), alpha=0.5),
+        TFPoint(x=1.5, color=(0, 1, 0), alpha=0.5),
+    ],
+    "clear-at-nothing": [TFPoint(x=0.0, alpha=0.05), TFPoint(x=1.0, alpha=0.3)],
+    "shells": [],
+}
+
+
+@pytest.mark.parametrize("tf", list(_ENDS_TFS))
+@pytest.mark.parametrize("scale_space", ["classical", "geodesic", "carved"])
+def test_empty_space_skipping_changes_nothing_at_the_ray_ends(
+    device: str, scale_space: str, tf: str
+) -> None:
+    """Volume rays that start inside the molecule and end at a depth limit, through a step,
+    a transfer function clear nowhere and the shells: skipping (cells and their parts) and
+    a march that samples everything draw the same image, on each density (the geodesic and
+    carved ones answer any value below the level there)."""
+    import warp as wp
+
+    n, w, h = 120, 24, 18
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(-8, 8, size=(n, 3)).astype(np.float32)
+    top = make_topology(n, bonds=np.array([[i, i + 1] for i in range(n - 1)]))
+    cam = look_at((0.0, 0.0, 0.0), (0.0, 0.0, -5.0), fov_deg=70.0)
+    limit = rng.uniform(2.0, 20.0, w * h).astype(np.float32)
+    params = RenderParams(
+        mode="volume",
+        sigma_A=1.1,
+        iso_level=0.3,
+        transfer_function=_ENDS_TFS[tf],
+        tf_preset="shells",
+        scale_space=scale_space,  # type: ignore[arg-type]
+    )
+    images = []
+    naive: dict[str, object] = {"empty_space_skipping": False}
+    for tuning in (naive, {"part_bounds": "all"}, {"part_bounds": "none"}):
+        r = Renderer(device, tuning=Tuning.of(tuning))
+        r.set_topology(top)
+        r.set_positions(pos)
+        r.depth_limit = wp.array(limit, dtype=float, device=device)
+        r.render(params, cam, w, h)
+        images.append((r.read_rgba(), r.read_depth(), r.read_atom_ids()))
+    assert len(np.unique(images[0][0].reshape(-1, 4), axis=0)) > 20  # something is drawn
+    for other in images[1:]:
+        for a, b in zip(images[0], other, strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("scene", ["blob", "sparse", "inside"])
