@@ -35,7 +35,7 @@ render_h200_volume_regs_10k.json): 64 stays the fastest at 1M atoms (12.6 ms; 96
 15.6, none: 24.4) and at villin; 96-128 would save 7 % at 10,000 atoms."""
 VOLUME_STEPS = 2
 """Volume mode marches twice the iso lattice's step, its segments integrating the density's ramp
-between samples: 1.5-1.6x faster than the sample sum at one step (render_h200_volume_segments.json).
+between samples: 1.3-1.6x faster than the sample sum at one step (render_h200_volume_segments.json).
 Against the converged image (volume_accuracy.json, 8-bit levels) a sharp transfer function
 errs less than the sum did at one step (shells: mean 0.49 against 0.65, largest 16 against 23);
 the default cloud errs a little more (mean 0.51 against 0.22, largest 9 against 3)."""
