@@ -53,6 +53,7 @@ from server.render import Renderer, raycast, visibility
 from server.render import device as render_device
 from server.render.camera import fit_camera, orbit
 from server.render.density import GaussianField, gaussian_value
+from server.render.graphs import GraphCache
 from server.render.raycast import (
     CameraData,
     Shading,
@@ -326,7 +327,7 @@ def profile_frame(
     """The device activities of one frame (upload, grid kernels, sort, cast) and their times
     in ms (`wp.timing_begin`; a frame launched one by one, not replayed as a graph)."""
     graphs = r._graphs
-    r._graphs = None
+    r._graphs = GraphCache(r.device, 1, False, "profile")  # every launch timed on its own
     try:
         r.set_positions(positions, check_finite=False)
         wp.timing_begin()

@@ -25,6 +25,7 @@ from server.render.cells import GridInfo
 from server.render.density import (
     DensityModel,
     GaussianField,
+    LanePoint,
     PartBounds,
     Sample,
     cell_rows,
@@ -367,7 +368,32 @@ def row_values4(f: GeodesicField, q: Points4, j0: int, j1: int, total: wp.vec4) 
     return v
 
 
+@wp.func
+@no_type_check
+def row_value_lane(f: GeodesicField, q: LanePoint, j0: int, j1: int, total: float) -> float:
+    """The lane's share of `row_value` over sorted atoms [j0, j1): every `lanes`-th atom, so
+    the lanes' sums add up to the density in a fixed order."""
+    s = total
+    g = f.gauss
+    lam = f.routes.strength
+    j = j0 + q.lane
+    while j < j1:
+        a4 = g.atoms[j]
+        c = inv2s2_at(g, j)
+        r2 = dist2(a4, q.p)
+        if r2 * c < g.half_k2:
+            m = atom_distance(f.routes, g.order[j], q.p)
+            e = ((1.0 - lam) * r2 + lam * m * m) * c
+            if e < g.half_k2:
+                s += a4[3] * kernel(e, g.inv_half_k2)
+        j += q.lanes
+    return s
+
+
 _walk_value = cell_rows("geodesic_value", row_value, wp.vec3, float, field=GeodesicField)
+_walk_value_lane = cell_rows(
+    "geodesic_value_lane", row_value_lane, LanePoint, float, field=GeodesicField
+)
 _walk_values4 = cell_rows("geodesic_values4", row_values4, Points4, wp.vec4, field=GeodesicField)
 _walk_value_grad = cell_rows(
     "geodesic_value_grad", row_value_grad, wp.vec3, wp.vec4, field=GeodesicField
@@ -694,11 +720,18 @@ def build_kernel(
 @wp.kernel
 @no_type_check
 def sampled_values_kernel(
-    f: GeodesicField, positions: wp.array[wp.vec3], stride: int, values: wp.array[float]
+    f: GeodesicField, positions: wp.array[wp.vec3], stride: int, lanes: int, values: wp.array[float]
 ):
-    """The geodesic density at every `stride`-th atom (the scale of relative levels)."""
-    k = wp.tid()
-    values[k] = geodesic_value(f, positions[k * stride])
+    """The geodesic density at every `stride`-th atom (the scale of relative levels), taken by
+    `lanes` threads each (`values` holds the lanes' sums, sample by sample): one thread alone
+    walks every route of some forty atoms while a few hundred samples leave the device idle."""
+    t = wp.tid()
+    k = t // lanes
+    q = LanePoint()
+    q.p = positions[k * stride]
+    q.lane = t - k * lanes
+    q.lanes = lanes
+    values[t] = _walk_value_lane(f, q.p, q.p, q, wp.float32(0.0))
 
 
 @wp.kernel

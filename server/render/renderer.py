@@ -1008,9 +1008,16 @@ class Renderer(ImageOutputs):
         if d.geo is not None:
             self._geodesic_tables().refresh(self._pos, self._weights, GAIN)
             if d.relative:
-                sampled = (f, self._pos, n // samples, self._density_samples)
-                wp.launch(geodesic_field.sampled_values_kernel, samples, sampled, device=dev)
-                partial = (self._density_samples, samples, self._density_partial)
+                lanes = self._mean_lanes
+                sampled = (f, self._pos, n // samples, lanes, self._density_samples)
+                wp.launch(
+                    geodesic_field.sampled_values_kernel,
+                    samples * lanes,
+                    sampled,
+                    device=dev,
+                    block_dim=MEAN_BLOCK,
+                )
+                partial = (self._density_samples, samples * lanes, self._density_partial)
                 wp.launch(partial_sums_kernel, MEAN_LANES, partial, device=dev)
                 wp.launch(total_kernel, 1, (self._density_partial, self._density_total), device=dev)
                 scale = (self._sorted, self._density_total, float(samples), n)

@@ -331,6 +331,21 @@ def test_a_geodesic_surface_lies_inside_the_classical_one(device: str) -> None:
     assert (dc[hit] <= dg[hit] + 1e-3).all() and (dc[hit] < dg[hit] - 0.05).any()
 
 
+def test_the_relative_level_is_taken_by_several_lanes_a_sample(device: str) -> None:
+    """The geodesic density's own scale (the mean at the sampled atoms) summed by four threads
+    a sample equals one thread's up to the order of its float sums, and draws the same image."""
+    mol = villin()
+    cam = fit_camera(mol.positions, 40, 30)
+    out = {}
+    for lanes in (1, 4):
+        r = render(device, mol.topology, mol.positions, GEODESIC, cam, 40, 30, mean_lanes=lanes)
+        out[lanes] = (r.density_scale(), r.read_rgba())
+    assert out[4][0] == pytest.approx(out[1][0], rel=1e-5)
+    assert out[4][0] > 0.0
+    differ = np.any(out[4][1] != out[1][1], axis=-1).mean()
+    assert differ < 0.005  # a pixel whose ray grazes the level may flip
+
+
 def test_route_tables_follow_the_reach_and_report_their_bytes(device: str) -> None:
     mol = villin()
     cam = fit_camera(mol.positions, 16, 12)
