@@ -36,6 +36,8 @@ export class Timeline {
     this.nFrames = 0;
     this.playback = null;
     this.paused = false;
+    this.steering = true;
+    this.ended = false;
     this.scrubbing = false;
     this.seekSoon = throttle(() => this.seek(), SEEK_MS);
     this.scrub.addEventListener("input", () => {
@@ -110,8 +112,15 @@ export class Timeline {
     }
     this.lastFrame = frame;
     this.paused = sim.state === "paused";
-    setText(this.play, this.paused ? "Play" : "Pause");
-    this.play.setAttribute("aria-pressed", String(!this.paused));
+    // a replay that has gone (it ended, failed or was stopped) plays nothing: its controls
+    // rest until a simulation runs in the session again
+    const ended = sim.state === "disconnected" || sim.state === "waiting";
+    setText(this.play, this.paused || ended ? "Play" : "Pause");
+    this.play.setAttribute("aria-pressed", String(!this.paused && !ended));
+    if (ended !== this.ended) {
+      this.ended = ended;
+      this.applyDisabled();
+    }
     if (!this.scrubbing) {
       this.scrub.value = String(sim.step ?? 0);
       this.showFrame(sim.step ?? 0);
@@ -145,11 +154,19 @@ export class Timeline {
   }
 
   showFrame(index) {
-    setText(this.frame, `frame ${index + 1} / ${this.nFrames}`);
+    setText(this.frame, `frame ${index + 1} / ${this.nFrames}${this.ended ? " · ended" : ""}`);
   }
 
+  /** Whether this page may steer (a read-only viewer's timeline only shows). */
   setDisabled(disabled) {
-    for (const node of [this.scrub, this.play, this.speed, this.loop, this.apply]) node.disabled = disabled;
-    for (const node of this.markBox.children) node.disabled = disabled;
+    this.steering = !disabled;
+    this.applyDisabled();
+  }
+
+  applyDisabled() {
+    const off = !this.steering || this.ended;
+    for (const node of [this.scrub, this.play, this.speed, this.loop, this.apply]) node.disabled = off;
+    for (const node of this.markBox.children) node.disabled = off;
+    this.play.title = this.ended ? "the replay has ended: open it again to play it" : "";
   }
 }

@@ -58,3 +58,30 @@ test("a replay's speed and loop show as its engine says, also for a viewer who j
   assert.equal(nodes.get("tl-speed").value, "0.5");
   assert.equal(nodes.get("tl-loop").checked, false);
 });
+
+test("a replay that has gone rests its controls and says so, until a simulation runs again", () => {
+  const timeline = new Timeline({ onControl: () => {} });
+  timeline.setDisabled(false); // a steerer's page
+  timeline.setEngine({ kind: "replay", n_frames: 12 });
+  timeline.update({ step: 6, state: "running" });
+  assert.equal(nodes.get("tl-play").textContent, "Pause");
+  assert.equal(nodes.get("tl-play").disabled, false);
+  timeline.update({ step: 6, state: "disconnected" });
+  assert.equal(nodes.get("tl-play").textContent, "Play");
+  for (const id of ["tl-play", "tl-scrub", "tl-speed", "tl-loop"]) assert.equal(nodes.get(id).disabled, true, id);
+  assert.equal(nodes.get("tl-frame").textContent, "frame 7 / 12 · ended");
+  timeline.update({ step: 0, state: "running" });
+  assert.equal(nodes.get("tl-play").disabled, false);
+  assert.equal(nodes.get("tl-frame").textContent, "frame 1 / 12");
+});
+
+test("a read-only viewer's timeline stays at rest when its replay runs again", () => {
+  const timeline = new Timeline({ onControl: () => {} });
+  timeline.setEngine({ kind: "replay", n_frames: 12 });
+  timeline.setDisabled(true);
+  timeline.update({ step: 2, state: "disconnected" });
+  timeline.update({ step: 3, state: "running" });
+  assert.equal(nodes.get("tl-play").disabled, true);
+  timeline.setDisabled(false);
+  assert.equal(nodes.get("tl-play").disabled, false);
+});
