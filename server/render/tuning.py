@@ -37,7 +37,7 @@ VOLUME_STEPS = 2
 """Volume mode marches twice the iso lattice's step, its segments integrating the density's ramp
 between samples: 1.3-1.6x faster than the sample sum at one step (render_h200_volume_segments.json).
 Against the converged image (volume_accuracy.json, 8-bit levels) a sharp transfer function
-errs less than the sum did at one step (shells: mean 0.49 against 0.65, largest 16 against 23);
+errs less than the sum did at one step (shells: mean 0.49 against 0.65, largest 16 against 22);
 the default cloud errs a little more (mean 0.51 against 0.22, largest 9 against 3)."""
 CELLS_PER_CUTOFF = {"gaussian": 2.0, "carved": 1.0, "geodesic": 2.0}
 """Grid cells per cutoff of each density: the carved density's Gaussians reach 0.6 sigma k and
