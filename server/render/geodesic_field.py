@@ -268,19 +268,28 @@ def inv2s2_at(g: GaussianField, j: int) -> float:
 
 @wp.func
 @no_type_check
-def row_value(f: GeodesicField, p: wp.vec3, j0: int, j1: int, total: float) -> float:
-    s = total
+def term(f: GeodesicField, j: int, p: wp.vec3) -> float:
+    """Sorted atom j's term of the geodesic density at p (zero beyond the cutoff)."""
     g = f.gauss
     lam = f.routes.strength
+    a4 = g.atoms[j]
+    c = inv2s2_at(g, j)
+    r2 = dist2(a4, p)
+    out = float(0.0)
+    if r2 * c < g.half_k2:
+        m = atom_distance(f.routes, g.order[j], p)
+        e = ((1.0 - lam) * r2 + lam * m * m) * c
+        if e < g.half_k2:
+            out = a4[3] * kernel(e, g.inv_half_k2)
+    return out
+
+
+@wp.func
+@no_type_check
+def row_value(f: GeodesicField, p: wp.vec3, j0: int, j1: int, total: float) -> float:
+    s = total
     for j in range(j0, j1):
-        a4 = g.atoms[j]
-        c = inv2s2_at(g, j)
-        r2 = dist2(a4, p)
-        if r2 * c < g.half_k2:
-            m = atom_distance(f.routes, g.order[j], p)
-            e = ((1.0 - lam) * r2 + lam * m * m) * c
-            if e < g.half_k2:
-                s += a4[3] * kernel(e, g.inv_half_k2)
+        s += term(f, j, p)
     return s
 
 
@@ -374,18 +383,9 @@ def row_value_lane(f: GeodesicField, q: LanePoint, j0: int, j1: int, total: floa
     """The lane's share of `row_value` over sorted atoms [j0, j1): every `lanes`-th atom, so
     the lanes' sums add up to the density in a fixed order."""
     s = total
-    g = f.gauss
-    lam = f.routes.strength
     j = j0 + q.lane
     while j < j1:
-        a4 = g.atoms[j]
-        c = inv2s2_at(g, j)
-        r2 = dist2(a4, q.p)
-        if r2 * c < g.half_k2:
-            m = atom_distance(f.routes, g.order[j], q.p)
-            e = ((1.0 - lam) * r2 + lam * m * m) * c
-            if e < g.half_k2:
-                s += a4[3] * kernel(e, g.inv_half_k2)
+        s += term(f, j, q.p)
         j += q.lanes
     return s
 

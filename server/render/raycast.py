@@ -400,6 +400,46 @@ def add_segment(
 
 @wp.func
 @no_type_check
+def close_segment(
+    vol: Volume,
+    sh: Shading,
+    g: GridInfo,
+    cam: CameraData,
+    d: wp.vec3,
+    prev_k: int,
+    prev_v: float,
+    prev_g: wp.vec3,
+    k_first: int,
+    lead: float,
+    jit: float,
+    dt: float,
+    t1: float,
+    acc: wp.vec3,
+    alpha: float,
+    t_depth: float,
+):
+    """The segment after the last sample composited (lattice index `prev_k`), whose back sample
+    the walk skipped as clear: it runs from `prev_v` down to the clear level, when that sample
+    lies before the ray's end and the last one was above the level (segments only). Also
+    returns whether it did."""
+    out_acc = acc
+    out_alpha = alpha
+    out_depth = t_depth
+    closed = wp.int32(0)
+    t_next = (float(prev_k + 1) + jit) * dt
+    if vol.ramps != 0 and prev_v > vol.flat and t_next < t1:
+        closed = 1
+        fr = float(1.0)
+        if prev_k + 1 == k_first:
+            fr = lead
+        out_acc, out_alpha, out_depth = add_segment(
+            vol, sh, g, cam, d, prev_g, t_next, prev_v, vol.flat, fr, acc, alpha, t_depth
+        )
+    return out_acc, out_alpha, out_depth, closed
+
+
+@wp.func
+@no_type_check
 def clear(b: float, level: float, inclusive: int) -> bool:
     """A bound that says the density there cannot matter: below `level` (or at it)."""
     return b < level or (inclusive != 0 and b == level)
@@ -1155,20 +1195,17 @@ def _make(
                     f.bound, f.parts, f.brick_bound, g, o, d, t1, dt, jit, vol.clear_level, 1,
                     1, split, k, cx, cy, cz, sx, sy, sz, tx, ty, tz, dtx, dty, dtz, left,
                 )  # fmt: skip
-                t_next = (float(prev_k + 1) + jit) * dt
-                closing = prev_k != -2 and k != prev_k + 1 and prev_v > flat and t_next < t1
-                if closing and vol.ramps != 0:
+                if prev_k != -2 and k != prev_k + 1:
                     # the walk skipped the sample after the last one (clear there): close the
                     # segment that sample would have ended, at the clear level
-                    fr = float(1.0)
-                    if prev_k + 1 == k_first:
-                        fr = lead
-                    acc, alpha, t_depth = add_segment(
-                        vol, sh, g, cam, d, prev_g, t_next, prev_v, flat, fr, acc, alpha, t_depth
-                    )
-                    prev_k = -2
-                    if alpha >= _STOP_ALPHA:
-                        active = 0
+                    acc, alpha, t_depth, closed = close_segment(
+                        vol, sh, g, cam, d, prev_k, prev_v, prev_g, k_first, lead, jit, dt, t1,
+                        acc, alpha, t_depth,
+                    )  # fmt: skip
+                    if closed != 0:
+                        prev_k = -2
+                        if alpha >= _STOP_ALPHA:
+                            active = 0
                 if active != 0:
                     passes += 1
                     # four samples per pass, with gradients when shaded
@@ -1230,17 +1267,14 @@ def _make(
                             if alpha >= _STOP_ALPHA:
                                 active = 0
                     k += 4
-            t_next = (float(prev_k + 1) + jit) * dt
-            closing = prev_k != -2 and alpha < _STOP_ALPHA and prev_v > flat and t_next < t1
-            if closing and vol.ramps != 0:
+            if prev_k != -2 and alpha < _STOP_ALPHA:
                 # the walk skipped the rest of the ray: close the last segment likewise
-                fr = float(1.0)
-                if prev_k + 1 == k_first:
-                    fr = lead
-                acc, alpha, t_depth = add_segment(
-                    vol, sh, g, cam, d, prev_g, t_next, prev_v, flat, fr, acc, alpha, t_depth
-                )
-                prev_k = -2
+                acc, alpha, t_depth, closed = close_segment(
+                    vol, sh, g, cam, d, prev_k, prev_v, prev_g, k_first, lead, jit, dt, t1, acc,
+                    alpha, t_depth,
+                )  # fmt: skip
+                if closed != 0:
+                    prev_k = -2
             if vol.ramps != 0 and alpha < _STOP_ALPHA and t1 < t_box:
                 # the ray ends at its depth limit (an opaque surface in front of the box's far
                 # side): the segment from the last lattice point before it to the limit, whose
