@@ -57,12 +57,15 @@ straight after minimisation."""
 BLOW_UP = """
 set atom 1 x $(x[2]+1.7) y $(y[2]) z $(z[2])
 timestep 1.0
-run ${nsteps}
+run $(100*v_nsteps)
 """
 """Appended to COLD_START: atom 1 put 1.7 A from atom 2 (Lennard-Jones sigma 3.4 A), and the
 run goes on: the pair's repulsion heats the run by thousands of kelvin in a few steps. At the
 cold start's 5 fs steps the pushed atom crossed the box in one step and LAMMPS stopped ("Lost
-atoms") before a frame showed the heat; at 1 fs it stays in the box and the heat shows."""
+atoms") before a frame showed the heat; at 1 fs it stays in the box and the heat shows. The
+second run is a hundred times the first, so it is still running when the guard's pause lands
+however slowly a loaded machine delivers the frames (at the first run's length LAMMPS could
+finish it first)."""
 
 
 def write_argon_data(path: Path, n_side: int, spacing: float = 3.9) -> None:
