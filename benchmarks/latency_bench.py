@@ -22,10 +22,9 @@ The simulation and the viewers run in two processes of their own, so the server'
 from __future__ import annotations
 
 import argparse
-import asyncio
+import contextlib
 import dataclasses
 import io
-import itertools
 import json
 import multiprocessing as mp
 import platform
@@ -42,7 +41,9 @@ from PIL import Image as PILImage
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
+import latency_stages
 from render_bench import build_system, topology_of
+from viewer_rate import throughput
 
 import protocol as p
 from server.commands.serve import ServerThread
@@ -207,140 +208,6 @@ def summarise(rows: list[dict[str, float]], n_atoms: int) -> dict[str, Any]:
     return result
 
 
-def send_cycle(sim: Peer, raw: list[bytes], stop: Any, fps: float | None = None) -> int:
-    """Send the encoded frames `raw` round and round until `stop` is set, as fast as the
-    server reads them or at `fps`; returns how many were sent."""
-    k = 0
-    t0 = time.monotonic()
-    while not stop.is_set():
-        k += 1
-        sim.send_raw(raw[k % len(raw)])
-        if fps is not None and (wait := t0 + k / fps - time.monotonic()) > 0:
-            time.sleep(wait)
-    return k
-
-
-def _stream(url: str, session: str, n_atoms: int, ready: Any, stop: Any, rate: Any) -> None:
-    """Child process: a simulation sending frames of an N-atom system as fast as the server
-    takes them (messages encoded once beforehand, as a fast adapter would)."""
-    sim = Peer(f"{url}/ws/sim", "simulation", "bench", session)
-    pos, elements, bonds = build_system(n_atoms)
-    sim.send(topology_of(elements, bonds))
-    rng = np.random.default_rng(0)
-    raw = [
-        p.encode(frame((pos + rng.normal(0, 0.05, pos.shape)).astype(np.float32), k))
-        for k in range(4)
-    ]
-    sim.send_raw(raw[0])
-    ready.set()
-    t0 = time.monotonic()
-    k = send_cycle(sim, raw, stop)
-    rate.put(k / (time.monotonic() - t0))
-    sim.close()
-
-
-async def _count_images(
-    url: str, session: str, viewers: int, own_camera: bool, size: tuple[int, int], seconds: float
-) -> list[float]:
-    from websockets.asyncio.client import connect
-
-    conns = []
-    for _ in range(viewers):
-        ws = await connect(f"{url}/ws/view", max_size=None, compression=None, max_queue=4)
-        hello = p.Hello(role="viewer", token="bench-view", client="bench", session=session, seq=1)
-        await ws.send(p.encode(hello))
-        conns.append(ws)
-    limits = p.Limits(max_message_bytes=1 << 30)
-    if own_camera:  # the session's camera, turned about y by a different angle per viewer
-        base = None
-        while base is None:
-            msg = p.decode(await conns[0].recv(), limits)
-            if isinstance(msg, p.State) and msg.camera is not None:
-                base = msg.camera
-        for k, ws in enumerate(conns):
-            angle = 0.4 * (k + 1)
-            q = (float(np.cos(angle / 2)), 0.0, float(np.sin(angle / 2)), 0.0)
-            view = p.View(camera=base.model_copy(update={"orientation": q}), width=size[0],
-                          height=size[1], seq=2)  # fmt: skip
-            await ws.send(p.encode(view))
-    counts = [0] * viewers
-
-    async def read(k: int) -> None:
-        async for raw in conns[k]:
-            if isinstance(raw, bytes) and b"\xa5image" in raw[:16]:
-                counts[k] += 1
-
-    tasks = [asyncio.create_task(read(k)) for k in range(viewers)]
-    while min(counts) == 0:  # every viewer has its first image
-        await asyncio.sleep(0.05)
-    await asyncio.sleep(2.0)  # steady state
-    start = list(counts)
-    t0 = time.monotonic()
-    await asyncio.sleep(seconds)
-    elapsed = time.monotonic() - t0
-    per_viewer = [(c - s) / elapsed for c, s in zip(counts, start, strict=True)]
-    for t in tasks:
-        t.cancel()
-    for ws in conns:
-        await ws.close()
-    return per_viewer
-
-
-def _viewers(
-    url: str,
-    session: str,
-    viewers: int,
-    own_camera: bool,
-    size: tuple[int, int],
-    seconds: float,
-    out: Any,
-) -> None:
-    """Child process: all viewer connections on one asyncio loop, counting images."""
-    out.put(asyncio.run(_count_images(url, session, viewers, own_camera, size, seconds)))
-
-
-_RUNS = itertools.count()
-
-
-def throughput(
-    server: ServerThread, n_atoms: int, viewers: int, own_camera: bool, seconds: float
-) -> dict[str, Any]:
-    """Frames/s delivered per viewer. The simulation and the viewers run in processes of
-    their own, so the server's process holds only the server."""
-    url = f"ws://127.0.0.1:{server.port}"
-    session = f"tp-{viewers}-{int(own_camera)}-{next(_RUNS)}"
-    ctx = mp.get_context("spawn")
-    ready, stop, out, rate = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
-    streamer = ctx.Process(target=_stream, args=(url, session, n_atoms, ready, stop, rate))
-    streamer.start()
-    try:
-        if not ready.wait(300):
-            raise TimeoutError("the simulation process did not start streaming")
-        size = server.settings.default_size
-        args = (url, session, viewers, own_camera, size, seconds, out)
-        counter = ctx.Process(target=_viewers, args=args)
-        counter.start()
-        per_viewer: list[float] = out.get(timeout=300)
-        counter.join(30)
-    finally:
-        stop.set()
-        sent = rate.get(timeout=60) if streamer.is_alive() else None
-        streamer.join(30)
-        if streamer.is_alive():
-            streamer.terminate()
-    state = server.app_state.sessions.get(session)
-    return {
-        "n_atoms": n_atoms,
-        "viewers": viewers,
-        "own_camera": own_camera,
-        "fps_per_viewer_mean": statistics.fmean(per_viewer),
-        "fps_per_viewer_min": min(per_viewer),
-        "render_timings_ms": state.last_timings if state else {},
-        "encode_ms": state.delivery.last_encode_ms if state else None,
-        "sim_frames_per_s": sent,
-    }
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -372,6 +239,17 @@ def main(argv: list[str] | None = None) -> int:
         help="throughput cases: viewers sharing the view, or N'own' holding cameras of their own",
     )
     ap.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="run the latency part this many times: each run's percentiles, and all pooled",
+    )
+    ap.add_argument(
+        "--stages",
+        action="store_true",
+        help="also time the stages of each change inside the server (latency_stages.py)",
+    )
+    ap.add_argument(
         "--prefetch-control",
         action="store_true",
         help="each throughput case also without the next frame's upload overlapped (the control)",
@@ -401,8 +279,22 @@ def main(argv: list[str] | None = None) -> int:
                 f"{w}x{h}, {result['gpu']}",
                 flush=True,
             )
-            result["latency"] = latency(server, args.latency_atoms, args.changes)
+            runs: list[list[dict[str, float]]] = []
+            # the marks only with --stages: the runs without them are the ones quoted
+            tracing = latency_stages.traced() if args.stages else contextlib.nullcontext()
+            with tracing as marks:
+                for _ in range(max(1, args.repeats)):
+                    runs.append(_steer_rows(server, args.latency_atoms, args.changes))
+            result["latency"] = summarise([row for run in runs for row in run], args.latency_atoms)
+            if len(runs) > 1:
+                result["latency_runs"] = [summarise(run, args.latency_atoms) for run in runs]
+            if marks is not None:
+                result["latency_stages"] = latency_stages.summarise(marks.changes())
             print(json.dumps(result["latency"], indent=1), flush=True)
+            for run in result.get("latency_runs", []):
+                print("run total p50 / p99", run["total"]["p50"], run["total"]["p99"], flush=True)
+            if marks is not None:
+                print(json.dumps(result["latency_stages"], indent=1), flush=True)
             if args.jpeg_control:
                 by = latency_by_encoder(server, args.latency_atoms, args.changes)
                 result["latency_by_encoder"] = by

@@ -49,9 +49,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "benchmarks")]
 
-from latency_bench import send_cycle
 from linkemu import run as run_link
 from render_bench import build_system, topology_of
+from viewer_rate import send_cycle
 
 import protocol as p
 from server.commands.serve import ServerThread
