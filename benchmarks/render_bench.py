@@ -68,6 +68,7 @@ from server.render.raycast import (
     pixel_of,
 )
 from server.render.tuning import SPLIT_LANES, VOLUME_REGISTERS, Tuning
+from server.session.steering import merge_patch
 
 wp: Any = warp  # host API calls are dynamic
 
@@ -688,7 +689,8 @@ class Bench:
                 if self.clock.left() < 20:
                     return
                 label, kw = labelled(t)
-                params = base.model_copy(update=kw.pop("params", {}))
+                # merged deeply and validated: {"lighting": {"diffuse": 0}} keeps the rest
+                params, _ = merge_patch(base, kw.pop("params", {}))
                 matched = bool(kw.pop("matched_level", False))
                 r, frames = self.renderer(n, **kw)
                 cam = fit_camera(frames[0], w, h)
