@@ -692,16 +692,14 @@ class Session:
         # message) rather than drawn without a state telling the viewers of it
         self._log({"event": "render_params", **who, "changes": changes})
         self.render_params = merged
-        self.version += 1
-        self.scheduler.interacting(time.monotonic())
-        # the render loop is woken before the viewers' state goes out: it starts the render
-        # first, and the state is sent while the device draws
-        self.mark_dirty()
         self.broadcast(p.State(render_params=merged, ref=message.seq, by=client.client_id))
         if "color_by" in changes or "uniform_color" in changes:
             self._legend_changed()
         if any(f in changes for f in PERIODIC_FIELDS):
             self._redisplay()
+        self.version += 1
+        self.scheduler.interacting(time.monotonic())
+        self.mark_dirty()
 
     def _redisplay(self) -> None:
         """The periodic options changed: the last frame is displayed again with them (also
