@@ -40,6 +40,7 @@ from .server import (
     cpu_demo_chromium,
     cpu_interactive,
     latency_delivery,
+    latency_stages,
     latency_steer,
     multi_session,
     pipeline,
@@ -73,6 +74,7 @@ TABLES: dict[str, Table] = {
     "render-passes": Table(("render_cpu_round7_passes.json",), render_passes),
     "reach": Table(("reach_accuracy.json",), reach),
     "latency-steer": Table(("latency_h200_live_1m.json", "latency_h200_960.json"), latency_steer),
+    "latency-stages": Table(("latency_h200_960.json",), latency_stages),
     "latency-delivery": Table(
         ("latency_h200_live_1m.json", "latency_h200_round6_views.json"), latency_delivery
     ),

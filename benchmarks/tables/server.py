@@ -33,6 +33,25 @@ def latency_steer(sources: list[Source]) -> str:
     return block(sources, table(header, "lrl" + "r" * len(STAGES), rows), "ms, p50 / p95 / p99")
 
 
+SERVER_STAGES = ("steer", "wake", "plan", "to_thread", "thread", "back", "deliver")
+
+
+def latency_stages(sources: list[Source]) -> str:
+    """A steer's path inside the server (`--stages`), p50 / p95 ms, with each run's total."""
+    rows = []
+    for name, res in sources:
+        stages = res.get("latency_stages")
+        if stages is None:
+            continue
+        runs = res.get("latency_runs", [res["latency"]])
+        totals = ", ".join(num(r["total"]["p50"], 2) for r in runs)
+        row = [stem(name, "latency_"), totals, num(res["latency"]["render"]["p50"], 2)]
+        row += [" / ".join(num(stages[s][q], 2) for q in ("p50", "p95")) for s in SERVER_STAGES]
+        rows.append(row)
+    header = ["run", "total p50 of each run", "render p50", *SERVER_STAGES]
+    return block(sources, table(header, "lrr" + "r" * len(SERVER_STAGES), rows), "ms")
+
+
 def latency_delivery(sources: list[Source]) -> str:
     """Frames delivered per viewer of a streamed system; rows with the upload overlap on and off
     (`--prefetch-control`) are each other's control."""
