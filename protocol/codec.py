@@ -12,6 +12,7 @@ import msgpack
 from pydantic import TypeAdapter, ValidationError
 
 from protocol.errors import ErrorCode, ProtocolError
+from protocol.fields import unknown_keys
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import MESSAGE_TYPES, PROTOCOL_VERSION, AnyMessage, Error, Message
 
@@ -93,8 +94,15 @@ _CODE_BY_PYDANTIC_TYPE = {
 }
 
 
-def validate(obj: Any, limits: Limits = DEFAULT_LIMITS) -> Message:
-    """Turn an unpacked object into a message, or raise a `ProtocolError`."""
+def validate(
+    obj: Any, limits: Limits = DEFAULT_LIMITS, requests: frozenset[str] = frozenset()
+) -> Message:
+    """Turn an unpacked object into a message, or raise a `ProtocolError`.
+
+    Fields a model does not know are ignored (a newer peer's), except in the message types
+    named in `requests`: a request to change something (the server passes its steering types)
+    with a key no field has is refused by name, nested models and lists of them included. A
+    misspelt `iso_levle` dropped in silence would be answered as if it had applied."""
     if not isinstance(obj, dict):
         raise ProtocolError(ErrorCode.INVALID_MESSAGE, "message must be a map", path="")
     seq = obj.get("seq")
@@ -115,6 +123,12 @@ def validate(obj: Any, limits: Limits = DEFAULT_LIMITS) -> Message:
                 "hello.protocol_version",
                 ref,
             )
+    if kind in requests:
+        unknown = unknown_keys(MESSAGE_TYPES[kind], obj, kind)
+        if unknown is not None:
+            raise ProtocolError(
+                ErrorCode.INVALID_MESSAGE, f"{unknown}: unknown field", unknown, ref
+            )
     try:
         message: Message = _ADAPTER.validate_python(obj, context={"limits": limits})
     except ValidationError as exc:
@@ -129,9 +143,11 @@ def validate(obj: Any, limits: Limits = DEFAULT_LIMITS) -> Message:
     return message
 
 
-def decode(raw: bytes, limits: Limits = DEFAULT_LIMITS) -> Message:
-    """Bytes -> message; raises only `ProtocolError`."""
-    return validate(unpack(raw, limits), limits)
+def decode(
+    raw: bytes, limits: Limits = DEFAULT_LIMITS, requests: frozenset[str] = frozenset()
+) -> Message:
+    """Bytes -> message; raises only `ProtocolError` (`requests`: see `validate`)."""
+    return validate(unpack(raw, limits), limits, requests)
 
 
 def error_message(err: ProtocolError) -> Error:

@@ -1,7 +1,7 @@
 """Unknown keys in a client's own JSON: the wire models ignore fields they do not know (a newer
 peer's), but a person's typo (`sigmaa`) must be named, not dropped, wherever a person writes the
 JSON or keyword arguments: REST `params`, the command line's `--params` and `--layers`, the
-Python client."""
+Python client, and the steering messages the server reads on its WebSocket (whoever wrote them)."""
 
 from __future__ import annotations
 

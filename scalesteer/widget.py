@@ -33,7 +33,16 @@ import anywidget
 import traitlets
 from pydantic import ValidationError
 
-from protocol import Camera, Layer, Pick, RenderParams, SetRenderParams, VideoCodec, View
+from protocol import (
+    Camera,
+    Layer,
+    Pick,
+    RenderParams,
+    SetRenderParams,
+    VideoCodec,
+    View,
+)
+from protocol.fields import unknown_keys
 from scalesteer import background
 from scalesteer.errors import ScalesteerError
 from scalesteer.link import ViewLink
@@ -181,6 +190,9 @@ class SessionView(anywidget.AnyWidget):
     def _check(self, proposal: dict[str, Any]) -> Any:
         name, value = proposal["trait"].name, proposal["value"]
         key = STEERED.get(name, name)
+        unknown = unknown_keys(RenderParams, {key: value}, "render_params.params")
+        if unknown is not None:  # a layer with a key no layer has
+            raise traitlets.TraitError(f"{name}: {unknown}: unknown field")
         try:
             SetRenderParams(params={key: value})
         except ValidationError as exc:

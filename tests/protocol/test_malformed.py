@@ -176,6 +176,42 @@ def test_unknown_fields_are_ignored_for_forward_compatibility() -> None:
     assert p.decode(msgpack.packb(obj)) == samples()["ping"]
 
 
+def test_a_request_names_a_key_its_message_has_no_field_for() -> None:
+    """Ignoring unknown fields is for a newer peer's messages; a request to change something
+    (the types the server passes) with a key dropped in silence would leave its sender
+    wondering why nothing changed."""
+    requests = frozenset({"render_params", "sim_params", "control"})
+    cases = {
+        "render_params.params.sigma_a": {"type": "render_params", "params": {"sigma_a": 2.0}},
+        "render_params.params.lighting.ambiant": {
+            "type": "render_params",
+            "params": {"sigma_A": 2.0, "lighting": {"ambiant": 0.3}},
+        },
+        "render_params.params.layers.0.bogus": {
+            "type": "render_params",
+            "params": {"layers": [{"name": "x", "selection": "all", "bogus": 1}]},
+        },
+        "render_params.params.transfer_function.1.opacity": {
+            "type": "render_params",
+            "params": {"transfer_function": [{"x": 0.1}, {"x": 0.5, "opacity": 1.0}]},
+        },
+        "sim_params.temperatur_K": {"type": "sim_params", "temperatur_K": 300.0},
+        "control.steps": {"type": "control", "action": "step", "steps": 5},
+    }
+    for where, obj in cases.items():
+        raw = msgpack.packb({**obj, "seq": 7})
+        with pytest.raises(p.ProtocolError) as info:
+            p.decode(raw, p.DEFAULT_LIMITS, requests)
+        err = info.value
+        assert err.code == p.ErrorCode.INVALID_MESSAGE and err.ref == 7
+        assert (err.path, err.message) == (where, f"{where}: unknown field")
+        assert p.decode(raw).type == obj["type"]  # without `requests`: ignored, as a peer's
+    ok = msgpack.packb({"type": "render_params", "params": {"lighting": {"ambient": 1}}})
+    message = p.decode(ok, p.DEFAULT_LIMITS, requests)
+    assert isinstance(message, p.SetRenderParams)
+    assert message.changes() == {"lighting": {"ambient": 1.0}}
+
+
 def test_error_message_echoes_ref() -> None:
     err = reject({"type": "frame", "seq": 41})
     reply = p.error_message(err)

@@ -55,6 +55,9 @@ def test_a_bad_value_is_refused_and_the_trait_keeps_the_sessions(
     assert view.sigma == 1.5 and session.render_params.sigma_A == 1.5
     with pytest.raises(traitlets.TraitError, match="scale_space"):
         view.scale_space = "fourier"
+    with pytest.raises(traitlets.TraitError, match=r"render_params\.params\.layers\.0\.colour"):
+        view.layers = [{"name": "misspelt", "selection": "protein", "colour": "red"}]
+    assert view.layers == []
     with pytest.raises(ScalesteerError) as refused:  # only the server can tell
         view.layers = [{"name": "typo", "selection": "resname"}]
     assert refused.value.path == "render_params.params.layers.0.selection"

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 
+import msgpack
 import numpy as np
 
 import protocol as p
@@ -87,6 +88,40 @@ def test_every_render_params_message_is_answered_by_a_state_naming_it(
     sim.close()
     steerer.close()
     viewer.close()
+
+
+def test_a_patch_with_an_unknown_key_is_refused_by_name_and_changes_nothing(
+    live_server: LiveServer,
+) -> None:
+    """A misspelt key in a steerer's patch is named in an error echoing the patch, and none of
+    the patch applies (not its valid keys either); the next patch applies as usual."""
+    sim, steerer, _ = connect(live_server, "typo")
+    raw = {"type": "render_params", "seq": 90, "params": {"sigma_A": 2.5, "iso_levle": 0.4}}
+    steerer.send_raw(msgpack.packb(raw))
+    err = steerer.expect(p.Error, where=lambda m: m.ref == 90)
+    assert err.code == p.ErrorCode.INVALID_MESSAGE
+    assert err.path == "render_params.params.iso_levle"
+    assert "iso_levle: unknown field" in err.message
+    seq = steerer.send(p.SetRenderParams(params={"iso_level": 0.4}))
+    state = steerer.expect(p.State, where=lambda m: m.ref == seq)
+    assert state.render_params is not None and state.render_params.iso_level == 0.4
+    assert state.render_params.sigma_A != 2.5, "the refused patch's valid key applied"
+    changes = [
+        e["changes"]
+        for e in live_server.app_state.steering_log.read("typo")
+        if e["event"] == "render_params"
+    ]
+    assert changes == [{"iso_level": 0.4}]
+    # a simulation parameter likewise: refused by name, never forwarded to the simulation
+    steerer.send_raw(msgpack.packb({"type": "sim_params", "seq": 91, "temperatur_K": 280.0}))
+    err = steerer.expect(p.Error, where=lambda m: m.ref == 91)
+    assert err.path == "sim_params.temperatur_K" and "unknown field" in err.message
+    seq = steerer.send(p.Ping(client_time=0.0))
+    steerer.expect(p.Pong, where=lambda m: m.ref == seq)  # the server read past it
+    forwarded = [m for m in sim.drain(0.5) if isinstance(m, p.SimParams)]
+    assert not forwarded, "a refused change reached the simulation"
+    sim.close()
+    steerer.close()
 
 
 def test_refused_sim_params_are_rolled_back(live_server: LiveServer) -> None:
