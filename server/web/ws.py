@@ -41,6 +41,9 @@ log = logging.getLogger("scalesteer.ws")
 Endpoint = Literal["sim", "view"]
 _client_ids = itertools.count(1)
 MAX_ERRORS_PER_10S = 50
+MAX_REFUSED_PER_10S = 2000
+"""Messages refused for their rate within 10 s before the connection closes: a client that
+keeps sending at many times its rate (20 times the steering rate's burst) is not slowing down."""
 OFFLOAD_BYTES = 1 << 20
 PONG_BACKLOG = 64
 """A ping is not answered while this many messages wait to be sent to its peer."""
@@ -56,16 +59,27 @@ class Guard:
     owner: tuple[str, str]
     """The client (role, address) whose selection-worker time this connection uses."""
     errors: deque[float] = field(default_factory=lambda: deque(maxlen=64))
+    refused: deque[float] = field(default_factory=lambda: deque(maxlen=MAX_REFUSED_PER_10S + 1))
+    """When its messages over the rate limit came: valid messages, refused for their rate."""
 
     @classmethod
     def of(cls, budget: ClientBudget, owner: tuple[str, str]) -> Guard:
         return cls(budget.steer, budget.any, owner)
 
-    def note_error(self) -> int:
-        """Record a protocol error; returns how many happened in the last 10 s."""
+    def note_error(self, err: p.ProtocolError) -> str | None:
+        """Record a refused message; returns why the connection closes now, if it does. A
+        message over the rate limit is not an invalid one: a burst of valid steering is
+        answered `rate_limited` message by message and the connection stays, unless the
+        client keeps sending at many times its rate (`MAX_REFUSED_PER_10S`)."""
         now = time.monotonic()
-        self.errors.append(now)
-        return sum(1 for t in self.errors if now - t < 10.0)
+        if err.code == p.ErrorCode.RATE_LIMITED:
+            kept, limit, what = self.refused, MAX_REFUSED_PER_10S, "messages over the rate limit"
+        else:
+            kept, limit, what = self.errors, MAX_ERRORS_PER_10S, "invalid messages"
+        kept.append(now)
+        if sum(1 for t in kept if now - t < 10.0) > limit:
+            return f"too many {what} (more than {limit} within 10 s)"
+        return None
 
 
 class RefusedError(Exception):
@@ -318,10 +332,10 @@ async def _receive_loop(
         except p.ProtocolError as err:
             state.metrics.errors.labels(err.code.value).inc()
             client.send(p.error_message(err))
-            if guard.note_error() > MAX_ERRORS_PER_10S:
-                raise RefusedError(
-                    p.ProtocolError(p.ErrorCode.RATE_LIMITED, "too many invalid messages"), 1008
-                ) from None
+            closing = guard.note_error(err)
+            if closing is not None:
+                closed = p.ProtocolError(p.ErrorCode.RATE_LIMITED, closing)
+                raise RefusedError(closed, 1008) from None
 
 
 async def _dispatch(session: Session, client: Client, guard: Guard, message: p.Message) -> None:

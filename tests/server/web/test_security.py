@@ -12,6 +12,8 @@ import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 import protocol as p
+from server.web.auth import RateLimiter
+from server.web.ws import MAX_ERRORS_PER_10S, MAX_REFUSED_PER_10S, Guard
 from tests.conftest import LiveServer
 from tests.protocol.samples import samples
 from tests.protocol.test_fuzz import _mutations
@@ -89,15 +91,22 @@ def test_oversized_message_is_too_large_and_closes_1009(live_server: LiveServer)
 
 
 def test_steering_flood_is_rate_limited(live_server: LiveServer) -> None:
+    """A burst of valid steering over the rate is answered message by message, each refusal
+    naming the limit, and the connection stays (a burst is not a run of invalid messages)."""
     steerer = Peer(live_server.view_url, "steerer", live_server.token)
     limit = live_server.settings.limits.max_steer_per_s
-    for i in range(int(limit * 2) + 20):
-        try:
-            steerer.send(p.SetRenderParams(params={"iso_level": 0.3 + (i % 5) * 0.1}))
-        except ConnectionClosed:  # a sustained flood is cut off
-            break
-    codes = [m.code for m in steerer.drain(3.0) if isinstance(m, p.Error)]
-    assert "rate_limited" in codes
+    seqs = {
+        steerer.send(p.SetRenderParams(params={"iso_level": 0.3 + (i % 5) * 0.1}))
+        for i in range(int(limit * 2) + 20)
+    }
+    answers = steerer.drain(3.0)
+    refused = [m for m in answers if isinstance(m, p.Error)]
+    assert refused and all(m.code == "rate_limited" for m in refused), refused
+    assert all(f"{limit:g} a second" in m.message for m in refused), refused[0].message
+    answered = {m.ref for m in answers if isinstance(m, p.State | p.Error) and m.ref is not None}
+    assert answered == seqs, f"{len(seqs - answered)} messages unanswered"
+    seq = steerer.send(p.Ping(client_time=0.0))
+    steerer.expect(p.Pong, where=lambda m: m.ref == seq)  # still connected
     # the budget is the client's (its role and address, all its connections together): on
     # loopback a new connection is the same client, which steers again once it has refilled
     other = Peer(live_server.view_url, "steerer", live_server.token)
@@ -361,3 +370,18 @@ def test_viewers_cannot_shut_the_steerers_out_of_a_session(tmp_path) -> None:  #
             peer.close()
     finally:
         server.stop()
+
+
+def test_refusals_for_rate_close_only_a_client_that_keeps_flooding() -> None:
+    """Invalid messages close a connection after `MAX_ERRORS_PER_10S`; messages refused only
+    for their rate after `MAX_REFUSED_PER_10S`, many times a burst of the steering rate."""
+    limiter = RateLimiter(120.0, 120.0)
+    guard = Guard(limiter, limiter, ("steerer", "127.0.0.1"))
+    over = p.ProtocolError(p.ErrorCode.RATE_LIMITED, "too many render_params messages")
+    assert all(guard.note_error(over) is None for _ in range(MAX_REFUSED_PER_10S))
+    closing = guard.note_error(over)
+    assert closing is not None and "over the rate limit" in closing
+    bad = p.ProtocolError(p.ErrorCode.INVALID_MESSAGE, "render_params.params.sigma_A: bad")
+    assert all(guard.note_error(bad) is None for _ in range(MAX_ERRORS_PER_10S))
+    closing = guard.note_error(bad)
+    assert closing is not None and "invalid messages" in closing
