@@ -10,7 +10,8 @@ import secrets
 import threading
 import weakref
 from collections.abc import Mapping, Sequence
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Any, Literal, cast
 from urllib.parse import parse_qs, urlsplit, urlunsplit
 
 from pydantic import ValidationError
@@ -41,16 +42,30 @@ def default_server(device: str = "auto") -> LocalServer:
         return _default_server
 
 
-def split_url(url: str) -> tuple[str, str | None, str | None]:
-    """(base URL, token, session) of a server URL or a dashboard link
-    (`http://HOST:PORT/?token=...&session=...`, as `scalesteer serve` prints it)."""
+@dataclass(frozen=True)
+class ServerLink:
+    """What a server URL or a dashboard link names (`http://HOST:PORT/?token=...&session=...`,
+    as `scalesteer serve` prints it; a read-only link adds `role=viewer`)."""
+
+    url: str
+    token: str | None
+    session: str | None
+    role: Role | None
+
+
+def split_url(url: str) -> ServerLink:
+    """The base URL, token, session and role a server URL or a dashboard link names."""
     parts = urlsplit(url if "://" in url else f"http://{url}")
     if parts.scheme not in ("http", "https") or not parts.hostname:
         raise ValueError(f"a server URL looks like http://127.0.0.1:8000, got {url!r}")
     query = parse_qs(parts.query)
     token = query.get("token", [None])[0]
     session = query.get("session", [None])[0]
-    return urlunsplit((parts.scheme, parts.netloc, "", "", "")), token, session
+    role = query.get("role", [None])[0]
+    if role not in (None, "steerer", "viewer"):
+        raise ValueError(f"a dashboard link's role is steerer or viewer, got {role!r}")
+    base = urlunsplit((parts.scheme, parts.netloc, "", "", ""))
+    return ServerLink(base, token, session, cast("Role | None", role))
 
 
 class Client:
@@ -59,14 +74,15 @@ class Client:
     `url`: the server (`http://127.0.0.1:8000`) or a dashboard link holding the token; None
     starts a server of this process's own (`device`: auto, cpu or cuda:N), shared by every
     client of the process and ended with it. `token`: the server token (steer everything) or
-    the viewer token (watch only); `role` `viewer` joins sessions read-only."""
+    the viewer token (watch only); `role` `viewer` joins sessions read-only (default: the
+    link's role, as a read-only dashboard link names it, else `steerer`)."""
 
     def __init__(
         self,
         url: str | None = None,
         token: str | None = None,
         *,
-        role: Role = "steerer",
+        role: Role | None = None,
         device: str = "auto",
         timeout: float = 30.0,
     ) -> None:
@@ -78,11 +94,13 @@ class Client:
                 atexit.register(_close_local_clients)
             _local_clients.add(self)
         else:
-            base, given, self.default_session = split_url(url)
-            token = token if token is not None else given or os.environ.get("SCALESTEER_TOKEN")
+            link = split_url(url)
+            base, self.default_session = link.url, link.session
+            token = token if token is not None else link.token or os.environ.get("SCALESTEER_TOKEN")
+            role = role or link.role
         self.url = base
         self.token = token
-        self.role: Role = role
+        self.role: Role = role or "steerer"
         self.timeout = timeout
         self.rest = Rest(base, token)
         self._sessions: list[Session] = []

@@ -274,12 +274,20 @@ class ViewLink:
         finally:
             self._pending.pop(seq, None)
 
-    async def view(self, view: View) -> int:
-        """Send this link's view (camera, size, codecs); not answered unless refused. Images
-        answering it (and later messages) carry a `ref` of at least its seq (`view_seq`)."""
-        ws = self._check_open()
+    def reserve_view(self) -> int:
+        """The seq of the next view, taken now on the caller's thread: from here on no image
+        of the views before it passes (`view_seq`), though the view goes out later."""
         seq = next(self._seq)
-        self.view_seq = seq  # before the send: no image of the old view can pass after it
+        self.view_seq = seq
+        return seq
+
+    async def view(self, view: View, seq: int | None = None) -> int:
+        """Send this link's view (camera, size, codecs) as `seq` (`reserve_view`; default: a
+        new one); not answered unless refused. Images answering it (and later messages) carry
+        a `ref` of at least its seq (`view_seq`)."""
+        ws = self._check_open()
+        if seq is None:
+            seq = self.reserve_view()  # before the send: no image of the old view passes after
         try:
             await ws.send(protocol.encode(view.model_copy(update={"seq": seq})))
         except ConnectionClosed:

@@ -324,9 +324,10 @@ class Session:
         return sub
 
     def next_image(
-        self, timeout: float = 60.0, width: int = 640, height: int = 480
+        self, width: int = 640, height: int = 480, timeout: float = 60.0
     ) -> StreamedImage:
-        """Wait for the next image of the live stream."""
+        """Wait for the next image of the live stream at this size (as `on_image`), at most
+        `timeout` seconds."""
         got: list[StreamedImage] = []
         arrived = threading.Event()
 
@@ -376,7 +377,9 @@ class Session:
         view = IDLE_VIEW if not sizes else View(width=max(w for w, _ in sizes),
                                                 height=max(h for _, h in sizes))  # fmt: skip
         if self.link.closed is None:
-            background.submit(self.link.view(view))
+            # the seq is taken here, before the caller goes on: an image of the idle view
+            # already on its way cannot reach a callback subscribed just now
+            background.submit(self.link.view(view, self.link.reserve_view()))
 
     def _image(self, message: Image) -> None:  # the client's loop
         # images rendered for the view before the last one (the idle 1x1) are not wanted

@@ -267,7 +267,7 @@ class SessionView(anywidget.AnyWidget):
 
     def _send_view(self, view: View) -> None:
         if self.link.closed is None:
-            background.submit(self.link.view(view))
+            background.submit(self.link.view(view, self.link.reserve_view()))
 
     async def _pick(self, pick: Pick) -> None:
         try:

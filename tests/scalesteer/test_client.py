@@ -94,9 +94,9 @@ def test_a_viewer_token_watches_but_may_not_steer(
     live_server: LiveServer, client: scalesteer.Client, small_universe: Any
 ) -> None:
     session = client.open(small_universe, frame=0)
-    viewer = scalesteer.connect(
-        f"{live_server.url}/?role=viewer&token={live_server.viewer_token}", role="viewer"
-    )
+    # the dashboard's read-only link as it is: its role=viewer is taken from it
+    viewer = scalesteer.connect(f"{live_server.url}/?role=viewer&token={live_server.viewer_token}")
+    assert viewer.role == "viewer"
     watched = viewer.session(session.name)
     assert watched.sim.n_atoms == 3341
     with pytest.raises(ScalesteerError) as refused:
@@ -224,8 +224,9 @@ def test_next_image_takes_the_size_asked_for(
 ) -> None:
     session = client.open(small_universe, frame=0)
     started = time.monotonic()
-    image = session.next_image(timeout=60, width=72, height=54)
+    image = session.next_image(72, 54)  # width, height, as on_image takes them
     assert image.array().shape == (54, 72, 3), time.monotonic() - started
+    assert session.next_image(48, 36, timeout=60).array().shape == (36, 48, 3)
 
 
 def test_a_part_of_a_universe_keeps_the_bonds_among_its_atoms(small_universe: Any) -> None:
