@@ -26,6 +26,7 @@ import protocol as p
 from protocol.messages import SESSION_NAME
 from server.web.access import GatedRoute, steerer_access, viewer_access
 from server.web.children import ReplayManager
+from server.web.forms import FormBody
 from server.web.rest import State, save_upload
 from server.web.state import AppState
 from structures.errors import StructureError
@@ -72,6 +73,7 @@ async def open_replay(
     request: Request,
     state: State,
     _role: Annotated[p.Role, Depends(steerer_access)],
+    _form: FormBody,
     topology: Annotated[UploadFile, File(description="structure or topology file")],
     trajectory: Annotated[
         list[UploadFile] | None, File(description="trajectory files (DCD, XTC, TRR, ...)")

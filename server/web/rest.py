@@ -50,6 +50,7 @@ from server.web.access import (
     viewer_access,
 )
 from server.web.auth import client_address
+from server.web.forms import FormBody
 from server.web.state import AppState
 from structures.errors import StructureError
 from structures.isolated import IsolatedStructure
@@ -233,6 +234,7 @@ async def render_image(
     http: Request,
     state: State,
     role: Annotated[p.Role, Depends(render_access)],
+    _form: FormBody,
     file: Annotated[
         UploadFile | None,
         File(description="a structure: PDB, mmCIF, BinaryCIF, GRO, TPR, XYZ, ... (gzipped too)"),
@@ -361,6 +363,7 @@ async def render_image(
 async def create_job(
     state: State,
     _role: Annotated[p.Role, Depends(steerer_access)],
+    _form: FormBody,
     topology: Annotated[UploadFile | None, File(description="topology/structure file")] = None,
     trajectory: Annotated[
         list[UploadFile] | None, File(description="DCD/XTC/TRR/multi-model PDB")
@@ -568,6 +571,7 @@ async def record_session(
     session_id: str,
     state: State,
     _role: Annotated[p.Role, Depends(steerer_access)],
+    _form: FormBody,
     camera: Annotated[
         str | None, Form(description="Camera as JSON; default the session's camera")
     ] = None,

@@ -404,6 +404,30 @@ def test_rest_input_that_answered_500_is_a_named_4xx(live_server: LiveServer) ->
         assert r.status_code == 200, r.text
 
 
+def test_a_json_body_to_a_form_endpoint_is_refused_not_read_as_no_fields(
+    live_server: LiveServer,
+) -> None:
+    """A JSON body where form fields go was read as no fields at all, and the defaults ran:
+    `{"fps": "x"}` to a session's movies started a 1,800-frame movie (202)."""
+    auth = {"Authorization": "Bearer test-token"}
+    with httpx.Client(base_url=live_server.url, timeout=60) as c:
+        for url in (
+            "/api/sessions/default/movies",
+            "/api/jobs",
+            "/api/render",
+            "/api/replays",
+        ):
+            r = c.post(url, headers=auth, json={"fps": "x", "bogus": 1})
+            assert r.status_code == 415, (url, r.status_code, r.text)
+            assert "form fields" in r.json()["detail"] and "application/json" in r.json()["detail"]
+        r = c.post("/api/sessions/default/movies", json={"fps": 10})  # no token: 401 first
+        assert r.status_code == 401
+        r = c.post("/api/sessions/nobody/movies", headers=auth, data={"fps": "10"})
+        assert r.status_code == 404  # form fields go on to the endpoint as before
+        jobs = c.get("/api/jobs", headers=auth).json()
+        assert not [j for j in jobs if j.get("session") == "default"], jobs
+
+
 # ---------------------------------------------------------------- jobs across restarts (10)
 
 
