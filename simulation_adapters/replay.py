@@ -171,10 +171,24 @@ class TrajectoryReplay:
                 if at_end and self.loop:
                     self.index, at_end = 0, False
                 finished = at_end and self.exit_at_end and not self.paused
+                # the last frame shown, not looping: the replay pauses there (a player at its
+                # end is not playing), and says so; resume plays it again from the start
+                ended = at_end and not finished and not self.paused
+                if ended:
+                    self.paused, self._budget = True, 0
                 waiting = at_end or (self.paused and self._budget == 0)
             if finished:  # outside the lock: closing reports states that take it
                 self._flush()
                 return
+            if ended:
+                self.connection.send_event(
+                    Event(
+                        level="info",
+                        code="paused",
+                        message="the replay reached its last frame; resume plays it again",
+                        step=self.shown if self.shown is not None else self.n_frames - 1,
+                    )
+                )
             if waiting:
                 with self._cond:
                     self._cond.wait_for(functools.partial(self._woken, seen))
@@ -284,6 +298,8 @@ class TrajectoryReplay:
                 return True, {"paused": True}, ""
             if action == "resume":
                 self.paused, self._budget = False, 0
+                if self.index >= self.n_frames:  # paused at the end: play it again
+                    self.index = 0
                 return True, {"paused": False}, ""
             if action == "step":
                 if not self.paused:

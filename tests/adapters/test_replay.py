@@ -148,6 +148,26 @@ def test_seek_step_speed_loop_and_stop(peer: SimPeer, replays: list[TrajectoryRe
     assert any(a.ref == stop for a in peer.of_type(type(refused)))
 
 
+def test_the_end_without_loop_pauses_there_and_resume_plays_again(
+    peer: SimPeer, replays: list[TrajectoryReplay]
+) -> None:
+    """A replay at its last frame is not playing: it pauses there and says so (the dashboard
+    then shows it paused, not running at a rate), and resume starts it again from frame 0."""
+    r = play(replays, peer, PSF, DCD, fps=2000)
+    (ended,) = peer.wait_for(
+        lambda: [e for e in peer.of_type(Event) if e.code == "paused"], timeout=60
+    )
+    assert ended.step == 97 and "last frame" in ended.message
+    assert [f.step for f in peer.frames] == list(range(98))
+    assert r.paused
+    time.sleep(0.3)
+    assert len(peer.frames) == 98  # waits at the end
+    ack = peer.wait_ack(peer.send(Control(action="resume")))
+    assert ack.ok
+    peer.wait_for(lambda: len(peer.frames) > 98, timeout=30)
+    assert peer.frames[98].step == 0
+
+
 def test_a_reconnect_declares_the_playback_as_it_is_now(
     peer: SimPeer, replays: list[TrajectoryReplay]
 ) -> None:
