@@ -89,6 +89,40 @@ function finite(x, fallback) {
   return Number.isFinite(x) ? x : fallback;
 }
 
+/**
+ * Everything wrong with a camera a file or a link gives (each naming its field), where
+ * `normalizeCamera` would quietly put a default or a clamped value in its place; empty when none.
+ */
+export function cameraProblems(cam) {
+  if (!cam || typeof cam !== "object" || Array.isArray(cam)) return ["camera is not an object"];
+  const problems = [];
+  const numbers = (key, n) => {
+    const v = cam[key];
+    if (v === undefined) return;
+    if (!Array.isArray(v) || v.length !== n || !v.every((x) => typeof x === "number" && Number.isFinite(x))) {
+      problems.push(`camera.${key} must be ${n} numbers`);
+    }
+  };
+  numbers("target", 3);
+  numbers("orientation", 4);
+  if (Array.isArray(cam.orientation) && cam.orientation.every((x) => x === 0))
+    problems.push("camera.orientation is zero");
+  const bounded = (key, lo, hi) => {
+    const v = cam[key];
+    if (v === undefined) return;
+    if (typeof v !== "number" || !Number.isFinite(v))
+      problems.push(`camera.${key} ${JSON.stringify(v)} is not a number`);
+    else if (v < lo || v > hi) problems.push(`camera.${key} ${v} is outside [${lo}, ${hi}]`);
+  };
+  bounded("distance", MIN_DISTANCE, MAX_DISTANCE);
+  bounded("fov_deg", 5, 120);
+  bounded("ortho_height", 0.1, Infinity);
+  if (cam.projection !== undefined && !["perspective", "orthographic"].includes(cam.projection)) {
+    problems.push(`camera.projection ${JSON.stringify(cam.projection)} is not perspective or orthographic`);
+  }
+  return problems;
+}
+
 /** A valid camera from anything camera-like (missing or non-finite fields take defaults). */
 export function normalizeCamera(cam) {
   const c = cam && typeof cam === "object" ? cam : {};

@@ -143,3 +143,59 @@ export function diffRender(base, params) {
 export function shownSpace(value) {
   return value === "warped" ? "carved" : value;
 }
+
+function describe(value) {
+  return typeof value === "string" ? JSON.stringify(value) : String(value);
+}
+
+/** What is wrong with a value `key` of the render parameters takes (null: nothing). */
+function problemOf(key, value, base) {
+  if (Array.isArray(base)) {
+    if (!Array.isArray(value)) return `${key} ${describe(value)} is not a list`;
+    if (base.length === 3 && typeof base[0] === "number") {
+      const ok = value.length === 3 && value.every((v) => typeof v === "number" && v >= 0 && v <= 1);
+      return ok ? null : `${key} must be three numbers from 0 to 1`;
+    }
+    return null; // points and layers: the server checks each one
+  }
+  if (typeof base === "number") {
+    if (typeof value !== "number" || !Number.isFinite(value)) return `${key} ${describe(value)} is not a number`;
+    const range = RANGES[key];
+    if (range && (value < range[0] || value > range[1])) return `${key} ${value} is outside [${range[0]}, ${range[1]}]`;
+    return null;
+  }
+  if (typeof base === "boolean")
+    return typeof value === "boolean" ? null : `${key} ${describe(value)} is not true or false`;
+  const choices = ENUMS[key.split(".").pop()];
+  if (choices) return choices.includes(value) ? null : `${key} ${describe(value)} is not one of ${choices.join(", ")}`;
+  return typeof value === "string" ? null : `${key} ${describe(value)} is not text`;
+}
+
+/**
+ * Everything wrong with `render`, a whole or partial set of render parameters from a file or a
+ * link (unknown keys, wrong types, values out of range), each naming its key; empty when none.
+ */
+export function renderProblems(render) {
+  const problems = [];
+  for (const [key, value] of Object.entries(render ?? {})) {
+    if (!(key in RENDER_DEFAULTS)) {
+      problems.push(`${key} is not a render parameter`);
+    } else if (key === "lighting") {
+      if (!value || typeof value !== "object" || Array.isArray(value)) {
+        problems.push(`lighting ${describe(value)} is not an object`);
+        continue;
+      }
+      for (const [name, v] of Object.entries(value)) {
+        if (!(name in LIGHTING_DEFAULTS)) problems.push(`lighting.${name} is not a lighting parameter`);
+        else {
+          const why = problemOf(`lighting.${name}`, v, LIGHTING_DEFAULTS[name]);
+          if (why) problems.push(why);
+        }
+      }
+    } else {
+      const why = problemOf(key, value, RENDER_DEFAULTS[key]);
+      if (why) problems.push(why);
+    }
+  }
+  return problems;
+}

@@ -2,6 +2,9 @@
 // saved from the dashboard and opened again later (or by someone else, in another session of
 // the same system).
 
+import { cameraProblems } from "./camera.js";
+import { renderProblems } from "./params.js";
+
 export const VIEW_FILE_VERSION = 1;
 
 /** The JSON object of a view. */
@@ -34,6 +37,12 @@ export function readViewFile(text) {
   const render = data.render_params && typeof data.render_params === "object" ? data.render_params : null;
   const atoms = Array.isArray(data.atoms) ? data.atoms.filter((a) => Number.isInteger(a) && a >= 0).slice(0, 4) : [];
   if (!camera && !render) throw new Error("the view file has neither a camera nor render parameters");
+  // a damaged file is refused whole, every problem named: nothing of it half-applied
+  const problems = [
+    ...(camera ? cameraProblems(camera) : []),
+    ...(render ? renderProblems(render).map((why) => `render_params.${why}`) : []),
+  ];
+  if (problems.length) throw new Error(`the view file was not applied: ${problems.join("; ")}`);
   return { session: typeof data.session === "string" ? data.session : null, camera, render, atoms };
 }
 

@@ -148,6 +148,18 @@ def test_a_saved_view_opens_again(
     bad.write_text('{"hello": 1}')
     page.set_input_files("#open-view-file", str(bad))
     expect(page.locator("#notices")).to_contain_text("not a view file")
+    # a damaged copy is refused whole, naming each problem: neither its camera nor its sigma
+    damaged = dict(saved, camera={**saved["camera"], "distance": -5})
+    damaged["render_params"] = {**saved["render_params"], "sigma_A": "x", "mode": "hologram"}
+    broken = tmp_path / "damaged.json"
+    broken.write_text(json.dumps(damaged))
+    page.set_input_files("#open-view-file", str(broken))
+    notices = page.locator("#notices")
+    expect(notices).to_contain_text("was not applied")
+    expect(notices).to_contain_text("camera.distance -5")
+    expect(notices).to_contain_text('render_params.sigma_A "x" is not a number')
+    assert dash.evaluate("() => window.scalesteer.render.sigma_A") == 2.2
+    assert dash.evaluate("() => window.scalesteer.camera")["distance"] == restored["distance"]
 
 
 def test_recording_the_view_downloads_a_movie_of_it(
