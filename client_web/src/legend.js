@@ -4,6 +4,7 @@
 
 import { el } from "./dom.js";
 import { sig } from "./format.js";
+import { sessionColourApplies } from "./params.js";
 
 const css = (rgb) => `rgb(${rgb.map((c) => Math.round(c * 255)).join(", ")})`;
 
@@ -38,8 +39,23 @@ export function legendText(legend) {
   return { title, low: end(legend.low, words.low), high: end(legend.high, words.high), note: words.note };
 }
 
-/** Fill `root` with the legend of `legend` (hidden when there is none). */
-export function showLegend(root, legend) {
+/**
+ * Fill `root` with the legend of `legend` (hidden when there is none); where nothing drawn takes
+ * the session's colouring (`render` all volume), it names the transfer function instead.
+ */
+export function showLegend(root, legend, render = null) {
+  if (render && !sessionColourApplies(render)) {
+    root.hidden = false;
+    root.dataset.colorBy = "transfer_function";
+    root.replaceChildren(
+      el("div", { className: "legend-title", text: "Transfer function" }),
+      el("p", {
+        className: "legend-note",
+        text: "volume mode: the colours and opacity are the transfer function's (Scale and rendering)",
+      }),
+    );
+    return;
+  }
   root.hidden = !legend;
   if (!legend) return;
   root.dataset.colorBy = legend.color_by;

@@ -140,7 +140,10 @@ export class DashboardMessages {
         this.loadMarks();
       }
     }
-    if (m.legend) showLegend($("legend"), m.legend);
+    if (m.legend) {
+      this.legend = m.legend;
+      this.showLegend();
+    }
     if (m.cell) {
       this.cell = m.cell;
       this.showCell();
@@ -169,7 +172,13 @@ export class DashboardMessages {
     this.periodicPanel.update(this.render);
     this.showCell();
     this.showTransferFunction();
+    this.showLegend();
     this.writeHashSoon();
+  }
+
+  /** The colour legend of what the picture draws now (the session's or the transfer function's). */
+  showLegend() {
+    showLegend($("legend"), this.legend ?? null, this.render);
   }
 
   /** The periodic box's outline over the picture, when the session shows it. */
@@ -196,7 +205,6 @@ export class DashboardMessages {
     Object.assign(this.pendingRender, patch);
     this.flushRender();
   }
-
 
   connectionStatus(s) {
     const badge = $("conn-badge");

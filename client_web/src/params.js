@@ -199,3 +199,15 @@ export function renderProblems(render) {
   }
   return problems;
 }
+
+/**
+ * Whether the session's `color_by` colours anything drawn: volume mode draws the transfer
+ * function's colours, so it applies only to parts drawn as surfaces, sticks or tubes that do not
+ * set a colouring of their own (layers).
+ */
+export function sessionColourApplies(render) {
+  const r = render ?? RENDER_DEFAULTS;
+  const layers = (r.layers ?? []).filter((layer) => layer.visible !== false);
+  if (!layers.length) return r.mode !== "volume";
+  return layers.some((layer) => (layer.mode ?? r.mode) !== "volume" && !layer.color_by);
+}

@@ -7,6 +7,7 @@ import {
   SIGMA_SLIDER,
   clamp,
   clampParam,
+  sessionColourApplies,
   shownSpace,
   sigmaFromSlider,
   sliderFromSigma,
@@ -174,7 +175,12 @@ export class RenderPanel {
   }
 
   syncEnabled() {
-    this.uniformColor.disabled = this.disabled || this.colorBy.value !== "uniform";
+    const applies = sessionColourApplies(this.render);
+    this.colorBy.disabled = this.disabled || !applies;
+    this.colorBy.title = applies
+      ? ""
+      : "volume mode draws the transfer function's colours: Colour by applies to surfaces, sticks and tubes";
+    this.uniformColor.disabled = this.disabled || !applies || this.colorBy.value !== "uniform";
     const space = shownSpace(this.render.scale_space);
     const warped = space !== "classical";
     this.warpStrength.disabled = this.disabled || !warped;

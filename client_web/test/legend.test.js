@@ -2,6 +2,7 @@ import assert from "node:assert/strict";
 import { test } from "node:test";
 
 import { legendText } from "../src/legend.js";
+import { sessionColourApplies } from "../src/params.js";
 
 test("the motion legend says what its unit is and what its ends mean", () => {
   const motion = {
@@ -35,4 +36,17 @@ test("other ramps and swatches keep their plain words", () => {
   };
   assert.deepEqual(legendText(charge), { title: "Charge", low: "-0.5 e", high: "0.5 e", note: "" });
   assert.equal(legendText({ color_by: "element", entries: [] }).title, "Element");
+});
+
+test("the session's colouring applies unless everything drawn is volume", () => {
+  assert.equal(sessionColourApplies({ mode: "iso", layers: [] }), true);
+  assert.equal(sessionColourApplies({ mode: "volume", layers: [] }), false);
+  const protein = { name: "protein", selection: "protein", visible: true, mode: null };
+  const ligand = { name: "ligand", selection: "resname LIG", visible: true, mode: "licorice" };
+  assert.equal(sessionColourApplies({ mode: "volume", layers: [protein] }), false);
+  assert.equal(sessionColourApplies({ mode: "volume", layers: [protein, ligand] }), true);
+  // a layer with its own colouring does not take the session's; a hidden one draws nothing
+  assert.equal(sessionColourApplies({ mode: "volume", layers: [protein, { ...ligand, color_by: "chain" }] }), false);
+  assert.equal(sessionColourApplies({ mode: "volume", layers: [protein, { ...ligand, visible: false }] }), false);
+  assert.equal(sessionColourApplies({ mode: "iso", layers: [{ ...protein, mode: "volume" }] }), false);
 });

@@ -459,8 +459,12 @@ def test_transfer_function_editor_steers_the_session(
         assert [(p["x"], tuple(p["color"]), p["alpha"]) for p in presets[name]] == [
             (x, tuple(c), a) for x, c, a in rows
         ], name
+    expect(page.locator("#color-by")).to_be_enabled()
     page.locator("label", has_text="Volume").click()
     wait_until(lambda: session(live_server).render_params.mode == "volume", "volume mode")
+    # volume draws the transfer function's colours: the legend says so, Colour by rests
+    expect(page.locator("#legend")).to_contain_text("Transfer function")
+    expect(page.locator("#color-by")).to_be_disabled()
     points = page.locator("#tf-editor circle.point")
     expect(points).to_have_count(len(PRESETS["cloud"]))
     page.locator("#tf-editor").scroll_into_view_if_needed()
