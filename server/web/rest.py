@@ -385,6 +385,8 @@ async def create_job(
     check_size(state, width, height)
     if (topology is None) == (dataset is None):
         raise HTTPException(422, "give exactly one of topology (upload) or dataset")
+    if stop is not None and stop <= start:  # refused now, not a job that fails once it runs
+        raise HTTPException(422, f"stop {stop} must be after start {start}: no frame between")
     render_params = _model(p.RenderParams, params, "params") or p.RenderParams()
     check_layer_texts(state, render_params, "params")
     check_periodic_texts(state, render_params, "params")
@@ -412,6 +414,10 @@ async def create_job(
             except StructureError as exc:
                 raise HTTPException(422, str(exc)) from None
             await asyncio.to_thread(checked.close)
+        if start >= checked.n_frames:
+            raise HTTPException(
+                422, f"start {start} is past the last frame: the trajectory has {checked.n_frames}"
+            )
     except BaseException:  # nothing of a refused job stays on disk
         shutil.rmtree(workdir, ignore_errors=True)
         raise

@@ -157,6 +157,19 @@ def test_job_cancel_and_bad_job_input(live_server: LiveServer) -> None:
         assert "atoms" in r.json()["detail"], r.json()
         r = c.post("/api/jobs", headers=AUTH, files=[("topology", ("t.pdb", b"junk\n" * 5))])
         assert r.status_code == 422 and "t.pdb" in r.json()["detail"]
+        # frame ranges that hold no frame are refused at once, not as a job that fails later
+        for data, said in (
+            ({"start": "50", "stop": "10"}, "stop 10 must be after start 50"),
+            ({"start": "98"}, "the trajectory has 98"),
+        ):
+            with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+                r = c.post(
+                    "/api/jobs",
+                    headers=AUTH,
+                    files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                    data={"width": "32", "height": "24", **data},
+                )
+            assert r.status_code == 422 and said in r.json()["detail"], r.text
         r = c.post(
             "/api/jobs", headers={"Authorization": "Bearer viewer-token"}, data={"dataset": "x"}
         )
