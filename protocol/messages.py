@@ -10,9 +10,18 @@ and the test vectors are generated from one file and its one tagged union.
 
 from __future__ import annotations
 
+import types
+import typing
 from typing import TYPE_CHECKING, Annotated, Any, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    create_model,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
 
 from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
@@ -41,10 +50,48 @@ SESSION_NAME = r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$"
 """Session names: letters, digits, '_', '-', '.', not starting with '.' (they name log files)."""
 
 
+def _is_number(annotation: Any) -> bool:
+    """Whether a field's type is a number (int or float, optionally None), not a bool."""
+    if typing.get_origin(annotation) is Annotated:
+        return _is_number(typing.get_args(annotation)[0])
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        kinds = [a for a in typing.get_args(annotation) if a is not type(None)]
+        return bool(kinds) and all(_is_number(a) for a in kinds)
+    return annotation in (int, float)
+
+
+_NUMBER_FIELDS: dict[tuple[type, str], bool] = {}
+"""Which (model, field) pairs hold a number, learnt on first use."""
+
+
+def _number_field(model: type[BaseModel], name: Any) -> bool:
+    key = (model, str(name))
+    number = _NUMBER_FIELDS.get(key)
+    if number is None:
+        field = model.model_fields.get(str(name))
+        number = _NUMBER_FIELDS[key] = field is not None and _is_number(field.annotation)
+    return number
+
+
 class Model(BaseModel):
     """Base of every wire model: unknown fields are ignored (forward compatibility)."""
 
     model_config = ConfigDict(extra="ignore", frozen=True, use_enum_values=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_booleans_for_numbers(cls, data: Any) -> Any:
+        """true or false where a number goes is refused: pydantic would read it as 1 or 0
+        (`sigma_A: true` drew at 1 A), where a client had meant something else."""
+        if isinstance(data, dict):
+            for name, value in data.items():
+                if isinstance(value, bool) and _number_field(cls, name):
+                    raise PydanticCustomError(
+                        "bool_for_number",
+                        "{field}: true or false is not a number",
+                        {"field": str(name)},
+                    )
+        return data
 
 
 class Message(Model):

@@ -7,6 +7,7 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 import protocol as p
 from tests.protocol.samples import samples
@@ -210,6 +211,29 @@ def test_a_request_names_a_key_its_message_has_no_field_for() -> None:
     message = p.decode(ok, p.DEFAULT_LIMITS, requests)
     assert isinstance(message, p.SetRenderParams)
     assert message.changes() == {"lighting": {"ambient": 1.0}}
+
+
+def test_true_or_false_is_not_taken_for_a_number() -> None:
+    """pydantic reads a bool as 1 or 0 where a number goes: `sigma_A: true` drew at 1 A."""
+    for obj, where in (
+        ({"type": "render_params", "params": {"sigma_A": True}}, "render_params.params"),
+        (
+            {"type": "render_params", "params": {"lighting": {"ambient": False}}},
+            "render_params.params.lighting",
+        ),
+        ({"type": "control", "action": "step", "n_steps": True}, "control"),
+        ({"type": "sim_params", "temperature_K": True}, "sim_params"),
+    ):
+        err = reject(obj)
+        assert err.code == p.ErrorCode.INVALID_MESSAGE and err.path == where, err
+        assert "true or false is not a number" in err.message
+    # booleans where booleans go, numbers where numbers go
+    ok = {"type": "render_params", "params": {"sigma_A": 2, "lighting": {"key_light": True}}}
+    message = p.decode(msgpack.packb(ok))
+    assert isinstance(message, p.SetRenderParams)
+    assert message.changes() == {"sigma_A": 2.0, "lighting": {"key_light": True}}
+    with pytest.raises(ValidationError, match="true or false is not a number"):
+        p.RenderParams.model_validate({"iso_level": True})  # REST and files alike
 
 
 def test_error_message_echoes_ref() -> None:
