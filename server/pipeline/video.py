@@ -361,8 +361,11 @@ class VideoEncoders:
 
     def describe(self) -> dict[str, Any]:
         chosen = self.chosen()
-        return {
+        out: dict[str, Any] = {
             "encoders": dict(chosen),
             "unavailable": dict(self._why),
             "streams": {"open": self.open_streams, "max": self.max_streams},
         }
+        if not self.preference:  # no encoder and nothing unavailable: say why
+            out["off"] = "no video codec is configured (--video-codecs): viewers get JPEG images"
+        return out

@@ -51,6 +51,13 @@ def test_without_nvenc_h264_falls_back_to_libx264_and_says_why(
     assert any("h264_nvenc unavailable" in r.message for r in caplog.records)
 
 
+def test_a_server_without_video_codecs_says_why_it_streams_jpeg() -> None:
+    """The CPU demo configures none: /healthz had shown no encoder and nothing unavailable."""
+    off = VideoEncoders(()).describe()
+    assert off["encoders"] == {} and "--video-codecs" in off["off"]
+    assert "off" not in VideoEncoders(("h264",)).describe()
+
+
 def test_the_server_preference_decides_among_what_the_viewer_decodes() -> None:
     encoders = VideoEncoders(("h264", "vp9"))
     assert encoders.pick(["vp9", "h264"]) == "h264"
