@@ -262,7 +262,10 @@ class SteeringReporter:
         integrator = simulation.context.getIntegrator()
         kind = type(integrator).__name__
         params: dict[str, ParamRange] = {
-            "frame_interval": ParamRange(min=1, max=1_000_000, unit="steps"),
+            # `recommended`: each value as the engine runs it now (the dashboard shows it)
+            "frame_interval": ParamRange(
+                min=1, max=1_000_000, unit="steps", recommended=self.interval
+            ),
         }
         unavailable: dict[str, str] = {
             "seek": "a live simulation has no frames to seek",
@@ -284,7 +287,11 @@ class SteeringReporter:
         else:
             unavailable["timestep_fs"] = f"{kind} has no fixed time step"
         if hasattr(integrator, "setFriction") or hasattr(integrator, "setCollisionFrequency"):
-            params["friction_per_ps"] = ParamRange(min=0.01, max=100.0, unit="1/ps")
+            get = getattr(integrator, "getFriction", None) or integrator.getCollisionFrequency
+            friction = get().value_in_unit(unit.picosecond**-1)
+            params["friction_per_ps"] = ParamRange(
+                min=0.01, max=max(100.0, friction), unit="1/ps", recommended=friction
+            )
         else:
             unavailable["friction_per_ps"] = f"{kind} has no friction"
         return EngineInfo(

@@ -43,6 +43,8 @@ export class DashboardMessages {
         if (m.ref !== undefined && m.ref !== null && this.unconfirmed.refused(m.ref)) this.showRender();
         const r = this.acks.error(m);
         if (r) this.simPanel.showAck(r.key, r.status, r.key === "control" ? r.status.label : "");
+        // a refused parameter: its field shows the value in effect again, not the one refused
+        if (r && r.key !== "control") this.simPanel.restoreParam(r.key, this.simParams);
         this.notices.serverError(m);
         return undefined;
       }

@@ -35,6 +35,9 @@ export class SimPanel {
         const raw = Number(input.value);
         if (range && Number.isFinite(raw) && (raw < range.min || raw > range.max)) {
           this.onInvalid(`${key} ${input.value} is outside ${rangeText(this.engine, range)}; not sent`);
+          // the field shows the value in effect again, and its line says this one was not sent
+          this.showAck(key, { state: "failed", text: `${input.value} not sent: outside the range` });
+          this.restoreParam(key, this.params);
           return;
         }
         const value = clampParam(key, input.value);
@@ -78,8 +81,11 @@ export class SimPanel {
         input.min = String(range.min);
         input.max = String(range.max);
       }
+      // the value the engine runs at, where it says, until a steerer sets one
+      const running = range && Number.isFinite(range.recommended) ? bound(range.recommended, 4) : "";
+      input.placeholder = running || "default";
       const hint = document.getElementById(`range-${key}`);
-      if (hint) setText(hint, why ? "not available" : range ? `${sig(range.min, 3)}–${sig(range.max, 4)}` : "");
+      if (hint) setText(hint, why ? "not available" : range ? `${bound(range.min, 3)}–${bound(range.max, 4)}` : "");
     }
     this.syncButtons();
   }
@@ -136,11 +142,21 @@ export class SimPanel {
 
   /** The session's current simulation parameters (unset ones show the engine default). */
   updateParams(params) {
+    this.params = params;
     for (const [key, input] of this.inputs) {
       const v = params?.[key];
       if (isBusy(input)) continue;
       input.value = v === undefined || v === null ? "" : String(v);
     }
+  }
+
+  /** A refused value of `key` leaves its field: the value in effect shows again (or the
+   * engine's, as a placeholder), even while the field has the focus. */
+  restoreParam(key, params) {
+    const input = this.inputs.get(key);
+    if (!input) return;
+    const v = params?.[key];
+    input.value = v === undefined || v === null ? "" : String(v);
   }
 
   /** Show a status {state, text} for a parameter key or "control". */
@@ -152,7 +168,12 @@ export class SimPanel {
   }
 }
 
+/** A range's end: whole numbers with thousands separators (1,000,000, not 1.000e+6). */
+export function bound(v, digits) {
+  return Number.isInteger(v) && Math.abs(v) < 1e12 ? integer(v) : sig(v, digits);
+}
+
 function rangeText(engine, range) {
   const unit = range.unit ? ` ${range.unit}` : "";
-  return `${engine.name}'s range ${sig(range.min, 3)}–${sig(range.max, 4)}${unit}`;
+  return `${engine.name}'s range ${bound(range.min, 3)}–${bound(range.max, 4)}${unit}`;
 }

@@ -539,6 +539,11 @@ def test_the_engine_declares_what_it_can_be_steered_with(
     assert set(info.controls) == {"pause", "resume", "step", "reset", "stop"}
     assert info.params["temperature_K"].max == 1000.0
     assert info.params["temperature_K"].recommended == pytest.approx(300.0)
+    # each value as the engine runs it now: the dashboard shows them before anyone steers
+    assert info.params["friction_per_ps"].recommended == pytest.approx(
+        _sim.integrator.getFriction().value_in_unit(unit.picosecond**-1)
+    )
+    assert info.params["frame_interval"].recommended == reporter.interval
     # villin constrains its bonds to hydrogen (and its hydrogens are light): 2.5 fs at most
     assert info.params["timestep_fs"].max == 2.5
     assert info.pull is not None and info.pull.max_force == reporter.max_force

@@ -370,6 +370,13 @@ def test_temperature_change_is_pending_until_acknowledged_with_its_step(
     assert texts.index("pending…") < len(texts) - 1
     step = int(page.locator("#ack-temperature_K").text_content().split()[3].replace(",", ""))
     assert step > 0
+    # a value outside the engine's range is not sent: the field shows the value in effect again
+    # and its line says so (it had kept the refused value over the old "applied at step")
+    page.fill("#sim-temperature", "5000")
+    page.press("#sim-temperature", "Enter")
+    expect(page.locator("#ack-temperature_K")).to_have_text("5000 not sent: outside the range")
+    expect(page.locator("#sim-temperature")).to_have_value("350")
+    expect(page.locator("#notices")).to_contain_text("outside")
     # run control: pause, then resume, each acknowledged
     record_text(dash, "#ack-control")
     page.click("#sim-play")
