@@ -32,7 +32,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import parse_qs, urlsplit, urlunsplit
 
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed, InvalidURI, WebSocketException
@@ -96,6 +96,23 @@ class _Outgoing:
     generation: int | None  # None: valid on any connection
 
 
+def sim_endpoint(url: str) -> tuple[str, str | None]:
+    """The `/ws/sim` URL to connect to, and the token a dashboard link carries: the server
+    prints its dashboard link (`http://HOST:PORT/?token=...`), and that link works here as it
+    is, besides `ws://HOST:PORT/ws/sim` itself."""
+    parts = urlsplit(url)
+    if parts.scheme in ("http", "https") and parts.hostname:
+        token = parse_qs(parts.query).get("token", [None])[0]
+        scheme = "wss" if parts.scheme == "https" else "ws"
+        return urlunsplit((scheme, parts.netloc, "/ws/sim", "", "")), token
+    if parts.scheme not in ("ws", "wss") or not parts.hostname:
+        raise ValueError(
+            "server URL must look like ws://HOST:PORT/ws/sim (or the dashboard's "
+            f"http://HOST:PORT/?token=... link), got {url!r}"
+        )
+    return url, None
+
+
 class SimulationConnection:
     """A simulation's link to the render server (see the module docstring).
 
@@ -120,9 +137,8 @@ class SimulationConnection:
         welcome_timeout: float = 10.0,
         takeover: bool = False,
     ) -> None:
-        parts = urlsplit(url)
-        if parts.scheme not in ("ws", "wss") or not parts.hostname:
-            raise ValueError(f"server URL must look like ws://HOST:PORT/ws/sim, got {url!r}")
+        url, link_token = sim_endpoint(url)
+        token = token if token is not None else link_token
         self.url = url
         self.token = token
         self.session = session
@@ -151,7 +167,7 @@ class SimulationConnection:
         """Seconds of failed attempts after which the connection stops trying (`FAILED`);
         None retries for ever."""
         self._welcome_timeout = welcome_timeout
-        self._loopback = parts.hostname in ("127.0.0.1", "localhost", "::1")
+        self._loopback = urlsplit(url).hostname in ("127.0.0.1", "localhost", "::1")
 
         self.stats = ConnectionStats()
         self.error: str | None = None

@@ -520,7 +520,11 @@ def build_parser() -> argparse.ArgumentParser:
         required=True,
         help="structure of the atoms the engine sends (PDB, GRO, PSF, LAMMPS data, mmCIF)",
     )
-    ap.add_argument("--url", default="ws://127.0.0.1:8000/ws/sim", help="render server /ws/sim")
+    ap.add_argument(
+        "--url",
+        default="ws://127.0.0.1:8000/ws/sim",
+        help="render server: ws://HOST:PORT/ws/sim, or the dashboard link it prints",
+    )
     ap.add_argument("--token", default=os.environ.get("SCALESTEER_TOKEN"), help="access token")
     ap.add_argument("--session", default="default", help="session name on the server")
     ap.add_argument(

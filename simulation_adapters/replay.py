@@ -373,7 +373,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("topology", help="structure file: PDB, GRO, PSF, mmCIF, LAMMPS data, ...")
     ap.add_argument("trajectory", nargs="*", help="trajectory files: DCD, XTC, TRR, PDB, ...")
     ap.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
-    ap.add_argument("--url", default="ws://127.0.0.1:8000/ws/sim", help="render server /ws/sim")
+    ap.add_argument(
+        "--url",
+        default="ws://127.0.0.1:8000/ws/sim",
+        help="render server: ws://HOST:PORT/ws/sim, or the dashboard link it prints",
+    )
     ap.add_argument("--token", default=os.environ.get("SCALESTEER_TOKEN"), help="access token")
     ap.add_argument(
         "--session",

@@ -46,6 +46,21 @@ def test_hello_topology_then_frames_in_order(no_leaked_threads: None, peer: SimP
     assert conn.state is ConnectionState.CLOSED
 
 
+def test_the_dashboard_link_works_as_the_server_url(no_leaked_threads: None, peer: SimPeer) -> None:
+    """The server prints its dashboard link (http, with the token): an adapter given it finds
+    /ws/sim and takes the token from it; anything else is refused naming both forms."""
+    link = peer.ws_url.replace("ws://", "http://").removesuffix("/ws/sim") + "/?token=secret"
+    with SimulationConnection(link, session="linked") as conn:
+        assert conn.url == peer.ws_url
+        assert conn.wait_connected(5)
+    assert peer.hellos[0].token == "secret"
+    with pytest.raises(ValueError, match=r"ws://HOST:PORT/ws/sim \(or the dashboard's"):
+        SimulationConnection("ftp://127.0.0.1:1/x")
+    # a token given beside the link is the one used
+    with SimulationConnection(link.replace("secret", "other"), token="secret") as conn:
+        assert conn.wait_connected(5)
+
+
 def test_thread_count_returns_to_start(peer: SimPeer) -> None:
     start = threading.active_count()
     conn = SimulationConnection(peer.ws_url, token="secret").start()
@@ -207,9 +222,10 @@ def test_close_does_not_hang_on_a_server_that_never_reads(no_leaked_threads: Non
         assert conn.state is ConnectionState.CLOSED
 
 
-def test_rejects_a_non_websocket_url() -> None:
-    with pytest.raises(ValueError, match="ws://"):
-        SimulationConnection("http://127.0.0.1:8000/ws/sim")
+def test_rejects_a_url_that_is_not_the_servers() -> None:
+    for url in ("ftp://127.0.0.1:8000/ws/sim", "127.0.0.1:8000", "ws:///ws/sim"):
+        with pytest.raises(ValueError, match="ws://"):
+            SimulationConnection(url)
 
 
 def test_imports_without_heavy_packages() -> None:
