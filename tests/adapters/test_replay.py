@@ -212,7 +212,7 @@ def test_cli_plays_to_the_end(peer: SimPeer) -> None:
         ([PSF, XTC], "same number of atoms"),
         ([PSF], "has no coordinates"),
         ([PSF, DCD, "--fps", "0"], "--fps must be positive"),
-        ([PSF, DCD, "--url", "http://x"], "ws://HOST:PORT"),
+        ([PSF, DCD, "--url", "ftp://x"], "ws://HOST:PORT"),
         ([__file__], "unsupported structure format 'py'"),
     ],
 )
