@@ -14,13 +14,7 @@ import types
 import typing
 from typing import TYPE_CHECKING, Annotated, Any, Literal, Self
 
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    create_model,
-    model_validator,
-)
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 from pydantic_core import PydanticCustomError
 
 from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
@@ -65,11 +59,15 @@ _NUMBER_FIELDS: dict[tuple[type, str], bool] = {}
 
 
 def _number_field(model: type[BaseModel], name: Any) -> bool:
+    """Whether `name` is a number field of `model`. Only the model's own fields are learnt: a
+    key a client makes up is no field, and must not grow the table."""
+    field = model.model_fields.get(str(name))
+    if field is None:
+        return False
     key = (model, str(name))
     number = _NUMBER_FIELDS.get(key)
     if number is None:
-        field = model.model_fields.get(str(name))
-        number = _NUMBER_FIELDS[key] = field is not None and _is_number(field.annotation)
+        number = _NUMBER_FIELDS[key] = _is_number(field.annotation)
     return number
 
 

@@ -236,6 +236,18 @@ def test_true_or_false_is_not_taken_for_a_number() -> None:
         p.RenderParams.model_validate({"iso_level": True})  # REST and files alike
 
 
+def test_made_up_keys_do_not_grow_the_number_field_table() -> None:
+    """The table of which fields hold numbers learns only real fields: keys a client makes up
+    (here a thousand booleans in a ping) leave it as it was."""
+    from protocol.messages import _NUMBER_FIELDS
+
+    p.decode(msgpack.packb({"type": "ping", "client_time": 1.0}))
+    before = len(_NUMBER_FIELDS)
+    made_up = {f"k{i}": True for i in range(1000)}
+    assert isinstance(p.decode(msgpack.packb({"type": "ping", **made_up})), p.Ping)
+    assert len(_NUMBER_FIELDS) == before
+
+
 def test_error_message_echoes_ref() -> None:
     err = reject({"type": "frame", "seq": 41})
     reply = p.error_message(err)
