@@ -33,15 +33,7 @@ import anywidget
 import traitlets
 from pydantic import ValidationError
 
-from protocol import (
-    Camera,
-    Layer,
-    Pick,
-    RenderParams,
-    SetRenderParams,
-    VideoCodec,
-    View,
-)
+from protocol import Camera, Layer, Pick, RenderParams, SetRenderParams, VideoCodec, View
 from protocol.fields import unknown_keys
 from scalesteer import background
 from scalesteer.errors import ScalesteerError

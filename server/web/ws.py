@@ -77,7 +77,9 @@ class Guard:
         else:
             kept, limit, what = self.errors, MAX_ERRORS_PER_10S, "invalid messages"
         kept.append(now)
-        if sum(1 for t in kept if now - t < 10.0) > limit:
+        while now - kept[0] >= 10.0:  # only the last 10 s count
+            kept.popleft()
+        if len(kept) > limit:
             return f"too many {what} (more than {limit} within 10 s)"
         return None
 
