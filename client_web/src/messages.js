@@ -44,7 +44,7 @@ export class DashboardMessages {
         const r = this.acks.error(m);
         if (r) this.simPanel.showAck(r.key, r.status, r.key === "control" ? r.status.label : "");
         // a refused parameter: its field shows the value in effect again, not the one refused
-        if (r && r.key !== "control") this.simPanel.restoreParam(r.key, this.simParams);
+        if (r && r.key !== "control") this.simPanel.restoreParam(r.key);
         this.notices.serverError(m);
         return undefined;
       }

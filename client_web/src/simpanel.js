@@ -18,6 +18,7 @@ export class SimPanel {
     this.inputs = new Map(SIM_FIELDS.map((key) => [key, document.querySelector(`[data-param="${key}"]`)]));
     this.disabled = false;
     this.engine = null;
+    this.params = {}; // the session's simulation parameters (updateParams)
     this.bind();
     this.updateStatus(this.sim);
   }
@@ -37,7 +38,7 @@ export class SimPanel {
           this.onInvalid(`${key} ${input.value} is outside ${rangeText(this.engine, range)}; not sent`);
           // the field shows the value in effect again, and its line says this one was not sent
           this.showAck(key, { state: "failed", text: `${input.value} not sent: outside the range` });
-          this.restoreParam(key, this.params);
+          this.restoreParam(key);
           return;
         }
         const value = clampParam(key, input.value);
@@ -143,19 +144,15 @@ export class SimPanel {
   /** The session's current simulation parameters (unset ones show the engine default). */
   updateParams(params) {
     this.params = params;
-    for (const [key, input] of this.inputs) {
-      const v = params?.[key];
-      if (isBusy(input)) continue;
-      input.value = v === undefined || v === null ? "" : String(v);
-    }
+    for (const [key, input] of this.inputs) if (!isBusy(input)) this.restoreParam(key);
   }
 
-  /** A refused value of `key` leaves its field: the value in effect shows again (or the
-   * engine's, as a placeholder), even while the field has the focus. */
-  restoreParam(key, params) {
+  /** The field of `key` shows the value in effect (unset: empty, the engine's value as its
+   * placeholder), even while it has the focus: a refused value leaves it this way. */
+  restoreParam(key) {
     const input = this.inputs.get(key);
     if (!input) return;
-    const v = params?.[key];
+    const v = this.params?.[key];
     input.value = v === undefined || v === null ? "" : String(v);
   }
 
