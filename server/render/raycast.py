@@ -33,6 +33,7 @@ per pixel by a fixed hash (`pixel_jitter`) so thin transfer-function features do
 into rings.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, no_type_check
 
@@ -95,6 +96,16 @@ class CameraData:
     y0: int
     full_width: int
     full_height: int
+    part_axis: int
+    """A part's slab of space (sort-last, `sortlast.py`): rays sample only where
+    part_lo <= p[part_axis] < part_hi, and one lattice step past it (-1: everywhere)."""
+    part_lo: float
+    part_hi: float
+    scene: int
+    """1: the depth cue spans `scene_lo`..`scene_hi` (the whole system's grid box) rather than
+    this grid's box, which holds only a part of it."""
+    scene_lo: wp.vec3
+    scene_hi: wp.vec3
 
 
 @wp.struct
@@ -200,6 +211,26 @@ def clip_box(o: wp.vec3, d: wp.vec3, lo: wp.vec3, hi: wp.vec3):
     t0, t1 = slab(o[1], d[1], lo[1], hi[1], t0, t1)
     t0, t1 = slab(o[2], d[2], lo[2], hi[2], t0, t1)
     return t0, t1
+
+
+@wp.func
+@no_type_check
+def part_range(cam: CameraData, o: wp.vec3, d: wp.vec3, t0: float, t1: float, ext: float):
+    """[t0, t1] cut to the camera's part of space (`part_axis`), its far end `ext` (one
+    lattice step) beyond the part's exit: the sample after a crossing or a volume segment that
+    straddles the boundary to the next part is taken by this part, whose atoms reach that far.
+    Also returns 1 when the part's near boundary, not `t0`, starts the range: the segment
+    ending at the first sample there belongs to the part in front."""
+    if cam.part_axis < 0:
+        return t0, t1, wp.int32(0)
+    ax = cam.part_axis
+    a, b = slab(o[ax], d[ax], cam.part_lo, cam.part_hi, 0.0, wp.inf)
+    if a > b:
+        return t1, t0, wp.int32(0)
+    entered = wp.int32(0)
+    if a > t0:
+        entered = 1
+    return wp.max(t0, a), wp.min(t1, b + ext), entered
 
 
 @wp.func
@@ -348,8 +379,13 @@ def fog(sh: Shading, g: GridInfo, cam: CameraData, t: float, c: wp.vec3) -> wp.v
     """Depth cue: blend towards the background across the grid box's depth range."""
     if sh.depth_cue <= 0.0:
         return c
-    center = (g.origin + g.box_hi) * 0.5
-    radius = wp.length(g.box_hi - g.origin) * 0.5
+    lo = g.origin
+    hi = g.box_hi
+    if cam.scene != 0:
+        lo = cam.scene_lo
+        hi = cam.scene_hi
+    center = (lo + hi) * 0.5
+    radius = wp.length(hi - lo) * 0.5
     dc = wp.dot(center - cam.eye, cam.forward)
     near = wp.max(dc - radius, 0.0)
     far = dc + radius
@@ -974,6 +1010,7 @@ def _make(
         pix = y * cam.width + x
         o, d = camera_ray(cam, x, y)
         t0, t1 = clip_box(o, d, g.origin, g.box_hi)
+        t0, t1, _entered = part_range(cam, o, d, t0, t1, m.dt)
         s_hit = wp.int32(-1)
         v = wp.vec2(-1.0, -1.0)
         passes = wp.int32(0)
@@ -1037,7 +1074,8 @@ def _make(
             pix = y * cam.width + x
             g = f.info[0]
             o, d = camera_ray(cam, x, y)
-            _t0, t1 = clip_box(o, d, g.origin, g.box_hi)
+            t0, t1 = clip_box(o, d, g.origin, g.box_hi)
+            _t0, t1, _entered = part_range(cam, o, d, t0, t1, m.dt)
             dt = m.dt
             k0 = e[1]
             inside = e[3]
@@ -1165,6 +1203,7 @@ def _make(
         g = f.info[0]
         o, d = camera_ray(cam, x, y)
         t0, t_box = clip_box(o, d, g.origin, g.box_hi)
+        t0, t_box, entered = part_range(cam, o, d, t0, t_box, m.dt)
         t1 = t_box
         if vol.clip != 0:
             t1 = wp.min(t1, vol.limit[pix])
@@ -1247,6 +1286,7 @@ def _make(
                             vf = vq
                             n_raw = grad
                             fr = float(1.0)
+                            skip_first = entered != 0 and k + q == k_first
                             if vol.ramps != 0:
                                 if vq <= flat:
                                     n_raw = wp.vec3(0.0, 0.0, 0.0)
@@ -1258,9 +1298,11 @@ def _make(
                                     vf = flat
                                 if k + q == k_first:
                                     fr = lead
-                            acc, alpha, t_depth = add_segment(
-                                vol, sh, g, cam, d, n_raw, tq, vf, vq, fr, acc, alpha, t_depth
-                            )
+                            if not skip_first:
+                                acc, alpha, t_depth = add_segment(
+                                    vol, sh, g, cam, d, n_raw, tq, vf, vq, fr, acc, alpha,
+                                    t_depth,
+                                )  # fmt: skip
                             prev_k = k + q
                             prev_v = vq
                             prev_g = grad
@@ -1469,9 +1511,15 @@ def kernels_for(
     return k
 
 
-def camera_data(frame: CameraFrame, tile: tuple[int, int, int, int] | None = None) -> CameraData:
+def camera_data(
+    frame: CameraFrame,
+    tile: tuple[int, int, int, int] | None = None,
+    region: tuple[int, float, float] | None = None,
+    scene: tuple[Sequence[float], Sequence[float]] | None = None,
+) -> CameraData:
     """The device struct of a numpy camera frame; `tile` (x0, y0, width, height) casts only
-    that rectangle of the frame's image."""
+    that rectangle of the frame's image; `region` (axis, lo, hi) samples only that slab of space
+    and `scene` (lo, hi) spans the depth cue over that box (the parts of a sort-last frame)."""
     x0, y0, w, h = tile if tile is not None else (0, 0, frame.width, frame.height)
     c = CameraData()
     c.eye = wp.vec3(*(float(v) for v in frame.eye))
@@ -1488,6 +1536,15 @@ def camera_data(frame: CameraFrame, tile: tuple[int, int, int, int] | None = Non
     c.y0 = int(y0)
     c.full_width = int(frame.width)
     c.full_height = int(frame.height)
+    c.part_axis = -1
+    if region is not None:
+        c.part_axis = int(region[0])
+        c.part_lo = float(region[1])
+        c.part_hi = float(region[2])
+    c.scene = int(scene is not None)
+    if scene is not None:
+        c.scene_lo = wp.vec3(*(float(v) for v in scene[0]))
+        c.scene_hi = wp.vec3(*(float(v) for v in scene[1]))
     return c
 
 

@@ -156,6 +156,11 @@ class Renderer(ImageOutputs):
         self.depth_limit: Any = None
         """A device array of per-pixel distances where volume rays stop (None: the grid's
         end); set by the layer compositor to the nearest opaque surface of the other layers."""
+        self.region: tuple[int, float, float] | None = None
+        """Sort-last (`sortlast.py`): the slab of space (axis, lo, hi) this renderer's rays
+        sample, its atoms being those within `halo` of it; None: all of space."""
+        self.scene_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+        """Sort-last: the whole system's grid box (lo, hi), which the depth cue spans."""
         self._no_limit = wp.zeros(1, dtype=float, device=self.device)
         self._dev = wp.get_device(self.device)
         self._cuda = bool(self._dev.is_cuda)
@@ -616,7 +621,21 @@ class Renderer(ImageOutputs):
         except ValueError as exc:
             raise RenderError(f"invalid camera: {exc}") from None
 
-    def _derive(self, p: RenderParams) -> Derived:
+    def halo(self, params: RenderParams, r_max: float | None = None) -> float:
+        """How far from a region of space the atoms lie whose density its rays sample, shade
+        and occlude with (sort-last parts hold the atoms within it): the cutoff reach, the
+        four lattice steps an iso pass may take past the region's end (one volume step), and
+        the ambient occlusion's farthest sample. `r_max`: the largest atom radius of the whole
+        system (van der Waals widths), where this renderer holds only some of its atoms."""
+        d = self._derive(params, r_max)
+        past = max(4.0 * d.dt, self._volume_dt(d))
+        return float(d.reach * (1.0 + 1.0e-3) + past + 4.0 * AO_STEP_SIGMAS * d.sigma + 1.0e-3)
+
+    def reach(self, params: RenderParams, r_max: float | None = None) -> float:
+        """The cutoff reach of the widest atom: the density is zero beyond it."""
+        return float(self._derive(params, r_max).reach)
+
+    def _derive(self, p: RenderParams, r_max: float | None = None) -> Derived:
         warp = None
         if p.scale_space in ("carved", "warped") and p.warp_strength > 0.0:
             warp = WarpScales.of(float(p.sigma_A), float(p.warp_strength))
@@ -627,7 +646,7 @@ class Renderer(ImageOutputs):
         k = float(p.cutoff_sigmas) if fixed else reach_sigmas(sigma, p.cutoff_sigmas)
         if p.radius_mode == "vdw":
             spr = sigma / colors.R_REF
-            s_max = spr * self._r_max
+            s_max = spr * (self._r_max if r_max is None else max(r_max, self._r_max))
             per_atom = 1
         else:
             spr = 0.0
@@ -1093,7 +1112,7 @@ class Renderer(ImageOutputs):
             self._stream.record_event(self._events[1])
         t_cast = time.perf_counter()
         w, h = (tile[2], tile[3]) if tile is not None else (frame.width, frame.height)
-        cam = raycast.camera_data(frame, tile)
+        cam = raycast.camera_data(frame, tile, self.region, self.scene_box)
         m = raycast.March()
         m.iso = d.iso
         m.dt = d.dt
@@ -1258,7 +1277,7 @@ class Renderer(ImageOutputs):
             parts = self._parts_for(d, params.mode)
             key: tuple[Any, ...] = (grid_key is not None, walk_view, parts, self._n, d, stop)
             key = (*key, seen[1])
-            key = (*key, cam_seen[4], tile, limit, self._pos.ptr)
+            key = (*key, cam_seen[4], tile, limit, self._pos.ptr, self.region, self.scene_box)
             t_cast = self._replay_or_launch(key, launch)
         else:
             t_cast = launch()

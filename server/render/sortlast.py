@@ -1,0 +1,406 @@
+"""One image rendered across several devices by splitting the atoms (sort-last).
+
+Sort-first (`multi.py`) puts every atom on every device and splits the image; the system it can
+draw is limited by one device's memory, and every device receives every position. Here space is
+cut into slabs along the system's longest axis, one slab per device, cut where each holds as many
+atoms as the others. A device holds only the atoms within its `halo` of its slab (the cutoff
+reach, the march's last lattice steps past the slab and the ambient occlusion's farthest sample),
+so the density its rays sample inside the slab is the whole system's, and each device receives
+about 1/N of the positions. Its rays sample only inside its slab and one lattice step past it
+(`CameraData.part_axis`): a crossing or a volume segment that straddles the cut belongs to the
+slab in front of it. The samples lie on the same global lattice as on one device.
+
+The parts' images are then combined on the first device, front to back in the order the pixel's
+ray passes the slabs (ascending along the axis for a ray going that way, descending otherwise):
+an iso surface is the first part's hit, a volume is the parts' premultiplied colours blended in
+that order, which is exact for emission and absorption. Atom ids are mapped back to the whole
+system's indices.
+
+Relative levels are fractions of the mean density at every n // 4096-th atom of the whole
+system. Each part takes the density at the sampled atoms inside its slab, and the parts then
+render with the absolute level that mean gives (one synchronisation per frame whose positions or
+density changed). The depth cue spans the whole system's box, not a part's.
+
+The atoms a part holds are chosen with a slack: a frame whose atoms have moved further than the
+slack along the axis since the split, or parameters whose halo is wider than the split's, split
+again. Only the classical density is split this way: the carved and geodesic densities read
+their bond graphs over every atom, and smoothing in time reads every atom's history; those
+render with sort-first.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from typing import Any, no_type_check
+
+import numpy as np
+import numpy.typing as npt
+import warp
+
+from protocol import Camera, RenderParams, Topology
+from server.render import colors
+from server.render.camera import camera_frame
+from server.render.errors import RenderError
+from server.render.layerplan import subset_topology
+from server.render.outputs import ImageOutputs
+from server.render.raycast import CameraData, camera_data, camera_ray
+from server.render.renderer import MEAN_SAMPLES, Renderer
+
+wp: Any = warp  # warp's host API is unannotated
+
+SLACK_HALO = 0.25
+"""The atoms a part holds reach this fraction of the halo beyond it (at least `SLACK_MIN_A`):
+atoms may move that far along the axis before the system is split again."""
+SLACK_MIN_A = 2.0
+SCENE_PAD = 1.0e-4
+"""The depth cue's box is the atoms' box widened by the reach, padded as one device's grid box
+is (`grid.setup_kernel`)."""
+
+
+@wp.kernel(enable_backward=False)
+@no_type_check
+def sort_last_kernel(
+    rgba: wp.array(dtype=wp.uint32),
+    depth: wp.array(dtype=float),
+    ids: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    members: wp.array(dtype=wp.int32),
+    parts: int,
+    pixels: int,
+    cam: CameraData,
+    axis: int,
+    background: wp.vec3,
+    out_rgba: wp.array(dtype=wp.uint32),
+    out_depth: wp.array(dtype=float),
+    out_ids: wp.array(dtype=wp.int32),
+):
+    """Blend one pixel's parts front to back in the order its ray passes their slabs
+    (premultiplied colours with coverage in the alpha byte)."""
+    pix = wp.tid()
+    x = pix % cam.width
+    y = pix // cam.width
+    _o, d = camera_ray(cam, x, y)
+    ascending = d[axis] >= 0.0
+    acc = wp.vec3(0.0, 0.0, 0.0)
+    alpha = float(0.0)
+    front = wp.int32(-1)
+    for q in range(parts):
+        k = q
+        if not ascending:
+            k = parts - 1 - q
+        at = k * pixels + pix
+        c = rgba[at]
+        a = float((c >> wp.uint32(24)) & wp.uint32(255)) / 255.0
+        if a > 0.0:
+            col = (
+                wp.vec3(
+                    float(c & wp.uint32(255)),
+                    float((c >> wp.uint32(8)) & wp.uint32(255)),
+                    float((c >> wp.uint32(16)) & wp.uint32(255)),
+                )
+                / 255.0
+            )
+            acc += col * (1.0 - alpha)
+            alpha += a * (1.0 - alpha)
+        if front < 0 and depth[at] < wp.inf:
+            front = k
+    acc += background * (1.0 - alpha)
+    r = wp.uint32(wp.clamp(acc[0], 0.0, 1.0) * 255.0 + 0.5)
+    g = wp.uint32(wp.clamp(acc[1], 0.0, 1.0) * 255.0 + 0.5)
+    b = wp.uint32(wp.clamp(acc[2], 0.0, 1.0) * 255.0 + 0.5)
+    out_rgba[pix] = (
+        r | (g << wp.uint32(8)) | (b << wp.uint32(16)) | (wp.uint32(255) << wp.uint32(24))
+    )
+    if front < 0:
+        out_depth[pix] = wp.inf
+        out_ids[pix] = -1
+    else:
+        at = front * pixels + pix
+        out_depth[pix] = depth[at]
+        local = ids[at]
+        atom = wp.int32(-1)
+        if local >= 0:
+            atom = members[offsets[front] + local]
+        out_ids[pix] = atom
+
+
+def split_slabs(coord: npt.NDArray[np.float32], parts: int) -> list[tuple[float, float]]:
+    """`parts` slabs along one coordinate holding equal numbers of atoms; the outer ones
+    reach to infinity, so every point of space lies in exactly one (lo <= x < hi)."""
+    cuts = [float(v) for v in np.quantile(coord, [k / parts for k in range(1, parts)])]
+    edges = [-math.inf, *cuts, math.inf]
+    return [(edges[k], edges[k + 1]) for k in range(parts)]
+
+
+class SortLastRenderer(ImageOutputs):
+    """Renders one image with a `Renderer` per device, each holding the atoms of one slab of
+    space and its halo; answers like a `Renderer` (`read_rgba`, `read_depth`,
+    `read_atom_ids`, `pick`, `timings`)."""
+
+    def __init__(self, devices: Sequence[str], **options: Any) -> None:
+        if len(devices) < 1:
+            raise RenderError("sort-last needs at least one device")
+        self._parts = [Renderer(dev, **options) for dev in devices]
+        for r in self._parts:
+            r.coverage = True
+        self.device = self._parts[0].device
+        self.timings: dict[str, float] = {}
+        self._topology: Topology | None = None
+        self._r_max = colors.R_REF
+        self._positions: npt.NDArray[np.float32] | None = None
+        self._version = 0
+        self._split: dict[str, Any] | None = None
+        self._sent: list[int] = []
+        self._mean: tuple[tuple[Any, ...], float] | None = None
+        self._image: tuple[int, int] | None = None
+        self._pixels = 0
+
+    @property
+    def parts(self) -> int:
+        return len(self._parts)
+
+    def set_topology(self, topology: Topology) -> None:
+        """Take a topology; the atoms are split among the devices at the first render."""
+        if topology.n_atoms > self._parts[0].max_atoms * len(self._parts):
+            raise RenderError(
+                f"topology has {topology.n_atoms} atoms, {len(self._parts)} devices of "
+                f"{self._parts[0].max_atoms} each hold fewer"
+            )
+        self._topology = topology
+        self._r_max = float(colors.atom_radii(topology).max()) if topology.n_atoms else 1.0
+        self._positions = None
+        self._split = None
+        self._mean = None
+
+    def set_positions(self, positions: npt.ArrayLike, *, check_finite: bool = True) -> None:
+        """Positions (n, 3) in angstrom for the next render; kept on the host until then, when
+        each device receives its part."""
+        if self._topology is None:
+            raise RenderError("set_topology must come before set_positions")
+        arr = np.ascontiguousarray(positions, dtype=np.float32)
+        n = self._topology.n_atoms
+        if arr.ndim != 2 or arr.shape != (n, 3):
+            raise RenderError(f"positions must have shape ({n}, 3), got {arr.shape}")
+        if check_finite and n and not np.isfinite(arr).all():
+            bad = np.nonzero(~np.isfinite(arr).all(axis=1))[0]
+            raise RenderError(
+                f"positions contain NaN or Inf ({len(bad)} atoms, first index {bad[0]})"
+            )
+        self._positions = arr
+        self._version += 1
+
+    def _split_atoms(self, pos: npt.NDArray[np.float32], halo: float) -> None:
+        """Cut space into slabs and give each part its slab's atoms with the halo and slack."""
+        assert self._topology is not None
+        axis = int(np.argmax(pos.max(axis=0) - pos.min(axis=0))) if len(pos) else 0
+        coord = pos[:, axis]
+        slabs = split_slabs(coord, len(self._parts))
+        slack = max(SLACK_HALO * halo, SLACK_MIN_A)
+        reach = halo + slack
+        members: list[npt.NDArray[np.int32]] = []
+        for r, (lo, hi) in zip(self._parts, slabs, strict=True):
+            atoms = np.flatnonzero((coord >= lo - reach) & (coord < hi + reach)).astype(np.int32)
+            members.append(atoms)
+            r.set_topology(subset_topology(self._topology, atoms))
+            r.region = (axis, lo, hi)
+        offsets = np.cumsum([0] + [len(m) for m in members[:-1]]).astype(np.int32)
+        dev = self.device
+        self._split = {
+            "axis": axis,
+            "slabs": slabs,
+            "halo": halo,
+            "slack": slack,
+            "members": members,
+            "reference": coord.copy(),
+            "offsets": wp.array(offsets, dtype=wp.int32, device=dev),
+            "flat": wp.array(np.concatenate(members), dtype=wp.int32, device=dev),
+        }
+        self._sent = [-1] * len(self._parts)
+        self._mean = None
+
+    def _ensure_split(self, pos: npt.NDArray[np.float32], halo: float) -> None:
+        s = self._split
+        if s is None or halo > s["halo"]:
+            self._split_atoms(pos, halo)
+            return
+        moved = float(np.abs(pos[:, s["axis"]] - s["reference"]).max()) if len(pos) else 0.0
+        if moved > s["slack"]:
+            self._split_atoms(pos, halo)
+
+    def _send(self, pos: npt.NDArray[np.float32]) -> None:
+        """Each part's atoms to its device (only after new positions or a new split)."""
+        assert self._split is not None
+        for k, (r, atoms) in enumerate(zip(self._parts, self._split["members"], strict=True)):
+            if self._sent[k] != self._version:
+                r.set_positions(np.take(pos, atoms, axis=0), check_finite=False)
+                self._sent[k] = self._version
+
+    def _mean_density(self, params: RenderParams, pos: npt.NDArray[np.float32]) -> float:
+        """The whole system's mean density at its sampled atoms (as one device takes it for
+        relative levels), each sample taken by the part whose slab holds it."""
+        assert self._split is not None
+        key = (
+            self._version,
+            id(self._split),
+            params.sigma_A,
+            params.radius_mode,
+            params.cutoff_sigmas,
+            params.density_weights,
+        )
+        if self._mean is not None and self._mean[0] == key:
+            return self._mean[1]
+        n = len(pos)
+        samples = min(n, MEAN_SAMPLES)
+        stride = n // samples
+        points = pos[np.arange(samples) * stride]
+        s = self._split
+        his = np.array([hi for _lo, hi in s["slabs"]])
+        owner = np.searchsorted(his, points[:, s["axis"]], side="right")
+        probe = params.model_copy(update={"level_scale": "absolute", "mode": "iso"})
+        total = 0.0
+        for k, r in enumerate(self._parts):
+            mine = points[owner == k]
+            if len(mine):
+                r.prepare(probe)
+                total += float(r.evaluate(mine)[0].astype(np.float64).sum())
+        mean = total / samples
+        self._mean = (key, mean)
+        return mean
+
+    def _scene(self, params: RenderParams, pos: npt.NDArray[np.float32]) -> Any:
+        if params.lighting.depth_cue <= 0.0 or not len(pos):
+            return None
+        lo = pos.min(axis=0)
+        hi = pos.max(axis=0)
+        amax = float(max(np.abs(lo).max(), np.abs(hi).max()))
+        r = self._parts[0].reach(params, self._r_max) * (1.0 + SCENE_PAD) + amax * 4.0e-7 + 1.0e-6
+        lo = lo - r
+        hi = hi + r
+        return (tuple(float(v) for v in lo), tuple(float(v) for v in hi))
+
+    @staticmethod
+    def refusal(params: RenderParams) -> str | None:
+        """Why these parameters cannot be split by space (None: they can)."""
+        if params.scale_space != "classical" and params.warp_strength > 0.0:
+            return f"the {params.scale_space} density reads every atom's bonds"
+        if params.needs_history():
+            return "smoothing in time reads every atom's history"
+        if params.layers:
+            return "layers draw their own selections"
+        return None
+
+    def render(
+        self,
+        params: RenderParams,
+        camera: Camera,
+        width: int,
+        height: int,
+        *,
+        wait: bool = True,
+    ) -> None:
+        """Render one image across the parts and combine it on the first device. Raises
+        RenderError for parameters sort-last cannot split (`refusal`) and for invalid input."""
+        why = self.refusal(params)
+        if why is not None:
+            raise RenderError(f"sort-last cannot draw these parameters: {why}")
+        if self._topology is None or self._positions is None:
+            raise RenderError("no positions: call set_topology, then set_positions")
+        t0 = time.perf_counter()
+        pos = self._positions
+        w, h = int(width), int(height)
+        halo = self._parts[0].halo(params, self._r_max)
+        self._ensure_split(pos, halo)
+        self._send(pos)
+        t_split = time.perf_counter()
+        p = params
+        if params.level_scale == "mean" and len(pos):
+            level = float(params.iso_level) * self._mean_density(params, pos)
+            if not level > 0.0:
+                level = float(params.iso_level)
+            p = params.model_copy(update={"level_scale": "absolute", "iso_level": level})
+        t_mean = time.perf_counter()
+        scene = self._scene(params, pos)
+        for r in self._parts:
+            r.scene_box = scene
+            r.render(p, camera, w, h, wait=False)
+        # the parts checked the camera and the size
+        self._combine(params, camera_frame(camera, w, h), w, h)
+        t_end = time.perf_counter()
+        self.timings = {
+            "split_ms": (t_split - t0) * 1e3,
+            "mean_ms": (t_mean - t_split) * 1e3,
+            "render_ms": (t_end - t_mean) * 1e3,
+            "total_ms": (t_end - t0) * 1e3,
+        }
+        if wait:
+            self.finish()
+
+    def _alloc(self, pixels: int) -> None:
+        n = len(self._parts)
+        if pixels > self._pixels:
+            dev = self.device
+            self._pixels = pixels
+            self._stack_rgba = wp.zeros(n * pixels, dtype=wp.uint32, device=dev)
+            self._stack_depth = wp.zeros(n * pixels, dtype=float, device=dev)
+            self._stack_ids = wp.zeros(n * pixels, dtype=wp.int32, device=dev)
+            self._out_rgba = wp.zeros(pixels, dtype=wp.uint32, device=dev)
+            self._out_depth = wp.zeros(pixels, dtype=float, device=dev)
+            self._out_ids = wp.zeros(pixels, dtype=wp.int32, device=dev)
+
+    def _combine(self, params: RenderParams, frame: Any, w: int, h: int) -> None:
+        """Each part's image onto the first device, then one blend in slab order."""
+        assert self._split is not None
+        pixels = w * h
+        self._alloc(pixels)
+        stacks = (self._stack_rgba, self._stack_depth, self._stack_ids)
+        for k, r in enumerate(self._parts):
+            r.finish()
+            for dest, src in zip(stacks, r.device_outputs()[:3], strict=True):
+                wp.copy(dest, src, dest_offset=k * pixels, count=pixels)
+        s = self._split
+        args = (
+            *stacks,
+            s["offsets"],
+            s["flat"],
+            len(self._parts),
+            pixels,
+            camera_data(frame),
+            s["axis"],
+            wp.vec3(*(float(v) for v in params.background)),
+            self._out_rgba,
+            self._out_depth,
+            self._out_ids,
+        )
+        wp.launch(sort_last_kernel, pixels, args, device=self.device)
+        self._image = (w, h)
+
+    def finish(self) -> None:
+        """Wait for the last render's combine."""
+        wp.synchronize_device(self.device)
+
+    def _outputs(self) -> tuple[Any, Any, Any]:
+        return self._out_rgba, self._out_depth, self._out_ids
+
+    def pick(self, x: int, y: int) -> tuple[int | None, float | None]:
+        """The atom (whole-system index) and depth at pixel (x, y) of the last image."""
+        w, h = self._need_image()
+        if not (0 <= x < w and 0 <= y < h):
+            raise RenderError(f"pixel ({x}, {y}) is outside the {w}x{h} image")
+        atom = int(self.read_atom_ids()[y, x])
+        depth = float(self.read_depth()[y, x])
+        return (atom if atom >= 0 else None), (depth if math.isfinite(depth) else None)
+
+    def atoms_held(self) -> list[int]:
+        """How many atoms each part holds (its slab's and its halo's)."""
+        if self._split is None:
+            return [0] * len(self._parts)
+        return [len(m) for m in self._split["members"]]
+
+    def memory_bytes(self) -> list[dict[str, int]]:
+        """Each part's device memory, by what it holds."""
+        return [r.memory_bytes() for r in self._parts]
+
+    def close(self) -> None:
+        self._parts = self._parts[:1]

@@ -1,0 +1,227 @@
+"""Sort-last rendering (server/render/sortlast.py): each device holds the atoms of one slab of
+space and its halo, casts its rays only inside its slab, and the parts blend on the first device
+into the image one device renders. Several warp CPU devices (or one CUDA device several times)
+stand in for several GPUs here."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from protocol import Camera, Layer, RenderParams
+from server.render import Renderer
+from server.render.camera import fit_camera
+from server.render.errors import RenderError
+from server.render.sortlast import SortLastRenderer, split_slabs
+from tests.render.molecules import Mol
+from tests.render.test_multi import villins
+
+W, H = 120, 90
+S = math.sqrt(0.5)
+ALONG_X = (S, 0.0, S, 0.0)
+"""The camera on the +x side looking down -x: every ray crosses every slab."""
+
+
+def one_device(device: str, mol: Mol, params: RenderParams, cam: Camera) -> Renderer:
+    r = Renderer(device)
+    r.set_topology(mol.topology)
+    r.set_positions(mol.positions)
+    r.render(params, cam, W, H)
+    return r
+
+
+def sort_last(
+    device: str, parts: int, mol: Mol, params: RenderParams, cam: Camera
+) -> SortLastRenderer:
+    s = SortLastRenderer([device] * parts)
+    s.set_topology(mol.topology)
+    s.set_positions(mol.positions)
+    s.render(params, cam, W, H)
+    return s
+
+
+def assert_same_image(
+    a: Renderer | SortLastRenderer, b: SortLastRenderer, levels: int, placed: float = 1.0
+) -> None:
+    """The colours within `levels` 8-bit levels, the same pixels hit (at least a fraction
+    `placed` of the pixels one device places), their depths within 1e-3 A and the same atoms
+    (as whole-system indices) under every pixel but ties."""
+    ca = a.read_rgba().astype(np.int16)
+    cb = b.read_rgba().astype(np.int16)
+    assert int(np.abs(ca - cb).max()) <= levels
+    da, db = a.read_depth(), b.read_depth()
+    hit, got = np.isfinite(da), np.isfinite(db)
+    assert hit.any()
+    assert not (got & ~hit).any()
+    assert float(got.sum()) >= placed * float(hit.sum())
+    assert float(np.abs(da[got] - db[got]).max()) < 1.0e-3
+    same = a.read_atom_ids() == b.read_atom_ids()
+    assert float(same[got | ~hit].mean()) > 0.99
+
+
+CASES = [
+    pytest.param(RenderParams(), 1, id="iso"),
+    pytest.param(RenderParams(mode="volume", sigma_A=2.5), 1, id="volume"),
+    pytest.param(
+        RenderParams(level_scale="absolute", iso_level=0.4, radius_mode="vdw"), 1, id="vdw"
+    ),
+    pytest.param(RenderParams(lighting={"depth_cue": 0.6}), 2, id="depth-cue"),
+]
+
+
+@pytest.mark.parametrize(("params", "levels"), CASES)
+@pytest.mark.parametrize("parts", [2, 3])
+def test_the_parts_blend_into_the_one_device_image(
+    device: str, params: RenderParams, levels: int, parts: int
+) -> None:
+    mol = villins(3)
+    cam = fit_camera(mol.positions, W, H)
+    one = one_device(device, mol, params, cam)
+    s = sort_last(device, parts, mol, params, cam)
+    assert_same_image(one, s, levels)
+    # each part holds its slab's atoms and a halo: fewer than all, together all
+    held = s.atoms_held()
+    assert len(held) == parts and max(held) < len(mol.positions)
+    assert sum(held) >= len(mol.positions)
+
+
+@pytest.mark.parametrize(
+    "camera",
+    [
+        pytest.param({"orientation": ALONG_X}, id="down-the-axis"),
+        pytest.param({"orientation": (S, 0.0, -S, 0.0)}, id="up-the-axis"),
+        pytest.param({"orientation": ALONG_X, "projection": "orthographic"}, id="orthographic"),
+        pytest.param({"orientation": ALONG_X, "inside": True}, id="inside"),
+    ],
+)
+@pytest.mark.parametrize("mode", ["iso", "volume"])
+def test_rays_that_cross_every_slab(device: str, camera: dict[str, object], mode: str) -> None:
+    """Rays along the split axis pass all parts, in either order, and from inside one."""
+    mol = villins(3)
+    inside = bool(camera.pop("inside", False))
+    cam = fit_camera(mol.positions, W, H, **camera)  # type: ignore[arg-type]
+    if inside:  # the eye in the middle slab, looking down the axis
+        cam = cam.model_copy(update={"distance": 8.0})
+    if cam.projection == "orthographic":
+        cam = cam.model_copy(update={"ortho_height": 40.0})
+    params = RenderParams(mode=mode, sigma_A=2.0 if mode == "volume" else 1.5)
+    one = one_device(device, mol, params, cam)
+    s = sort_last(device, 3, mol, params, cam)
+    # a volume blends each part's 8-bit premultiplied colour and coverage: a level of
+    # rounding per part the ray crosses. It is placed where one part's own opacity reaches
+    # the depth threshold: a ray that reaches it only over several parts has no depth
+    volume = mode == "volume"
+    assert_same_image(one, s, 4 if volume else 1, 0.9 if volume else 1.0)
+
+
+def test_a_pick_names_the_whole_systems_atom(device: str) -> None:
+    mol = villins(3)
+    cam = fit_camera(mol.positions, W, H, orientation=ALONG_X)
+    one = one_device(device, mol, RenderParams(), cam)
+    s = sort_last(device, 3, mol, RenderParams(), cam)
+    ids = one.read_atom_ids()
+    ys, xs = np.nonzero(ids >= 0)
+    for k in range(0, len(xs), max(len(xs) // 7, 1)):
+        atom, depth = s.pick(int(xs[k]), int(ys[k]))
+        assert atom == int(ids[ys[k], xs[k]])
+        assert depth == pytest.approx(float(one.read_depth()[ys[k], xs[k]]), abs=1e-3)
+    assert s.pick(0, 0) == (None, None)
+    with pytest.raises(RenderError, match="outside"):
+        s.pick(W, 0)
+
+
+def moved(mol: Mol, shift: npt.NDArray[np.float32]) -> Mol:
+    return Mol(mol.topology, (mol.positions + shift).astype(np.float32))
+
+
+def test_atoms_that_move_past_the_slack_split_the_system_again(device: str) -> None:
+    mol = villins(3)
+    cam = fit_camera(mol.positions, W, H)
+    params = RenderParams()
+    s = sort_last(device, 3, mol, params, cam)
+    first = s.atoms_held()
+    # a small move keeps the split; a move past the slack (one molecule along the axis) splits
+    # again, and every frame is still the one-device image
+    for shift, split_again in ((0.5, False), (12.0, True)):
+        step = np.zeros_like(mol.positions)
+        step[: len(mol.positions) // 3, 0] = shift
+        now = moved(mol, step)
+        before = s._split
+        s.set_positions(now.positions)
+        s.render(params, cam, W, H)
+        assert (s._split is not before) == split_again
+        assert_same_image(one_device(device, now, params, cam), s, 1)
+    assert s.atoms_held() != first
+
+
+def test_fewer_atoms_than_parts(device: str) -> None:
+    mol = villins(1)
+    one_atom = Mol(
+        mol.topology.model_copy(
+            update={
+                "n_atoms": 1,
+                "elements": mol.topology.elements[:1],
+                "names": mol.topology.names[:1],
+                "residue_names": mol.topology.residue_names[:1],
+                "chain_ids": mol.topology.chain_ids[:1],
+                "residue_ids": type(mol.topology.residue_ids).from_numpy(
+                    mol.topology.residue_ids.to_numpy()[:1], "<i4"
+                ),
+                "bonds": type(mol.topology.bonds).from_numpy(np.zeros(0, np.int32), "<i4"),
+            }
+        ),
+        mol.positions[:1],
+    )
+    cam = fit_camera(one_atom.positions, W, H, margin=6.0)
+    params = RenderParams(level_scale="absolute", iso_level=0.2)
+    one = one_device(device, one_atom, params, cam)
+    assert_same_image(one, sort_last(device, 3, one_atom, params, cam), 0)
+
+
+@pytest.mark.parametrize(
+    ("params", "why"),
+    [
+        (RenderParams(scale_space="geodesic"), "geodesic density reads every atom's bonds"),
+        (RenderParams(time_smoothing="classical"), "smoothing in time"),
+        (RenderParams(layers=[Layer(selection="all")]), "layers"),
+    ],
+)
+def test_what_sort_last_cannot_split_is_refused_by_name(params: RenderParams, why: str) -> None:
+    mol = villins(2)
+    s = SortLastRenderer(["cpu", "cpu"])
+    s.set_topology(mol.topology)
+    s.set_positions(mol.positions)
+    with pytest.raises(RenderError, match=why):
+        s.render(params, fit_camera(mol.positions, W, H), W, H)
+
+
+def test_bad_input_is_refused() -> None:
+    mol = villins(2)
+    s = SortLastRenderer(["cpu", "cpu"])
+    with pytest.raises(RenderError, match="set_topology"):
+        s.set_positions(mol.positions)
+    s.set_topology(mol.topology)
+    with pytest.raises(RenderError, match="no positions"):
+        s.render(RenderParams(), fit_camera(mol.positions, W, H), W, H)
+    with pytest.raises(RenderError, match="shape"):
+        s.set_positions(mol.positions[:-1])
+    bad = mol.positions.copy()
+    bad[5, 1] = np.nan
+    with pytest.raises(RenderError, match="first index 5"):
+        s.set_positions(bad)
+    s.set_positions(mol.positions)
+    with pytest.raises(RenderError, match="camera distance"):
+        s.render(RenderParams(), Camera(distance=1e-9).model_copy(update={"distance": -1.0}), W, H)
+
+
+def test_slabs_hold_equal_shares_and_cover_space() -> None:
+    x = np.arange(100, dtype=np.float32)
+    slabs = split_slabs(x, 4)
+    assert slabs[0][0] == -math.inf and slabs[-1][1] == math.inf
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(slabs))
+    counts = [int(((x >= lo) & (x < hi)).sum()) for lo, hi in slabs]
+    assert counts == [25, 25, 25, 25]
