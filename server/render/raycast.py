@@ -101,6 +101,10 @@ class CameraData:
     part_lo <= p[part_axis] < part_hi, and one lattice step past it (-1: everywhere)."""
     part_lo: float
     part_hi: float
+    part_open: int
+    """1: a ray may start inside the surface (the camera near the atoms), so a part entered at
+    its near boundary with its first sample inside still looks for the way out; 0: it ends
+    there, the part in front holding the crossing."""
     scene: int
     """1: the depth cue spans `scene_lo`..`scene_hi` (the whole system's grid box) rather than
     this grid's box, which holds only a part of it."""
@@ -911,6 +915,7 @@ def _make(
         inside: int,
         prev_v: float,
         budget: int,
+        stop_inside: int,
     ):
         """March one ray from lattice sample k (the walk starts in the cell at `t_from`) to
         its first crossing, taking at most `budget` density passes (0: no limit). Returns
@@ -918,7 +923,9 @@ def _make(
         unknown), whether the ray still has work (budget spent) and the state that resumes
         it: k, first, inside and the last sample's value (-1: unknown), and the density
         passes taken. Refinement is left to the shading kernel, where every ray of a warp
-        refines at once."""
+        refines at once. `stop_inside` = 1: a first sample inside the surface ends the ray
+        without a hit (a sort-last part entered at its near boundary: the crossing lies in
+        the part in front of it)."""
         g = f.info[0]
         dt = m.dt
         s_hit = wp.int32(-1)
@@ -951,7 +958,12 @@ def _make(
                     first = 0
                     inside = side_of(v4[0], m.iso)
                     q_from = 1
+                    if inside != 0 and stop_inside != 0:
+                        q_from = 4  # nothing to look for: the ray ends
+                        active = 0
                 q_hit = side_change(v4, m.iso, inside, q_from)
+                if active == 0:
+                    q_hit = -1
                 if q_hit >= 0:
                     if q_hit > 0:
                         prev_v = v4[q_hit - 1]
@@ -1010,7 +1022,10 @@ def _make(
         pix = y * cam.width + x
         o, d = camera_ray(cam, x, y)
         t0, t1 = clip_box(o, d, g.origin, g.box_hi)
-        t0, t1, _entered = part_range(cam, o, d, t0, t1, m.dt)
+        t0, t1, entered = part_range(cam, o, d, t0, t1, m.dt)
+        stop_inside = wp.int32(0)
+        if entered != 0 and cam.part_open == 0 and resume == 0:
+            stop_inside = 1
         s_hit = wp.int32(-1)
         v = wp.vec2(-1.0, -1.0)
         passes = wp.int32(0)
@@ -1020,7 +1035,7 @@ def _make(
             k = int(wp.ceil(t0 / m.dt))
         if resume != 0 or (g.valid != 0 and t0 < t1):
             s_hit, v, more, k, first, inside, prev_v, passes = march_iso(
-                f, m, o, d, t0, t1, k, first, inside, prev_v, budget
+                f, m, o, d, t0, t1, k, first, inside, prev_v, budget, stop_inside
             )
             if more != 0:
                 slot = wp.atomic_add(queue_len, 0, 1)
@@ -1514,12 +1529,13 @@ def kernels_for(
 def camera_data(
     frame: CameraFrame,
     tile: tuple[int, int, int, int] | None = None,
-    region: tuple[int, float, float] | None = None,
+    region: tuple[Any, ...] | None = None,
     scene: tuple[Sequence[float], Sequence[float]] | None = None,
 ) -> CameraData:
     """The device struct of a numpy camera frame; `tile` (x0, y0, width, height) casts only
-    that rectangle of the frame's image; `region` (axis, lo, hi) samples only that slab of space
-    and `scene` (lo, hi) spans the depth cue over that box (the parts of a sort-last frame)."""
+    that rectangle of the frame's image; `region` (axis, lo, hi, open) samples only that slab of
+    space (`CameraData.part_open`: 1 when left out) and `scene` (lo, hi) spans the depth cue over
+    that box (the parts of a sort-last frame)."""
     x0, y0, w, h = tile if tile is not None else (0, 0, frame.width, frame.height)
     c = CameraData()
     c.eye = wp.vec3(*(float(v) for v in frame.eye))
@@ -1537,10 +1553,12 @@ def camera_data(
     c.full_width = int(frame.width)
     c.full_height = int(frame.height)
     c.part_axis = -1
+    c.part_open = 1
     if region is not None:
         c.part_axis = int(region[0])
         c.part_lo = float(region[1])
         c.part_hi = float(region[2])
+        c.part_open = int(region[3]) if len(region) > 3 else 1
     c.scene = int(scene is not None)
     if scene is not None:
         c.scene_lo = wp.vec3(*(float(v) for v in scene[0]))

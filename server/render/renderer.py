@@ -156,9 +156,10 @@ class Renderer(ImageOutputs):
         self.depth_limit: Any = None
         """A device array of per-pixel distances where volume rays stop (None: the grid's
         end); set by the layer compositor to the nearest opaque surface of the other layers."""
-        self.region: tuple[int, float, float] | None = None
+        self.region: tuple[int, float, float, int] | None = None
         """Sort-last (`sortlast.py`): the slab of space (axis, lo, hi) this renderer's rays
-        sample, its atoms being those within `halo` of it; None: all of space."""
+        sample, its atoms being those within `halo` of it, and whether a ray may start inside
+        the surface (`raycast.CameraData.part_open`); None: all of space."""
         self.scene_box: tuple[tuple[float, ...], tuple[float, ...]] | None = None
         """Sort-last: the whole system's grid box (lo, hi), which the depth cue spans."""
         self._no_limit = wp.zeros(1, dtype=float, device=self.device)
@@ -584,6 +585,11 @@ class Renderer(ImageOutputs):
         if w * h > self.max_pixels:
             raise RenderError(f"image {w}x{h} has {w * h} pixels, the limit is {self.max_pixels}")
         return w, h
+
+    def check_view(self, camera: Camera, width: Any, height: Any) -> tuple[int, int, CameraFrame]:
+        """The image size and camera frame `render` would draw; RenderError for invalid ones."""
+        w, h = self._check_size(width, height)
+        return w, h, self._check_camera(camera, w, h)
 
     @staticmethod
     def _check_params(params: RenderParams) -> None:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, no_type_check
 
 import numpy as np
@@ -41,7 +42,7 @@ import warp
 
 from protocol import Camera, RenderParams, Topology
 from server.render import colors
-from server.render.camera import camera_frame
+from server.render.camera import CameraFrame
 from server.render.errors import RenderError
 from server.render.layerplan import subset_topology
 from server.render.outputs import ImageOutputs
@@ -156,10 +157,13 @@ class SortLastRenderer(ImageOutputs):
         self._mean: tuple[tuple[Any, ...], float] | None = None
         self._image: tuple[int, int] | None = None
         self._pixels = 0
+        self._box: tuple[int, npt.NDArray[Any], npt.NDArray[Any]] | None = None
+        self._pool = ThreadPoolExecutor(len(self._parts), thread_name_prefix="sort-last")
 
     @property
-    def parts(self) -> int:
-        return len(self._parts)
+    def renderers(self) -> list[Renderer]:
+        """The parts' renderers, one per device (their `timings` say where a frame went)."""
+        return list(self._parts)
 
     def set_topology(self, topology: Topology) -> None:
         """Take a topology; the atoms are split among the devices at the first render."""
@@ -204,7 +208,6 @@ class SortLastRenderer(ImageOutputs):
             atoms = np.flatnonzero((coord >= lo - reach) & (coord < hi + reach)).astype(np.int32)
             members.append(atoms)
             r.set_topology(subset_topology(self._topology, atoms))
-            r.region = (axis, lo, hi)
         offsets = np.cumsum([0] + [len(m) for m in members[:-1]]).astype(np.int32)
         dev = self.device
         self._split = {
@@ -214,6 +217,8 @@ class SortLastRenderer(ImageOutputs):
             "slack": slack,
             "members": members,
             "reference": coord.copy(),
+            "moved": np.empty(len(coord), dtype=np.float32),
+            "checked": self._version,
             "offsets": wp.array(offsets, dtype=wp.int32, device=dev),
             "flat": wp.array(np.concatenate(members), dtype=wp.int32, device=dev),
         }
@@ -225,17 +230,51 @@ class SortLastRenderer(ImageOutputs):
         if s is None or halo > s["halo"]:
             self._split_atoms(pos, halo)
             return
-        moved = float(np.abs(pos[:, s["axis"]] - s["reference"]).max()) if len(pos) else 0.0
-        if moved > s["slack"]:
+        if s["checked"] == self._version or not len(pos):
+            return
+        moved = s["moved"]
+        np.subtract(pos[:, s["axis"]], s["reference"], out=moved)
+        np.abs(moved, out=moved)
+        s["checked"] = self._version
+        if float(moved.max()) > s["slack"]:
             self._split_atoms(pos, halo)
 
     def _send(self, pos: npt.NDArray[np.float32]) -> None:
-        """Each part's atoms to its device (only after new positions or a new split)."""
+        """Each part's atoms to its device (only after new positions or a new split); the
+        gathers run on a thread each (numpy's take releases the interpreter)."""
         assert self._split is not None
-        for k, (r, atoms) in enumerate(zip(self._parts, self._split["members"], strict=True)):
-            if self._sent[k] != self._version:
-                r.set_positions(np.take(pos, atoms, axis=0), check_finite=False)
-                self._sent[k] = self._version
+        todo = [
+            (k, atoms)
+            for k, atoms in enumerate(self._split["members"])
+            if self._sent[k] != self._version
+        ]
+        if not todo:
+            return
+        gathered = self._pool.map(lambda job: np.take(pos, job[1], axis=0), todo)
+        for (k, _atoms), part in zip(todo, gathered, strict=True):
+            self._parts[k].set_positions(part, check_finite=False)
+            self._sent[k] = self._version
+
+    def _bounds(self, pos: npt.NDArray[np.float32]) -> tuple[npt.NDArray[Any], npt.NDArray[Any]]:
+        """The atoms' box (kept for the frame)."""
+        if self._box is None or self._box[0] != self._version:
+            self._box = (self._version, pos.min(axis=0), pos.max(axis=0))
+        return self._box[1], self._box[2]
+
+    def _open(self, frame: CameraFrame, reach: float, pos: npt.NDArray[np.float32]) -> int:
+        """1 when a ray may start within reach of an atom (the eye, or an orthographic image
+        plane, near the atoms): parts entered at their near boundary then look for a way out
+        of the surface too, as one device would."""
+        if not len(pos):
+            return 0
+        lo, hi = self._bounds(pos)
+        if frame.ortho:
+            corners = np.array(np.meshgrid(*zip(lo, hi, strict=True))).reshape(3, -1).T
+            ahead = (corners - np.asarray(frame.eye)) @ np.asarray(frame.forward)
+            return int(float(ahead.min()) <= reach)
+        eye = np.asarray(frame.eye, dtype=np.float64)
+        gap = np.maximum(np.maximum(lo - eye, eye - hi), 0.0)
+        return int(float(np.linalg.norm(gap)) <= reach)
 
     def _mean_density(self, params: RenderParams, pos: npt.NDArray[np.float32]) -> float:
         """The whole system's mean density at its sampled atoms (as one device takes it for
@@ -272,8 +311,7 @@ class SortLastRenderer(ImageOutputs):
     def _scene(self, params: RenderParams, pos: npt.NDArray[np.float32]) -> Any:
         if params.lighting.depth_cue <= 0.0 or not len(pos):
             return None
-        lo = pos.min(axis=0)
-        hi = pos.max(axis=0)
+        lo, hi = self._bounds(pos)
         amax = float(max(np.abs(lo).max(), np.abs(hi).max()))
         r = self._parts[0].reach(params, self._r_max) * (1.0 + SCENE_PAD) + amax * 4.0e-7 + 1.0e-6
         lo = lo - r
@@ -309,7 +347,7 @@ class SortLastRenderer(ImageOutputs):
             raise RenderError("no positions: call set_topology, then set_positions")
         t0 = time.perf_counter()
         pos = self._positions
-        w, h = int(width), int(height)
+        w, h, frame = self._parts[0].check_view(camera, width, height)
         halo = self._parts[0].halo(params, self._r_max)
         self._ensure_split(pos, halo)
         self._send(pos)
@@ -322,11 +360,14 @@ class SortLastRenderer(ImageOutputs):
             p = params.model_copy(update={"level_scale": "absolute", "iso_level": level})
         t_mean = time.perf_counter()
         scene = self._scene(params, pos)
-        for r in self._parts:
+        s = self._split
+        assert s is not None
+        opened = self._open(frame, self._parts[0].reach(params, self._r_max), pos)
+        for r, (lo, hi) in zip(self._parts, s["slabs"], strict=True):
+            r.region = (s["axis"], lo, hi, opened)
             r.scene_box = scene
             r.render(p, camera, w, h, wait=False)
-        # the parts checked the camera and the size
-        self._combine(params, camera_frame(camera, w, h), w, h)
+        self._combine(params, frame, w, h)
         t_end = time.perf_counter()
         self.timings = {
             "split_ms": (t_split - t0) * 1e3,
@@ -403,4 +444,5 @@ class SortLastRenderer(ImageOutputs):
         return [r.memory_bytes() for r in self._parts]
 
     def close(self) -> None:
-        self._parts = self._parts[:1]
+        """Let the gathering threads go."""
+        self._pool.shutdown(wait=False)

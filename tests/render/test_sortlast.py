@@ -17,7 +17,7 @@ from server.render import Renderer
 from server.render.camera import fit_camera
 from server.render.errors import RenderError
 from server.render.sortlast import SortLastRenderer, split_slabs
-from tests.render.molecules import Mol
+from tests.render.molecules import Mol, topology
 from tests.render.test_multi import villins
 
 W, H = 120, 90
@@ -116,6 +116,38 @@ def test_rays_that_cross_every_slab(device: str, camera: dict[str, object], mode
     # the depth threshold: a ray that reaches it only over several parts has no depth
     volume = mode == "volume"
     assert_same_image(one, s, 4 if volume else 1, 0.9 if volume else 1.0)
+
+
+def block() -> Mol:
+    """A solid block of atoms 40 A long in x: its surface is the block's faces."""
+    axes = [np.arange(0.0, 40.0, 1.5), np.arange(0.0, 16.0, 1.5), np.arange(0.0, 16.0, 1.5)]
+    pos = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return Mol(topology(["C"] * len(pos), []), pos.astype(np.float32))
+
+
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
+def test_a_camera_inside_the_surface_finds_the_way_out_in_a_part_behind(
+    device: str, projection: str
+) -> None:
+    """The eye inside the block just before the cut, looking down the axis: every ray starts
+    inside the surface and leaves it through the far face, in the second part."""
+    mol = block()
+    params = RenderParams(sigma_A=1.5)
+    cut = split_slabs(mol.positions[:, 0], 2)[0][1]
+    eye = np.array([cut - 2.0, 8.0, 8.0])
+    cam = Camera(
+        target=tuple(float(v) for v in eye + np.array([4.0, 0.0, 0.0])),  # type: ignore[arg-type]
+        distance=4.0,
+        orientation=(S, 0.0, -S, 0.0),  # the eye on the -x side, looking down +x
+        projection=projection,  # type: ignore[arg-type]
+        fov_deg=30.0,
+        ortho_height=6.0,
+    )
+    one = one_device(device, mol, params, cam)
+    depth = one.read_depth()
+    assert np.isfinite(depth).all() and float(depth.min()) > cut - eye[0] + 5.0
+    s = sort_last(device, 2, mol, params, cam)
+    assert_same_image(one, s, 1)
 
 
 def test_a_pick_names_the_whole_systems_atom(device: str) -> None:
