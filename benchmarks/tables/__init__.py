@@ -32,6 +32,7 @@ from .render import (
     render_densities,
     render_passes,
     render_variants,
+    sort_last,
     temporal,
 )
 from .server import (
@@ -82,6 +83,9 @@ TABLES: dict[str, Table] = {
     "multi-device": Table(
         ("multi_device_cpu_2core.json", "multi_device_h200x4.json"),
         multi_device,
+    ),
+    "sort-last": Table(
+        ("sort_last_h200_two_parts.json", "sort_last_h200_four_parts.json"), sort_last
     ),
     "multi-session": Table(
         ("multi_session_h200x2.json", "multi_session_h200x2_10k.json"), multi_session

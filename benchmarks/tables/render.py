@@ -316,3 +316,49 @@ def periodic_live(sources: list[Source]) -> str:
         "added on the device ms", "added with a host copy ms",
     ]  # fmt: skip
     return block(sources, table(header, "lrl" + "r" * 5, rows))
+
+
+def sort_last(sources: list[Source]) -> str:
+    """Sort-last against one device on the same frames (the control): the frame, where it
+    goes, each part's share of the atoms and of one device's bytes, and the image's distance
+    from one device's."""
+    rows = []
+    for _name, res in sources:
+        parts = len(res["devices"])
+        for run in res["runs"]:
+            one = run["one_device"]
+            sl = run["sort_last"]
+            n = run["atoms"]
+            stages = " / ".join(
+                num(sl[k], 1) for k in ("split_ms", "mean_ms", "queue_ms", "combine_ms")
+            )
+            held = ", ".join(f"{100.0 * a / n:.0f}" for a in sl["atoms_held"])
+            mem = max(sl["bytes"]) / one["bytes"]
+            diff = run["image_vs_one_device"]
+            rows.append(
+                [
+                    str(parts),
+                    count(n),
+                    size(*run["size"]),
+                    run["mode"],
+                    num(one["frame_ms"], 2),
+                    f"{num(sl['frame_ms'], 2)} ({one['frame_ms'] / sl['frame_ms']:.2f}x)",
+                    stages,
+                    held,
+                    f"{mem:.2f}",
+                    f"{diff['max_levels']} / {diff['mean_levels']:.3f}",
+                ]
+            )
+    header = [
+        "parts",
+        "atoms",
+        "image",
+        "mode",
+        "one device ms",
+        "sort-last ms",
+        "split / mean / queue / combine ms",
+        "atoms held, % each",
+        "device bytes, largest part / one device",
+        "image vs one device, max / mean levels",
+    ]
+    return block(sources, table(header, "rrllrrllrl", rows))

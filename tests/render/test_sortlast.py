@@ -250,6 +250,15 @@ def test_bad_input_is_refused() -> None:
         s.render(RenderParams(), Camera(distance=1e-9).model_copy(update={"distance": -1.0}), W, H)
 
 
+def test_a_system_without_atoms_draws_the_background(device: str) -> None:
+    empty = Mol(topology([], []), np.zeros((0, 3), np.float32))
+    cam = Camera()
+    s = sort_last(device, 2, empty, RenderParams(), cam)
+    one = one_device(device, empty, RenderParams(), cam)
+    assert np.array_equal(s.read_rgba(), one.read_rgba())
+    assert not np.isfinite(s.read_depth()).any()
+
+
 def test_slabs_hold_equal_shares_and_cover_space() -> None:
     x = np.arange(100, dtype=np.float32)
     slabs = split_slabs(x, 4)
