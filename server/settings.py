@@ -118,6 +118,9 @@ class ServerSettings:
     gone from its session this long (a reconnection within it keeps them going)."""
     gpus: str | None = None
     """Render each session's images across several devices: 'all', '0,1', 'cpu,cpu'."""
+    device_atoms: int | None = None
+    """Atoms one device's renderer holds (None: `limits.max_atoms`). With `gpus`, a session
+    alone on the devices whose system is larger is split across them by space (sort-last)."""
     batch_engine: Literal["auto", "ray", "local"] = "auto"
     """Where trajectory jobs render: in this process, or on Ray when asked (`ray`) or (`auto`)
     when a cluster is configured (`ray_address`) and Ray is installed."""
@@ -286,6 +289,8 @@ class ServerSettings:
             raise ValueError("--no-token-on-loopback-only needs a loopback --host")
         if self.token is None and not self.open_on_loopback:
             raise ValueError("a token is required unless the server is open on loopback only")
+        if self.device_atoms is not None and self.device_atoms < 1:
+            raise ValueError("--device-atoms must be at least 1")
         if self.encode_workers < 1:
             raise ValueError("--encode-workers must be at least 1")
         if self.max_spool_bytes < self.max_upload_bytes:

@@ -73,7 +73,15 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
     ap.add_argument(
         "--gpus",
         help="render each session's images across several devices: all | 0,1,... "
-        "(sort-first bands; docs/rendering.md)",
+        "(sort-first bands, or slabs of space for a system one device does not hold; "
+        "docs/rendering.md)",
+    )
+    ap.add_argument(
+        "--device-atoms",
+        type=int,
+        default=None,
+        help="atoms one device's renderer holds (default: the largest system a frame may "
+        "carry); with --gpus, a lone session's larger system is split across the devices",
     )
     ap.add_argument(
         "--batch-engine",
@@ -174,6 +182,8 @@ def settings_from(args: argparse.Namespace) -> ServerSettings:
     if args.encode_workers is not None:
         kwargs["encode_workers"] = args.encode_workers
     kwargs["gpus"] = args.gpus
+    if args.device_atoms is not None:
+        kwargs["device_atoms"] = args.device_atoms
     kwargs["batch_engine"] = args.batch_engine
     kwargs["ray_address"] = args.ray_address or None
     kwargs["ray_workers"] = args.ray_workers

@@ -38,6 +38,7 @@ import numpy.typing as npt
 
 import protocol as p
 from server.pipeline.staging import FrameStager
+from server.render.errors import RenderError
 from server.threads import name_thread
 
 STAGE_ATOMS = 100_000
@@ -54,6 +55,7 @@ if TYPE_CHECKING:
     from server.render.layers import LayeredRenderer
     from server.render.multi import MultiRenderer
     from server.render.periodic import PeriodicTransform
+    from server.render.sortlast import SortLastRenderer
     from server.render.tuning import Tuning
 
 T = TypeVar("T")
@@ -162,7 +164,7 @@ class RenderOutput:
 
 @dataclass
 class _Slot:
-    renderer: Renderer | MultiRenderer
+    renderer: Renderer | MultiRenderer | SortLastRenderer
     topology_id: int = -1
     positions_id: int = -1
     layered: LayeredRenderer | None = None
@@ -221,6 +223,10 @@ class GpuQueue:
     """Several devices: a lone session is drawn across them, several are placed one a device."""
     max_atoms: int = 4_000_000
     max_pixels: int = 3840 * 2160
+    device_atoms: int | None = None
+    """Atoms one device's renderer holds (None: `max_atoms`). With several devices, a session
+    alone on them whose system is larger is split across them by space (sort-last,
+    `server/render/sortlast.py`), and stays on all of them while other work comes."""
     _slots: dict[str, _Slot] = field(default_factory=dict)
     actual_device: str = ""
     stage_atoms: int = STAGE_ATOMS
@@ -244,6 +250,8 @@ class GpuQueue:
     _lane_of: dict[str, int] = field(default_factory=dict)
     _spread: str | None = None
     """The session drawn across every device (its work and all other work on lane 0)."""
+    _whole: set[str] = field(default_factory=set)
+    """Spread sessions whose systems one device does not hold (sort-last): never gathered."""
     _placing: asyncio.Lock | None = None
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -295,9 +303,11 @@ class GpuQueue:
             if session and several and self._spread is None and not self._sessions():
                 self._spread = slot
                 return self._place(slot, 0)
-            if self._spread is not None and session:
+            if self._spread is not None and session and self._spread not in self._whole:
                 await self._gather_spread()
-            if self._spread is not None:  # a job or one-off render beside the lone session
+            if self._spread is not None:
+                # a job or one-off render beside the lone session, or a session beside one
+                # that needs every device (all of it on the first device's thread)
                 return self._place(slot, 0)
             return self._place(slot, self._least_busy())
 
@@ -379,6 +389,7 @@ class GpuQueue:
                 self._lane_of.pop(slot, None)
             if self._spread == slot:
                 self._spread = None
+            self._whole.discard(slot)
             await self._spread_again()
 
     async def display(self, request: DisplayRequest) -> Shown:
@@ -429,21 +440,13 @@ class GpuQueue:
         if slot is None:
             from server.render import Renderer
 
-            renderer: Renderer | MultiRenderer
+            renderer: Renderer | MultiRenderer | SortLastRenderer
             if self._spread == key:
-                from server.render.multi import MultiRenderer
-
-                names = tuple(lane.device for lane in self._lanes)
-                renderer = MultiRenderer(
-                    names,
-                    max_atoms=self.max_atoms,
-                    max_pixels=self.max_pixels,
-                    tuning=self.tuning,
-                )
+                renderer = self._across_devices(split_by_space=False)
             else:
                 renderer = Renderer(
                     device=self._device_of(key),
-                    max_atoms=self.max_atoms,
+                    max_atoms=self.per_device,
                     max_pixels=self.max_pixels,
                     tuning=self.tuning,
                 )
@@ -454,9 +457,64 @@ class GpuQueue:
                 self._slots[key] = slot
         return slot
 
+    @property
+    def per_device(self) -> int:
+        """Atoms one device's renderer holds."""
+        return self.device_atoms if self.device_atoms is not None else self.max_atoms
+
+    def _across_devices(self, *, split_by_space: bool) -> MultiRenderer | SortLastRenderer:
+        """A renderer over every lane's device: sort-first bands, or slabs of space for a
+        system one device does not hold."""
+        names = tuple(lane.device for lane in self._lanes)
+        options: dict[str, Any] = {
+            "max_atoms": self.per_device,
+            "max_pixels": self.max_pixels,
+            "tuning": self.tuning,
+        }
+        if split_by_space:
+            from server.render.sortlast import SortLastRenderer
+
+            return SortLastRenderer(names, **options)
+        from server.render.multi import MultiRenderer
+
+        return MultiRenderer(names, **options)
+
+    def _fit(self, key: str, slot: _Slot, n_atoms: int) -> None:
+        """(On the slot's thread.) The session drawn across every device splits its system by
+        space when one device does not hold it (measured rule: docs/rendering.md, "Several
+        devices (sort-last)"), and by image bands otherwise."""
+        if self._spread != key:
+            return
+        from server.render.sortlast import SortLastRenderer
+
+        large = n_atoms > self.per_device
+        if large == isinstance(slot.renderer, SortLastRenderer):
+            return
+        old = slot.renderer
+        with contextlib.suppress(Exception):
+            old.finish()
+        close = getattr(old, "close", None)
+        if close is not None:
+            with contextlib.suppress(Exception):
+                close()
+        slot.renderer = self._across_devices(split_by_space=large)
+        slot.prefetched = None
+        with self._lock:
+            if large:
+                self._whole.add(key)
+            else:
+                self._whole.discard(key)
+        log.info(
+            "%s: %d atoms drawn across %s by %s",
+            key,
+            n_atoms,
+            slot.renderer.device,
+            "slabs of space (sort-last)" if large else "image bands (sort-first)",
+        )
+
     def _prepare(
         self, request: RenderRequest, held: list[tuple[FrameStager, Any]], *, wait: bool = True
-    ) -> Renderer | MultiRenderer | LayeredRenderer:
+    ) -> Renderer | MultiRenderer | SortLastRenderer | LayeredRenderer:
         """Bring the slot up to `request`'s snapshot and render it (`wait=False`: queue the
         render of a slot without layers and return). A staged copy the upload reads from goes
         into `held`, to be released once the device is done with it."""
@@ -467,7 +525,18 @@ class GpuQueue:
             slot.stager = None  # layers upload their own subsets
             return self._prepare_layers(slot, request)
         if slot.topology_id != snap.topology_id:
-            slot.renderer.set_topology(snap.topology)
+            self._fit(request.slot, slot, snap.topology.n_atoms)
+            try:
+                slot.renderer.set_topology(snap.topology)
+            except RenderError as exc:
+                n = snap.topology.n_atoms
+                if n <= self.per_device:
+                    raise
+                raise RenderError(
+                    f"{exc}: one device holds {self.per_device} atoms (--device-atoms); "
+                    "several devices (--gpus) split a larger system across them for a session "
+                    "alone on them"
+                ) from None
             slot.topology_id = snap.topology_id
             slot.positions_id = -1
         if slot.positions_id != snap.positions_id:
@@ -531,7 +600,7 @@ class GpuQueue:
             device = self._device_of(request.slot)
             slot.layered = LayeredRenderer(
                 lambda: Renderer(
-                    device=device, max_atoms=self.max_atoms, max_pixels=self.max_pixels
+                    device=device, max_atoms=self.per_device, max_pixels=self.max_pixels
                 )
             )
         snap = request.snapshot

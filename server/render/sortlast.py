@@ -149,7 +149,12 @@ class SortLastRenderer(ImageOutputs):
         self._parts = [Renderer(dev, **options) for dev in devices]
         for r in self._parts:
             r.coverage = True
-        self.device = self._parts[0].device
+        names = [r.device for r in self._parts]
+        self._home = names[0]
+        """The device the parts' images are blended on."""
+        self.device = ",".join(names)
+        self.labels = [d if names.count(d) == 1 else f"{d}#{i}" for i, d in enumerate(names)]
+        """Unique names of the devices (a device may hold several parts)."""
         self.timings: dict[str, float] = {}
         self._topology: Topology | None = None
         self._r_max = colors.R_REF
@@ -181,9 +186,18 @@ class SortLastRenderer(ImageOutputs):
         self._split = None
         self._mean = None
 
-    def set_positions(self, positions: npt.ArrayLike, *, check_finite: bool = True) -> None:
+    def set_positions(
+        self,
+        positions: npt.ArrayLike,
+        *,
+        check_finite: bool = True,
+        staged: npt.NDArray[np.float32] | None = None,
+    ) -> None:
         """Positions (n, 3) in angstrom for the next render; kept on the host until then, when
-        each device receives its part."""
+        each device receives its part. `staged`: the same positions in page-locked memory
+        (a live session's), read from there."""
+        if staged is not None:
+            positions = staged
         if self._topology is None:
             raise RenderError("set_topology must come before set_positions")
         arr = np.ascontiguousarray(positions, dtype=np.float32)
@@ -210,10 +224,17 @@ class SortLastRenderer(ImageOutputs):
         members: list[npt.NDArray[np.int32]] = []
         for r, (lo, hi) in zip(self._parts, slabs, strict=True):
             atoms = np.flatnonzero((coord >= lo - reach) & (coord < hi + reach)).astype(np.int32)
+            if len(atoms) > r.max_atoms:
+                self._split = None
+                raise RenderError(
+                    f"a slab of the {len(coord)}-atom system holds {len(atoms)} atoms with its "
+                    f"halo of {reach:.1f} A; a device holds {r.max_atoms}: more devices, or a "
+                    "smaller sigma (a narrower halo), would split it"
+                )
             members.append(atoms)
             r.set_topology(subset_topology(self._topology, atoms))
         offsets = np.cumsum([0] + [len(m) for m in members[:-1]]).astype(np.int32)
-        dev = self.device
+        dev = self._home
         self._split = {
             "axis": axis,
             "slabs": slabs,
@@ -378,12 +399,22 @@ class SortLastRenderer(ImageOutputs):
         t_queued = time.perf_counter()
         self._combine(params, frame, w, h)
         t_end = time.perf_counter()
+        parts = self._parts
         self.timings = {
             "split_ms": (t_split - t0) * 1e3,
             "mean_ms": (t_mean - t_split) * 1e3,
             "queue_ms": (t_queued - t_mean) * 1e3,
             "combine_ms": (t_end - t_queued) * 1e3,
             "total_ms": (t_end - t0) * 1e3,
+            # as one device's and sort-first's renders say it (a session's stats)
+            "upload": max(r.timings.get("upload", 0.0) for r in parts),
+            "grid": max(r.timings.get("grid", 0.0) for r in parts),
+            "raycast": max(r.timings.get("raycast", 0.0) for r in parts),
+            "total": (t_end - t0) * 1e3,
+            **{
+                f"device:{d}": r.timings.get("grid", 0.0) + r.timings.get("raycast", 0.0)
+                for d, r in zip(self.labels, parts, strict=True)
+            },
         }
         if wait:
             self.finish()
@@ -391,7 +422,7 @@ class SortLastRenderer(ImageOutputs):
     def _alloc(self, pixels: int) -> None:
         n = len(self._parts)
         if pixels > self._pixels:
-            dev = self.device
+            dev = self._home
             self._pixels = pixels
             self._stack_rgba = wp.zeros(n * pixels, dtype=wp.uint32, device=dev)
             self._stack_depth = wp.zeros(n * pixels, dtype=float, device=dev)
@@ -424,12 +455,12 @@ class SortLastRenderer(ImageOutputs):
             self._out_depth,
             self._out_ids,
         )
-        wp.launch(sort_last_kernel, pixels, args, device=self.device)
+        wp.launch(sort_last_kernel, pixels, args, device=self._home)
         self._image = (w, h)
 
     def finish(self) -> None:
         """Wait for the last render's combine."""
-        wp.synchronize_device(self.device)
+        wp.synchronize_device(self._home)
 
     def _outputs(self) -> tuple[Any, Any, Any]:
         return self._out_rgba, self._out_depth, self._out_ids
@@ -442,6 +473,33 @@ class SortLastRenderer(ImageOutputs):
         atom = int(self.read_atom_ids()[y, x])
         depth = float(self.read_depth()[y, x])
         return (atom if atom >= 0 else None), (depth if math.isfinite(depth) else None)
+
+    @property
+    def pipelined(self) -> bool:
+        """A frame is gathered into its parts when it is drawn, not uploaded during a render."""
+        return False
+
+    def set_history(self, *args: Any, **kwargs: Any) -> None:
+        """Smoothing in time is not split by space: refused with the reason."""
+        raise RenderError(
+            "sort-last cannot draw these parameters: smoothing in time reads every atom's history"
+        )
+
+    def density_histogram(
+        self, bins: int = 64
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]:
+        """The parts' density histograms summed (`Renderer.density_histogram`; each over its
+        own grid's box, so the halos between slabs count twice): the shape a transfer function
+        is drawn over."""
+        if self._image is None:
+            raise RenderError("render once before asking for a histogram")
+        counts: npt.NDArray[np.int64] | None = None
+        edges = np.zeros(0)
+        for r in self._parts:
+            c, edges = r.density_histogram(bins)
+            counts = c if counts is None else counts + c
+        assert counts is not None
+        return counts, edges
 
     def atoms_held(self) -> list[int]:
         """How many atoms each part holds (its slab's and its halo's)."""

@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 import protocol as p
 from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
+from server.render.errors import RenderError
 from server.render.layerplan import LayerPlan
 from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
@@ -119,7 +120,8 @@ class RenderLoop:
 
     async def run(self) -> None:
         """Until cancelled: wait for a change, render what it made due. A render that raises
-        is logged and reported to every client, and the loop goes on."""
+        is logged and reported to every client (a refusal with its reason), and the loop goes
+        on."""
         while True:
             await self._dirty.wait()
             self._dirty.clear()
@@ -127,6 +129,12 @@ class RenderLoop:
                 await self.render_pending()
             except asyncio.CancelledError:
                 raise
+            except RenderError as exc:  # what was sent cannot be drawn here: say what
+                log.warning("render refused in session %s: %s", self.session_id, exc)
+                self.host.broadcast(
+                    p.Error(code=p.ErrorCode.INVALID_MESSAGE, message=f"render refused: {exc}")
+                )
+                await asyncio.sleep(FAILED_RENDER_PAUSE_S)
             except Exception:
                 log.exception("render failed in session %s", self.session_id)
                 self.host.broadcast(

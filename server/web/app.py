@@ -112,6 +112,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
             devices=devices,
             max_atoms=settings.limits.max_atoms,
             max_pixels=settings.limits.max_image_pixels,
+            device_atoms=settings.device_atoms,
         )
         encoders = ThreadPoolExecutor(
             max_workers=settings.encode_workers,

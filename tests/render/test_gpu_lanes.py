@@ -19,7 +19,9 @@ from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.render import Renderer
 from server.render import device as render_device
 from server.render.multi import MultiRenderer
+from server.render.sortlast import SortLastRenderer
 from server.render.tuning import Tuning
+from tests.server.peers import molecule as helix
 
 
 def image_of(topology: Topology, positions: np.ndarray, camera: Camera, device: str) -> np.ndarray:
@@ -62,6 +64,41 @@ def test_sessions_spread_over_every_device_alone_and_take_one_each_together(
         a3 = await queue.render(request("session:a", topology, positions, camera))
         assert isinstance(queue._slots["session:a"].renderer, MultiRenderer)
         assert np.array_equal(a3.image(), want)
+
+    try:
+        asyncio.run(run())
+    finally:
+        queue.close()
+
+
+def test_a_session_one_device_cannot_hold_keeps_every_device_beside_others() -> None:
+    """Over `device_atoms`, the lone session is split by space (sort-last) and is not gathered
+    onto one device when a second session comes: that one shares the first device's thread.
+    A later, smaller system of the same session goes back to image bands."""
+    big, big_pos = helix(240, seed=4)  # 170 A long: a slab and its halo hold some of it
+    small, small_pos = helix(60, seed=3)
+    camera = Camera(target=tuple(big_pos.mean(axis=0)), distance=200.0)
+    want_big = image_of(big, big_pos, camera, "cpu")
+    want_small = image_of(small, small_pos, camera, "cpu")
+    queue = GpuQueue(devices=("cpu", "cpu"), device_atoms=150)
+
+    def close_to(got: np.ndarray, want: np.ndarray) -> bool:
+        return int(np.abs(got.astype(np.int16) - want.astype(np.int16)).max()) <= 1
+
+    async def run() -> None:
+        a = await queue.render(request("session:a", big, big_pos, camera))
+        assert isinstance(queue._slots["session:a"].renderer, SortLastRenderer)
+        b = await queue.render(request("session:b", small, small_pos, camera))
+        assert queue.spread == "session:a"
+        assert queue._lane_of == {"session:a": 0, "session:b": 0}
+        a2 = await queue.render(request("session:a", big, big_pos, camera))
+        assert close_to(a.image(), want_big) and close_to(a2.image(), want_big)
+        assert np.array_equal(b.image(), want_small)
+        await queue.release("session:b")
+        shrunk = Snapshot(small, small_pos, topology_id=2, positions_id=2)
+        a3 = await queue.render(RenderRequest("session:a", shrunk, RenderParams(), camera, 48, 32))
+        assert isinstance(queue._slots["session:a"].renderer, MultiRenderer)
+        assert np.array_equal(a3.image(), want_small)
 
     try:
         asyncio.run(run())

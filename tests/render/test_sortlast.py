@@ -231,6 +231,20 @@ def test_what_sort_last_cannot_split_is_refused_by_name(params: RenderParams, wh
         s.render(params, fit_camera(mol.positions, W, H), W, H)
 
 
+def test_a_slab_that_overflows_its_device_is_refused_by_its_numbers() -> None:
+    """A compact system whose halo reaches over most of it: a slab holds more atoms than a
+    device may, and the error says how many, the halo and the device's limit."""
+    mol = villins(1)
+    s = SortLastRenderer(["cpu", "cpu"], max_atoms=400)
+    s.set_topology(mol.topology)
+    s.set_positions(mol.positions)
+    n = len(mol.positions)
+    with pytest.raises(RenderError, match=rf"{n}-atom system holds {n} atoms .* holds 400"):
+        s.render(RenderParams(sigma_A=3.0), fit_camera(mol.positions, W, H), W, H)
+    with pytest.raises(RenderError, match="devices of 100 each hold fewer"):
+        SortLastRenderer(["cpu", "cpu"], max_atoms=100).set_topology(mol.topology)
+
+
 def test_bad_input_is_refused() -> None:
     mol = villins(2)
     s = SortLastRenderer(["cpu", "cpu"])

@@ -17,11 +17,13 @@ from tests.conftest import make_settings, start_server
 from tests.server.peers import Peer, frame, molecule
 
 
-def image_of(settings_dir: Path, **overrides: object) -> tuple[np.ndarray, p.Stats]:
+def image_of(
+    settings_dir: Path, atoms: int = 24, **overrides: object
+) -> tuple[np.ndarray, p.Stats]:
     server = start_server(make_settings(settings_dir, default_size=(96, 64), **overrides))
     try:
         sim = Peer(server.ws_url, "simulation", server.token, "multi")
-        topo, pos = molecule()
+        topo, pos = molecule(atoms)
         sim.send(topo)
         sim.send(frame(pos, 0))
         viewer = Peer(server.view_url, "viewer", server.viewer_token, "multi")
@@ -41,6 +43,30 @@ def test_two_devices_stream_the_one_device_picture(tmp_path: Path) -> None:
     assert sorted(stats.device_ms) == ["cpu#0", "cpu#1"]
     assert stats.device == "cpu,cpu"
     assert np.array_equal(one, two)
+
+
+def test_a_system_one_device_does_not_hold_is_split_across_the_devices(tmp_path: Path) -> None:
+    """`--device-atoms` below the system's size: two devices draw it by slabs of space
+    (sort-last), the picture one device with room for it draws; one device alone refuses it,
+    saying why."""
+    one, _ = image_of(tmp_path / "one", atoms=240)
+    two, stats = image_of(tmp_path / "two", atoms=240, gpus="cpu,cpu", device_atoms=150)
+    assert sorted(stats.device_ms) == ["cpu#0", "cpu#1"]
+    diff = np.abs(one.astype(np.int16) - two.astype(np.int16))
+    assert int(diff.max()) <= 3 and float(diff.mean()) < 0.05
+    server = start_server(make_settings(tmp_path / "alone", device_atoms=150))
+    try:
+        sim = Peer(server.ws_url, "simulation", server.token, "multi")
+        topo, pos = molecule(240)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        viewer = Peer(server.view_url, "viewer", server.viewer_token, "multi")
+        error = viewer.expect(p.Error, where=lambda m: "240 atoms" in m.message)
+        assert "allows 150" in error.message
+        sim.close()
+        viewer.close()
+    finally:
+        server.stop()
 
 
 def test_the_gpus_option_names_what_is_wrong() -> None:
