@@ -194,6 +194,7 @@ class Renderer(ImageOutputs):
         part mode), the distinct cameras that saw them (a few counted) and how many saw the
         ones rendered before them (`_many_views`)."""
         self._color_key: tuple[Any, ...] | None = None
+        self._given_colors: npt.NDArray[np.uint32] | None = None
         self._tf_key: tuple[Any, ...] | None = None
         self._tf = transfer.build_table()
         self._tf_table = wp.zeros(transfer.TABLE_SIZE, dtype=wp.vec4, device=self.device)
@@ -341,6 +342,7 @@ class Renderer(ImageOutputs):
         self._have_positions = False
         self._grid_key = None
         self._color_key = None
+        self._given_colors = None
         self._weights_key = None
         self._skeleton = None
         self._skel = None
@@ -867,8 +869,24 @@ class Renderer(ImageOutputs):
             skel.smooth(base, graph, self._weights)
         self._weights_key = key
 
+    def set_colors(self, packed: npt.NDArray[np.uint32] | None) -> None:
+        """Colours given from outside, (n,) packed RGBA8, drawn instead of the colouring the
+        render parameters name (None: that colouring again). A sort-last part colours its atoms
+        as the whole system does: chain ranks and the b-factor and charge ranges are the whole
+        system's, not its part's."""
+        if packed is not None and packed.shape != (self._n,):
+            raise RenderError(f"colours for {packed.shape} atoms, the topology has {self._n}")
+        self._given_colors = packed
+        self._color_key = None
+
     def _update_colors(self, p: RenderParams) -> None:
         assert self._topology is not None
+        given = self._given_colors
+        if given is not None:
+            if self._color_key != ("given", id(given)) and self._n:
+                wp.copy(self._colors, wp.array(given, dtype=wp.uint32, device="cpu"), count=self._n)
+                self._color_key = ("given", id(given))
+            return
         motion = p.color_by == "motion" and self._temporal is not None
         if motion and self._temporal is not None and self._temporal.colors(self._colors):
             self._color_key = ("motion",)

@@ -166,6 +166,9 @@ class SortLastRenderer(ImageOutputs):
         self._image: tuple[int, int] | None = None
         self._pixels = 0
         self._box: tuple[int, npt.NDArray[Any], npt.NDArray[Any]] | None = None
+        self._colored: tuple[Any, ...] | None = None
+        self._serial = 0
+        """Counts the splits (what was computed for one split is keyed by its number)."""
         self._pool = ThreadPoolExecutor(len(self._parts), thread_name_prefix="sort-last")
 
     @property
@@ -235,7 +238,9 @@ class SortLastRenderer(ImageOutputs):
             r.set_topology(subset_topology(self._topology, atoms))
         offsets = np.cumsum([0] + [len(m) for m in members[:-1]]).astype(np.int32)
         dev = self._home
+        self._serial += 1
         self._split = {
+            "serial": self._serial,
             "axis": axis,
             "slabs": slabs,
             "halo": halo,
@@ -311,7 +316,7 @@ class SortLastRenderer(ImageOutputs):
         assert self._split is not None
         key = (
             self._version,
-            id(self._split),
+            self._split["serial"],
             params.sigma_A,
             params.radius_mode,
             params.cutoff_sigmas,
@@ -336,6 +341,18 @@ class SortLastRenderer(ImageOutputs):
         mean = total / samples
         self._mean = (key, mean)
         return mean
+
+    def _color_parts(self, params: RenderParams) -> None:
+        """Every part's atoms in the whole system's colours (a chain's rank, the b-factor and
+        charge ranges are the system's, not a part's)."""
+        assert self._topology is not None and self._split is not None
+        key = (params.color_by, tuple(params.uniform_color), self._split["serial"])
+        if self._colored == key:
+            return
+        whole = colors.atom_colors(self._topology, params.color_by, params.uniform_color)
+        for r, atoms in zip(self._parts, self._split["members"], strict=True):
+            r.set_colors(whole[atoms])
+        self._colored = key
 
     def _scene(self, params: RenderParams, pos: npt.NDArray[np.float32]) -> Any:
         if params.lighting.depth_cue <= 0.0 or not len(pos):
@@ -388,6 +405,7 @@ class SortLastRenderer(ImageOutputs):
                 level = float(params.iso_level)
             p = params.model_copy(update={"level_scale": "absolute", "iso_level": level})
         t_mean = time.perf_counter()
+        self._color_parts(params)
         scene = self._scene(params, pos)
         s = self._split
         assert s is not None

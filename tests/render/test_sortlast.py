@@ -12,7 +12,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from protocol import Camera, Layer, RenderParams
+from protocol import Camera, Layer, RenderParams, WireArray
 from server.render import Renderer
 from server.render.camera import fit_camera
 from server.render.errors import RenderError
@@ -87,6 +87,22 @@ def test_the_parts_blend_into_the_one_device_image(
     held = s.atoms_held()
     assert len(held) == parts and max(held) < len(mol.positions)
     assert sum(held) >= len(mol.positions)
+
+
+@pytest.mark.parametrize("color_by", ["chain", "bfactor"])
+def test_parts_colour_their_atoms_as_the_whole_system_does(device: str, color_by: str) -> None:
+    """A chain's colour is its rank in the whole system and the b-factor ramp spans the whole
+    system's range: a part that holds only later chains, or a narrower range, colours alike."""
+    mol = villins(3)
+    n = len(mol.positions)
+    chains = [c for c in "ABC" for _ in range(n // 3)]
+    bfactors = WireArray.from_numpy(np.linspace(5.0, 80.0, n).astype(np.float32), "<f4")
+    top = mol.topology.model_copy(update={"chain_ids": chains, "bfactors": bfactors})
+    coloured = Mol(top, mol.positions)
+    params = RenderParams(color_by=color_by)  # type: ignore[arg-type]
+    cam = fit_camera(mol.positions, W, H)
+    one = one_device(device, coloured, params, cam)
+    assert_same_image(one, sort_last(device, 3, coloured, params, cam), 1)
 
 
 @pytest.mark.parametrize(
