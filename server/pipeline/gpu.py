@@ -303,11 +303,15 @@ class GpuQueue:
             if session and several and self._spread is None and not self._sessions():
                 self._spread = slot
                 return self._place(slot, 0)
-            if self._spread is not None and session and self._spread not in self._whole:
+            with self._lock:
+                whole = [self._lane_of[k] for k in self._whole if k in self._lane_of]
+            if whole:
+                # a system is drawn across every device (sort-last): all work goes on its
+                # thread beside it, so no two threads drive one device
+                return self._place(slot, whole[0])
+            if self._spread is not None and session:
                 await self._gather_spread()
-            if self._spread is not None:
-                # a job or one-off render beside the lone session, or a session beside one
-                # that needs every device (all of it on the first device's thread)
+            if self._spread is not None:  # a job or one-off render beside the lone session
                 return self._place(slot, 0)
             return self._place(slot, self._least_busy())
 
@@ -480,16 +484,35 @@ class GpuQueue:
         return MultiRenderer(names, **options)
 
     def _fit(self, key: str, slot: _Slot, n_atoms: int) -> None:
-        """(On the slot's thread.) The session drawn across every device splits its system by
-        space when one device does not hold it (measured rule: docs/rendering.md, "Several
-        devices (sort-last)"), and by image bands otherwise."""
-        if self._spread != key:
-            return
+        """(On the slot's thread, before it takes a new topology.) A system one device does not
+        hold is split across every device by space (sort-last; the measured rule:
+        docs/rendering.md, "Several devices (sort-last)") while every slot is on this slot's
+        thread (a session alone on the devices, the jobs and one-off renders beside it), so no
+        two threads drive one device, and later slots join that thread; otherwise it is refused,
+        saying why. A smaller system goes back to image bands (the session alone) or to one
+        device."""
+        from server.render import Renderer
         from server.render.sortlast import SortLastRenderer
 
-        large = n_atoms > self.per_device
-        if large == isinstance(slot.renderer, SortLastRenderer):
+        large = n_atoms > self.per_device and len(self._lanes) > 1
+        split = isinstance(slot.renderer, SortLastRenderer)
+        if large == split:
             return
+        if large:
+            with self._lock:
+                mine = self._lane_of.get(key, 0)
+                alone = all(lane == mine for lane in self._lane_of.values())
+                if alone:
+                    self._whole.add(key)
+            if not alone:
+                raise RenderError(
+                    f"{n_atoms} atoms: one device holds {self.per_device} (--device-atoms), and "
+                    "the other devices are drawing other sessions now; the system is split "
+                    "across them when it is alone on them"
+                )
+        else:
+            with self._lock:
+                self._whole.discard(key)
         old = slot.renderer
         with contextlib.suppress(Exception):
             old.finish()
@@ -497,19 +520,22 @@ class GpuQueue:
         if close is not None:
             with contextlib.suppress(Exception):
                 close()
-        slot.renderer = self._across_devices(split_by_space=large)
         slot.prefetched = None
-        with self._lock:
-            if large:
-                self._whole.add(key)
-            else:
-                self._whole.discard(key)
+        if large or self._spread == key:
+            slot.renderer = self._across_devices(split_by_space=large)
+        else:
+            slot.renderer = Renderer(
+                device=self._device_of(key),
+                max_atoms=self.per_device,
+                max_pixels=self.max_pixels,
+                tuning=self.tuning,
+            )
         log.info(
-            "%s: %d atoms drawn across %s by %s",
+            "%s: %d atoms drawn on %s%s",
             key,
             n_atoms,
             slot.renderer.device,
-            "slabs of space (sort-last)" if large else "image bands (sort-first)",
+            " by slabs of space (sort-last)" if large else "",
         )
 
     def _prepare(
@@ -529,13 +555,11 @@ class GpuQueue:
             try:
                 slot.renderer.set_topology(snap.topology)
             except RenderError as exc:
-                n = snap.topology.n_atoms
-                if n <= self.per_device:
+                if snap.topology.n_atoms <= self.per_device:
                     raise
                 raise RenderError(
                     f"{exc}: one device holds {self.per_device} atoms (--device-atoms); "
-                    "several devices (--gpus) split a larger system across them for a session "
-                    "alone on them"
+                    "several devices (--gpus) split a larger system across them"
                 ) from None
             slot.topology_id = snap.topology_id
             slot.positions_id = -1
@@ -591,8 +615,18 @@ class GpuQueue:
         slot.prefetched = (stager, array)
 
     def _prepare_layers(self, slot: _Slot, request: RenderRequest) -> LayeredRenderer:
-        """Draw `request`'s layers, each with a renderer of its own on the slot's device."""
+        """Draw `request`'s layers, each with a renderer of its own on the slot's device (one
+        device: a layer it cannot hold is refused, saying so)."""
         assert request.layers is not None
+        n = request.snapshot.topology.n_atoms
+        for plan in request.layers:
+            held = n if plan.atoms is None else len(plan.atoms)
+            if held > self.per_device:
+                raise RenderError(
+                    f"layer {plan.name!r} has {held} atoms: layers are drawn on one device, "
+                    f"which holds {self.per_device} (--device-atoms); without layers "
+                    "(`layers: []`), several devices (--gpus) split the system across them"
+                )
         if slot.layered is None:
             from server.render import Renderer
             from server.render.layers import LayeredRenderer
@@ -734,6 +768,7 @@ class GpuQueue:
         again where it is placed then), after its last render."""
         with self._lock:
             slot = self._slots.pop(key, None)
+            self._whole.discard(key)
         if slot is None:
             return
         with contextlib.suppress(Exception):

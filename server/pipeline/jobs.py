@@ -53,6 +53,7 @@ from server.pipeline.periodic import (
     needs_selections,
 )
 from server.pipeline.selections import FrameLayers, LayerError, opening_params
+from server.render.errors import RenderError
 from structures.errors import StructureError
 from structures.isolated import IsolatedStructure, ReadLimits
 from structures.selection_pool import Held, SelectionPool
@@ -716,7 +717,7 @@ class JobManager:
                 result = final
             else:
                 outcome = JobState.CANCELLED
-        except (JobError, StructureError) as exc:
+        except (JobError, StructureError, RenderError) as exc:
             outcome, error = JobState.FAILED, str(exc)
         except asyncio.CancelledError:
             # shutting down: the record stays `running`, so the next start runs the job again
@@ -862,7 +863,7 @@ class JobManager:
                 job.partial = job.warning is not None
                 await loop.run_in_executor(self.encoders, writer.close)
                 result = final
-        except (JobError, StructureError) as exc:
+        except (JobError, StructureError, RenderError) as exc:
             outcome, error = JobState.FAILED, str(exc)
         except asyncio.CancelledError:
             frames.close("the server stopped")

@@ -41,6 +41,7 @@ import numpy.typing as npt
 import warp
 
 from protocol import Camera, RenderParams, Topology
+from protocol.limits import MAX_COORDINATE_A
 from server.render import colors
 from server.render.camera import CameraFrame
 from server.render.errors import RenderError
@@ -55,6 +56,8 @@ SLACK_HALO = 0.25
 """The atoms a part holds reach this fraction of the halo beyond it (at least `SLACK_MIN_A`):
 atoms may move that far along the axis before the system is split again."""
 SLACK_MIN_A = 2.0
+SPREAD = 0.01
+"""The split axis is the one whose 1st to 99th percentile of the atoms spans furthest."""
 SCENE_PAD = 1.0e-4
 """The depth cue's box is the atoms' box widened by the reach, padded as one device's grid box
 is (`grid.setup_kernel`)."""
@@ -125,6 +128,17 @@ def sort_last_kernel(
         if local >= 0:
             atom = members[offsets[front] + local]
         out_ids[pix] = atom
+
+
+def spread_axis(pos: npt.NDArray[np.float32]) -> int:
+    """The axis along which most of the atoms spread furthest (1st to 99th percentile): a
+    stray atom far out does not turn the cuts across the system."""
+    if not len(pos):
+        return 0
+    spans = [
+        float(np.subtract(*np.quantile(pos[:, k], [SPREAD, 1.0 - SPREAD])[::-1])) for k in range(3)
+    ]
+    return int(np.argmax(spans))
 
 
 def split_slabs(coord: npt.NDArray[np.float32], parts: int) -> list[tuple[float, float]]:
@@ -218,8 +232,7 @@ class SortLastRenderer(ImageOutputs):
     def _split_atoms(self, pos: npt.NDArray[np.float32], halo: float) -> None:
         """Cut space into slabs and give each part its slab's atoms with the halo and slack."""
         assert self._topology is not None
-        box_lo, box_hi = self._bounds(pos) if len(pos) else (np.zeros(3), np.zeros(3))
-        axis = int(np.argmax(box_hi - box_lo))
+        axis = spread_axis(pos)
         coord = pos[:, axis]
         slabs = split_slabs(coord, len(self._parts))
         slack = max(SLACK_HALO * halo, SLACK_MIN_A)
@@ -230,9 +243,10 @@ class SortLastRenderer(ImageOutputs):
             if len(atoms) > r.max_atoms:
                 self._split = None
                 raise RenderError(
-                    f"a slab of the {len(coord)}-atom system holds {len(atoms)} atoms with its "
-                    f"halo of {reach:.1f} A; a device holds {r.max_atoms}: more devices, or a "
-                    "smaller sigma (a narrower halo), would split it"
+                    f"a slab of the {len(coord)}-atom system holds {len(atoms)} atoms with the "
+                    f"atoms within {reach:.1f} A of it (its halo and slack); a device holds "
+                    f"{r.max_atoms}: more devices, or a smaller sigma (a narrower halo), would "
+                    "split it"
                 )
             members.append(atoms)
             r.set_topology(subset_topology(self._topology, atoms))
@@ -294,6 +308,29 @@ class SortLastRenderer(ImageOutputs):
             hi = np.array([pos[:, k].max() for k in range(3)], dtype=np.float64)
             self._box = (self._version, lo, hi)
         return self._box[1], self._box[2]
+
+    def _drawable(self, pos: npt.NDArray[np.float32]) -> bool:
+        """A frame with a coordinate that is not finite or lies past `MAX_COORDINATE_A` draws
+        background only, as on one device (whose grid flags it); it is never split."""
+        if not len(pos):
+            return True
+        lo, hi = self._bounds(pos)
+        return bool(
+            np.isfinite(lo).all()
+            and np.isfinite(hi).all()
+            and max(float(np.abs(lo).max()), float(np.abs(hi).max())) <= MAX_COORDINATE_A
+        )
+
+    def _background(self, params: RenderParams, w: int, h: int) -> None:
+        """The image of a frame that draws nothing: background, no depth, no atom."""
+        pixels = w * h
+        self._alloc(pixels)
+        c = [int(min(max(v, 0.0), 1.0) * 255.0 + 0.5) for v in params.background]
+        packed = c[0] | (c[1] << 8) | (c[2] << 16) | (255 << 24)
+        self._out_rgba.fill_(packed)
+        self._out_depth.fill_(float("inf"))
+        self._out_ids.fill_(-1)
+        self._image = (w, h)
 
     def _open(self, frame: CameraFrame, reach: float, pos: npt.NDArray[np.float32]) -> int:
         """1 when a ray may start within reach of an atom (the eye, or an orthographic image
@@ -394,6 +431,10 @@ class SortLastRenderer(ImageOutputs):
         t0 = time.perf_counter()
         pos = self._positions
         w, h, frame = self._parts[0].check_view(camera, width, height)
+        if not self._drawable(pos):
+            self._background(params, w, h)
+            self.timings = {"total_ms": (time.perf_counter() - t0) * 1e3, "total": 0.0}
+            return
         halo = self._parts[0].halo(params, self._r_max)
         self._ensure_split(pos, halo)
         self._send(pos)

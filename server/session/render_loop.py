@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
+import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -29,6 +30,9 @@ from server.settings import ServerSettings
 
 log = logging.getLogger("scalesteer.session")
 
+REFUSAL_REPEAT_S = 10.0
+"""A render refused for the same reason is told to the clients again after this long (a viewer
+that joins meanwhile hears it then), not on every pass."""
 FAILED_RENDER_PAUSE_S = 0.5
 """After a render raised, the loop waits this long before it looks again (a render that keeps
 failing does not spin, and its error reaches the viewers once a pass)."""
@@ -102,6 +106,9 @@ class RenderLoop:
         self._render_times: list[float] = []
         self._image_ids = itertools.count(1)
         self._dirty = asyncio.Event()
+        self._refused: tuple[str, float] = ("", -math.inf)
+        """The last refusal told to the clients, and when (the same one is told again only
+        after `REFUSAL_REPEAT_S`)."""
 
     def start(self) -> asyncio.Task[None]:
         return asyncio.create_task(self.run(), name=f"render-{self.session_id}")
@@ -130,10 +137,14 @@ class RenderLoop:
             except asyncio.CancelledError:
                 raise
             except RenderError as exc:  # what was sent cannot be drawn here: say what
-                log.warning("render refused in session %s: %s", self.session_id, exc)
-                self.host.broadcast(
-                    p.Error(code=p.ErrorCode.INVALID_MESSAGE, message=f"render refused: {exc}")
-                )
+                now = time.monotonic()
+                said, when = self._refused
+                if str(exc) != said or now - when >= REFUSAL_REPEAT_S:
+                    log.warning("render refused in session %s: %s", self.session_id, exc)
+                    self.host.broadcast(
+                        p.Error(code=p.ErrorCode.INVALID_MESSAGE, message=f"render refused: {exc}")
+                    )
+                    self._refused = (str(exc), now)
                 await asyncio.sleep(FAILED_RENDER_PAUSE_S)
             except Exception:
                 log.exception("render failed in session %s", self.session_id)

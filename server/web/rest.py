@@ -42,6 +42,7 @@ from server.pipeline.periodic import (
 )
 from server.pipeline.selections import FrameLayers, LayerError, check_layers, opening_params
 from server.render.boxes import Shown
+from server.render.errors import RenderError
 from server.web.access import (
     GatedRoute,
     app_state,
@@ -346,6 +347,8 @@ async def render_image(
     )
     try:
         out = await state.gpu.render(request)
+    except RenderError as exc:  # what was sent cannot be drawn on this server's devices
+        raise HTTPException(422, f"cannot draw this: {exc}") from None
     finally:
         await state.gpu.release(slot)
     image = out.image()

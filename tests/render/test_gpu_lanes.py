@@ -92,7 +92,12 @@ def test_a_session_one_device_cannot_hold_keeps_every_device_beside_others() -> 
         assert queue.spread == "session:a"
         assert queue._lane_of == {"session:a": 0, "session:b": 0}
         a2 = await queue.render(request("session:a", big, big_pos, camera))
-        assert close_to(a.image(), want_big) and close_to(a2.image(), want_big)
+        job = await queue.render(request("job:1", big, big_pos, camera))  # a movie of it
+        assert queue._lane_of["job:1"] == 0
+        assert isinstance(queue._slots["job:1"].renderer, SortLastRenderer)
+        await queue.release("job:1")
+        for out in (a, a2, job):
+            assert close_to(out.image(), want_big)
         assert np.array_equal(b.image(), want_small)
         await queue.release("session:b")
         shrunk = Snapshot(small, small_pos, topology_id=2, positions_id=2)

@@ -206,6 +206,45 @@ def test_atoms_that_move_past_the_slack_split_the_system_again(device: str) -> N
     assert s.atoms_held() != first
 
 
+def test_a_stray_atom_does_not_turn_the_cuts(device: str) -> None:
+    """One atom far out along another axis: the cuts still run across the axis the atoms
+    spread along, and the image is one device's."""
+    mol = villins(3)
+    pos = mol.positions.copy()
+    pos[0] = pos.mean(axis=0) + np.float32([0.0, 300.0, 0.0])
+    stray = Mol(mol.topology, pos)
+    cam = fit_camera(mol.positions, W, H)
+    params = RenderParams()
+    s = sort_last(device, 2, stray, params, cam)
+    assert s.renderers[0].region is not None and s.renderers[0].region[0] == 0
+    assert_same_image(one_device(device, stray, params, cam), s, 1)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, 2.0e6])
+def test_a_frame_one_device_draws_as_background_is_background_and_splits_nothing(
+    device: str, bad: float
+) -> None:
+    """A coordinate that is not finite or lies past MAX_COORDINATE_A (passed unchecked): the
+    whole frame is background, as on one device, and the next good frame draws again."""
+    mol = villins(3)
+    cam = fit_camera(mol.positions, W, H)
+    params = RenderParams()
+    s = SortLastRenderer([device] * 2)
+    s.set_topology(mol.topology)
+    one = Renderer(device)
+    one.set_topology(mol.topology)
+    frame = mol.positions.copy()
+    frame[7, 2] = bad
+    for r in (s, one):  # the first frame of all: nothing is split from it
+        r.set_positions(frame, check_finite=False)
+        r.render(params, cam, W, H)
+    assert not np.isfinite(s.read_depth()).any() and not np.isfinite(one.read_depth()).any()
+    assert np.array_equal(s.read_rgba(), one.read_rgba())
+    s.set_positions(mol.positions)
+    s.render(params, cam, W, H)
+    assert_same_image(one_device(device, mol, params, cam), s, 1)
+
+
 def test_fewer_atoms_than_parts(device: str) -> None:
     mol = villins(1)
     one_atom = Mol(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from PIL import Image
@@ -67,6 +68,44 @@ def test_a_system_one_device_does_not_hold_is_split_across_the_devices(tmp_path:
         viewer.close()
     finally:
         server.stop()
+
+
+def test_a_one_off_render_of_a_system_one_device_does_not_hold(tmp_path: Path) -> None:
+    """`POST /api/render` of a system over `--device-atoms`: drawn across two devices by space
+    as one roomy device draws it; refused with the reason (422) by one device alone."""
+    topo, pos = molecule(240)
+    pdb = tmp_path / "helix.pdb"
+    at = "HETATM{:5d} {:<4s} MOL A   1    {:8.3f}{:8.3f}{:8.3f}  1.00  0.00          {:>2s}"
+    lines = [
+        at.format(i + 1, e, x, y, z, e)
+        for i, (e, (x, y, z)) in enumerate(zip(topo.elements, pos, strict=True))
+    ]
+    pdb.write_text("\n".join([*lines, "END", ""]))
+
+    def post(name: str, params: str, **overrides: object) -> httpx.Response:
+        server = start_server(make_settings(tmp_path / name, **overrides))
+        try:
+            with httpx.Client(base_url=server.url, timeout=120) as c, pdb.open("rb") as f:
+                auth = {"Authorization": f"Bearer {server.token}"}
+                data = {"width": "64", "height": "48", "format": "png", "params": params}
+                return c.post("/api/render", headers=auth, files={"file": f}, data=data)
+        finally:
+            server.stop()
+
+    whole = '{"layers": []}'  # every atom, no layers
+    want = post("roomy", whole)
+    assert want.status_code == 200, want.text
+    got = post("split", whole, gpus="cpu,cpu", device_atoms=150)
+    assert got.status_code == 200, got.text
+    a = np.asarray(Image.open(io.BytesIO(want.content)).convert("RGB"), dtype=np.int16)
+    b = np.asarray(Image.open(io.BytesIO(got.content)).convert("RGB"), dtype=np.int16)
+    assert int(np.abs(a - b).max()) <= 1
+    refused = post("alone", whole, device_atoms=150)
+    assert refused.status_code == 422
+    assert "240 atoms" in refused.text and "allows 150" in refused.text
+    layered = post("layers", "{}", gpus="cpu,cpu", device_atoms=150)  # the opening layers
+    assert layered.status_code == 422
+    assert "has 240 atoms: layers are drawn on one device" in layered.text
 
 
 def test_the_gpus_option_names_what_is_wrong() -> None:
