@@ -251,7 +251,9 @@ class GpuQueue:
     _spread: str | None = None
     """The session drawn across every device (its work and all other work on lane 0)."""
     _whole: set[str] = field(default_factory=set)
-    """Spread sessions whose systems one device does not hold (sort-last): never gathered."""
+    """Slots whose systems one device does not hold, drawn across every device by space
+    (sort-last) from their thread: later work joins that thread, and a spread session among
+    them is never gathered onto one device."""
     _placing: asyncio.Lock | None = None
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -298,17 +300,17 @@ class GpuQueue:
             lane = self._lane_of.get(slot)
             if lane is not None:
                 return lane
-            session = slot.startswith("session:")
-            several = len(self._lanes) > 1
-            if session and several and self._spread is None and not self._sessions():
-                self._spread = slot
-                return self._place(slot, 0)
             with self._lock:
                 whole = [self._lane_of[k] for k in self._whole if k in self._lane_of]
             if whole:
                 # a system is drawn across every device (sort-last): all work goes on its
                 # thread beside it, so no two threads drive one device
                 return self._place(slot, whole[0])
+            session = slot.startswith("session:")
+            several = len(self._lanes) > 1
+            if session and several and self._spread is None and not self._sessions():
+                self._spread = slot
+                return self._place(slot, 0)
             if self._spread is not None and session:
                 await self._gather_spread()
             if self._spread is not None:  # a job or one-off render beside the lone session
