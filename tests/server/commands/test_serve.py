@@ -61,6 +61,15 @@ def test_video_codecs_are_chosen_by_name_or_turned_off(tmp_path: Path) -> None:
         settings("--state-dir", state, "--video-codecs", "h264,hevc")
 
 
+def test_device_atoms_go_with_the_devices_and_a_bad_count_is_named(tmp_path: Path) -> None:
+    state = str(tmp_path / "state")
+    s = settings("--state-dir", state, "--gpus", "cpu,cpu", "--device-atoms", "150")
+    assert (s.gpus, s.device_atoms) == ("cpu,cpu", 150)
+    assert settings("--state-dir", state).device_atoms is None  # the message limit then
+    with pytest.raises(ValueError, match="--device-atoms must be at least 1"):
+        settings("--state-dir", state, "--device-atoms", "0")
+
+
 def test_a_server_interrupted_while_it_starts_is_stopped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
