@@ -10,6 +10,7 @@ import asyncio
 import itertools
 import logging
 import math
+import re
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -107,8 +108,8 @@ class RenderLoop:
         self._image_ids = itertools.count(1)
         self._dirty = asyncio.Event()
         self._refused: tuple[str, float] = ("", -math.inf)
-        """The last refusal told to the clients, and when (the same one is told again only
-        after `REFUSAL_REPEAT_S`)."""
+        """The reason of the last refusal told to the clients (its numbers left out: they change
+        frame by frame) and when; the same reason is told again only after `REFUSAL_REPEAT_S`."""
 
     def start(self) -> asyncio.Task[None]:
         return asyncio.create_task(self.run(), name=f"render-{self.session_id}")
@@ -139,12 +140,13 @@ class RenderLoop:
             except RenderError as exc:  # what was sent cannot be drawn here: say what
                 now = time.monotonic()
                 said, when = self._refused
-                if str(exc) != said or now - when >= REFUSAL_REPEAT_S:
+                reason = re.sub(r"[0-9.]+", "#", str(exc))  # frame by frame, counts change
+                if reason != said or now - when >= REFUSAL_REPEAT_S:
                     log.warning("render refused in session %s: %s", self.session_id, exc)
                     self.host.broadcast(
                         p.Error(code=p.ErrorCode.INVALID_MESSAGE, message=f"render refused: {exc}")
                     )
-                    self._refused = (str(exc), now)
+                    self._refused = (reason, now)
                 await asyncio.sleep(FAILED_RENDER_PAUSE_S)
             except Exception:
                 log.exception("render failed in session %s", self.session_id)

@@ -12,9 +12,11 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import pytest
 
 import protocol as p
 from server.pipeline.gpu import GpuQueue, RenderOutput, RenderRequest, Snapshot
+from server.render.errors import RenderError
 from server.session.clients import Client
 from server.session.delivery import Delivery
 from server.session.render_loop import RenderLoop, Scene
@@ -73,6 +75,15 @@ class FailingOnce(PaintBackend):
             self.requests.append(request)
             raise RuntimeError("the device went away")
         return await super().render(request)
+
+
+class Refusing(PaintBackend):
+    """Refuses every render, its numbers changing from one to the next (a system re-split
+    each frame whose slab is too large for its device)."""
+
+    async def render(self, request: RenderRequest) -> RenderOutput:
+        self.requests.append(request)
+        raise RenderError(f"a slab holds {3000 + len(self.requests)} atoms; a device holds 2000")
 
 
 Body = Callable[[RenderLoop, Host, PaintBackend], Coroutine[Any, Any, None]]
@@ -204,6 +215,28 @@ def test_a_failed_render_is_reported_to_every_client_and_the_loop_goes_on(
         assert images(a)[0].step == 0 and loop.render_count == 1
 
     run(body, tmp_path, FailingOnce())
+
+
+def test_a_refusal_is_told_with_its_reason_once_while_it_repeats(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A render refused by what was sent: the clients get the reason, not "render failed",
+    and the same reason (its numbers aside) is not told again on every pass."""
+    monkeypatch.setattr("server.session.render_loop.FAILED_RENDER_PAUSE_S", 0.01)
+
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        host.clients["a"] = client("a", "viewer")
+        for version in range(2, 6):
+            host.version = version
+            loop.mark_dirty()
+            await settle(lambda v=version: len(backend.requests) >= v - 1)  # type: ignore[misc]
+            await quiet()
+        assert len(backend.requests) >= 4
+        (error,) = host.broadcasts
+        assert isinstance(error, p.Error) and error.code == p.ErrorCode.INVALID_MESSAGE
+        assert error.message.startswith("render refused: a slab holds 300")
+
+    run(body, tmp_path, Refusing())
 
 
 def test_a_snapshot_the_host_cannot_draw_yet_renders_nothing_and_frees_its_slot(
