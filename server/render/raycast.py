@@ -338,6 +338,18 @@ def pack_rgba(c: wp.vec3) -> wp.uint32:
 
 @wp.func
 @no_type_check
+def unpack_rgba(c: wp.uint32):
+    """A packed RGBA8 pixel as its colour and alpha in [0, 1]."""
+    col = wp.vec3(
+        float(c & wp.uint32(255)),
+        float((c >> wp.uint32(8)) & wp.uint32(255)),
+        float((c >> wp.uint32(16)) & wp.uint32(255)),
+    )
+    return col / 255.0, float((c >> wp.uint32(24)) & wp.uint32(255)) / 255.0
+
+
+@wp.func
+@no_type_check
 def pack_premultiplied(c: wp.vec3, a: float) -> wp.uint32:
     """A premultiplied colour with its coverage `a` in the alpha byte."""
     rgb = pack_rgba(c) & wp.uint32(0x00FFFFFF)

@@ -121,6 +121,17 @@ def _model_name(d: Derived) -> str:
     return "carved" if d.warp is not None else "gaussian"
 
 
+def check_finite_positions(arr: npt.NDArray[np.float32]) -> None:
+    """RenderError naming the first atom of a frame with a NaN or Inf (one sum over the frame
+    when there is none)."""
+    if math.isfinite(float(arr.sum(dtype=np.float32))):
+        return
+    bad = np.nonzero(~np.isfinite(arr).all(axis=1))[0]
+    if len(bad):
+        raise RenderError(f"positions contain NaN or Inf ({len(bad)} atoms, first index {bad[0]})")
+    raise RenderError("positions are too large (beyond ±1e30 angstrom)")
+
+
 class Renderer(ImageOutputs):
     """Ray-casting renderer of the Gaussian molecular density (see docs/rendering.md).
 
@@ -400,13 +411,8 @@ class Renderer(ImageOutputs):
         if arr.dtype != np.float32 or not arr.flags.c_contiguous:
             arr = np.ascontiguousarray(arr, dtype=np.float32)
         n = self._n
-        if check_finite and n and not math.isfinite(float(arr.sum(dtype=np.float32))):
-            bad = np.nonzero(~np.isfinite(arr).all(axis=1))[0]
-            if len(bad):
-                raise RenderError(
-                    f"positions contain NaN or Inf ({len(bad)} atoms, first index {bad[0]})"
-                )
-            raise RenderError("positions are too large (beyond ±1e30 angstrom)")
+        if check_finite and n:
+            check_finite_positions(arr)
         t0 = time.perf_counter()
         self.uploaded_from = "host"
         if n and on_device is not None:

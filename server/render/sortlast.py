@@ -47,8 +47,8 @@ from server.render.camera import CameraFrame
 from server.render.errors import RenderError
 from server.render.layerplan import subset_topology
 from server.render.outputs import ImageOutputs
-from server.render.raycast import CameraData, camera_data, camera_ray
-from server.render.renderer import MEAN_SAMPLES, Renderer
+from server.render.raycast import CameraData, camera_data, camera_ray, pack_rgba, unpack_rgba
+from server.render.renderer import MEAN_SAMPLES, Renderer, check_finite_positions
 
 wp: Any = warp  # warp's host API is unannotated
 
@@ -95,28 +95,13 @@ def sort_last_kernel(
         if not ascending:
             k = parts - 1 - q
         at = k * pixels + pix
-        c = rgba[at]
-        a = float((c >> wp.uint32(24)) & wp.uint32(255)) / 255.0
+        col, a = unpack_rgba(rgba[at])
         if a > 0.0:
-            col = (
-                wp.vec3(
-                    float(c & wp.uint32(255)),
-                    float((c >> wp.uint32(8)) & wp.uint32(255)),
-                    float((c >> wp.uint32(16)) & wp.uint32(255)),
-                )
-                / 255.0
-            )
             acc += col * (1.0 - alpha)
             alpha += a * (1.0 - alpha)
         if front < 0 and depth[at] < wp.inf:
             front = k
-    acc += background * (1.0 - alpha)
-    r = wp.uint32(wp.clamp(acc[0], 0.0, 1.0) * 255.0 + 0.5)
-    g = wp.uint32(wp.clamp(acc[1], 0.0, 1.0) * 255.0 + 0.5)
-    b = wp.uint32(wp.clamp(acc[2], 0.0, 1.0) * 255.0 + 0.5)
-    out_rgba[pix] = (
-        r | (g << wp.uint32(8)) | (b << wp.uint32(16)) | (wp.uint32(255) << wp.uint32(24))
-    )
+    out_rgba[pix] = pack_rgba(acc + background * (1.0 - alpha))
     if front < 0:
         out_depth[pix] = wp.inf
         out_ids[pix] = -1
@@ -221,11 +206,8 @@ class SortLastRenderer(ImageOutputs):
         n = self._topology.n_atoms
         if arr.ndim != 2 or arr.shape != (n, 3):
             raise RenderError(f"positions must have shape ({n}, 3), got {arr.shape}")
-        if check_finite and n and not np.isfinite(arr).all():
-            bad = np.nonzero(~np.isfinite(arr).all(axis=1))[0]
-            raise RenderError(
-                f"positions contain NaN or Inf ({len(bad)} atoms, first index {bad[0]})"
-            )
+        if check_finite and n:
+            check_finite_positions(arr)
         self._positions = arr
         self._version += 1
 
