@@ -88,7 +88,9 @@ def visible_atoms(plans: Sequence[LayerPlan] | None, n_atoms: int) -> npt.NDArra
 
 def subset_topology(topology: Topology, atoms: npt.NDArray[np.int32]) -> Topology:
     """The topology of `atoms` alone: their fields in that order, and the bonds between them
-    renumbered."""
+    renumbered. Built without validation: a part of a topology already held is valid, and a
+    part of a system larger than a message may carry (a sort-last slab of 100M atoms) must not
+    be refused by the wire's limits."""
     idx = np.asarray(atoms, dtype=np.int64)
     n = len(idx)
     remap = np.full(topology.n_atoms, -1, dtype=np.int64)
@@ -104,7 +106,7 @@ def subset_topology(topology: Topology, atoms: npt.NDArray[np.int32]) -> Topolog
     def floats(arr: WireArray | None) -> WireArray | None:
         return None if arr is None else WireArray.from_numpy(arr.to_numpy()[idx], "<f4")
 
-    return Topology(
+    return Topology.model_construct(
         n_atoms=n,
         elements=pick(topology.elements),
         names=pick(topology.names),

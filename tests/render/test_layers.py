@@ -215,6 +215,23 @@ def test_subset_topology_renumbers_bonds() -> None:
     assert sub.elements == [top.elements[i] for i in (1, 2, 5)]
 
 
+def test_a_subset_of_a_system_past_the_wire_limits_is_not_refused(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A part of a topology held in-process may exceed what one message may carry (a
+    sort-last slab of a 100M-atom system): the wire's limits (here lowered to 100 atoms)
+    are not applied to it."""
+    import protocol.arrays
+
+    top = make_topology(600, bonds=np.array([[i, i + 1] for i in range(599)]))
+    monkeypatch.setattr(protocol.arrays, "DEFAULT_LIMITS", protocol.arrays.Limits(max_atoms=100))
+    with pytest.raises(ValueError, match="limit"):
+        make_topology(600)  # the lowered limit holds for what comes in
+    sub = subset_topology(top, np.arange(1, 501, dtype=np.int32))
+    assert sub.n_atoms == 500 and len(sub.bonds.to_numpy()) == 499
+    assert sub.residue_ids.to_numpy().shape == (500,)
+
+
 GOLDEN_LAYERS = {
     "layers_two": RenderParams(
         sigma_A=1.6,

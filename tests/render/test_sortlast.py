@@ -18,7 +18,7 @@ from server.render.camera import fit_camera
 from server.render.errors import RenderError
 from server.render.sortlast import SortLastRenderer, split_slabs
 from tests.render.molecules import Mol, topology
-from tests.render.test_multi import villins
+from tests.render.test_multi import multi_devices, villins
 
 W, H = 120, 90
 S = math.sqrt(0.5)
@@ -87,6 +87,29 @@ def test_the_parts_blend_into_the_one_device_image(
     held = s.atoms_held()
     assert len(held) == parts and max(held) < len(mol.positions)
     assert sum(held) >= len(mol.positions)
+
+
+@pytest.mark.parametrize(("params", "levels"), CASES[:2])
+def test_parts_on_distinct_devices_blend_into_the_first_devices_image(
+    params: RenderParams, levels: int
+) -> None:
+    """One part per device (every CUDA device where there are two or more, else CPU devices
+    standing in): each part's positions go to its own device and its image is blended on the
+    first, which must give that device's own image."""
+    devices = multi_devices()
+    mol = villins(3)
+    cam = fit_camera(mol.positions, W, H)
+    one = one_device(devices[0], mol, params, cam)
+    s = SortLastRenderer(devices)
+    s.set_topology(mol.topology)
+    for k in range(2):  # a second frame reuses the split on every device
+        moved = mol.positions + np.float32(0.2 * k)
+        one.set_positions(moved)
+        one.render(params, cam, W, H)
+        s.set_positions(moved)
+        s.render(params, cam, W, H)
+        assert_same_image(one, s, levels)
+    assert [str(r.device) for r in s.renderers] == devices
 
 
 @pytest.mark.parametrize("color_by", ["chain", "bfactor"])
