@@ -21,6 +21,11 @@ system. Each part takes the density at the sampled atoms inside its slab, and th
 render with the absolute level that mean gives (one synchronisation per frame whose positions or
 density changed). The depth cue spans the whole system's box, not a part's.
 
+Each frame, the host gathers every part's positions into that part's page-locked upload buffer,
+in ranges on several threads, and takes the frame's box and the check of the slack from the same
+ranges; parts on distinct CUDA devices also take their share of the mean density from a thread
+each.
+
 The atoms a part holds are chosen with a slack: a frame whose atoms have moved further than the
 slack along the axis since the split, or parameters whose halo is wider than the split's, split
 again. Only the classical density is split this way: the carved and geodesic densities read
@@ -31,6 +36,7 @@ render with sort-first.
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -58,6 +64,10 @@ atoms may move that far along the axis before the system is split again."""
 SLACK_MIN_A = 2.0
 SPREAD = 0.01
 """The split axis is the one whose 1st to 99th percentile of the atoms spans furthest."""
+GATHER_CHUNK = 1 << 18
+"""Atoms per range a gathering thread copies or checks at a time."""
+GATHER_THREADS = 8
+"""Threads that gather the parts' positions (at least one per part)."""
 SCENE_PAD = 1.0e-4
 """The depth cue's box is the atoms' box widened by the reach, padded as one device's grid box
 is (`grid.setup_kernel`)."""
@@ -126,6 +136,13 @@ def spread_axis(pos: npt.NDArray[np.float32]) -> int:
     return int(np.argmax(spans))
 
 
+def chunks(n: int, size: int | None = None) -> list[tuple[int, int]]:
+    """[a, b) ranges of at most `size` (`GATHER_CHUNK`) covering 0..n (one empty range when n
+    is 0)."""
+    size = size or GATHER_CHUNK
+    return [(a, min(a + size, n)) for a in range(0, n, size)] or [(0, 0)]
+
+
 def split_slabs(coord: npt.NDArray[np.float32], parts: int) -> list[tuple[float, float]]:
     """`parts` slabs along one coordinate holding equal numbers of atoms; the outer ones
     reach to infinity, so every point of space lies in exactly one (lo <= x < hi). Without
@@ -168,7 +185,14 @@ class SortLastRenderer(ImageOutputs):
         self._colored: tuple[Any, ...] | None = None
         self._serial = 0
         """Counts the splits (what was computed for one split is keyed by its number)."""
-        self._pool = ThreadPoolExecutor(len(self._parts), thread_name_prefix="sort-last")
+        self._concurrent = len(set(names)) == len(names) and all(
+            wp.get_device(d).is_cuda for d in names
+        )
+        """Every part on its own CUDA device: the parts' work can be issued from a thread
+        each (CPU devices keep state in warp's kernels; two parts on one device would capture
+        their graphs on it at once)."""
+        threads = max(len(self._parts), min(GATHER_THREADS, os.cpu_count() or 1))
+        self._pool = ThreadPoolExecutor(threads, thread_name_prefix="sort-last")
 
     @property
     def renderers(self) -> list[Renderer]:
@@ -251,40 +275,63 @@ class SortLastRenderer(ImageOutputs):
         self._sent = [-1] * len(self._parts)
         self._mean = None
 
-    def _ensure_split(self, pos: npt.NDArray[np.float32], halo: float) -> None:
+    def _split_holds(self, pos: npt.NDArray[np.float32], halo: float) -> bool:
+        """Whether the last split still serves this frame: its halo is wide enough and no atom
+        has moved further than the slack along the axis since (a coordinate that is not
+        finite fails too). The check runs in ranges on the gathering threads."""
         s = self._split
         if s is None or halo > s["halo"]:
-            self._split_atoms(pos, halo)
-            return
+            return False
         if s["checked"] == self._version or not len(pos):
-            return
-        moved = s["moved"]
-        np.subtract(pos[:, s["axis"]], s["reference"], out=moved)
-        np.abs(moved, out=moved)
+            return True
+        coord, ref, moved = pos[:, s["axis"]], s["reference"], s["moved"]
+
+        def drift(span: tuple[int, int]) -> float:
+            a, b = span
+            np.subtract(coord[a:b], ref[a:b], out=moved[a:b])
+            np.abs(moved[a:b], out=moved[a:b])
+            return float(moved[a:b].max())
+
+        worst = max(self._pool.map(drift, chunks(len(pos))))
+        if not worst <= s["slack"]:  # NaN fails
+            return False
         s["checked"] = self._version
-        if float(moved.max()) > s["slack"]:
-            self._split_atoms(pos, halo)
+        return True
 
     def _send(self, pos: npt.NDArray[np.float32]) -> None:
-        """Each part's atoms to its device (only after new positions or a new split); the
-        gathers run on a thread each (numpy's take releases the interpreter)."""
+        """Each part's atoms to its device (only after new positions or a new split): gathered
+        in ranges on the threads (numpy's take releases the interpreter) straight into each
+        part's page-locked upload buffer, the frame's box taken from the same ranges (every
+        atom is in some part, so the parts' boxes together are the system's)."""
         assert self._split is not None
-        todo = [
-            (k, atoms)
-            for k, atoms in enumerate(self._split["members"])
-            if self._sent[k] != self._version
-        ]
+        members = self._split["members"]
+        todo = [k for k in range(len(self._parts)) if self._sent[k] != self._version]
         if not todo:
             return
-        gathered = self._pool.map(lambda job: np.take(pos, job[1], axis=0), todo)
-        for (k, _atoms), part in zip(todo, gathered, strict=True):
-            self._parts[k].set_positions(part, check_finite=False)
+        buffers = {k: self._parts[k].host_positions() for k in todo}
+
+        def gather(job: tuple[int, int, int]) -> npt.NDArray[np.float64]:
+            k, a, b = job
+            out = buffers[k][a:b]
+            np.take(pos, members[k][a:b], axis=0, out=out)
+            if not len(out):
+                return np.array([[np.inf] * 3, [-np.inf] * 3])
+            cols = [out[:, c] for c in range(3)]  # a column at a time (see `_bounds`)
+            return np.array([[c.min() for c in cols], [c.max() for c in cols]], np.float64)
+
+        jobs = [(k, a, b) for k in todo for a, b in chunks(len(members[k]))]
+        boxes = list(self._pool.map(gather, jobs))
+        for k in todo:
+            self._parts[k].set_positions(buffers[k], check_finite=False)
             self._sent[k] = self._version
+        if len(todo) == len(self._parts) and boxes:
+            both = np.stack(boxes)
+            self._box = (self._version, both[:, 0].min(axis=0), both[:, 1].max(axis=0))
 
     def _bounds(self, pos: npt.NDArray[np.float32]) -> tuple[npt.NDArray[Any], npt.NDArray[Any]]:
-        """The atoms' box (kept for the frame), a column at a time: numpy's reduction over
-        the first axis of an (n, 3) array runs three values per inner loop (1M atoms: 50 ms
-        against 2 ms)."""
+        """The atoms' box (kept for the frame; `_send` gives it from its ranges), a column at
+        a time: numpy's reduction over the first axis of an (n, 3) array runs three values per
+        inner loop (1M atoms: 50 ms against 2 ms)."""
         if self._box is None or self._box[0] != self._version:
             lo = np.array([pos[:, k].min() for k in range(3)], dtype=np.float64)
             hi = np.array([pos[:, k].max() for k in range(3)], dtype=np.float64)
@@ -351,13 +398,17 @@ class SortLastRenderer(ImageOutputs):
         his = np.array([hi for _lo, hi in s["slabs"]])
         owner = np.searchsorted(his, points[:, s["axis"]], side="right")
         probe = params.model_copy(update={"level_scale": "absolute", "mode": "iso"})
-        total = 0.0
-        for k, r in enumerate(self._parts):
+
+        def part_sum(k: int) -> float:
             mine = points[owner == k]
-            if len(mine):
-                r.prepare(probe)
-                total += float(r.evaluate(mine)[0].astype(np.float64).sum())
-        mean = total / samples
+            if not len(mine):
+                return 0.0
+            self._parts[k].prepare(probe)
+            return float(self._parts[k].evaluate(mine)[0].astype(np.float64).sum())
+
+        ks = range(len(self._parts))
+        sums = self._pool.map(part_sum, ks) if self._concurrent else map(part_sum, ks)
+        mean = sum(sums) / samples
         self._mean = (key, mean)
         return mean
 
@@ -413,13 +464,19 @@ class SortLastRenderer(ImageOutputs):
         t0 = time.perf_counter()
         pos = self._positions
         w, h, frame = self._parts[0].check_view(camera, width, height)
-        if not self._drawable(pos):
+        halo = self._parts[0].halo(params, self._r_max)
+        if not self._split_holds(pos, halo):
+            if self._drawable(pos):
+                self._split_atoms(pos, halo)
+            else:
+                self._background(params, w, h)
+                self.timings = {"total_ms": (time.perf_counter() - t0) * 1e3, "total": 0.0}
+                return
+        self._send(pos)
+        if not self._drawable(pos):  # a bad coordinate off the split's axis
             self._background(params, w, h)
             self.timings = {"total_ms": (time.perf_counter() - t0) * 1e3, "total": 0.0}
             return
-        halo = self._parts[0].halo(params, self._r_max)
-        self._ensure_split(pos, halo)
-        self._send(pos)
         t_split = time.perf_counter()
         p = params
         if params.level_scale == "mean" and len(pos):

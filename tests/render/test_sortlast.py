@@ -13,10 +13,10 @@ import numpy.typing as npt
 import pytest
 
 from protocol import Camera, Layer, RenderParams, WireArray
-from server.render import Renderer
+from server.render import Renderer, sortlast
 from server.render.camera import fit_camera
 from server.render.errors import RenderError
-from server.render.sortlast import SortLastRenderer, split_slabs
+from server.render.sortlast import SortLastRenderer, chunks, split_slabs
 from tests.render.molecules import Mol, topology
 from tests.render.test_multi import multi_devices, villins
 
@@ -209,7 +209,14 @@ def moved(mol: Mol, shift: npt.NDArray[np.float32]) -> Mol:
     return Mol(mol.topology, (mol.positions + shift).astype(np.float32))
 
 
-def test_atoms_that_move_past_the_slack_split_the_system_again(device: str) -> None:
+@pytest.mark.parametrize("chunk", [None, 97], ids=["one-range", "many-ranges"])
+def test_atoms_that_move_past_the_slack_split_the_system_again(
+    device: str, chunk: int | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With one range per part, and with each part gathered and checked in many ranges (as
+    a large system is, on several threads)."""
+    if chunk is not None:
+        monkeypatch.setattr(sortlast, "GATHER_CHUNK", chunk)
     mol = villins(3)
     cam = fit_camera(mol.positions, W, H)
     params = RenderParams()
@@ -266,6 +273,21 @@ def test_a_frame_one_device_draws_as_background_is_background_and_splits_nothing
     s.set_positions(mol.positions)
     s.render(params, cam, W, H)
     assert_same_image(one_device(device, mol, params, cam), s, 1)
+    # once split: a bad coordinate along the split's axis or across it is background too,
+    # and the split is kept for the next good frame
+    split = s._split
+    assert split is not None
+    for column in (split["axis"], (split["axis"] + 1) % 3):
+        frame = mol.positions.copy()
+        frame[7, column] = bad
+        s.set_positions(frame, check_finite=False)
+        s.render(params, cam, W, H)
+        assert not np.isfinite(s.read_depth()).any()
+        assert np.array_equal(s.read_rgba(), one.read_rgba())
+        assert s._split is split
+    s.set_positions(mol.positions + np.float32(0.1))
+    s.render(params, cam, W, H)
+    assert np.isfinite(s.read_depth()).any()
 
 
 def test_fewer_atoms_than_parts(device: str) -> None:
@@ -358,3 +380,9 @@ def test_slabs_hold_equal_shares_and_cover_space() -> None:
     assert all(a[1] == b[0] for a, b in itertools.pairwise(slabs))
     counts = [int(((x >= lo) & (x < hi)).sum()) for lo, hi in slabs]
     assert counts == [25, 25, 25, 25]
+
+
+def test_ranges_cover_every_atom_once() -> None:
+    assert chunks(0, 4) == [(0, 0)]
+    assert chunks(10, 4) == [(0, 4), (4, 8), (8, 10)]
+    assert chunks(8, 4) == [(0, 4), (4, 8)]
