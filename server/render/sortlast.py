@@ -266,6 +266,7 @@ class SortLastRenderer(ImageOutputs):
             "halo": halo,
             "slack": slack,
             "members": members,
+            "gather": [m.astype(np.intp) for m in members],  # take converts other index types
             "reference": coord.copy(),
             "moved": np.empty(len(coord), dtype=np.float32),
             "checked": self._version,
@@ -304,7 +305,7 @@ class SortLastRenderer(ImageOutputs):
         part's page-locked upload buffer, the frame's box taken from the same ranges (every
         atom is in some part, so the parts' boxes together are the system's)."""
         assert self._split is not None
-        members = self._split["members"]
+        members, gathers = self._split["members"], self._split["gather"]
         todo = [k for k in range(len(self._parts)) if self._sent[k] != self._version]
         if not todo:
             return
@@ -313,7 +314,9 @@ class SortLastRenderer(ImageOutputs):
         def gather(job: tuple[int, int, int]) -> npt.NDArray[np.float64]:
             k, a, b = job
             out = buffers[k][a:b]
-            np.take(pos, members[k][a:b], axis=0, out=out)
+            # "clip": indices within range, so take writes straight into `out` (with "raise"
+            # numpy buffers the result and copies it)
+            np.take(pos, gathers[k][a:b], axis=0, out=out, mode="clip")
             if not len(out):
                 return np.array([[np.inf] * 3, [-np.inf] * 3])
             cols = [out[:, c] for c in range(3)]  # a column at a time (see `_bounds`)
