@@ -81,14 +81,29 @@ TABLES: dict[str, Table] = {
     ),
     "pipeline": Table(("pipeline_h200.json",), pipeline),
     "multi-device": Table(
-        ("multi_device_cpu_2core.json", "multi_device_h200x4.json"),
+        (
+            "multi_device_cpu_2core.json",
+            "multi_device_h200x2_round2.json",
+            "multi_device_h200x4.json",
+        ),
         multi_device,
     ),
     "sort-last": Table(
-        ("sort_last_h200_two_parts.json", "sort_last_h200_four_parts.json"), sort_last
+        (
+            "sort_last_h200x2.json",
+            "sort_last_h200_two_parts_gather.json",
+            "sort_last_h200_10m.json",
+            "sort_last_h200_four_parts.json",
+        ),
+        sort_last,
     ),
     "multi-session": Table(
-        ("multi_session_h200x2.json", "multi_session_h200x2_10k.json"), multi_session
+        (
+            "multi_session_h200x2.json",
+            "multi_session_h200x2_10k.json",
+            "multi_session_h200x2_round2.json",
+        ),
+        multi_session,
     ),
     "layers": Table(("layers_h100_round2.json",), layers),
     "video-quality": Table(("video_h200_round4.json",), video_quality),

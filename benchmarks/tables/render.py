@@ -325,6 +325,8 @@ def sort_last(sources: list[Source]) -> str:
     rows = []
     for _name, res in sources:
         parts = len(res["devices"])
+        gpus = len(set(res["devices"]))
+        where = f"{parts} on {gpus} devices" if gpus > 1 else f"{parts} on one device"
         for run in res["runs"]:
             one = run["one_device"]
             sl = run["sort_last"]
@@ -337,7 +339,7 @@ def sort_last(sources: list[Source]) -> str:
             diff = run["image_vs_one_device"]
             rows.append(
                 [
-                    str(parts),
+                    where,
                     count(n),
                     size(*run["size"]),
                     run["mode"],
@@ -350,7 +352,7 @@ def sort_last(sources: list[Source]) -> str:
                 ]
             )
     header = [
-        "parts",
+        "parts on",
         "atoms",
         "image",
         "mode",
@@ -361,4 +363,4 @@ def sort_last(sources: list[Source]) -> str:
         "device bytes, largest part / one device",
         "image vs one device, max / mean levels",
     ]
-    return block(sources, table(header, "rrllrrllrl", rows))
+    return block(sources, table(header, "lrllrrllrl", rows))
