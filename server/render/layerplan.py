@@ -101,7 +101,10 @@ def subset_topology(topology: Topology, atoms: npt.NDArray[np.int32]) -> Topolog
         bonds = ends[(ends >= 0).all(axis=1)]
 
     def pick(values: list[str]) -> list[str]:
-        return [values[int(i)] for i in idx]
+        if 4 * n < len(values):  # a few atoms of many: converting the whole list costs more
+            return [values[int(i)] for i in idx]
+        picked: list[str] = np.asarray(values, dtype=object)[idx].tolist()
+        return picked
 
     def floats(arr: WireArray | None) -> WireArray | None:
         return None if arr is None else WireArray.from_numpy(arr.to_numpy()[idx], "<f4")

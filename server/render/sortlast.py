@@ -183,6 +183,7 @@ class SortLastRenderer(ImageOutputs):
         self._pixels = 0
         self._box: tuple[int, npt.NDArray[Any], npt.NDArray[Any]] | None = None
         self._colored: tuple[Any, ...] | None = None
+        self._whole_colors: tuple[tuple[Any, ...], npt.NDArray[Any]] | None = None
         self._serial = 0
         """Counts the splits (what was computed for one split is keyed by its number)."""
         self._concurrent = len(set(names)) == len(names) and all(
@@ -211,6 +212,7 @@ class SortLastRenderer(ImageOutputs):
         self._positions = None
         self._split = None
         self._mean = None
+        self._whole_colors = None
 
     def set_positions(
         self,
@@ -419,10 +421,15 @@ class SortLastRenderer(ImageOutputs):
         """Every part's atoms in the whole system's colours (a chain's rank, the b-factor and
         charge ranges are the system's, not a part's)."""
         assert self._topology is not None and self._split is not None
-        key = (params.color_by, tuple(params.uniform_color), self._split["serial"])
+        scheme = (params.color_by, tuple(params.uniform_color))
+        key = (*scheme, self._split["serial"])
         if self._colored == key:
             return
-        whole = colors.atom_colors(self._topology, params.color_by, params.uniform_color)
+        if self._whole_colors is None or self._whole_colors[0] != scheme:
+            # kept across splits: a system re-split as it moves keeps its colours
+            whole = colors.atom_colors(self._topology, params.color_by, params.uniform_color)
+            self._whole_colors = (scheme, whole)
+        whole = self._whole_colors[1]
         for r, atoms in zip(self._parts, self._split["members"], strict=True):
             r.set_colors(whole[atoms])
         self._colored = key

@@ -213,6 +213,9 @@ def test_subset_topology_renumbers_bonds() -> None:
     assert sub.n_atoms == 3
     assert sub.bonds.to_numpy().tolist() == [[0, 1], [1, 2]]
     assert sub.elements == [top.elements[i] for i in (1, 2, 5)]
+    assert sub.names == [top.names[i] for i in (1, 2, 5)]
+    one = subset_topology(top, np.array([4], np.int32))  # a few of many: picked one by one
+    assert one.names == [top.names[4]] and one.chain_ids == [top.chain_ids[4]]
 
 
 def test_a_subset_of_a_system_past_the_wire_limits_is_not_refused(
