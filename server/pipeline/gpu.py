@@ -523,6 +523,7 @@ class GpuQueue:
             with contextlib.suppress(Exception):
                 close()
         slot.prefetched = None
+        slot.shown = None  # a displayed frame's device copy was the old renderer's
         if large or self._spread == key:
             slot.renderer = self._across_devices(split_by_space=large)
         else:
@@ -569,13 +570,17 @@ class GpuQueue:
             # frames were checked finite when decoded; skip the host-side scan
             stager = slot.stager
             staged = None
-            shown = slot.periodic is not None and snap.positions is slot.shown
+            from server.render import Renderer
+
+            single = slot.renderer
+            shown = (
+                slot.periodic is not None
+                and snap.positions is slot.shown
+                and isinstance(single, Renderer)
+            )
             if not shown and stager is not None and stager.n == len(snap.positions):
                 staged = stager.take(snap.positions_id, STAGE_WAIT_S)
             if shown:
-                from server.render import Renderer
-
-                single = slot.renderer
                 assert slot.periodic is not None and isinstance(single, Renderer)
                 single.set_positions(
                     snap.positions, check_finite=False, on_device=slot.periodic.device_result

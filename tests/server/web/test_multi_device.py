@@ -81,11 +81,14 @@ def test_a_one_off_render_of_a_system_one_device_does_not_hold(tmp_path: Path) -
         for i, (e, (x, y, z)) in enumerate(zip(topo.elements, pos, strict=True))
     ]
     pdb.write_text("\n".join([*lines, "END", ""]))
+    boxed = tmp_path / "boxed.pdb"  # a periodic box: displayed before it is split
+    cryst = "CRYST1   80.000   80.000   80.000  90.00  90.00  90.00 P 1           1"
+    boxed.write_text("\n".join([cryst, *lines, "END", ""]))
 
-    def post(name: str, params: str, **overrides: object) -> httpx.Response:
+    def post(name: str, params: str, file: Path = pdb, **overrides: object) -> httpx.Response:
         server = start_server(make_settings(tmp_path / name, **overrides))
         try:
-            with httpx.Client(base_url=server.url, timeout=120) as c, pdb.open("rb") as f:
+            with httpx.Client(base_url=server.url, timeout=120) as c, file.open("rb") as f:
                 auth = {"Authorization": f"Bearer {server.token}"}
                 data = {"width": "64", "height": "48", "format": "png", "params": params}
                 return c.post("/api/render", headers=auth, files={"file": f}, data=data)
@@ -96,6 +99,13 @@ def test_a_one_off_render_of_a_system_one_device_does_not_hold(tmp_path: Path) -
     want = post("roomy", whole)
     assert want.status_code == 200, want.text
     got = post("split", whole, gpus="cpu,cpu", device_atoms=150)
+    assert got.status_code == 200, got.text
+    a = np.asarray(Image.open(io.BytesIO(want.content)).convert("RGB"), dtype=np.int16)
+    b = np.asarray(Image.open(io.BytesIO(got.content)).convert("RGB"), dtype=np.int16)
+    assert int(np.abs(a - b).max()) <= 1
+    want = post("roomy-boxed", whole, boxed)
+    assert want.status_code == 200, want.text
+    got = post("split-boxed", whole, boxed, gpus="cpu,cpu", device_atoms=150)
     assert got.status_code == 200, got.text
     a = np.asarray(Image.open(io.BytesIO(want.content)).convert("RGB"), dtype=np.int16)
     b = np.asarray(Image.open(io.BytesIO(got.content)).convert("RGB"), dtype=np.int16)
