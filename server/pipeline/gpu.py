@@ -315,6 +315,8 @@ class GpuQueue:
                 await self._gather_spread()
             if self._spread is not None:  # a job or one-off render beside the lone session
                 return self._place(slot, 0)
+            if slot in self._whole:  # a system to split, the others moved to the first lane
+                return self._place(slot, 0)
             return self._place(slot, self._least_busy())
 
     def _sessions(self) -> list[str]:
@@ -358,8 +360,62 @@ class GpuQueue:
         self._place(last, 0)
 
     async def render(self, request: RenderRequest) -> RenderOutput:
+        await self._room_for(request.slot, self._whole_atoms(request))
         lane = await self._lane(request.slot)
         return await self._run(lane, self.render_sync, request)
+
+    @staticmethod
+    def _whole_atoms(request: RenderRequest) -> int:
+        """The atoms `request` draws on one renderer (0 for layers: each draws its own)."""
+        return 0 if request.layers is not None else request.snapshot.topology.n_atoms
+
+    async def _room_for(self, slot: str, n_atoms: int) -> None:
+        """Before a system one device does not hold is drawn across every device by space:
+        every other slot moves onto the first device's thread (its renderer dropped on its own
+        thread after its last render, made again there at its next request), and so does this
+        one (`_lane` places it), so that the system is alone on the devices' threads however
+        the slots were placed (sessions nobody watches keep their slots)."""
+        if n_atoms <= self.per_device or len(self._lanes) < 2 or slot in self._whole:
+            return
+        if self._placing is None:
+            self._placing = asyncio.Lock()
+        async with self._placing:
+            with self._lock:
+                split = [self._lane_of[k] for k in self._whole if k in self._lane_of]
+                home = split[0] if split else 0
+                away = [(k, lane) for k, lane in self._lane_of.items() if lane != home]
+            for key, lane in away:
+                await self._run(lane, self._drop_sync, key)
+                with self._lock:
+                    self._lanes[lane].slots.discard(key)
+                    self._lane_of.pop(key, None)
+                if key != slot:
+                    self._place(key, home)
+            if self._spread is not None and self._spread != slot:
+                await self._gather_spread()
+            with self._lock:
+                self._whole.add(slot)  # later slots are placed beside it from now on
+            if away:
+                log.info("%s: every slot moved to %s to split it", slot, self._lanes[home].device)
+
+    async def _spread_out(self) -> None:
+        """No system is split any more: sessions gathered beside one go back to devices of
+        their own (least busy first; each renderer made again there at its next request)."""
+        with self._lock:
+            if self._whole:
+                return
+            crowded = [lane for lane in self._lanes if len(lane.slots) > 1]
+        for lane in crowded:
+            i = self._lanes.index(lane)
+            for key in sorted(k for k in lane.slots if k.startswith("session:"))[1:]:
+                target = self._least_busy()
+                if len(self._lanes[target].slots) + 1 >= len(lane.slots):
+                    break
+                await self._run(i, self._drop_sync, key)
+                with self._lock:
+                    lane.slots.discard(key)
+                    self._lane_of.pop(key, None)
+                self._place(key, target)
 
     async def warm_up(self) -> None:
         """Render a small molecule once and forget it, so the render kernels are loaded from
@@ -379,6 +435,7 @@ class GpuQueue:
         self, request: RenderRequest, x: int, y: int
     ) -> tuple[int | None, float | None, str | None]:
         """The atom, depth and layer name at pixel (x, y) of the image `request` draws."""
+        await self._room_for(request.slot, self._whole_atoms(request))
         lane = await self._lane(request.slot)
         return await self._run(lane, self.pick_sync, request, x, y)
 
@@ -389,6 +446,7 @@ class GpuQueue:
         if self._placing is None:
             self._placing = asyncio.Lock()
         async with self._placing:
+            was_split = slot in self._whole
             await self._run(lane, self.release_sync, slot)
             with self._lock:
                 self._lanes[lane].slots.discard(slot)
@@ -396,11 +454,14 @@ class GpuQueue:
             if self._spread == slot:
                 self._spread = None
             self._whole.discard(slot)
+            if was_split:
+                await self._spread_out()
             await self._spread_again()
 
     async def display(self, request: DisplayRequest) -> Shown:
         """A frame as displayed (periodic steps on the slot's device, on its thread), read
         back."""
+        await self._room_for(request.slot, request.topology.n_atoms)
         lane = await self._lane(request.slot)
         return await self._run(lane, self.display_sync, request)
 
@@ -509,8 +570,8 @@ class GpuQueue:
             if not alone:
                 raise RenderError(
                     f"{n_atoms} atoms: one device holds {self.per_device} (--device-atoms), and "
-                    "the other devices are drawing other sessions now; the system is split "
-                    "across them when it is alone on them"
+                    "work placed on the other devices' threads has not moved beside it yet; "
+                    "the next frame splits it across them"
                 )
         else:
             with self._lock:

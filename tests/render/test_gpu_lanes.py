@@ -111,6 +111,44 @@ def test_a_session_one_device_cannot_hold_keeps_every_device_beside_others() -> 
         queue.close()
 
 
+def test_a_large_system_gathers_the_sessions_that_hold_devices_and_gives_them_back() -> None:
+    """Two sessions hold a device each (nobody need watch them); a system one device does
+    not hold then comes, twice at once (two one-off renders): both are split by space, the
+    sessions move beside them and still draw their own pictures, and once the large ones
+    are gone the sessions take a device each again."""
+    big, big_pos = helix(240, seed=4)
+    small, small_pos = helix(60, seed=3)
+    camera = Camera(target=tuple(big_pos.mean(axis=0)), distance=200.0)
+    want_big = image_of(big, big_pos, camera, "cpu")
+    want_small = image_of(small, small_pos, camera, "cpu")
+    queue = GpuQueue(devices=("cpu", "cpu"), device_atoms=150)
+
+    async def run() -> None:
+        await queue.render(request("session:a", small, small_pos, camera))
+        await queue.render(request("session:b", small, small_pos, camera))
+        assert sorted(queue._lane_of.values()) == [0, 1]
+        one, two = await asyncio.gather(
+            queue.render(request("render:1", big, big_pos, camera)),
+            queue.render(request("render:2", big, big_pos, camera)),
+        )
+        for out in (one, two):
+            assert int(np.abs(out.image().astype(np.int16) - want_big).max()) <= 1
+        assert set(queue._lane_of.values()) == {0}
+        a = await queue.render(request("session:a", small, small_pos, camera))
+        b = await queue.render(request("session:b", small, small_pos, camera))
+        assert np.array_equal(a.image(), want_small) and np.array_equal(b.image(), want_small)
+        await queue.release("render:1")
+        await queue.release("render:2")
+        assert sorted(queue._lane_of.values()) == [0, 1]
+        b = await queue.render(request("session:b", small, small_pos, camera))
+        assert np.array_equal(b.image(), want_small)
+
+    try:
+        asyncio.run(run())
+    finally:
+        queue.close()
+
+
 def test_each_device_has_a_thread_of_its_own_and_cpu_devices_take_turns(
     molecule: Callable[..., tuple[Topology, np.ndarray]],
 ) -> None:
