@@ -687,14 +687,23 @@ class GpuQueue:
         device: a layer it cannot hold is refused, saying so)."""
         assert request.layers is not None
         n = request.snapshot.topology.n_atoms
+        total = 0
         for plan in request.layers:
             held = n if plan.atoms is None else len(plan.atoms)
+            total += held
             if held > self.per_device:
                 raise RenderError(
                     f"layer {plan.name!r} has {held} atoms: layers are drawn on one device, "
                     f"which holds {self.per_device} (--device-atoms); without layers "
                     "(`layers: []`), several devices (--gpus) split the system across them"
                 )
+        if self.device_atoms is not None and total > self.device_atoms:
+            # each layer holds its atoms in a renderer of its own on the one device
+            raise RenderError(
+                f"the {len(request.layers)} layers hold {total} atoms together: layers are "
+                f"drawn on one device, which holds {self.device_atoms} (--device-atoms); "
+                "fewer or smaller layers fit"
+            )
         if slot.layered is None:
             from server.render import Renderer
             from server.render.layers import LayeredRenderer

@@ -149,6 +149,29 @@ def test_a_large_system_gathers_the_sessions_that_hold_devices_and_gives_them_ba
         queue.close()
 
 
+def test_layers_together_past_what_one_device_holds_are_refused_by_their_total() -> None:
+    """Layers are drawn on one device, a renderer each: with `device_atoms` set, what they
+    hold together must fit it, not only each one."""
+    from dataclasses import replace
+
+    from server.render.errors import RenderError
+    from server.render.layerplan import LayerPlan
+
+    topology, positions = helix(120, seed=5)
+    camera = Camera(target=tuple(positions.mean(axis=0)), distance=80.0)
+    queue = GpuQueue(devices=("cpu", "cpu"), device_atoms=150)
+    plan = LayerPlan("half", np.arange(100, dtype=np.int32), RenderParams(), atoms_key=1)
+    base = request("session:a", topology, positions, camera)
+    try:
+        one = queue.render_sync(replace(base, layers=(plan,)))
+        assert one.image().any()
+        two = replace(base, layers=(plan, replace(plan, name="again")))
+        with pytest.raises(RenderError, match="layers hold 200 atoms together"):
+            queue.render_sync(two)
+    finally:
+        queue.close()
+
+
 def test_each_device_has_a_thread_of_its_own_and_cpu_devices_take_turns(
     molecule: Callable[..., tuple[Topology, np.ndarray]],
 ) -> None:
