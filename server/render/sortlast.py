@@ -68,6 +68,12 @@ GATHER_CHUNK = 1 << 18
 """Atoms per range a gathering thread copies or checks at a time."""
 GATHER_THREADS = 8
 """Threads that gather the parts' positions (at least one per part)."""
+SPLITTABLE = (
+    "a system larger than one device holds (--device-atoms) is split across the devices by "
+    "space, which draws the classical density (scale_space 'classical', or warp_strength 0) "
+    "without smoothing in time (time_smoothing 'off', not color_by 'motion') or layers (layers [])"
+)
+"""What a refusal adds: why sort-last is drawing, and what it can draw."""
 SCENE_PAD = 1.0e-4
 """The depth cue's box is the atoms' box widened by the reach, padded as one device's grid box
 is (`grid.setup_kernel`)."""
@@ -250,6 +256,14 @@ class SortLastRenderer(ImageOutputs):
             atoms = np.flatnonzero((coord >= lo - reach) & (coord < hi + reach)).astype(np.int32)
             if len(atoms) > r.max_atoms:
                 self._split = None
+                span = float(coord.max() - coord.min())
+                if span <= 2.0 * reach:
+                    raise RenderError(
+                        f"the {len(coord)}-atom system spans {span:.1f} A along its longest "
+                        f"axis, within twice the {reach:.1f} A a slab's halo and slack reach: "
+                        f"no cut splits it (a narrower sigma narrows the halo), and a device "
+                        f"holds {r.max_atoms}"
+                    )
                 raise RenderError(
                     f"a slab of the {len(coord)}-atom system holds {len(atoms)} atoms with the "
                     f"atoms within {reach:.1f} A of it (its halo and slack); a device holds "
@@ -468,7 +482,7 @@ class SortLastRenderer(ImageOutputs):
         RenderError for parameters sort-last cannot split (`refusal`) and for invalid input."""
         why = self.refusal(params)
         if why is not None:
-            raise RenderError(f"sort-last cannot draw these parameters: {why}")
+            raise RenderError(f"sort-last cannot draw these parameters: {why}; {SPLITTABLE}")
         if self._topology is None or self._positions is None:
             raise RenderError("no positions: call set_topology, then set_positions")
         t0 = time.perf_counter()
@@ -590,7 +604,8 @@ class SortLastRenderer(ImageOutputs):
     def set_history(self, *args: Any, **kwargs: Any) -> None:
         """Smoothing in time is not split by space: refused with the reason."""
         raise RenderError(
-            "sort-last cannot draw these parameters: smoothing in time reads every atom's history"
+            "sort-last cannot draw these parameters: smoothing in time reads every atom's "
+            f"history; {SPLITTABLE}"
         )
 
     def density_histogram(

@@ -332,17 +332,30 @@ def test_what_sort_last_cannot_split_is_refused_by_name(params: RenderParams, wh
 
 
 def test_a_slab_that_overflows_its_device_is_refused_by_its_numbers() -> None:
-    """A compact system whose halo reaches over most of it: a slab holds more atoms than a
-    device may, and the error says how many, the halo and the device's limit."""
-    mol = villins(1)
-    s = SortLastRenderer(["cpu", "cpu"], max_atoms=400)
+    """A slab holds more atoms than a device may: the error says how many, the halo and the
+    device's limit; where no cut can split the system (the halo reaches across it) it says
+    that."""
+    mol = villins(2)
+    s = SortLastRenderer(["cpu", "cpu"], max_atoms=600)
     s.set_topology(mol.topology)
     s.set_positions(mol.positions)
     n = len(mol.positions)
-    with pytest.raises(RenderError, match=rf"{n}-atom system holds {n} atoms .* holds 400"):
-        s.render(RenderParams(sigma_A=3.0), fit_camera(mol.positions, W, H), W, H)
+    with pytest.raises(RenderError, match=rf"{n}-atom system holds \d+ atoms .* holds 600"):
+        s.render(RenderParams(sigma_A=1.0), fit_camera(mol.positions, W, H), W, H)
+    with pytest.raises(RenderError, match=r"spans [\d.]+ A .* no cut splits it .* holds 600"):
+        s.render(RenderParams(sigma_A=6.0), fit_camera(mol.positions, W, H), W, H)
     with pytest.raises(RenderError, match="devices of 100 each hold fewer"):
         SortLastRenderer(["cpu", "cpu"], max_atoms=100).set_topology(mol.topology)
+    # every atom at one point: no cut splits it, and the error says so
+    s.set_positions(np.zeros_like(mol.positions))
+    with pytest.raises(RenderError, match=r"spans 0.0 A .* no cut splits it"):
+        s.render(RenderParams(), fit_camera(mol.positions, W, H), W, H)
+
+
+def test_a_refusal_says_why_the_system_is_split_and_what_splits() -> None:
+    s = SortLastRenderer(["cpu", "cpu"])
+    with pytest.raises(RenderError, match=r"geodesic.*--device-atoms.*scale_space 'classical'"):
+        s.render(RenderParams(scale_space="geodesic"), Camera(), W, H)
 
 
 def test_bad_input_is_refused() -> None:
