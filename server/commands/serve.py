@@ -72,7 +72,8 @@ def build_parser(prog: str = "scalesteer serve") -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--gpus",
-        help="render each session's images across several devices: all | 0,1,... "
+        help="render each session's images across several devices: all | 0,1,... | "
+        "cuda:0,cuda:1 | cpu,cpu (two CPU devices, to try it without GPUs) "
         "(sort-first bands, or slabs of space for a system one device does not hold; "
         "docs/rendering.md)",
     )
@@ -299,6 +300,15 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"scalesteer serve: {exc}", file=sys.stderr)
         return 2
+    if settings.gpus:
+        from server.render.device import resolve_many
+        from server.render.errors import RenderError
+
+        try:  # before the server starts: the reason alone, not under its start-up traceback
+            resolve_many(settings.gpus)
+        except RenderError as exc:
+            print(f"scalesteer serve: --gpus {settings.gpus}: {exc}", file=sys.stderr)
+            return 2
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s"
     )

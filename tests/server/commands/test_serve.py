@@ -70,6 +70,21 @@ def test_device_atoms_go_with_the_devices_and_a_bad_count_is_named(tmp_path: Pat
         settings("--state-dir", state, "--device-atoms", "0")
 
 
+def test_devices_that_do_not_exist_are_named_before_the_server_starts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    started: list[object] = []
+    monkeypatch.setattr(serve, "run", lambda *a, **k: started.append(a))
+    argv = ["--state-dir", str(tmp_path / "state"), "--port", "0"]
+    assert serve.main([*argv, "--gpus", "cuda:7"]) == 2
+    err = capsys.readouterr().err
+    assert "--gpus cuda:7" in err and "cuda:7" in err.split("--gpus cuda:7", 1)[1]
+    assert started == []
+    assert serve.main([*argv, "--gpus", " , "]) == 2
+    assert "name at least one device" in capsys.readouterr().err
+    assert serve.main([*argv, "--gpus", "cpu,cpu"]) == 0 and len(started) == 1
+
+
 def test_a_server_interrupted_while_it_starts_is_stopped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
