@@ -26,6 +26,9 @@ PROTOCOL_VERSION = "1.9"
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+CameraLength = Annotated[float, Field(gt=0, le=1.0e8, allow_inf_nan=False)]
+"""A camera's distance or view height in angstrom: at most 100 times the farthest coordinate
+(`MAX_COORDINATE_A`), beyond which nothing is seen and the arithmetic overflows."""
 NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Unit = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
@@ -355,11 +358,11 @@ class Camera(Model):
     """
 
     target: Vec3 = (0.0, 0.0, 0.0)
-    distance: PositiveFloat = 50.0
+    distance: CameraLength = 50.0
     orientation: tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat] = (1.0, 0.0, 0.0, 0.0)
     projection: Literal["perspective", "orthographic"] = "perspective"
     fov_deg: Annotated[float, Field(gt=1, lt=170, allow_inf_nan=False)] = 40.0
-    ortho_height: PositiveFloat = 40.0
+    ortho_height: CameraLength = 40.0
 
     @model_validator(mode="after")
     def _unit_quaternion(self) -> Self:

@@ -47,6 +47,15 @@ def test_wrong_types_name_the_field() -> None:
     assert reject(obj).path == "view.camera.distance"
 
 
+@pytest.mark.parametrize("field", ["distance", "ortho_height"])
+def test_a_camera_past_any_coordinate_is_refused(field: str) -> None:
+    """1e300 A away (beyond which float arithmetic overflows): refused by name; 1e8 is not."""
+    obj = raw_of("view")
+    obj["camera"][field] = 1.0e300
+    assert reject(obj).path == f"view.camera.{field}"
+    assert p.Camera(**{field: 1.0e8}).model_dump()[field] == 1.0e8
+
+
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_non_finite_positions(bad: float) -> None:
     obj = raw_of("frame")
