@@ -82,7 +82,7 @@ async def open_replay(
         str | None,
         Form(description="session name (default: replay-<file>, numbered when that one plays)"),
     ] = None,
-    fps: Annotated[float, Form(gt=0, le=240)] = 30.0,
+    fps: Annotated[float, Form(gt=0, le=240, allow_inf_nan=False)] = 30.0,
     loop: Annotated[bool, Form()] = False,
 ) -> dict[str, Any]:
     manager: ReplayManager = state.replays

@@ -246,7 +246,9 @@ async def render_image(
     session: Annotated[
         str | None, Form(description="a live session: render its latest frame")
     ] = None,
-    frame: Annotated[int, Form(ge=0)] = 0,
+    frame: Annotated[
+        int, Form(ge=0, description="which frame of a file or dataset (not of a session)")
+    ] = 0,
     params: Annotated[str | None, Form(description="RenderParams as JSON")] = None,
     camera: Annotated[
         str | None, Form(description="Camera as JSON; default frames the molecule")
@@ -268,6 +270,10 @@ async def render_image(
     reference = None
     live = None
     if session is not None:
+        if frame:
+            raise HTTPException(
+                422, "frame: a session renders its latest frame; frame picks one of a file"
+            )
         live = state.sessions.get(session)
         if live is None:
             raise HTTPException(404, f"no session named {session!r}")
@@ -383,7 +389,7 @@ async def create_job(
     width: Annotated[int, Form()] = 640,
     height: Annotated[int, Form()] = 480,
     output: Annotated[Literal["zip", "mp4"], Form()] = "zip",
-    fps: Annotated[float, Form(gt=0, le=240)] = 30.0,
+    fps: Annotated[float, Form(gt=0, le=240, allow_inf_nan=False)] = 30.0,
 ) -> JSONResponse:
     check_size(state, width, height)
     if (topology is None) == (dataset is None):
@@ -586,7 +592,7 @@ async def record_session(
     ] = None,
     width: Annotated[int, Form()] = 640,
     height: Annotated[int, Form()] = 480,
-    fps: Annotated[float, Form(gt=0, le=120)] = 30.0,
+    fps: Annotated[float, Form(gt=0, le=120, allow_inf_nan=False)] = 30.0,
     max_frames: Annotated[int, Form(ge=1, le=100_000)] = 1800,
     max_s: Annotated[
         float | None,

@@ -384,6 +384,12 @@ def test_rest_input_that_answered_500_is_a_named_4xx(live_server: LiveServer) ->
         assert r.status_code == 422 and "params" in r.json()["detail"]
         r = c.post("/api/render", headers=auth, data={"session": "default", "width": digits})
         assert r.status_code == 422
+        # NaN was told as "should be less than or equal to 240"
+        r = c.post("/api/jobs", headers=auth, data={"dataset": "a.pdb", "fps": "nan"})
+        assert r.status_code == 422 and "finite" in r.text, r.text
+        # a frame number for a session (which renders its latest) was silently ignored
+        r = c.post("/api/render", headers=auth, data={"session": "default", "frame": "50"})
+        assert r.status_code == 422 and "frame" in r.json()["detail"], r.text
         r = c.post(
             "/api/render", headers=auth, data={"session": "default", "params": '{"sigma": 2}'}
         )
