@@ -550,6 +550,8 @@ async def healthz(state: State) -> dict[str, Any]:
     return {
         "status": "ok",
         "device": state.gpu.actual_device or state.settings.device,
+        # every device a session may be drawn across (--gpus), each with a thread of its own
+        "devices": list(state.gpu.devices) or [state.gpu.actual_device or state.settings.device],
         "encoder": state.encoder.describe(),
         # live sessions' JPEG made where they render (None: read back and encoded as above)
         "encoder_on_device": None if state.gpu.jpeg is None else state.gpu.jpeg.name,

@@ -30,6 +30,8 @@ def image_of(
         viewer = Peer(server.view_url, "viewer", server.viewer_token, "multi")
         image = viewer.expect(p.Image, where=lambda m: m.still is not False)
         stats = viewer.expect(p.Stats, where=lambda m: m.render_fps > 0)
+        health = httpx.get(f"{server.url}/healthz", timeout=30).json()
+        assert health["devices"] == (["cpu", "cpu"] if "gpus" in overrides else ["cpu"])
         sim.close()
         viewer.close()
         with Image.open(io.BytesIO(image.data)) as im:
