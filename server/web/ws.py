@@ -11,6 +11,7 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -61,6 +62,8 @@ class Guard:
     errors: deque[float] = field(default_factory=lambda: deque(maxlen=64))
     refused: deque[float] = field(default_factory=lambda: deque(maxlen=MAX_REFUSED_PER_10S + 1))
     """When its messages over the rate limit came: valid messages, refused for their rate."""
+    told: float = -math.inf
+    """When a refusal of this simulation's messages was last logged and told to viewers."""
 
     @classmethod
     def of(cls, budget: ClientBudget, owner: tuple[str, str]) -> Guard:
@@ -334,6 +337,13 @@ async def _receive_loop(
         except p.ProtocolError as err:
             state.metrics.errors.labels(err.code.value).inc()
             client.send(p.error_message(err))
+            if client.role == "simulation" and time.monotonic() - guard.told >= 10.0:
+                # a simulation's refused frame leaves viewers waiting: say why, once per 10 s
+                guard.told = time.monotonic()
+                log.warning("session %s: refused from its simulation: %s", session.id, err)
+                session.broadcast(
+                    p.Error(code=err.code, message=f"the simulation's message was refused: {err}")
+                )
             closing = guard.note_error(err)
             if closing is not None:
                 closed = p.ProtocolError(p.ErrorCode.RATE_LIMITED, closing)

@@ -296,5 +296,12 @@ def test_large_frames_are_validated_and_rendered(live_server: LiveServer) -> Non
     sim.send_raw(msgpack.packb(raw))
     err = sim.expect(p.Error)
     assert err.path == "frame.positions" and "NaN" in err.message
+    # its viewers hear why no new frame comes (once per 10 s, not per refused frame)
+    told = viewer.expect(p.Error, where=lambda m: "simulation's message was refused" in m.message)
+    assert "NaN" in told.message
+    sim.send_raw(msgpack.packb(raw))
+    assert sim.expect(p.Error).path == "frame.positions"
+    again = [m for m in viewer.drain(1.0) if isinstance(m, p.Error)]
+    assert again == []
     sim.close()
     viewer.close()
