@@ -93,6 +93,7 @@ TABLES: dict[str, Table] = {
             "sort_last_h200x2.json",
             "sort_last_h200_two_parts_gather.json",
             "sort_last_h200_10m.json",
+            "sort_last_h200_100m.json",
             "sort_last_h200_four_parts.json",
         ),
         sort_last,
