@@ -321,5 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     if view:
         print(f"  read-only viewer link: {view}")
     print()
-    run(settings, args.log_level)
+    try:
+        run(settings, args.log_level)
+    except KeyboardInterrupt:  # Ctrl-C: uvicorn has shut down; its re-raised signal ends here
+        return 130
     return 0

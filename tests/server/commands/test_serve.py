@@ -85,6 +85,30 @@ def test_devices_that_do_not_exist_are_named_before_the_server_starts(
     assert serve.main([*argv, "--gpus", "cpu,cpu"]) == 0 and len(started) == 1
 
 
+def test_ctrl_c_stops_the_server_without_a_traceback(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-c", "from server.commands.cli import main; raise SystemExit(main())"]
+    argv = ["serve", "--port", "0", "--state-dir", str(tmp_path / "state"), "--token", "t"]
+    proc = subprocess.Popen(
+        [*cmd, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # the dashboard link is printed once settings are made
+            if "scalesteer dashboard" in line:
+                break
+        time.sleep(3.0)  # uvicorn starts after the link
+        proc.send_signal(signal.SIGINT)
+        _out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in err, err[-2000:]
+
+
 def test_a_server_interrupted_while_it_starts_is_stopped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
