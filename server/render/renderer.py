@@ -380,7 +380,7 @@ class Renderer(ImageOutputs):
 
     def set_positions(
         self,
-        positions: npt.ArrayLike,
+        positions: npt.ArrayLike | None,
         *,
         check_finite: bool = True,
         staged: npt.NDArray[np.float32] | None = None,
@@ -398,21 +398,20 @@ class Renderer(ImageOutputs):
         devices that copied them (`MultiRenderer`: each device uploads 1/N of a frame).
         `on_device`: the same positions, already on this renderer's device (a periodic
         display's result, `server.render.periodic`), copied device to device; the work that
-        wrote them must be done."""
+        wrote them must be done. With `on_device`, `positions` may be None (no host copy:
+        sort-last's parts, `server.render.scatter`), for densities that read no host copy
+        (not the carved one, not smoothing in time)."""
         if self._topology is None:
             raise RenderError("set_topology must come before set_positions")
-        arr = np.asarray(positions)
-        if arr.ndim != 2 or arr.shape[1] != 3:
-            raise RenderError(f"positions must have shape (n, 3), got {arr.shape}")
-        if arr.shape[0] != self._n:
-            raise RenderError(f"positions have {arr.shape[0]} atoms, topology has {self._n}")
-        if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
-            raise RenderError(f"positions must be real numbers, got dtype {arr.dtype}")
-        if arr.dtype != np.float32 or not arr.flags.c_contiguous:
-            arr = np.ascontiguousarray(arr, dtype=np.float32)
         n = self._n
-        if check_finite and n:
-            check_finite_positions(arr)
+        arr: npt.NDArray[np.float32] | None = None
+        if positions is None:
+            if on_device is None:
+                raise RenderError("positions, or their copy on the device (on_device), are needed")
+        else:
+            arr = self._host_frame(positions)
+            if check_finite and n:
+                check_finite_positions(arr)
         t0 = time.perf_counter()
         self.uploaded_from = "host"
         if n and on_device is not None:
@@ -427,6 +426,7 @@ class Renderer(ImageOutputs):
             else:
                 wp.copy(self._pos, on_device, count=n)
         elif n:
+            assert arr is not None
             if staged is not None:
                 self.uploaded_from = "page-locked"
                 if staged.shape != arr.shape or staged.dtype != np.float32:
@@ -450,7 +450,7 @@ class Renderer(ImageOutputs):
         self._upload_ms = (time.perf_counter() - t0) * 1e3
         self._raw_source = positions  # the frame `_pos` holds, until smoothing overwrites it
         self._pos_is_raw = True
-        if self._ref_positions is None:
+        if self._ref_positions is None and arr is not None:
             # bonds keep their lengths (the carved density's graph tables use these)
             self._ref_positions = np.array(arr[:n], dtype=np.float32)
         # only a recorded upload is timed: the elapsed time between two unrecorded CUDA events
@@ -458,6 +458,19 @@ class Renderer(ImageOutputs):
         self._uploaded = n > 0
         self._have_positions = True
         self._positions_version += 1
+
+    def _host_frame(self, positions: npt.ArrayLike) -> npt.NDArray[np.float32]:
+        """`positions` as a C-contiguous (n, 3) float32 array, checked against the topology."""
+        arr = np.asarray(positions)
+        if arr.ndim != 2 or arr.shape[1] != 3:
+            raise RenderError(f"positions must have shape (n, 3), got {arr.shape}")
+        if arr.shape[0] != self._n:
+            raise RenderError(f"positions have {arr.shape[0]} atoms, topology has {self._n}")
+        if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+            raise RenderError(f"positions must be real numbers, got dtype {arr.dtype}")
+        if arr.dtype != np.float32 or not arr.flags.c_contiguous:
+            arr = np.ascontiguousarray(arr, dtype=np.float32)
+        return arr
 
     def _upload(self, src: wp.array, n: int) -> None:
         """Copy a frame to the device. While a render is still queued (`render(wait=False)`)

@@ -21,10 +21,12 @@ system. Each part takes the density at the sampled atoms inside its slab, and th
 render with the absolute level that mean gives (one synchronisation per frame whose positions or
 density changed). The depth cue spans the whole system's box, not a part's.
 
-Each frame, the host gathers every part's positions into that part's page-locked upload buffer,
-in ranges on several threads, and takes the frame's box and the check of the slack from the same
-ranges; parts on distinct CUDA devices also take their share of the mean density from a thread
-each.
+Each frame, every device uploads one contiguous 1/N of the frame and picks the parts' atoms out
+of it on the device, sending other parts' picks device to device (`server.render.scatter`; the
+same pass measures the frame's box and the slack's check). With `gather="host"` (the control)
+the host gathers every part's positions into that part's page-locked upload buffer, in ranges on
+several threads, and takes the box and the check from the same ranges. Parts on distinct CUDA
+devices take their share of the mean density from a thread each.
 
 The atoms a part holds are chosen with a slack: a frame whose atoms have moved further than the
 slack along the axis since the split, or parameters whose halo is wider than the split's, split
@@ -55,6 +57,7 @@ from server.render.layerplan import subset_topology
 from server.render.outputs import ImageOutputs
 from server.render.raycast import CameraData, camera_data, camera_ray, pack_rgba, unpack_rgba
 from server.render.renderer import MEAN_SAMPLES, Renderer, check_finite_positions
+from server.render.scatter import Scatter
 
 wp: Any = warp  # warp's host API is unannotated
 
@@ -165,9 +168,15 @@ class SortLastRenderer(ImageOutputs):
     space and its halo; answers like a `Renderer` (`read_rgba`, `read_depth`,
     `read_atom_ids`, `pick`, `timings`)."""
 
-    def __init__(self, devices: Sequence[str], **options: Any) -> None:
+    def __init__(self, devices: Sequence[str], *, gather: str = "device", **options: Any) -> None:
         if len(devices) < 1:
             raise RenderError("sort-last needs at least one device")
+        if gather not in ("device", "host"):
+            raise RenderError(f"gather must be 'device' or 'host', got {gather!r}")
+        self.gather = gather
+        """Where the parts' positions are picked from a frame: on the devices, each from the
+        1/N of the frame it uploads (`server.render.scatter`), or on the host (the control)."""
+        self._scatter: Scatter | None = None
         self._parts = [Renderer(dev, **options) for dev in devices]
         for r in self._parts:
             r.coverage = True
@@ -290,7 +299,46 @@ class SortLastRenderer(ImageOutputs):
             "flat": wp.array(np.concatenate(members), dtype=wp.int32, device=dev),
         }
         self._sent = [-1] * len(self._parts)
+        self._scatter = None
+        if self.gather == "device":
+            self._scatter = Scatter([r.device for r in self._parts], members, axis, coord)
         self._mean = None
+
+    def _send_on_host(self, pos: npt.NDArray[np.float32], halo: float) -> bool:
+        """Split when the last split no longer serves, then gather each part's positions on
+        the host; False: the frame draws background (a coordinate not finite or too far)."""
+        if not self._split_holds(pos, halo):
+            if not self._drawable(pos):
+                return False
+            self._split_atoms(pos, halo)
+        self._send(pos)
+        return self._drawable(pos)  # a bad coordinate off the split's axis
+
+    def _send_on_devices(self, pos: npt.NDArray[np.float32], halo: float) -> bool:
+        """Split when needed, then each device uploads its 1/N of the frame and picks the
+        parts' atoms from it (`Scatter`); a frame the devices find moved past the slack is
+        split again, one with a bad coordinate draws background (False)."""
+        s = self._split
+        if s is None or halo > s["halo"]:
+            if not self._drawable(pos):
+                return False
+            self._split_atoms(pos, halo)
+        if self._sent and min(self._sent) == self._version:
+            return self._drawable(pos)
+        assert self._scatter is not None and self._split is not None
+        found = self._scatter.send(pos)
+        if found.bad or not found.moved <= self._split["slack"]:
+            self._box = None
+            if not self._drawable(pos):
+                return False
+            self._split_atoms(pos, halo)
+            assert self._scatter is not None
+            found = self._scatter.send(pos)
+        self._box = (self._version, found.lo, found.hi)
+        for r, inbox in zip(self._parts, self._scatter.inbox, strict=True):
+            r.set_positions(None, check_finite=False, on_device=inbox)
+        self._sent = [self._version] * len(self._parts)
+        return self._drawable(pos)
 
     def _split_holds(self, pos: npt.NDArray[np.float32], halo: float) -> bool:
         """Whether the last split still serves this frame: its halo is wide enough and no atom
@@ -489,15 +537,8 @@ class SortLastRenderer(ImageOutputs):
         pos = self._positions
         w, h, frame = self._parts[0].check_view(camera, width, height)
         halo = self._parts[0].halo(params, self._r_max)
-        if not self._split_holds(pos, halo):
-            if self._drawable(pos):
-                self._split_atoms(pos, halo)
-            else:
-                self._background(params, w, h)
-                self.timings = {"total_ms": (time.perf_counter() - t0) * 1e3, "total": 0.0}
-                return
-        self._send(pos)
-        if not self._drawable(pos):  # a bad coordinate off the split's axis
+        sent = self._send_on_devices if self.gather == "device" else self._send_on_host
+        if not sent(pos, halo):
             self._background(params, w, h)
             self.timings = {"total_ms": (time.perf_counter() - t0) * 1e3, "total": 0.0}
             return
@@ -631,8 +672,13 @@ class SortLastRenderer(ImageOutputs):
         return [len(m) for m in self._split["members"]]
 
     def memory_bytes(self) -> list[dict[str, int]]:
-        """Each part's device memory, by what it holds."""
-        return [r.memory_bytes() for r in self._parts]
+        """Each part's device memory, by what it holds (with the frame's share and the picks
+        its device holds for the device-side gather)."""
+        held = [r.memory_bytes() for r in self._parts]
+        if self._scatter is not None:
+            for part, extra in zip(held, self._scatter.device_bytes(), strict=True):
+                part["scatter"] = extra
+        return held
 
     def close(self) -> None:
         """Let the gathering threads go."""

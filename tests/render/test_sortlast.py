@@ -35,9 +35,9 @@ def one_device(device: str, mol: Mol, params: RenderParams, cam: Camera) -> Rend
 
 
 def sort_last(
-    device: str, parts: int, mol: Mol, params: RenderParams, cam: Camera
+    device: str, parts: int, mol: Mol, params: RenderParams, cam: Camera, gather: str = "device"
 ) -> SortLastRenderer:
-    s = SortLastRenderer([device] * parts)
+    s = SortLastRenderer([device] * parts, gather=gather)
     s.set_topology(mol.topology)
     s.set_positions(mol.positions)
     s.render(params, cam, W, H)
@@ -74,14 +74,16 @@ CASES = [
 
 
 @pytest.mark.parametrize(("params", "levels"), CASES)
-@pytest.mark.parametrize("parts", [2, 3])
+@pytest.mark.parametrize(("parts", "gather"), [(2, "device"), (3, "device"), (2, "host")])
 def test_the_parts_blend_into_the_one_device_image(
-    device: str, params: RenderParams, levels: int, parts: int
+    device: str, params: RenderParams, levels: int, parts: int, gather: str
 ) -> None:
+    """Each part's atoms picked on the devices from the 1/N of the frame each uploads, or
+    gathered on the host (the control)."""
     mol = villins(3)
     cam = fit_camera(mol.positions, W, H)
     one = one_device(device, mol, params, cam)
-    s = sort_last(device, parts, mol, params, cam)
+    s = sort_last(device, parts, mol, params, cam, gather)
     assert_same_image(one, s, levels)
     # each part holds its slab's atoms and a halo: fewer than all, together all
     held = s.atoms_held()
@@ -209,18 +211,22 @@ def moved(mol: Mol, shift: npt.NDArray[np.float32]) -> Mol:
     return Mol(mol.topology, (mol.positions + shift).astype(np.float32))
 
 
-@pytest.mark.parametrize("chunk", [None, 97], ids=["one-range", "many-ranges"])
+@pytest.mark.parametrize(
+    ("gather", "chunk"),
+    [("device", None), ("host", None), ("host", 97)],
+    ids=["on-devices", "on-host", "on-host-many-ranges"],
+)
 def test_atoms_that_move_past_the_slack_split_the_system_again(
-    device: str, chunk: int | None, monkeypatch: pytest.MonkeyPatch
+    device: str, gather: str, chunk: int | None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """With one range per part, and with each part gathered and checked in many ranges (as
-    a large system is, on several threads)."""
+    """The devices measure the move of their shares; the host gathers and checks in one range
+    per part, or in many (as a large system is, on several threads)."""
     if chunk is not None:
         monkeypatch.setattr(sortlast, "GATHER_CHUNK", chunk)
     mol = villins(3)
     cam = fit_camera(mol.positions, W, H)
     params = RenderParams()
-    s = sort_last(device, 3, mol, params, cam)
+    s = sort_last(device, 3, mol, params, cam, gather)
     first = s.atoms_held()
     # a small move keeps the split; a move past the slack (one molecule along the axis) splits
     # again, and every frame is still the one-device image
@@ -250,16 +256,17 @@ def test_a_stray_atom_does_not_turn_the_cuts(device: str) -> None:
     assert_same_image(one_device(device, stray, params, cam), s, 1)
 
 
+@pytest.mark.parametrize("gather", ["device", "host"])
 @pytest.mark.parametrize("bad", [np.nan, np.inf, 2.0e6])
 def test_a_frame_one_device_draws_as_background_is_background_and_splits_nothing(
-    device: str, bad: float
+    device: str, bad: float, gather: str
 ) -> None:
     """A coordinate that is not finite or lies past MAX_COORDINATE_A (passed unchecked): the
     whole frame is background, as on one device, and the next good frame draws again."""
     mol = villins(3)
     cam = fit_camera(mol.positions, W, H)
     params = RenderParams()
-    s = SortLastRenderer([device] * 2)
+    s = SortLastRenderer([device] * 2, gather=gather)
     s.set_topology(mol.topology)
     one = Renderer(device)
     one.set_topology(mol.topology)
