@@ -321,7 +321,8 @@ def periodic_live(sources: list[Source]) -> str:
 def sort_last(sources: list[Source]) -> str:
     """Sort-last against one device on the same frames (the control): the frame, where it
     goes, each part's share of the atoms and of one device's bytes, and the image's distance
-    from one device's."""
+    from one device's; where a run also gathered the parts' atoms on the host (the control
+    of the gather on the devices), both."""
     rows = []
     for _name, res in sources:
         parts = len(res["devices"])
@@ -329,30 +330,35 @@ def sort_last(sources: list[Source]) -> str:
         where = f"{parts} on {gpus} devices" if gpus > 1 else f"{parts} on one device"
         for run in res["runs"]:
             one = run["one_device"]
-            sl = run["sort_last"]
             n = run["atoms"]
-            stages = " / ".join(
-                num(sl[k], 1) for k in ("split_ms", "mean_ms", "queue_ms", "combine_ms")
-            )
-            held = ", ".join(f"{100.0 * a / n:.0f}" for a in sl["atoms_held"])
-            mem = max(sl["bytes"]) / one["bytes"]
-            diff = run["image_vs_one_device"]
-            rows.append(
-                [
-                    where,
-                    count(n),
-                    size(*run["size"]),
-                    run["mode"],
-                    num(one["frame_ms"], 2),
-                    f"{num(sl['frame_ms'], 2)} ({one['frame_ms'] / sl['frame_ms']:.2f}x)",
-                    stages,
-                    held,
-                    f"{mem:.2f}",
-                    f"{diff['max_levels']} / {diff['mean_levels']:.3f}",
-                ]
-            )
+            gathers = [k for k in ("sort_last", "sort_last_host_gather") if k in run]
+            for key in gathers:
+                sl = run[key]
+                gather = "host" if key.endswith("host_gather") or len(gathers) == 1 else "devices"
+                stages = " / ".join(
+                    num(sl[k], 1) for k in ("split_ms", "mean_ms", "queue_ms", "combine_ms")
+                )
+                held = ", ".join(f"{100.0 * a / n:.0f}" for a in sl["atoms_held"])
+                mem = max(sl["bytes"]) / one["bytes"]
+                diff = sl.get("image_vs_one_device", run["image_vs_one_device"])
+                rows.append(
+                    [
+                        where,
+                        gather,
+                        count(n),
+                        size(*run["size"]),
+                        run["mode"],
+                        num(one["frame_ms"], 2),
+                        f"{num(sl['frame_ms'], 2)} ({one['frame_ms'] / sl['frame_ms']:.2f}x)",
+                        stages,
+                        held,
+                        f"{mem:.2f}",
+                        f"{diff['max_levels']} / {diff['mean_levels']:.3f}",
+                    ]
+                )
     header = [
         "parts on",
+        "gathered on",
         "atoms",
         "image",
         "mode",
@@ -363,4 +369,4 @@ def sort_last(sources: list[Source]) -> str:
         "device bytes, largest part / one device",
         "image vs one device, max / mean levels",
     ]
-    return block(sources, table(header, "lrllrrllrl", rows))
+    return block(sources, table(header, "llrllrrllrl", rows))
