@@ -99,7 +99,7 @@ def split_atoms(n: int, devices: int) -> list[tuple[int, int]]:
     return list(itertools.pairwise(edges))
 
 
-def _peer_access(devices: Sequence[str]) -> bool:
+def enable_peer_access(devices: Sequence[str]) -> bool:
     """Let every pair of distinct CUDA devices read each other's memory, pooled allocations
     (warp's default allocator) included; False where a pair cannot (copies between them would
     be staged through host memory, slower than uploading from the host)."""
@@ -156,7 +156,8 @@ class MultiRenderer:
         """Every device is a CUDA device: bands are queued on each and run at once. CPU devices
         run their bands one after another on the calling thread: warp's CPU kernels keep state in
         statics of their JIT-compiled code, and two threads running them at once crash."""
-        self.split_upload = upload == "split" and (not self.cuda or _peer_access(self.devices))
+        peers = not self.cuda or enable_peer_access(self.devices)
+        self.split_upload = upload == "split" and peers
         """Each device uploads 1/N of a frame from the host, and copies the rest from the
         other devices (NVLink or PCIe peer copies), instead of N uploads of all of it."""
         self._staging: list[tuple[Any, npt.NDArray[np.float32]]] = []

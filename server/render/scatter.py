@@ -23,6 +23,8 @@ import numpy as np
 import numpy.typing as npt
 import warp
 
+from server.render.multi import enable_peer_access
+
 wp: Any = warp  # warp's host API is unannotated
 
 STAT_THREADS = 1 << 15
@@ -93,6 +95,10 @@ class FrameStats:
 class Scatter:
     """For one split: the shares each device uploads and the picks that make every part."""
 
+    peer = False
+    """Every pair of the devices copies device to device (where they are distinct CUDA
+    devices)."""
+
     def __init__(
         self,
         devices: Sequence[str],
@@ -103,6 +109,9 @@ class Scatter:
         n = len(reference)
         parts = len(devices)
         self.devices = list(devices)
+        if len(set(devices)) > 1 and all(wp.get_device(d).is_cuda for d in devices):
+            # picks go straight over NVLink or PCIe where they can (else through the host)
+            self.peer = enable_peer_access(devices)
         self.axis = axis
         bounds = [n * j // parts for j in range(parts + 1)]
         self.shares = [(bounds[j], bounds[j + 1]) for j in range(parts)]
