@@ -38,7 +38,7 @@ import numpy.typing as npt
 
 import protocol as p
 from server.pipeline.staging import FrameStager
-from server.render.errors import RenderError
+from server.render.errors import CapacityError, RenderError
 from server.threads import name_thread
 
 STAGE_ATOMS = 100_000
@@ -568,7 +568,7 @@ class GpuQueue:
                 if alone:
                     self._whole.add(key)
             if not alone:
-                raise RenderError(
+                raise CapacityError(
                     f"{n_atoms} atoms: one device holds {self.per_device} (--device-atoms), and "
                     "work placed on the other devices' threads has not moved beside it yet; "
                     "the next frame splits it across them"
@@ -621,7 +621,7 @@ class GpuQueue:
             except RenderError as exc:
                 if snap.topology.n_atoms <= self.per_device:
                     raise
-                raise RenderError(
+                raise CapacityError(
                     f"{exc}: one device holds {self.per_device} atoms (--device-atoms); "
                     "several devices (--gpus) split a larger system across them"
                 ) from None
@@ -692,14 +692,14 @@ class GpuQueue:
             held = n if plan.atoms is None else len(plan.atoms)
             total += held
             if held > self.per_device:
-                raise RenderError(
+                raise CapacityError(
                     f"layer {plan.name!r} has {held} atoms: layers are drawn on one device, "
                     f"which holds {self.per_device} (--device-atoms); without layers "
                     "(`layers: []`), several devices (--gpus) split the system across them"
                 )
         if self.device_atoms is not None and total > self.device_atoms:
             # each layer holds its atoms in a renderer of its own on the one device
-            raise RenderError(
+            raise CapacityError(
                 f"the {len(request.layers)} layers hold {total} atoms together: layers are "
                 f"drawn on one device, which holds {self.device_atoms} (--device-atoms); "
                 "fewer or smaller layers fit"

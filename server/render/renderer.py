@@ -50,7 +50,7 @@ from server.render.density import (
     partial_sums_kernel,
     total_kernel,
 )
-from server.render.errors import RenderError
+from server.render.errors import CapacityError, RenderError
 from server.render.geodesic import GAIN, BondGraph, GeodesicScales
 from server.render.graphs import GraphCache
 from server.render.grid import CellGrid, Cull, cell_threads
@@ -345,7 +345,7 @@ class Renderer(ImageOutputs):
         """Take a topology once: radii, weights and colours are prepared for the device."""
         n = int(topology.n_atoms)
         if n > self.max_atoms:
-            raise RenderError(f"topology has {n} atoms, this renderer allows {self.max_atoms}")
+            raise CapacityError(f"topology has {n} atoms, this renderer allows {self.max_atoms}")
         if n > self._atom_capacity:
             self._alloc_atoms(n)
         self._topology = topology

@@ -52,7 +52,7 @@ from protocol import Camera, RenderParams, Topology
 from protocol.limits import MAX_COORDINATE_A
 from server.render import colors
 from server.render.camera import CameraFrame
-from server.render.errors import RenderError
+from server.render.errors import CapacityError, RenderError
 from server.render.layerplan import subset_topology
 from server.render.outputs import ImageOutputs
 from server.render.raycast import CameraData, camera_data, camera_ray, pack_rgba, unpack_rgba
@@ -218,7 +218,7 @@ class SortLastRenderer(ImageOutputs):
     def set_topology(self, topology: Topology) -> None:
         """Take a topology; the atoms are split among the devices at the first render."""
         if topology.n_atoms > self._parts[0].max_atoms * len(self._parts):
-            raise RenderError(
+            raise CapacityError(
                 f"topology has {topology.n_atoms} atoms, {len(self._parts)} devices of "
                 f"{self._parts[0].max_atoms} each hold fewer"
             )
@@ -267,13 +267,13 @@ class SortLastRenderer(ImageOutputs):
                 self._split = None
                 span = float(coord.max() - coord.min())
                 if span <= 2.0 * reach:
-                    raise RenderError(
+                    raise CapacityError(
                         f"the {len(coord)}-atom system spans {span:.1f} A along its longest "
                         f"axis, within twice the {reach:.1f} A a slab's halo and slack reach: "
                         f"no cut splits it (a narrower sigma narrows the halo), and a device "
                         f"holds {r.max_atoms}"
                     )
-                raise RenderError(
+                raise CapacityError(
                     f"a slab of the {len(coord)}-atom system holds {len(atoms)} atoms with the "
                     f"atoms within {reach:.1f} A of it (its halo and slack); a device holds "
                     f"{r.max_atoms}: more devices, or a smaller sigma (a narrower halo), would "

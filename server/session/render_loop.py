@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 import protocol as p
 from server.pipeline.gpu import RenderOutput, RenderRequest, Snapshot
-from server.render.errors import RenderError
+from server.render.errors import CapacityError, RenderError
 from server.render.layerplan import LayerPlan
 from server.session.clients import Client
 from server.session.delivery import Delivery, Rendered
@@ -143,9 +143,13 @@ class RenderLoop:
                 reason = re.sub(r"[0-9.]+", "#", str(exc))  # frame by frame, counts change
                 if reason != said or now - when >= REFUSAL_REPEAT_S:
                     log.warning("render refused in session %s: %s", self.session_id, exc)
-                    self.host.broadcast(
-                        p.Error(code=p.ErrorCode.INVALID_MESSAGE, message=f"render refused: {exc}")
+                    # too large for this server (valid input), or parameters it cannot draw
+                    code = (
+                        p.ErrorCode.TOO_LARGE
+                        if isinstance(exc, CapacityError)
+                        else p.ErrorCode.INVALID_MESSAGE
                     )
+                    self.host.broadcast(p.Error(code=code, message=f"render refused: {exc}"))
                     self._refused = (reason, now)
                 await asyncio.sleep(FAILED_RENDER_PAUSE_S)
             except Exception:

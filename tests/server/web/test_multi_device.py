@@ -66,6 +66,7 @@ def test_a_system_one_device_does_not_hold_is_split_across_the_devices(tmp_path:
         viewer = Peer(server.view_url, "viewer", server.viewer_token, "multi")
         error = viewer.expect(p.Error, where=lambda m: "240 atoms" in m.message)
         assert "allows 150" in error.message
+        assert error.code == p.ErrorCode.TOO_LARGE  # valid input, too large for this server
         sim.close()
         viewer.close()
     finally:
