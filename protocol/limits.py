@@ -25,3 +25,7 @@ MAX_COORDINATE_A = 1.0e6
 steps along a ray lose their meaning far beyond it (at 1e30 A a step no longer moves the ray,
 and a frame there had held its render thread for good). A frame with a coordinate beyond it
 is drawn as background, and a file with one is refused."""
+
+MAX_CAMERA_A = 1.0e8
+"""The farthest a camera may stand from its target, and the tallest orthographic view (A):
+100 times `MAX_COORDINATE_A`, beyond which nothing is seen and the arithmetic overflows."""

@@ -19,16 +19,15 @@ from pydantic_core import PydanticCustomError
 
 from protocol.arrays import AtomFloats, AtomInts, Bonds, Box, Floats, Positions
 from protocol.errors import ErrorCode
-from protocol.limits import Limits
+from protocol.limits import MAX_CAMERA_A, Limits
 
 PROTOCOL_VERSION = "1.9"
 """major.minor: a major change breaks old peers; a minor one only adds defaulted fields."""
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-CameraLength = Annotated[float, Field(gt=0, le=1.0e8, allow_inf_nan=False)]
-"""A camera's distance or view height in angstrom: at most 100 times the farthest coordinate
-(`MAX_COORDINATE_A`), beyond which nothing is seen and the arithmetic overflows."""
+CameraLength = Annotated[float, Field(gt=0, le=MAX_CAMERA_A, allow_inf_nan=False)]
+"""A camera's distance or view height in angstrom (`MAX_CAMERA_A`)."""
 NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Unit = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]

@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from protocol import Camera
+from protocol.limits import MAX_CAMERA_A
 
 Projection = Literal["perspective", "orthographic"]
 F64 = npt.NDArray[np.float64]
@@ -212,8 +213,9 @@ def fit_camera(
     half_v = math.radians(fov_deg) / 2
     half_h = math.atan(math.tan(half_v) * aspect)
     half = min(half_v, half_h)
-    distance = radius / math.sin(half)
-    ortho_height = 2.0 * radius * max(1.0, 1.0 / aspect)
+    # atoms past MAX_COORDINATE_A draw background anyway: the camera stays within its limit
+    distance = min(radius / math.sin(half), MAX_CAMERA_A)
+    ortho_height = min(2.0 * radius * max(1.0, 1.0 / aspect), MAX_CAMERA_A)
     return Camera.model_validate(
         {
             "target": tuple(float(c) for c in center),

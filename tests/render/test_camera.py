@@ -112,3 +112,14 @@ def test_orbit_keeps_target_and_distance() -> None:
     f = camera_frame(tilted, 4, 4)
     assert np.linalg.norm(f.eye - np.array(cam.target)) == pytest.approx(12.0)
     assert tilted.target == cam.target
+
+
+def test_a_camera_fitted_to_atoms_past_any_coordinate_stays_within_the_cameras_limit() -> None:
+    """A damaged file with an atom at 1e30 A (its frame draws background): the fitted camera
+    is a valid one, at the farthest distance a camera may have."""
+    from protocol.limits import MAX_CAMERA_A
+
+    far = np.array([[0.0, 0.0, 0.0], [1.0e30, 0.0, 0.0]], dtype=np.float32)
+    for projection in ("perspective", "orthographic"):
+        cam = fit_camera(far, 32, 24, projection)  # type: ignore[arg-type]
+        assert cam.distance == MAX_CAMERA_A and cam.ortho_height == MAX_CAMERA_A
