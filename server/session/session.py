@@ -512,6 +512,7 @@ class Session:
             return
         for client in [only] if only is not None else list(self.clients.values()):
             atoms = client.view.track if client.view is not None else []
+            atoms = [a for a in atoms if a < len(positions)]  # asked for before a topology
             if not atoms:
                 continue
             xyz = positions[np.asarray(atoms, dtype=np.int64)].astype(float)
@@ -896,7 +897,9 @@ class Session:
                 "view.width",
                 view.seq,
             )
-        if view.track:
+        if view.track and self.topology is not None:
+            # before the simulation's topology the atoms cannot be checked: they are kept, and
+            # those the topology lacks are left out of what is sent (`_send_tracked`)
             self._check_atoms(np.asarray(view.track), "view.track", view.seq)
         tracking_changed = client.view is None or client.view.track != view.track
         if client.view is None or client.view.video != view.video:

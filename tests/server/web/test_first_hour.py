@@ -59,6 +59,24 @@ def test_tracked_atoms_follow_the_frames(live_server: LiveServer) -> None:
     viewer.close()
 
 
+def test_atoms_tracked_before_the_simulation_sent_its_topology_are_followed(
+    live_server: LiveServer,
+) -> None:
+    """A viewer that asks to track atoms before the topology has come (a replay still
+    starting) was refused ("atom index out of range [0, 0)") and never heard of them again."""
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "early")
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "early")
+    viewer.send(p.View(seq=5, width=64, height=48, track=[2, 5, 400]))
+    topo, pos = molecule(12)
+    sim.send(topo)
+    sim.send(frame(pos, 3))
+    now = viewer.expect(p.Tracked, 60, where=lambda m: m.step == 3)
+    assert now.atoms == [2, 5]  # 400 is past the topology's atoms: left out
+    assert np.allclose(now.positions, pos[[2, 5]], atol=1e-4)
+    sim.close()
+    viewer.close()
+
+
 def test_a_recording_of_the_live_session_is_a_movie_of_its_frames(live_server: LiveServer) -> None:
     sim = Peer(live_server.ws_url, "simulation", live_server.token, "film")
     topo, pos = molecule(12)
