@@ -95,6 +95,7 @@ TABLES: dict[str, Table] = {
             "sort_last_h200_two_parts_gather.json",
             "sort_last_h200_10m.json",
             "sort_last_h200_100m.json",
+            "sort_last_h200_100m_scatter.json",
             "sort_last_h200_four_parts.json",
         ),
         sort_last,
