@@ -48,7 +48,7 @@ import numpy as np
 import numpy.typing as npt
 import warp
 
-from protocol import Camera, RenderParams, Topology
+from protocol import Camera, RenderParams, Topology, WireArray
 from protocol.limits import MAX_COORDINATE_A
 from server.render import colors
 from server.render.camera import CameraFrame
@@ -189,6 +189,7 @@ class SortLastRenderer(ImageOutputs):
         self.timings: dict[str, float] = {}
         self._topology: Topology | None = None
         self._r_max = colors.R_REF
+        self._radii = np.zeros(0, dtype=np.float32)
         self._positions: npt.NDArray[np.float32] | None = None
         self._version = 0
         self._split: dict[str, Any] | None = None
@@ -223,7 +224,10 @@ class SortLastRenderer(ImageOutputs):
                 f"{self._parts[0].max_atoms} each hold fewer"
             )
         self._topology = topology
-        self._r_max = float(colors.atom_radii(topology).max()) if topology.n_atoms else 1.0
+        self._radii = colors.atom_radii(topology)
+        """The whole system's radii, given to each part's topology (a part does not derive
+        them again from its elements' names: at 50M atoms that took tens of seconds)."""
+        self._r_max = float(self._radii.max()) if topology.n_atoms else 1.0
         self._positions = None
         self._split = None
         self._mean = None
@@ -280,7 +284,9 @@ class SortLastRenderer(ImageOutputs):
                     "split it"
                 )
             members.append(atoms)
-            r.set_topology(subset_topology(self._topology, atoms))
+            part = subset_topology(self._topology, atoms)
+            radii = WireArray.from_numpy(self._radii[atoms], "<f4")
+            r.set_topology(part.model_copy(update={"radii": radii}))
         offsets = np.cumsum([0] + [len(m) for m in members[:-1]]).astype(np.int32)
         dev = self._home
         self._serial += 1

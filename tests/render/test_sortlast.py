@@ -406,3 +406,18 @@ def test_ranges_cover_every_atom_once() -> None:
     assert chunks(0, 4) == [(0, 0)]
     assert chunks(10, 4) == [(0, 4), (4, 8), (8, 10)]
     assert chunks(8, 4) == [(0, 4), (4, 8)]
+
+
+def test_each_part_takes_the_whole_systems_radii() -> None:
+    """A part's radii are the whole system's for its atoms, handed over, not derived again
+    from the elements' names (a slow pass over tens of millions of names at large sizes)."""
+    from server.render import colors
+
+    mol = villins(2)
+    cam = fit_camera(mol.positions, W, H)
+    s = sort_last("cpu", 2, mol, RenderParams(radius_mode="vdw"), cam)
+    whole = colors.atom_radii(mol.topology)
+    assert s._split is not None
+    for r, atoms in zip(s.renderers, s._split["members"], strict=True):
+        assert r._topology is not None and r._topology.radii is not None
+        assert np.array_equal(r._topology.radii.to_numpy(), whole[atoms])
