@@ -180,12 +180,15 @@ class Scatter:
                 wp.launch(pick_kernel, len(picks), (self._share[j], picks, out, at), device=dev)
         for dev in dict.fromkeys(self.devices):
             wp.synchronize_device(dev)
+        copied = False
         for row in self._picks:  # the picks for parts on other devices, device to device
             for k, (picks, offset, staging) in enumerate(row):
                 if staging is not None:
                     wp.copy(self.inbox[k], staging, dest_offset=offset, count=len(picks))
-        for dev in dict.fromkeys(self.devices):
-            wp.synchronize_device(dev)
+                    copied = True
+        if copied:
+            for dev in dict.fromkeys(self.devices):
+                wp.synchronize_device(dev)
         stats = np.stack([s.numpy().astype(np.float64) for s in self._stats])
         return FrameStats(
             moved=float(stats[:, 0].max()),

@@ -297,17 +297,18 @@ class SortLastRenderer(ImageOutputs):
             "halo": halo,
             "slack": slack,
             "members": members,
-            "gather": [m.astype(np.intp) for m in members],  # take converts other index types
-            "reference": coord.copy(),
-            "moved": np.empty(len(coord), dtype=np.float32),
             "checked": self._version,
             "offsets": wp.array(offsets, dtype=wp.int32, device=dev),
             "flat": wp.array(np.concatenate(members), dtype=wp.int32, device=dev),
         }
         self._sent = [-1] * len(self._parts)
         self._scatter = None
-        if self.gather == "device":
+        if self.gather == "device":  # the devices keep the reference and measure the move
             self._scatter = Scatter([r.device for r in self._parts], members, axis, coord)
+        else:  # the host's gather and check of the slack
+            self._split["gather"] = [m.astype(np.intp) for m in members]  # take's index type
+            self._split["reference"] = coord.copy()
+            self._split["moved"] = np.empty(len(coord), dtype=np.float32)
         self._mean = None
 
     def _send_on_host(self, pos: npt.NDArray[np.float32], halo: float) -> bool:
