@@ -385,12 +385,7 @@ class GpuQueue:
                 home = split[0] if split else 0
                 away = [(k, lane) for k, lane in self._lane_of.items() if lane != home]
             for key, lane in away:
-                await self._run(lane, self._drop_sync, key)
-                with self._lock:
-                    self._lanes[lane].slots.discard(key)
-                    self._lane_of.pop(key, None)
-                if key != slot:
-                    self._place(key, home)
+                await self._move(key, lane, home if key != slot else None)
             if self._spread is not None and self._spread != slot:
                 await self._gather_spread()
             with self._lock:
@@ -411,11 +406,17 @@ class GpuQueue:
                 target = self._least_busy()
                 if len(self._lanes[target].slots) + 1 >= len(lane.slots):
                     break
-                await self._run(i, self._drop_sync, key)
-                with self._lock:
-                    lane.slots.discard(key)
-                    self._lane_of.pop(key, None)
-                self._place(key, target)
+                await self._move(key, i, target)
+
+    async def _move(self, key: str, lane: int, to: int | None) -> None:
+        """Drop `key`'s renderer on its lane's thread (after its last render) and place it on
+        lane `to` (None: `_lane` places it at its next request), where it is made again."""
+        await self._run(lane, self._drop_sync, key)
+        with self._lock:
+            self._lanes[lane].slots.discard(key)
+            self._lane_of.pop(key, None)
+        if to is not None:
+            self._place(key, to)
 
     async def warm_up(self) -> None:
         """Render a small molecule once and forget it, so the render kernels are loaded from
