@@ -134,6 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         topo = topology_of(elements, bonds)
         frames = frames_of(pos, args.frames + args.warm)
         if args.pinned:  # as a live session's frames are staged (`server.pipeline.staging`)
+            _keep.clear()  # the last system's page-locked frames
             frames = [page_locked(x) for x in frames]
         for text in args.sizes.split(","):
             size = (int(text.split("x")[0]), int(text.split("x")[1]))
