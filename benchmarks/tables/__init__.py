@@ -91,6 +91,7 @@ TABLES: dict[str, Table] = {
     "sort-last": Table(
         (
             "sort_last_h200x2.json",
+            "sort_last_h200x2_scatter.json",
             "sort_last_h200_scatter.json",
             "sort_last_h200_two_parts_gather.json",
             "sort_last_h200_10m.json",
