@@ -65,6 +65,7 @@ class UploadLimit:
         ended = False
         timeout = self.settings.body_timeout_s
         has_body = declared > 0 or b"transfer-encoding" in headers
+        closed = _ClosingDelimiter.of(headers.get(b"content-type", b""))
 
         async def closing(message: Any) -> None:
             # a refusal sent before the body is in closes the connection (`CLOSE`)
@@ -91,6 +92,8 @@ class UploadLimit:
                     if (refused := spool.take(seen - held, viewer)) is not None:
                         raise _SpoolFullError(refused)
                     held = seen
+                if closed is not None and not closed.feed(message.get("body", b""), ended):
+                    raise _MultipartCutError(closed.boundary)
             else:
                 ended = True
             return message
@@ -131,6 +134,54 @@ class _SpoolFullError(HTTPException):
 
     def __init__(self, reason: str) -> None:
         super().__init__(503, reason, headers={"Retry-After": "5"})
+
+
+class _ClosingDelimiter:
+    """Watches a multipart body for its closing delimiter (`--boundary--`), across chunks.
+
+    A body cut off before it (a client that died mid-upload, a proxy that truncated it) parses
+    without error: the parts that ended are kept and the cut one is dropped. The request
+    then ran without its file (answered as if none had been sent) or, cut inside a later
+    field, with that field's default in silence."""
+
+    def __init__(self, boundary: bytes) -> None:
+        self.boundary = boundary
+        self._mark = b"--" + boundary + b"--"
+        self._tail = b""
+        self.seen = False
+
+    @classmethod
+    def of(cls, content_type: bytes) -> _ClosingDelimiter | None:
+        """The watcher for a multipart content type with a boundary, else None."""
+        kind, _, options = content_type.partition(b";")
+        if kind.strip().lower() != b"multipart/form-data":
+            return None
+        for option in options.split(b";"):
+            key, _, value = option.strip().partition(b"=")
+            if key.strip().lower() == b"boundary" and value.strip().strip(b'"'):
+                return cls(value.strip().strip(b'"'))
+        return None
+
+    def feed(self, chunk: bytes, last: bool) -> bool:
+        """Take the next chunk; False once the body has ended without its closing delimiter
+        (RFC 2046: it may be followed by an epilogue, so it is looked for anywhere)."""
+        if not self.seen:
+            keep = len(self._mark) - 1  # a delimiter split across chunks shows in tail + head
+            self.seen = self._mark in self._tail + chunk[:keep] or self._mark in chunk
+            self._tail = (self._tail + chunk)[-keep:] if len(chunk) < keep else chunk[-keep:]
+        return self.seen or not last
+
+
+class _MultipartCutError(HTTPException):
+    """Raised when a multipart body ends before its closing delimiter; answered as a 400."""
+
+    def __init__(self, boundary: bytes) -> None:
+        mark = (b"--" + boundary + b"--").decode("latin-1")
+        super().__init__(
+            400,
+            f"the multipart body ended before its closing boundary {mark!r}: the upload was "
+            "cut off or is malformed, and nothing was done with it",
+        )
 
 
 class _BodyStalledError(HTTPException):

@@ -1566,3 +1566,44 @@ def test_a_large_bonded_recording_reaches_the_disk_and_survives_a_kill(tmp_path:
     assert sum(x.startswith(b"CONECT") for x in lines) == SELECT_ATOMS  # bonded, each
     assert lines[-1] == b"END"  # whole
     assert len(xtc_steps(folder / "frames.xtc", SELECT_ATOMS)) >= frames
+
+
+def test_a_multipart_body_cut_before_its_closing_boundary_is_refused_by_name(
+    tmp_path: Path,
+) -> None:
+    """A body cut inside its file part was answered "give exactly one of file, dataset or
+    session" (the parser keeps only the parts that ended), and one cut inside a later field
+    rendered the file with that field's default in silence. The closing delimiter is what
+    says a multipart body is whole."""
+    server = start_server(make_settings(tmp_path))
+    try:
+        pdb = Path(PDB_small).read_bytes()
+        fields = [
+            (b'name="file"; filename="small.pdb"', pdb),
+            (b'name="params"', json.dumps({"sigma_A": 3.0}).encode()),
+            (b'name="width"', b"32"),
+            (b'name="height"', b"24"),
+        ]
+        mark = BOUNDARY.encode()
+        whole = b"".join(
+            b"--" + mark + b"\r\nContent-Disposition: form-data; " + head + b"\r\n\r\n" + data
+            + b"\r\n"
+            for head, data in fields
+        ) + b"--" + mark + b"--\r\n"  # fmt: skip
+        params_at = whole.index(b'name="params"')
+        headers = {
+            "Authorization": f"Bearer {server.token}",
+            "Content-Type": f"multipart/form-data; boundary={BOUNDARY}",
+        }
+        with httpx.Client(base_url=server.url, timeout=60) as c:
+            for cut in (len(pdb) // 2, params_at + 40, len(whole) - 4):
+                r = c.post("/api/render", content=whole[:cut], headers=headers)
+                assert r.status_code == 400, (cut, r.status_code, r.text[:200])
+                assert f"--{BOUNDARY}--" in r.json()["detail"]
+            # an epilogue after the closing delimiter is allowed (RFC 2046)
+            r = c.post("/api/render", content=whole + b"epilogue\r\n", headers=headers)
+            assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+            r = c.post("/api/render", content=whole, headers=headers)
+            assert r.status_code == 200 and r.content.startswith(b"\x89PNG")
+    finally:
+        server.stop()
