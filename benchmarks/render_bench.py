@@ -717,6 +717,94 @@ class Bench:
                 )
                 del r
 
+    # ---- what a far-field split would have to beat
+    def farfield(
+        self, cases: list[tuple[int, int, int]], params: RenderParams, spacings: list[float]
+    ) -> None:
+        """The most a far-field split could save, against what building its far grid costs.
+
+        A split keeps each Gaussian exact to 2.5 sigma and reads the rest from a coarse grid
+        rebuilt every frame. Its saving is at most today's frame less the frame at a 2.5-sigma
+        cutoff (no far part at all, the same frames and camera); its cost is at least the far
+        grid's build: every node within the atoms' reach summing the atoms near it, which is
+        `splat_kernel` over the frame's box (the far part walks the same atoms as the whole
+        Gaussian, so this is its build's time), at `spacings` sigmas between nodes. The
+        lookups (a tricubic read per sample) would cost more still."""
+        for n, w, h in cases:
+            if self.clock.left() < 30:
+                return
+            r, frames = self.renderer(n)
+            cam = fit_camera(frames[0], w, h)
+            entry: dict[str, Any] = {"n_atoms": n, "width": w, "height": h}
+            for label, p in (
+                ("today", params),
+                (
+                    "near part only (cutoff 2.5 sigma)",
+                    params.model_copy(update={"cutoff_sigmas": 2.5}),
+                ),
+            ):
+                st = self.timed(self.frame_step(r, frames, p, cam, w, h), self.args.frames)
+                entry[label] = st
+                self.log(f"farfield N={n:,} {w}x{h} {label}: {st['median_ms']:.3f} ms")
+            saving = (
+                entry["today"]["median_ms"]
+                - entry["near part only (cutoff 2.5 sigma)"]["median_ms"]
+            )
+            entry["saving_at_most_ms"] = saving
+            pos = frames[0]
+            margin = r.reach(params)
+            lo = pos.min(0) - margin
+            hi = pos.max(0) + margin
+            buf = r.host_positions()
+            builds = []
+            for k in spacings:
+                v = k * params.sigma_A
+                dims = np.ceil((hi - lo) / v).astype(int) + 1
+                rec: dict[str, Any] = {
+                    "spacing_sigmas": k,
+                    "spacing_A": v,
+                    "nodes": int(np.prod(dims)),
+                }
+                if rec["nodes"] > self.args.max_voxels:
+                    rec["skipped"] = (
+                        f"{rec['nodes']:,} nodes exceed the cap of {self.args.max_voxels:,}"
+                    )
+                    builds.append(rec)
+                    continue
+                vol = wp.zeros(tuple(int(x) for x in dims), dtype=float, device=self.device)
+                origin = wp.vec3(*lo)
+
+                def build(
+                    i: int,
+                    vol: Any = vol,
+                    origin: Any = origin,
+                    v: float = v,
+                    r: Renderer = r,
+                    buf: np.ndarray = buf,
+                    frames: list[np.ndarray] = frames,
+                ) -> dict[str, float]:
+                    np.copyto(buf, frames[i % 3])
+                    r.set_positions(buf, check_finite=False)
+                    f = r.prepare(params)
+                    wp.synchronize_device(self.device)
+                    t0 = time.perf_counter()
+                    wp.launch(splat_kernel, vol.shape, (f, origin, v, vol), device=self.device)
+                    wp.synchronize_device(self.device)
+                    return {"wall": (time.perf_counter() - t0) * 1e3}
+
+                rec.update(self.timed(build, self.args.frames))
+                rec["build_over_saving"] = rec["median_ms"] / saving if saving > 0 else None
+                builds.append(rec)
+                self.log(
+                    f"farfield N={n:,} far grid at {k} sigma ({rec['nodes']:,} nodes): build "
+                    f"{rec['median_ms']:.3f} ms against a saving of at most {saving:.3f} ms"
+                )
+                del vol
+            entry["far_grid_builds"] = builds
+            self.results.setdefault("farfield", []).append(entry)
+            self.save()
+            del r
+
     # ---- the work of a frame, whatever the device
     def passes(self, cases: list[tuple[int, int, int]], params: RenderParams) -> None:
         """The density passes (four samples each) the rays of one frame take, in iso and in
@@ -1548,6 +1636,8 @@ def main(argv: list[str] | None = None) -> int:
     if "variants" in sections:
         tries = json.loads(args.variants) if args.variants else [{"label": "default"}]
         b.variants(variant_cases, variant_params, tries)
+    if "farfield" in sections:
+        b.farfield(variant_cases, variant_params, [0.5, 0.75])
     if "passes" in sections:
         b.passes(variant_cases, variant_params)
     if "scale" in sections:
