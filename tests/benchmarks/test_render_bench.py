@@ -167,3 +167,20 @@ def test_the_multi_session_benchmark_compares_sessions_with_one(tmp_path: Path) 
     assert got["one_session_one_device"]["frames"] > 0
     assert len(got["sessions_one_device_each"]) == 2 and len(got["each_over_one"]) == 2
     assert got["spread_over_one"] > 0
+
+
+def test_the_farfield_section_sets_a_far_grids_build_against_what_it_could_save(
+    tmp_path: Path,
+) -> None:
+    """`--sections farfield` times today's frame and the frame at a 2.5-sigma cutoff (the most
+    a far-field split could save) and a far grid's build at each spacing, over the frame's
+    box widened by the reach."""
+    args = [*QUICK, "--sections", "farfield", "--variant-cases", "496@48x32"]
+    (e,) = results(tmp_path / "farfield.json", *args)["farfield"]
+    near = e["near part only (cutoff 2.5 sigma)"]["median_ms"]
+    assert e["saving_at_most_ms"] == e["today"]["median_ms"] - near
+    builds = e["far_grid_builds"]
+    assert [b["spacing_sigmas"] for b in builds] == [0.5, 0.75]
+    assert builds[0]["nodes"] > 3 * builds[1]["nodes"]  # (1.5)^3 as many, less the rounding
+    for b in builds:
+        assert b["median_ms"] > 0 and b["spacing_A"] == b["spacing_sigmas"] * 1.5
