@@ -121,6 +121,55 @@ class BondGraph:
         return out
 
 
+def route_work(
+    graph: BondGraph,
+    positions: npt.ArrayLike,
+    reach: float,
+    table_reach: float,
+    nodes: int,
+    samples: int = 8,
+) -> tuple[float, float]:
+    """What a sample of the geodesic density costs, before its route tables are built: the
+    atoms within `reach` of an atom and the bonds its table would hold (those with an end among
+    its `nodes` graph-nearest atoms within `table_reach`), each averaged over `samples` atoms
+    spread through the system. A sample walks about the product of the two. Bond lengths stand
+    for the bonds' graph lengths (never longer), so the tables are estimated no smaller than
+    they are. Each estimate searches a subgraph: the atoms within `table_reach` in space, which
+    hold every atom that near along the bonds."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    n = graph.n_atoms
+    if n == 0:
+        return 0.0, 0.0
+    real = graph.ends[: graph.bond_count]
+    lonely = graph.ends[graph.bond_count :, 0]
+    near: list[float] = []
+    routes: list[float] = []
+    for a in np.unique(np.linspace(0, n - 1, min(n, samples)).astype(np.int64)):
+        d2 = ((pos - pos[a]) ** 2).sum(axis=1)
+        near.append(float(np.count_nonzero(d2 <= reach * reach)))
+        ball = np.nonzero(d2 <= table_reach * table_reach)[0]
+        within = np.zeros(n, dtype=bool)
+        within[ball] = True
+        local = real[within[real[:, 0]] & within[real[:, 1]]]
+        rows = np.searchsorted(ball, local[:, 0])
+        cols = np.searchsorted(ball, local[:, 1])
+        length = np.linalg.norm(pos[local[:, 0]] - pos[local[:, 1]], axis=1)
+        w = np.maximum(length, np.finfo(np.float64).tiny)
+        adjacency = csr_matrix((w, (rows, cols)), shape=(len(ball), len(ball)))
+        source = int(np.searchsorted(ball, a))
+        dist = dijkstra(adjacency, directed=False, indices=source, limit=float(table_reach))
+        reached = np.nonzero(dist < table_reach)[0]
+        kept = reached[np.argsort(dist[reached], kind="stable")[:nodes]]
+        inside = np.zeros(n, dtype=bool)
+        inside[ball[kept]] = True
+        count = np.count_nonzero(inside[real[:, 0]] | inside[real[:, 1]])
+        routes.append(float(count + np.count_nonzero(inside[lonely])))
+    return float(np.mean(near)), float(np.mean(routes))
+
+
 @dataclass(frozen=True)
 class AtomRoutes:
     """For every atom (CSR by `start`), the bonds its routes go through: `bond` (an index into

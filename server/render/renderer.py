@@ -51,7 +51,7 @@ from server.render.density import (
     total_kernel,
 )
 from server.render.errors import CapacityError, RenderError
-from server.render.geodesic import GAIN, BondGraph, GeodesicScales
+from server.render.geodesic import GAIN, BondGraph, GeodesicScales, route_work
 from server.render.graphs import GraphCache
 from server.render.grid import CellGrid, Cull, cell_threads
 from server.render.outputs import ImageOutputs
@@ -281,6 +281,10 @@ class Renderer(ImageOutputs):
         self._skeleton: Skeleton | None = None
         self._skel: _SkeletonBuffers | None = None
         self._geo: geodesic_field.GeodesicTables | None = None
+        self._geo_work: tuple[float, float, float] | None = None
+        """(tables' reach, atoms within the cutoff, routes an atom) of the last work check."""
+        self.geodesic_max_routes = geodesic_field.MAX_ROUTES_PER_SAMPLE
+        """Most routes a geodesic sample may walk (`_check_geodesic_work`)."""
         self._ref_positions: npt.NDArray[np.float32] | None = None
         self._temporal: temporal.TemporalState | None = None
         self._smoothed = False
@@ -358,6 +362,7 @@ class Renderer(ImageOutputs):
         self._skeleton = None
         self._skel = None
         self._geo = None
+        self._geo_work = None
         self._ref_positions = None
         self._temporal = None
         self._smoothed = False
@@ -780,6 +785,7 @@ class Renderer(ImageOutputs):
         key = (d.weights, d.geo.table_reach)
         if tables.key == key:
             return
+        self._check_geodesic_work(d, tables)
         tables.build(self._pos, self._weights, GAIN, d.geo.table_reach)
         tables.key = key
         if tables.lost:
@@ -792,6 +798,30 @@ class Renderer(ImageOutputs):
             )
         self._field_seen = None
         self._drop_graphs()
+
+    def _check_geodesic_work(self, d: Derived, tables: geodesic_field.GeodesicTables) -> None:
+        """Refuse a geodesic density whose samples would walk more routes than
+        `geodesic_max_routes` (`geodesic_field.MAX_ROUTES_PER_SAMPLE`), before its tables are
+        built: a large sigma reaches every bond of the molecule from every atom, and one such
+        frame held the device's thread for every other render. The verdict is kept for the
+        tables' reach it was made for."""
+        assert d.geo is not None
+        reach = d.geo.table_reach
+        if self._geo_work is None or self._geo_work[0] != reach:
+            near, per_atom = route_work(
+                tables.graph, self._pos.numpy(), d.reach, reach, geodesic_field.NODES
+            )
+            self._geo_work = (reach, near, per_atom)
+        _, near, per_atom = self._geo_work
+        work = near * per_atom
+        if work > self.geodesic_max_routes:
+            raise CapacityError(
+                f"the geodesic density at sigma {d.sigma:g} A would walk about {work:,.0f} "
+                f"routes a sample ({near:,.0f} atoms within its {d.reach:.1f} A cutoff, "
+                f"{per_atom:,.0f} routes through the bonds each), over this server's limit of "
+                f"{self.geodesic_max_routes:,}; take a smaller sigma, or the classical or "
+                f"carved density (their samples walk the {near:,.0f} atoms alone)"
+            )
 
     def _model_of(self, d: Derived) -> DensityModel:
         if d.geo is not None:

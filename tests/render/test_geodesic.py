@@ -12,6 +12,7 @@ import warp as wp
 from protocol import RenderParams
 from server.render import geodesic, geodesic_field
 from server.render.camera import fit_camera, orbit
+from server.render.errors import CapacityError
 from server.render.geodesic import (
     BondGraph,
     Geodesic,
@@ -370,3 +371,46 @@ def test_an_atom_without_bonds_keeps_its_own_gaussian() -> None:
     r2 = (pts * pts).sum(axis=1)
     want = geodesic.taper((r2 + tau * tau) / (2 * 1.5**2), 4.0)
     np.testing.assert_allclose(geo.density(pts, 1.5), want, rtol=1e-12)
+
+
+def test_a_sigma_whose_samples_walk_too_many_routes_is_refused_before_the_tables() -> None:
+    """One REST render at sigma 50 A held the device's thread for over 20 minutes (every atom's
+    routes through every bond near it, at every sample), with every other render waiting. Such
+    a density is refused at once, with its numbers and the limit; smaller sigmas still draw,
+    and the refusal holds for the reach it was made for, not for the renderer."""
+    m = villin()
+    r = Renderer("cpu")
+    r.set_topology(m.topology)
+    r.set_positions(m.positions)
+    for sigma in (5.0, 50.0):
+        with pytest.raises(CapacityError, match=r"routes a sample .* limit of 50,000") as err:
+            r.prepare(RenderParams(scale_space="geodesic", sigma_A=sigma))
+        assert f"sigma {sigma:g} A" in str(err.value)
+    assert r._geo is None or r._geo.key is None  # no tables were built for them
+    r.prepare(RenderParams(scale_space="geodesic", sigma_A=1.5))
+    near, per_atom = r._geo_work[1], r._geo_work[2]  # type: ignore[index]
+    assert 20 < near < 120 and 10 < per_atom < 40  # villin at 1.5 A: about 50 atoms, 22 routes
+    r.geodesic_max_routes = int(near * per_atom) // 2
+    r._geo.key = None  # type: ignore[union-attr]  # the tables built again, now over the limit
+    with pytest.raises(CapacityError, match="limit of"):
+        r.prepare(RenderParams(scale_space="geodesic", sigma_A=1.5))
+    r.prepare(RenderParams(sigma_A=50.0))  # the classical density is not limited so
+
+
+def test_route_work_counts_what_the_tables_hold() -> None:
+    """The estimate before the build against the tables the device builds: atoms within the
+    cutoff and routes an atom, within sampling error."""
+    m = villin()
+    r = Renderer("cpu")
+    r.set_topology(m.topology)
+    r.set_positions(m.positions)
+    r.prepare(RenderParams(scale_space="geodesic", sigma_A=3.0))
+    tables = r._geo
+    assert tables is not None
+    built = np.diff(tables.route_start.numpy()).mean()
+    _, near, per_atom = r._geo_work  # type: ignore[misc]
+    assert 0.7 * built < per_atom < 1.3 * built
+    pos = m.positions.astype(np.float64)
+    reach = r.reach(RenderParams(scale_space="geodesic", sigma_A=3.0))
+    d2 = ((pos[:, None] - pos[None]) ** 2).sum(-1)
+    assert 0.7 < near / (d2 <= reach * reach).sum(1).mean() < 1.4

@@ -1607,3 +1607,37 @@ def test_a_multipart_body_cut_before_its_closing_boundary_is_refused_by_name(
             assert r.status_code == 200 and r.content.startswith(b"\x89PNG")
     finally:
         server.stop()
+
+
+def test_a_geodesic_sigma_that_would_hold_the_device_for_minutes_is_refused_at_once(
+    tmp_path: Path,
+) -> None:
+    """A render of adenylate kinase's geodesic density at sigma 50 A (inside the documented
+    range) held the render thread for over 20 minutes, and every other render waited."""
+    server = start_server(make_settings(tmp_path))
+    try:
+        big = {"scale_space": "geodesic", "sigma_A": 50, "geodesic_smoothing": 2}
+        with httpx.Client(base_url=server.url, timeout=120) as c:
+            auth = {"Authorization": f"Bearer {server.token}"}
+            for params, status in ((big, 422), ({"sigma_A": 1.5}, 200)):
+                start = time.monotonic()
+                with open(PDB_small, "rb") as f:
+                    r = c.post(
+                        "/api/render",
+                        headers=auth,
+                        data={"params": json.dumps(params), "width": "32", "height": "24"},
+                        files={"file": ("adk.pdb", f)},
+                    )
+                assert r.status_code == status, r.text[:300]
+                assert time.monotonic() - start < 60
+            assert (
+                "routes a sample"
+                in c.post(
+                    "/api/render",
+                    headers=auth,
+                    data={"params": json.dumps(big)},
+                    files={"file": ("adk.pdb", Path(PDB_small).read_bytes())},
+                ).json()["detail"]
+            )
+    finally:
+        server.stop()
