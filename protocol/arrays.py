@@ -122,8 +122,8 @@ def array_spec(
         if arr.dtype != dtype:
             raise PydanticCustomError(
                 "invalid_array",
-                "dtype must be {want!r}, got {got!r}",
-                {"want": dtype, "got": arr.dtype},
+                "dtype must be {want}, got {got}",  # no conversions: pydantic fills {name}
+                {"want": repr(dtype), "got": repr(arr.dtype)},
             )
         if len(arr.shape) != ndim or (trailing and tuple(arr.shape[1:]) != trailing):
             want = "(n" + "".join(f", {t}" for t in trailing) + ")" if trailing else f"{ndim}-d"
