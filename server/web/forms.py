@@ -9,9 +9,12 @@ from fastapi import Depends, HTTPException, Request
 FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
 
 
-def form_body(request: Request) -> None:
+async def form_body(request: Request) -> None:
     """Endpoints of form fields refuse any other body (415): a JSON body there would be read as
-    no fields at all, and the defaults would run (a 1,800-frame movie for `{"fps": 10}`)."""
+    no fields at all, and the defaults would run (a 1,800-frame movie for `{"fps": 10}`). A
+    field the endpoint has no parameter for, or one given twice, is refused by name (422): a
+    misspelt `widht` was dropped and the default width drawn, and of two `width`s the last
+    one was taken, as if the request had said what it meant."""
     kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
     has_body = request.headers.get("content-length", "0") != "0" or (
         "transfer-encoding" in request.headers
@@ -22,6 +25,21 @@ def form_body(request: Request) -> None:
             f"this endpoint takes form fields ({' or '.join(FORM_TYPES)}), "
             f"not {kind or 'a body without a content type'}; JSON goes in fields such as params",
         )
+    route = request.scope.get("route")
+    dependant = getattr(route, "dependant", None)
+    if not has_body or dependant is None:
+        return
+    known = {field.alias for field in dependant.body_params}
+    seen: set[str] = set()
+    for name, _value in (await request.form()).multi_items():  # parsed already: the cached form
+        if name not in known:
+            takes = ", ".join(sorted(known))
+            raise HTTPException(
+                422, f"{name[:64]!r}: unknown form field (this endpoint takes {takes})"
+            )
+        if name in seen:
+            raise HTTPException(422, f"{name!r}: form field given more than once")
+        seen.add(name)
 
 
 FormBody = Annotated[None, Depends(form_body)]

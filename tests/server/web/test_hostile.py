@@ -1641,3 +1641,33 @@ def test_a_geodesic_sigma_that_would_hold_the_device_for_minutes_is_refused_at_o
             )
     finally:
         server.stop()
+
+
+def test_a_form_field_an_endpoint_does_not_take_or_takes_twice_is_refused_by_name(
+    tmp_path: Path,
+) -> None:
+    """A misspelt `widht` was dropped and the default width drawn; of two `width`s the last was
+    taken. Each is now a 422 naming the field (and, for an unknown one, the fields there are)."""
+    server = start_server(make_settings(tmp_path))
+    try:
+        pdb = Path(PDB_small).read_bytes()
+        with httpx.Client(base_url=server.url, timeout=120) as c:
+            auth = {"Authorization": f"Bearer {server.token}"}
+
+            def post(path: str, data: dict[str, Any]) -> httpx.Response:
+                return c.post(path, headers=auth, data=data, files={"file": ("a.pdb", pdb)})
+
+            r = post("/api/render", {"widht": "32"})
+            assert r.status_code == 422
+            assert "'widht': unknown form field" in r.json()["detail"]
+            assert "width" in r.json()["detail"]
+            r = post("/api/render", {"width": ["32", "40"]})
+            assert r.status_code == 422 and "'width': form field given more than once" in r.text
+            r = c.post(
+                "/api/jobs", headers=auth, data={"strid": "2"}, files={"topology": ("a.pdb", pdb)}
+            )
+            assert r.status_code == 422 and "'strid': unknown form field" in r.text
+            r = post("/api/render", {"width": "32", "height": "24"})
+            assert r.status_code == 200 and r.content.startswith(b"\x89PNG")
+    finally:
+        server.stop()
