@@ -312,9 +312,9 @@ async def _receive_loop(
             big = len(raw) > OFFLOAD_BYTES
             # a steering request naming a key its message has no field for is refused by name
             if big:  # big frames: validate off the event loop
-                message = await asyncio.to_thread(p.decode, raw, limits, STEERING_TYPES)
+                message = await asyncio.to_thread(_decode, client.role, raw, limits)
             else:
-                message = p.decode(raw, limits, STEERING_TYPES)
+                message = _decode(client.role, raw, limits)
             try:
                 await _dispatch(session, client, guard, message)
                 # messages already buffered would otherwise be handled back to back; let the
@@ -350,15 +350,28 @@ async def _receive_loop(
                 raise RefusedError(closed, 1008) from None
 
 
+def _forbidden(role: p.Role, kind: str, seq: int | None) -> p.ProtocolError:
+    why = "a viewer cannot steer" if role == "viewer" else f"role {role} may not send {kind}"
+    return p.ProtocolError(p.ErrorCode.FORBIDDEN, why, "type", seq)
+
+
+def _decode(role: p.Role, raw: bytes, limits: p.Limits) -> p.Message:
+    """The message in `raw`, refused as forbidden before its fields are checked when `role`
+    may not send its type: a viewer's `topology` was answered with the fields it lacked, as
+    if it could send one that had them."""
+    obj = p.unpack(raw, limits)
+    kind = obj.get("type") if isinstance(obj, dict) else None
+    if isinstance(kind, str) and kind in p.MESSAGE_TYPES and not may_send(role, kind):
+        seq = obj.get("seq")
+        ref = seq if isinstance(seq, int) and not isinstance(seq, bool) and seq >= 0 else None
+        raise _forbidden(role, kind, ref if ref is not None and ref < 2**53 else None)
+    return p.validate(obj, limits, STEERING_TYPES)
+
+
 async def _dispatch(session: Session, client: Client, guard: Guard, message: p.Message) -> None:
     kind = message.type
     if not may_send(client.role, kind):
-        why = (
-            "a viewer cannot steer"
-            if client.role == "viewer"
-            else f"role {client.role} may not send {kind}"
-        )
-        raise p.ProtocolError(p.ErrorCode.FORBIDDEN, why, "type", message.seq)
+        raise _forbidden(client.role, kind, message.seq)
     # a simulation's own messages are never rate-limited: its frames are read one at a time and
     # the newest replaces the last (ingest is paced by `frame_taken`, not refused)
     if not (client.role == "simulation" and kind in SIMULATION_TYPES):

@@ -1671,3 +1671,31 @@ def test_a_form_field_an_endpoint_does_not_take_or_takes_twice_is_refused_by_nam
             assert r.status_code == 200 and r.content.startswith(b"\x89PNG")
     finally:
         server.stop()
+
+
+def test_a_message_a_role_may_not_send_is_forbidden_before_its_fields_are_checked(
+    tmp_path: Path,
+) -> None:
+    """A viewer's `topology` without its fields was answered "topology.elements: Field
+    required", as if a viewer could send one that had them."""
+    server = start_server(make_settings(tmp_path))
+    try:
+        steerer = Peer(server.view_url, "steerer", server.token, "roles")  # makes the session
+        viewer = Peer(server.view_url, "viewer", server.viewer_token, "roles")
+        for peer, raw, seq in (
+            (viewer, {"type": "topology", "n_atoms": 1, "seq": 41}, 41),
+            (viewer, {"type": "render_params", "params": {"sigma_A": "x"}, "seq": 42}, 42),
+            (steerer, {"type": "frame", "step": -1, "seq": 43}, 43),
+        ):
+            peer.send_raw(msgpack.packb(raw))
+            err = peer.expect(p.Error, where=lambda m, s=seq: m.ref == s)
+            assert err.code == p.ErrorCode.FORBIDDEN and err.path == "type", err
+        # the connections stay, and a bad message of a type the role may send is told so
+        sent = steerer.send(p.Ping(client_time=1.0))
+        steerer.expect(p.Pong, where=lambda m: m.ref == sent)
+        steerer.send_raw(msgpack.packb({"type": "render_params", "params": {"sigma_A": "x"}}))
+        assert steerer.expect(p.Error).code == p.ErrorCode.INVALID_MESSAGE
+        viewer.close()
+        steerer.close()
+    finally:
+        server.stop()
