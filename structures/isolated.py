@@ -183,7 +183,8 @@ class IsolatedStructure:
             self._kill()
             why = "no answer"
         else:
-            why = f"exit status {code}, likely out of memory"
+            # an error the reader did not turn into a message of its own, or out of memory
+            why = f"exit status {code}"
         return StructureError(
             f"cannot read {self.label}: the reader crashed on it ({why}); the file is damaged "
             "or not in the format its name says"
@@ -347,9 +348,15 @@ def _count_atoms(path: str, name: str, max_atoms: int) -> None:
             declared = int(count_line.split()[0])
         except (ValueError, IndexError):
             where = "line 2" if fmt == "gro" else "line 1"
+            start = count_line[:40]
+            text = all(32 <= b < 127 or b in b"\t\r\n" for b in start)
+            found = repr(start.decode().strip()) if text else "binary data, not text"
             raise StructureError(
-                f"{name}: {where} should be the number of atoms, found {count_line[:40]!r}"
+                f"{name}: {where} should be the number of atoms, found {found}"
             ) from None
+        if declared < 1:
+            where = "line 2" if fmt == "gro" else "line 1"
+            raise StructureError(f"{name}: {where} declares {declared} atoms, not at least 1")
         if declared > max_atoms:
             raise StructureError(f"{name} declares {declared} atoms, the limit is {max_atoms}")
     elif fmt == "xtc":  # each frame's header: magic 1995, then the atom count (big-endian)

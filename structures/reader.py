@@ -271,6 +271,10 @@ def reason(exc: BaseException, paths: Sequence[str]) -> str:
         inner = cause
     lines = [line.strip() for line in str(inner).splitlines() if line.strip()]
     text = " ".join(lines[:2]) if lines else type(inner).__name__
+    if isinstance(inner, IndexError) and "size 0" in text:  # a table of atoms with no rows
+        return "it has no atom records the reader could use"
+    if re.search(r"\\x[0-9a-f]{2}|[\x00-\x08\x0e-\x1f\x7f]", text):  # quoting binary bytes
+        return "its contents are not text in the format its name says (binary data?)"
     for path in paths:
         text = text.replace(os.path.abspath(path), os.path.basename(path))
         text = text.replace(path, os.path.basename(path))
@@ -347,7 +351,14 @@ def topology_of(
         radii = {str(t): _VDW_GUESS.get(e, 1.5) for t, e in zip(types, elements, strict=True)}
         # across a periodic box too: a molecule the box cuts is still one molecule
         box = cell_of(u) if periodic else None
-        pairs = guess(atoms, atoms.positions, box=box, vdwradii=radii)
+        try:
+            pairs = guess(atoms, atoms.positions, box=box, vdwradii=radii)
+        except ValueError as exc:  # the guesser's grid needs the atoms to span its cutoff
+            span = float(np.ptp(atoms.positions, axis=0).max()) if n else 0.0
+            raise StructureError(
+                f"its bonds cannot be guessed: its {n} atoms span {span:.2f} A, less than a "
+                f"bond (are its coordinates all alike?); the guesser said: {exc}"
+            ) from None
         if len(pairs):
             guessed = np.asarray(sorted(pairs), dtype=np.int32).reshape(-1, 2)
             both = np.sort(np.concatenate([bonds, guessed]), axis=1)

@@ -128,6 +128,8 @@ def check_xyz(path: str) -> None:
         count = int(count_line.split()[0])
     except (ValueError, IndexError):
         raise _fail(path, number, count_line, "line 1 should be the number of atoms") from None
+    if count < 1:
+        raise _fail(path, number, count_line, "line 1 should be the number of atoms, at least 1")
     next(lines, None)  # the comment
     seen = 0
     for number, line in islice(lines, count):

@@ -156,3 +156,28 @@ def test_an_xtc_declaring_more_atoms_than_the_limit_is_refused_before_reading(
         IsolatedStructure(GRO, [str(bad)], ReadLimits(max_atoms=100_000))
     with IsolatedStructure(GRO, [XTC], ReadLimits(max_atoms=100_000)) as fine:
         assert fine.n_frames == 10
+
+
+def test_unreadable_files_are_told_in_words_not_in_the_readers_internals(tmp_path: Path) -> None:
+    """A negative atom count was "the reader crashed on it (... likely out of memory)"; atoms
+    all at one point "Cutoff 3.4 too large for box (max 0.0)"; an empty atom table "index 0
+    is out of bounds for axis 0 with size 0"; a DCD named .xyz had its bytes quoted."""
+    from structures.isolated import IsolatedStructure, ReadLimits
+
+    (tmp_path / "neg.xyz").write_text("-5\ncomment\nC 0 0 0\n")
+    atom = "ATOM  {:5d}  CA  ALA A{:4d}       0.000   0.000   0.000  1.00  0.00           C\n"
+    (tmp_path / "point.pdb").write_text("".join(atom.format(i, i) for i in range(1, 200)))
+    (tmp_path / "empty.cif").write_text("data_x\nloop_\n_atom_site.id\n1\n")
+    (tmp_path / "dcd.xyz").write_bytes(Path(DCD).read_bytes())
+    said = {
+        "neg.xyz": "line 1 declares -5 atoms, not at least 1",
+        "point.pdb": "its 199 atoms span 0.00 A, less than a bond",
+        "empty.cif": "it has no atom records the reader could use",
+        "dcd.xyz": "should be the number of atoms, found binary data, not text",
+    }
+    for name, words in said.items():
+        with pytest.raises(StructureError, match=re.escape(words)) as err:
+            IsolatedStructure(str(tmp_path / name), [], ReadLimits(max_atoms=100_000))
+        assert "\\x" not in str(err.value) and "crashed" not in str(err.value)
+    with pytest.raises(StructureError, match="found binary data, not text"):
+        IsolatedStructure(PSF, [str(tmp_path / "dcd.xyz")], ReadLimits(max_atoms=100_000))
