@@ -32,7 +32,13 @@ from server.threads import name_thread
 from server.web import ws as ws_endpoints
 from server.web.apidocs import add_docs
 from server.web.auth import RateLimiter
-from server.web.middleware import HostCheck, OriginCheck, SecurityHeaders, UploadLimit
+from server.web.middleware import (
+    FORM_BYTES,
+    HostCheck,
+    OriginCheck,
+    SecurityHeaders,
+    UploadLimit,
+)
 from server.web.owners import Owners
 from server.web.recordings import router as recordings_router
 from server.web.replays import router as replays_router
@@ -94,7 +100,7 @@ def create_app(settings: ServerSettings) -> FastAPI:
     state_dir.mkdir(parents=True, exist_ok=True)
     spool = Spool(
         clean_spool(settings.spool_dir),
-        settings.max_upload_bytes + 1024 * 1024,  # the form's own bytes around the files
+        settings.max_upload_bytes + FORM_BYTES,  # the form's own bytes around the files
         settings.max_spool_bytes,
         settings.viewer_spool_bytes,
     )

@@ -20,6 +20,9 @@ Scope = MutableMapping[str, Any]
 Receive = Callable[[], Awaitable[Any]]
 Send = Callable[[Any], Awaitable[None]]
 
+FORM_BYTES = 1024 * 1024
+"""What a request body may hold beyond `max_upload_bytes`: the form's own fields and part
+headers around its files."""
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 """Methods that change nothing on this server; every other one is checked for its Origin."""
 CLOSE = {"Connection": "close"}
@@ -105,28 +108,33 @@ class UploadLimit:
         except _SpoolFullError as exc:
             await _spool_full(exc.detail)(scope, receive, send)
         except _BodyStalledError as exc:
-            await PlainTextResponse(exc.detail, 408, headers=CLOSE)(scope, receive, send)
+            await JSONResponse({"detail": exc.detail}, 408, headers=CLOSE)(scope, receive, send)
         finally:
             spool.give_back(held, viewer)
 
 
-def _too_large(limit: int) -> PlainTextResponse:
-    return PlainTextResponse(
-        f"request body exceeds the upload limit of {limit} bytes",
-        413,
-        headers=CLOSE,
+def _too_large(limit: int) -> JSONResponse:
+    # as every other refusal of the API: {"detail": ...}
+    return JSONResponse({"detail": _too_large_text(limit)}, 413, headers=CLOSE)
+
+
+def _too_large_text(limit: int) -> str:
+    files = limit - FORM_BYTES
+    return (
+        f"request body exceeds the upload limit of {limit} bytes ({files / 2**20:g} MiB of "
+        f"files, max_upload_bytes, and {FORM_BYTES // 2**20} MiB for the form's other fields)"
     )
 
 
-def _spool_full(reason: str) -> PlainTextResponse:
-    return PlainTextResponse(reason, 503, headers={"Retry-After": "5", **CLOSE})
+def _spool_full(reason: str) -> JSONResponse:
+    return JSONResponse({"detail": reason}, 503, headers={"Retry-After": "5", **CLOSE})
 
 
 class _BodyTooLargeError(HTTPException):
     """Raised while a body streams in; FastAPI answers it as the 413 it is."""
 
     def __init__(self, limit: int) -> None:
-        super().__init__(413, f"request body exceeds the upload limit of {limit} bytes")
+        super().__init__(413, _too_large_text(limit))
 
 
 class _SpoolFullError(HTTPException):

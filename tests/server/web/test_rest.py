@@ -71,7 +71,14 @@ def test_upload_size_limit(tmp_path: Path) -> None:
     try:
         with client(server) as c:
             r = c.post("/api/render", headers=AUTH, files={"file": ("big.pdb", b"ATOM" * 20_000)})
-        assert r.status_code == 413 and "exceeds" in r.text
+            assert r.status_code == 413 and "big.pdb: upload exceeds" in r.json()["detail"]
+            # a body past the files' limit and the form's allowance: refused from its length,
+            # in JSON as every refusal of the API, naming both
+            big = {"file": ("big.pdb", b"ATOM" * 300_000)}
+            r = c.post("/api/render", headers=AUTH, files=big)
+        assert r.status_code == 413
+        detail = r.json()["detail"]
+        assert "(0.00953674 MiB of files, max_upload_bytes, and 1 MiB for the form's" in detail
     finally:
         server.stop()
 
