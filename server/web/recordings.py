@@ -25,6 +25,7 @@ from server.pipeline.marks import pull_path
 from server.pipeline.recordings import FILES, Recording
 from server.web.access import GatedRoute, steerer_access
 from server.web.rest import SKIP_NOTICE_S, State, check_layer_texts, check_size
+from server.web.validation import quoted
 
 router = APIRouter(route_class=GatedRoute)
 Steerer = Annotated[p.Role, Depends(steerer_access)]
@@ -63,7 +64,7 @@ class MovieRequest(BaseModel):
 def _recording(state: State, rec_id: str) -> Recording:
     rec = state.recordings.get(rec_id)
     if rec is None:
-        raise HTTPException(404, f"no recording {rec_id!r}")
+        raise HTTPException(404, f"no recording {quoted(rec_id)}")
     return rec
 
 
@@ -85,7 +86,7 @@ async def start_recording(
     body = body or RecordingRequest()
     live = state.sessions.get(session_id)
     if live is None:
-        raise HTTPException(404, f"no session named {session_id!r}")
+        raise HTTPException(404, f"no session named {quoted(session_id)}")
     if live.topology is None:
         raise HTTPException(409, f"session {session_id!r} has no simulation topology yet")
     for rec in state.recordings.recordings.values():
@@ -200,7 +201,7 @@ async def get_recording(rec_id: str, state: State, _role: Steerer) -> dict[str, 
 async def get_recording_file(rec_id: str, name: str, state: State, _role: Steerer) -> FileResponse:
     rec = _recording(state, rec_id)
     if name not in FILES or not (rec.directory / name).is_file():
-        raise HTTPException(404, f"recording {rec_id} has no file {name!r}")
+        raise HTTPException(404, f"recording {rec_id} has no file {quoted(name)}")
     return FileResponse(rec.directory / name, filename=f"{rec.id}-{name}")
 
 

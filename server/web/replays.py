@@ -29,6 +29,7 @@ from server.web.children import ReplayManager
 from server.web.forms import FormBody
 from server.web.rest import State, save_upload
 from server.web.state import AppState
+from server.web.validation import quoted
 from structures.errors import StructureError
 from structures.isolated import IsolatedStructure
 
@@ -162,7 +163,7 @@ async def get_replay(
 ) -> dict[str, Any]:
     replay = state.replays.processes.get(session)
     if replay is None:
-        raise HTTPException(404, f"no replay for session {session!r}")
+        raise HTTPException(404, f"no replay for session {quoted(session)}")
     described = replay.describe()
     if not described["running"]:
         described["last_words"] = replay.why_ended()
@@ -179,4 +180,4 @@ async def stop_replay(
     with contextlib.suppress(KeyError):
         if await asyncio.to_thread(state.replays.stop, session):
             return state.replays.processes[session].describe()
-    raise HTTPException(404, f"no replay for session {session!r}")
+    raise HTTPException(404, f"no replay for session {quoted(session)}")

@@ -53,6 +53,7 @@ from server.web.access import (
 from server.web.auth import client_address
 from server.web.forms import FormBody
 from server.web.state import AppState
+from server.web.validation import quoted
 from structures.errors import StructureError
 from structures.isolated import IsolatedStructure
 
@@ -111,7 +112,7 @@ def _dataset(state: AppState, name: str) -> Path:
     except OSError:
         found = False
     if not found:
-        raise HTTPException(404, f"no dataset named {name!r}")
+        raise HTTPException(404, f"no dataset named {quoted(name)}")
     return path
 
 
@@ -276,7 +277,7 @@ async def render_image(
             )
         live = state.sessions.get(session)
         if live is None:
-            raise HTTPException(404, f"no session named {session!r}")
+            raise HTTPException(404, f"no session named {quoted(session)}")
         if live.topology is None or live.positions is None or live.raw_positions is None:
             raise HTTPException(409, f"session {session!r} has no frame yet")
         topology, positions, box = live.topology, live.raw_positions, live.box
@@ -468,7 +469,7 @@ async def list_jobs(
 def _job(state: AppState, job_id: str) -> Any:
     job = state.jobs.get(job_id)
     if job is None:
-        raise HTTPException(404, f"no job {job_id!r}")
+        raise HTTPException(404, f"no job {quoted(job_id)}")
     return job
 
 
@@ -526,7 +527,7 @@ async def get_session(
 ) -> dict[str, Any]:
     live = state.sessions.get(session_id)
     if live is None:
-        raise HTTPException(404, f"no session named {session_id!r}")
+        raise HTTPException(404, f"no session named {quoted(session_id)}")
     return live.summary()
 
 
@@ -541,7 +542,7 @@ async def get_session_log(
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
     if not entries and state.sessions.get(session_id) is None:
-        raise HTTPException(404, f"no session named {session_id!r}")
+        raise HTTPException(404, f"no session named {quoted(session_id)}")
     return entries
 
 
@@ -616,7 +617,7 @@ async def record_session(
     check_size(state, width, height)
     live = state.sessions.get(session_id)
     if live is None:
-        raise HTTPException(404, f"no session named {session_id!r}")
+        raise HTTPException(404, f"no session named {quoted(session_id)}")
     cam = _model(p.Camera, camera, "camera") or live.camera
     if cam is None:
         raise HTTPException(409, f"session {session_id!r} has no frame yet to frame a camera on")

@@ -19,6 +19,13 @@ def _where(loc: Sequence[Any]) -> str:
     return ".".join(parts) or "the request"
 
 
+def quoted(name: str, most: int = 80) -> str:
+    """A name the client sent, quoted back in an error at most `most` characters long: a
+    100,000-character session name was echoed whole."""
+    text = repr(name)
+    return text if len(text) <= most else text[: most - 1] + "…"
+
+
 def _value(raw: Any) -> str:
     text = repr(raw) if isinstance(raw, str) else type(raw).__name__
     return text if len(text) <= MAX_SHOWN else text[: MAX_SHOWN - 1] + "…"

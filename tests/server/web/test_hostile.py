@@ -1699,3 +1699,19 @@ def test_a_message_a_role_may_not_send_is_forbidden_before_its_fields_are_checke
         steerer.close()
     finally:
         server.stop()
+
+
+def test_a_huge_name_is_not_echoed_whole(tmp_path: Path) -> None:
+    """A 404 for a 100,000-character session name (or job id) quoted all of it back."""
+    server = start_server(make_settings(tmp_path))
+    try:
+        with httpx.Client(base_url=server.url, timeout=60) as c:
+            auth = {"Authorization": f"Bearer {server.token}"}
+            name = "s" * 100_000
+            r = c.post("/api/render", headers=auth, data={"session": name})
+            assert r.status_code == 404 and len(r.json()["detail"]) < 120
+            assert r.json()["detail"].startswith("no session named 'sss")
+            r = c.get(f"/api/jobs/{'j' * 5000}", headers=auth)
+            assert r.status_code == 404 and len(r.json()["detail"]) < 120
+    finally:
+        server.stop()
