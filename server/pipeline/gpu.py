@@ -190,6 +190,18 @@ class _Lane:
     device: str
     pool: ThreadPoolExecutor
     slots: set[str] = field(default_factory=set)
+    busy_since: float | None = None
+    """When the work now on its thread began (monotonic; None: idle)."""
+
+    def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """`fn` on this lane's thread, its start and end noted for `busy_s`."""
+        self.busy_since = time.monotonic()
+        try:
+            if self.device.startswith("cuda"):
+                return fn(*args)
+            return _serial(fn, *args)
+        finally:
+            self.busy_since = None
 
 
 WARM_UP_SLOT = "warm-up"
@@ -279,10 +291,18 @@ class GpuQueue:
         return None if lane is None else self._lanes[lane].device
 
     async def _run(self, lane: int, fn: Callable[..., T], *args: Any) -> T:
-        pool, device = self._lanes[lane].pool, self._lanes[lane].device
-        if device.startswith("cuda"):
-            return await asyncio.get_running_loop().run_in_executor(pool, fn, *args)
-        return await asyncio.get_running_loop().run_in_executor(pool, _serial, fn, *args)
+        on = self._lanes[lane]
+        return await asyncio.get_running_loop().run_in_executor(on.pool, on.run, fn, *args)
+
+    def busy(self) -> list[dict[str, Any]]:
+        """Each device and how long the work now on its thread has run (s; 0 when idle): a
+        render that holds a device for minutes shows here while the server itself answers."""
+        now = time.monotonic()
+        return [
+            {"device": lane.device, "busy_s": 0.0 if t is None else round(now - t, 3)}
+            for lane in self._lanes
+            for t in (lane.busy_since,)
+        ]
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
         """Run `fn` on the first device's thread."""

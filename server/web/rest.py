@@ -558,6 +558,8 @@ async def healthz(state: State) -> dict[str, Any]:
         "encoder_on_device": None if state.gpu.jpeg is None else state.gpu.jpeg.name,
         "video": state.services.video.describe(),
         "sessions": len(state.sessions.all()),
+        # how long each device's thread has been on its current work (0 when idle)
+        "render": state.gpu.busy(),
         "batch": await _batch_info(state),
     }
 

@@ -245,3 +245,33 @@ def test_the_next_staged_frame_uploads_while_a_render_runs(
         assert slot.stager.states() == [State.FREE] * 3
     finally:
         queue.close()
+
+
+def test_each_devices_thread_says_how_long_its_work_has_run() -> None:
+    """A render that held a device's thread for 20 minutes was invisible to /healthz, which
+    answered "ok" all along; `busy` tells each device's current work and how long it has run."""
+    queue = GpuQueue(devices=("cpu", "cpu"))
+    started = threading.Event()
+    release = threading.Event()
+
+    def hold() -> str:
+        started.set()
+        release.wait(30)
+        return "done"
+
+    async def run() -> None:
+        assert [b["busy_s"] for b in queue.busy()] == [0.0, 0.0]
+        held = asyncio.ensure_future(queue.call(hold))
+        await asyncio.to_thread(started.wait, 30)
+        await asyncio.sleep(0.3)
+        first, second = queue.busy()
+        assert first["device"] == "cpu" and first["busy_s"] >= 0.3 and second["busy_s"] == 0.0
+        release.set()
+        assert await held == "done"
+        assert [b["busy_s"] for b in queue.busy()] == [0.0, 0.0]
+
+    try:
+        asyncio.run(run())
+    finally:
+        release.set()
+        queue.close()
