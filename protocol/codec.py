@@ -94,6 +94,12 @@ _CODE_BY_PYDANTIC_TYPE = {
 }
 
 
+def ref_of(obj: dict[str, Any]) -> int | None:
+    """An unchecked message's `seq`, when it is one an error may name as its `ref`."""
+    seq = obj.get("seq")
+    return seq if isinstance(seq, int) and not isinstance(seq, bool) and 0 <= seq < 2**53 else None
+
+
 def validate(
     obj: Any, limits: Limits = DEFAULT_LIMITS, requests: frozenset[str] = frozenset()
 ) -> Message:
@@ -105,8 +111,7 @@ def validate(
     misspelt `iso_levle` dropped in silence would be answered as if it had applied."""
     if not isinstance(obj, dict):
         raise ProtocolError(ErrorCode.INVALID_MESSAGE, "message must be a map", path="")
-    seq = obj.get("seq")
-    ref = seq if isinstance(seq, int) and not isinstance(seq, bool) and 0 <= seq < 2**53 else None
+    ref = ref_of(obj)
     kind = obj.get("type")
     if not isinstance(kind, str):
         raise ProtocolError(ErrorCode.INVALID_MESSAGE, "missing string field 'type'", "type", ref)

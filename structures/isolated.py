@@ -344,10 +344,10 @@ def _count_atoms(path: str, name: str, max_atoms: int) -> None:
         with open(path, "rb") as fh:
             head = [fh.readline() for _ in range(2)]
         count_line = head[1] if fmt == "gro" else head[0]
+        where = "line 2" if fmt == "gro" else "line 1"
         try:
             declared = int(count_line.split()[0])
         except (ValueError, IndexError):
-            where = "line 2" if fmt == "gro" else "line 1"
             start = count_line[:40]
             text = all(32 <= b < 127 or b in b"\t\r\n" for b in start)
             found = repr(start.decode().strip()) if text else "binary data, not text"
@@ -355,7 +355,6 @@ def _count_atoms(path: str, name: str, max_atoms: int) -> None:
                 f"{name}: {where} should be the number of atoms, found {found}"
             ) from None
         if declared < 1:
-            where = "line 2" if fmt == "gro" else "line 1"
             raise StructureError(f"{name}: {where} declares {declared} atoms, not at least 1")
         if declared > max_atoms:
             raise StructureError(f"{name} declares {declared} atoms, the limit is {max_atoms}")

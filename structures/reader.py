@@ -353,11 +353,16 @@ def topology_of(
         box = cell_of(u) if periodic else None
         try:
             pairs = guess(atoms, atoms.positions, box=box, vdwradii=radii)
-        except ValueError as exc:  # the guesser's grid needs the atoms to span its cutoff
+        except ValueError as exc:
             span = float(np.ptp(atoms.positions, axis=0).max()) if n else 0.0
+            why = (
+                f"its {n} atoms span {span:.2f} A, less than a bond (are its coordinates all "
+                "alike?); "
+                if "too large for box" in str(exc)  # the search grid's cutoff past their span
+                else ""
+            )
             raise StructureError(
-                f"its bonds cannot be guessed: its {n} atoms span {span:.2f} A, less than a "
-                f"bond (are its coordinates all alike?); the guesser said: {exc}"
+                f"its bonds cannot be guessed: {why}the guesser said: {exc}"
             ) from None
         if len(pairs):
             guessed = np.asarray(sorted(pairs), dtype=np.int32).reshape(-1, 2)

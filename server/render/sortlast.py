@@ -224,9 +224,9 @@ class SortLastRenderer(ImageOutputs):
                 f"{self._parts[0].max_atoms} each hold fewer"
             )
         self._topology = topology
+        # the whole system's radii, given to each part's topology (a part does not derive
+        # them again from its elements' names: at 50M atoms that took tens of seconds)
         self._radii = colors.atom_radii(topology)
-        """The whole system's radii, given to each part's topology (a part does not derive
-        them again from its elements' names: at 50M atoms that took tens of seconds)."""
         self._r_max = float(self._radii.max()) if topology.n_atoms else 1.0
         self._positions = None
         self._split = None

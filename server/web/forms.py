@@ -6,6 +6,8 @@ from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
 
+from server.web.validation import quoted
+
 FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
 
 
@@ -35,10 +37,10 @@ async def form_body(request: Request) -> None:
         if name not in known:
             takes = ", ".join(sorted(known))
             raise HTTPException(
-                422, f"{name[:64]!r}: unknown form field (this endpoint takes {takes})"
+                422, f"{quoted(name)}: unknown form field (this endpoint takes {takes})"
             )
         if name in seen:
-            raise HTTPException(422, f"{name!r}: form field given more than once")
+            raise HTTPException(422, f"{quoted(name)}: form field given more than once")
         seen.add(name)
 
 

@@ -96,7 +96,7 @@ class UploadLimit:
                         raise _SpoolFullError(refused)
                     held = seen
                 if closed is not None and not closed.feed(message.get("body", b""), ended):
-                    raise _MultipartCutError(closed.boundary)
+                    raise _MultipartCutError(closed.mark)
             else:
                 ended = True
             return message
@@ -153,8 +153,7 @@ class _ClosingDelimiter:
     field, with that field's default in silence."""
 
     def __init__(self, boundary: bytes) -> None:
-        self.boundary = boundary
-        self._mark = b"--" + boundary + b"--"
+        self.mark = b"--" + boundary + b"--"
         self._tail = b""
         self.seen = False
 
@@ -174,8 +173,8 @@ class _ClosingDelimiter:
         """Take the next chunk; False once the body has ended without its closing delimiter
         (RFC 2046: it may be followed by an epilogue, so it is looked for anywhere)."""
         if not self.seen:
-            keep = len(self._mark) - 1  # a delimiter split across chunks shows in tail + head
-            self.seen = self._mark in self._tail + chunk[:keep] or self._mark in chunk
+            keep = len(self.mark) - 1  # a delimiter split across chunks shows in tail + head
+            self.seen = self.mark in self._tail + chunk[:keep] or self.mark in chunk
             self._tail = (self._tail + chunk)[-keep:] if len(chunk) < keep else chunk[-keep:]
         return self.seen or not last
 
@@ -183,11 +182,11 @@ class _ClosingDelimiter:
 class _MultipartCutError(HTTPException):
     """Raised when a multipart body ends before its closing delimiter; answered as a 400."""
 
-    def __init__(self, boundary: bytes) -> None:
-        mark = (b"--" + boundary + b"--").decode("latin-1")
+    def __init__(self, mark: bytes) -> None:
         super().__init__(
             400,
-            f"the multipart body ended before its closing boundary {mark!r}: the upload was "
+            f"the multipart body ended before its closing boundary {mark.decode('latin-1')!r}: "
+            "the upload was "
             "cut off or is malformed, and nothing was done with it",
         )
 

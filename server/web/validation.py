@@ -27,8 +27,7 @@ def quoted(name: str, most: int = 80) -> str:
 
 
 def _value(raw: Any) -> str:
-    text = repr(raw) if isinstance(raw, str) else type(raw).__name__
-    return text if len(text) <= MAX_SHOWN else text[: MAX_SHOWN - 1] + "…"
+    return quoted(raw, MAX_SHOWN) if isinstance(raw, str) else type(raw).__name__
 
 
 def sentence(errors: Sequence[Any]) -> str:

@@ -21,6 +21,7 @@ from starlette.responses import PlainTextResponse
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 import protocol as p
+from protocol.codec import ref_of
 from server.session.clients import Client, ClientState
 from server.session.session import Session
 from server.settings import ServerSettings
@@ -362,9 +363,7 @@ def _decode(role: p.Role, raw: bytes, limits: p.Limits) -> p.Message:
     obj = p.unpack(raw, limits)
     kind = obj.get("type") if isinstance(obj, dict) else None
     if isinstance(kind, str) and kind in p.MESSAGE_TYPES and not may_send(role, kind):
-        seq = obj.get("seq")
-        ref = seq if isinstance(seq, int) and not isinstance(seq, bool) and seq >= 0 else None
-        raise _forbidden(role, kind, ref if ref is not None and ref < 2**53 else None)
+        raise _forbidden(role, kind, ref_of(obj))
     return p.validate(obj, limits, STEERING_TYPES)
 
 
