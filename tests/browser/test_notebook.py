@@ -7,6 +7,7 @@ the cell again brings a live view back."""
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -79,6 +80,21 @@ def wait_still(page: Any, after: int = -1, index: int = 0) -> int:
     return int(page.evaluate(VIEW, index)["frameId"])
 
 
+def wait_changed(
+    page: Any, before: np.ndarray, after: int, seconds: float = 60.0
+) -> tuple[int, np.ndarray]:
+    """Full-quality pictures newer than frame `after` until one differs from `before` by more
+    than 2 grey levels on average, or `seconds` pass; the last one seen. Under load a still
+    picture rendered before the drag's last camera reached the server can come first: the
+    camera's message may trail more than the one picture in flight."""
+    deadline = time.monotonic() + seconds
+    while True:
+        after = wait_still(page, after)
+        shown = snapshot(page)
+        if np.abs(shown - before).mean() > 2 or time.monotonic() > deadline:
+            return after, shown
+
+
 def test_a_notebook_widget_streams_steers_and_survives_a_kernel_restart(
     lab: JupyterLab, chromium: Any, artifacts: Path
 ) -> None:
@@ -118,9 +134,8 @@ def test_a_notebook_widget_streams_steers_and_survives_a_kernel_restart(
     page.mouse.down()
     page.mouse.move(cx + 80, cy + 10, steps=6)
     page.mouse.up()
-    turned = wait_still(page, steered)
+    turned, shown = wait_changed(page, after, steered)
     page.screenshot(path=str(artifacts / "notebook-widget-turned.png"))
-    shown = snapshot(page)
     assert shown.std() > 5, f"the turned molecule is drawn: {page.evaluate(VIEW, 0)}"
     assert np.abs(shown - after).mean() > 2, "the drag turns the molecule"
     page.mouse.click(cx, cy)  # a pick in the middle of the molecule
