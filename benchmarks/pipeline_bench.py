@@ -6,8 +6,13 @@ rendered, read back), with the next frame's upload overlapped with the render an
     python benchmarks/pipeline_bench.py --device cuda:0 --atoms 1000000,100000000 \\
         --size 1920x1080 --out benchmarks/results/pipeline_h200.json
 
-The simulation side is a thread that offers a new frame as soon as the last one was taken, so
-a frame is always waiting: what the queue delivers is its own rate.
+The simulation offers the next frame as each render starts, as a live session's newest frame
+arrives while the last one renders, so a frame is always waiting: what the queue delivers is its
+own rate. Each render takes the frame offered before it (a session draws its newest frame).
+
+`--staging-control` adds a third run, without the overlap, of staging as it was before
+2026-11-30: one thread copying a frame into page-locked memory and a render waiting at most 5 ms
+for that copy before uploading from the frame itself.
 """
 
 from __future__ import annotations
@@ -27,8 +32,9 @@ import warp
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.render_bench import build_system, topology_of
+from benchmarks.render_bench import build_system, jittered_frames, topology_of
 from protocol import RenderParams
+from server.pipeline import gpu, staging
 from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.render.camera import fit_camera
 
@@ -63,12 +69,22 @@ async def stream(
 
 
 def run(
-    device: str, prefetch: bool, frames: list[np.ndarray], topo: Any, size: Any, s: float
+    device: str,
+    prefetch: bool,
+    frames: list[np.ndarray],
+    topo: Any,
+    size: Any,
+    s: float,
+    staging_before: bool = False,
 ) -> Any:
     queue = GpuQueue(device=device, max_atoms=max(len(frames[0]), 1), prefetch=prefetch)
+    threads, wait = staging.COPY_THREADS, gpu.stage_wait_s
+    if staging_before:
+        staging.COPY_THREADS, gpu.stage_wait_s = 1, lambda n: gpu.STAGE_WAIT_S
     try:
         return asyncio.run(stream(queue, frames, topo, size, s))
     finally:
+        staging.COPY_THREADS, gpu.stage_wait_s = threads, wait
         queue.close()
 
 
@@ -79,20 +95,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", default="1920x1080")
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--staging-control", action="store_true")
     args = ap.parse_args(argv)
     size = (int(args.size.split("x")[0]), int(args.size.split("x")[1]))
     rows: list[dict[str, Any]] = []
     for n in [int(v) for v in args.atoms.split(",")]:
+        t0 = time.perf_counter()
         pos, elements, bonds = build_system(n)
         topo = topology_of(elements, bonds if n <= 10_000_000 else None)
-        rng = np.random.default_rng(3)
-        frames = [pos + rng.normal(scale=0.05, size=pos.shape).astype(np.float32) for _ in range(3)]
+        frames = jittered_frames(pos, 3, seed=3)
+        print(f"{n:,} atoms: system built in {time.perf_counter() - t0:.1f} s", flush=True)
         row: dict[str, Any] = {"atoms": n, "size": list(size)}
         for prefetch in (False, True):
             row["overlapped" if prefetch else "serial"] = run(
                 args.device, prefetch, frames, topo, size, args.seconds
             )
         row["overlapped_over_serial"] = row["overlapped"]["fps"] / row["serial"]["fps"]
+        if args.staging_control:
+            before = run(args.device, False, frames, topo, size, args.seconds, staging_before=True)
+            row["serial_staging_before"] = before
+            row["serial_over_staging_before"] = row["serial"]["fps"] / before["fps"]
+            print(f"{n:,} atoms: staging as before {before['fps']:.1f} fps", flush=True)
         rows.append(row)
         print(
             f"{n:,} atoms {args.size}: serial {row['serial']['fps']:.1f} fps, overlapped "

@@ -135,7 +135,7 @@ def build_system(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 def topology_of(elements: np.ndarray, bonds: np.ndarray | None = None) -> Topology:
     n = len(elements)
-    els = [str(e) for e in elements]
+    els = [str(e) for e in elements.tolist()] if elements.dtype == object else elements.tolist()
     return Topology.model_construct(
         n_atoms=n,
         elements=els,

@@ -81,3 +81,35 @@ def test_a_frame_of_another_size_is_refused(pool: ThreadPoolExecutor) -> None:
     stager = FrameStager(50, pool, plain)
     with pytest.raises(ValueError, match="shape"):
         stager.offer(1, frame(1.0, n=49))
+
+
+def test_a_large_frame_is_copied_in_slices_whole_and_in_order(
+    pool: ThreadPoolExecutor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from server.pipeline import staging
+
+    monkeypatch.setattr(staging, "SLICE_BYTES", 1 << 10)  # 4,000 atoms: several slices
+    monkeypatch.setattr(staging, "COPY_THREADS", 4)
+    sliced: list[int] = []
+    real = np.copyto
+
+    def counted(dst: np.ndarray, src: np.ndarray, **kw: object) -> None:
+        sliced.append(len(src))
+        real(dst, src, **kw)
+
+    monkeypatch.setattr(staging.np, "copyto", counted)
+    n = 4_000
+    src = np.arange(n * 3, dtype=np.float32).reshape(n, 3)
+    stager = FrameStager(n, pool, plain)
+    assert stager.offer(1, src)
+    staged = stager.take(1, wait_s=5.0)
+    assert staged is not None and np.array_equal(staged, src)
+    assert len(sliced) == 4 and sum(sliced) == n  # four slices that cover every row once
+
+
+def test_a_render_waits_for_a_large_copy_as_long_as_a_pageable_upload_would_take() -> None:
+    from server.pipeline.gpu import STAGE_WAIT_S, stage_wait_s
+
+    assert stage_wait_s(1_000) == STAGE_WAIT_S  # a small frame: no longer than before
+    assert stage_wait_s(100_000_000) > 0.2  # 1.2 GB: the copy under way is worth waiting for
+    assert stage_wait_s(200_000_000) == pytest.approx(2 * stage_wait_s(100_000_000))
