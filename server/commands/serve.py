@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import threading
 import time
@@ -243,9 +244,31 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
 
 
 def run(settings: ServerSettings, log_level: str = "info") -> None:
+    """Serve until stopped. A render still running on a device once the app has closed
+    (recordings, jobs and sessions first) would keep the process alive until it ends, minutes
+    for the largest: the process then exits without it."""
     import uvicorn
 
-    uvicorn.Server(_config(settings, log_level)).run()
+    from server.web.app import create_app
+
+    app = create_app(settings)
+    try:
+        # a SIGTERM is raised again once the app has closed, and ends the process there
+        uvicorn.Server(_config(settings, log_level, app)).run()
+    except KeyboardInterrupt:
+        _exit_if_busy(app, 130)
+        raise
+    _exit_if_busy(app, 0)
+
+
+def _exit_if_busy(app: Any, code: int) -> None:
+    """End the process now when a device's thread is still rendering (`GpuQueue.close`):
+    the interpreter's exit would wait for that thread."""
+    if getattr(app.state, "busy_at_exit", None):
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
 
 
 class ServerThread:

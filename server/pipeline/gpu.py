@@ -43,6 +43,9 @@ from server.threads import name_thread
 
 STAGE_ATOMS = 100_000
 """Frames of at least this many atoms are copied to page-locked memory as they arrive."""
+CLOSE_WAIT_S = 10.0
+"""How long a stopping server waits for the work running on its devices (after uvicorn's 5 s
+for open requests) before it exits without it."""
 STAGE_WAIT_S = 0.005
 """Least a render waits for its frame's staged copy to finish (a 12 MB copy takes 2-3 ms)
 before uploading from the frame itself; see `stage_wait_s`."""
@@ -892,10 +895,27 @@ class GpuQueue:
     def release_sync(self, slot: str) -> None:
         self._drop_sync(slot)
 
-    def close(self) -> None:
+    def close(self, wait_s: float | None = None) -> list[tuple[str, float]]:
+        """Drop queued work, wait for the work running on each device's thread (at most
+        `wait_s` in all; None: as long as it takes), then free the renderers. Returns (device,
+        seconds it has run) of the work still running at the deadline: its thread is left to
+        it, the renderers are kept, and the process cannot end normally until it returns (a
+        stopping server exits without it: `server.commands.serve`)."""
+        deadline = None if wait_s is None else time.monotonic() + wait_s
         for lane in self._lanes:
-            lane.pool.shutdown(wait=True, cancel_futures=True)
+            lane.pool.shutdown(wait=False, cancel_futures=True)
+        busy = []
+        for lane in self._lanes:
+            threads = list(getattr(lane.pool, "_threads", ()))  # the pool's one thread
+            for thread in threads:
+                left = None if deadline is None else max(0.0, deadline - time.monotonic())
+                thread.join(left)
+            if any(t.is_alive() for t in threads):
+                since = lane.busy_since
+                busy.append((lane.device, 0.0 if since is None else time.monotonic() - since))
         self._stage_pool.shutdown(wait=True, cancel_futures=True)
+        if busy:
+            return busy
         with self._lock:
             slots = list(self._slots.values())
             self._slots.clear()
@@ -904,3 +924,4 @@ class GpuQueue:
             if close is not None:
                 with contextlib.suppress(Exception):
                     close()
+        return []

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import logging
 import shutil
+import time
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -17,7 +18,7 @@ from fastapi.staticfiles import StaticFiles
 
 from server.metrics import Metrics
 from server.pipeline.encoder import select_encoder
-from server.pipeline.gpu import GpuQueue
+from server.pipeline.gpu import CLOSE_WAIT_S, GpuQueue
 from server.pipeline.jobs import JobManager
 from server.pipeline.video import VideoEncoders
 
@@ -222,9 +223,22 @@ def create_app(settings: ServerSettings) -> FastAPI:
             await state.jobs.close()
             if batch is not None:
                 await asyncio.to_thread(batch.close)
-            await state.sessions.close()
+            # the sessions' last steps and the devices' threads wait for the renders running
+            # there: CLOSE_WAIT_S in all, then the server stops without them
+            deadline = time.monotonic() + CLOSE_WAIT_S
+            try:
+                await asyncio.wait_for(state.sessions.close(), CLOSE_WAIT_S)
+            except TimeoutError:
+                log.warning("closing the sessions waited %.0f s on the devices", CLOSE_WAIT_S)
             await asyncio.to_thread(selections.close)
-            await asyncio.to_thread(gpu.close)
+            left = max(0.0, deadline - time.monotonic())
+            busy = await asyncio.to_thread(gpu.close, left)
+            if busy:
+                log.warning(
+                    "stopping with work still running: %s",
+                    ", ".join(f"{device} for {secs:.0f} s" for device, secs in busy),
+                )
+                app.state.busy_at_exit = busy
             encoders.shutdown(wait=True)
             steering_log.close()
 

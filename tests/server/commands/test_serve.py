@@ -129,3 +129,57 @@ def test_a_server_interrupted_while_it_starts_is_stopped(
         serve.ServerThread(ServerSettings(port=0, state_dir=tmp_path, token="t" * 24))
     left = [t for t in threading.enumerate() if t.name == "uvicorn" and t not in before]
     assert not any(t.is_alive() for t in left)
+
+
+def test_a_stopped_server_exits_without_waiting_for_a_render_of_minutes(tmp_path: Path) -> None:
+    """SIGTERM while a REST render holds the device for minutes (the geodesic density of
+    adenylate kinase in volume at 1920x1080 on the CPU device): the app closes (recordings,
+    jobs, sessions), waits CLOSE_WAIT_S for the device, then the process ends, saying so."""
+    import signal
+
+    import httpx
+    from MDAnalysisTests.datafiles import PDB
+
+    from server.pipeline.gpu import CLOSE_WAIT_S
+    from tests.server.processes import TOKEN, ServerProcess
+
+    server = ServerProcess(tmp_path / "state")
+    answers: list[int] = []
+
+    def render() -> None:
+        with open(PDB, "rb") as f, httpx.Client(timeout=600) as c:
+            params = '{"mode": "volume", "sigma_A": 3.3, "scale_space": "geodesic"}'
+            try:
+                r = c.post(
+                    f"{server.url}/api/render",
+                    headers={"Authorization": f"Bearer {TOKEN}"},
+                    files={"file": ("adk.pdb", f)},
+                    data={"width": "1920", "height": "1080", "params": params},
+                )
+                answers.append(r.status_code)
+            except httpx.HTTPError:
+                answers.append(-1)  # the connection closed with the server
+
+    asker = threading.Thread(target=render, daemon=True)
+    try:
+        asker.start()
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # until the render holds the device
+            health = httpx.get(f"{server.url}/healthz", timeout=5).json()
+            if any(r["busy_s"] > 1.0 for r in health["render"]):
+                break
+            time.sleep(0.2)
+        else:
+            pytest.fail(f"the render did not start: {health}")
+        t0 = time.monotonic()
+        code = server.stop(signal.SIGTERM, timeout=5 + CLOSE_WAIT_S + 30)
+        took = time.monotonic() - t0
+    finally:
+        if server.alive():
+            server.stop(signal.SIGKILL)
+    log = server.log.read_text()
+    assert code in (0, -signal.SIGTERM), log[-3000:]
+    assert took < 5 + CLOSE_WAIT_S + 15, (took, log[-3000:])  # 5 s: uvicorn's, for requests
+    assert "stopping with work still running: cpu for" in log
+    asker.join(10)
+    assert answers and answers[0] != 200, answers  # the request ended with the server
