@@ -16,7 +16,8 @@ async def form_body(request: Request) -> None:
     no fields at all, and the defaults would run (a 1,800-frame movie for `{"fps": 10}`). A
     field the endpoint has no parameter for, or one given twice, is refused by name (422): a
     misspelt `widht` was dropped and the default width drawn, and of two `width`s the last
-    one was taken, as if the request had said what it meant."""
+    one was taken, as if the request had said what it meant. An empty value (`width=`) is
+    refused too: it was taken as no field, and the default drawn in silence."""
     kind = request.headers.get("content-type", "").split(";")[0].strip().lower()
     has_body = request.headers.get("content-length", "0") != "0" or (
         "transfer-encoding" in request.headers
@@ -33,7 +34,7 @@ async def form_body(request: Request) -> None:
         return
     known = {field.alias for field in dependant.body_params}
     seen: set[str] = set()
-    for name, _value in (await request.form()).multi_items():  # parsed already: the cached form
+    for name, value in (await request.form()).multi_items():  # parsed already: the cached form
         if name not in known:
             takes = ", ".join(sorted(known))
             raise HTTPException(
@@ -41,6 +42,10 @@ async def form_body(request: Request) -> None:
             )
         if name in seen:
             raise HTTPException(422, f"{quoted(name)}: form field given more than once")
+        if isinstance(value, str) and not value:
+            raise HTTPException(
+                422, f"{quoted(name)}: empty form field (leave it out to take its default)"
+            )
         seen.add(name)
 
 

@@ -1645,7 +1645,8 @@ def test_a_form_field_an_endpoint_does_not_take_or_takes_twice_is_refused_by_nam
     tmp_path: Path,
 ) -> None:
     """A misspelt `widht` was dropped and the default width drawn; of two `width`s the last was
-    taken. Each is now a 422 naming the field (and, for an unknown one, the fields there are)."""
+    taken; an empty `width=` drew the default. Each is now a 422 naming the field (and, for an
+    unknown one, the fields there are)."""
     server = start_server(make_settings(tmp_path))
     try:
         pdb = Path(PDB_small).read_bytes()
@@ -1665,6 +1666,12 @@ def test_a_form_field_an_endpoint_does_not_take_or_takes_twice_is_refused_by_nam
                 "/api/jobs", headers=auth, data={"strid": "2"}, files={"topology": ("a.pdb", pdb)}
             )
             assert r.status_code == 422 and "'strid': unknown form field" in r.text
+            r = post("/api/render", {"width": "", "height": "24"})  # was the default width
+            assert r.status_code == 422 and "'width': empty form field" in r.text
+            r = c.post(
+                "/api/jobs", headers=auth, data={"params": ""}, files={"topology": ("a.pdb", pdb)}
+            )
+            assert r.status_code == 422 and "'params': empty form field" in r.text
             r = post("/api/render", {"width": "32", "height": "24"})
             assert r.status_code == 200 and r.content.startswith(b"\x89PNG")
     finally:
