@@ -14,4 +14,5 @@ RUN python3 -m venv /opt/venv && /opt/venv/bin/pip install ".[server,openmm,repl
     && if [ -f client_web/package.json ]; then cd client_web && npm ci --omit=dev; fi
 ENV PATH=/opt/venv/bin:$PATH
 EXPOSE 8000
-CMD ["sh", "-c", "scalesteer serve --host 0.0.0.0 --port 8000 --device auto --token \"$SCALESTEER_TOKEN\" --data-dir /data"]
+# exec: the server is the container's process 1 and gets `docker stop`'s SIGTERM itself
+CMD ["sh", "-c", "exec scalesteer serve --host 0.0.0.0 --port 8000 --device auto --token \"$SCALESTEER_TOKEN\" --data-dir /data"]

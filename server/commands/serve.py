@@ -262,9 +262,13 @@ def run(settings: ServerSettings, log_level: str = "info") -> None:
 
 
 def _exit_if_busy(app: Any, code: int) -> None:
-    """End the process now when a device's thread is still rendering (`GpuQueue.close`):
-    the interpreter's exit would wait for that thread."""
-    if getattr(app.state, "busy_at_exit", None):
+    """End the process now when a device's thread is still rendering (`GpuQueue.close`, or
+    a stop that failed before it): the interpreter's exit would wait for that thread. Exit
+    handlers are skipped: the app has closed what holds data (recordings, jobs, the steering
+    log), and a spare file-reading child ends when its socket closes."""
+    state = getattr(app.state, "scalesteer", None)
+    running = state is not None and any(r["busy_s"] > 0 for r in state.gpu.busy())
+    if getattr(app.state, "busy_at_exit", None) or running:
         logging.shutdown()
         sys.stdout.flush()
         sys.stderr.flush()

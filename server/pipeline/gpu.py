@@ -55,9 +55,10 @@ host): a copy under way finishes sooner than such an upload of the whole frame w
 
 
 def stage_wait_s(n_atoms: int) -> float:
-    """How long a render waits for its frame's staged copy: at least `STAGE_WAIT_S`, and as
-    long as an upload from the frame itself would take. A 100M-atom frame gave up after 5 ms
-    and uploaded from pageable memory for 175 ms while its copy was nearly done."""
+    """How long a render waits for its frame's staged copy under way: at least
+    `STAGE_WAIT_S`, and as long as an upload from the frame itself would take (a copy not yet
+    begun is waited for `STAGE_WAIT_S` only). A 100M-atom frame gave up after 5 ms and
+    uploaded from pageable memory for 145-175 ms while its copy went on beside it."""
     return max(STAGE_WAIT_S, n_atoms * 12 / PAGEABLE_BYTES_PER_S)
 
 
@@ -206,6 +207,19 @@ class _Lane:
     slots: set[str] = field(default_factory=set)
     busy_since: float | None = None
     """When the work now on its thread began (monotonic; None: idle)."""
+    threads: list[threading.Thread] = field(default_factory=list)
+    """The pool's thread once it has started (`close` joins it)."""
+
+    @classmethod
+    def start(cls, device: str, name: str) -> _Lane:
+        """A lane whose one thread is named `name` (gpu_0, gpu_1, ...) for the OS too."""
+        threads: list[threading.Thread] = []
+
+        def begin() -> None:
+            name_thread(name)
+            threads.append(threading.current_thread())
+
+        return cls(device, ThreadPoolExecutor(max_workers=1, initializer=begin), threads=threads)
 
     def run(self, fn: Callable[..., T], *args: Any) -> T:
         """`fn` on this lane's thread, its start and end noted for `busy_s`."""
@@ -285,14 +299,7 @@ class GpuQueue:
 
     def __post_init__(self) -> None:
         names = self.devices if self.devices else (self.device,)
-        self._lanes = [
-            _Lane(
-                d,
-                # one thread a device, named for it: gpu_0, gpu_1, ...
-                ThreadPoolExecutor(max_workers=1, initializer=name_thread, initargs=(f"gpu_{i}",)),
-            )
-            for i, d in enumerate(names)
-        ]
+        self._lanes = [_Lane.start(d, f"gpu_{i}") for i, d in enumerate(names)]
 
     @property
     def spread(self) -> str | None:
@@ -675,7 +682,7 @@ class GpuQueue:
                 and isinstance(single, Renderer)
             )
             if not shown and stager is not None and stager.n == len(snap.positions):
-                staged = stager.take(snap.positions_id, stage_wait_s(stager.n))
+                staged = stager.take(snap.positions_id, stage_wait_s(stager.n), STAGE_WAIT_S)
             if shown:
                 assert slot.periodic is not None and isinstance(single, Renderer)
                 single.set_positions(
@@ -906,11 +913,11 @@ class GpuQueue:
             lane.pool.shutdown(wait=False, cancel_futures=True)
         busy = []
         for lane in self._lanes:
-            threads = list(getattr(lane.pool, "_threads", ()))  # the pool's one thread
-            for thread in threads:
-                left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            for thread in list(lane.threads):
+                # an idle thread ends at once; a little grace for one the deadline has reached
+                left = None if deadline is None else max(0.5, deadline - time.monotonic())
                 thread.join(left)
-            if any(t.is_alive() for t in threads):
+            if any(t.is_alive() for t in lane.threads):
                 since = lane.busy_since
                 busy.append((lane.device, 0.0 if since is None else time.monotonic() - since))
         self._stage_pool.shutdown(wait=True, cancel_futures=True)

@@ -7,9 +7,9 @@ change, waits behind. A `FrameStager` copies each new frame into one of a few pa
 buffers on a thread of its own as the frame arrives (numpy copies without the interpreter
 lock), so when the frame's render comes the device reads it from there asynchronously.
 
-One thread copies about 7 GB/s, so a 100M-atom frame (1.2 GB) took 150-175 ms to stage on an H200
-host, five frames' worth of render: a large frame is copied in slices by several threads
-(`COPY_THREADS`), each slice a plain memory copy.
+One thread copied a 100M-atom frame (1.2 GB) in 106 ms on an H200 host, three frames' worth of
+render: a large frame is copied in slices by several threads (`COPY_THREADS`; 33 ms on 8), each
+slice a plain memory copy.
 
 A buffer goes free -> writing (the stage thread copies into it) -> ready -> in use (a render
 uploads from it) -> free. A ready buffer whose frame was superseded before any render took it
@@ -23,8 +23,9 @@ import itertools
 import logging
 import os
 import threading
+import time
 from collections.abc import Callable
-from concurrent.futures import Executor, ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,10 +39,11 @@ log = logging.getLogger("scalesteer.gpu")
 BUFFERS = 3
 """One a render uploads from, the newest frame ready, the next one being copied."""
 
-COPY_THREADS = max(1, min(8, (os.cpu_count() or 1) // 2))
-"""Threads that copy one large frame's slices at once (half the host's cores, at most 8)."""
+COPY_THREADS = max(1, min(8, len(os.sched_getaffinity(0)) // 2))
+"""Threads that copy one large frame's slices at once (half the cores this process may run
+on, at most 8; one below 4 cores, where nothing is sliced)."""
 SLICE_BYTES = 32 << 20
-"""A frame is cut into slices of at least this size; a frame under two slices (2.7M atoms)
+"""A frame is cut into slices of at least this size: one under two slices (64 MiB, 5.6M atoms)
 is copied by the stage thread alone."""
 _slicers: ThreadPoolExecutor | None = None
 _slicers_lock = threading.Lock()
@@ -66,6 +68,7 @@ def copy_rows(dst: npt.NDArray[np.float32], src: npt.NDArray[np.float32]) -> Non
         pool.submit(np.copyto, dst[a:b], src[a:b], casting="same_kind")
         for a, b in itertools.pairwise(cuts.tolist())
     ]
+    wait(jobs)  # every slice has stopped writing before a failed one is reported
     for job in jobs:
         job.result()
 
@@ -98,6 +101,8 @@ class _Buffer:
     positions_id: int = -1
     state: State = State.FREE
     done: threading.Event = field(default_factory=threading.Event)
+    started: threading.Event = field(default_factory=threading.Event)
+    """Set once the stage thread begins the copy (a copy may queue behind others)."""
 
 
 class FrameStager:
@@ -121,7 +126,8 @@ class FrameStager:
             buf = self._pick()
             if buf is None:
                 return False
-            buf.state, buf.positions_id, buf.done = State.WRITING, positions_id, threading.Event()
+            buf.state, buf.positions_id = State.WRITING, positions_id
+            buf.done, buf.started = threading.Event(), threading.Event()
         try:
             self._pool.submit(self._copy, buf, positions)
         except RuntimeError:  # the pool is shut down: the server is stopping
@@ -138,6 +144,7 @@ class FrameStager:
         return min(ready, key=lambda b: b.positions_id) if ready else None
 
     def _copy(self, buf: _Buffer, positions: npt.NDArray[np.float32]) -> None:
+        buf.started.set()
         ok = False
         try:
             copy_rows(buf.array, positions)
@@ -148,10 +155,14 @@ class FrameStager:
             buf.state = State.READY if ok else State.FREE
             buf.done.set()
 
-    def take(self, positions_id: int, wait_s: float) -> npt.NDArray[np.float32] | None:
+    def take(
+        self, positions_id: int, wait_s: float, start_wait_s: float | None = None
+    ) -> npt.NDArray[np.float32] | None:
         """The page-locked copy of frame `positions_id`, now in use until `release`; waits up
-        to `wait_s` for a copy under way. None when there is no copy of that frame (it came
-        while every buffer was busy) or it is not done in time."""
+        to `wait_s` for a copy under way, and at most `start_wait_s` of that for a copy still
+        queued to begin (the stage thread is busy elsewhere: a long wait would be spent on
+        another copy). None when there is no copy of that frame (it came while every buffer
+        was busy) or it is not done in time."""
         with self._lock:
             buf = next(
                 (
@@ -163,8 +174,11 @@ class FrameStager:
             )
             if buf is None:
                 return None
-            done = buf.done
-        if not done.wait(wait_s):
+            done, started = buf.done, buf.started
+        t0 = time.monotonic()
+        if start_wait_s is not None and not started.wait(min(wait_s, start_wait_s)):
+            return None
+        if not done.wait(max(0.0, wait_s - (time.monotonic() - t0))):
             return None
         with self._lock:
             if buf.state is not State.READY or buf.positions_id != positions_id:

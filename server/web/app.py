@@ -7,10 +7,10 @@ import contextlib
 import logging
 import shutil
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI, WebSocket
 from fastapi.exceptions import RequestValidationError
@@ -93,6 +93,25 @@ def clean_spool(directory: Path) -> Path:
         else:
             entry.unlink(missing_ok=True)
     return directory
+
+
+async def _closing(what: str, step: Awaitable[object]) -> None:
+    """One step of the server's stop; a failure is logged and the next steps still run."""
+    try:
+        await step
+    except Exception:
+        log.exception("closing %s failed; the rest is closed still", what)
+
+
+async def _within(task: asyncio.Task[Any], deadline: float, what: str) -> None:
+    """Wait for `task` until `deadline` (monotonic), then cancel it without waiting further
+    (`asyncio.wait_for` would wait for its cancellation, which may wait on a device)."""
+    done, _ = await asyncio.wait({task}, timeout=max(0.0, deadline - time.monotonic()))
+    if not done:
+        task.cancel()
+        log.warning("stopping: %s still waited on the devices at the deadline", what)
+    elif not task.cancelled() and task.exception() is not None:
+        log.error("closing %s failed", what, exc_info=task.exception())
 
 
 def create_app(settings: ServerSettings) -> FastAPI:
@@ -214,23 +233,24 @@ def create_app(settings: ServerSettings) -> FastAPI:
             yield
         finally:
             reaping.cancel()
-            if warming is not None:
-                with contextlib.suppress(asyncio.CancelledError):
-                    await warming
-            state.owners.close()
-            await asyncio.to_thread(state.replays.close)
-            await asyncio.to_thread(state.recordings.close)
-            await state.jobs.close()
-            if batch is not None:
-                await asyncio.to_thread(batch.close)
-            # the sessions' last steps and the devices' threads wait for the renders running
-            # there: CLOSE_WAIT_S in all, then the server stops without them
+            # what waits on the devices (the warm-up, the sessions' last steps, the devices'
+            # threads) takes CLOSE_WAIT_S in all: a render there may run for minutes, and the
+            # server then stops without it (`server.commands.serve`); each step is taken even
+            # when one before it failed
             deadline = time.monotonic() + CLOSE_WAIT_S
-            try:
-                await asyncio.wait_for(state.sessions.close(), CLOSE_WAIT_S)
-            except TimeoutError:
-                log.warning("closing the sessions waited %.0f s on the devices", CLOSE_WAIT_S)
-            await asyncio.to_thread(selections.close)
+            if warming is not None:
+                await _within(warming, deadline, "the warm-up render")
+            try:  # on the loop: its timers are the loop's
+                state.owners.close()
+            except Exception:
+                log.exception("closing the owners' leases failed; the rest is closed still")
+            await _closing("the replays", asyncio.to_thread(state.replays.close))
+            await _closing("the recordings", asyncio.to_thread(state.recordings.close))
+            await _closing("the jobs", state.jobs.close())
+            if batch is not None:
+                await _closing("the batch engine", asyncio.to_thread(batch.close))
+            await _within(asyncio.create_task(state.sessions.close()), deadline, "the sessions")
+            await _closing("the selection workers", asyncio.to_thread(selections.close))
             left = max(0.0, deadline - time.monotonic())
             busy = await asyncio.to_thread(gpu.close, left)
             if busy:

@@ -113,3 +113,48 @@ def test_a_render_waits_for_a_large_copy_as_long_as_a_pageable_upload_would_take
     assert stage_wait_s(1_000) == STAGE_WAIT_S  # a small frame: no longer than before
     assert stage_wait_s(100_000_000) > 0.2  # 1.2 GB: the copy under way is worth waiting for
     assert stage_wait_s(200_000_000) == pytest.approx(2 * stage_wait_s(100_000_000))
+
+
+def test_a_failed_slice_is_reported_only_once_every_slice_has_stopped_writing(
+    pool: ThreadPoolExecutor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A buffer is marked free after a failed copy and may take the next frame at once: no
+    slice of the failed copy may still be writing into it then."""
+    from server.pipeline import staging
+
+    monkeypatch.setattr(staging, "SLICE_BYTES", 1 << 10)
+    monkeypatch.setattr(staging, "COPY_THREADS", 4)
+    real = np.copyto
+    finished: list[int] = []
+    first = threading.Event()
+
+    def slow_or_failing(dst: np.ndarray, src: np.ndarray, **kw: object) -> None:
+        if not first.is_set():
+            first.set()
+            raise MemoryError("a slice failed")
+        time.sleep(0.3)
+        real(dst, src, **kw)
+        finished.append(len(src))
+
+    monkeypatch.setattr(staging.np, "copyto", slow_or_failing)
+    n = 4_000
+    with pytest.raises(MemoryError):
+        staging.copy_rows(np.empty((n, 3), np.float32), np.ones((n, 3), np.float32))
+    assert len(finished) == 3  # the other three slices were done when it raised
+
+
+def test_a_render_waits_briefly_for_a_copy_that_has_not_begun(pool: ThreadPoolExecutor) -> None:
+    """A copy queued behind other work on the stage thread: the render waits `start_wait_s`,
+    not the long wait meant for a copy under way, and uploads from where the frame is."""
+    stager = FrameStager(50, pool, plain)
+    hold = threading.Event()
+    pool.submit(hold.wait, 5.0)  # the stage thread is busy elsewhere
+    try:
+        assert stager.offer(1, frame(1.0))
+        t0 = time.monotonic()
+        assert stager.take(1, wait_s=3.0, start_wait_s=0.05) is None
+        assert time.monotonic() - t0 < 1.0
+    finally:
+        hold.set()
+    staged = stager.take(1, wait_s=5.0, start_wait_s=5.0)  # begun and done now
+    assert staged is not None and np.array_equal(staged, frame(1.0))
