@@ -68,6 +68,28 @@ async def stream(
     return {"fps": done / elapsed, "frames": done, "median_stage_ms": med}
 
 
+def copy_times(frame: np.ndarray, repeats: int = 3) -> dict[str, Any] | None:
+    """Staging's own step, copying one frame into page-locked memory: on one thread and in
+    slices (`copy_rows`), median ms of `repeats` after one unmeasured; None where no page-locked
+    memory is to be had (no CUDA driver)."""
+    try:
+        _owner, dst = staging.pinned(len(frame))
+    except Exception:
+        return None
+    out: dict[str, Any] = {"threads": staging.COPY_THREADS}
+    for key, step in (
+        ("one_thread_ms", lambda: np.copyto(dst, frame)),
+        ("sliced_ms", lambda: staging.copy_rows(dst, frame)),
+    ):
+        times = []
+        for _ in range(repeats + 1):
+            t0 = time.perf_counter()
+            step()
+            times.append((time.perf_counter() - t0) * 1e3)
+        out[key] = float(np.median(times[1:]))
+    return out
+
+
 def run(
     device: str,
     prefetch: bool,
@@ -105,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         topo = topology_of(elements, bonds if n <= 10_000_000 else None)
         frames = jittered_frames(pos, 3, seed=3)
         print(f"{n:,} atoms: system built in {time.perf_counter() - t0:.1f} s", flush=True)
-        row: dict[str, Any] = {"atoms": n, "size": list(size)}
+        row: dict[str, Any] = {"atoms": n, "size": list(size), "copy_ms": copy_times(frames[0])}
         for prefetch in (False, True):
             row["overlapped" if prefetch else "serial"] = run(
                 args.device, prefetch, frames, topo, size, args.seconds

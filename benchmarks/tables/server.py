@@ -85,6 +85,7 @@ def pipeline(sources: list[Source]) -> str:
     ((_, res),) = sources
     rows = []
     before = any("serial_staging_before" in r for r in res["rows"])
+    copied = any(r.get("copy_ms") for r in res["rows"])
     for r in res["rows"]:
         st = r["overlapped"]["median_stage_ms"]
         row = [
@@ -95,6 +96,14 @@ def pipeline(sources: list[Source]) -> str:
             f"{r['overlapped_over_serial']:.3f}",
             " / ".join(num(st[k], 2) for k in ("upload", "grid", "raycast", "total")),
         ]
+        copy = r.get("copy_ms")
+        if copied:
+            row.append(
+                ""
+                if copy is None
+                else f"{num(copy['one_thread_ms'], 1)} / {num(copy['sliced_ms'], 1)} "
+                f"({copy['threads']})"
+            )
         if before:
             old = r.get("serial_staging_before")
             row.append(
@@ -105,9 +114,11 @@ def pipeline(sources: list[Source]) -> str:
         rows.append(row)
     header = ["atoms", "image", "serial fps (control)", "overlapped fps", "ratio"]
     header += ["upload / grid / cast / frame ms"]
+    if copied:
+        header.append("frame into page-locked memory ms: one thread / sliced (threads)")
     if before:
         header.append("serial fps, staging as before (upload ms)")
-    return block(sources, table(header, "rlrrrrr" if before else "rlrrrr", rows))
+    return block(sources, table(header, "rlrrrr" + "r" * (copied + before), rows))
 
 
 def multi_session(sources: list[Source]) -> str:

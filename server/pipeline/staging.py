@@ -7,9 +7,9 @@ change, waits behind. A `FrameStager` copies each new frame into one of a few pa
 buffers on a thread of its own as the frame arrives (numpy copies without the interpreter
 lock), so when the frame's render comes the device reads it from there asynchronously.
 
-One thread copied a 100M-atom frame (1.2 GB) in 106 ms on an H200 host, three frames' worth of
-render: a large frame is copied in slices by several threads (`COPY_THREADS`; 33 ms on 8), each
-slice a plain memory copy.
+One thread copied a 100M-atom frame (1.2 GB) in 106-129 ms on an H200 host, three to four
+frames' worth of render: a large frame is copied in slices by several threads (`COPY_THREADS`;
+33-55 ms on 8), each slice a plain memory copy.
 
 A buffer goes free -> writing (the stage thread copies into it) -> ready -> in use (a render
 uploads from it) -> free. A ready buffer whose frame was superseded before any render took it
