@@ -10,9 +10,9 @@ The simulation offers the next frame as each render starts, as a live session's 
 arrives while the last one renders, so a frame is always waiting: what the queue delivers is its
 own rate. Each render takes the frame offered before it (a session draws its newest frame).
 
-`--staging-control` adds a third run, without the overlap, of staging as it was before
-2026-11-30: one thread copying a frame into page-locked memory and a render waiting at most 5 ms
-for that copy before uploading from the frame itself.
+`--staging-control` adds a third run, without the overlap, of staging as it was before the copy
+was sliced (2026-11-29): one thread copying a frame into page-locked memory and a render waiting
+at most 5 ms for that copy before uploading from the frame itself.
 """
 
 from __future__ import annotations
