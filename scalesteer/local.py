@@ -29,6 +29,11 @@ from scalesteer.errors import ServerStartError
 
 ROOT = Path(__file__).resolve().parents[1]
 START_TIMEOUT_S = 90.0
+STOP_GRACE_S = 40.0
+"""The supervisor's grace when the server stops: the server alone has half of it (5 s for open
+requests, 10 s for renders on its devices, docs/server.md "Stopping", then its recordings and
+jobs closed), what is still running the other half, then SIGKILL. The supervisor's default of
+5 s gave the server 2.5 s, and could leave a recording interrupted."""
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -110,6 +115,7 @@ class LocalServer:
             "--state-dir", str(self.state_dir), "--log-level", "warning", *extra,
         ]  # fmt: skip
         supervisor = [sys.executable, "-m", "server.supervisor", "--lifeline", str(read_end)]
+        supervisor += ["--grace", str(STOP_GRACE_S)]
         if self._temporary:
             supervisor += ["--remove", str(self.state_dir)]
         env = dict(os.environ)
@@ -165,7 +171,7 @@ class LocalServer:
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None
 
-    def stop(self, timeout: float = 15.0) -> None:
+    def stop(self, timeout: float = STOP_GRACE_S + 10.0) -> None:
         """End the server (and what it started) and wait for it; idempotent."""
         with self._lock:
             if self._lifeline >= 0:

@@ -16,8 +16,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+from scalesteer.local import STOP_GRACE_S
 from server.supervisor import descendants
-from tests.server.processes import wait_gone
+from tests.server.processes import command_line, wait_gone
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -46,6 +47,8 @@ def test_the_processs_own_server_ends_when_the_process_is_killed() -> None:
         assert httpx.get(f"{url}/api/sessions").status_code == 401, "a random token guards it"
         tree = [started["supervisor"], *descendants(started["supervisor"])]
         assert len(tree) >= 2, "the supervisor and the server under it"
+        # the server has time for its own stop (5 s for requests, 10 s for the devices)
+        assert f"--grace {STOP_GRACE_S} " in command_line(started["supervisor"])
         os.kill(kernel.pid, signal.SIGKILL)  # as a kernel restart ends a kernel
         kernel.wait(10)
         assert wait_gone(tree, timeout=20) == []
