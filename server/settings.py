@@ -88,6 +88,9 @@ class ServerSettings:
     body_timeout_s: float = 30.0
     """Longest pause in a request's body (after its headers, or between two of its pieces):
     a body that stalls longer is answered 408 and lets go of its part of the spool."""
+    close_wait_s: float = 10.0
+    """How long a stopping server waits, in all, on work running on its devices (after 5 s for
+    open requests) before it exits without that work (docs/server.md, "Stopping")."""
     max_sessions: int = 64
     max_connections: int = 1024
     """Open WebSockets, all endpoints together (a connection counts from its first byte)."""
@@ -300,6 +303,8 @@ class ServerSettings:
             )
         if not self.body_timeout_s > 0:
             raise ValueError("body_timeout_s must be more than 0 seconds")
+        if not 0 < self.close_wait_s < float("inf"):
+            raise ValueError("close_wait_s must be a finite number of seconds above 0")
         if self.viewer_views_per_pass < 1:
             raise ValueError("viewer_views_per_pass must be at least 1")
         if not 0 <= self.steerer_places < self.max_clients_per_session:

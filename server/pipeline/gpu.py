@@ -43,9 +43,6 @@ from server.threads import name_thread
 
 STAGE_ATOMS = 100_000
 """Frames of at least this many atoms are copied to page-locked memory as they arrive."""
-CLOSE_WAIT_S = 10.0
-"""How long a stopping server waits for the work running on its devices (after uvicorn's 5 s
-for open requests) before it exits without it."""
 STAGE_WAIT_S = 0.005
 """Least a render waits for its frame's staged copy to finish (a 12 MB copy takes 2-3 ms)
 before uploading from the frame itself; see `stage_wait_s`."""

@@ -18,7 +18,7 @@ from fastapi.staticfiles import StaticFiles
 
 from server.metrics import Metrics
 from server.pipeline.encoder import select_encoder
-from server.pipeline.gpu import CLOSE_WAIT_S, GpuQueue
+from server.pipeline.gpu import GpuQueue
 from server.pipeline.jobs import JobManager
 from server.pipeline.video import VideoEncoders
 
@@ -234,10 +234,10 @@ def create_app(settings: ServerSettings) -> FastAPI:
         finally:
             reaping.cancel()
             # what waits on the devices (the warm-up, the sessions' last steps, the devices'
-            # threads) takes CLOSE_WAIT_S in all: a render there may run for minutes, and the
+            # threads) takes `close_wait_s` in all: a render there may run for minutes, and the
             # server then stops without it (`server.commands.serve`); each step is taken even
             # when one before it failed
-            deadline = time.monotonic() + CLOSE_WAIT_S
+            deadline = time.monotonic() + settings.close_wait_s
             if warming is not None:
                 await _within(warming, deadline, "the warm-up render")
             try:  # on the loop: its timers are the loop's

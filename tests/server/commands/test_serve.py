@@ -47,6 +47,9 @@ def test_limits_are_set_by_name_and_bad_ones_are_named(tmp_path: Path) -> None:
     assert (cold.warm_up_render, cold.selection_prestart) == (0, 0)
     with pytest.raises(ValueError, match="selection_prestart: must be 0 or more, got -1"):
         settings("--state-dir", state, "--set", "selection_prestart=-1")
+    assert settings("--state-dir", state, "--set", "close_wait_s=2.5").close_wait_s == 2.5
+    with pytest.raises(ValueError, match="close_wait_s must be a finite number of seconds"):
+        settings("--state-dir", state, "--set", "close_wait_s=inf")
 
 
 def test_video_codecs_are_chosen_by_name_or_turned_off(tmp_path: Path) -> None:
@@ -134,16 +137,16 @@ def test_a_server_interrupted_while_it_starts_is_stopped(
 def test_a_stopped_server_exits_without_waiting_for_a_render_of_minutes(tmp_path: Path) -> None:
     """SIGTERM while a REST render holds the device for minutes (the geodesic density of
     adenylate kinase in volume at 1920x1080 on the CPU device): the app closes (recordings,
-    jobs, sessions), waits CLOSE_WAIT_S for the device, then the process ends, saying so."""
+    jobs, sessions), waits `close_wait_s` for the device, then the process ends, saying so."""
     import signal
 
     import httpx
     from MDAnalysisTests.datafiles import PDB
 
-    from server.pipeline.gpu import CLOSE_WAIT_S
     from tests.server.processes import TOKEN, ServerProcess
 
-    server = ServerProcess(tmp_path / "state")
+    wait_s = 3.0
+    server = ServerProcess(tmp_path / "state", "--set", f"close_wait_s={wait_s}")
     answers: list[int] = []
 
     def render() -> None:
@@ -172,14 +175,14 @@ def test_a_stopped_server_exits_without_waiting_for_a_render_of_minutes(tmp_path
         else:
             pytest.fail(f"the render did not start: {health}")
         t0 = time.monotonic()
-        code = server.stop(signal.SIGTERM, timeout=5 + CLOSE_WAIT_S + 30)
+        code = server.stop(signal.SIGTERM, timeout=5 + wait_s + 30)
         took = time.monotonic() - t0
     finally:
         if server.alive():
             server.stop(signal.SIGKILL)
     log = server.log.read_text()
     assert code in (0, -signal.SIGTERM), log[-3000:]
-    assert took < 5 + CLOSE_WAIT_S + 15, (took, log[-3000:])  # 5 s: uvicorn's, for requests
+    assert took < 5 + wait_s + 15, (took, log[-3000:])  # 5 s: uvicorn's, for requests
     assert "stopping with work still running: cpu for" in log
     asker.join(10)
     assert answers and answers[0] != 200, answers  # the request ended with the server
