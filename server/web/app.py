@@ -38,6 +38,7 @@ from server.web.middleware import (
     HostCheck,
     OriginCheck,
     SecurityHeaders,
+    StopAnswer,
     UploadLimit,
 )
 from server.web.owners import Owners
@@ -286,9 +287,11 @@ def create_app(settings: ServerSettings) -> FastAPI:
 
     if (settings.client_dir / "index.html").is_file():
         app.mount("/", StaticFiles(directory=settings.client_dir, html=True), name="client")
-    # the last added runs first: headers on every answer, then Host, Origin, the body limits
+    # the last added runs first: headers on every answer, a stop's answer, then Host, Origin,
+    # the body limits
     app.add_middleware(UploadLimit, spool=spool, settings=settings)
     app.add_middleware(OriginCheck, settings=settings)
     app.add_middleware(HostCheck, settings=settings)
+    app.add_middleware(StopAnswer)
     app.add_middleware(SecurityHeaders, settings=settings)
     return app

@@ -1,5 +1,6 @@
-"""ASGI middleware of the web edge: safe response headers, the Host and Origin checks, and the
-request body limits (per request and for all bodies being received at once)."""
+"""ASGI middleware of the web edge: safe response headers, the Host and Origin checks, the
+request body limits (per request and for all bodies being received at once), and the answer to
+a request the server's stop cut off."""
 
 from __future__ import annotations
 
@@ -286,3 +287,32 @@ class SecurityHeaders:
             await send(message)
 
         await self.app(scope, receive, with_headers)
+
+
+class StopAnswer:
+    """A request whose handler is cancelled before its response began is answered 503, as JSON,
+    saying the server is stopping. Only a stop cancels a request here (uvicorn, after giving
+    open ones 5 s): a REST render cut off so was a plain-text 500 and a traceback in the log."""
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def watched(message: Any) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, watched)
+        except asyncio.CancelledError:
+            if started:
+                raise
+            detail = "the server is stopping and this request was cut off; send it again later"
+            # the task ends here, answered: what cancelled it waits for nothing more from it
+            await JSONResponse({"detail": detail}, 503, headers=CLOSE)(scope, receive, send)
