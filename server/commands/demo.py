@@ -204,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     running = _Running()
+    code = 0
     before = signal.signal(signal.SIGTERM, _stop_on_term)
     # One try from the handler on: a Ctrl-C or SIGTERM at any point of the start-up (the
     # imports, the system's build, the server's start) stops the demo in order too.
@@ -213,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\nstopping...", file=sys.stderr)
     except RuntimeError as exc:
         print(f"scalesteer demo: {exc}", file=sys.stderr)
-        return 1
+        code = 1
     finally:
         # a second Ctrl-C or SIGTERM must not cut the closing short (the server's stop is
         # bounded): jobs and recordings close whole
@@ -224,4 +225,6 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             signal.signal(signal.SIGINT, previous)
             signal.signal(signal.SIGTERM, before)
-    return 0
+        if running.server is not None:  # closed whole: a render still running is not waited for
+            running.server.exit_if_busy(code)
+    return code

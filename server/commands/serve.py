@@ -319,6 +319,11 @@ class ServerThread:
         if self._thread.is_alive():
             raise RuntimeError("the server did not stop")
 
+    def exit_if_busy(self, code: int) -> None:
+        """After `stop`: end the process now when a device is still rendering, as `run` does
+        (the interpreter's exit would wait for that render: minutes for the largest)."""
+        _exit_if_busy(self._app, code)
+
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)

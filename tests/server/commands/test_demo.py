@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import re
 import signal
@@ -196,6 +197,10 @@ def test_sigterm_stops_the_demo_as_ctrl_c_does(tmp_path: Path, after: str) -> No
             out.append(line)
             if after in line:
                 break
+        if after == "Ctrl-C stops the demo":  # and a render of minutes holds its device
+            m = re.search(r"dashboard:\s+http://127\.0\.0\.1:(\d+)/\?token=(\S+)", "".join(out))
+            assert m is not None, "".join(out)
+            _start_a_long_render(int(m.group(1)), m.group(2))
         proc.send_signal(signal.SIGTERM)
         rest, _ = proc.communicate(timeout=60)
         out.append(rest)
@@ -205,6 +210,36 @@ def test_sigterm_stops_the_demo_as_ctrl_c_does(tmp_path: Path, after: str) -> No
             proc.communicate()
     assert proc.returncode == 0, "".join(out[-40:])
     assert "stopping..." in "".join(out)
+
+
+def _start_a_long_render(port: int, token: str) -> None:
+    """A REST render that holds the demo's device for minutes (the geodesic density of
+    adenylate kinase in volume at 1920x1080 on the CPU device), running once this returns:
+    the demo's stop must not wait for it."""
+    from MDAnalysisTests.datafiles import PDB
+
+    url = f"http://127.0.0.1:{port}"
+    auth = {"Authorization": f"Bearer {token}"}
+
+    def render() -> None:
+        params = '{"mode": "volume", "sigma_A": 3.3, "scale_space": "geodesic"}'
+        with open(PDB, "rb") as f, contextlib.suppress(httpx.HTTPError):
+            httpx.post(
+                f"{url}/api/render",
+                headers=auth,
+                files={"file": ("adk.pdb", f)},
+                data={"width": "1920", "height": "1080", "params": params},
+                timeout=600,
+            )
+
+    threading.Thread(target=render, daemon=True).start()
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline:
+        health = httpx.get(f"{url}/healthz", timeout=5).json()
+        if any(r["busy_s"] > 2.0 for r in health["render"]):
+            return
+        time.sleep(0.2)
+    pytest.fail(f"the render did not start: {health}")
 
 
 def test_demo_on_a_taken_port_says_how_to_pick_another(
