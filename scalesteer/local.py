@@ -33,7 +33,8 @@ STOP_GRACE_S = 40.0
 """The supervisor's grace when the server stops: the server alone has half of it (5 s for open
 requests, 10 s for renders on its devices, docs/server.md "Stopping", then its recordings and
 jobs closed), what is still running the other half, then SIGKILL. The supervisor's default of
-5 s gave the server 2.5 s, and could leave a recording interrupted."""
+5 s gave the server 2.5 s, and could leave a recording interrupted. It is sized for the default
+`close_wait_s` (10 s): a server given more through `extra` may be cut short."""
 
 
 def free_port(host: str = "127.0.0.1") -> int:

@@ -20,6 +20,7 @@ import signal
 import socket
 import sys
 import time
+import traceback
 import webbrowser
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -215,6 +216,9 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as exc:
         print(f"scalesteer demo: {exc}", file=sys.stderr)
         code = 1
+    except Exception:  # said here: the exit below may end the process before Python would
+        traceback.print_exc()
+        code = 1
     finally:
         # a second Ctrl-C or SIGTERM must not cut the closing short (the server's stop is
         # bounded): jobs and recordings close whole
@@ -222,9 +226,12 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         try:
             running.close()
+        except Exception:
+            traceback.print_exc()
+            code = 1
         finally:
             signal.signal(signal.SIGINT, previous)
             signal.signal(signal.SIGTERM, before)
-        if running.server is not None:  # closed whole: a render still running is not waited for
+        if running.server is not None:  # closed: a render still running is not waited for
             running.server.exit_if_busy(code)
     return code

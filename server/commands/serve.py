@@ -313,8 +313,12 @@ class ServerThread:
     def app_state(self) -> Any:
         return self._app.state.scalesteer
 
-    def stop(self, timeout: float = 30.0) -> None:
+    def stop(self, timeout: float | None = None) -> None:
+        """Stop and wait: by default as long as the server's own stop may take (5 s for open
+        requests, `close_wait_s` for the devices, and time to close the rest)."""
         self._server.should_exit = True
+        if timeout is None:
+            timeout = 5.0 + self.settings.close_wait_s + 15.0
         self._thread.join(timeout=timeout)
         if self._thread.is_alive():
             raise RuntimeError("the server did not stop")

@@ -315,4 +315,5 @@ class StopAnswer:
                 raise
             detail = "the server is stopping and this request was cut off; send it again later"
             # the task ends here, answered: what cancelled it waits for nothing more from it
-            await JSONResponse({"detail": detail}, 503, headers=CLOSE)(scope, receive, send)
+            headers = {"Retry-After": "30", **CLOSE}
+            await JSONResponse({"detail": detail}, 503, headers=headers)(scope, receive, send)

@@ -182,7 +182,7 @@ def test_sigterm_stops_the_demo_as_ctrl_c_does(tmp_path: Path, after: str) -> No
     """`docker stop` and process managers send SIGTERM: the demo stops in order (its
     simulation and server closed, exit status 0), not killed half-way, whether it comes
     while the system is still being built or once the demo runs."""
-    args = ["demo", "--port", "0", "--no-browser", "--duration", "240"]
+    args = ["demo", "--port", "0", "--no-browser", "--duration", "240", "--device", "cpu"]
     proc = subprocess.Popen(
         [sys.executable, "-m", "server.commands.cli", *args, "--state-dir", str(tmp_path)],
         cwd=ROOT,
