@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import platform
 import sys
 import time
@@ -34,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.render_bench import build_system, jittered_frames, topology_of
 from protocol import RenderParams
-from server.pipeline import gpu, staging
+from server.pipeline import staging
 from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
 from server.render.camera import fit_camera
 
@@ -99,14 +100,18 @@ def run(
     s: float,
     staging_before: bool = False,
 ) -> Any:
-    queue = GpuQueue(device=device, max_atoms=max(len(frames[0]), 1), prefetch=prefetch)
-    threads, wait = staging.COPY_THREADS, gpu.stage_wait_s
-    if staging_before:
-        staging.COPY_THREADS, gpu.stage_wait_s = 1, lambda n: gpu.STAGE_WAIT_S
+    # the control: one thread copies a frame, and a render waits 5 ms for it at most
+    policy = (
+        staging.Staging(copy_threads=1, pageable_bytes_per_s=math.inf)
+        if staging_before
+        else staging.Staging()
+    )
+    queue = GpuQueue(
+        device=device, max_atoms=max(len(frames[0]), 1), prefetch=prefetch, staging=policy
+    )
     try:
         return asyncio.run(stream(queue, frames, topo, size, s))
     finally:
-        staging.COPY_THREADS, gpu.stage_wait_s = threads, wait
         queue.close()
 
 

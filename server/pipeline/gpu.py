@@ -37,27 +37,12 @@ import numpy as np
 import numpy.typing as npt
 
 import protocol as p
-from server.pipeline.staging import FrameStager
+from server.pipeline.staging import FrameStager, Staging
 from server.render.errors import CapacityError, RenderError
 from server.threads import name_thread
 
 STAGE_ATOMS = 100_000
 """Frames of at least this many atoms are copied to page-locked memory as they arrive."""
-STAGE_WAIT_S = 0.005
-"""Least a render waits for its frame's staged copy to finish (a 12 MB copy takes 2-3 ms)
-before uploading from the frame itself; see `stage_wait_s`."""
-PAGEABLE_BYTES_PER_S = 5e9
-"""Below what an upload from pageable memory reaches (6.9 GB/s measured for 1.2 GB on an H200
-host): a copy under way finishes sooner than such an upload of the whole frame would."""
-
-
-def stage_wait_s(n_atoms: int) -> float:
-    """How long a render waits for its frame's staged copy under way: at least
-    `STAGE_WAIT_S`, and as long as an upload from the frame itself would take (a copy not yet
-    begun is waited for `STAGE_WAIT_S` only). A 100M-atom frame gave up after 5 ms and
-    uploaded from pageable memory for 145-175 ms while its copy went on beside it."""
-    return max(STAGE_WAIT_S, n_atoms * 12 / PAGEABLE_BYTES_PER_S)
-
 
 if TYPE_CHECKING:
     from server.pipeline.encoder import DeviceJpeg
@@ -268,6 +253,8 @@ class GpuQueue:
     actual_device: str = ""
     stage_atoms: int = STAGE_ATOMS
     """Frames of at least this many atoms are staged in page-locked memory as they arrive."""
+    staging: Staging = field(default_factory=Staging)
+    """Their copy's threads and a render's wait for it (benchmarks: the control)."""
     _stage_pool: ThreadPoolExecutor = field(
         default_factory=lambda: ThreadPoolExecutor(
             max_workers=1, thread_name_prefix="stage", initializer=name_thread
@@ -530,7 +517,9 @@ class GpuQueue:
         stager = slot.stager
         if stager is None or stager.n != len(positions):
             try:
-                stager = slot.stager = FrameStager(len(positions), self._stage_pool)
+                stager = slot.stager = FrameStager(
+                    len(positions), self._stage_pool, policy=self.staging
+                )
             except Exception:  # no page-locked memory to be had: frames upload as before
                 log.exception("could not page-lock staging buffers for %d atoms", len(positions))
                 return
@@ -679,7 +668,7 @@ class GpuQueue:
                 and isinstance(single, Renderer)
             )
             if not shown and stager is not None and stager.n == len(snap.positions):
-                staged = stager.take(snap.positions_id, stage_wait_s(stager.n), STAGE_WAIT_S)
+                staged = stager.take(snap.positions_id)
             if shown:
                 assert slot.periodic is not None and isinstance(single, Renderer)
                 single.set_positions(

@@ -21,6 +21,7 @@ from __future__ import annotations
 import enum
 import itertools
 import logging
+import math
 import os
 import threading
 import time
@@ -49,10 +50,37 @@ _slicers: ThreadPoolExecutor | None = None
 _slicers_lock = threading.Lock()
 
 
-def copy_rows(dst: npt.NDArray[np.float32], src: npt.NDArray[np.float32]) -> None:
-    """`dst[:] = src`, in slices copied by up to `COPY_THREADS` threads when it is large
-    (numpy copies without the interpreter lock); returns once every slice is copied."""
-    slices = min(COPY_THREADS, src.nbytes // SLICE_BYTES)
+@dataclass(frozen=True)
+class Staging:
+    """How frames are staged: the threads that copy a large one, and how long a render waits
+    for its frame's copy before it uploads from the frame itself."""
+
+    copy_threads: int | None = None
+    """None: `COPY_THREADS`."""
+    min_wait_s: float = 0.005
+    """Least a render waits for its frame's copy (a 12 MB copy takes 2-3 ms), and the most it
+    waits for a copy not yet begun (the stage thread is busy elsewhere)."""
+    pageable_bytes_per_s: float = 5e9
+    """Below what an upload from pageable memory reaches (6.9 GB/s measured for 1.2 GB on an
+    H200 host): a copy under way finishes sooner than such an upload of the whole frame would.
+    `math.inf`: never wait longer than `min_wait_s` (the staging of before 2026-11-29)."""
+
+    def wait_s(self, n_atoms: int) -> float:
+        """How long a render waits for a copy of `n_atoms` under way: as long as an upload
+        from the frame itself would take. A 100M-atom frame gave up after 5 ms and uploaded
+        from pageable memory for 145-175 ms while its copy went on beside it."""
+        if math.isinf(self.pageable_bytes_per_s):
+            return self.min_wait_s
+        return max(self.min_wait_s, n_atoms * 12 / self.pageable_bytes_per_s)
+
+
+def copy_rows(
+    dst: npt.NDArray[np.float32], src: npt.NDArray[np.float32], threads: int | None = None
+) -> None:
+    """`dst[:] = src`, in slices copied by up to `threads` threads (None: `COPY_THREADS`) when
+    it is large (numpy copies without the interpreter lock); returns once every slice is
+    copied."""
+    slices = min(COPY_THREADS if threads is None else threads, src.nbytes // SLICE_BYTES)
     if slices < 2:
         np.copyto(dst, src, casting="same_kind")
         return
@@ -110,10 +138,16 @@ class FrameStager:
     frames arrive, `take` and `release` by the render that uploads one."""
 
     def __init__(
-        self, n: int, pool: Executor, allocate: Allocate = pinned, count: int = BUFFERS
+        self,
+        n: int,
+        pool: Executor,
+        allocate: Allocate = pinned,
+        count: int = BUFFERS,
+        policy: Staging = Staging(),
     ) -> None:
         self.n = n
         self._pool = pool
+        self.policy = policy
         self._lock = threading.Lock()
         self._buffers = [_Buffer(*allocate(n)) for _ in range(count)]
 
@@ -147,7 +181,7 @@ class FrameStager:
         buf.started.set()
         ok = False
         try:
-            copy_rows(buf.array, positions)
+            copy_rows(buf.array, positions, self.policy.copy_threads)
             ok = True
         except Exception:  # the render then uploads the frame from where it is
             log.exception("staging a frame in page-locked memory failed")
@@ -156,13 +190,16 @@ class FrameStager:
             buf.done.set()
 
     def take(
-        self, positions_id: int, wait_s: float, start_wait_s: float | None = None
+        self, positions_id: int, wait_s: float | None = None, start_wait_s: float | None = None
     ) -> npt.NDArray[np.float32] | None:
         """The page-locked copy of frame `positions_id`, now in use until `release`; waits up
         to `wait_s` for a copy under way, and at most `start_wait_s` of that for a copy still
         queued to begin (the stage thread is busy elsewhere: a long wait would be spent on
-        another copy). None when there is no copy of that frame (it came while every buffer
-        was busy) or it is not done in time."""
+        another copy); both None: the policy's. None when there is no copy of that frame (it
+        came while every buffer was busy) or it is not done in time."""
+        if wait_s is None:
+            wait_s = self.policy.wait_s(self.n)
+            start_wait_s = self.policy.min_wait_s if start_wait_s is None else start_wait_s
         with self._lock:
             buf = next(
                 (

@@ -3,6 +3,7 @@ own; a render takes its frame's copy, and a buffer in use is never written until
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -108,11 +109,38 @@ def test_a_large_frame_is_copied_in_slices_whole_and_in_order(
 
 
 def test_a_render_waits_for_a_large_copy_as_long_as_a_pageable_upload_would_take() -> None:
-    from server.pipeline.gpu import STAGE_WAIT_S, stage_wait_s
+    from server.pipeline.staging import Staging
 
-    assert stage_wait_s(1_000) == STAGE_WAIT_S  # a small frame: no longer than before
-    assert stage_wait_s(100_000_000) > 0.2  # 1.2 GB: the copy under way is worth waiting for
-    assert stage_wait_s(200_000_000) == pytest.approx(2 * stage_wait_s(100_000_000))
+    policy = Staging()
+    assert policy.wait_s(1_000) == policy.min_wait_s  # a small frame: no longer than before
+    assert policy.wait_s(100_000_000) > 0.2  # 1.2 GB: the copy under way is worth waiting for
+    assert policy.wait_s(200_000_000) == pytest.approx(2 * policy.wait_s(100_000_000))
+    before = Staging(copy_threads=1, pageable_bytes_per_s=math.inf)  # the benchmark's control
+    assert before.wait_s(100_000_000) == before.min_wait_s
+
+
+def test_the_policy_names_the_threads_that_copy_a_large_frame(
+    pool: ThreadPoolExecutor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from server.pipeline import staging
+
+    monkeypatch.setattr(staging, "SLICE_BYTES", 1 << 10)
+    monkeypatch.setattr(staging, "COPY_THREADS", 4)
+    sliced: list[int] = []
+    real = np.copyto
+
+    def counted(dst: np.ndarray, src: np.ndarray, **kw: object) -> None:
+        sliced.append(len(src))
+        real(dst, src, **kw)
+
+    monkeypatch.setattr(staging.np, "copyto", counted)
+    n = 4_000
+    src = np.arange(n * 3, dtype=np.float32).reshape(n, 3)
+    stager = FrameStager(n, pool, plain, policy=staging.Staging(copy_threads=1))
+    assert stager.offer(1, src)
+    staged = stager.take(1, wait_s=5.0)
+    assert staged is not None and np.array_equal(staged, src)
+    assert sliced == [n]  # one copy on the stage thread: the control's staging
 
 
 def test_a_failed_slice_is_reported_only_once_every_slice_has_stopped_writing(
