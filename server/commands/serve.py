@@ -262,13 +262,13 @@ def run(settings: ServerSettings, log_level: str = "info") -> None:
 
 
 def _exit_if_busy(app: Any, code: int) -> None:
-    """End the process now when a device's thread is still rendering (`GpuQueue.close`, or
-    a stop that failed before it): the interpreter's exit would wait for that thread. Exit
-    handlers are skipped: the app has closed what holds data (recordings, jobs, the steering
-    log), and a spare file-reading child ends when its socket closes."""
+    """End the process now when a device's thread is still rendering (left by
+    `GpuQueue.close`, or by a stop that failed before it): the interpreter's exit would wait
+    for that thread. Exit handlers are skipped: the app has closed what holds data
+    (recordings, jobs, the steering log), and a spare file-reading child ends when its socket
+    closes."""
     state = getattr(app.state, "scalesteer", None)
-    running = state is not None and any(r["busy_s"] > 0 for r in state.gpu.busy())
-    if getattr(app.state, "busy_at_exit", None) or running:
+    if state is not None and any(r["busy_s"] > 0 for r in state.gpu.busy()):
         logging.shutdown()
         sys.stdout.flush()
         sys.stderr.flush()

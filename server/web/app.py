@@ -7,10 +7,10 @@ import contextlib
 import logging
 import shutil
 import time
-from collections.abc import AsyncIterator, Awaitable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from fastapi import FastAPI, WebSocket
 from fastapi.exceptions import RequestValidationError
@@ -96,23 +96,28 @@ def clean_spool(directory: Path) -> Path:
     return directory
 
 
-async def _closing(what: str, step: Awaitable[object]) -> None:
-    """One step of the server's stop; a failure is logged and the next steps still run."""
+async def _closing(
+    what: str, step: Awaitable[object] | Callable[[], object], deadline: float | None = None
+) -> None:
+    """One step of the server's stop: a failure is logged and the next steps still run. A
+    callable runs here, on the loop; an awaitable is awaited, and with a `deadline`
+    (monotonic) waited for until then, then cancelled without waiting further
+    (`asyncio.wait_for` would wait for its cancellation, which may wait on a device)."""
     try:
-        await step
+        if callable(step):
+            step()
+        elif deadline is None:
+            await step
+        else:
+            task = asyncio.ensure_future(step)
+            done, _ = await asyncio.wait({task}, timeout=max(0.0, deadline - time.monotonic()))
+            if not done:
+                task.cancel()
+                log.warning("stopping: %s still waited on the devices at the deadline", what)
+                return
+            task.result()
     except Exception:
         log.exception("closing %s failed; the rest is closed still", what)
-
-
-async def _within(task: asyncio.Task[Any], deadline: float, what: str) -> None:
-    """Wait for `task` until `deadline` (monotonic), then cancel it without waiting further
-    (`asyncio.wait_for` would wait for its cancellation, which may wait on a device)."""
-    done, _ = await asyncio.wait({task}, timeout=max(0.0, deadline - time.monotonic()))
-    if not done:
-        task.cancel()
-        log.warning("stopping: %s still waited on the devices at the deadline", what)
-    elif not task.cancelled() and task.exception() is not None:
-        log.error("closing %s failed", what, exc_info=task.exception())
 
 
 def create_app(settings: ServerSettings) -> FastAPI:
@@ -240,26 +245,23 @@ def create_app(settings: ServerSettings) -> FastAPI:
             # when one before it failed
             deadline = time.monotonic() + settings.close_wait_s
             if warming is not None:
-                await _within(warming, deadline, "the warm-up render")
-            try:  # on the loop: its timers are the loop's
-                state.owners.close()
-            except Exception:
-                log.exception("closing the owners' leases failed; the rest is closed still")
+                await _closing("the warm-up render", warming, deadline)
+            # on the loop: its timers are the loop's
+            await _closing("the owners' leases", state.owners.close)
             await _closing("the replays", asyncio.to_thread(state.replays.close))
             await _closing("the recordings", asyncio.to_thread(state.recordings.close))
             await _closing("the jobs", state.jobs.close())
             if batch is not None:
                 await _closing("the batch engine", asyncio.to_thread(batch.close))
-            await _within(asyncio.create_task(state.sessions.close()), deadline, "the sessions")
+            await _closing("the sessions", state.sessions.close(), deadline)
             await _closing("the selection workers", asyncio.to_thread(selections.close))
             left = max(0.0, deadline - time.monotonic())
             busy = await asyncio.to_thread(gpu.close, left)
-            if busy:
+            if busy:  # the process then exits without it (`server.commands.serve`)
                 log.warning(
                     "stopping with work still running: %s",
                     ", ".join(f"{device} for {secs:.0f} s" for device, secs in busy),
                 )
-                app.state.busy_at_exit = busy
             encoders.shutdown(wait=True)
             steering_log.close()
 
