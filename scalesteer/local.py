@@ -30,11 +30,27 @@ from scalesteer.errors import ServerStartError
 ROOT = Path(__file__).resolve().parents[1]
 START_TIMEOUT_S = 90.0
 STOP_GRACE_S = 40.0
-"""The supervisor's grace when the server stops: the server alone has half of it (5 s for open
-requests, 10 s for renders on its devices, docs/server.md "Stopping", then its recordings and
-jobs closed), what is still running the other half, then SIGKILL. The supervisor's default of
-5 s gave the server 2.5 s, and could leave a recording interrupted. It is sized for the default
-`close_wait_s` (10 s): a server given more through `extra` may be cut short."""
+"""The supervisor's grace when the server stops, at the default `close_wait_s` (10 s): the
+server alone has half of it (5 s for open requests, `close_wait_s` for renders on its devices,
+docs/server.md "Stopping", then its recordings and jobs closed), what is still running the
+other half, then SIGKILL. The supervisor's default of 5 s gave the server 2.5 s, and could
+leave a recording interrupted. `stop_grace_s` sizes it for the server's own settings."""
+
+
+def stop_grace_s(extra: tuple[str, ...]) -> float:
+    """The supervisor's grace for a server started with `extra`: twice what its own stop may
+    take (10 s beside `close_wait_s`), so that a `--set close_wait_s=...` larger than the
+    default is not cut short."""
+    wait_s = 10.0
+    for i, arg in enumerate(extra):
+        pair = extra[i + 1] if arg == "--set" and i + 1 < len(extra) else arg
+        if arg.startswith("--set="):
+            pair = arg.removeprefix("--set=")
+        name, _, value = pair.partition("=")
+        if name.strip() == "close_wait_s":
+            with contextlib.suppress(ValueError):  # the server refuses it by name at its start
+                wait_s = max(wait_s, float(value))
+    return max(STOP_GRACE_S, 2 * (wait_s + 10.0))
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -83,6 +99,7 @@ class LocalServer:
         else:
             self.log_path = self.state_dir / "server.log"
         self._lock = threading.Lock()
+        self.grace_s = stop_grace_s(extra)
         self._lifeline = -1
         self.process: subprocess.Popen[bytes] | None = None
         self.port = 0
@@ -116,7 +133,7 @@ class LocalServer:
             "--state-dir", str(self.state_dir), "--log-level", "warning", *extra,
         ]  # fmt: skip
         supervisor = [sys.executable, "-m", "server.supervisor", "--lifeline", str(read_end)]
-        supervisor += ["--grace", str(STOP_GRACE_S)]
+        supervisor += ["--grace", str(self.grace_s)]
         if self._temporary:
             supervisor += ["--remove", str(self.state_dir)]
         env = dict(os.environ)
@@ -172,8 +189,11 @@ class LocalServer:
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None
 
-    def stop(self, timeout: float = STOP_GRACE_S + 10.0) -> None:
-        """End the server (and what it started) and wait for it; idempotent."""
+    def stop(self, timeout: float | None = None) -> None:
+        """End the server (and what it started) and wait for it (by default its grace and
+        10 s more); idempotent."""
+        if timeout is None:
+            timeout = self.grace_s + 10.0
         with self._lock:
             if self._lifeline >= 0:
                 os.close(self._lifeline)  # the supervisor sees it close and ends the tree

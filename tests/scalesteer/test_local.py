@@ -16,7 +16,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from scalesteer.local import STOP_GRACE_S
+from scalesteer.local import STOP_GRACE_S, stop_grace_s
 from server.supervisor import descendants
 from tests.server.processes import command_line, wait_gone
 
@@ -85,6 +85,17 @@ loaded = sorted(m for m in sys.modules if m.split(".")[0] in HEAVY)
 assert not loaded, loaded
 print("light-ok")
 """
+
+
+def test_the_supervisors_grace_covers_a_longer_wait_for_the_devices() -> None:
+    """The server's stop may wait `close_wait_s` for its devices: a larger one set through
+    `extra` gets a grace that holds it, so the supervisor does not kill the server mid-stop."""
+    assert stop_grace_s(()) == STOP_GRACE_S
+    assert stop_grace_s(("--set", "max_sessions=4")) == STOP_GRACE_S
+    assert stop_grace_s(("--set", "close_wait_s=5")) == STOP_GRACE_S  # never less than that
+    assert stop_grace_s(("--set", "close_wait_s=60")) == 140.0
+    assert stop_grace_s(("--set=close_wait_s=60",)) == 140.0
+    assert stop_grace_s(("--set", "close_wait_s=soon")) == STOP_GRACE_S  # the server says why
 
 
 def test_the_client_imports_without_the_servers_packages() -> None:
