@@ -47,7 +47,7 @@ class Dashboard {
     this.unconfirmed = new Unconfirmed(); // this page's edits the session has not answered
     this.hashRender = fromHash.render; // a shared link's render params, applied once as steerer
     // layers belong to one system: a link that does not name them keeps the session's
-    this.hashHasLayers = new URLSearchParams(window.location.hash.replace(/^#/, "")).has("layers");
+    this.hashHasLayers = fromHash.hasLayers;
     this.camera = fromHash.camera;
     this.cameraCustom = Boolean(fromHash.camera);
     this.sessionCamera = null;
@@ -76,7 +76,7 @@ class Dashboard {
     this.sendViewSoon = throttle(() => this.sendView(false), 120);
     // video: what this browser decodes at the view's size, and whether the user or a decoder
     // failure asked for JPEG (`?transport=jpeg` in the address does too)
-    this.transport = new URLSearchParams(window.location.search).get("transport") === "jpeg" ? "jpeg" : "auto";
+    this.transport = query.transport;
     this.videoCodecs = [];
     this.videoSize = "";
     this.videoFailed = false;

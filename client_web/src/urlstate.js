@@ -166,14 +166,17 @@ export function encodeHash({ render = null, camera = null } = {}) {
 }
 
 /**
- * Parse a hash. Returns {render, camera, invalid}: `render` is a full RenderParams (defaults plus
- * what the hash names) or null when the hash holds no state; `invalid` lists keys ignored.
+ * Parse a hash. Returns {render, camera, invalid, hasLayers}: `render` is a full RenderParams
+ * (defaults plus what the hash names) or null when the hash holds no state; `invalid` lists keys
+ * ignored; `hasLayers` says whether the link names layers (layers belong to one system: a link
+ * without them keeps the session's).
  */
 export function decodeHash(hash) {
   const text = String(hash ?? "").replace(/^#/, "");
   const params = new URLSearchParams(text);
   const invalid = [];
-  if (params.get("v") !== HASH_VERSION) return { render: null, camera: decodeCamera(params), invalid };
+  const hasLayers = params.has("layers");
+  if (params.get("v") !== HASH_VERSION) return { render: null, camera: decodeCamera(params), invalid, hasLayers };
   const patch = {};
   const lighting = {};
   for (const [key, path, kind] of FIELDS) {
@@ -192,10 +195,13 @@ export function decodeHash(hash) {
     camera = decodeCamera(params);
     if (!camera) invalid.push("cam");
   }
-  return { render: mergeRender(RENDER_DEFAULTS, patch), camera, invalid };
+  return { render: mergeRender(RENDER_DEFAULTS, patch), camera, invalid, hasLayers };
 }
 
-/** Connection parameters from the page's query string. */
+/**
+ * Connection parameters from the page's query string; `transport` is "jpeg" when the address
+ * asks for JPEG images (`?transport=jpeg`), else "auto" (video where the browser decodes it).
+ */
 export function readQuery(search) {
   const q = new URLSearchParams(String(search ?? "").replace(/^\?/, ""));
   const session = q.get("session");
@@ -203,5 +209,6 @@ export function readQuery(search) {
     token: q.get("token") || null,
     role: q.get("role") === "viewer" ? "viewer" : "steerer",
     session: session && /^[A-Za-z0-9_.-]{1,64}$/.test(session) ? session : "default",
+    transport: q.get("transport") === "jpeg" ? "jpeg" : "auto",
   };
 }

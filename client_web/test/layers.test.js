@@ -56,5 +56,8 @@ test("layers travel in the link", () => {
   const broken = decodeHash("v=1&layers=%5B%7B%22selection%22%3A1%7D");
   assert.deepEqual(broken.render.layers, []);
   assert.ok(broken.invalid.length > 0);
+  // whether the link names layers at all: one that does not keeps the session's
+  assert.equal(broken.hasLayers, true);
+  assert.equal(decodeHash("v=1&iso=0.3").hasLayers, false);
 });
 

@@ -71,7 +71,7 @@ test("a link carries the centre and fit selections with the periodic options", (
 });
 
 test("a hash without state, or with junk, is handled", () => {
-  assert.deepEqual(decodeHash(""), { render: null, camera: null, invalid: [] });
+  assert.deepEqual(decodeHash(""), { render: null, camera: null, invalid: [], hasLayers: false });
   const junk = decodeHash("#v=1&sigma=abc&mode=cubes&bg=zz&cam=1,2&tf=1:xyz:1");
   assert.deepEqual(junk.invalid.sort(), ["bg", "cam", "mode", "sigma", "tf"]);
   assert.equal(junk.render.sigma_A, RENDER_DEFAULTS.sigma_A);
@@ -79,7 +79,9 @@ test("a hash without state, or with junk, is handled", () => {
 });
 
 test("the query names token, role and session", () => {
-  assert.deepEqual(readQuery("?token=abc"), { token: "abc", role: "steerer", session: "default" });
-  assert.deepEqual(readQuery("?role=viewer&token=v&session=run-2"), { token: "v", role: "viewer", session: "run-2" });
+  assert.deepEqual(readQuery("?token=abc"), { token: "abc", role: "steerer", session: "default", transport: "auto" });
+  assert.deepEqual(readQuery("?role=viewer&token=v&session=run-2"), { token: "v", role: "viewer", session: "run-2", transport: "auto" });
   assert.equal(readQuery("?session=../x").session, "default");
+  assert.equal(readQuery("?transport=jpeg").transport, "jpeg");
+  assert.equal(readQuery("?transport=h264").transport, "auto"); // only JPEG may be asked for
 });
