@@ -60,4 +60,3 @@ test("layers travel in the link", () => {
   assert.equal(broken.hasLayers, true);
   assert.equal(decodeHash("v=1&iso=0.3").hasLayers, false);
 });
-

@@ -80,7 +80,12 @@ test("a hash without state, or with junk, is handled", () => {
 
 test("the query names token, role and session", () => {
   assert.deepEqual(readQuery("?token=abc"), { token: "abc", role: "steerer", session: "default", transport: "auto" });
-  assert.deepEqual(readQuery("?role=viewer&token=v&session=run-2"), { token: "v", role: "viewer", session: "run-2", transport: "auto" });
+  assert.deepEqual(readQuery("?role=viewer&token=v&session=run-2"), {
+    token: "v",
+    role: "viewer",
+    session: "run-2",
+    transport: "auto",
+  });
   assert.equal(readQuery("?session=../x").session, "default");
   assert.equal(readQuery("?transport=jpeg").transport, "jpeg");
   assert.equal(readQuery("?transport=h264").transport, "auto"); // only JPEG may be asked for
