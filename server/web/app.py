@@ -114,8 +114,8 @@ async def _closing(
             if not done:
                 task.cancel()
                 log.warning("stopping: %s still waited on the devices at the deadline", what)
-                return
-            task.result()
+            elif not task.cancelled():  # one cancelled already has nothing to report
+                task.result()
     except Exception:
         log.exception("closing %s failed; the rest is closed still", what)
 
