@@ -139,6 +139,34 @@ def test_trajectory_job_to_zip_and_mp4(live_server: LiveServer) -> None:
     assert frames == 10
 
 
+def test_a_job_takes_a_trajectory_in_several_files(live_server: LiveServer) -> None:
+    """`trajectory` given once per file (as the API and the Python client take a list): the
+    files are read one after another. The form check had refused the field's second use."""
+    dcd = Path(DCD).read_bytes()
+    with client(live_server) as c:
+        r = c.post(
+            "/api/jobs",
+            headers=AUTH,
+            files=[
+                ("topology", ("adk.psf", Path(PSF).read_bytes())),
+                ("trajectory", ("part1.dcd", dcd)),
+                ("trajectory", ("part2.dcd", dcd)),
+            ],
+            data={"width": "32", "height": "24", "output": "zip", "stride": "49"},
+        )
+        assert r.status_code == 202, r.text
+        info, _ = wait_job(c, r.json()["id"])
+        assert info["state"] == "done", info
+        assert info["progress"] == {"done": 4, "total": 4}  # 196 frames, every 49th
+        r = c.post(
+            "/api/jobs",
+            headers=AUTH,
+            files=[("topology", ("adk.psf", Path(PSF).read_bytes()))],
+            data={"width": "32", "height": ["24", "30"]},
+        )
+        assert r.status_code == 422 and "'height': form field given more than once" in r.text
+
+
 def test_job_cancel_and_bad_job_input(live_server: LiveServer) -> None:
     with client(live_server) as c:
         with open(PSF, "rb") as top, open(DCD, "rb") as traj:
