@@ -16,13 +16,13 @@ from urllib.parse import parse_qs, urlsplit, urlunsplit
 
 from pydantic import ValidationError
 
-from protocol import Camera, Hello, RenderParams, Role
+from protocol import Camera, Hello, Role
 from scalesteer import background, images
 from scalesteer.jobs import Job, Recording
 from scalesteer.link import ViewLink
 from scalesteer.local import LocalServer
 from scalesteer.rest import Rest
-from scalesteer.session import IDLE_VIEW, Session, invalid
+from scalesteer.session import IDLE_VIEW, Session, checked_camera, checked_params, invalid
 
 CLIENT_NAME = "scalesteer-python"
 
@@ -214,9 +214,9 @@ class Client:
         """One picture of a structure file (PDB, mmCIF, GRO, ...) as a numpy array."""
         fields: dict[str, Any] = {"width": width, "height": height, "frame": frame}
         if params is not None:
-            fields["params"] = _params(params)
+            fields["params"] = checked_params(params)
         if camera is not None:
-            fields["camera"] = _camera(camera)
+            fields["camera"] = checked_camera(camera)
         answer = self.rest.request("POST", "/api/render", form=fields, files={"file": path})
         return images.array(answer.content, mode)
 
@@ -244,9 +244,9 @@ class Client:
                                   "start": start, "stop": stop, "stride": stride,
                                   "fps": fps}  # fmt: skip
         if params is not None:
-            fields["params"] = _params(params)
+            fields["params"] = checked_params(params)
         if camera is not None:
-            fields["camera"] = _camera(camera)
+            fields["camera"] = checked_camera(camera)
         files: dict[str, Any] = {"topology": topology}
         if trajectories:
             files["trajectory"] = trajectories
@@ -303,18 +303,3 @@ def shutdown() -> None:
         server, _default_server = _default_server, None
     if server is not None:
         server.stop()
-
-
-def _params(params: Mapping[str, Any]) -> dict[str, Any]:
-    try:
-        return RenderParams.model_validate(dict(params)).model_dump(mode="json")
-    except ValidationError as exc:
-        raise invalid(exc, "params") from None
-
-
-def _camera(camera: Camera | Mapping[str, Any]) -> dict[str, Any]:
-    try:
-        cam = camera if isinstance(camera, Camera) else Camera.model_validate(dict(camera))
-    except ValidationError as exc:
-        raise invalid(exc, "camera") from None
-    return cam.model_dump(mode="json")

@@ -78,6 +78,43 @@ def invalid(exc: ValidationError, prefix: str) -> ScalesteerError:
     return ScalesteerError(ErrorCode.INVALID_MESSAGE, f"{path}: {err['msg']}", path)
 
 
+def checked_params(
+    params: Mapping[str, Any], prefix: str = "params", base: RenderParams | None = None
+) -> dict[str, Any]:
+    """Render parameters for a REST form, checked here as the server checks them: a key no
+    field has is refused by name (the model alone drops it in silence, and `sigmaa` would
+    render the default). Only what `params` names is sent, so the server's own choices hold
+    where they are not named (layers: a file opens on its molecule, solvent hidden). With
+    `base` (a session's parameters), `params` are changes to it, and its layers stay the
+    session's unless `params` name them."""
+    unknown = unknown_keys(RenderParams, dict(params), prefix)
+    if unknown is not None:
+        raise ScalesteerError(ErrorCode.INVALID_MESSAGE, f"{unknown}: unknown field", unknown)
+    merged = dict(params)
+    if base is not None:
+        merged = {**base.model_dump(exclude={"layers"}), **merged}
+    try:
+        checked = RenderParams.model_validate(merged)
+    except ValidationError as exc:
+        raise invalid(exc, prefix) from None
+    out: dict[str, Any] = checked.model_dump(mode="json", exclude_unset=True)
+    return out
+
+
+def checked_camera(camera: Camera | Mapping[str, Any], prefix: str = "camera") -> dict[str, Any]:
+    """A camera for a REST form, checked as the server checks it (unknown keys by name)."""
+    if not isinstance(camera, Camera):
+        unknown = unknown_keys(Camera, dict(camera), prefix)
+        if unknown is not None:
+            raise ScalesteerError(ErrorCode.INVALID_MESSAGE, f"{unknown}: unknown field", unknown)
+        try:
+            camera = Camera.model_validate(dict(camera))
+        except ValidationError as exc:
+            raise invalid(exc, prefix) from None
+    out: dict[str, Any] = camera.model_dump(mode="json")
+    return out
+
+
 class Source(Protocol):
     """What feeds a session from this process (a replayed trajectory, an OpenMM reporter);
     closed with the session."""
@@ -281,17 +318,9 @@ class Session:
         fields: dict[str, Any] = {"session": self.name, "width": width, "height": height,
                                   "format": format}  # fmt: skip
         if params:
-            merged = {**self.render_params.model_dump(), **params}
-            try:
-                fields["params"] = RenderParams.model_validate(merged).model_dump(mode="json")
-            except ValidationError as exc:
-                raise invalid(exc, "params") from None
+            fields["params"] = checked_params(params, base=self.render_params)
         if camera is not None:
-            try:
-                cam = camera if isinstance(camera, Camera) else Camera.model_validate(camera)
-            except ValidationError as exc:
-                raise invalid(exc, "camera") from None
-            fields["camera"] = cam.model_dump(mode="json")
+            fields["camera"] = checked_camera(camera)
         return self.client.rest.request("POST", "/api/render", form=fields).content
 
     def image(
@@ -430,8 +459,7 @@ class Session:
         fields: dict[str, Any] = {"width": width, "height": height, "fps": fps,
                                   "max_frames": max_frames}  # fmt: skip
         if camera is not None:
-            cam = camera if isinstance(camera, Camera) else Camera.model_validate(camera)
-            fields["camera"] = cam.model_dump(mode="json")
+            fields["camera"] = checked_camera(camera)
         info = self.client.rest.json("POST", f"/api/sessions/{self.name}/movies", form=fields)
         return Job(self.client.rest, info)
 

@@ -176,6 +176,51 @@ def test_a_recording_and_a_batch_job(
     assert bad.value.path == "params.sigma_A"  # checked here, before the upload
 
 
+def test_params_send_only_what_they_name_so_a_file_still_opens_on_its_molecule(
+    client: scalesteer.Client, live_server: LiveServer
+) -> None:
+    """`params` had been sent as the whole model, `layers: []` with it (every atom): a
+    solvated system came out as a box of water, where the same request over REST opened on
+    the protein. And a misspelt key was dropped, where the server names it."""
+    import httpx
+    from MDAnalysisTests.datafiles import GRO
+
+    from scalesteer.images import array
+
+    size = {"width": "48", "height": "36"}
+    mine = client.render(GRO, 48, 36, params={"sigma_A": 2.0})
+    with httpx.Client(base_url=live_server.url, timeout=300) as c, open(GRO, "rb") as f:
+        answer = c.post(
+            "/api/render",
+            headers={"Authorization": f"Bearer {live_server.token}"},
+            data={**size, "params": '{"sigma_A": 2.0}'},
+            files={"file": ("adk.gro", f)},
+        )
+    assert answer.status_code == 200, answer.text
+    assert np.array_equal(mine, array(answer.content, "RGB"))  # the protein, solvent hidden
+    with pytest.raises(ScalesteerError) as typo:
+        client.render(GRO, 48, 36, params={"sigmaa": 2.0})
+    assert typo.value.path == "params.sigmaa" and "unknown field" in str(typo.value)
+    with pytest.raises(ScalesteerError) as camera:
+        client.render(GRO, 48, 36, camera={"distanse": 5.0})
+    assert camera.value.path == "camera.distanse"
+
+
+def test_checked_params_name_only_what_was_given() -> None:
+    from protocol import RenderParams
+    from scalesteer.session import checked_params
+
+    assert checked_params({"sigma_A": 2.0, "lighting": {"ambient": 0.4}}) == {
+        "sigma_A": 2.0,
+        "lighting": {"ambient": 0.4},
+    }
+    session = RenderParams(sigma_A=3.0, iso_level=0.4)
+    changed = checked_params({"sigma_A": 2.0}, base=session)
+    assert changed["sigma_A"] == 2.0 and changed["iso_level"] == 0.4
+    assert "layers" not in changed  # the session's own layers stay
+    assert "layers" in checked_params({"layers": []}, base=session)  # unless named
+
+
 def test_an_openmm_simulation_in_one_line(client: scalesteer.Client) -> None:
     from tests.adapters.openmm_helpers import argon_recipe
 
