@@ -42,8 +42,9 @@ class _Described:
 class Job(_Described):
     """A batch render (trajectory -> zip of PNGs or MP4) or a movie of a live session.
 
-    `info` is the server's latest description (`state`, `progress` {done, total}, `eta_s`,
-    `error`, `stage`, `partial`, `warning`); `refresh()` asks again."""
+    `info` is the server's description as of the last call (`state`, `progress` {done,
+    total}, `eta_s`, `error`, `stage`, `partial`, `warning`, `ending`): `refresh()` asks
+    again, and `wait()` and `cancel()` refresh it."""
 
     @property
     def progress(self) -> tuple[int, int]:
@@ -86,9 +87,21 @@ class Job(_Described):
         return self._rest.download(f"/api/jobs/{self.id}/result", target)
 
     def cancel(self) -> Job:
-        """Cancel a queued or running job (a live movie ends and keeps what it filmed)."""
-        self.info = {**self.info, **self._rest.json("DELETE", f"/api/jobs/{self.id}")}
+        """Stop a queued or running job: it ends `cancelled` (`info["ending"]` says so until
+        it has), and a live movie ends keeping what it filmed. A job that has ended is left
+        as it is, its output too (`delete()` removes it)."""
+        self.info = self._rest.json("POST", f"/api/jobs/{self.id}/cancel")
         return self
+
+    def delete(self, timeout: float = 60.0) -> None:
+        """Remove the job and its output from the server; one still running is cancelled
+        first (a live movie's too: nothing is kept), and waited for up to `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while not self._rest.json("DELETE", f"/api/jobs/{self.id}").get("deleted"):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"job {self.id} is still {self.state} after {timeout} s")
+            time.sleep(0.2)
+            self.refresh()
 
     def __repr__(self) -> str:
         done, total = self.progress

@@ -90,8 +90,9 @@ export class MovieButton {
   async stop() {
     if (!this.active) return;
     try {
-      const info = await (
-        await apiFetch(`/api/jobs/${this.active.job}`, { token: this.token, method: "DELETE" })
+      const info = await // never DELETE: a movie that ended meanwhile would be deleted, not kept
+      (
+        await apiFetch(`/api/jobs/${this.active.job}/cancel`, { token: this.token, method: "POST" })
       ).json();
       this.active.info = info;
     } catch (err) {

@@ -65,8 +65,9 @@ export function runningWork(jobs, recordings, instance) {
             {
               text: "Stop",
               title: `Stop movie ${job.id}; the frames taken are rendered and kept`,
-              method: "DELETE",
-              path,
+              // never DELETE: a movie that ended meanwhile would be deleted, not kept
+              method: "POST",
+              path: `${path}/cancel`,
             },
           ]
         : [];
@@ -92,7 +93,7 @@ export function runningWork(jobs, recordings, instance) {
         kind: "job",
         mine,
         label: `${what} · ${progress}`,
-        actions: [{ text: "Cancel", title: `Cancel job ${job.id}`, method: "DELETE", path, cancel: true }],
+        actions: [{ text: "Cancel", title: `Cancel job ${job.id}`, method: "POST", path: `${path}/cancel` }],
       });
     }
   }

@@ -55,8 +55,9 @@ test("running work is listed with who owns it and what ends it", () => {
     rows.map((r) => [r.id, r.kind, r.mine, r.actions.map((a) => `${a.text} ${a.method} ${a.path}`)]),
     [
       ["r1", "recording", true, ["Stop POST /api/recordings/r1/stop"]],
-      ["j1", "movie", false, ["Stop DELETE /api/jobs/j1", "Cancel DELETE /api/jobs/j1"]],
-      ["j2", "job", false, ["Cancel DELETE /api/jobs/j2"]],
+      // stopping never DELETEs: a movie or job that ended meanwhile keeps its output
+      ["j1", "movie", false, ["Stop POST /api/jobs/j1/cancel", "Cancel DELETE /api/jobs/j1"]],
+      ["j2", "job", false, ["Cancel POST /api/jobs/j2/cancel"]],
     ],
   );
   assert.equal(rows[0].label, "recording default · 12 frames · 2.0 kB · this page");

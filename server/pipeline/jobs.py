@@ -234,8 +234,21 @@ class Job:
             "result": f"/api/jobs/{self.id}/result" if self.state is JobState.DONE else None,
             "kind": self.kind,
             "owner": self.owner,
+            "ending": self.ending(),
             **({"movie": self.movie()} if self.spec.session is not None else {}),
         }
+
+    def ending(self) -> str | None:
+        """How a job asked to stop is ending while it still runs: `cancelling` (it ends
+        `cancelled`, its output discarded) or `finishing` (a live movie takes no more frames
+        and keeps its movie); None otherwise."""
+        if self.state not in (JobState.QUEUED, JobState.RUNNING):
+            return None
+        if self.cancel.is_set():
+            return "cancelling"
+        if self.frames is not None and self.frames.closed:
+            return "finishing"
+        return None
 
     @property
     def kind(self) -> str:

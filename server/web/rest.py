@@ -494,6 +494,26 @@ async def get_job_result(
     return FileResponse(job.result, media_type=media, filename=job.result.name)
 
 
+@router.post(
+    "/api/jobs/{job_id}/cancel",
+    summary="Stop a queued or running job (a live movie ends keeping its movie); never deletes",
+)
+async def cancel_job(
+    job_id: str, state: State, _role: Annotated[p.Role, Depends(steerer_access)]
+) -> dict[str, Any]:
+    """Unlike DELETE, which deletes a job that has ended, this leaves an ended job and its
+    output as they are: a client that asks to stop a job just as it finishes keeps what it
+    made. The answer's `ending` says how a job still running ends."""
+    job = _job(state, job_id)
+    if job.state not in FINAL and job.ending() is None:  # else: ended, or ending as asked
+        if job.state is JobState.RUNNING and job.frames is not None:
+            state.jobs.finish(job)  # a live movie takes no more frames and keeps its movie
+        else:
+            state.jobs.cancel(job)
+    described: dict[str, Any] = job.describe()
+    return described
+
+
 @router.delete(
     "/api/jobs/{job_id}",
     summary="Cancel a job, stop a live movie (keeping it; again: cancel it), or delete an output",

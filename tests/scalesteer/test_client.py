@@ -171,6 +171,12 @@ def test_a_recording_and_a_batch_job(
     assert seen[-1] == ("done", (2, 2))
     out = job.download(tmp_path / "frames.zip")
     assert len([n for n in zipfile.ZipFile(out).namelist() if n.endswith(".png")]) == 2
+    assert job.cancel().state == "done"  # an ended job is left as it is: it had been deleted
+    job.download(tmp_path / "again.zip")
+    job.delete()
+    with pytest.raises(ScalesteerError) as gone:
+        job.refresh()
+    assert gone.value.code is ErrorCode.NOT_FOUND
     with pytest.raises(ScalesteerError) as bad:
         client.submit_job(PSF, DCD, params={"sigma_A": 99})
     assert bad.value.path == "params.sigma_A"  # checked here, before the upload

@@ -167,6 +167,45 @@ def test_a_job_takes_a_trajectory_in_several_files(live_server: LiveServer) -> N
         assert r.status_code == 422 and "'height': form field given more than once" in r.text
 
 
+def test_cancelling_a_job_never_deletes_what_it_made(live_server: LiveServer) -> None:
+    """`POST /api/jobs/{id}/cancel` stops a job still running (its `ending` says so until it
+    ends) and leaves one that has ended as it is: DELETE there deletes the output, so a stop
+    that raced the job's last frame had lost the finished result."""
+    with client(live_server) as c:
+
+        def submit(width: int, stride: int) -> str:
+            with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+                r = c.post(
+                    "/api/jobs",
+                    headers=AUTH,
+                    files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+                    data={
+                        "width": str(width),
+                        "height": "24",
+                        "output": "zip",
+                        "stride": str(stride),
+                    },
+                )
+            assert r.status_code == 202, r.text
+            return str(r.json()["id"])
+
+        finished = submit(32, 49)
+        info, _ = wait_job(c, finished)
+        assert info["state"] == "done" and info["ending"] is None
+        for _ in range(2):  # and again: still nothing deleted
+            r = c.post(f"/api/jobs/{finished}/cancel", headers=AUTH)
+            assert r.status_code == 200 and r.json()["state"] == "done", r.text
+        assert c.get(f"/api/jobs/{finished}/result", headers=AUTH).status_code == 200
+
+        running = submit(160, 1)  # 98 frames: still running when asked
+        r = c.post(f"/api/jobs/{running}/cancel", headers=AUTH)
+        assert r.status_code == 200, r.text
+        assert r.json()["state"] == "cancelled" or r.json()["ending"] == "cancelling", r.json()
+        info, _ = wait_job(c, running)
+        assert info["state"] == "cancelled" and info["ending"] is None
+        assert c.post("/api/jobs/nope/cancel", headers=AUTH).status_code == 404
+
+
 def test_job_cancel_and_bad_job_input(live_server: LiveServer) -> None:
     with client(live_server) as c:
         with open(PSF, "rb") as top, open(DCD, "rb") as traj:
