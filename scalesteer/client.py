@@ -12,7 +12,7 @@ import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, cast
-from urllib.parse import parse_qs, urlsplit, urlunsplit
+from urllib.parse import parse_qs, urlencode, urlsplit, urlunsplit
 
 from pydantic import ValidationError
 
@@ -191,12 +191,14 @@ class Client:
         answer: dict[str, Any] = self.rest.json("GET", "/healthz")
         return answer
 
-    def dashboard_url(self, session: str | None = None) -> str:
-        """The browser dashboard's link (with this client's token) for `session`."""
-        query = [f"session={session}"] if session else []
+    def dashboard_url(self, session: str | Session | None = None) -> str:
+        """The browser dashboard's link (with this client's token) for `session` (a name or
+        a `Session`)."""
+        name = session.name if isinstance(session, Session) else session
+        query = [("session", name)] if name else []
         if self.token:
-            query.append(f"token={self.token}")
-        return f"{self.url}/" + (f"?{'&'.join(query)}" if query else "")
+            query.append(("token", self.token))
+        return f"{self.url}/" + (f"?{urlencode(query)}" if query else "")
 
     # ------------------------------------------------------------------ REST: renders, jobs
 

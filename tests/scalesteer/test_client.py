@@ -212,6 +212,19 @@ def test_params_send_only_what_they_name_so_a_file_still_opens_on_its_molecule(
     assert camera.value.path == "camera.distanse"
 
 
+def test_the_dashboard_link_names_a_session_by_name_and_encodes_it(
+    client: scalesteer.Client, small_universe: Any
+) -> None:
+    from urllib.parse import parse_qs, urlsplit
+
+    session = client.open(small_universe, frame=0)
+    link = urlsplit(client.dashboard_url(session))  # a Session, as the docs' table has it
+    query = parse_qs(link.query)
+    assert query["session"] == [session.name] and query["token"] == [client.token]
+    odd = parse_qs(urlsplit(client.dashboard_url("a b&c")).query)
+    assert odd["session"] == ["a b&c"] and odd["token"] == [client.token]
+
+
 def test_checked_params_name_only_what_was_given() -> None:
     from protocol import RenderParams
     from scalesteer.session import checked_params
