@@ -226,7 +226,10 @@ export class Connection {
   }
 
   handshakeError(message) {
-    if (message.code === "unauthorized" && this.role === "steerer" && !this.fellBack) {
+    // the token was refused for steering: a wrong one, or the viewer token (read-only)
+    const notSteering =
+      message.code === "unauthorized" || (message.code === "forbidden" && message.path === "hello.role");
+    if (notSteering && this.role === "steerer" && !this.fellBack) {
       this.fellBack = true;
       this.role = "viewer";
       this.retryImmediately = true;

@@ -115,6 +115,24 @@ test("hello names role, token, session and protocol version; welcome makes it re
   assert.equal(socket().sent[2].seq, 2);
 });
 
+test("the viewer token, refused for steering by name, joins read-only", () => {
+  const { conn, timers, socket } = setup();
+  socket().open();
+  socket().deliver({
+    type: "error",
+    code: "forbidden",
+    path: "hello.role",
+    message: "the viewer token is read-only: role steerer needs the server token",
+  });
+  socket().close(1008, "forbidden");
+  timers.advance(0);
+  socket().open();
+  assert.equal(socket().sent[0].role, "viewer");
+  socket().deliver(welcome("viewer"));
+  assert.equal(conn.role, "viewer");
+  assert.ok(conn.status().fellBack);
+});
+
 test("a refused steerer token falls back to viewer once", () => {
   const { conn, timers, socket } = setup();
   socket().open();

@@ -55,8 +55,11 @@ def test_viewer_token_cannot_steer_or_claim_steerer(live_server: LiveServer) -> 
     assert viewer.expect(p.Pong).client_time == 1.0  # still connected
     claim = Peer(live_server.view_url, "steerer", live_server.viewer_token, hello=False)
     claim.send(p.Hello(role="steerer", token=live_server.viewer_token))
-    error, _ = closed_with(claim)
-    assert error is not None and error.code == "unauthorized"
+    error, code = closed_with(claim)
+    # the right token for another role: forbidden and said so, not "wrong token"
+    assert error is not None and error.code == "forbidden" and code == 1008
+    assert "viewer token is read-only: role steerer needs the server token" in error.message
+    assert error.path == "hello.role"
 
 
 def test_roles_belong_on_their_endpoint(live_server: LiveServer) -> None:
