@@ -476,6 +476,16 @@ class JobManager:
     def get(self, job_id: str) -> Job | None:
         return self.jobs.get(job_id) if JOB_ID.match(job_id) else None
 
+    def reading(self, directory: Path) -> list[Job]:
+        """The jobs queued or running whose input lies in `directory` (a recording's movies):
+        deleting it under them would fail them halfway with a missing file."""
+        return [
+            j
+            for j in self.jobs.values()
+            if j.state in (JobState.QUEUED, JobState.RUNNING)
+            and j.spec.topology.is_relative_to(directory)
+        ]
+
     def submit(self, spec: JobSpec) -> Job:
         self.reap()
         job = Job(id=f"j{secrets.token_urlsafe(16)}", spec=spec)

@@ -229,6 +229,14 @@ async def download_recording(rec_id: str, state: State, _role: Steerer) -> Strea
 @router.delete("/api/recordings/{rec_id}", summary="Delete a recording (stopping it first)")
 async def delete_recording(rec_id: str, state: State, _role: Steerer) -> dict[str, Any]:
     rec = _recording(state, rec_id)
+    movies = state.jobs.reading(rec.directory)
+    if movies:
+        ids = ", ".join(f"{j.id} ({j.state.value})" for j in movies)
+        raise HTTPException(
+            409,
+            f"recording {rec_id} is being rendered to a movie by job {ids}; cancel it first "
+            "(POST /api/jobs/{id}/cancel), or wait for it to end",
+        )
     if rec.running:
         await _stop(state, rec)
     await asyncio.to_thread(state.recordings.delete, rec)

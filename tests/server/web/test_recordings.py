@@ -139,6 +139,16 @@ def test_a_steered_openmm_run_is_recorded_and_replayed_with_its_marks(
     noise = np.abs(movies[True][0] - movies[False][0]).mean()
     print(f"overlay difference {drawn:.2f}, encoding noise {noise:.2f}")
     assert marks[0]["frame"] > 0 and drawn > 3 * noise + 0.3  # the pull arrow and caption
+    # a recording being rendered to a movie is not deleted under it (the job failed halfway,
+    # "no such file: topology.pdb"): 409 naming the job, until it ends
+    r = client.post(f"/api/recordings/{rec_id}/movie", json={"width": 1280, "height": 960})
+    assert r.status_code == 202, r.text
+    slow = r.json()["id"]
+    refused = client.delete(f"/api/recordings/{rec_id}")
+    assert refused.status_code == 409 and slow in refused.json()["detail"], refused.text
+    assert client.post(f"/api/jobs/{slow}/cancel").status_code == 200
+    wait_for(lambda: client.get(f"/api/jobs/{slow}").json()["state"] == "cancelled", "the cancel")
+    assert client.get(f"/api/recordings/{rec_id}").status_code == 200  # kept whole
 
     # replayed: the same number of frames, the recorded positions, the marks on the timeline
     r = client.post(f"/api/recordings/{rec_id}/replay", params={"fps": 60})
