@@ -93,6 +93,18 @@ class SpoolingParser(MultiPartParser):
             upload.file = spooled  # type: ignore[assignment]
 
 
+def _multipart_refusal(exc: MultiPartException) -> str:
+    """The parser's own words where it has them: its bare "Invalid multipart data." named
+    neither a wrong boundary nor a broken part header."""
+    cause = exc.__cause__
+    if cause is None or not str(cause):
+        return exc.message
+    return (
+        f"the multipart body could not be read: {str(cause)[:200]} (check the boundary the "
+        "content-type names and each part's headers)"
+    )
+
+
 class SpoolingRequest(Request):
     """A request whose multipart form spools into the server's spool directory, within the
     spool's file and field counts (400 naming the count beyond them)."""
@@ -110,6 +122,6 @@ class SpoolingRequest(Request):
                     )
                     self._form = await parser.parse()
             except MultiPartException as exc:
-                raise HTTPException(400, exc.message) from None
+                raise HTTPException(400, _multipart_refusal(exc)) from None
         form: FormData = await super()._get_form(**limits)
         return form

@@ -1605,6 +1605,12 @@ def test_a_multipart_body_cut_before_its_closing_boundary_is_refused_by_name(
             assert r.status_code == 200 and r.headers["content-type"] == "image/png"
             r = c.post("/api/render", content=whole, headers=headers)
             assert r.status_code == 200 and r.content.startswith(b"\x89PNG")
+            # a part header without its colon: the parser's words, not "Invalid multipart data."
+            broken = whole.replace(b"Content-Disposition: form-data", b"Content-Disposition", 1)
+            r = c.post("/api/render", content=broken, headers=headers)
+            assert r.status_code == 400, r.text
+            detail = r.json()["detail"]
+            assert "multipart body could not be read" in detail and "header" in detail, detail
     finally:
         server.stop()
 
