@@ -121,7 +121,8 @@ class IsolatedStructure:
             self._conn.send(("open", (topology, list(trajectories), limits, self._scratch)))
             self.topology: Topology
             self.n_frames: int
-            self.topology, self.n_frames = self._answer(limits.open_s, "open")
+            self.notes: tuple[str, ...]
+            self.topology, self.n_frames, self.notes = self._answer(limits.open_s, "open")
         except BaseException:
             self.close()
             raise
@@ -239,7 +240,7 @@ def _serve(
         top = _prepare(topology, scratch, limits)
         trajs = [_prepare(t, scratch, limits) for t in trajectories]
         structure = load(top, trajs, max_atoms=limits.max_atoms)
-        conn.send(("ok", (structure.topology, structure.n_frames)))
+        conn.send(("ok", (structure.topology, structure.n_frames, structure.notes)))
     except StructureError as exc:
         conn.send(("error", str(exc)))
         return

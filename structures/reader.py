@@ -75,6 +75,8 @@ class Structure:
     universe: Any
     crystal: bool = False
     """A deposited model read alone (`CRYSTAL_FORMATS`): its cell is no periodic box."""
+    notes: tuple[str, ...] = ()
+    """What the reader took in silence and a user should hear (a trajectory cut short)."""
 
     @property
     def n_frames(self) -> int:
@@ -256,7 +258,32 @@ def load(
             )
     except (ValueError, TypeError) as exc:
         raise StructureError(f"cannot use {os.path.basename(topology)}: {exc}") from None
-    return Structure(topology=topo, universe=u, crystal=crystal)
+    return Structure(topology=topo, universe=u, crystal=crystal, notes=tuple(_cut_short(u)))
+
+
+def _cut_short(u: Any) -> list[str]:
+    """Trajectory files that end inside a frame. MDAnalysis' DCD reader counts the whole
+    frames a file's size holds and drops a last frame cut off in silence (an XTC cut short
+    fails to open); a job then rendered that many frames and said nothing."""
+    trajectory = u.trajectory if _has(u, "trajectory") else None
+    notes = []
+    for reader in getattr(trajectory, "readers", [trajectory]):
+        dcd: Any = getattr(reader, "_file", None)
+        if type(dcd).__name__ != "DCDFile":
+            continue
+        try:  # the reader's own sizes; another MDAnalysis without them: nothing to say
+            n = int(dcd.n_frames)
+            frames = dcd._firstframesize + (n - 1) * dcd._framesize if n else 0
+            whole = int(dcd._header_size + frames)
+            size = os.path.getsize(reader.filename)
+        except (AttributeError, OSError, TypeError):
+            continue
+        if size > whole:
+            notes.append(
+                f"{os.path.basename(reader.filename)} ends inside a frame after {n} whole "
+                f"frame(s) ({size - whole} bytes over): the file is cut short"
+            )
+    return notes
 
 
 def reason(exc: BaseException, paths: Sequence[str]) -> str:

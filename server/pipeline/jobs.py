@@ -703,6 +703,10 @@ class JobManager:
                 job.spec = spec = replace(spec, params=opening)
                 self._save(job)
             expected = spec.expected_frames
+            if structure.notes:  # a trajectory cut short, read as far as it goes
+                job.partial = True
+                job.warning = "; ".join(structure.notes) + "; the output has the whole frames"
+                log.warning("job %s: %s", job.id, job.warning)
             if expected is not None and structure.n_frames < expected:
                 job.partial = True
                 job.warning = (

@@ -181,3 +181,20 @@ def test_unreadable_files_are_told_in_words_not_in_the_readers_internals(tmp_pat
         assert "\\x" not in str(err.value) and "crashed" not in str(err.value)
     with pytest.raises(StructureError, match="found binary data, not text"):
         IsolatedStructure(PSF, [str(tmp_path / "dcd.xyz")], ReadLimits(max_atoms=100_000))
+
+
+def test_a_dcd_cut_inside_a_frame_is_noted(tmp_path: Path) -> None:
+    """MDAnalysis reads the whole frames of a DCD cut short and drops the rest in silence: the
+    reader says so, in one file or in a chain of them."""
+    whole = load(PSF, [DCD])
+    assert whole.n_frames == 98 and whole.notes == ()
+    cut = tmp_path / "cut.dcd"
+    cut.write_bytes(Path(DCD).read_bytes()[:50_000])
+    short = load(PSF, [str(cut)])
+    assert short.n_frames == 1
+    (note,) = short.notes
+    assert note.startswith("cut.dcd ends inside a frame after 1 whole frame(s)") and (
+        "cut short" in note
+    )
+    chained = load(PSF, [DCD, str(cut)])
+    assert chained.n_frames == 99 and len(chained.notes) == 1

@@ -206,6 +206,24 @@ def test_cancelling_a_job_never_deletes_what_it_made(live_server: LiveServer) ->
         assert c.post("/api/jobs/nope/cancel", headers=AUTH).status_code == 404
 
 
+def test_a_job_over_a_trajectory_cut_short_says_so(live_server: LiveServer) -> None:
+    """A DCD cut inside its second frame rendered as a 1-frame job, done and whole."""
+    with client(live_server) as c:
+        r = c.post(
+            "/api/jobs",
+            headers=AUTH,
+            files=[
+                ("topology", ("adk.psf", Path(PSF).read_bytes())),
+                ("trajectory", ("adk.dcd", Path(DCD).read_bytes()[:50_000])),
+            ],
+            data={"width": "32", "height": "24", "output": "zip"},
+        )
+        assert r.status_code == 202, r.text
+        info, _ = wait_job(c, r.json()["id"])
+        assert info["state"] == "done" and info["progress"]["total"] == 1, info
+        assert info["partial"] is True and "adk.dcd ends inside a frame" in info["warning"]
+
+
 def test_job_cancel_and_bad_job_input(live_server: LiveServer) -> None:
     with client(live_server) as c:
         with open(PSF, "rb") as top, open(DCD, "rb") as traj:
