@@ -6,6 +6,8 @@ to its error log), where anyone who reads the logs would find a token that grant
 `RedactTokens` replaces the value of every query parameter whose name holds `token` before a
 record is formatted, the name read as the server reads it (percent-decoded: `?tok%65n=` is a
 token too), and the server's own tokens wherever else they appear (`/api/sessions/<token>`).
+It also cuts a request line past `MAX_LINE_CHARS`: a client's 100 KB query string had been
+written whole into the log on every request.
 """
 
 from __future__ import annotations
@@ -18,6 +20,15 @@ _PARAM = re.compile(r"([?&])([^=&#\s\"]*)=([^&#\s\"]*)")
 REDACTED = "[redacted]"
 LOGGERS = ("uvicorn.access", "uvicorn.error")
 """uvicorn's request lines (HTTP) and handshake lines (WebSocket)."""
+MAX_LINE_CHARS = 2000
+"""The most of one string (a path and query) a log record keeps."""
+
+
+def shorten(text: str, limit: int = MAX_LINE_CHARS) -> str:
+    """`text`, cut after `limit` characters with a note of how many were left out."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}...[{len(text) - limit} more characters]"
 
 
 def redact(text: str, secrets: tuple[str, ...] = ()) -> str:
@@ -36,7 +47,8 @@ def redact(text: str, secrets: tuple[str, ...] = ()) -> str:
 
 
 class RedactTokens(logging.Filter):
-    """Replaces tokens in a record's message and arguments (it never drops a record)."""
+    """Replaces tokens in a record's message and arguments, and cuts an argument past
+    `MAX_LINE_CHARS` (it never drops a record)."""
 
     def __init__(self, secrets: tuple[str, ...] = ()) -> None:
         super().__init__()
@@ -47,7 +59,7 @@ class RedactTokens(logging.Filter):
             record.msg = redact(record.msg, self.secrets)
         if isinstance(record.args, tuple):
             record.args = tuple(
-                redact(a, self.secrets) if isinstance(a, str) else a for a in record.args
+                shorten(redact(a, self.secrets)) if isinstance(a, str) else a for a in record.args
             )
         return True
 
