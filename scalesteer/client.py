@@ -16,8 +16,9 @@ from urllib.parse import parse_qs, urlencode, urlsplit, urlunsplit
 
 from pydantic import ValidationError
 
-from protocol import Camera, Hello, Role
+from protocol import Camera, ErrorCode, Hello, Role
 from scalesteer import background, images
+from scalesteer.errors import ScalesteerError
 from scalesteer.jobs import Job, Recording
 from scalesteer.link import ViewLink
 from scalesteer.local import LocalServer
@@ -154,6 +155,13 @@ class Client:
         `SteeringReporter`)."""
         from scalesteer import sources
 
+        if self.role == "viewer":  # it would join as a viewer, who cannot make a session
+            raise ScalesteerError(
+                ErrorCode.FORBIDDEN,
+                "a viewer cannot open a session (it feeds one a simulation): connect with the "
+                "server token, or join a session that runs with client.session(name)",
+                "role",
+            )
         kind = sources.kind_of(obj)
         name = session or f"{kind}-{secrets.token_hex(3)}"
         opened = self.session(name)

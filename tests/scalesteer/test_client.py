@@ -102,7 +102,16 @@ def test_a_viewer_token_watches_but_may_not_steer(
     with pytest.raises(ScalesteerError) as refused:
         watched.set(sigma_A=2.0)
     assert refused.value.code is ErrorCode.FORBIDDEN
+    with pytest.raises(ScalesteerError) as opening:  # was "not_found: no session named ..."
+        viewer.open(small_universe, frame=0)
+    assert opening.value.code is ErrorCode.FORBIDDEN and "viewer cannot open" in str(opening.value)
     viewer.close()
+    # the viewer token asking to steer: said so, not "missing or wrong token"
+    steering = scalesteer.connect(live_server.url, live_server.viewer_token)
+    with pytest.raises(ScalesteerError) as read_only:
+        steering.session(session.name)
+    assert read_only.value.code is ErrorCode.FORBIDDEN and "read-only" in str(read_only.value)
+    steering.close()
 
 
 def test_an_atom_group_and_one_frame(client: scalesteer.Client, universe: Any) -> None:
