@@ -93,6 +93,8 @@ class Recording:
     """Frames the session received while recording (every one, `stride` or not)."""
     skipped: int = 0
     """Frames not recorded because the disk fell `queue_bytes` behind."""
+    deleting: bool = False
+    """Its deletion is under way: no movie of it may start (its job would lose its files)."""
     skipped_spans: list[list[int]] = field(default_factory=list)
     """[first step, last step, frames skipped] of each run of skipped frames."""
     queued_bytes: int = 0

@@ -68,6 +68,34 @@ def _recording(state: State, rec_id: str) -> Recording:
     return rec
 
 
+def _kept(state: State, rec: Recording) -> None:
+    """(Right before what reads `rec`'s files starts, with no await between: a movie job, a
+    replay.) Refuses a recording whose deletion is under way or done: the reader would lose
+    its files halfway."""
+    if rec.deleting or state.recordings.get(rec.id) is not rec:
+        raise HTTPException(409, f"recording {rec.id} is being deleted")
+
+
+def _movies_of(state: State, rec: Recording) -> None:
+    """Refuses to delete `rec` while a movie of it is queued or rendering (409 naming it)."""
+    movies = state.jobs.reading(rec.directory)
+    if not movies:
+        return
+    said = ", ".join(
+        f"{j.id} ({'being cancelled' if j.ending() == 'cancelling' else j.state.value})"
+        for j in movies
+    )
+    ids = [j.id for j in movies]
+    how = (
+        "retry once it has ended"
+        if all(j.ending() == "cancelling" for j in movies)
+        else f"cancel it first (POST /api/jobs/{ids[0]}/cancel) or wait for it to end"
+    )
+    raise HTTPException(
+        409, f"recording {rec.id} is being rendered to a movie by job {said}; {how}"
+    )
+
+
 def _finished(rec: Recording) -> None:
     if rec.running:
         raise HTTPException(409, f"recording {rec.id} is still recording; stop it first")
@@ -229,17 +257,17 @@ async def download_recording(rec_id: str, state: State, _role: Steerer) -> Strea
 @router.delete("/api/recordings/{rec_id}", summary="Delete a recording (stopping it first)")
 async def delete_recording(rec_id: str, state: State, _role: Steerer) -> dict[str, Any]:
     rec = _recording(state, rec_id)
-    movies = state.jobs.reading(rec.directory)
-    if movies:
-        ids = ", ".join(f"{j.id} ({j.state.value})" for j in movies)
-        raise HTTPException(
-            409,
-            f"recording {rec_id} is being rendered to a movie by job {ids}; cancel it first "
-            "(POST /api/jobs/{id}/cancel), or wait for it to end",
-        )
-    if rec.running:
-        await _stop(state, rec)
-    await asyncio.to_thread(state.recordings.delete, rec)
+    if rec.deleting:
+        raise HTTPException(409, f"recording {rec_id} is being deleted already")
+    _movies_of(state, rec)
+    rec.deleting = True  # from here no movie or replay of it starts (`_kept`)
+    try:
+        if rec.running:
+            await _stop(state, rec)
+        await asyncio.to_thread(state.recordings.delete, rec)
+    except BaseException:
+        rec.deleting = False
+        raise
     return {"id": rec_id, "deleted": True}
 
 
@@ -252,6 +280,7 @@ async def replay_recording(
     rec_id: str, request: Request, state: State, _role: Steerer, fps: float = 30.0
 ) -> dict[str, Any]:
     rec = _recording(state, rec_id)
+    _kept(state, rec)
     _finished(rec)
     if not 0 < fps <= 240:
         raise HTTPException(422, "fps: must be in (0, 240]")
@@ -284,6 +313,7 @@ async def recording_movie(
 ) -> JSONResponse:
     body = body or MovieRequest()
     rec = _recording(state, rec_id)
+    _kept(state, rec)
     _finished(rec)
     check_size(state, body.width, body.height)
     started = p.RenderParams.model_validate(rec.render_params)
@@ -314,6 +344,7 @@ async def recording_movie(
         overlay=overlay,
         expected_frames=rec.frames,
     )
+    _kept(state, rec)  # its deletion may have begun during the reads above
     job = state.jobs.submit(spec)
     return JSONResponse(
         job.describe(), status_code=202, headers={"Location": f"/api/jobs/{job.id}"}

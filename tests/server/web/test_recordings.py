@@ -149,6 +149,17 @@ def test_a_steered_openmm_run_is_recorded_and_replayed_with_its_marks(
     assert client.post(f"/api/jobs/{slow}/cancel").status_code == 200
     wait_for(lambda: client.get(f"/api/jobs/{slow}").json()["state"] == "cancelled", "the cancel")
     assert client.get(f"/api/recordings/{rec_id}").status_code == 200  # kept whole
+    # while its deletion is under way (it awaits the recording's last writes), nothing that
+    # reads its files starts: a movie asked for then had been accepted and failed halfway
+    held = live_server.app_state.recordings.get(rec_id)
+    held.deleting = True
+    try:
+        for path in (f"/api/recordings/{rec_id}/movie", f"/api/recordings/{rec_id}/replay"):
+            r = client.post(path)
+            assert r.status_code == 409 and "being deleted" in r.text, (path, r.text)
+        assert client.delete(f"/api/recordings/{rec_id}").status_code == 409
+    finally:
+        held.deleting = False
 
     # replayed: the same number of frames, the recorded positions, the marks on the timeline
     r = client.post(f"/api/recordings/{rec_id}/replay", params={"fps": 60})
