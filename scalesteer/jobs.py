@@ -87,9 +87,10 @@ class Job(_Described):
         return self._rest.download(f"/api/jobs/{self.id}/result", target)
 
     def cancel(self) -> Job:
-        """Stop a queued or running job: it ends `cancelled` (`info["ending"]` says so until
-        it has), and a live movie ends keeping what it filmed. A job that has ended is left
-        as it is, its output too (`delete()` removes it)."""
+        """Stop a queued or running job at its next frame: it ends `cancelled`
+        (`info["ending"]` says so until it has; one asked during its last frame ends `done`),
+        and a live movie ends keeping what it filmed. A job that has ended is left as it is,
+        its output too (`delete()` removes it)."""
         self.info = self._rest.json("POST", f"/api/jobs/{self.id}/cancel")
         return self
 

@@ -532,6 +532,8 @@ class JobManager:
             job.state = JobState.CANCELLED
             job.finished = time.time()
             self._save(job)
+            if job.spec.workdir is not None:  # it never starts: its uploads go now
+                shutil.rmtree(job.spec.workdir, ignore_errors=True)
 
     async def _run(self, job: Job) -> None:
         async with self._running:

@@ -224,6 +224,34 @@ def test_a_job_over_a_trajectory_cut_short_says_so(live_server: LiveServer) -> N
         assert info["partial"] is True and "adk.dcd ends inside a frame" in info["warning"]
 
 
+def test_a_queued_job_cancelled_takes_its_uploads_with_it(tmp_path: Path) -> None:
+    """A job cancelled before it started kept its upload folder (gigabytes, for a long
+    trajectory) until the server restarted."""
+    server = start_server(make_settings(tmp_path, max_running_jobs=1))
+    try:
+        uploads = server.settings.state_dir / "uploads"
+        with httpx.Client(base_url=server.url, timeout=120) as c:
+            ids = []
+            for _ in range(2):  # the first runs, the second waits
+                with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+                    r = c.post(
+                        "/api/jobs",
+                        headers=AUTH,
+                        files=[("topology", ("a.psf", top)), ("trajectory", ("a.dcd", traj))],
+                        data={"width": "160", "height": "120"},
+                    )
+                assert r.status_code == 202, r.text
+                ids.append(r.json()["id"])
+            assert c.get(f"/api/jobs/{ids[1]}", headers=AUTH).json()["state"] == "queued"
+            assert len(list(uploads.iterdir())) == 2
+            r = c.post(f"/api/jobs/{ids[1]}/cancel", headers=AUTH)
+            assert r.json()["state"] == "cancelled", r.text
+            assert len(list(uploads.iterdir())) == 1  # the running job's alone
+            c.post(f"/api/jobs/{ids[0]}/cancel", headers=AUTH)
+    finally:
+        server.stop()
+
+
 def test_job_cancel_and_bad_job_input(live_server: LiveServer) -> None:
     with client(live_server) as c:
         with open(PSF, "rb") as top, open(DCD, "rb") as traj:
