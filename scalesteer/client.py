@@ -16,7 +16,7 @@ from urllib.parse import parse_qs, urlencode, urlsplit, urlunsplit
 
 from pydantic import ValidationError
 
-from protocol import Camera, ErrorCode, Hello, Role
+from protocol import Camera, ErrorCode, Hello, RenderParams, Role
 from scalesteer import background, images
 from scalesteer.errors import ScalesteerError
 from scalesteer.jobs import Job, Recording
@@ -216,7 +216,7 @@ class Client:
         width: int = 800,
         height: int = 600,
         *,
-        params: Mapping[str, Any] | None = None,
+        params: Mapping[str, Any] | RenderParams | None = None,
         camera: Camera | Mapping[str, Any] | None = None,
         frame: int = 0,
         mode: str = "RGB",
@@ -242,7 +242,7 @@ class Client:
         stop: int | None = None,
         stride: int = 1,
         fps: float = 30.0,
-        params: Mapping[str, Any] | None = None,
+        params: Mapping[str, Any] | RenderParams | None = None,
         camera: Camera | Mapping[str, Any] | None = None,
     ) -> Job:
         """Render a trajectory on the server (uploaded from here) to an MP4 or a zip of PNGs;

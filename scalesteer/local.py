@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import itertools
+import math
 import os
 import secrets
 import signal
@@ -40,16 +42,17 @@ leave a recording interrupted. `stop_grace_s` sizes it for the server's own sett
 def stop_grace_s(extra: tuple[str, ...]) -> float:
     """The supervisor's grace for a server started with `extra`: twice what its own stop may
     take (10 s beside `close_wait_s`), so that a `--set close_wait_s=...` larger than the
-    default is not cut short."""
+    default is not cut short. The setting is read as the server reads it (`--set NAME=VALUE`
+    or `--set=NAME=VALUE`, `-` in the name as `_`); a value it would refuse is its to name."""
+    pairs = [b for a, b in itertools.pairwise(extra) if a == "--set"]
+    pairs += [a.removeprefix("--set=") for a in extra if a.startswith("--set=")]
     wait_s = 10.0
-    for i, arg in enumerate(extra):
-        pair = extra[i + 1] if arg == "--set" and i + 1 < len(extra) else arg
-        if arg.startswith("--set="):
-            pair = arg.removeprefix("--set=")
+    for pair in pairs:
         name, _, value = pair.partition("=")
-        if name.strip() == "close_wait_s":
-            with contextlib.suppress(ValueError):  # the server refuses it by name at its start
-                wait_s = max(wait_s, float(value))
+        if name.strip().replace("-", "_") == "close_wait_s":
+            with contextlib.suppress(ValueError):
+                if math.isfinite(given := float(value)):
+                    wait_s = max(wait_s, given)
     return max(STOP_GRACE_S, 2 * (wait_s + 10.0))
 
 

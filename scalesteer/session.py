@@ -79,14 +79,18 @@ def invalid(exc: ValidationError, prefix: str) -> ScalesteerError:
 
 
 def checked_params(
-    params: Mapping[str, Any], prefix: str = "params", base: RenderParams | None = None
+    params: Mapping[str, Any] | RenderParams,
+    prefix: str = "params",
+    base: RenderParams | None = None,
 ) -> dict[str, Any]:
     """Render parameters for a REST form, checked here as the server checks them: a key no
     field has is refused by name (the model alone drops it in silence, and `sigmaa` would
     render the default). Only what `params` names is sent, so the server's own choices hold
     where they are not named (layers: a file opens on its molecule, solvent hidden). With
     `base` (a session's parameters), `params` are changes to it, and its layers stay the
-    session's unless `params` name them."""
+    session's unless `params` name them. A `RenderParams` names the fields it was given."""
+    if isinstance(params, RenderParams):
+        params = params.model_dump(exclude_unset=True)
     unknown = unknown_keys(RenderParams, dict(params), prefix)
     if unknown is not None:
         raise ScalesteerError(ErrorCode.INVALID_MESSAGE, f"{unknown}: unknown field", unknown)
@@ -309,7 +313,7 @@ class Session:
         height: int = 480,
         *,
         camera: Camera | Mapping[str, Any] | None = None,
-        params: Mapping[str, Any] | None = None,
+        params: Mapping[str, Any] | RenderParams | None = None,
         format: Literal["png", "jpeg"] = "png",
     ) -> bytes:
         """The session's latest frame rendered now at full quality (REST `/api/render`), with

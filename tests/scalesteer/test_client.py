@@ -247,6 +247,8 @@ def test_checked_params_name_only_what_was_given() -> None:
     assert changed["sigma_A"] == 2.0 and changed["iso_level"] == 0.4
     assert "layers" not in changed  # the session's own layers stay
     assert "layers" in checked_params({"layers": []}, base=session)  # unless named
+    # a model names the fields it was given (session.render_params is one)
+    assert checked_params(RenderParams(sigma_A=2.0)) == {"sigma_A": 2.0}
 
 
 def test_an_openmm_simulation_in_one_line(client: scalesteer.Client) -> None:

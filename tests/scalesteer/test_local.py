@@ -96,6 +96,9 @@ def test_the_supervisors_grace_covers_a_longer_wait_for_the_devices() -> None:
     assert stop_grace_s(("--set", "close_wait_s=60")) == 140.0
     assert stop_grace_s(("--set=close_wait_s=60",)) == 140.0
     assert stop_grace_s(("--set", "close_wait_s=soon")) == STOP_GRACE_S  # the server says why
+    assert stop_grace_s(("--set", "close-wait-s=30")) == 80.0  # as the server reads names
+    assert stop_grace_s(("--set", "close_wait_s=inf")) == STOP_GRACE_S  # refused by it
+    assert stop_grace_s(("--token", "close_wait_s=99")) == STOP_GRACE_S  # not a setting
 
 
 def test_the_client_imports_without_the_servers_packages() -> None:
