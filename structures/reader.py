@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import re
 import tempfile
 import warnings
 from collections.abc import Iterator, Sequence
@@ -21,8 +20,9 @@ import numpy.typing as npt
 from protocol import Topology, WireArray
 from structures.binarycif import to_mmcif
 from structures.cells import CRYSTAL_FORMATS, cell_of, deposited
-from structures.errors import StructureError
+from structures.errors import StructureError, reason
 from structures.textcheck import CHECKS
+from structures.truncation import cut_short
 
 STRUCTURE_FORMATS = (
     "pdb",
@@ -258,54 +258,7 @@ def load(
             )
     except (ValueError, TypeError) as exc:
         raise StructureError(f"cannot use {os.path.basename(topology)}: {exc}") from None
-    return Structure(topology=topo, universe=u, crystal=crystal, notes=tuple(_cut_short(u)))
-
-
-def _cut_short(u: Any) -> list[str]:
-    """Trajectory files that end inside a frame. MDAnalysis' DCD reader counts the whole
-    frames a file's size holds and drops a last frame cut off in silence (an XTC cut short
-    fails to open); a job then rendered that many frames and said nothing."""
-    trajectory = u.trajectory if _has(u, "trajectory") else None
-    notes = []
-    for reader in getattr(trajectory, "readers", [trajectory]):
-        dcd: Any = getattr(reader, "_file", None)
-        if type(dcd).__name__ != "DCDFile":
-            continue
-        try:  # the reader's own sizes; another MDAnalysis without them: nothing to say
-            n = int(dcd.n_frames)
-            frames = dcd._firstframesize + (n - 1) * dcd._framesize if n else 0
-            whole = int(dcd._header_size + frames)
-            size = os.path.getsize(reader.filename)
-        except (AttributeError, OSError, TypeError):
-            continue
-        if size > whole:
-            notes.append(
-                f"{os.path.basename(reader.filename)} ends inside a frame after {n} whole "
-                f"frame(s) ({size - whole} bytes over): the file is cut short"
-            )
-    return notes
-
-
-def reason(exc: BaseException, paths: Sequence[str]) -> str:
-    """What a reader's error says: the innermost cause (MDAnalysis wraps a parser's own words
-    in "Failed to construct topology from file ..."), its first line, with the files named by
-    their names alone (never the server's directories)."""
-    inner = exc
-    while True:
-        cause = inner.__cause__ or inner.__context__
-        if cause is None or cause is inner or not str(cause).strip():
-            break
-        inner = cause
-    lines = [line.strip() for line in str(inner).splitlines() if line.strip()]
-    text = " ".join(lines[:2]) if lines else type(inner).__name__
-    if isinstance(inner, IndexError) and "size 0" in text:  # a table of atoms with no rows
-        return "it has no atom records the reader could use"
-    if re.search(r"\\x[0-9a-f]{2}|[\x00-\x08\x0e-\x1f\x7f]", text):  # quoting binary bytes
-        return "its contents are not text in the format its name says (binary data?)"
-    for path in paths:
-        text = text.replace(os.path.abspath(path), os.path.basename(path))
-        text = text.replace(path, os.path.basename(path))
-    return re.sub(r"(?:/[^/\s'\"]+)+/([^/\s'\"]+)", r"\1", text)
+    return Structure(topology=topo, universe=u, crystal=crystal, notes=tuple(cut_short(u)))
 
 
 def _strings(atoms: Any, attr: str, default: str, width: int) -> list[str]:

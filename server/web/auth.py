@@ -31,6 +31,15 @@ def grant(settings: ServerSettings, token: str | None, role: Role) -> Role | Non
     return None
 
 
+def refusal(settings: ServerSettings, token: str | None, role: Role) -> tuple[str, str, str]:
+    """Why `grant` refused: (error code, message, field). The viewer token asking for another
+    role is told so (forbidden, as REST's 403), not that its token is wrong."""
+    if token_role(settings, token) == "viewer":
+        why = f"the viewer token is read-only: role {role} needs the server token"
+        return "forbidden", why, "hello.role"
+    return "unauthorized", "missing or wrong token", "hello.token"
+
+
 def token_role(settings: ServerSettings, token: str | None) -> Role | None:
     """The strongest role a token carries (REST access)."""
     if settings.open_on_loopback or _same(token, settings.token):

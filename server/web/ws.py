@@ -34,7 +34,7 @@ from server.web.auth import (
     grant,
     may_send,
     origin_allowed,
-    token_role,
+    refusal,
 )
 from server.web.state import AppState
 from server.web.transport import raise_limit
@@ -149,24 +149,9 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
     try:
         hello = await _handshake(ws, state, endpoint)
         role = grant(settings, hello.token, hello.role)
-        if role is None and token_role(settings, hello.token) == "viewer":
-            # the right token for another role: say so, as REST does (403), not "wrong token"
-            raise RefusedError(
-                p.ProtocolError(
-                    p.ErrorCode.FORBIDDEN,
-                    f"the viewer token is read-only: role {hello.role} needs the server token",
-                    "hello.role",
-                    hello.seq,
-                ),
-                1008,
-            )
         if role is None:
-            raise RefusedError(
-                p.ProtocolError(
-                    p.ErrorCode.UNAUTHORIZED, "missing or wrong token", "hello.token", hello.seq
-                ),
-                1008,
-            )
+            code, why, where = refusal(settings, hello.token, hello.role)
+            raise RefusedError(p.ProtocolError(p.ErrorCode(code), why, where, hello.seq), 1008)
         token_kind = "viewer" if role == "viewer" else "server"
         if state.connections.by_token[token_kind] >= settings.max_connections_per_token:
             raise RefusedError(
