@@ -84,9 +84,8 @@ def test_a_frame_of_another_size_is_refused(pool: ThreadPoolExecutor) -> None:
         stager.offer(1, frame(1.0, n=49))
 
 
-def test_a_large_frame_is_copied_in_slices_whole_and_in_order(
-    pool: ThreadPoolExecutor, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def counted_slices(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Slices of 1 KB on up to 4 threads; the rows of each copy made, as they are made."""
     from server.pipeline import staging
 
     monkeypatch.setattr(staging, "SLICE_BYTES", 1 << 10)  # 4,000 atoms: several slices
@@ -99,6 +98,13 @@ def test_a_large_frame_is_copied_in_slices_whole_and_in_order(
         real(dst, src, **kw)
 
     monkeypatch.setattr(staging.np, "copyto", counted)
+    return sliced
+
+
+def test_a_large_frame_is_copied_in_slices_whole_and_in_order(
+    pool: ThreadPoolExecutor, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    sliced = counted_slices(monkeypatch)
     n = 4_000
     src = np.arange(n * 3, dtype=np.float32).reshape(n, 3)
     stager = FrameStager(n, pool, plain)
@@ -124,16 +130,7 @@ def test_the_policy_names_the_threads_that_copy_a_large_frame(
 ) -> None:
     from server.pipeline import staging
 
-    monkeypatch.setattr(staging, "SLICE_BYTES", 1 << 10)
-    monkeypatch.setattr(staging, "COPY_THREADS", 4)
-    sliced: list[int] = []
-    real = np.copyto
-
-    def counted(dst: np.ndarray, src: np.ndarray, **kw: object) -> None:
-        sliced.append(len(src))
-        real(dst, src, **kw)
-
-    monkeypatch.setattr(staging.np, "copyto", counted)
+    sliced = counted_slices(monkeypatch)
     n = 4_000
     src = np.arange(n * 3, dtype=np.float32).reshape(n, 3)
     stager = FrameStager(n, pool, plain, policy=staging.Staging(copy_threads=1))

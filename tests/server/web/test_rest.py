@@ -83,6 +83,19 @@ def test_upload_size_limit(tmp_path: Path) -> None:
         server.stop()
 
 
+def adk_job(c: httpx.Client, **data: str) -> str:
+    """Submit a job of adenylate kinase's 98-frame DCD with the form fields `data`; its id."""
+    with open(PSF, "rb") as top, open(DCD, "rb") as traj:
+        r = c.post(
+            "/api/jobs",
+            headers=AUTH,
+            files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
+            data=data,
+        )
+    assert r.status_code == 202, r.text
+    return str(r.json()["id"])
+
+
 def wait_job(c: httpx.Client, job_id: str, timeout: float = 240) -> tuple[dict, list[int]]:
     seen = []
     deadline = time.monotonic() + timeout
@@ -172,24 +185,7 @@ def test_cancelling_a_job_never_deletes_what_it_made(live_server: LiveServer) ->
     ends) and leaves one that has ended as it is: DELETE there deletes the output, so a stop
     that raced the job's last frame had lost the finished result."""
     with client(live_server) as c:
-
-        def submit(width: int, stride: int) -> str:
-            with open(PSF, "rb") as top, open(DCD, "rb") as traj:
-                r = c.post(
-                    "/api/jobs",
-                    headers=AUTH,
-                    files=[("topology", ("adk.psf", top)), ("trajectory", ("adk.dcd", traj))],
-                    data={
-                        "width": str(width),
-                        "height": "24",
-                        "output": "zip",
-                        "stride": str(stride),
-                    },
-                )
-            assert r.status_code == 202, r.text
-            return str(r.json()["id"])
-
-        finished = submit(32, 49)
+        finished = adk_job(c, width="32", height="24", output="zip", stride="49")
         info, _ = wait_job(c, finished)
         assert info["state"] == "done" and info["ending"] is None
         for _ in range(2):  # and again: still nothing deleted
@@ -197,7 +193,7 @@ def test_cancelling_a_job_never_deletes_what_it_made(live_server: LiveServer) ->
             assert r.status_code == 200 and r.json()["state"] == "done", r.text
         assert c.get(f"/api/jobs/{finished}/result", headers=AUTH).status_code == 200
 
-        running = submit(160, 1)  # 98 frames: still running when asked
+        running = adk_job(c, width="160", height="24", output="zip")  # 98 frames: still running
         r = c.post(f"/api/jobs/{running}/cancel", headers=AUTH)
         assert r.status_code == 200, r.text
         assert r.json()["state"] == "cancelled" or r.json()["ending"] == "cancelling", r.json()
@@ -231,17 +227,8 @@ def test_a_queued_job_cancelled_takes_its_uploads_with_it(tmp_path: Path) -> Non
     try:
         uploads = server.settings.state_dir / "uploads"
         with httpx.Client(base_url=server.url, timeout=120) as c:
-            ids = []
-            for _ in range(2):  # the first runs, the second waits
-                with open(PSF, "rb") as top, open(DCD, "rb") as traj:
-                    r = c.post(
-                        "/api/jobs",
-                        headers=AUTH,
-                        files=[("topology", ("a.psf", top)), ("trajectory", ("a.dcd", traj))],
-                        data={"width": "160", "height": "120"},
-                    )
-                assert r.status_code == 202, r.text
-                ids.append(r.json()["id"])
+            # the first runs, the second waits
+            ids = [adk_job(c, width="160", height="120") for _ in range(2)]
             assert c.get(f"/api/jobs/{ids[1]}", headers=AUTH).json()["state"] == "queued"
             assert len(list(uploads.iterdir())) == 2
             r = c.post(f"/api/jobs/{ids[1]}/cancel", headers=AUTH)
