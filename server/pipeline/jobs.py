@@ -524,6 +524,15 @@ class JobManager:
         if job.frames is not None:
             job.frames.close(why)
 
+    def stop(self, job: Job) -> bool:
+        """Stop a job not ended: a live movie still taking frames finishes (keeping its movie;
+        True), any other job is cancelled (False)."""
+        if job.state is JobState.RUNNING and job.frames is not None and not job.frames.closed:
+            self.finish(job)
+            return True
+        self.cancel(job)
+        return False
+
     def cancel(self, job: Job) -> None:
         job.cancel.set()
         if job.frames is not None:

@@ -506,10 +506,7 @@ async def cancel_job(
     made. The answer's `ending` says how a job still running ends."""
     job = _job(state, job_id)
     if job.state not in FINAL and job.ending() is None:  # else: ended, or ending as asked
-        if job.state is JobState.RUNNING and job.frames is not None:
-            state.jobs.finish(job)  # a live movie takes no more frames and keeps its movie
-        else:
-            state.jobs.cancel(job)
+        state.jobs.stop(job)
     described: dict[str, Any] = job.describe()
     return described
 
@@ -525,11 +522,8 @@ async def delete_job(
     if job.state in FINAL:
         state.jobs.forget(job)
         return {"id": job_id, "deleted": True}
-    recording = job.frames is not None and not job.frames.closed
-    if job.state is JobState.RUNNING and recording:
-        state.jobs.finish(job)  # a live movie takes no more frames and keeps its movie
+    if state.jobs.stop(job):  # a live movie takes no more frames and keeps its movie
         return {**job.describe(), "finishing": True}
-    state.jobs.cancel(job)
     described: dict[str, Any] = job.describe()
     return described
 
