@@ -98,11 +98,11 @@ class Job(_Described):
         """Remove the job and its output from the server; one still running is cancelled
         first (a live movie's too: nothing is kept), and waited for up to `timeout` s."""
         deadline = time.monotonic() + timeout
-        while not self._rest.json("DELETE", f"/api/jobs/{self.id}").get("deleted"):
+        while not (answer := self._rest.json("DELETE", f"/api/jobs/{self.id}")).get("deleted"):
+            self.info = answer  # still running: the answer describes it
             if time.monotonic() > deadline:
                 raise TimeoutError(f"job {self.id} is still {self.state} after {timeout} s")
             time.sleep(0.2)
-            self.refresh()
 
     def __repr__(self) -> str:
         done, total = self.progress

@@ -94,7 +94,8 @@ class Recording:
     skipped: int = 0
     """Frames not recorded because the disk fell `queue_bytes` behind."""
     deleting: bool = False
-    """Its deletion is under way: no movie of it may start (its job would lose its files)."""
+    """Its deletion is under way: no movie or replay of it may start (it would lose its
+    files halfway)."""
     skipped_spans: list[list[int]] = field(default_factory=list)
     """[first step, last step, frames skipped] of each run of skipped frames."""
     queued_bytes: int = 0

@@ -21,7 +21,6 @@ from __future__ import annotations
 import enum
 import itertools
 import logging
-import math
 import os
 import threading
 import time
@@ -69,8 +68,6 @@ class Staging:
         """How long a render waits for a copy of `n_atoms` under way: as long as an upload
         from the frame itself would take. A 100M-atom frame gave up after 5 ms and uploaded
         from pageable memory for 145-175 ms while its copy went on beside it."""
-        if math.isinf(self.pageable_bytes_per_s):
-            return self.min_wait_s
         return max(self.min_wait_s, n_atoms * 12 / self.pageable_bytes_per_s)
 
 

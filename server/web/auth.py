@@ -7,7 +7,7 @@ import time
 from dataclasses import dataclass, field
 from urllib.parse import urlsplit
 
-from protocol import Role
+from protocol import ErrorCode, Role
 from server.settings import ServerSettings, is_loopback
 
 STEERING_TYPES = frozenset({"sim_params", "control", "forces", "pull", "render_params"})
@@ -31,13 +31,13 @@ def grant(settings: ServerSettings, token: str | None, role: Role) -> Role | Non
     return None
 
 
-def refusal(settings: ServerSettings, token: str | None, role: Role) -> tuple[str, str, str]:
+def refusal(settings: ServerSettings, token: str | None, role: Role) -> tuple[ErrorCode, str, str]:
     """Why `grant` refused: (error code, message, field). The viewer token asking for another
     role is told so (forbidden, as REST's 403), not that its token is wrong."""
     if token_role(settings, token) == "viewer":
         why = f"the viewer token is read-only: role {role} needs the server token"
-        return "forbidden", why, "hello.role"
-    return "unauthorized", "missing or wrong token", "hello.token"
+        return ErrorCode.FORBIDDEN, why, "hello.role"
+    return ErrorCode.UNAUTHORIZED, "missing or wrong token", "hello.token"
 
 
 def token_role(settings: ServerSettings, token: str | None) -> Role | None:

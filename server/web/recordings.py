@@ -85,11 +85,10 @@ def _movies_of(state: State, rec: Recording) -> None:
         f"{j.id} ({'being cancelled' if j.ending() == 'cancelling' else j.state.value})"
         for j in movies
     )
-    ids = [j.id for j in movies]
     how = (
         "retry once it has ended"
         if all(j.ending() == "cancelling" for j in movies)
-        else f"cancel it first (POST /api/jobs/{ids[0]}/cancel) or wait for it to end"
+        else f"cancel it first (POST /api/jobs/{movies[0].id}/cancel) or wait for it to end"
     )
     raise HTTPException(
         409, f"recording {rec.id} is being rendered to a movie by job {said}; {how}"

@@ -151,7 +151,7 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
         role = grant(settings, hello.token, hello.role)
         if role is None:
             code, why, where = refusal(settings, hello.token, hello.role)
-            raise RefusedError(p.ProtocolError(p.ErrorCode(code), why, where, hello.seq), 1008)
+            raise RefusedError(p.ProtocolError(code, why, where, hello.seq), 1008)
         token_kind = "viewer" if role == "viewer" else "server"
         if state.connections.by_token[token_kind] >= settings.max_connections_per_token:
             raise RefusedError(
