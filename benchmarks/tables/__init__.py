@@ -32,6 +32,7 @@ from .render import (
     render_densities,
     render_passes,
     render_variants,
+    side_walk,
     sort_last,
     temporal,
 )
@@ -73,6 +74,11 @@ TABLES: dict[str, Table] = {
     ),
     "render-densities": Table(("render_h200_densities.json",), render_densities),
     "render-passes": Table(("render_cpu_round7_passes.json",), render_passes),
+    "geodesic-sides": Table(
+        ("render_h200_geodesic_sides.json", "render_cpu_2core_geodesic_sides.json"),
+        render_variants,
+    ),
+    "side-walk": Table(("side_walk_work.json",), side_walk),
     "reach": Table(("reach_accuracy.json",), reach),
     "latency-steer": Table(("latency_h200_live_1m.json", "latency_h200_960.json"), latency_steer),
     "latency-stages": Table(("latency_h200_960.json",), latency_stages),

@@ -159,6 +159,23 @@ def reach(sources: list[Source]) -> str:
     return block(sources, table(header, "l" + "r" * len(res["rows"]), rows))
 
 
+def side_walk(sources: list[Source]) -> str:
+    """The share of a whole walk's routes (the control) each order of the side walk takes."""
+    ((_, res),) = sources
+    rows = []
+    for r in res["rows"]:
+        share = r["fraction_walked"]
+        rows.append(
+            [
+                f"{r['sigma_A']:g}",
+                count(r["gated_samples"]),
+                *(f"{100 * share[k]:.0f} %" for k in ("cells", "bands", "nearest")),
+            ]
+        )
+    header = ["sigma A", "samples", "cell rows", "bands, nearest first", "atom by atom, nearest"]
+    return block(sources, table(header, "rrrrr", rows))
+
+
 def _by_devices(run: Results) -> dict[int, float]:
     if "by_devices" in run:
         return {int(k): v["frame_ms"] for k, v in run["by_devices"].items()}

@@ -769,7 +769,10 @@ class DensityModel:
     compare values with the level, so they use these. And `part_bounds(f, lo, hi,
     stop_above) -> PartBounds`, the bounds of the 27 parts of a box (as `box_bound` per
     part, each widened by PART_SLACK of its edge), from which the rays skip samples in the
-    parts of a cell that are below the level; without it only whole cells are skipped.
+    parts of a cell that are below the level; without it only whole cells are skipped. And
+    `side4(f, o, d, ts, level)`, for the marching kernels, which need only each sample's side
+    of the level: the value, or -1 for "below, value unknown", or +inf for "at or above,
+    value unknown" (default: `value4_level`).
     """
 
     name: str
@@ -783,6 +786,7 @@ class DensityModel:
     value4_level: Any = None
     value_grad4_level: Any = None
     part_bounds: Any = None
+    side4: Any = None
 
 
 GAUSSIAN = DensityModel(

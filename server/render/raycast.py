@@ -782,6 +782,7 @@ def _make(
             return value_grad4(f, o, d, ts)
 
         value_grad4_level = value_grad4_exact
+    side4 = model.side4 if model.side4 is not None else value4_level
 
     @wp.func
     @no_type_check
@@ -798,8 +799,10 @@ def _make(
         passes: int,
     ):
         """Narrow [t_lo, t_hi] (side of t_lo = `inside`) to its first fifth that changes side,
-        `passes` times, then one secant step. A negative v_lo means its value was never
-        computed (a skipped cell). Returns the secant point and the final bracket."""
+        `passes` times, then one secant step. A negative or infinite v_lo or v_hi means its
+        value was never computed (a skipped cell, a side the march decided without it): it
+        is computed only if the last bracket still ends there. Returns the secant point and
+        the final bracket."""
         lo = float(t_lo)
         hi = float(t_hi)
         vlo = float(v_lo)
@@ -823,8 +826,10 @@ def _make(
                 if first > 0:
                     vlo = v4[first - 1]
                 lo = lo + float(first) * w
-        if vlo < 0.0:
+        if vlo < 0.0 or vlo == wp.inf:
             vlo = value(f, o + d * lo)
+        if vhi == wp.inf:
+            vhi = value(f, o + d * hi)
         u = wp.float32(0.5)
         den = vhi - vlo
         if wp.abs(den) > 1.0e-30:
@@ -931,10 +936,10 @@ def _make(
     ):
         """March one ray from lattice sample k (the walk starts in the cell at `t_from`) to
         its first crossing, taking at most `budget` density passes (0: no limit). Returns
-        the crossing's lattice index (-1: none) with the values on both sides of it (-1:
-        unknown), whether the ray still has work (budget spent) and the state that resumes
-        it: k, first, inside and the last sample's value (-1: unknown), and the density
-        passes taken. Refinement is left to the shading kernel, where every ray of a warp
+        the crossing's lattice index (-1: none) with the values on both sides of it (-1 or
+        +inf: unknown, as `side4` gives them), whether the ray still has work (budget spent)
+        and the state that resumes it: k, first, inside and the last sample's value, and the
+        density passes taken. Refinement is left to the shading kernel, where every ray of a warp
         refines at once. `stop_inside` = 1: a first sample inside the surface ends the ray
         without a hit (a sort-last part entered at its near boundary: the crossing lies in
         the part in front of it)."""
@@ -964,7 +969,7 @@ def _make(
                 # four lattice samples; the pass may run past this cell, which only means
                 # the next cells start with k already beyond their entry
                 ts = wp.vec4(float(k) * dt, float(k + 1) * dt, float(k + 2) * dt, float(k + 3) * dt)
-                v4 = value4_level(f, o, d, ts, m.iso)
+                v4 = side4(f, o, d, ts, m.iso)
                 q_from = wp.int32(0)
                 if first == 1:  # the ray's first sample says which side it starts on
                     first = 0
@@ -1126,7 +1131,7 @@ def _make(
                 if need != 0:
                     if counting != 0:
                         wp.atomic_add(counts, pix, 1)
-                    v4 = value4_level(f, o, d, ts, m.iso)
+                    v4 = side4(f, o, d, ts, m.iso)
                     q_from = wp.int32(1)
                     if gs == k0:
                         q_from = 0

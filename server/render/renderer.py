@@ -882,11 +882,15 @@ class Renderer(ImageOutputs):
         return before >= need or len(views) >= max(need, STILL_VIEWS)
 
     def _kernels_of_model(self, model: DensityModel, parts: bool) -> raycast.RaycastKernels:
+        own = MARCH_REGISTERS.get(model.name, MARCH_REGISTERS["gaussian"])
+        sides = self.tuning.decided_sides
+        decide = not self._cuda if sides is None else sides
+        if model.side4 is not None and not decide:
+            model = dataclasses.replace(model, name=f"{model.name}_whole_samples", side4=None)
         key = (model.name, parts)
         k = self._kernel_sets.get(key)
         if k is None:
             fast, volume_regs = self.tuning.fast_math, self.tuning.volume_max_registers
-            own = MARCH_REGISTERS.get(model.name, MARCH_REGISTERS["gaussian"])
             regs = own if self.tuning.max_registers is None else self.tuning.max_registers
             k = raycast.kernels_for(model, fast, regs, volume_regs, parts, self._count_passes)
             self._kernel_sets[key] = k

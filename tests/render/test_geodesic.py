@@ -273,13 +273,21 @@ def test_the_batched_walks_match_one_point_walks(device: str) -> None:
     d = rng.normal(size=(m, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     arrays = [wp.array(a.astype(np.float32), dtype=wp.vec3, device=device) for a in (o, d)]
-    out = wp.zeros((m, 3), dtype=wp.vec4, device=device)
+    out = wp.zeros((m, 4), dtype=wp.vec4, device=device)
     wp.launch(_batched_kernel, m, (f, *arrays, 0.5, out), device=device)
-    single, batched, level = (out.numpy()[:, k] for k in range(3))
+    single, batched, level, side = (out.numpy()[:, k] for k in range(4))
     np.testing.assert_allclose(batched, single, rtol=1e-5, atol=1e-6)
     reached = single >= 0.5  # the classical density is higher still there
     np.testing.assert_allclose(level[reached], single[reached], rtol=1e-5, atol=1e-6)
     assert (level[~reached] < 0.5).all()
+    # the side walk: the value where it walked every atom, else only which side it is on
+    above, below = side == np.inf, side == -1.0
+    walked = ~above & ~below
+    np.testing.assert_allclose(side[walked], single[walked], rtol=1e-5, atol=1e-6)
+    assert (single[above] >= 0.5 * (1 - 1e-5)).all() and (single[below] < 0.5 * (1 + 1e-5)).all()
+    # and it did stop early, both ways, at points where the classical density reaches the level
+    gated = level >= 0.0
+    assert (above & gated).sum() > 10 and (below & gated).sum() > 10
 
 
 @wp.kernel
@@ -298,6 +306,31 @@ def _batched_kernel(  # type: ignore[no-untyped-def]
     out[i, 0] = one
     out[i, 1] = geodesic_field.geodesic_value4(f, o[i], d[i], ts)
     out[i, 2] = geodesic_field.geodesic_value4_level(f, o[i], d[i], ts, level)
+    out[i, 3] = geodesic_field.geodesic_side4(f, o[i], d[i], ts, level)
+
+
+@pytest.mark.parametrize("case", ["outside", "inside", "vdw radii, strength 0.4"])
+def test_a_march_told_only_the_sides_draws_the_same_image(device: str, case: str) -> None:
+    """The marching kernels' side walk (`decided_sides`) against every gated sample walked
+    whole: the same image, from outside, from a camera inside the surface (rays start above
+    the level and cross it downwards) and with per-atom widths and a blended distance."""
+    mol = villin()
+    cam = orbit(fit_camera(mol.positions, 48, 36), 30.0, 20.0)
+    params = GEODESIC
+    if case == "inside":
+        centre = mol.positions.mean(axis=0)
+        atom = mol.positions[np.argmin(np.linalg.norm(mol.positions - centre, axis=1))]
+        cam = cam.model_copy(update={"target": tuple(float(x) for x in atom), "distance": 0.3})
+    elif case != "outside":
+        params = GEODESIC.model_copy(update={"radius_mode": "vdw", "warp_strength": 0.4})
+    images = []
+    for sides in (True, False):
+        r = render(device, mol.topology, mol.positions, params, cam, 48, 36, decided_sides=sides)
+        images.append((r.read_rgba(), r.read_depth(), r.read_atom_ids()))
+    (rgba, depth, ids), (rgba0, depth0, ids0) = images
+    assert np.isfinite(depth).sum() > 100
+    assert np.array_equal(rgba, rgba0) and np.array_equal(ids, ids0)
+    np.testing.assert_array_equal(depth, depth0)
 
 
 def test_strength_zero_draws_the_classical_image(device: str) -> None:
