@@ -24,10 +24,12 @@ others walk whole), or whole cells only."""
 
 # ----------------------------------------------------------------- rules of the defaults
 
-MARCH_REGISTERS = {"gaussian": 64, "carved": 64, "geodesic": 0}
+MARCH_REGISTERS = {"gaussian": 64, "carved": 64, "geodesic": 64}
 """Register cap of each density's iso kernels (0: the compiler's): 64 keeps more warps in flight
-than 80 for the classical and carved densities (render_h200_round4_regs_sizes.json); the
-geodesic density's route loop spills under a cap."""
+than 80 for the classical and carved densities (render_h200_round4_regs_sizes.json), and for
+the geodesic one, whose march took 254 registers uncapped (one block of 8 warps per
+multiprocessor): 0.41-0.85x the frame time, but 1.03x at 5,684 atoms
+(render_h200_geodesic_registers.json)."""
 VOLUME_REGISTERS = 64
 """Register cap of the volume kernel: fewer registers, more warps
 (render_h200_round4_regs_volume.json); measured again with segments (render_h200_volume_regs.json,
@@ -127,7 +129,8 @@ class Tuning:
     every sample that may reach the level is evaluated whole. None: on for the CPU device,
     off on CUDA, where a warp still waits for its slowest ray. Geodesic frames with it against
     without: 0.66-0.71x the time on two CPU cores (render_cpu_2core_geodesic_sides.json),
-    0.95-1.13x on one NVIDIA H200 (render_h200_geodesic_sides.json)."""
+    0.95-1.13x on one NVIDIA H200 (render_h200_geodesic_sides.json), 1.16-1.36x with its
+    kernels at 64 registers (render_h200_geodesic_registers_sides.json)."""
     refine_passes: int | None = None
     """Passes that cut an iso crossing's interval into fifths before its secant step (None:
     raycast.REFINE_PASSES); each pass is one `value4` per pixel."""
