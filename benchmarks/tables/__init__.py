@@ -24,6 +24,7 @@ from pathlib import Path
 
 from .markdown import Results, Source, TableError
 from .render import (
+    geodesic_gate,
     layers,
     multi_device,
     periodic,
@@ -79,6 +80,7 @@ TABLES: dict[str, Table] = {
         render_variants,
     ),
     "side-walk": Table(("side_walk_work.json",), side_walk),
+    "geodesic-gate": Table(("render_h200_geodesic_gate.json",), geodesic_gate),
     "reach": Table(("reach_accuracy.json",), reach),
     "latency-steer": Table(("latency_h200_live_1m.json", "latency_h200_960.json"), latency_steer),
     "latency-stages": Table(("latency_h200_960.json",), latency_stages),

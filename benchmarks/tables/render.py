@@ -176,6 +176,24 @@ def side_walk(sources: list[Source]) -> str:
     return block(sources, table(header, "rrrrr", rows))
 
 
+def geodesic_gate(sources: list[Source]) -> str:
+    """The geodesic frame with its gate against the same code without (the control), each the
+    mean of two runs."""
+    ((_, res),) = sources
+    rows = [
+        [
+            count(r["n_atoms"]),
+            size(r["width"], r["height"]),
+            num(r["base_ms"], 2),
+            num(r["gate_ms"], 2),
+            f"{r['gate_over_base']:.2f}",
+        ]
+        for r in res["rows"]
+    ]
+    header = ["atoms", "image", "without ms", "with the gate ms", "ratio"]
+    return block(sources, table(header, "lrrrr", rows), params(res))
+
+
 def _by_devices(run: Results) -> dict[int, float]:
     if "by_devices" in run:
         return {int(k): v["frame_ms"] for k, v in run["by_devices"].items()}

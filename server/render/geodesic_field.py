@@ -18,6 +18,7 @@ the current bond weights along it (`distances_kernel`), so a route is always the
 path of the present molecule.
 """
 
+import math
 from typing import Any, no_type_check
 
 import numpy as np
@@ -77,6 +78,11 @@ class Routes:
     inv_tau: float
     tau2: float
     strength: float
+    gate: float
+    """At least S / (the classical density) anywhere: exp(-strength tau^2 c_min) with
+    c_min = 1 / 2 s_max^2 (a route is at least sqrt(r^2 + tau^2) long), with room for
+    rounding. Samples, cells and parts whose classical density times this is below the
+    level are below it."""
 
 
 @wp.struct
@@ -462,12 +468,19 @@ def geodesic_value4(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp
 
 @wp.func
 @no_type_check
+def bound4(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4) -> wp.vec4:
+    """Upper bounds of S at the four points: the classical density times `Routes.gate`."""
+    return gaussian_value4(f.gauss, o, d, ts) * f.routes.gate
+
+
+@wp.func
+@no_type_check
 def geodesic_value4_level(
     f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float
 ) -> wp.vec4:
-    """The geodesic density where the classical one reaches `level` (it never exceeds the
-    classical one), -1 elsewhere: the routes are walked only where a crossing may be."""
-    c = gaussian_value4(f.gauss, o, d, ts)
+    """The geodesic density where its bound (`bound4`) reaches `level`, -1 elsewhere: the
+    routes are walked only where a crossing may be."""
+    c = bound4(f, o, d, ts)
     live = wp.vec4(0.0, 0.0, 0.0, 0.0)
     for t in range(4):
         if c[t] >= level:
@@ -488,6 +501,8 @@ hold most of the density and most of what the routes take from it, so the side i
 decided before the far atoms' routes are walked. Villin at sigma 1.5 A (float64, the samples
 a march takes up to each ray's crossing): 37 % of a whole walk's routes, against 69 % in the
 cells' order and 26 % atom by atom nearest first (benchmarks/results/side_walk_work.json)."""
+GATE_SLACK = 1.0e-5
+"""Room for rounding in `Routes.gate`, which is an exact bound in real numbers."""
 SIDE_SLACK = 1.0e-4
 """A sample is decided below the level only when the geodesic terms so far plus the classical
 terms of the atoms not yet walked stay below it by this fraction of the classical density:
@@ -524,7 +539,8 @@ class Tally4:
 def row_side4(f: GeodesicField, s: SideQuery, j0: int, j1: int, acc: Tally4) -> Tally4:
     """Sorted atoms [j0, j1) in the band of `s`, at the points still undecided: each
     atom's routes once for all of them; a point is decided above once its geodesic terms
-    reach the level, below once they cannot (the classical terms left bound the rest)."""
+    reach the level, below once they cannot (the classical terms left, times
+    `Routes.gate`, bound the rest)."""
     g = f.gauss
     lam = f.routes.strength
     geo = acc.geo
@@ -550,7 +566,7 @@ def row_side4(f: GeodesicField, s: SideQuery, j0: int, j1: int, acc: Tally4) -> 
                     if geo[t] >= s.level:
                         open[t] = 0.0
                         above[t] = 1.0
-                    elif geo[t] + rest[t] + acc.slack[t] < s.level:
+                    elif geo[t] + (rest[t] + acc.slack[t]) * f.routes.gate < s.level:
                         open[t] = 0.0
     out = acc
     out.geo = geo
@@ -578,6 +594,7 @@ def geodesic_side4(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level:
     was walked whole, -1 below the level, +inf at or above it. The atoms near the points are
     walked first and each point stops as soon as its side is certain."""
     c = gaussian_value4(f.gauss, o, d, ts)
+    gate = f.routes.gate
     s = SideQuery()
     s.q.p0 = o + d * ts[0]
     s.q.p1 = o + d * ts[1]
@@ -591,7 +608,7 @@ def geodesic_side4(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level:
     acc.above = wp.vec4(0.0, 0.0, 0.0, 0.0)
     gated = wp.vec4(0.0, 0.0, 0.0, 0.0)
     for t in range(4):
-        if c[t] >= level:
+        if c[t] * gate >= level:
             gated[t] = 1.0
     acc.open = gated
     out = wp.vec4(-1.0, -1.0, -1.0, -1.0)
@@ -634,7 +651,7 @@ def below_or_grad(f: GeodesicField, p: wp.vec3, c: float, level: float) -> wp.ve
 @wp.func
 @no_type_check
 def geodesic_value_grad4_level(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.vec4, level: float):
-    c = gaussian_value4(f.gauss, o, d, ts)
+    c = bound4(f, o, d, ts)
     g0 = below_or_grad(f, o + d * ts[0], c[0], level)
     g1 = below_or_grad(f, o + d * ts[1], c[1], level)
     g2 = below_or_grad(f, o + d * ts[2], c[2], level)
@@ -645,8 +662,10 @@ def geodesic_value_grad4_level(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.
 @wp.func
 @no_type_check
 def geodesic_box_bound(f: GeodesicField, lo: wp.vec3, hi: wp.vec3, stop_above: float) -> float:
-    """The classical bound: the geodesic density never exceeds the classical one."""
-    return gaussian_box_bound(f.gauss, lo, hi, stop_above)
+    """The classical bound times `Routes.gate` (the classical walk stops at the level over
+    the gate, so its early answer stays above the level once scaled)."""
+    gate = f.routes.gate
+    return gaussian_box_bound(f.gauss, lo, hi, stop_above / gate) * gate
 
 
 @wp.func
@@ -654,7 +673,8 @@ def geodesic_box_bound(f: GeodesicField, lo: wp.vec3, hi: wp.vec3, stop_above: f
 def geodesic_part_bounds(
     f: GeodesicField, lo: wp.vec3, hi: wp.vec3, stop_above: float
 ) -> PartBounds:
-    return gaussian_part_bounds(f.gauss, lo, hi, stop_above)
+    gate = f.routes.gate
+    return gaussian_part_bounds(f.gauss, lo, hi, stop_above / gate) * gate
 
 
 GEODESIC = DensityModel(
@@ -1019,7 +1039,8 @@ class GeodesicTables:
             )
             _wp.launch(distances_kernel, self.n, args, device=self.device)
 
-    def routes(self, tau: float, strength: float) -> Routes:
+    def routes(self, tau: float, strength: float, c_min: float) -> Routes:
+        """The tables as the kernels read them; `c_min` = 1 / 2 s^2 of the widest atom."""
         r = Routes()
         r.start = self.route_start
         r.bond = self.route_bond
@@ -1030,4 +1051,5 @@ class GeodesicTables:
         r.inv_tau = 1.0 / float(tau)
         r.tau2 = float(tau) * float(tau)
         r.strength = float(strength)
+        r.gate = math.exp(-float(strength) * float(tau) ** 2 * float(c_min)) * (1.0 + GATE_SLACK)
         return r

@@ -765,7 +765,7 @@ class Renderer(ImageOutputs):
         f.parts = gauss.parts
         f.brick_bound = gauss.brick_bound
         f.gauss = gauss
-        f.routes = tables.routes(d.geo.tau, d.geo.strength)
+        f.routes = tables.routes(d.geo.tau, d.geo.strength, d.half_k2 / (d.reach * d.reach))
         return f
 
     def _geodesic_tables(self) -> geodesic_field.GeodesicTables:

@@ -5,6 +5,8 @@ narrower Gaussian), and the device kernels against the reference."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import warp as wp
@@ -114,6 +116,11 @@ def test_never_above_the_classical_density(name: str) -> None:
         for strength in (1.0, 0.4):
             got = geo.density(pts, sigma, strength=strength)
             assert (got <= classical + 1e-12).all()
+            # and by the renderer's gate: a route is at least sqrt(r^2 + tau^2) long
+            for smoothing in (0.6, 2.0):
+                gate = math.exp(-strength * smoothing**2 / 2.0)
+                got = geo.density(pts, sigma, strength=strength, smoothing=smoothing)
+                assert (got <= classical * gate + 1e-12).all()
     zero = geo.density(pts, 1.5, strength=0.0)
     np.testing.assert_allclose(zero, classical_density(pts, pos, d, 1.5), rtol=1e-12)
 
