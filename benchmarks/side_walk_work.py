@@ -1,9 +1,11 @@
 """How much of the geodesic density's route work a march needs when it asks only for each
-sample's side of the level (`geodesic_field.geodesic_side4`): float64, on villin, every
-sample along orthographic rays where the classical density reaches the level, up to each
-ray's first geodesic crossing. The atoms are walked in one of three orders and the walk stops
-once the geodesic terms reach the level or can no longer (the classical terms of the atoms
-left bound theirs); the control is the whole walk, every route of every atom within reach.
+sample's side of the level (`geodesic_field.geodesic_side4`): float64, on villin, strength 1,
+every sample along orthographic rays where the classical density times the gate
+(`Routes.gate`) reaches the level, up to each ray's first geodesic crossing. The atoms are
+walked in one of three orders and the walk stops once the geodesic terms reach the level or
+can no longer (the classical terms of the atoms left, times the gate, bound theirs); the
+control is the whole walk, every route of every atom within reach. Also counted: the samples
+the classical density alone would gate (the gate's control).
 
     python benchmarks/side_walk_work.py --out benchmarks/results/side_walk_work.json
 
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -44,6 +47,7 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
     reach = k * sigma
     tau = smoothing * sigma
     geo = Geodesic.build(pos, ones, BondGraph.of(mol.topology), reach)
+    gate = math.exp(-(tau**2) / (2.0 * sigma * sigma))
     level = 0.25 * float(geo.density(pos, sigma, smoothing=smoothing, cutoff_sigmas=k).mean())
     routes = np.diff(geo.routes.start)
     cell = np.floor((pos - pos.min(axis=0)) / (reach / 2.0)).astype(np.int64)
@@ -55,10 +59,11 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
     whole = 0
     walked = dict.fromkeys(ORDERS, 0)
     samples = 0
+    classically_gated = 0
     for x in xs:
         pts = np.stack(np.broadcast_arrays(x, ys[:, None], zs[None, :]), -1).reshape(-1, 3)
         cls = classical_density(pts, pos, ones, sigma, k).reshape(len(ys), len(zs))
-        gated = cls >= level
+        gated = cls * gate >= level
         val = np.zeros_like(cls)
         if gated.any():
             inside = pts[gated.ravel()]
@@ -66,6 +71,7 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
         for i in range(len(ys)):
             crossing = np.nonzero(val[i] >= level)[0]
             end = crossing[0] + 1 if len(crossing) else len(zs)
+            classically_gated += int((cls[i, :end] >= level).sum())
             for z in zs[:end][gated[i, :end]]:
                 p = np.array([x, ys[i], z])
                 near = np.asarray(tree.query_ball_point(p, reach), dtype=np.int64)
@@ -86,7 +92,7 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
                     order = np.argsort(key, kind="stable")
                     g = np.cumsum(gt[order])
                     rest = c0 - np.cumsum(ct[order])
-                    decided = (g >= level) | (g + rest + SIDE_SLACK * c0 < level)
+                    decided = (g >= level) | (g + (rest + SIDE_SLACK * c0) * gate < level)
                     stop = int(np.argmax(decided)) if decided.any() else len(order) - 1
                     walked[name] += int(routes[near][order][: stop + 1].sum())
     return {
@@ -94,7 +100,9 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
         "smoothing": smoothing,
         "level": level,
         "rays": rays * rays,
+        "gate": gate,
         "gated_samples": samples,
+        "classically_gated_samples": classically_gated,
         "routes_whole_walk": whole,
         "fraction_walked": {name: walked[name] / whole for name in ORDERS},
     }

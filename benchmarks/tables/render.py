@@ -168,11 +168,17 @@ def side_walk(sources: list[Source]) -> str:
         rows.append(
             [
                 f"{r['sigma_A']:g}",
-                count(r["gated_samples"]),
+                f"{count(r['gated_samples'])} ({count(r['classically_gated_samples'])})",
                 *(f"{100 * share[k]:.0f} %" for k in ("cells", "bands", "nearest")),
             ]
         )
-    header = ["sigma A", "samples", "cell rows", "bands, nearest first", "atom by atom, nearest"]
+    header = [
+        "sigma A",
+        "samples gated (classically)",
+        "cell rows",
+        "bands, nearest first",
+        "atom by atom, nearest",
+    ]
     return block(sources, table(header, "rrrrr", rows))
 
 

@@ -4,9 +4,10 @@ A sample walks the atoms within the cutoff of P (the classical density's cell gr
 shorter than the cutoff never leaves it), and for each atom a takes the Boltzmann mean of its
 routes (`Routes`: the bonds with an end within graph distance `reach` of a, with the graph
 distance of each end), then adds d_a K(((1 - lambda) r^2 + lambda m^2) / 2 s^2): the
-classical term at strength 0, and never above it. So the classical density bounds this one:
-cells and parts of cells keep their classical bounds, and the marching kernels compute the
-routes only at samples where the classical density alone reaches the level. There, on the CPU
+classical term at strength 0, and never above it: a route is at least sqrt(r^2 + tau^2) long,
+so the classical density times `Routes.gate` bounds this one. Cells and parts of cells take
+their classical bounds times the gate, and the marching kernels compute the routes only at
+samples where the classical density times the gate reaches the level. There, on the CPU
 device, they take only the sample's side of the level (`geodesic_side4`): the near atoms
 first, stopping once the side is certain; on CUDA a warp waits for its slowest ray, and the
 whole walk is as fast (Tuning.decided_sides).
@@ -499,10 +500,11 @@ SIDE_BANDS = (1.125, 3.125)
 r^2 / 2 s^2 (within 1.5 sigma, then 2.5 sigma, then the rest), nearest first: the near atoms
 hold most of the density and most of what the routes take from it, so the side is mostly
 decided before the far atoms' routes are walked. Villin at sigma 1.5 A (float64, the samples
-a march takes up to each ray's crossing): 37 % of a whole walk's routes, against 69 % in the
-cells' order and 26 % atom by atom nearest first (benchmarks/results/side_walk_work.json)."""
+a march takes up to each ray's crossing): 35 % of a whole walk's routes, against 68 % in the
+cells' order and 25 % atom by atom nearest first (benchmarks/results/side_walk_work.json)."""
 GATE_SLACK = 1.0e-5
-"""Room for rounding in `Routes.gate`, which is an exact bound in real numbers."""
+"""Room for rounding in `Routes.gate` (an exact bound in real numbers) and in the bound walks'
+early return scaled by it."""
 SIDE_SLACK = 1.0e-4
 """A sample is decided below the level only when the geodesic terms so far plus the classical
 terms of the atoms not yet walked stay below it by this fraction of the classical density:
@@ -662,10 +664,11 @@ def geodesic_value_grad4_level(f: GeodesicField, o: wp.vec3, d: wp.vec3, ts: wp.
 @wp.func
 @no_type_check
 def geodesic_box_bound(f: GeodesicField, lo: wp.vec3, hi: wp.vec3, stop_above: float) -> float:
-    """The classical bound times `Routes.gate` (the classical walk stops at the level over
-    the gate, so its early answer stays above the level once scaled)."""
+    """The classical bound times `Routes.gate`. The classical walk stops a little past the
+    level over the gate (GATE_SLACK), so an early answer stays above the level once scaled,
+    not equal to it by rounding."""
     gate = f.routes.gate
-    return gaussian_box_bound(f.gauss, lo, hi, stop_above / gate) * gate
+    return gaussian_box_bound(f.gauss, lo, hi, stop_above / gate * (1.0 + GATE_SLACK)) * gate
 
 
 @wp.func
@@ -674,7 +677,7 @@ def geodesic_part_bounds(
     f: GeodesicField, lo: wp.vec3, hi: wp.vec3, stop_above: float
 ) -> PartBounds:
     gate = f.routes.gate
-    return gaussian_part_bounds(f.gauss, lo, hi, stop_above / gate) * gate
+    return gaussian_part_bounds(f.gauss, lo, hi, stop_above / gate * (1.0 + GATE_SLACK)) * gate
 
 
 GEODESIC = DensityModel(

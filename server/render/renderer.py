@@ -132,6 +132,14 @@ def check_finite_positions(arr: npt.NDArray[np.float32]) -> None:
     raise RenderError("positions are too large (beyond ±1e30 angstrom)")
 
 
+@functools.cache
+def whole_samples(model: DensityModel) -> DensityModel:
+    """`model` with its marching kernels walking every gated sample whole (no `side4`): one
+    model per process, so its kernels are generated once (`raycast.kernels_for` keeps them
+    per model)."""
+    return dataclasses.replace(model, name=f"{model.name}_whole_samples", side4=None)
+
+
 class Renderer(ImageOutputs):
     """Ray-casting renderer of the Gaussian molecular density (see docs/rendering.md).
 
@@ -886,7 +894,7 @@ class Renderer(ImageOutputs):
         sides = self.tuning.decided_sides
         decide = not self._cuda if sides is None else sides
         if model.side4 is not None and not decide:
-            model = dataclasses.replace(model, name=f"{model.name}_whole_samples", side4=None)
+            model = whole_samples(model)
         key = (model.name, parts)
         k = self._kernel_sets.get(key)
         if k is None:

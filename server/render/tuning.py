@@ -128,7 +128,7 @@ class Tuning:
     can tell it sooner than the value (`DensityModel.side4`: the geodesic density); off,
     every sample that may reach the level is evaluated whole. None: on for the CPU device,
     off on CUDA, where a warp still waits for its slowest ray. Geodesic frames with it against
-    without: 0.66-0.71x the time on two CPU cores (render_cpu_2core_geodesic_sides.json),
+    without: 0.67-0.71x the time on two CPU cores (render_cpu_2core_geodesic_sides.json),
     0.95-1.13x on one NVIDIA H200 (render_h200_geodesic_sides.json), 1.16-1.36x with its
     kernels at 64 registers (render_h200_geodesic_registers_sides.json)."""
     refine_passes: int | None = None

@@ -12,7 +12,7 @@ import pytest
 import warp as wp
 
 from protocol import RenderParams
-from server.render import geodesic, geodesic_field
+from server.render import geodesic, geodesic_field, raycast
 from server.render.camera import fit_camera, orbit
 from server.render.errors import CapacityError
 from server.render.geodesic import (
@@ -454,3 +454,23 @@ def test_route_work_counts_what_the_tables_hold() -> None:
     reach = r.reach(RenderParams(scale_space="geodesic", sigma_A=3.0))
     d2 = ((pos[:, None] - pos[None]) ** 2).sum(-1)
     assert 0.7 < near / (d2 <= reach * reach).sum(1).mean() < 1.4
+
+
+def test_the_whole_walks_kernels_are_made_once_a_process(
+    device: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The marching kernels without the side walk (CUDA's default) are generated once, not
+    again for every renderer (a session, a layer, a device each hold one)."""
+    made: list[str] = []
+    real = raycast._make
+
+    def counted(model, *args):  # type: ignore[no-untyped-def]
+        made.append(model.name)
+        return real(model, *args)
+
+    monkeypatch.setattr(raycast, "_make", counted)
+    mol = three_atoms()
+    cam = fit_camera(mol.positions, 16, 12)
+    for _ in range(3):
+        render(device, mol.topology, mol.positions, GEODESIC, cam, 16, 12, decided_sides=False)
+    assert made.count("geodesic_whole_samples") <= 1
