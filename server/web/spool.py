@@ -11,6 +11,7 @@ killed mid-upload leaves nothing behind.
 
 from __future__ import annotations
 
+import logging
 from contextlib import aclosing
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,12 @@ IN_MEMORY_BYTES = 256 * 1024
 MAX_FILES = 32
 MAX_FIELDS = 64
 """Files and plain fields of one form (a field is at most 1 MiB)."""
+PARSER_LOG = "python_multipart"
+"""The multipart parser's logger. Its warnings are about the body a client sent, most of them
+the message of the exception it raises next, which the client is answered with
+(`_multipart_refusal`): logged as well, a client could write a line into the server's log with
+every malformed request. Only its errors are kept."""
+logging.getLogger(PARSER_LOG).setLevel(logging.ERROR)
 
 
 @dataclass
