@@ -129,8 +129,7 @@ class Tuning:
     every sample that may reach the level is evaluated whole. None: on for the CPU device,
     off on CUDA, where a warp still waits for its slowest ray. Geodesic frames with it against
     without: 0.67-0.71x the time on two CPU cores (render_cpu_2core_geodesic_sides.json),
-    0.95-1.13x on one NVIDIA H200 (render_h200_geodesic_sides.json), 1.16-1.36x with its
-    kernels at 64 registers (render_h200_geodesic_registers_sides.json)."""
+    0.98-1.44x on one NVIDIA H200 (render_h200_geodesic_sides.json)."""
     refine_passes: int | None = None
     """Passes that cut an iso crossing's interval into fifths before its secant step (None:
     raycast.REFINE_PASSES); each pass is one `value4` per pixel."""
