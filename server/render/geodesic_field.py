@@ -286,6 +286,18 @@ def inv2s2_at(g: GaussianField, j: int) -> float:
 
 @wp.func
 @no_type_check
+def blended_term(g: GaussianField, w: float, r2: float, m: float, c: float, lam: float) -> float:
+    """An atom's term from its straight distance^2 r2 and route mean m: w K(((1 - lambda) r2 +
+    lambda m^2) c), zero beyond the cutoff."""
+    e = ((1.0 - lam) * r2 + lam * m * m) * c
+    out = float(0.0)
+    if e < g.half_k2:
+        out = w * kernel(e, g.inv_half_k2)
+    return out
+
+
+@wp.func
+@no_type_check
 def term(f: GeodesicField, j: int, p: wp.vec3) -> float:
     """Sorted atom j's term of the geodesic density at p (zero beyond the cutoff)."""
     g = f.gauss
@@ -296,9 +308,7 @@ def term(f: GeodesicField, j: int, p: wp.vec3) -> float:
     out = float(0.0)
     if r2 * c < g.half_k2:
         m = atom_distance(f.routes, g.order[j], p)
-        e = ((1.0 - lam) * r2 + lam * m * m) * c
-        if e < g.half_k2:
-            out = a4[3] * kernel(e, g.inv_half_k2)
+        out = blended_term(g, a4[3], r2, m, c, lam)
     return out
 
 
@@ -389,9 +399,7 @@ def row_values4(f: GeodesicField, q: Points4, j0: int, j1: int, total: wp.vec4) 
             m = atom_distance4(f.routes, g.order[j], q, near)
             for t in range(4):
                 if near[t] > 0.0:
-                    e = ((1.0 - lam) * r2[t] + lam * m[t] * m[t]) * c
-                    if e < g.half_k2:
-                        v[t] = v[t] + a4[3] * kernel(e, g.inv_half_k2)
+                    v[t] = v[t] + blended_term(g, a4[3], r2[t], m[t], c, lam)
     return v
 
 
@@ -552,7 +560,8 @@ def row_side4(f: GeodesicField, s: SideQuery, j0: int, j1: int, acc: Tally4) -> 
     for j in range(j0, j1):
         a4 = g.atoms[j]
         c = inv2s2_at(g, j)
-        e4 = c * wp.vec4(dist2(a4, s.q.p0), dist2(a4, s.q.p1), dist2(a4, s.q.p2), dist2(a4, s.q.p3))
+        r2 = wp.vec4(dist2(a4, s.q.p0), dist2(a4, s.q.p1), dist2(a4, s.q.p2), dist2(a4, s.q.p3))
+        e4 = r2 * c
         walk = wp.vec4(0.0, 0.0, 0.0, 0.0)
         for t in range(4):
             if open[t] > 0.0 and e4[t] < g.half_k2 and e4[t] >= s.e_lo and e4[t] < s.e_hi:
@@ -561,9 +570,7 @@ def row_side4(f: GeodesicField, s: SideQuery, j0: int, j1: int, acc: Tally4) -> 
             m = atom_distance4(f.routes, g.order[j], s.q, walk)
             for t in range(4):
                 if walk[t] > 0.0:
-                    e = (1.0 - lam) * e4[t] + lam * m[t] * m[t] * c
-                    if e < g.half_k2:
-                        geo[t] = geo[t] + a4[3] * kernel(e, g.inv_half_k2)
+                    geo[t] = geo[t] + blended_term(g, a4[3], r2[t], m[t], c, lam)
                     rest[t] = rest[t] - a4[3] * kernel(e4[t], g.inv_half_k2)
                     if geo[t] >= s.level:
                         open[t] = 0.0
