@@ -5,6 +5,8 @@ periodic_bench.py."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from .markdown import Results, Source, block, count, num, size, stem, table
 
 
@@ -182,22 +184,31 @@ def side_walk(sources: list[Source]) -> str:
     return block(sources, table(header, "rrrrr", rows))
 
 
-def geodesic_gate(sources: list[Source]) -> str:
-    """The geodesic frame with its gate against the same code without (the control), each the
-    mean of two runs."""
-    ((_, res),) = sources
-    rows = [
-        [
-            count(r["n_atoms"]),
-            size(r["width"], r["height"]),
-            num(r["base_ms"], 2),
-            num(r["gate_ms"], 2),
-            f"{r['gate_over_base']:.2f}",
+def _against_base(column: str, key: str) -> Callable[[list[Source]], str]:
+    """A table of a geodesic frame against the same code before a change (the control, its
+    own checkout in the same session), each the mean of two runs: `key`_ms and
+    `key`_over_base in each row."""
+
+    def make(sources: list[Source]) -> str:
+        ((_, res),) = sources
+        rows = [
+            [
+                count(r["n_atoms"]),
+                size(r["width"], r["height"]),
+                num(r["base_ms"], 2),
+                num(r[f"{key}_ms"], 2),
+                f"{r[f'{key}_over_base']:.2f}",
+            ]
+            for r in res["rows"]
         ]
-        for r in res["rows"]
-    ]
-    header = ["atoms", "image", "without ms", "with the gate ms", "ratio"]
-    return block(sources, table(header, "lrrrr", rows), params(res))
+        header = ["atoms", "image", "before ms", column, "ratio"]
+        return block(sources, table(header, "lrrrr", rows), params(res))
+
+    return make
+
+
+geodesic_gate = _against_base("with the gate ms", "gate")
+geodesic_route_major = _against_base("routes with their geometry ms", "new")
 
 
 def _by_devices(run: Results) -> dict[int, float]:

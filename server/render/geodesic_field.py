@@ -67,11 +67,12 @@ class Routes:
     """Every atom's routes (CSR by original atom index) and the bonds they go through.
 
     `g[k]`: graph distance from the (i, j) ends of route k's bond to its atom (inf beyond the
-    tables' reach), this frame; `seg_a[b]` = (a_i, l), `seg_v[b]` = (a_j - a_i, 1 / l) of bond
-    b this frame (1 / l = 0 for an atom without bonds, a bond of length 0)."""
+    tables' reach), this frame; `seg_a[k]` = (a_i, l), `seg_v[k]` = (a_j - a_i, 1 / l) of
+    route k's bond this frame (1 / l = 0 for an atom without bonds, a bond of length 0),
+    copied to every route through the bond: a route's three loads are independent and
+    contiguous, not a bond index and then the bond's geometry."""
 
     start: wp.array[wp.int32]
-    bond: wp.array[wp.int32]
     g: wp.array[wp.vec2]
     seg_a: wp.array[wp.vec4]
     seg_v: wp.array[wp.vec4]
@@ -116,9 +117,8 @@ def ramp_slope(x: float, w: float) -> float:
 @no_type_check
 def route_pair(r: Routes, k: int, p: wp.vec3) -> wp.vec2:
     """The two routes through route k's bond (via its end i, via its end j)."""
-    b = r.bond[k]
-    sa = r.seg_a[b]
-    sv = r.seg_v[b]
+    sa = r.seg_a[k]
+    sv = r.seg_v[k]
     ai = wp.vec3(sa[0], sa[1], sa[2])
     v = wp.vec3(sv[0], sv[1], sv[2])
     length = sa[3]
@@ -250,9 +250,8 @@ def atom_distance_grad(r: Routes, a: int, p: wp.vec3) -> wp.vec4:
     m.wd = wp.vec3(0.0, 0.0, 0.0)
     m.wcd = wp.vec3(0.0, 0.0, 0.0)
     for k in range(r.start[a], r.start[a + 1]):
-        b = r.bond[k]
-        sa = r.seg_a[b]
-        sv = r.seg_v[b]
+        sa = r.seg_a[k]
+        sv = r.seg_v[k]
         ai = wp.vec3(sa[0], sa[1], sa[2])
         v = wp.vec3(sv[0], sv[1], sv[2])
         length = sa[3]
@@ -765,6 +764,23 @@ def distances_kernel(
 
 @wp.kernel
 @no_type_check
+def geometry_kernel(
+    route_bond: wp.array[wp.int32],
+    seg_a: wp.array[wp.vec4],
+    seg_v: wp.array[wp.vec4],
+    route_a: wp.array[wp.vec4],
+    route_v: wp.array[wp.vec4],
+):
+    """Each route's copy of its bond's geometry this frame (a thread a route: the writes of
+    one atom's routes in a loop of one thread took 6 ms at 1M atoms)."""
+    r = wp.tid()
+    b = route_bond[r]
+    route_a[r] = seg_a[b]
+    route_v[r] = seg_v[b]
+
+
+@wp.kernel
+@no_type_check
 def build_kernel(
     adj_start: wp.array[wp.int32],
     adj_atom: wp.array[wp.int32],
@@ -959,6 +975,7 @@ class GeodesicTables:
         self.route_start = _wp.zeros(n + 1, dtype=_wp.int32, device=device)
         self.overflow = _wp.zeros(1, dtype=_wp.int32, device=device)
         self._alloc(0, 0)
+        self.route_total = 0
         self.reach = 0.0
         self.key: tuple[object, ...] | None = None
         self.lost = 0
@@ -973,6 +990,8 @@ class GeodesicTables:
         self.route_bond = _wp.zeros(max(routes, 1), dtype=_wp.int32, device=d)
         self.route_nodes = _wp.zeros(max(routes, 1), dtype=_wp.vec2i, device=d)
         self.route_g = _wp.zeros(max(routes, 1), dtype=_wp.vec2, device=d)
+        self.route_a = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
+        self.route_v = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
 
     @property
     def nbytes(self) -> int:
@@ -995,6 +1014,8 @@ class GeodesicTables:
             self.route_bond,
             self.route_nodes,
             self.route_g,
+            self.route_a,
+            self.route_v,
         )
         return sum(int(a.capacity) for a in arrays)
 
@@ -1026,6 +1047,7 @@ class GeodesicTables:
             _wp.utils.array_scan(padded, start, inclusive=False)
         totals = (int(self.node_start.numpy()[n]), int(self.route_start.numpy()[n]))
         self._alloc(*totals)
+        self.route_total = totals[1]
         if n:
             outputs = (self.node_parent, self.node_edge, self.route_bond, self.route_nodes)
             args = (*head, self.weight, float(reach), 1, *counts, *outputs, self.overflow)
@@ -1048,15 +1070,17 @@ class GeodesicTables:
                 self.route_g,
             )
             _wp.launch(distances_kernel, self.n, args, device=self.device)
+        if self.route_total:
+            copy = (self.route_bond, self.seg_a, self.seg_v, self.route_a, self.route_v)
+            _wp.launch(geometry_kernel, self.route_total, copy, device=self.device)
 
     def routes(self, tau: float, strength: float, c_min: float) -> Routes:
         """The tables as the kernels read them; `c_min` = 1 / 2 s^2 of the widest atom."""
         r = Routes()
         r.start = self.route_start
-        r.bond = self.route_bond
         r.g = self.route_g
-        r.seg_a = self.seg_a
-        r.seg_v = self.seg_v
+        r.seg_a = self.route_a
+        r.seg_v = self.route_v
         r.tau = float(tau)
         r.inv_tau = 1.0 / float(tau)
         r.tau2 = float(tau) * float(tau)
