@@ -26,6 +26,7 @@ from .markdown import Results, Source, TableError
 from .render import (
     geodesic_gate,
     geodesic_route_major,
+    geodesic_route_once,
     layers,
     multi_device,
     periodic,
@@ -83,6 +84,7 @@ TABLES: dict[str, Table] = {
     "side-walk": Table(("side_walk_work.json",), side_walk),
     "geodesic-gate": Table(("render_h200_geodesic_gate.json",), geodesic_gate),
     "geodesic-route-major": Table(("render_h200_geodesic_route_major.json",), geodesic_route_major),
+    "geodesic-route-once": Table(("render_h200_geodesic_route_once.json",), geodesic_route_once),
     "reach": Table(("reach_accuracy.json",), reach),
     "latency-steer": Table(("latency_h200_live_1m.json", "latency_h200_960.json"), latency_steer),
     "latency-stages": Table(("latency_h200_960.json",), latency_stages),

@@ -209,6 +209,7 @@ def _against_base(column: str, key: str) -> Callable[[list[Source]], str]:
 
 geodesic_gate = _against_base("with the gate ms", "gate")
 geodesic_route_major = _against_base("routes with their geometry ms", "new")
+geodesic_route_once = _against_base("each route read once a pass ms", "new")
 
 
 def _by_devices(run: Results) -> dict[int, float]:

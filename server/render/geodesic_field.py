@@ -66,14 +66,13 @@ _Floats = wp.types.vector(length=NODES, dtype=float)
 class Routes:
     """Every atom's routes (CSR by original atom index) and the bonds they go through.
 
-    `g[k]`: graph distance from the (i, j) ends of route k's bond to its atom (inf beyond the
-    tables' reach), this frame; `seg_a[k]` = (a_i, l), `seg_v[k]` = (a_j - a_i, 1 / l) of
-    route k's bond this frame (1 / l = 0 for an atom without bonds, a bond of length 0),
-    copied to every route through the bond: a route's three loads are independent and
-    contiguous, not a bond index and then the bond's geometry."""
+    Route k this frame: `seg_a[k]` = (a_i, g_i), `seg_v[k]` = (a_j - a_i, g_j) of its bond
+    (i, j), g the graph distance from that end to the route's atom (inf beyond the tables'
+    reach); a_j - a_i = 0 for an atom without bonds (a bond of length 0). Each route has its
+    own copy of its bond's geometry: two independent loads, not a bond index and then the
+    bond (`route_bond`)."""
 
     start: wp.array[wp.int32]
-    g: wp.array[wp.vec2]
     seg_a: wp.array[wp.vec4]
     seg_v: wp.array[wp.vec4]
     tau: float
@@ -113,25 +112,55 @@ def ramp_slope(x: float, w: float) -> float:
     return 0.5 * (1.0 + x / wp.sqrt(x * x + w * w))
 
 
+@wp.struct
+class RouteBond:
+    """Route k's bond, read once for every point that takes it: its start a_i, vector v,
+    length and 1 / length (0 for an atom without bonds), tau / length, and the graph
+    distances of its two ends."""
+
+    ai: wp.vec3
+    v: wp.vec3
+    length: float
+    inv_l: float
+    w: float
+    g: wp.vec2
+
+
+@wp.func
+@no_type_check
+def route_bond(r: Routes, k: int) -> RouteBond:
+    sa = r.seg_a[k]
+    sv = r.seg_v[k]
+    b = RouteBond()
+    b.ai = wp.vec3(sa[0], sa[1], sa[2])
+    b.v = wp.vec3(sv[0], sv[1], sv[2])
+    b.g = wp.vec2(sa[3], sv[3])
+    b.length = wp.length(b.v)
+    b.inv_l = 0.0
+    if b.length > 0.0:
+        b.inv_l = 1.0 / b.length
+    b.w = r.tau * b.inv_l
+    return b
+
+
+@wp.func
+@no_type_check
+def pair_at(b: RouteBond, p: wp.vec3, tau2: float) -> wp.vec2:
+    """The two routes from p through bond b (via its end i, via its end j)."""
+    u = float(0.0)
+    if b.inv_l > 0.0:
+        t = wp.dot(p - b.ai, b.v) * b.inv_l * b.inv_l
+        u = ramp(t, b.w) - ramp(t - 1.0, b.w)
+    q = p - (b.ai + b.v * u)
+    across = wp.sqrt(wp.dot(q, q) + tau2)
+    return wp.vec2(across + u * b.length + b.g[0], across + (1.0 - u) * b.length + b.g[1])
+
+
 @wp.func
 @no_type_check
 def route_pair(r: Routes, k: int, p: wp.vec3) -> wp.vec2:
     """The two routes through route k's bond (via its end i, via its end j)."""
-    sa = r.seg_a[k]
-    sv = r.seg_v[k]
-    ai = wp.vec3(sa[0], sa[1], sa[2])
-    v = wp.vec3(sv[0], sv[1], sv[2])
-    length = sa[3]
-    inv_l = sv[3]
-    u = float(0.0)
-    if inv_l > 0.0:
-        t = wp.dot(p - ai, v) * inv_l * inv_l
-        w = r.tau * inv_l
-        u = ramp(t, w) - ramp(t - 1.0, w)
-    q = p - (ai + v * u)
-    across = wp.sqrt(wp.dot(q, q) + r.tau2)
-    g = r.g[k]
-    return wp.vec2(across + u * length + g[0], across + (1.0 - u) * length + g[1])
+    return pair_at(route_bond(r, k), p, r.tau2)
 
 
 @wp.func
@@ -182,18 +211,20 @@ def atom_distance4(r: Routes, a: int, q: Points4, live: wp.vec4) -> wp.vec4:
     a2 = wp.vec3(wp.inf, 0.0, 0.0)
     a3 = wp.vec3(wp.inf, 0.0, 0.0)
     it = r.inv_tau
+    t2 = r.tau2
     for k in range(r.start[a], r.start[a + 1]):
+        b = route_bond(r, k)
         if live[0] > 0.0:
-            c = route_pair(r, k, q.p0)
+            c = pair_at(b, q.p0, t2)
             a0 = boltzmann(boltzmann(a0, c[0], it), c[1], it)
         if live[1] > 0.0:
-            c = route_pair(r, k, q.p1)
+            c = pair_at(b, q.p1, t2)
             a1 = boltzmann(boltzmann(a1, c[0], it), c[1], it)
         if live[2] > 0.0:
-            c = route_pair(r, k, q.p2)
+            c = pair_at(b, q.p2, t2)
             a2 = boltzmann(boltzmann(a2, c[0], it), c[1], it)
         if live[3] > 0.0:
-            c = route_pair(r, k, q.p3)
+            c = pair_at(b, q.p3, t2)
             a3 = boltzmann(boltzmann(a3, c[0], it), c[1], it)
     out = wp.vec4(0.0, 0.0, 0.0, 0.0)
     if live[0] > 0.0:
@@ -250,25 +281,19 @@ def atom_distance_grad(r: Routes, a: int, p: wp.vec3) -> wp.vec4:
     m.wd = wp.vec3(0.0, 0.0, 0.0)
     m.wcd = wp.vec3(0.0, 0.0, 0.0)
     for k in range(r.start[a], r.start[a + 1]):
-        sa = r.seg_a[k]
-        sv = r.seg_v[k]
-        ai = wp.vec3(sa[0], sa[1], sa[2])
-        v = wp.vec3(sv[0], sv[1], sv[2])
-        length = sa[3]
-        inv_l = sv[3]
+        b = route_bond(r, k)
         u = float(0.0)
         du = wp.vec3(0.0, 0.0, 0.0)
-        if inv_l > 0.0:
-            t = wp.dot(p - ai, v) * inv_l * inv_l
-            w = r.tau * inv_l
-            u = ramp(t, w) - ramp(t - 1.0, w)
-            du = v * ((ramp_slope(t, w) - ramp_slope(t - 1.0, w)) * inv_l * inv_l)
-        q = p - (ai + v * u)
+        if b.inv_l > 0.0:
+            t = wp.dot(p - b.ai, b.v) * b.inv_l * b.inv_l
+            u = ramp(t, b.w) - ramp(t - 1.0, b.w)
+            du = b.v * ((ramp_slope(t, b.w) - ramp_slope(t - 1.0, b.w)) * b.inv_l * b.inv_l)
+        q = p - (b.ai + b.v * u)
         across = wp.sqrt(wp.dot(q, q) + r.tau2)
-        dacross = (q - du * wp.dot(v, q)) / across
-        g = r.g[k]
-        m = mean_add(m, across + u * length + g[0], dacross + du * length, r.inv_tau)
-        m = mean_add(m, across + (1.0 - u) * length + g[1], dacross - du * length, r.inv_tau)
+        dacross = (q - du * wp.dot(b.v, q)) / across
+        length = b.length
+        m = mean_add(m, across + u * length + b.g[0], dacross + du * length, r.inv_tau)
+        m = mean_add(m, across + (1.0 - u) * length + b.g[1], dacross - du * length, r.inv_tau)
     mean = m.wc / m.w
     grad = m.wd / m.w - (m.wcd / m.w - m.wd * (mean / m.w)) * r.inv_tau
     return wp.vec4(grad[0], grad[1], grad[2], mean)
@@ -765,18 +790,22 @@ def distances_kernel(
 @wp.kernel
 @no_type_check
 def geometry_kernel(
-    route_bond: wp.array[wp.int32],
+    bond: wp.array[wp.int32],
     seg_a: wp.array[wp.vec4],
     seg_v: wp.array[wp.vec4],
+    route_g: wp.array[wp.vec2],
     route_a: wp.array[wp.vec4],
     route_v: wp.array[wp.vec4],
 ):
-    """Each route's copy of its bond's geometry this frame (a thread a route: the writes of
-    one atom's routes in a loop of one thread took 6 ms at 1M atoms)."""
+    """Each route's copy of its bond's geometry this frame, with its ends' graph distances
+    (a thread a route: the writes of one atom's routes in a loop of one thread took 6 ms at
+    1M atoms)."""
     r = wp.tid()
-    b = route_bond[r]
-    route_a[r] = seg_a[b]
-    route_v[r] = seg_v[b]
+    sa = seg_a[bond[r]]
+    sv = seg_v[bond[r]]
+    g = route_g[r]
+    route_a[r] = wp.vec4(sa[0], sa[1], sa[2], g[0])
+    route_v[r] = wp.vec4(sv[0], sv[1], sv[2], g[1])
 
 
 @wp.kernel
@@ -1071,14 +1100,20 @@ class GeodesicTables:
             )
             _wp.launch(distances_kernel, self.n, args, device=self.device)
         if self.route_total:
-            copy = (self.route_bond, self.seg_a, self.seg_v, self.route_a, self.route_v)
+            copy = (
+                self.route_bond,
+                self.seg_a,
+                self.seg_v,
+                self.route_g,
+                self.route_a,
+                self.route_v,
+            )
             _wp.launch(geometry_kernel, self.route_total, copy, device=self.device)
 
     def routes(self, tau: float, strength: float, c_min: float) -> Routes:
         """The tables as the kernels read them; `c_min` = 1 / 2 s^2 of the widest atom."""
         r = Routes()
         r.start = self.route_start
-        r.g = self.route_g
         r.seg_a = self.route_a
         r.seg_v = self.route_v
         r.tau = float(tau)
