@@ -42,6 +42,7 @@ from server.render.density import (
     kernel_slope,
     unpack_rgb,
 )
+from server.render.errors import CapacityError
 from server.render.geodesic import BondGraph
 
 wp.set_module_options({"enable_backward": False})
@@ -966,6 +967,22 @@ def rescale_kernel(atoms: wp.array[wp.vec4], total: wp.array[float], samples: fl
 
 _wp: Any = wp  # warp's host API is unannotated: the table buffers are handled through it
 
+NODE_BYTES = 4 + 4 + 4
+"""A node of an atom's shortest-path tree: its parent, its edge and its distance."""
+ROUTE_BYTES = 4 + 8 + 8 + 16 + 16
+"""A route: its bond, its ends' nodes and distances, and its copy of the bond's geometry."""
+
+
+def _size(n: int) -> str:
+    return f"{n / 1e9:.1f} GB" if n >= 1e9 else f"{n / 1e6:.1f} MB"
+
+
+def free_bytes(device: str) -> int | None:
+    """Device memory free now (None on the CPU, whose tables are the host's to hold)."""
+    if not device.startswith("cuda"):
+        return None
+    return int(_wp.get_device(device).free_memory)
+
 
 class GeodesicTables:
     """One topology's bonds and route tables on a device: the bonds' geometry and weights are
@@ -1022,6 +1039,21 @@ class GeodesicTables:
         self.route_a = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
         self.route_v = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
 
+    def _check_room(self, nodes: int, routes: int) -> None:
+        """Refuse tables the device cannot hold (they replace the ones it holds now), naming
+        the sizes, rather than fail the allocation half way."""
+        free = free_bytes(self.device)
+        if free is None:
+            return
+        need = nodes * NODE_BYTES + routes * ROUTE_BYTES
+        held = self.node_parent.capacity * 3 + self.route_bond.capacity * ROUTE_BYTES // 4
+        if need > free + held:
+            raise CapacityError(
+                f"geodesic density: the route tables of {self.n:,} atoms ({routes:,} routes) "
+                f"need {_size(need)} and {self.device} has {_size(free + held)} free; a "
+                "smaller sigma or fewer atoms would fit"
+            )
+
     @property
     def nbytes(self) -> int:
         arrays = (
@@ -1075,6 +1107,7 @@ class GeodesicTables:
                 _wp.copy(padded, count, count=n)
             _wp.utils.array_scan(padded, start, inclusive=False)
         totals = (int(self.node_start.numpy()[n]), int(self.route_start.numpy()[n]))
+        self._check_room(*totals)
         self._alloc(*totals)
         self.route_total = totals[1]
         if n:

@@ -474,3 +474,26 @@ def test_the_whole_walks_kernels_are_made_once_a_process(
     for _ in range(3):
         render(device, mol.topology, mol.positions, GEODESIC, cam, 16, 12, decided_sides=False)
     assert made.count("geodesic_whole_samples") <= 1
+
+
+def test_route_tables_a_device_cannot_hold_are_refused_with_their_size(
+    device: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Route tables larger than the device's free memory are refused before they are
+    allocated, naming their size; the renderer then draws the same molecule once there is
+    room (nothing half built stays behind)."""
+    mol = villin()
+    cam = fit_camera(mol.positions, 24, 18)
+    r = Renderer(device)
+    r.set_topology(mol.topology)
+    r.set_positions(mol.positions)
+    monkeypatch.setattr(geodesic_field, "free_bytes", lambda _device: 1000)
+    with pytest.raises(
+        CapacityError,
+        match=r"route tables of 584 atoms .* need \d+\.\d MB and cpu has 0\.0 MB free",
+    ):
+        r.render(GEODESIC, cam, 24, 18)
+    monkeypatch.undo()
+    r.render(GEODESIC, cam, 24, 18)
+    ref = render(device, mol.topology, mol.positions, GEODESIC, cam, 24, 18)
+    np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
