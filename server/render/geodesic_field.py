@@ -1090,6 +1090,7 @@ class GeodesicTables:
         passes, counting then writing; synchronises once to size the tables)."""
         dev = self.device
         n = self.n
+        self.key = None  # the starts are rewritten first: a build that stops leaves no tables
         self._bonds(positions, densities, gain)
         self.overflow.zero_()
         outputs = (self.node_parent, self.node_edge, self.route_bond, self.route_nodes)

@@ -796,6 +796,10 @@ class Renderer(ImageOutputs):
         self._check_geodesic_work(d, tables)
         tables.build(self._pos, self._weights, GAIN, d.geo.table_reach)
         tables.key = key
+        # the frame's grid stage fills the new tables' distances: a key that still matches
+        # (the tables of these parameters built again after a build that was refused) would
+        # skip it
+        self._grid_key = None
         if tables.lost:
             log.warning(
                 "geodesic density: %d atoms have more than %d atoms within %.1f A along the "

@@ -480,20 +480,21 @@ def test_route_tables_a_device_cannot_hold_are_refused_with_their_size(
     device: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Route tables larger than the device's free memory are refused before they are
-    allocated, naming their size; the renderer then draws the same molecule once there is
-    room (nothing half built stays behind)."""
+    allocated, naming their size. Nothing half built stays behind: the sigma drawn before
+    draws again as a fresh renderer draws it, and the refused one once there is room."""
     mol = villin()
     cam = fit_camera(mol.positions, 24, 18)
+    wide = GEODESIC.model_copy(update={"sigma_A": 2.5})
     r = Renderer(device)
     r.set_topology(mol.topology)
     r.set_positions(mol.positions)
-    monkeypatch.setattr(geodesic_field, "free_bytes", lambda _device: 1000)
-    with pytest.raises(
-        CapacityError,
-        match=r"route tables of 584 atoms .* need \d+\.\d MB and cpu has 0\.0 MB free",
-    ):
-        r.render(GEODESIC, cam, 24, 18)
-    monkeypatch.undo()
     r.render(GEODESIC, cam, 24, 18)
-    ref = render(device, mol.topology, mol.positions, GEODESIC, cam, 24, 18)
-    np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
+    monkeypatch.setattr(geodesic_field, "free_bytes", lambda _device: 1000)
+    with pytest.raises(CapacityError, match=r"tables of 584 atoms .* need \d+\.\d MB and cpu"):
+        r.render(wide, cam, 24, 18)
+    monkeypatch.undo()
+    for params in (GEODESIC, wide):
+        r.render(params, cam, 24, 18)
+        ref = render(device, mol.topology, mol.positions, params, cam, 24, 18)
+        np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
+        np.testing.assert_array_equal(r.read_depth(), ref.read_depth())
