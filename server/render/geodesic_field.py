@@ -974,7 +974,10 @@ ROUTE_BYTES = 4 + 8 + 8 + 16 + 16
 
 
 def _size(n: int) -> str:
-    return f"{n / 1e9:.1f} GB" if n >= 1e9 else f"{n / 1e6:.1f} MB"
+    for unit, scale in (("GB", 1e9), ("MB", 1e6)):
+        if n >= scale:
+            return f"{n / scale:.1f} {unit}"
+    return f"{n / 1e3:.1f} kB"
 
 
 def free_bytes(device: str) -> int | None:
@@ -1039,7 +1042,7 @@ class GeodesicTables:
         self.route_a = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
         self.route_v = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
 
-    def _check_room(self, nodes: int, routes: int) -> None:
+    def _check_room(self, nodes: int, routes: int, reach: float) -> None:
         """Refuse tables the device cannot hold (they replace the ones it holds now), naming
         the sizes, rather than fail the allocation half way."""
         free = free_bytes(self.device)
@@ -1049,9 +1052,10 @@ class GeodesicTables:
         held = self.node_parent.capacity * 3 + self.route_bond.capacity * ROUTE_BYTES // 4
         if need > free + held:
             raise CapacityError(
-                f"geodesic density: the route tables of {self.n:,} atoms ({routes:,} routes) "
-                f"need {_size(need)} and {self.device} has {_size(free + held)} free; a "
-                "smaller sigma or fewer atoms would fit"
+                f"geodesic density: the route tables of {self.n:,} atoms, each reaching "
+                f"{reach:.1f} A along the bonds ({routes:,} routes), need {_size(need)}; "
+                f"{self.device} has {_size(free + held)} for them. A smaller sigma or cutoff, "
+                "or the classical or carved density, needs less"
             )
 
     @property
@@ -1090,7 +1094,6 @@ class GeodesicTables:
         passes, counting then writing; synchronises once to size the tables)."""
         dev = self.device
         n = self.n
-        self.key = None  # the starts are rewritten first: a build that stops leaves no tables
         self._bonds(positions, densities, gain)
         self.overflow.zero_()
         outputs = (self.node_parent, self.node_edge, self.route_bond, self.route_nodes)
@@ -1099,16 +1102,21 @@ class GeodesicTables:
         if n:
             args = (*head, self.weight, float(reach), 0, *counts, *outputs, self.overflow)
             _wp.launch(build_kernel, n, args, device=dev)
-        for count, start in (
-            (self.node_count, self.node_start),
-            (self.route_count, self.route_start),
-        ):
+        # the new starts go to arrays of their own: a build refused below leaves the tables
+        # it would have replaced whole
+        starts = []
+        for count in (self.node_count, self.route_count):
             padded = _wp.zeros(n + 1, dtype=_wp.int32, device=dev)
             if n:
                 _wp.copy(padded, count, count=n)
+            start = _wp.zeros(n + 1, dtype=_wp.int32, device=dev)
             _wp.utils.array_scan(padded, start, inclusive=False)
-        totals = (int(self.node_start.numpy()[n]), int(self.route_start.numpy()[n]))
-        self._check_room(*totals)
+            starts.append(start)
+        totals = (int(starts[0].numpy()[n]), int(starts[1].numpy()[n]))
+        self._check_room(*totals, reach)
+        self.node_start, self.route_start = starts
+        counts = (self.node_start, self.route_start, self.node_count, self.route_count)
+        self._alloc(0, 0)  # the old tables go before the new ones are made
         self._alloc(*totals)
         self.route_total = totals[1]
         if n:

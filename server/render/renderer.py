@@ -794,11 +794,12 @@ class Renderer(ImageOutputs):
         if tables.key == key:
             return
         self._check_geodesic_work(d, tables)
+        # the field and graphs hold the old tables: let them go before the new are made
+        self._field_seen = None
+        self._drop_graphs()
         tables.build(self._pos, self._weights, GAIN, d.geo.table_reach)
         tables.key = key
-        # the frame's grid stage fills the new tables' distances: a key that still matches
-        # (the tables of these parameters built again after a build that was refused) would
-        # skip it
+        # the frame's grid stage fills the new tables' distances, whatever else changed
         self._grid_key = None
         if tables.lost:
             log.warning(
@@ -808,8 +809,6 @@ class Renderer(ImageOutputs):
                 geodesic_field.NODES,
                 d.geo.table_reach,
             )
-        self._field_seen = None
-        self._drop_graphs()
 
     def _check_geodesic_work(self, d: Derived, tables: geodesic_field.GeodesicTables) -> None:
         """Refuse a geodesic density whose samples would walk more routes than

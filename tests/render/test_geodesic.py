@@ -480,8 +480,9 @@ def test_route_tables_a_device_cannot_hold_are_refused_with_their_size(
     device: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Route tables larger than the device's free memory are refused before they are
-    allocated, naming their size. Nothing half built stays behind: the sigma drawn before
-    draws again as a fresh renderer draws it, and the refused one once there is room."""
+    allocated, naming their size. The tables they would have replaced stay whole: the last
+    frame's densities and histogram are what they were, the sigma drawn before draws again
+    as a fresh renderer draws it, and the refused one once there is room."""
     mol = villin()
     cam = fit_camera(mol.positions, 24, 18)
     wide = GEODESIC.model_copy(update={"sigma_A": 2.5})
@@ -489,12 +490,44 @@ def test_route_tables_a_device_cannot_hold_are_refused_with_their_size(
     r.set_topology(mol.topology)
     r.set_positions(mol.positions)
     r.render(GEODESIC, cam, 24, 18)
+    pts = mol.positions[::7] + 0.7
+    values, hist = r.evaluate(pts)[0], r.density_histogram()[0]
     monkeypatch.setattr(geodesic_field, "free_bytes", lambda _device: 1000)
-    with pytest.raises(CapacityError, match=r"tables of 584 atoms .* need \d+\.\d MB and cpu"):
+    with pytest.raises(
+        CapacityError,
+        match=r"tables of 584 atoms, each reaching \d+\.\d A .* need \d\.\d MB; cpu has \d+\.\d kB",
+    ):
         r.render(wide, cam, 24, 18)
+    np.testing.assert_array_equal(r.evaluate(pts)[0], values)
+    np.testing.assert_array_equal(r.density_histogram()[0], hist)
     monkeypatch.undo()
     for params in (GEODESIC, wide):
         r.render(params, cam, 24, 18)
         ref = render(device, mol.topology, mol.positions, params, cam, 24, 18)
         np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
         np.testing.assert_array_equal(r.read_depth(), ref.read_depth())
+
+
+def test_every_route_carries_its_bonds_geometry_of_this_frame(device: str) -> None:
+    """Each route's copy of its bond's geometry and its ends' graph distances follows the
+    atoms every frame (`geometry_kernel`), not only the frame after its tables are built."""
+    mol = villin()
+    cam = fit_camera(mol.positions, 16, 12)
+    r = Renderer(device)
+    r.set_topology(mol.topology)
+    rng = np.random.default_rng(3)
+    for step in range(3):
+        moved = mol.positions + rng.normal(scale=0.2 * step, size=mol.positions.shape)
+        r.set_positions(moved.astype(np.float32))
+        r.render(GEODESIC, cam, 16, 12)
+        t = r._geodesic_tables()
+        bond = t.route_bond.numpy()[: t.route_total]
+        seg = t.seg_a.numpy()[bond]
+        ra = t.route_a.numpy()[: t.route_total]
+        rv = t.route_v.numpy()[: t.route_total]
+        g = t.route_g.numpy()[: t.route_total]
+        ends = t.ends.numpy()[bond]
+        np.testing.assert_array_equal(ra[:, :3], seg[:, :3])
+        np.testing.assert_allclose(ra[:, :3], moved[ends[:, 0]], atol=1e-5)
+        np.testing.assert_array_equal(rv[:, :3], t.seg_v.numpy()[bond][:, :3])
+        np.testing.assert_array_equal(np.stack([ra[:, 3], rv[:, 3]], axis=1), g)
