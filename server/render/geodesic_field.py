@@ -968,9 +968,11 @@ def rescale_kernel(atoms: wp.array[wp.vec4], total: wp.array[float], samples: fl
 _wp: Any = wp  # warp's host API is unannotated: the table buffers are handled through it
 
 NODE_BYTES = 4 + 4 + 4
-"""A node of an atom's shortest-path tree: its parent, its edge and its distance."""
+"""A node of an atom's shortest-path tree: its parent, its edge and its distance (the node
+arrays of `GeodesicTables._alloc`)."""
 ROUTE_BYTES = 4 + 8 + 8 + 16 + 16
-"""A route: its bond, its ends' nodes and distances, and its copy of the bond's geometry."""
+"""A route: its bond, its ends' nodes and distances, and its copy of the bond's geometry (the
+route arrays of `GeodesicTables._alloc`)."""
 
 
 def _size(n: int) -> str:
@@ -1042,6 +1044,11 @@ class GeodesicTables:
         self.route_a = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
         self.route_v = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
 
+    def _tables(self) -> tuple[Any, ...]:
+        """The arrays `_alloc` sizes to the nodes and routes (NODE_BYTES, ROUTE_BYTES)."""
+        nodes = (self.node_parent, self.node_edge, self.node_g)
+        return (*nodes, self.route_bond, self.route_nodes, self.route_g, self.route_a, self.route_v)
+
     def _check_room(self, nodes: int, routes: int, reach: float) -> None:
         """Refuse tables the device cannot hold (they replace the ones it holds now), naming
         the sizes, rather than fail the allocation half way."""
@@ -1049,7 +1056,7 @@ class GeodesicTables:
         if free is None:
             return
         need = nodes * NODE_BYTES + routes * ROUTE_BYTES
-        held = self.node_parent.capacity * 3 + self.route_bond.capacity * ROUTE_BYTES // 4
+        held = sum(int(a.capacity) for a in self._tables())
         if need > free + held:
             raise CapacityError(
                 f"geodesic density: the route tables of {self.n:,} atoms, each reaching "
@@ -1073,14 +1080,7 @@ class GeodesicTables:
             self.route_count,
             self.node_start,
             self.route_start,
-            self.node_parent,
-            self.node_edge,
-            self.node_g,
-            self.route_bond,
-            self.route_nodes,
-            self.route_g,
-            self.route_a,
-            self.route_v,
+            *self._tables(),
         )
         return sum(int(a.capacity) for a in arrays)
 

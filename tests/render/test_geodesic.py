@@ -531,3 +531,7 @@ def test_every_route_carries_its_bonds_geometry_of_this_frame(device: str) -> No
         np.testing.assert_allclose(ra[:, :3], moved[ends[:, 0]], atol=1e-5)
         np.testing.assert_array_equal(rv[:, :3], t.seg_v.numpy()[bond][:, :3])
         np.testing.assert_array_equal(np.stack([ra[:, 3], rv[:, 3]], axis=1), g)
+    # the sizes the memory check counts are those of the tables
+    nodes = int(t.node_start.numpy()[-1])
+    need = nodes * geodesic_field.NODE_BYTES + t.route_total * geodesic_field.ROUTE_BYTES
+    assert sum(int(a.capacity) for a in t._tables()) == need
