@@ -236,12 +236,12 @@ class ServerSettings:
     state_interval_s: float = 0.1
     hello_timeout_s: float = 10.0
     header_timeout_s: float = 10.0
-    trusted_proxies: tuple[str, ...] = ()
-    """Addresses of reverse proxies whose `X-Forwarded-For` names the client; empty: no one's
-    is believed, so a client cannot pick the address its rate limits and budgets follow."""
     """Time a connection has for a request's headers, from its opening (or its first byte
     after the last response): one that sent part of them is answered 408, one that sent
     nothing is closed."""
+    trusted_proxies: tuple[str, ...] = ()
+    """Addresses of reverse proxies whose `X-Forwarded-For` names the client; empty: no one's
+    is believed, so a client cannot pick the address its rate limits and budgets follow."""
     client_dir: Path = Path(__file__).resolve().parents[1] / "client_web"
 
     @property

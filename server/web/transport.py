@@ -1,6 +1,7 @@
 """The transports under the app: uvicorn's protocols, with the limits uvicorn lacks.
 
-HTTP: uvicorn's h11 protocol with a deadline for a request's headers (`guarded_http`).
+HTTP: uvicorn's h11 protocol with a deadline for a request's headers and a size limit on them
+(`guarded_http`).
 
 WebSocket: uvicorn's sans-I/O protocol with a small message limit until the peer has said who
 it is.
@@ -15,6 +16,7 @@ refused from their header, before their payload is read (close code 1009).
 from __future__ import annotations
 
 import asyncio
+import re
 from collections.abc import Callable, MutableMapping
 from typing import Any
 
@@ -22,6 +24,12 @@ import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
+MAX_HEAD_BYTES = 64 * 1024
+"""The most a request's line and headers may take: a long query string or many cookies fit."""
+H11_BUFFER_BYTES = MAX_HEAD_BYTES + 256 * 1024
+"""h11's limit on an unfinished head: above `MAX_HEAD_BYTES` by the most one read of asyncio's
+selector transports hands over, so the check here always comes first."""
+_HEAD_END = re.compile(rb"\n\r?\n")  # h11's own: lines may end in a bare newline
 MESSAGE_LIMIT = "scalesteer.message_limit"
 """Scope extension: `{"set": callable(int)}` sets this connection's incoming message limit."""
 
@@ -56,24 +64,37 @@ def raise_limit(scope: MutableMapping[str, Any], size: int) -> None:
 
 
 def guarded_http(header_timeout_s: float) -> type[H11Protocol]:
-    """uvicorn's h11 protocol with a deadline for a request's headers.
+    """uvicorn's h11 protocol with a deadline for a request's headers and a limit on their size.
 
     uvicorn times out only an idle keep-alive connection, after a response; a connection that
     opens and sends nothing, or part of a request's headers and then nothing, is held for as
     long as its peer likes (500 such connections were all still open after 20 s). Here a
     connection must complete a request's headers within `header_timeout_s` of opening, or of
     the first byte after its last response; one that sent part of them is answered 408, one
-    that sent nothing is closed. A request's body and a WebSocket are not timed by this."""
+    that sent nothing is closed. A request's body and a WebSocket are not timed by this.
+
+    h11 refuses an unfinished head once its buffer passes a size, so whether a long request
+    was served depended on how the network cut it: one of 60 KB was answered when it came in
+    one piece and reset when it came in two. Here a head is served whole up to `MAX_HEAD_BYTES`
+    however it arrives (h11's own limit is set above it: `H11_BUFFER_BYTES`). One past it is
+    answered 414 (the request line) or 431 (the headers); what the peer still sends is read
+    and dropped, so that the client sees the answer, until it closes or the deadline does."""
 
     class HeaderTimedProtocol(H11Protocol):
         _header_deadline: asyncio.TimerHandle | None = None
         _partial = False
+        _refused = False
 
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
             self._header_deadline = self.loop.call_later(header_timeout_s, self._headers_late)
 
         def data_received(self, data: bytes) -> None:
+            if self._refused:
+                return  # read and dropped until the peer closes or the deadline does
+            if self.conn.their_state is h11.IDLE and _too_long(self.conn.trailing_data[0] + data):
+                self._refuse_head(self.conn.trailing_data[0] + data)
+                return
             super().data_received(data)
             waiting = self.conn.their_state is h11.IDLE and not self.transport.is_closing()
             self._partial = waiting
@@ -93,18 +114,51 @@ def guarded_http(header_timeout_s: float) -> type[H11Protocol]:
 
         def _headers_late(self) -> None:
             self._header_deadline = None
+            if self._refused:
+                self.transport.close()
+                return
             if self.conn.their_state is not h11.IDLE or self.transport.is_closing():
                 return
             if self._partial:
                 self.transport.write(_late_headers(header_timeout_s))
             self.transport.close()
 
+        def _refuse_head(self, head: bytes) -> None:
+            """Answer, stop writing, and drop what the peer still sends: closing at once
+            would reset the connection and lose the answer at the client."""
+            self._refused = True
+            self.logger.warning("refused a request whose head passed %d bytes", MAX_HEAD_BYTES)
+            line_done = b"\n" in head[: MAX_HEAD_BYTES + 1]
+            self.transport.write(_head_too_large(MAX_HEAD_BYTES, line_done))
+            if self.transport.can_write_eof():
+                self.transport.write_eof()
+            self._stop_deadline()
+            self._header_deadline = self.loop.call_later(header_timeout_s, self._headers_late)
+
     return HeaderTimedProtocol
+
+
+def _too_long(pending: bytes) -> bool:
+    """Whether the head of the request that `pending` starts with passes `MAX_HEAD_BYTES`,
+    whole or not yet."""
+    end = _HEAD_END.search(pending)
+    return (end.end() if end else len(pending)) > MAX_HEAD_BYTES
+
+
+def _head_too_large(limit: int, line_done: bool) -> bytes:
+    what = "headers" if line_done else "request line"
+    status = b"431 Request Header Fields Too Large" if line_done else b"414 URI Too Long"
+    body = f"the request's {what} passed {limit:,} bytes, the most this server reads\n".encode()
+    return _plain(status, body)
+
+
+def _plain(status: bytes, body: bytes) -> bytes:
+    return (
+        b"HTTP/1.1 " + status + b"\r\ncontent-type: text/plain; charset=utf-8\r\n"
+        b"connection: close\r\ncontent-length: " + str(len(body)).encode() + b"\r\n\r\n" + body
+    )
 
 
 def _late_headers(timeout_s: float) -> bytes:
     body = f"the request's headers did not arrive within {timeout_s:g} s\n".encode()
-    return (
-        b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain; charset=utf-8\r\n"
-        b"connection: close\r\ncontent-length: " + str(len(body)).encode() + b"\r\n\r\n" + body
-    )
+    return _plain(b"408 Request Timeout", body)

@@ -1041,6 +1041,38 @@ def test_half_sent_headers_are_not_held(tmp_path: Path) -> None:
         server.stop()
 
 
+def test_long_heads_are_answered_the_same_however_the_network_cuts_them(tmp_path: Path) -> None:
+    """A 60 KB query string was served when it came in one piece and the connection was reset
+    when it came in two (h11's buffer limit on an unfinished head)."""
+    server = ServerProcess(tmp_path / "state")
+    host = f"Host: 127.0.0.1:{server.port}\r\n"
+
+    def ask(head: bytes, piece: int) -> tuple[int, str]:
+        sock = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        for start in range(0, len(head), piece):
+            sock.sendall(head[start : start + piece])
+            if piece < len(head):
+                time.sleep(0.002)  # each piece its own segment
+        status, _, body = answer(sock, 15)
+        return status, body
+
+    try:
+        served = f"GET /healthz?pad={'x' * 60_000} HTTP/1.1\r\n{host}\r\n".encode()
+        long_line = f"GET /healthz?pad={'x' * 100_000} HTTP/1.1\r\n{host}\r\n".encode()
+        headers = "".join(f"X-Pad-{i}: {'y' * 1_000}\r\n" for i in range(100))
+        long_headers = f"GET /healthz HTTP/1.1\r\n{host}{headers}\r\n".encode()
+        for piece in (len(long_line), 16_000, 1_000):
+            assert ask(served, piece)[0] == 200, piece
+            status, body = ask(long_line, piece)
+            assert status == 414 and "request line passed 65,536 bytes" in body, (piece, body)
+            status, body = ask(long_headers, piece)
+            assert status == 431 and "headers passed 65,536 bytes" in body, (piece, body)
+        assert httpx.get(f"{server.url}/healthz").status_code == 200
+    finally:
+        server.stop()
+
+
 def test_video_encoders_are_bounded_and_given_back_when_their_viewers_leave(
     tmp_path: Path,
 ) -> None:
