@@ -68,9 +68,10 @@ def test_the_pull_arrow_starts_at_the_atom_as_it_moves(
 
     def moved() -> bool:
         now = np.asarray(session(live_server).positions[atom], dtype=np.float64)
-        return bool(np.linalg.norm(now - picked) > 2.0)
+        return bool(np.linalg.norm(now - picked) > 3.0)
 
-    wait_until(moved, "the pulled atom to move 2 A from where it was picked", 60, page)
+    # 3 A: a thermal step back and the page's lag (each under 1 A) keep it past 1.5 A
+    wait_until(moved, "the pulled atom to move 3 A from where it was picked", 60, page)
     page.wait_for_timeout(500)  # a tracked message or two since
     start, at, shown = dash.evaluate(
         """a => { const s = window.scalesteer; const v = s.viewport;
