@@ -5,7 +5,9 @@ every sample along orthographic rays where the classical density times the gate
 walked in one of three orders and the walk stops once the geodesic terms reach the level or
 can no longer (the classical terms of the atoms left, times the gate, bound theirs); the
 control is the whole walk, every route of every atom within reach. Also counted: the samples
-the classical density alone would gate (the gate's control).
+the classical density alone would gate (the gate's control), and per ray how many gated
+samples a ray that crosses takes and how many lattice steps lie between its first one and its
+crossing (the gate's lead: how far outside the surface the bound lets costly samples begin).
 
     python benchmarks/side_walk_work.py --out benchmarks/results/side_walk_work.json
 
@@ -60,6 +62,9 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
     walked = dict.fromkeys(ORDERS, 0)
     samples = 0
     classically_gated = 0
+    per_hit: list[int] = []  # gated samples of each ray that crosses, up to its crossing
+    per_miss: list[int] = []  # gated samples of each ray that never crosses
+    lead: list[int] = []  # lattice steps from a ray's first gated sample to its crossing
     for x in xs:
         pts = np.stack(np.broadcast_arrays(x, ys[:, None], zs[None, :]), -1).reshape(-1, 3)
         cls = classical_density(pts, pos, ones, sigma, k).reshape(len(ys), len(zs))
@@ -71,6 +76,11 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
         for i in range(len(ys)):
             crossing = np.nonzero(val[i] >= level)[0]
             end = crossing[0] + 1 if len(crossing) else len(zs)
+            if len(crossing):
+                per_hit.append(int(gated[i, :end].sum()))
+                lead.append(int(crossing[0] - np.nonzero(gated[i])[0][0]))
+            elif gated[i].any():
+                per_miss.append(int(gated[i].sum()))
             classically_gated += int((cls[i, :end] >= level).sum())
             for z in zs[:end][gated[i, :end]]:
                 p = np.array([x, ys[i], z])
@@ -105,6 +115,20 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
         "classically_gated_samples": classically_gated,
         "routes_whole_walk": whole,
         "fraction_walked": {name: walked[name] / whole for name in ORDERS},
+        "rays_crossing": len(per_hit),
+        "gated_samples_per_crossing_ray": _spread(per_hit),
+        "steps_from_gate_to_crossing": _spread(lead),
+        "rays_gated_not_crossing": len(per_miss),
+        "gated_samples_per_ray_not_crossing": _spread(per_miss),
+    }
+
+
+def _spread(values: list[int]) -> dict[str, float]:
+    a = np.asarray(values, dtype=np.float64) if values else np.zeros(1)
+    return {
+        "mean": float(a.mean()),
+        "median": float(np.median(a)),
+        "p90": float(np.percentile(a, 90)),
     }
 
 

@@ -172,6 +172,8 @@ def side_walk(sources: list[Source]) -> str:
                 f"{r['sigma_A']:g}",
                 f"{count(r['gated_samples'])} ({count(r['classically_gated_samples'])})",
                 *(f"{100 * share[k]:.0f} %" for k in ("cells", "bands", "nearest")),
+                _median_mean(r["gated_samples_per_crossing_ray"]),
+                _median_mean(r["steps_from_gate_to_crossing"]),
             ]
         )
     header = [
@@ -180,8 +182,14 @@ def side_walk(sources: list[Source]) -> str:
         "cell rows",
         "bands, nearest first",
         "atom by atom, nearest",
+        "gated samples a crossing ray takes",
+        "steps from its first to the crossing",
     ]
-    return block(sources, table(header, "rrrrr", rows))
+    return block(sources, table(header, "rrrrrrr", rows))
+
+
+def _median_mean(spread: dict[str, float]) -> str:
+    return f"{spread['median']:g} (mean {spread['mean']:.1f}, p90 {spread['p90']:g})"
 
 
 def _against_base(column: str, key: str) -> Callable[[list[Source]], str]:
