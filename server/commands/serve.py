@@ -213,7 +213,7 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
 
     from server.web import accesslog
     from server.web.app import create_app
-    from server.web.transport import H11_BUFFER_BYTES, guarded_http, guarded_protocol
+    from server.web.transport import MAX_HEAD_BYTES, guarded_http, guarded_protocol
 
     config = uvicorn.Config(
         app if app is not None else create_app(settings),
@@ -222,7 +222,7 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
         log_level=log_level,
         # h11 (uvicorn's own parser), with a deadline for a request's headers and a size limit
         http=guarded_http(settings.header_timeout_s),
-        h11_max_incomplete_event_size=H11_BUFFER_BYTES,
+        h11_max_incomplete_event_size=MAX_HEAD_BYTES,
         # websockets' sans-I/O protocol: of uvicorn's WebSocket implementations it takes the
         # least CPU per 12 MB frame (the legacy one is deprecated and no faster; wsproto ~2.5x);
         # its message limit is the viewers' until a simulation's hello is accepted

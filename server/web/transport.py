@@ -4,7 +4,7 @@ HTTP: uvicorn's h11 protocol with a deadline for a request's headers and a size 
 (`guarded_http`).
 
 WebSocket: uvicorn's sans-I/O protocol with a small message limit until the peer has said who
-it is.
+it is, and an answer to an upgrade request websockets cannot parse.
 
 uvicorn applies one `ws_max_size` to every connection before the application sees a byte; with
 the simulations' limit (64 MiB) anyone could make the server buffer that much per socket without
@@ -26,9 +26,6 @@ from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIO
 
 MAX_HEAD_BYTES = 64 * 1024
 """The most a request's line and headers may take: a long query string or many cookies fit."""
-H11_BUFFER_BYTES = MAX_HEAD_BYTES + 256 * 1024
-"""h11's limit on an unfinished head: above `MAX_HEAD_BYTES` by the most one read of asyncio's
-selector transports hands over, so the check here always comes first."""
 _HEAD_END = re.compile(rb"\n\r?\n")  # h11's own: lines may end in a bare newline
 MESSAGE_LIMIT = "scalesteer.message_limit"
 """Scope extension: `{"set": callable(int)}` sets this connection's incoming message limit."""
@@ -42,6 +39,19 @@ def guarded_protocol(pre_hello_bytes: int) -> type[WebSocketsSansIOProtocol]:
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
             self.conn.max_message_size = min(pre_hello_bytes, self.config.ws_max_size)
+
+        def data_received(self, data: bytes) -> None:
+            super().data_received(data)
+            # websockets refuses an upgrade whose request it cannot parse (a line over 8 KiB,
+            # over 128 headers) with an answer uvicorn never writes: the connection stayed
+            # open, unanswered and untimed, for as long as the peer liked
+            if (
+                not self.handshake_initiated
+                and self.conn.handshake_exc is not None
+                and not self.transport.is_closing()
+            ):
+                self.transport.write(b"".join(self.conn.data_to_send()))
+                self.transport.close()
 
         def handle_connect(self, event: Any) -> None:
             super().handle_connect(event)
@@ -76,8 +86,9 @@ def guarded_http(header_timeout_s: float) -> type[H11Protocol]:
     h11 refuses an unfinished head once its buffer passes a size, so whether a long request
     was served depended on how the network cut it: one of 60 KB was answered when it came in
     one piece and reset when it came in two. Here a head is served whole up to `MAX_HEAD_BYTES`
-    however it arrives (h11's own limit is set above it: `H11_BUFFER_BYTES`). One past it is
-    answered 414 (the request line) or 431 (the headers); what the peer still sends is read
+    however it arrives, alone or after others on a kept-alive connection (h11's own limit is
+    set to the same size, and the check here comes before its parse). One past it is answered
+    414 (the request line) or 431 (the line and headers); what the peer still sends is read
     and dropped, so that the client sees the answer, until it closes or the deadline does."""
 
     class HeaderTimedProtocol(H11Protocol):
@@ -92,9 +103,6 @@ def guarded_http(header_timeout_s: float) -> type[H11Protocol]:
         def data_received(self, data: bytes) -> None:
             if self._refused:
                 return  # read and dropped until the peer closes or the deadline does
-            if self.conn.their_state is h11.IDLE and _too_long(self.conn.trailing_data[0] + data):
-                self._refuse_head(self.conn.trailing_data[0] + data)
-                return
             super().data_received(data)
             waiting = self.conn.their_state is h11.IDLE and not self.transport.is_closing()
             self._partial = waiting
@@ -102,6 +110,18 @@ def guarded_http(header_timeout_s: float) -> type[H11Protocol]:
                 self._stop_deadline()
             elif self._header_deadline is None:
                 self._header_deadline = self.loop.call_later(header_timeout_s, self._headers_late)
+
+        def handle_events(self) -> None:
+            # every way to a parse passes here: a read, and the next request of a pipeline
+            # once a response is done (its head came with the request before it)
+            if self._refused:
+                return
+            if self.conn.their_state is h11.IDLE and _buffered(self.conn) > MAX_HEAD_BYTES:
+                pending = self.conn.trailing_data[0]
+                if _too_long(pending):
+                    self._refuse_head(pending)
+                    return
+            super().handle_events()
 
         def connection_lost(self, exc: Exception | None) -> None:
             self._stop_deadline()
@@ -127,9 +147,12 @@ def guarded_http(header_timeout_s: float) -> type[H11Protocol]:
             """Answer, stop writing, and drop what the peer still sends: closing at once
             would reset the connection and lose the answer at the client."""
             self._refused = True
-            self.logger.warning("refused a request whose head passed %d bytes", MAX_HEAD_BYTES)
-            line_done = b"\n" in head[: MAX_HEAD_BYTES + 1]
-            self.transport.write(_head_too_large(MAX_HEAD_BYTES, line_done))
+            self._unset_keepalive_if_required()  # armed by a response before a pipelined head
+            line_done = b"\n" in head.lstrip(b"\r\n")[: MAX_HEAD_BYTES + 1]
+            status, message = _head_too_large(MAX_HEAD_BYTES, line_done)
+            peer = f"{self.client[0]}:{self.client[1]}" if self.client else "a client"
+            self.logger.warning("%s: %s (%d)", peer, message, status)
+            self.transport.write(_plain(status, message))
             if self.transport.can_write_eof():
                 self.transport.write_eof()
             self._stop_deadline()
@@ -145,20 +168,30 @@ def _too_long(pending: bytes) -> bool:
     return (end.end() if end else len(pending)) > MAX_HEAD_BYTES
 
 
-def _head_too_large(limit: int, line_done: bool) -> bytes:
-    what = "headers" if line_done else "request line"
-    status = b"431 Request Header Fields Too Large" if line_done else b"414 URI Too Long"
-    body = f"the request's {what} passed {limit:,} bytes, the most this server reads\n".encode()
-    return _plain(status, body)
+def _buffered(conn: h11.Connection) -> int:
+    """Bytes h11 holds unparsed, without the copy `trailing_data` makes (a check on every read
+    of a head sent a byte at a time must not cost its whole length each time)."""
+    return len(conn._receive_buffer)
 
 
-def _plain(status: bytes, body: bytes) -> bytes:
+def _head_too_large(limit: int, line_done: bool) -> tuple[int, str]:
+    if line_done:
+        return 431, f"the request's line and headers passed {limit:,} bytes, the most read"
+    return 414, f"the request line passed {limit:,} bytes, the most read"
+
+
+def _plain(status: int, message: str) -> bytes:
+    reason = {408: "Request Timeout", 414: "URI Too Long", 431: "Request Header Fields Too Large"}
+    body = (message + "\n").encode()
     return (
-        b"HTTP/1.1 " + status + b"\r\ncontent-type: text/plain; charset=utf-8\r\n"
-        b"connection: close\r\ncontent-length: " + str(len(body)).encode() + b"\r\n\r\n" + body
+        f"HTTP/1.1 {status} {reason[status]}\r\n".encode()
+        + b"content-type: text/plain; charset=utf-8\r\nconnection: close\r\n"
+        + b"content-length: "
+        + str(len(body)).encode()
+        + b"\r\n\r\n"
+        + body
     )
 
 
 def _late_headers(timeout_s: float) -> bytes:
-    body = f"the request's headers did not arrive within {timeout_s:g} s\n".encode()
-    return _plain(b"408 Request Timeout", body)
+    return _plain(408, f"the request's headers did not arrive within {timeout_s:g} s")
