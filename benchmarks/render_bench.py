@@ -708,7 +708,8 @@ class Bench:
                 self.results.setdefault("variants", []).append(
                     {"n_atoms": n, "width": w, "height": h, "label": label, "options": kw,
                      "params": params.model_dump(mode="json", exclude_defaults=True),
-                     "matched_level": matched, "turn_deg": turn, "views": views, **st}
+                     "matched_level": matched, "turn_deg": turn, "views": views,
+                     "parts": r.last_parts, **st}
                 )  # fmt: skip
                 self.save()
                 self.log(

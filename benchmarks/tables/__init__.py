@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .markdown import Results, Source, TableError
+from .parts import part_trial
 from .render import (
     geodesic_gate,
     geodesic_route_major,
@@ -82,6 +83,14 @@ TABLES: dict[str, Table] = {
         render_variants,
     ),
     "side-walk": Table(("side_walk_work.json",), side_walk),
+    "part-trial": Table(
+        (
+            "render_h200_part_trial.json",
+            "render_h200_part_trial_volume.json",
+            "render_h200_part_trial_again.json",
+        ),
+        part_trial,
+    ),
     "geodesic-gate": Table(("render_h200_geodesic_gate.json",), geodesic_gate),
     "geodesic-route-major": Table(("render_h200_geodesic_route_major.json",), geodesic_route_major),
     "geodesic-route-once": Table(("render_h200_geodesic_route_once.json",), geodesic_route_once),

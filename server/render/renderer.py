@@ -55,6 +55,7 @@ from server.render.geodesic import GAIN, BondGraph, GeodesicScales, route_work
 from server.render.graphs import GraphCache
 from server.render.grid import CellGrid, Cull, cell_threads
 from server.render.outputs import ImageOutputs
+from server.render.parttrial import PartTrial
 from server.render.reach import reach_sigmas
 from server.render.skeleton import GRAPH_CUTOFF_SIGMAS, Skeleton, WarpScales
 from server.render.tuning import (
@@ -194,6 +195,10 @@ class Renderer(ImageOutputs):
         self._graphs = GraphCache(
             self.device, GRAPH_CACHE, bool(t.graphs or (t.graphs is None and self._cuda)), "render"
         )
+        trial = t.part_trial if t.part_trial is not None else self._cuda
+        self._part_trial = PartTrial() if trial and t.part_bounds is None else None
+        self._frame_parts: tuple[Derived, str, PartMode] | None = None
+        """This frame's derived parameters, render mode and part choice (`_part_trial`)."""
 
         self._topology: Topology | None = None
         self._n = 0
@@ -846,14 +851,22 @@ class Renderer(ImageOutputs):
 
     def _parts_for(self, d: Derived, mode: str) -> PartMode:
         """Which cells walk for part bounds in a frame of render mode `mode` (`PART_MODES`):
-        none for a density without part bounds; else `part_bounds`, else every open cell
-        below `VISIBLE_ATOMS` atoms and the cells the view reaches from there (in iso mode
-        every open cell again for positions seen by many views, `_many_views`; in volume mode
-        none from `LARGE_ATOMS`)."""
+        none for a density without part bounds; else `part_bounds`; else, on CUDA, what the
+        renderer's trial of the rule of sizes against whole cells has this frame take
+        (`parttrial.py`); else the rule of sizes (`_parts_by_size`)."""
         if self._model_of(d).part_bounds is None:
             return "none"
         if self.tuning.part_bounds is not None:
             return self.tuning.part_bounds
+        now = self._frame_parts
+        if now is not None and now[0] == d and now[1] == mode:
+            return now[2]
+        return self._parts_by_size(d, mode)
+
+    def _parts_by_size(self, d: Derived, mode: str) -> PartMode:
+        """The rule of sizes: every open cell below `VISIBLE_ATOMS` atoms and the cells the
+        view reaches from there (in iso mode every open cell again for positions seen by many
+        views, `_many_views`; in volume mode none from `LARGE_ATOMS`)."""
         if self._n < VISIBLE_ATOMS or (mode == "iso" and self._many_views(d)):
             return "all"
         if mode != "iso" and self._n >= LARGE_ATOMS:
@@ -1324,6 +1337,11 @@ class Renderer(ImageOutputs):
         f = self._field(d)
         ev = self._events if self._cuda else None
         self._count_view(d, cam_seen[4])
+        self._frame_parts = None
+        if self._part_trial is not None and self._n and self._model_of(d).part_bounds is not None:
+            setup = (d, params.mode, w, h, tile, self._n, self.region)
+            choice = self._part_trial.mode(setup, self._parts_by_size(d, params.mode))
+            self._frame_parts = (d, params.mode, choice)
         cull = self._cull_for(d, frame, cam_seen[4], tile)
         grid_key = self._grid_key_for(d, stop, params.mode, cull) if self._n else None
         # a grid with part bounds for the view walks the cells each new view adds
@@ -1384,6 +1402,11 @@ class Renderer(ImageOutputs):
             self.finish()
 
     @property
+    def last_parts(self) -> PartMode | None:
+        """Which cells the last frame walked for part bounds (`_parts_for`; None before any)."""
+        return None if self._last is None else self._parts_for(self._last[1], self._last[0].mode)
+
+    @property
     def pipelined(self) -> bool:
         """Positions set while a render is queued (`render(wait=False)`) upload during it: a
         CUDA renderer with two positions buffers (`double_buffer`, or from `PIPELINE_ATOMS`)."""
@@ -1410,6 +1433,8 @@ class Renderer(ImageOutputs):
             up_ms = self._upload_ms if uploaded else 0.0
             total = up_ms + (t_end - t_start) * 1e3
         self.timings = {"upload": up_ms, "grid": grid_ms, "raycast": cast_ms, "total": total}
+        if self._part_trial is not None:
+            self._part_trial.timed(grid_ms + cast_ms)
 
     # ------------------------------------------------------------------ outputs
 

@@ -114,6 +114,10 @@ class Tuning:
     """Multiple of the level from which an empty cell keeps its coarse bound (inf: walk all)."""
     grid_sort: str = "counting"
     part_bounds: PartMode | None = None
+    part_trial: bool | None = None
+    """Time the rule of sizes' part bounds against whole cells on the renderer's own frames
+    and keep the faster (`parttrial.py`; None: on CUDA, where a frame's device time is
+    measured; off when `part_bounds` is set)."""
     count_passes: bool = False
     """Rays count their density passes (`Renderer.read_pass_counts`; kernels of their own)."""
     taper: bool = True
