@@ -637,7 +637,7 @@ def test_positions_seen_by_many_views_walk_every_open_cell(
         p.iso_level: _walked_parts(render(device, top, pos, p, cam, 64, 48, part_bounds="all"))
         for p in (params, other)
     }
-    r = Renderer(device)
+    r = Renderer(device, tuning=Tuning(part_trial=False))  # the rule of sizes, untimed
     r.set_topology(top)
     top_band, low_band = (0, 0, 64, 24), (0, 24, 64, 24)
     steps: list[tuple[bool, float, RenderParams, tuple[int, int, int, int] | None, str]] = [
@@ -687,10 +687,10 @@ def test_volume_frames_of_large_systems_walk_the_cells_of_the_view(
     forced = render(device, top, pos, params, cam, 64, 48, part_bounds="visible")
     every = render(device, top, pos, params, cam, 64, 48, part_bounds="all")
     ref = render(device, top, pos, params, cam, 64, 48, part_bounds="none")
-    seen = _walked_parts(render(device, top, pos, params, cam, 64, 48))
+    seen = _walked_parts(render(device, top, pos, params, cam, 64, 48, part_trial=False))
     assert 0 < len(seen) < len(_walked_parts(every)) and seen == _walked_parts(forced)
     monkeypatch.setattr(renderer_module, "LARGE_ATOMS", 1)
-    r = render(device, top, pos, params, cam, 64, 48, cells_per_cutoff=2.0)
+    r = render(device, top, pos, params, cam, 64, 48, cells_per_cutoff=2.0, part_trial=False)
     assert _walked_parts(r) == set()
     np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
     np.testing.assert_array_equal(forced.read_rgba(), ref.read_rgba())
