@@ -87,6 +87,7 @@ TABLES: dict[str, Table] = {
         (
             "render_h200_part_trial.json",
             "render_h200_part_trial_volume.json",
+            "render_h200_part_trial_geodesic.json",
             "render_h200_part_trial_again.json",
         ),
         part_trial,
