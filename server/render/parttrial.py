@@ -7,8 +7,11 @@ the systems measured, not a rule of size. So a CUDA renderer tries both on the f
 set-up (density, render mode, image): by turns the rule's choice and whole cells, `FRAMES`
 frames each after one unmeasured (its kernels and graph are new), and keeps the faster by the
 median of their device times; whole cells only when faster by `MARGIN`. Neither changes the
-image. A set-up whose choice is `EXPIRES` frames old is tried again: a molecule in motion
-changes shape, and the two with it.
+image. Only frames that build their grid anyway (new positions, a new set-up) take turns: on
+still positions a turn would rebuild the grid only to time a build the frames after it do not
+pay, so those frames keep the grid they have (the renderer's `_choose_parts`). A set-up is its
+rule's too (the rule changes with the views of still positions) and its topology's. A choice
+`EXPIRES` frames old is tried again: a molecule in motion changes shape, and the two with it.
 """
 
 from __future__ import annotations
@@ -74,6 +77,10 @@ class PartTrial:
         trial.turn += 1
         self._pending = (trial, mode)
         return mode
+
+    def skip(self) -> None:
+        """The next frame is none of a trial's (a time taken before it is no one's)."""
+        self._pending = None
 
     def timed(self, ms: float) -> None:
         """The device time of the frame `mode` was last asked for (ignored unless that frame

@@ -199,6 +199,11 @@ class Renderer(ImageOutputs):
         self._part_trial = PartTrial() if trial and t.part_bounds is None else None
         self._frame_parts: tuple[Derived, str, PartMode] | None = None
         """This frame's derived parameters, render mode and part choice (`_part_trial`)."""
+        self._frame_rule: PartMode | None = None
+        self._grid_parts: PartMode | None = None
+        self._grid_rule: PartMode | None = None
+        """The part choice the held grid was built with, and the rule of sizes then."""
+        self._topology_version = 0
 
         self._topology: Topology | None = None
         self._n = 0
@@ -366,6 +371,7 @@ class Renderer(ImageOutputs):
         if n > self._atom_capacity:
             self._alloc_atoms(n)
         self._topology = topology
+        self._topology_version += 1
         self._n = n
         self._have_positions = False
         self._grid_key = None
@@ -1031,11 +1037,39 @@ class Renderer(ImageOutputs):
     ) -> tuple[Any, ...] | None:
         """The key of the grid this frame needs (render mode `mode`; `cull`: the key and
         planes of a culled tile's grid), or None when the last one still holds."""
-        key: tuple[Any, ...] = (self._positions_version, d, self._cells_for(d), stop)
-        key = (*key, self._parts_for(d, mode))
-        if cull is not None:
-            key = (*key, cull[0])
+        key = self._grid_key_with(d, stop, self._parts_for(d, mode), cull)
         return None if key == self._grid_key else key
+
+    def _grid_key_with(
+        self, d: Derived, stop: float, parts: PartMode | None, cull: tuple[Any, Cull] | None
+    ) -> tuple[Any, ...]:
+        key: tuple[Any, ...] = (self._positions_version, d, self._cells_for(d), stop, parts)
+        return key if cull is None else (*key, cull[0])
+
+    def _choose_parts(
+        self, d: Derived, mode: str, stop: float, cull: tuple[Any, Cull] | None, setup: Any
+    ) -> None:
+        """This frame's part choice (`_frame_parts`) when the renderer is on trial: a frame
+        that builds its grid anyway takes its turn in the set-up's trial (or the trial's
+        choice); a frame whose grid holds (still positions, the same set-up) keeps the grid's
+        choice, as a turn would rebuild it only to time a build the frames after it do not
+        pay, unless the rule of sizes changed on these positions (many views)."""
+        self._frame_parts = self._frame_rule = None
+        trial = self._part_trial
+        if trial is None:
+            return
+        trial.skip()  # no time of an earlier frame is this one's
+        if not self._n or self._model_of(d).part_bounds is None:
+            return
+        rule = self._parts_by_size(d, mode)
+        key = (setup, self._topology_version, rule)
+        held = self._grid_parts
+        choice: PartMode
+        if held is not None and self._grid_key_with(d, stop, held, cull) == self._grid_key:
+            choice = held if rule == self._grid_rule else trial.chosen(key) or rule
+        else:
+            choice = trial.mode(key, rule)
+        self._frame_parts, self._frame_rule = (d, mode, choice), rule
 
     def _cull_for(
         self, d: Derived, frame: CameraFrame, camera_key: tuple[Any, ...], tile: Any
@@ -1337,12 +1371,9 @@ class Renderer(ImageOutputs):
         f = self._field(d)
         ev = self._events if self._cuda else None
         self._count_view(d, cam_seen[4])
-        self._frame_parts = None
-        if self._part_trial is not None and self._n and self._model_of(d).part_bounds is not None:
-            setup = (d, params.mode, w, h, tile, self._n, self.region)
-            choice = self._part_trial.mode(setup, self._parts_by_size(d, params.mode))
-            self._frame_parts = (d, params.mode, choice)
         cull = self._cull_for(d, frame, cam_seen[4], tile)
+        setup = (d, params.mode, w, h, tile, self._n, self.region)
+        self._choose_parts(d, params.mode, stop, cull, setup)
         grid_key = self._grid_key_for(d, stop, params.mode, cull) if self._n else None
         # a grid with part bounds for the view walks the cells each new view adds
         view = self._view_of(d, params.mode, stop, (frame, tile)) if self._n else None
@@ -1350,7 +1381,8 @@ class Renderer(ImageOutputs):
         if view is not None:
             current = grid_key if grid_key is not None else self._grid_key
             on, walked = self._views_walked
-            if on != current or len(walked) >= VIEWS_KEPT:
+            # a grid built again under the key it had (a part choice back) walked no view
+            if on != current or grid_key is not None or len(walked) >= VIEWS_KEPT:
                 walked = set()
                 self._views_walked = (current, walked)
             view_key = (cam_seen[4], tile)
@@ -1376,6 +1408,8 @@ class Renderer(ImageOutputs):
             walk_view,
             None if cull is None else cull[1],
         )
+        if grid_key is not None:
+            self._grid_key = None  # a build that fails part way leaves no grid to reuse
         if self._graphs.enabled:
             clipped = params.mode == "volume" and self.depth_limit is not None
             limit = self.depth_limit.ptr if clipped else None
@@ -1388,7 +1422,7 @@ class Renderer(ImageOutputs):
         else:
             t_cast = launch()
         if grid_key is not None:
-            self._grid_key = grid_key
+            self._held_grid(grid_key, d, params.mode)
         front = 0 if self._pos is self._pos_buffers[0] else 1
         if ev is not None:
             self._stream.record_event(ev[2])
@@ -1400,6 +1434,12 @@ class Renderer(ImageOutputs):
         self._last = (params, d)
         if wait:
             self.finish()
+
+    def _held_grid(self, key: tuple[Any, ...], d: Derived, mode: str) -> None:
+        """The grid of `key` is built: it holds until its key changes."""
+        self._grid_key = key
+        self._grid_parts = self._parts_for(d, mode)
+        self._grid_rule = self._frame_rule
 
     @property
     def last_parts(self) -> PartMode | None:
@@ -1486,8 +1526,9 @@ class Renderer(ImageOutputs):
         else:
             key = self._grid_key_for(d, stop, params.mode)
             if key is not None:
+                self._grid_key = None  # a build that fails part way leaves no grid to reuse
                 self._build_grid(d, f, stop, params.mode, None)
-                self._grid_key = key
+                self._held_grid(key, d, params.mode)
         self._last = (params, d)
         return f
 

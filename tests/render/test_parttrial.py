@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from protocol import RenderParams
 from server.render.camera import fit_camera, orbit
@@ -10,7 +11,7 @@ from server.render.cells import WALKED
 from server.render.parttrial import FRAMES, KEPT, PartTrial
 from server.render.renderer import Renderer
 from server.render.tuning import Tuning
-from tests.render.molecules import villin
+from tests.render.molecules import Mol, villin
 
 
 def run(trial: PartTrial, key: object, rule: str, ms: dict[str, float], frames: int) -> list[str]:
@@ -72,26 +73,92 @@ def test_a_time_for_no_trial_frame_is_ignored() -> None:
     assert trial.chosen("a") == "all"
 
 
-def test_a_renderer_on_trial_draws_the_same_image_with_either_choice() -> None:
-    """On the CPU device the trial is off unless asked for; asked for, a renderer's frames go by
-    turns with every open cell's part bounds and with whole cells, the same image each time,
-    and then keep one."""
+def on_trial(mol: Mol) -> Renderer:
+    r = Renderer("cpu", tuning=Tuning(part_trial=True))
+    r.set_topology(mol.topology)
+    return r
+
+
+def walked(r: Renderer) -> int:
+    """Cells of the last grid that walked for their part bounds."""
+    return int(np.count_nonzero(r._grid.parts.numpy() & WALKED))
+
+
+@pytest.mark.parametrize(
+    "params",
+    [RenderParams(), RenderParams(mode="volume"), RenderParams(scale_space="geodesic")],
+    ids=["iso", "volume", "geodesic"],
+)
+def test_a_renderer_on_trial_draws_what_whole_cells_draw(params: RenderParams) -> None:
+    """On the CPU device the trial is off unless asked for. Asked for, the frames of a moving
+    molecule go by turns with every open cell's part bounds and with whole cells, then keep
+    one; every frame's image is that of whole cells, bit for bit."""
     mol = villin()
     cam = orbit(fit_camera(mol.positions, 48, 36), 30.0, 20.0)
     assert Renderer("cpu")._part_trial is None
     assert Renderer("cpu", tuning=Tuning(part_trial=True, part_bounds="all"))._part_trial is None
-    r = Renderer("cpu", tuning=Tuning(part_trial=True))
-    r.set_topology(mol.topology)
-    r.set_positions(mol.positions)
-    images, parts = [], []
+    r = on_trial(mol)
+    ref = Renderer("cpu", tuning=Tuning(part_bounds="none"))
+    ref.set_topology(mol.topology)
+    rng = np.random.default_rng(3)
+    parts = []
     for _ in range(2 * (FRAMES + 1) + 2):
-        r.render(RenderParams(), cam, 48, 36)
-        assert r._frame_parts is not None
-        parts.append(r._frame_parts[2])
-        images.append(r.read_rgba())
-        walked = int(np.count_nonzero(r._grid.parts.numpy() & WALKED))
-        assert (walked > 0) == (parts[-1] == "all"), (parts[-1], walked)  # the choice holds
+        pos = mol.positions + rng.normal(0.0, 0.05, mol.positions.shape).astype(np.float32)
+        for renderer in (r, ref):
+            renderer.set_positions(pos)
+            renderer.render(params, cam, 48, 36)
+        parts.append(r.last_parts)
+        assert (walked(r) > 0) == (parts[-1] == "all"), (parts[-1], walked(r))
+        np.testing.assert_array_equal(r.read_rgba(), ref.read_rgba())
+        np.testing.assert_array_equal(r.read_depth(), ref.read_depth())
     assert parts[: 2 * (FRAMES + 1)] == ["all", "none"] * (FRAMES + 1)
     assert parts[-1] == parts[-2] and parts[-1] in ("all", "none")
-    assert all(np.array_equal(images[0], image) for image in images[1:])
-    assert np.count_nonzero(images[0][..., 3]) > 100
+    assert np.count_nonzero(r.read_rgba()[..., 3]) > 100
+
+
+def test_still_positions_keep_their_grid_and_take_no_turn() -> None:
+    """A turn on positions whose grid holds would rebuild it only to time a build the frames
+    after it do not pay (a paused molecule, a turning camera): such frames keep the grid."""
+    mol = villin()
+    cam = fit_camera(mol.positions, 40, 30)
+    r = on_trial(mol)
+    r.set_positions(mol.positions)
+    r.render(RenderParams(), cam, 40, 30)
+    key = r._grid_key
+    for yaw in range(10, 80, 10):
+        r.render(RenderParams(), orbit(cam, float(yaw), 0.0), 40, 30)
+        assert r._grid_key == key and r.last_parts == "all"
+    assert r._part_trial is not None and r._part_trial._pending is None  # no turn taken
+    r.set_positions(mol.positions + np.float32(0.01))  # moving again: the next turn
+    r.render(RenderParams(), cam, 40, 30)
+    assert r.last_parts == "none"
+
+
+def test_a_build_that_fails_part_way_leaves_no_grid_to_reuse(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The grid's key was kept while another set-up's build failed half done, so the next
+    frame of the first set-up drew from the broken grid."""
+    mol = villin()
+    cam = fit_camera(mol.positions, 40, 30)
+    wide = RenderParams(sigma_A=2.5)
+    r = Renderer("cpu")
+    r.set_topology(mol.topology)
+    r.set_positions(mol.positions)
+    r.render(RenderParams(), cam, 40, 30)
+    build = r._build_grid
+
+    def fails(*args: object, **kw: object) -> None:
+        build(*args, **kw)  # type: ignore[arg-type]
+        raise RuntimeError("interrupted")
+
+    monkeypatch.setattr(r, "_build_grid", fails)
+    with pytest.raises(RuntimeError, match="interrupted"):
+        r.render(wide, cam, 40, 30)
+    monkeypatch.undo()
+    r.render(RenderParams(), cam, 40, 30)
+    fresh = Renderer("cpu")
+    fresh.set_topology(mol.topology)
+    fresh.set_positions(mol.positions)
+    fresh.render(RenderParams(), cam, 40, 30)
+    np.testing.assert_array_equal(r.read_rgba(), fresh.read_rgba())
