@@ -3,15 +3,17 @@
 The rule of sizes (`tuning.VISIBLE_ATOMS` and the rest) walks every open cell for its part
 bounds below 500,000 atoms, faster at most sizes by up to 37 %; but whole cells were 8-16 %
 faster at 5,684 and 10,000 atoms (one NVIDIA H200, `render_h200_parts_iso.json`): a window of
-the systems measured, not a rule of size. So a CUDA renderer tries both on the frames of each
-set-up (density, render mode, image): by turns the rule's choice and whole cells, `FRAMES`
-frames each after one unmeasured (its kernels and graph are new), and keeps the faster by the
-median of their device times; whole cells only when faster by `MARGIN`. Neither changes the
-image. Only frames that build their grid anyway (new positions, a new set-up) take turns: on
-still positions a turn would rebuild the grid only to time a build the frames after it do not
-pay, so those frames keep the grid they have (the renderer's `_choose_parts`). A set-up is its
-rule's too (the rule changes with the views of still positions) and its topology's. A choice
-`EXPIRES` frames old is tried again: a molecule in motion changes shape, and the two with it.
+the systems measured, not a rule of size. So a CUDA renderer below `tuning.TRIAL_ATOMS` atoms
+(where whole cells have ever won) tries both on the frames of each set-up (density, render
+mode, image): by turns the rule's choice and whole cells, `FRAMES` frames each after one
+unmeasured (its kernels and graph are new). It keeps whole cells only when both the least and
+the median of their device times are `MARGIN` below the rule's: other work on the device only
+adds time to a frame. Neither changes the image. Only frames that build their grid anyway
+(new positions, a new set-up) take turns: on still positions a turn would rebuild the grid
+only to time a build the frames after it do not pay, so those frames keep the grid they have
+(the renderer's `_choose_parts`). A set-up is its rule's too (the rule changes with the
+views of still positions) and its topology's. A choice `EXPIRES` frames old is tried again:
+a molecule in motion changes shape, and the two with it.
 """
 
 from __future__ import annotations
@@ -93,8 +95,12 @@ class PartTrial:
         rule, whole = trial.times.get(trial.rule, []), trial.times.get("none", [])
         if min(len(rule), len(whole)) <= self.frames:
             return
-        faster = statistics.median(whole[1:]) < (1.0 - self.margin) * statistics.median(rule[1:])
-        trial.chosen = "none" if faster else trial.rule
+        # other work on the device only adds time to a frame: the least of each says what the
+        # choice costs, and both the least and the median must favour whole cells
+        keep = 1.0 - self.margin
+        fewest = min(whole[1:]) < keep * min(rule[1:])
+        typical = statistics.median(whole[1:]) < keep * statistics.median(rule[1:])
+        trial.chosen = "none" if fewest and typical else trial.rule
         trial.at = self._frame
 
     def chosen(self, key: Hashable) -> PartMode | None:

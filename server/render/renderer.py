@@ -71,6 +71,7 @@ from server.render.tuning import (
     SPLIT_PIXELS_PER_SM,
     SPLIT_RAYS,
     STILL_VIEWS,
+    TRIAL_ATOMS,
     VIEW_ATOMS,
     VIEWS_KEPT,
     VISIBLE_ATOMS,
@@ -1059,7 +1060,7 @@ class Renderer(ImageOutputs):
         if trial is None:
             return
         trial.skip()  # no time of an earlier frame is this one's
-        if not self._n or self._model_of(d).part_bounds is None:
+        if not self._n or self._n >= TRIAL_ATOMS or self._model_of(d).part_bounds is None:
             return
         rule = self._parts_by_size(d, mode)
         key = (setup, self._topology_version, rule)

@@ -61,6 +61,12 @@ paused system; render_h200_round6_views*.json)."""
 LARGE_ATOMS = 30_000_000
 """From this many atoms the grid has one cell per cutoff and volume frames walk whole cells: the
 bounds of 1.4 cells per atom cost more than finer skipping saves (render_h100_scale.json)."""
+TRIAL_ATOMS = 100_000
+"""Below this many atoms a CUDA renderer times its part-bound choice against whole cells
+(`parttrial.py`): whole cells won by 6-16 % at 2,500-10,000 atoms and lost by 20-37 % from
+30,000 atoms in every run (render_h200_part_trial*.json, render_h200_parts_iso.json). From
+here a trial could only lose: a live 1M-atom server once kept whole cells after its turns were
+timed amid the stream's other device work (a cast of 7.3 ms against 5.5)."""
 PIPELINE_ATOMS = 1_000_000
 """From this many atoms a CUDA renderer keeps two positions buffers (an upload overlaps the
 render before it); below, an upload takes under 0.1 ms and one buffer keeps one graph per
