@@ -235,6 +235,12 @@ class ServerSettings:
     stats_interval_s: float = 1.0
     state_interval_s: float = 0.1
     hello_timeout_s: float = 10.0
+    ws_ping_s: float = 20.0
+    """WebSocket keep-alive: a ping this often, and a connection whose peer does not answer one
+    within as long is closed."""
+    ws_stall_s: float = 30.0
+    """A WebSocket closed, or unable to write, this long because its peer reads nothing is cut
+    (`transport.guarded_protocol`)."""
     header_timeout_s: float = 10.0
     """Time a connection has for a request's headers, from its opening (or its first byte
     after the last response): one that sent part of them is answered 408, one that sent
@@ -305,6 +311,9 @@ class ServerSettings:
             raise ValueError("body_timeout_s must be more than 0 seconds")
         if not 0 < self.close_wait_s < float("inf"):
             raise ValueError("close_wait_s must be a finite number of seconds above 0")
+        for name in ("ws_ping_s", "ws_stall_s"):
+            if not 0 < getattr(self, name) < float("inf"):
+                raise ValueError(f"{name} must be a finite number of seconds above 0")
         if self.viewer_views_per_pass < 1:
             raise ValueError("viewer_views_per_pass must be at least 1")
         if not 0 <= self.steerer_places < self.max_clients_per_session:

@@ -226,10 +226,10 @@ def _config(settings: ServerSettings, log_level: str, app: Any = None) -> Any:
         # websockets' sans-I/O protocol: of uvicorn's WebSocket implementations it takes the
         # least CPU per 12 MB frame (the legacy one is deprecated and no faster; wsproto ~2.5x);
         # its message limit is the viewers' until a simulation's hello is accepted
-        ws=guarded_protocol(settings.viewer_limits.max_message_bytes),
+        ws=guarded_protocol(settings.viewer_limits.max_message_bytes, settings.ws_stall_s),
         ws_max_size=settings.limits.max_message_bytes,
-        ws_ping_interval=20.0,
-        ws_ping_timeout=20.0,
+        ws_ping_interval=settings.ws_ping_s,
+        ws_ping_timeout=settings.ws_ping_s,
         # frames are raw floats and images are JPEG: deflate costs CPU and saves nothing
         ws_per_message_deflate=False,
         # a client's address is the socket's unless a configured proxy forwards it: rate limits

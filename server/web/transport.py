@@ -31,14 +31,52 @@ MESSAGE_LIMIT = "scalesteer.message_limit"
 """Scope extension: `{"set": callable(int)}` sets this connection's incoming message limit."""
 
 
-def guarded_protocol(pre_hello_bytes: int) -> type[WebSocketsSansIOProtocol]:
+def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSocketsSansIOProtocol]:
     """A protocol class whose connections accept at most `pre_hello_bytes` per message until
-    the application raises the limit."""
+    the application raises the limit, and are cut (`transport.abort`) once closed or unable to
+    write for `stall_s` while their peer does not read.
+
+    asyncio's `close()` waits for the bytes already written to drain. A peer that stops
+    reading never lets them: its connection stayed open after every timeout had closed it,
+    its handler waited on the write for ever, and it kept its place among `max_connections`,
+    so enough such peers locked everyone else out."""
 
     class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
+        _watch: asyncio.TimerHandle | None = None
+        _stuck_since: float | None = None
+
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
             self.conn.max_message_size = min(pre_hello_bytes, self.config.ws_max_size)
+
+        def connection_made(self, transport: Any) -> None:
+            super().connection_made(transport)
+            self._watch = self.loop.call_later(stall_s / 4, self._check_stall)
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            if self._watch is not None:
+                self._watch.cancel()
+                self._watch = None
+            super().connection_lost(exc)
+
+        def _check_stall(self) -> None:
+            """Every quarter of `stall_s`: cut a connection that has been closing, or unable
+            to write, for `stall_s` (its peer reads nothing)."""
+            self._watch = None
+            stuck = self.transport.is_closing() or not self.writable.is_set()
+            now = self.loop.time()
+            if not stuck:
+                self._stuck_since = None
+            elif self._stuck_since is None:
+                self._stuck_since = now
+            elif now - self._stuck_since >= stall_s:
+                client = f"{self.client[0]}:{self.client[1]}" if self.client else "a client"
+                self.logger.warning(
+                    "%s: a WebSocket whose peer read nothing for %g s cut", client, stall_s
+                )
+                self.transport.abort()
+                return
+            self._watch = self.loop.call_later(stall_s / 4, self._check_stall)
 
         def data_received(self, data: bytes) -> None:
             super().data_received(data)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import bz2
 import concurrent.futures
+import contextlib
 import gzip
 import json
 import logging
@@ -30,6 +31,7 @@ import msgpack
 import numpy as np
 import pytest
 import websockets
+from websockets.frames import Frame, Opcode
 
 import protocol as p
 from server.web.spool import PARSER_LOG
@@ -1090,6 +1092,68 @@ def test_long_heads_are_answered_the_same_however_the_network_cuts_them(tmp_path
         sock.sendall(post.encode() + body)
         assert answer(sock, 15)[0] == 405
         assert httpx.get(f"{server.url}/healthz").status_code == 200
+    finally:
+        server.stop()
+
+
+def upgrade(server: ServerProcess, rcvbuf: int | None = None) -> tuple[socket.socket, int]:
+    """A raw WebSocket upgrade to /ws/view: the socket and the status it was answered."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    if rcvbuf is not None:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+    sock.settimeout(10)
+    sock.connect(("127.0.0.1", server.port))
+    sock.sendall(
+        (
+            f"GET /ws/view?token={VIEWER_TOKEN} HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\n"
+            "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
+            "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n"
+        ).encode()
+    )
+    head = b""
+    while b"\r\n\r\n" not in head:
+        chunk = sock.recv(1)
+        if not chunk:
+            break
+        head += chunk
+    return sock, int(head.split(b" ", 2)[1]) if head.startswith(b"HTTP/1.1 ") else 0
+
+
+def test_peers_that_never_read_lose_their_place(tmp_path: Path) -> None:
+    """WebSockets whose peer stopped reading stayed open after every timeout had closed them
+    (asyncio's close waits for written bytes to drain), each keeping its place among
+    max_connections: four such held a server of four places shut to everyone."""
+    server = ServerProcess(
+        tmp_path / "state",
+        *("--set", "max_connections=4", "--set", "hello_timeout_s=1"),
+        *("--set", "ws_ping_s=1", "--set", "ws_stall_s=4"),
+    )
+    try:
+        ping = Frame(Opcode.PING, b"x" * 125).serialize(mask=True)
+        silent = []
+        for _ in range(4):
+            sock, status = upgrade(server, rcvbuf=4096)
+            assert status == 101
+            sock.settimeout(0.5)
+            until = time.monotonic() + 0.4
+            with contextlib.suppress(TimeoutError):  # pongs fill its buffers: it never reads
+                while time.monotonic() < until:
+                    sock.sendall(ping * 500)
+            silent.append(sock)
+        refused, status = upgrade(server)
+        refused.close()
+        assert status == 503  # every place held
+        deadline = time.monotonic() + 30
+        while True:
+            sock, status = upgrade(server)
+            sock.close()
+            if status == 101 or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+        assert status == 101, "the silent peers kept their places"
+        assert httpx.get(f"{server.url}/healthz").status_code == 200
+        for sock in silent:
+            sock.close()
     finally:
         server.stop()
 
