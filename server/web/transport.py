@@ -27,6 +27,9 @@ from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIO
 MAX_HEAD_BYTES = 64 * 1024
 """The most a request's line and headers may take: a long query string or many cookies fit."""
 _HEAD_END = re.compile(rb"\n\r?\n")  # h11's own: lines may end in a bare newline
+MAX_FRAGMENTS = 1024
+"""Fragments one WebSocket message may come in: a simulation's largest (64 MiB) comes in 256 of
+256 KiB (`protocol.fragments`), a browser's in one."""
 MESSAGE_LIMIT = "scalesteer.message_limit"
 """Scope extension: `{"set": callable(int)}` sets this connection's incoming message limit."""
 
@@ -44,6 +47,22 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
     class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
         _watch: asyncio.TimerHandle | None = None
         _stuck_since: float | None = None
+        _refused = False
+
+        def handle_cont(self, event: Any) -> None:
+            # websockets counts a message's payload against its limit, not its fragments:
+            # endless empty ones grew the list uvicorn keeps them in without bound
+            if self._refused:
+                return
+            if len(self.frames) >= MAX_FRAGMENTS:
+                self._refused = True
+                self.frames = []
+                self.conn.fail(1009, f"a message in more than {MAX_FRAGMENTS} fragments")
+                self.transport.write(b"".join(self.conn.data_to_send()))
+                self.close_sent = True
+                self.transport.close()
+                return
+            super().handle_cont(event)
 
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)

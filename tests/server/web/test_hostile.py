@@ -1158,6 +1158,32 @@ def test_peers_that_never_read_lose_their_place(tmp_path: Path) -> None:
         server.stop()
 
 
+def test_a_message_in_endless_fragments_is_refused(tmp_path: Path) -> None:
+    """Empty continuation frames (6 bytes each) never reached the message-size limit: the list
+    they were kept in grew by 1.6 MB a second on one connection, for as long as it pinged."""
+    server = ServerProcess(tmp_path / "state")
+    try:
+        sock, status = upgrade(server)
+        assert status == 101
+        first = Frame(Opcode.BINARY, b"x", fin=False).serialize(mask=True)
+        empty = Frame(Opcode.CONT, b"", fin=False).serialize(mask=True)
+        with contextlib.suppress(OSError):  # the server may close while this is still sent
+            sock.sendall(first + empty * 5_000)
+        sock.settimeout(10)
+        data = b""
+        with contextlib.suppress(OSError), sock:
+            while chunk := sock.recv(65536):
+                data += chunk
+        assert b"\x88" in data and (1009).to_bytes(2, "big") + b"a message in more" in data
+        assert httpx.get(f"{server.url}/healthz").status_code == 200
+        viewer = Peer(server.view_url, "viewer", VIEWER_TOKEN)
+        viewer.send(p.Ping(client_time=3.0))
+        assert viewer.expect(p.Pong, 10).client_time == 3.0
+        viewer.close()
+    finally:
+        server.stop()
+
+
 def statuses(sock: socket.socket) -> list[int]:
     """The status of every response on `sock` until the server closes it."""
     sock.settimeout(15)
