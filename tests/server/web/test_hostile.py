@@ -1169,28 +1169,34 @@ def test_a_message_in_endless_fragments_is_refused(tmp_path: Path) -> None:
         empty = Frame(Opcode.CONT, b"", fin=False).serialize(mask=True)
         with contextlib.suppress(OSError):  # the server may close while this is still sent
             sock.sendall(first + empty * 5_000)
-        sock.settimeout(10)
-        data = b""
-        with contextlib.suppress(OSError), sock:
-            while chunk := sock.recv(65536):
-                data += chunk
+        data = read_to_close(sock, 10)
         assert b"\x88" in data and (1009).to_bytes(2, "big") + b"a message in more" in data
         assert httpx.get(f"{server.url}/healthz").status_code == 200
-        viewer = Peer(server.view_url, "viewer", VIEWER_TOKEN)
-        viewer.send(p.Ping(client_time=3.0))
-        assert viewer.expect(p.Pong, 10).client_time == 3.0
-        viewer.close()
+        assert_a_viewer_is_served(server, 3.0)
     finally:
         server.stop()
 
 
-def statuses(sock: socket.socket) -> list[int]:
-    """The status of every response on `sock` until the server closes it."""
-    sock.settimeout(15)
+def assert_a_viewer_is_served(server: ServerProcess, client_time: float) -> None:
+    viewer = Peer(server.view_url, "viewer", VIEWER_TOKEN)
+    viewer.send(p.Ping(client_time=client_time))
+    assert viewer.expect(p.Pong, 10).client_time == client_time
+    viewer.close()
+
+
+def read_to_close(sock: socket.socket, timeout: float) -> bytes:
+    """Everything `sock` receives until the server closes it (or `timeout` passes), then closed."""
+    sock.settimeout(timeout)
     data = b""
-    with sock:
+    with contextlib.suppress(OSError), sock:
         while chunk := sock.recv(65536):
             data += chunk
+    return data
+
+
+def statuses(sock: socket.socket) -> list[int]:
+    """The status of every response on `sock` until the server closes it."""
+    data = read_to_close(sock, 15)
     return [int(code) for code in re.findall(rb"HTTP/1\.1 (\d{3}) ", data)]
 
 
@@ -1216,10 +1222,7 @@ def test_an_upgrade_websockets_cannot_parse_is_answered_and_closed(tmp_path: Pat
             sock.settimeout(10)
             assert sock.recv(1) == b""  # and closed
             sock.close()
-        viewer = Peer(server.view_url, "viewer", VIEWER_TOKEN)
-        viewer.send(p.Ping(client_time=1.0))
-        assert viewer.expect(p.Pong, 10).client_time == 1.0
-        viewer.close()
+        assert_a_viewer_is_served(server, 1.0)
     finally:
         server.stop()
 
