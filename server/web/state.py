@@ -103,6 +103,21 @@ class Connections:
 
     total: int = 0
     by_token: dict[str, int] = field(default_factory=lambda: {"server": 0, "viewer": 0})
+    waiting: dict[int, asyncio.Future[None]] = field(default_factory=dict)
+    """Connections that have not said `hello` yet, oldest first: each one's notice to leave."""
+
+    def make_room(self) -> bool:
+        """Tell the connection that has waited longest without saying `hello` to leave, so a
+        newcomer can have its place; False when every open connection has said it.
+
+        Refusing the newcomer instead let anyone without a token lock the server: silent
+        sockets, reopened as the hello timeout closed them, held every place, and a steerer
+        with the server token was refused in most of its tries."""
+        key = next(iter(self.waiting), None)
+        if key is None:
+            return False
+        self.waiting.pop(key).set_result(None)
+        return True
 
 
 @dataclass

@@ -16,9 +16,12 @@ refused from their header, before their payload is read (close code 1009).
 from __future__ import annotations
 
 import asyncio
+import fcntl
 import re
+import sys
+import termios
 from collections.abc import Callable, MutableMapping
-from typing import Any
+from typing import Any, cast
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -30,6 +33,9 @@ _HEAD_END = re.compile(rb"\n\r?\n")  # h11's own: lines may end in a bare newlin
 MAX_FRAGMENTS = 1024
 """Fragments one WebSocket message may come in: a simulation's largest (64 MiB) comes in 256 of
 256 KiB (`protocol.fragments`), a browser's in one."""
+FEED_BYTES = 1024
+"""What a connection's parser takes in one turn of the event loop until its limit is raised:
+a 256 KiB read holds up to 43,000 empty frames, about 0.2 s of parsing in one step."""
 MESSAGE_LIMIT = "scalesteer.message_limit"
 """Scope extension: `{"set": callable(int)}` sets this connection's incoming message limit."""
 
@@ -48,6 +54,15 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
         _watch: asyncio.TimerHandle | None = None
         _stuck_since: float | None = None
         _refused = False
+        _raised = False
+        _held: bytearray | None = None
+        """Read and not yet parsed: the pieces after the first of a large read."""
+        _feeding: asyncio.Handle | None = None
+        _pong_due: bytes | None = None
+        _ping_at_byte = 0
+        """Bytes written up to and with the keep-alive ping in flight."""
+        _taken = 0
+        """Bytes the peer had taken when last looked at."""
 
         def handle_cont(self, event: Any) -> None:
             # websockets counts a message's payload against its limit, not its fragments:
@@ -68,14 +83,14 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
             super().__init__(*args, **kwargs)
             self.conn.max_message_size = min(pre_hello_bytes, self.config.ws_max_size)
 
-        def connection_made(self, transport: Any) -> None:
-            super().connection_made(transport)
-            self._watch = self.loop.call_later(stall_s / 4, self._check_stall)
-
         def connection_lost(self, exc: Exception | None) -> None:
             if self._watch is not None:
                 self._watch.cancel()
                 self._watch = None
+            if self._feeding is not None:
+                self._feeding.cancel()
+                self._feeding = None
+            self._held = self._pong_due = None
             super().connection_lost(exc)
 
         def _check_stall(self) -> None:
@@ -97,7 +112,58 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
                 return
             self._watch = self.loop.call_later(stall_s / 4, self._check_stall)
 
+        # ------------------------------------------------------------ reading in pieces
+        # websockets parses every frame of a read at once: a read of tiny frames held the
+        # event loop, and every other connection, for as long as it took (a ping flood from
+        # one socket took a viewer's round trip from 1 ms to 0.6 s). Until a simulation's
+        # hello raised its limit, a connection's read is parsed `FEED_BYTES` a turn, and the
+        # next piece waits for the app to take the messages the last one gave.
+
         def data_received(self, data: bytes) -> None:
+            if self._held is not None:  # what came first is parsed first
+                self._held += data
+                self.transport.pause_reading()
+                return
+            if self._raised or len(data) <= FEED_BYTES:
+                self._parse(data)
+                return
+            self._held = bytearray(data[FEED_BYTES:])
+            self.transport.pause_reading()
+            self._parse(data[:FEED_BYTES])
+            self._next_piece()
+
+        def _next_piece(self) -> None:
+            if self._held is not None and self._feeding is None and not self.read_paused:
+                self._feeding = self.loop.call_soon(self._feed_held)
+
+        def _feed_held(self) -> None:
+            self._feeding = None
+            held = self._held
+            if held is None or self.transport.is_closing():
+                self._held = None
+                return
+            size = len(held) if self._raised else FEED_BYTES
+            piece = bytes(held[:size])
+            del held[:size]
+            if not held:
+                self._held = None
+            self._parse(piece)
+            if self._held is not None:
+                self._next_piece()
+            elif not self.read_paused and not self.transport.is_closing():
+                self.transport.resume_reading()
+
+        async def receive(self) -> Any:
+            message = await self.queue.get()
+            if self.read_paused and self.queue.empty():
+                self.read_paused = False
+                if self._held is not None:
+                    self._next_piece()
+                elif not self.transport.is_closing():
+                    self.transport.resume_reading()
+            return message
+
+        def _parse(self, data: bytes) -> None:
             super().data_received(data)
             # websockets refuses an upgrade whose request it cannot parse (a line over 8 KiB,
             # over 128 headers) with an answer uvicorn never writes: the connection stayed
@@ -110,6 +176,51 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
                 self.transport.write(b"".join(self.conn.data_to_send()))
                 self.transport.close()
 
+        # ------------------------------------------------------------ keep-alive
+        # uvicorn's pong deadline ran from the moment the ping was written, so a ping queued
+        # behind images a slow reader had not read yet timed out: a script viewer reading
+        # 15-20 KB/s was closed at 40-70 s. Here the deadline runs from when the ping left
+        # the server: while it is still queued and the peer keeps taking bytes, it waits.
+
+        def connection_made(self, transport: Any) -> None:
+            counted = _Counted(transport)
+            super().connection_made(cast(asyncio.Transport, counted))
+            self._watch = self.loop.call_later(stall_s / 4, self._check_stall)
+
+        def send_keepalive_ping(self) -> None:
+            super().send_keepalive_ping()
+            counted = cast(_Counted, self.transport)
+            self._ping_at_byte = counted.written
+            self._taken = counted.delivered()
+
+        def keepalive_timeout(self) -> None:
+            counted = cast(_Counted, self.transport)
+            taken = counted.delivered()
+            queued = self._taken < self._ping_at_byte  # the ping had not left at the last look
+            if queued and taken > self._taken and self.ping_timeout and not counted.is_closing():
+                self._taken = taken  # the peer is reading what came before the ping: wait on
+                self.pong_timer = self.loop.call_later(self.ping_timeout, self.keepalive_timeout)
+                return
+            super().keepalive_timeout()
+
+        # ------------------------------------------------------------ pongs
+        # A peer that pings and never reads grew the write buffer by a pong a ping (about
+        # 1 GB before the stall cut it). While the buffer is over its high-water mark only
+        # the latest ping is answered, once it drains (RFC 6455 5.5.3 allows that).
+
+        def handle_ping(self) -> None:
+            pong = b"".join(self.conn.data_to_send())
+            if self.writable.is_set():
+                self.transport.write(pong)
+            else:
+                self._pong_due = pong
+
+        def resume_writing(self) -> None:
+            super().resume_writing()
+            pong, self._pong_due = self._pong_due, None
+            if pong and not self.transport.is_closing():
+                self.transport.write(pong)
+
         def handle_connect(self, event: Any) -> None:
             super().handle_connect(event)
             scope = getattr(self, "scope", None)
@@ -117,9 +228,40 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
                 scope["extensions"][MESSAGE_LIMIT] = {"set": self._set_limit}
 
         def _set_limit(self, size: int) -> None:
+            self._raised = True  # a simulation's frames come whole reads at a time
             self.conn.max_message_size = min(int(size), self.config.ws_max_size)
 
     return GuardedWebSocketProtocol
+
+
+class _Counted:
+    """A transport that counts the bytes written to it, so that what its peer has taken is
+    known: those written, less those still in the transport's buffer and, on Linux, in the
+    kernel's send queue (what the peer has not acknowledged)."""
+
+    def __init__(self, transport: asyncio.Transport) -> None:
+        self._transport = transport
+        self.written = 0
+        sock = transport.get_extra_info("socket")
+        self._fd: int | None = sock.fileno() if sock is not None else None
+
+    def write(self, data: bytes | bytearray | memoryview) -> None:
+        self.written += len(data)
+        self._transport.write(data)
+
+    def delivered(self) -> int:
+        unsent = self._transport.get_write_buffer_size()
+        if self._fd is not None and self._fd >= 0:
+            queue = bytearray(4)
+            try:
+                fcntl.ioctl(self._fd, termios.TIOCOUTQ, queue)
+                unsent += int.from_bytes(queue, sys.byteorder)
+            except OSError:
+                pass
+        return self.written - unsent
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._transport, name)
 
 
 def raise_limit(scope: MutableMapping[str, Any], size: int) -> None:

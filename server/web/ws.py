@@ -128,7 +128,7 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
         state.metrics.errors.labels("forbidden").inc()
         await ws.close(code=1008, reason="origin not allowed")
         return
-    if state.connections.total >= settings.max_connections:
+    if state.connections.total >= settings.max_connections and not state.connections.make_room():
         state.metrics.errors.labels("capacity").inc()
         await ws.send_denial_response(
             PlainTextResponse(
@@ -146,8 +146,13 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
     counted: str | None = None
     budget: ClientBudget | None = None
     state.connections.total += 1
+    notice: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+    state.connections.waiting[id(notice)] = notice
     try:
-        hello = await _handshake(ws, state, endpoint)
+        try:
+            hello = await _handshake(ws, state, endpoint, notice)
+        finally:
+            state.connections.waiting.pop(id(notice), None)
         role = grant(settings, hello.token, hello.role)
         if role is None:
             code, why, where = refusal(settings, hello.token, hello.role)
@@ -254,14 +259,33 @@ def claim_session(session: Session, hello: p.Hello) -> None:
     )
 
 
-async def _handshake(ws: WebSocket, state: AppState, endpoint: Endpoint) -> p.Hello:
+async def _handshake(
+    ws: WebSocket, state: AppState, endpoint: Endpoint, notice: asyncio.Future[None]
+) -> p.Hello:
+    """The peer's `hello`, checked; refused when it does not come within the timeout, or when
+    a newcomer to a full server took this connection's place first (`notice`)."""
     settings = state.settings
+    receive = asyncio.ensure_future(_receive(ws, settings.viewer_limits))
     try:
-        raw = await asyncio.wait_for(_receive(ws, settings.viewer_limits), settings.hello_timeout_s)
-    except TimeoutError:
-        raise RefusedError(
-            p.ProtocolError(p.ErrorCode.NOT_READY, "no hello within the timeout"), 1008
-        ) from None
+        done, _ = await asyncio.wait(
+            (receive, notice), timeout=settings.hello_timeout_s, return_when="FIRST_COMPLETED"
+        )
+    finally:
+        if not receive.done():
+            receive.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await receive
+    if receive not in done:
+        why = (
+            "the server is full and this connection had not said hello: it made room for "
+            "a newer one; say hello as soon as you connect"
+            if notice.done()
+            else "no hello within the timeout"
+        )
+        code = p.ErrorCode.CAPACITY if notice.done() else p.ErrorCode.NOT_READY
+        raise RefusedError(p.ProtocolError(code, why), 1013 if notice.done() else 1008)
+    try:
+        raw = receive.result()
     except p.ProtocolError as err:
         raise RefusedError(err, 1008) from None
     if raw is None:

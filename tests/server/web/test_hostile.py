@@ -1130,10 +1130,13 @@ def test_peers_that_never_read_lose_their_place(tmp_path: Path) -> None:
     )
     try:
         ping = Frame(Opcode.PING, b"x" * 125).serialize(mask=True)
+        hello = p.encode(p.Hello(role="viewer", token=VIEWER_TOKEN))
         silent = []
         for _ in range(4):
             sock, status = upgrade(server, rcvbuf=4096)
             assert status == 101
+            # each says hello: a connection that has not is given up for a newcomer's
+            sock.sendall(Frame(Opcode.BINARY, hello).serialize(mask=True))
             sock.settimeout(0.5)
             until = time.monotonic() + 0.4
             with contextlib.suppress(TimeoutError):  # pongs fill its buffers: it never reads
@@ -1173,6 +1176,186 @@ def test_a_message_in_endless_fragments_is_refused(tmp_path: Path) -> None:
         assert b"\x88" in data and (1009).to_bytes(2, "big") + b"a message in more" in data
         assert httpx.get(f"{server.url}/healthz").status_code == 200
         assert_a_viewer_is_served(server, 3.0)
+    finally:
+        server.stop()
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as status:
+        line = next(line for line in status if line.startswith("VmRSS:"))
+    return int(line.split()[1]) / 1024
+
+
+def flood(server: ServerProcess, frames: bytes, seconds: float) -> threading.Thread:
+    """A peer that sends `frames` over and over for `seconds` and reads nothing."""
+    block = frames * (262_144 // len(frames))
+
+    def attack() -> None:
+        sock, status = upgrade(server, rcvbuf=4096)
+        assert status == 101
+        sock.settimeout(1)
+        until = time.monotonic() + seconds
+        with sock:
+            while time.monotonic() < until:
+                with contextlib.suppress(OSError):
+                    sock.sendall(block)
+
+    thread = threading.Thread(target=attack, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_a_flood_of_tiny_frames_from_one_peer_holds_no_one_else_up(tmp_path: Path) -> None:
+    """websockets parsed every frame of a read at once: one socket sending empty pings took a
+    viewer's round trip from 1 ms to 0.6 s (p50), one sending one-byte messages to 0.47 s; and
+    a peer that pinged and never read grew the server by a pong a ping (165 MB in 6 s)."""
+    server = ServerProcess(tmp_path / "state")
+    try:
+        viewer = Peer(server.view_url, "viewer", VIEWER_TOKEN)
+        for frames in (
+            Frame(Opcode.PING, b"").serialize(mask=True),
+            Frame(Opcode.BINARY, b"\x80").serialize(mask=True),
+        ):
+            attacker = flood(server, frames, 2.0)
+            time.sleep(0.3)
+            rtts = []
+            while attacker.is_alive():
+                sent = time.monotonic()
+                viewer.send(p.Ping(client_time=sent))
+                viewer.expect(p.Pong, 30)
+                rtts.append(time.monotonic() - sent)
+                time.sleep(0.02)
+            rtts.sort()
+            assert rtts[len(rtts) // 2] < 0.1 and rtts[-1] < 0.5, (frames[:2], rtts)
+        before = rss_mb(server.process.pid)
+        attacker = flood(server, Frame(Opcode.PING, b"x" * 125).serialize(mask=True), 4.0)
+        peak = before
+        while attacker.is_alive():
+            peak = max(peak, rss_mb(server.process.pid))
+            time.sleep(0.05)
+        assert peak - before < 60, (before, peak)
+        viewer.close()
+        assert_a_viewer_is_served(server, 2.0)
+    finally:
+        server.stop()
+
+
+def test_a_full_server_gives_a_silent_connections_place_to_a_newcomer(tmp_path: Path) -> None:
+    """Connections that had not said hello shared the pool with everyone: silent sockets without
+    a token, reopened as the hello timeout closed them, got a steerer refused (503)."""
+    server = ServerProcess(
+        tmp_path / "state", *("--set", "max_connections=3", "--set", "hello_timeout_s=60")
+    )
+    try:
+        silent = [upgrade(server) for _ in range(3)]
+        assert [status for _, status in silent] == [101] * 3
+        # each newcomer takes the place of the one that has waited longest without hello
+        joined = [Peer(server.view_url, "steerer", TOKEN)]
+        assert until_closed(silent[0][0]) == (1013, "capacity")
+        joined += [Peer(server.view_url, "viewer", VIEWER_TOKEN) for _ in range(2)]
+        assert all(peer.welcome is not None for peer in joined)
+        assert [until_closed(sock) for sock, _ in silent[1:]] == [(1013, "capacity")] * 2
+        # every place is now held by a connection that said hello: none is given up
+        refused, status = upgrade(server)
+        refused.close()
+        assert status == 503
+        joined[0].send(p.Ping(client_time=4.0))
+        assert joined[0].expect(p.Pong, 10).client_time == 4.0
+        for peer in joined:
+            peer.close()
+    finally:
+        server.stop()
+
+
+def server_frames(data: bytes) -> tuple[list[tuple[int, bytes]], bytes]:
+    """The whole (unmasked) frames at the start of `data` as (opcode, payload), and the rest."""
+    frames = []
+    while len(data) >= 2:
+        size, at = data[1] & 0x7F, 2
+        if size >= 126:
+            width = 2 if size == 126 else 8
+            if len(data) < 2 + width:
+                break
+            size, at = int.from_bytes(data[2 : 2 + width], "big"), 2 + width
+        if len(data) < at + size:
+            break
+        frames.append((data[0] & 0x0F, data[at : at + size]))
+        data = data[at + size :]
+    return frames, data
+
+
+def until_closed(sock: socket.socket, timeout: float = 10) -> tuple[int, str]:
+    """Read `sock` until the server's close frame: its code and reason; the error message
+    before it must say why (a connection that made room for another)."""
+    pending, said = b"", ""
+    until = time.monotonic() + timeout
+    sock.settimeout(timeout)
+    while time.monotonic() < until:
+        pending += sock.recv(65536)
+        frames, pending = server_frames(pending)
+        for opcode, payload in frames:
+            if opcode == 2:
+                said = p.decode(payload).message  # type: ignore[attr-defined]
+            if opcode == 8:
+                sock.close()
+                assert "made room for a newer one" in said, said
+                return int.from_bytes(payload[:2], "big"), payload[2:].decode()
+    raise AssertionError("no close frame")
+
+
+def test_a_slow_reader_without_acks_keeps_its_connection(tmp_path: Path) -> None:
+    """The keep-alive's pong deadline ran from when its ping was written: a script viewer that
+    did not acknowledge images and read 15-20 KB/s had its ping wait behind them and was
+    closed (at 40-70 s with the defaults), though a slow client is to lose only its frames."""
+    server = ServerProcess(tmp_path / "state", *("--set", "ws_ping_s=1", "--set", "ws_stall_s=3"))
+    try:
+        sim = Peer(server.ws_url, "simulation", TOKEN)
+        topo, pos = molecule(64)
+        sim.send(topo)
+        sock, status = upgrade(server, rcvbuf=4096)
+        assert status == 101
+        hello = p.Hello(role="viewer", token=VIEWER_TOKEN)
+        sock.sendall(Frame(Opcode.BINARY, p.encode(hello)).serialize(mask=True))
+        sock.settimeout(0.2)
+        pending, kinds, images = b"", set(), 0
+        until = time.monotonic() + 6
+        step = 0
+        while time.monotonic() < until and 8 not in kinds:
+            step += 1
+            sim.send(frame(pos + 0.01 * step, step))
+            try:
+                pending += sock.recv(1500)  # about 15 KB/s
+            except TimeoutError:
+                pass
+            except ConnectionError:
+                kinds.add(8)  # reset: closed and cut
+                break
+            frames, pending = server_frames(pending)
+            for opcode, payload in frames:
+                kinds.add(opcode)
+                if opcode == 9:  # answer the server's pings, as any client does
+                    sock.sendall(Frame(Opcode.PONG, payload).serialize(mask=True))
+                elif opcode == 2:
+                    images += isinstance(p.decode(payload), p.Image)
+            time.sleep(0.1)
+        assert 8 not in kinds, "the slow reader was closed"
+        assert 9 in kinds and images >= 2, (kinds, images)
+        # a peer that reads nothing is still closed by the keep-alive or the stall cut
+        stuck, status = upgrade(server, rcvbuf=4096)
+        stuck.sendall(Frame(Opcode.BINARY, p.encode(hello)).serialize(mask=True))
+        for extra in range(40):
+            sim.send(frame(pos + 0.02 * extra, step + extra + 1))
+            time.sleep(0.05)
+        time.sleep(6)  # reading nothing: closed, then cut
+        ended = time.monotonic() + 10
+        stuck.settimeout(10)
+        with stuck:
+            with contextlib.suppress(OSError):
+                while stuck.recv(65536):
+                    pass
+            assert time.monotonic() < ended, "a peer that read nothing kept its connection"
+        sock.close()
+        sim.close()
     finally:
         server.stop()
 
