@@ -123,6 +123,7 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
             if self._held is not None:  # what came first is parsed first
                 self._held += data
                 self.transport.pause_reading()
+                self._next_piece()
                 return
             if self._raised or len(data) <= FEED_BYTES:
                 self._parse(data)
@@ -220,6 +221,14 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
             pong, self._pong_due = self._pong_due, None
             if pong and not self.transport.is_closing():
                 self.transport.write(pong)
+
+        async def send(self, message: Any) -> None:
+            await super().send(message)
+            # uvicorn writes an upgrade's refusal (`send_denial_response`, the 503 of a full
+            # server) but does not count it as the handshake's end, so it logged every such
+            # refusal as an error of the app's ("returned without completing handshake")
+            if message["type"] == "websocket.http.response.body" and not message.get("more_body"):
+                self.handshake_complete = True
 
         def handle_connect(self, event: Any) -> None:
             super().handle_connect(event)

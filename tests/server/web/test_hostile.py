@@ -1259,6 +1259,7 @@ def test_a_full_server_gives_a_silent_connections_place_to_a_newcomer(tmp_path: 
         refused, status = upgrade(server)
         refused.close()
         assert status == 503
+        assert "without completing handshake" not in server.log.read_text()  # no error logged
         joined[0].send(p.Ping(client_time=4.0))
         assert joined[0].expect(p.Pong, 10).client_time == 4.0
         for peer in joined:
