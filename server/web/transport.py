@@ -26,6 +26,7 @@ from typing import Any, cast
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+from websockets.protocol import State
 
 MAX_HEAD_BYTES = 64 * 1024
 """The most a request's line and headers may take: a long query string or many cookies fit."""
@@ -62,7 +63,9 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
         _ping_at_byte = 0
         """Bytes written up to and with the keep-alive ping in flight."""
         _taken = 0
-        """Bytes the peer had taken when last looked at."""
+        """Bytes the peer had taken when the keep-alive last looked."""
+        _seen_taken = 0
+        """Bytes the peer had taken when the stall watch last looked."""
 
         def handle_cont(self, event: Any) -> None:
             # websockets counts a message's payload against its limit, not its fragments:
@@ -97,7 +100,11 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
             """Every quarter of `stall_s`: cut a connection that has been closing, or unable
             to write, for `stall_s` (its peer reads nothing)."""
             self._watch = None
-            stuck = self.transport.is_closing() or not self.writable.is_set()
+            taken = cast(_Counted, self.transport).delivered()
+            reading, self._seen_taken = taken > self._seen_taken, taken
+            # a slow reader's buffer is refilled past its high-water mark as soon as it
+            # drains: only a peer that took nothing since the last look is stuck
+            stuck = (self.transport.is_closing() or not self.writable.is_set()) and not reading
             now = self.loop.time()
             if not stuck:
                 self._stuck_since = None
@@ -211,7 +218,8 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
 
         def handle_ping(self) -> None:
             pong = b"".join(self.conn.data_to_send())
-            if self.writable.is_set():
+            # a close from the peer parsed with the ping has its answer in the same bytes
+            if self.writable.is_set() or self.conn.state is not State.OPEN:
                 self.transport.write(pong)
             else:
                 self._pong_due = pong
