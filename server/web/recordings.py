@@ -253,21 +253,32 @@ async def download_recording(rec_id: str, state: State, _role: Steerer) -> Strea
     )
 
 
-@router.delete("/api/recordings/{rec_id}", summary="Delete a recording (stopping it first)")
+@router.delete(
+    "/api/recordings/{rec_id}",
+    summary="Delete a recording (stopping it, and any replay of it, first)",
+)
 async def delete_recording(rec_id: str, state: State, _role: Steerer) -> dict[str, Any]:
     rec = _recording(state, rec_id)
     if rec.deleting:
         raise HTTPException(409, f"recording {rec_id} is being deleted already")
     _movies_of(state, rec)
     rec.deleting = True  # from here no movie or replay of it starts (`_kept`)
+    # a replay of it would play on from the files it has open, deleted under it
+    replays = [
+        name
+        for name, replay in state.replays.processes.items()
+        if replay.recording == rec.id and replay.process.poll() is None
+    ]
     try:
         if rec.running:
             await _stop(state, rec)
+        for name in replays:
+            await asyncio.to_thread(state.replays.stop, name)
         await asyncio.to_thread(state.recordings.delete, rec)
     except BaseException:
         rec.deleting = False
         raise
-    return {"id": rec_id, "deleted": True}
+    return {"id": rec_id, "deleted": True, "replays_stopped": replays}
 
 
 @router.post(

@@ -196,6 +196,11 @@ def test_a_steered_openmm_run_is_recorded_and_replayed_with_its_marks(
         assert player.expect(p.ParamsAck).ok
         wait_for(lambda: len(replayed) >= len(steps), "the replay to play", timeout=90)
         time.sleep(0.5)
+        # deleting the recording stops its replay, which had played on from the deleted files
+        assert client.get(f"/api/replays/{name}").json()["running"]
+        r = client.delete(f"/api/recordings/{rec_id}")
+        assert r.status_code == 200 and r.json()["replays_stopped"] == [name], r.text
+        assert not client.get(f"/api/replays/{name}").json()["running"]
     finally:
         player.close()
         client.delete(f"/api/replays/{name}")
