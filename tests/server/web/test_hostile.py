@@ -1216,7 +1216,7 @@ def test_a_flood_of_tiny_frames_from_one_peer_holds_no_one_else_up(tmp_path: Pat
             Frame(Opcode.PING, b"").serialize(mask=True),
             Frame(Opcode.BINARY, b"\x80").serialize(mask=True),
         ):
-            attacker = flood(server, frames, 2.0)
+            attacker = flood(server, frames, 1.5)
             time.sleep(0.3)
             rtts = []
             while attacker.is_alive():
@@ -1228,7 +1228,7 @@ def test_a_flood_of_tiny_frames_from_one_peer_holds_no_one_else_up(tmp_path: Pat
             rtts.sort()
             assert rtts[len(rtts) // 2] < 0.1 and rtts[-1] < 0.5, (frames[:2], rtts)
         before = rss_mb(server.process.pid)
-        attacker = flood(server, Frame(Opcode.PING, b"x" * 125).serialize(mask=True), 4.0)
+        attacker = flood(server, Frame(Opcode.PING, b"x" * 125).serialize(mask=True), 3.0)
         peak = before
         while attacker.is_alive():
             peak = max(peak, rss_mb(server.process.pid))
@@ -1307,25 +1307,28 @@ def until_closed(sock: socket.socket, timeout: float = 10) -> tuple[int, str]:
 def test_a_slow_reader_without_acks_keeps_its_connection(tmp_path: Path) -> None:
     """The keep-alive's pong deadline ran from when its ping was written: a script viewer that
     did not acknowledge images and read 15-20 KB/s had its ping wait behind them and was
-    closed (at 40-70 s with the defaults), though a slow client is to lose only its frames."""
-    server = ServerProcess(tmp_path / "state", *("--set", "ws_ping_s=1", "--set", "ws_stall_s=3"))
+    closed (at 40-70 s with the defaults), though a slow client is to lose only its frames.
+    Here a 2 s keep-alive and a reader of 3.7 KB/s: the deadline from the write closed it."""
+    server = ServerProcess(tmp_path / "state", *("--set", "ws_ping_s=2"))
     try:
         sim = Peer(server.ws_url, "simulation", TOKEN)
-        topo, pos = molecule(64)
+        topo, pos = crowded(2000)  # images of 7-14 KB at 960x540
         sim.send(topo)
         sock, status = upgrade(server, rcvbuf=4096)
         assert status == 101
         hello = p.Hello(role="viewer", token=VIEWER_TOKEN)
         sock.sendall(Frame(Opcode.BINARY, p.encode(hello)).serialize(mask=True))
+        view = p.View(width=960, height=540)
+        sock.sendall(Frame(Opcode.BINARY, p.encode(view)).serialize(mask=True))
         sock.settimeout(0.2)
         pending, kinds, images = b"", set(), 0
-        until = time.monotonic() + 6
+        until = time.monotonic() + 14  # with the deadline from the write: closed at 11.6 s
         step = 0
         while time.monotonic() < until and 8 not in kinds:
             step += 1
             sim.send(frame(pos + 0.01 * step, step))
             try:
-                pending += sock.recv(1500)  # about 15 KB/s
+                pending += sock.recv(1500)  # about 3.7 KB/s
             except TimeoutError:
                 pass
             except ConnectionError:
@@ -1338,23 +1341,9 @@ def test_a_slow_reader_without_acks_keeps_its_connection(tmp_path: Path) -> None
                     sock.sendall(Frame(Opcode.PONG, payload).serialize(mask=True))
                 elif opcode == 2:
                     images += isinstance(p.decode(payload), p.Image)
-            time.sleep(0.1)
+            time.sleep(0.4)
         assert 8 not in kinds, "the slow reader was closed"
         assert 9 in kinds and images >= 2, (kinds, images)
-        # a peer that reads nothing is still closed by the keep-alive or the stall cut
-        stuck, status = upgrade(server, rcvbuf=4096)
-        stuck.sendall(Frame(Opcode.BINARY, p.encode(hello)).serialize(mask=True))
-        for extra in range(40):
-            sim.send(frame(pos + 0.02 * extra, step + extra + 1))
-            time.sleep(0.05)
-        time.sleep(6)  # reading nothing: closed, then cut
-        ended = time.monotonic() + 10
-        stuck.settimeout(10)
-        with stuck:
-            with contextlib.suppress(OSError):
-                while stuck.recv(65536):
-                    pass
-            assert time.monotonic() < ended, "a peer that read nothing kept its connection"
         sock.close()
         sim.close()
     finally:
