@@ -35,8 +35,9 @@ MAX_FRAGMENTS = 1024
 """Fragments one WebSocket message may come in: a simulation's largest (64 MiB) comes in 256 of
 256 KiB (`protocol.fragments`), a browser's in one."""
 FEED_BYTES = 1024
-"""What a connection's parser takes in one turn of the event loop until its limit is raised:
-a 256 KiB read holds up to 43,000 empty frames, about 0.2 s of parsing in one step."""
+"""What a connection's parser takes in one turn of the event loop until the application set
+its limit (`raise_limit`: a peer holding the server token): a 256 KiB read holds up to 43,000
+empty frames, about 0.2 s of parsing in one step."""
 MESSAGE_LIMIT = "scalesteer.message_limit"
 """Scope extension: `{"set": callable(int)}` sets this connection's incoming message limit."""
 
@@ -122,9 +123,10 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
         # ------------------------------------------------------------ reading in pieces
         # websockets parses every frame of a read at once: a read of tiny frames held the
         # event loop, and every other connection, for as long as it took (a ping flood from
-        # one socket took a viewer's round trip from 1 ms to 0.6 s). Until a simulation's
-        # hello raised its limit, a connection's read is parsed `FEED_BYTES` a turn, and the
-        # next piece waits for the app to take the messages the last one gave.
+        # one socket took a viewer's round trip from 1 ms to 0.6 s). Until the application
+        # set its limit (the hello of a simulation or a steerer, holding the server token), a
+        # connection's read is parsed `FEED_BYTES` a turn, and the next piece waits for the
+        # app to take the messages the last one gave.
 
         def data_received(self, data: bytes) -> None:
             if self._held is not None:  # what came first is parsed first
@@ -245,7 +247,7 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
                 scope["extensions"][MESSAGE_LIMIT] = {"set": self._set_limit}
 
         def _set_limit(self, size: int) -> None:
-            self._raised = True  # a simulation's frames come whole reads at a time
+            self._raised = True  # its reads are parsed whole from now on
             self.conn.max_message_size = min(int(size), self.config.ws_max_size)
 
     return GuardedWebSocketProtocol
@@ -282,7 +284,8 @@ class _Counted:
 
 
 def raise_limit(scope: MutableMapping[str, Any], size: int) -> None:
-    """Let this connection send messages of up to `size` bytes (a no-op on other servers)."""
+    """Let this connection send messages of up to `size` bytes, its reads parsed whole, not in
+    `FEED_BYTES` pieces (a no-op on other servers): for a peer holding the server token."""
     extension = scope.get("extensions", {}).get(MESSAGE_LIMIT)
     setter: Callable[[int], None] | None = extension.get("set") if extension else None
     if setter is not None:
