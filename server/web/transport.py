@@ -38,6 +38,10 @@ FEED_BYTES = 1024
 """What a connection's parser takes in one turn of the event loop until the application set
 its limit (`raise_limit`: a peer holding the server token): a 256 KiB read holds up to 43,000
 empty frames, about 0.2 s of parsing in one step."""
+MIN_READ_BPS = 512
+"""The slowest a peer may read and count as reading: slower, a ping queued behind what it has
+not read yet does not wait for it, and the stall cut takes it for a peer that reads nothing
+(one byte a second would otherwise hold a place for days behind 300 KB of images)."""
 MESSAGE_LIMIT = "scalesteer.message_limit"
 """Scope extension: `{"set": callable(int)}` sets this connection's incoming message limit."""
 
@@ -102,7 +106,8 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
             to write, for `stall_s` (its peer reads nothing)."""
             self._watch = None
             taken = cast(_Counted, self.transport).delivered()
-            reading, self._seen_taken = taken > self._seen_taken, taken
+            reading = taken - self._seen_taken >= MIN_READ_BPS * stall_s / 4
+            self._seen_taken = taken
             # a slow reader's buffer is refilled past its high-water mark as soon as it
             # drains: only a peer that took nothing since the last look is stuck
             stuck = (self.transport.is_closing() or not self.writable.is_set()) and not reading
@@ -207,9 +212,11 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
             counted = cast(_Counted, self.transport)
             taken = counted.delivered()
             queued = self._taken < self._ping_at_byte  # the ping had not left at the last look
-            if queued and taken > self._taken and self.ping_timeout and not counted.is_closing():
+            timeout = self.ping_timeout or 0.0
+            reading = taken - self._taken >= MIN_READ_BPS * timeout
+            if queued and reading and timeout > 0 and not counted.is_closing():
                 self._taken = taken  # the peer is reading what came before the ping: wait on
-                self.pong_timer = self.loop.call_later(self.ping_timeout, self.keepalive_timeout)
+                self.pong_timer = self.loop.call_later(timeout, self.keepalive_timeout)
                 return
             super().keepalive_timeout()
 

@@ -1304,47 +1304,69 @@ def until_closed(sock: socket.socket, timeout: float = 10) -> tuple[int, str]:
     raise AssertionError("no close frame")
 
 
+class SlowReader:
+    """A raw viewer that reads `chunk` bytes a turn and answers the server's pings."""
+
+    def __init__(self, server: ServerProcess, chunk: int) -> None:
+        self.sock, status = upgrade(server, rcvbuf=4096)
+        assert status == 101
+        for message in (p.Hello(role="viewer", token=VIEWER_TOKEN), p.View(width=960, height=540)):
+            self.sock.sendall(Frame(Opcode.BINARY, p.encode(message)).serialize(mask=True))
+        self.sock.settimeout(0.05)
+        self.chunk, self.pending, self.kinds, self.images = chunk, b"", set[int](), 0
+
+    @property
+    def closed(self) -> bool:
+        return 8 in self.kinds
+
+    def read(self) -> None:
+        if self.closed:
+            return
+        try:
+            self.pending += self.sock.recv(self.chunk)
+        except TimeoutError:
+            return
+        except ConnectionError:
+            self.kinds.add(8)  # reset: closed and cut
+            return
+        frames, self.pending = server_frames(self.pending)
+        for opcode, payload in frames:
+            self.kinds.add(opcode)
+            if opcode == 9:  # answer the server's pings, as any client does
+                self.sock.sendall(Frame(Opcode.PONG, payload).serialize(mask=True))
+            elif opcode == 2:
+                self.images += isinstance(p.decode(payload), p.Image)
+
+
 def test_a_slow_reader_without_acks_keeps_its_connection(tmp_path: Path) -> None:
     """The keep-alive's pong deadline ran from when its ping was written: a script viewer that
     did not acknowledge images and read 15-20 KB/s had its ping wait behind them and was
     closed (at 40-70 s with the defaults), though a slow client is to lose only its frames.
-    Here a 2 s keep-alive and a reader of 3.7 KB/s: the deadline from the write closed it."""
+    Here a 2 s keep-alive and a reader of 3.7 KB/s: the deadline from the write closed it at
+    11.6 s. One of 250 bytes a second is too slow to count as reading (it would hold its
+    place for as long as the images ahead of its ping took it) and is closed."""
     server = ServerProcess(tmp_path / "state", *("--set", "ws_ping_s=2"))
     try:
         sim = Peer(server.ws_url, "simulation", TOKEN)
         topo, pos = crowded(2000)  # images of 7-14 KB at 960x540
         sim.send(topo)
-        sock, status = upgrade(server, rcvbuf=4096)
-        assert status == 101
-        hello = p.Hello(role="viewer", token=VIEWER_TOKEN)
-        sock.sendall(Frame(Opcode.BINARY, p.encode(hello)).serialize(mask=True))
-        view = p.View(width=960, height=540)
-        sock.sendall(Frame(Opcode.BINARY, p.encode(view)).serialize(mask=True))
-        sock.settimeout(0.2)
-        pending, kinds, images = b"", set(), 0
-        until = time.monotonic() + 14  # with the deadline from the write: closed at 11.6 s
+        slow, trickle = SlowReader(server, 1500), SlowReader(server, 100)
+        until = time.monotonic() + 14
         step = 0
-        while time.monotonic() < until and 8 not in kinds:
+        while time.monotonic() < until and not slow.closed:
             step += 1
             sim.send(frame(pos + 0.01 * step, step))
-            try:
-                pending += sock.recv(1500)  # about 3.7 KB/s
-            except TimeoutError:
-                pass
-            except ConnectionError:
-                kinds.add(8)  # reset: closed and cut
-                break
-            frames, pending = server_frames(pending)
-            for opcode, payload in frames:
-                kinds.add(opcode)
-                if opcode == 9:  # answer the server's pings, as any client does
-                    sock.sendall(Frame(Opcode.PONG, payload).serialize(mask=True))
-                elif opcode == 2:
-                    images += isinstance(p.decode(payload), p.Image)
+            slow.read()
+            trickle.read()
             time.sleep(0.4)
-        assert 8 not in kinds, "the slow reader was closed"
-        assert 9 in kinds and images >= 2, (kinds, images)
-        sock.close()
+        assert not slow.closed, "the slow reader was closed"
+        assert 9 in slow.kinds and slow.images >= 2, (slow.kinds, slow.images)
+        deadline = time.monotonic() + 10
+        while not trickle.closed and time.monotonic() < deadline:
+            trickle.read()  # what it had been sent before the server closed it
+        assert trickle.closed, "a reader of 250 bytes a second kept its connection"
+        slow.sock.close()
+        trickle.sock.close()
         sim.close()
     finally:
         server.stop()
