@@ -28,6 +28,8 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 from websockets.protocol import State
 
+from server.web.fairfeed import FairFeed, Usage
+
 MAX_HEAD_BYTES = 64 * 1024
 """The most a request's line and headers may take: a long query string or many cookies fit."""
 _HEAD_END = re.compile(rb"\n\r?\n")  # h11's own: lines may end in a bare newline
@@ -62,8 +64,7 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
         _refused = False
         _raised = False
         _held: bytearray | None = None
-        """Read and not yet parsed: the pieces after the first of a large read."""
-        _feeding: asyncio.Handle | None = None
+        """Read and not yet parsed (`fairfeed` gives it its turns)."""
         _pong_due: bytes | None = None
         _ping_at_byte = 0
         """Bytes written up to and with the keep-alive ping in flight."""
@@ -89,15 +90,13 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
 
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
+            self.usage = Usage()
             self.conn.max_message_size = min(pre_hello_bytes, self.config.ws_max_size)
 
         def connection_lost(self, exc: Exception | None) -> None:
             if self._watch is not None:
                 self._watch.cancel()
                 self._watch = None
-            if self._feeding is not None:
-                self._feeding.cancel()
-                self._feeding = None
             self._held = self._pong_due = None
             super().connection_lost(exc)
 
@@ -130,50 +129,55 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
         # event loop, and every other connection, for as long as it took (a ping flood from
         # one socket took a viewer's round trip from 1 ms to 0.6 s). Until the application
         # set its limit (the hello of a simulation or a steerer, holding the server token), a
-        # connection's read is parsed `FEED_BYTES` a turn, and the next piece waits for the
-        # app to take the messages the last one gave.
+        # connection's reads are parsed `FEED_BYTES` at a time within one budget a turn for
+        # every connection (`fairfeed`), and the next piece waits for the app to take the
+        # messages the last one gave.
 
         def data_received(self, data: bytes) -> None:
-            if self._held is not None:  # what came first is parsed first
-                self._held += data
-                self.transport.pause_reading()
-                self._next_piece()
-                return
-            if self._raised or len(data) <= FEED_BYTES:
-                self._parse(data)
-                return
-            self._held = bytearray(data[FEED_BYTES:])
+            if self._held is None:
+                if self._raised:
+                    self._parse(data)
+                    return
+                fair = FairFeed.of(self.loop)
+                if len(data) <= FEED_BYTES and not self.read_paused and fair.try_now(len(data)):
+                    self.usage.add(len(data), self.loop.time())
+                    self._parse(data)
+                    return
+                self._held = bytearray()
+            self._held += data  # what came first is parsed first
             self.transport.pause_reading()
-            self._parse(data[:FEED_BYTES])
-            self._next_piece()
+            self._offer()
 
-        def _next_piece(self) -> None:
-            if self._held is not None and self._feeding is None and not self.read_paused:
-                self._feeding = self.loop.call_soon(self._feed_held)
+        def _offer(self) -> None:
+            if self.wants_feed():
+                FairFeed.of(self.loop).submit(self, self.usage.at_time(self.loop.time()))
 
-        def _feed_held(self) -> None:
-            self._feeding = None
+        def wants_feed(self) -> bool:
+            return (
+                self._held is not None and not self.read_paused and not self.transport.is_closing()
+            )
+
+        def feed_piece(self) -> int:
             held = self._held
-            if held is None or self.transport.is_closing():
-                self._held = None
-                return
+            if held is None:
+                return 0
             size = len(held) if self._raised else FEED_BYTES
             piece = bytes(held[:size])
             del held[:size]
             if not held:
                 self._held = None
+            self.usage.add(len(piece), self.loop.time())
             self._parse(piece)
-            if self._held is not None:
-                self._next_piece()
-            elif not self.read_paused and not self.transport.is_closing():
+            if self._held is None and not self.read_paused and not self.transport.is_closing():
                 self.transport.resume_reading()
+            return len(piece)
 
         async def receive(self) -> Any:
             message = await self.queue.get()
             if self.read_paused and self.queue.empty():
                 self.read_paused = False
                 if self._held is not None:
-                    self._next_piece()
+                    self._offer()
                 elif not self.transport.is_closing():
                     self.transport.resume_reading()
             return message
