@@ -161,7 +161,7 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
         if role == "simulation":
             claim_session(session, hello)
             raise_limit(ws.scope, settings.limits.max_message_bytes)
-        elif role == "steerer":  # its reads whole: a pull of 4,096 atoms came in 100 pieces
+        elif role == "steerer":  # reads whole: a 250 KB message took 6-10 ms in pieces, 0.4-1.8
             raise_limit(ws.scope, settings.viewer_limits.max_message_bytes)
         # browsers and scripts send only small control messages; simulations send frames
         limits = settings.limits if endpoint == "sim" else settings.viewer_limits
