@@ -357,6 +357,16 @@ def guarded_http(header_timeout_s: float) -> type[H11Protocol]:
             self._stop_deadline()
             super().connection_lost(exc)
 
+        def handle_websocket_upgrade(self, event: h11.Request) -> None:
+            # uvicorn hands the WebSocket protocol the request alone: a message sent in the
+            # same write (a hello right behind the upgrade) was dropped unread, and the
+            # connection waited out the hello timeout
+            trailing, _ = self.conn.trailing_data
+            super().handle_websocket_upgrade(event)
+            protocol = self.transport.get_protocol()
+            if trailing and isinstance(protocol, asyncio.Protocol):
+                protocol.data_received(trailing)
+
         def _stop_deadline(self) -> None:
             if self._header_deadline is not None:
                 self._header_deadline.cancel()

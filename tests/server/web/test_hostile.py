@@ -1408,6 +1408,40 @@ def statuses(sock: socket.socket) -> list[int]:
     return [int(code) for code in re.findall(rb"HTTP/1\.1 (\d{3}) ", data)]
 
 
+def test_messages_sent_with_the_upgrade_request_are_read(tmp_path: Path) -> None:
+    """A hello written in one piece with the upgrade request was dropped unread (uvicorn handed
+    the WebSocket protocol the request alone), and the connection waited out the hello
+    timeout. Here the hello and 40 pings behind it, 1.9 KB in one write."""
+    server = ServerProcess(tmp_path / "state")
+    try:
+        sock = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+        messages = [p.Hello(role="viewer", token=VIEWER_TOKEN)]
+        messages += [p.Ping(seq=i + 1, client_time=float(i)) for i in range(40)]
+        sock.sendall(
+            (
+                f"GET /ws/view HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\n"
+                "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
+                "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n"
+            ).encode()
+            + b"".join(Frame(Opcode.BINARY, p.encode(m)).serialize(mask=True) for m in messages)
+        )
+        data, got = b"", []
+        until = time.monotonic() + 15
+        while sum(isinstance(m, p.Pong) for m in got) < 40 and time.monotonic() < until:
+            data += sock.recv(65536)
+            if not got and b"\r\n\r\n" in data:
+                assert data.startswith(b"HTTP/1.1 101"), data[:80]
+                data = data.split(b"\r\n\r\n", 1)[1]
+            frames, data = server_frames(data)
+            got += [p.decode(payload) for opcode, payload in frames if opcode == 2]
+        assert isinstance(got[0], p.Welcome), got[:1]
+        pongs = [m.client_time for m in got if isinstance(m, p.Pong)]
+        assert pongs == [float(i) for i in range(40)]  # every one, in order
+        sock.close()
+    finally:
+        server.stop()
+
+
 def test_an_upgrade_websockets_cannot_parse_is_answered_and_closed(tmp_path: Path) -> None:
     """An upgrade with a header line over 8 KiB, which websockets' parser refuses, was never
     answered nor closed: 300 such connections without a token were all open after 41 s."""
