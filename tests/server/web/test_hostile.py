@@ -1097,6 +1097,15 @@ def test_long_heads_are_answered_the_same_however_the_network_cuts_them(tmp_path
         server.stop()
 
 
+def upgrade_request(port: int, query: str = "", extra: str = "") -> bytes:
+    """A WebSocket upgrade request for /ws/view, with `extra` header lines."""
+    return (
+        f"GET /ws/view{query} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+        "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
+        f"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n{extra}\r\n"
+    ).encode()
+
+
 def upgrade(server: ServerProcess, rcvbuf: int | None = None) -> tuple[socket.socket, int]:
     """A raw WebSocket upgrade to /ws/view: the socket and the status it was answered."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -1104,13 +1113,7 @@ def upgrade(server: ServerProcess, rcvbuf: int | None = None) -> tuple[socket.so
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
     sock.settimeout(10)
     sock.connect(("127.0.0.1", server.port))
-    sock.sendall(
-        (
-            f"GET /ws/view?token={VIEWER_TOKEN} HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\n"
-            "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
-            "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n"
-        ).encode()
-    )
+    sock.sendall(upgrade_request(server.port, f"?token={VIEWER_TOKEN}"))
     head = b""
     while b"\r\n\r\n" not in head:
         chunk = sock.recv(1)
@@ -1181,12 +1184,6 @@ def test_a_message_in_endless_fragments_is_refused(tmp_path: Path) -> None:
         server.stop()
 
 
-def rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as status:
-        line = next(line for line in status if line.startswith("VmRSS:"))
-    return int(line.split()[1]) / 1024
-
-
 def flood(
     server: ServerProcess, frames: bytes, seconds: float, sockets: int = 1
 ) -> threading.Thread:
@@ -1240,11 +1237,11 @@ def test_a_flood_of_tiny_frames_from_one_peer_holds_no_one_else_up(tmp_path: Pat
         for frames, sockets in ((ping, 1), (byte, 1), (ping, 64)):
             rtts = round_trips(viewer, flood(server, frames, 1.5, sockets))
             assert rtts[len(rtts) // 2] < 0.1 and rtts[-1] < 0.5, (frames[:2], sockets, rtts)
-        before = rss_mb(server.process.pid)
+        before = server.rss_bytes() / 2**20
         attacker = flood(server, Frame(Opcode.PING, b"x" * 125).serialize(mask=True), 3.0)
         peak = before
         while attacker.is_alive():
-            peak = max(peak, rss_mb(server.process.pid))
+            peak = max(peak, server.rss_bytes() / 2**20)
             time.sleep(0.05)
         assert peak - before < 60, (before, peak)
         viewer.close()
@@ -1418,11 +1415,7 @@ def test_messages_sent_with_the_upgrade_request_are_read(tmp_path: Path) -> None
         messages = [p.Hello(role="viewer", token=VIEWER_TOKEN)]
         messages += [p.Ping(seq=i + 1, client_time=float(i)) for i in range(40)]
         sock.sendall(
-            (
-                f"GET /ws/view HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\n"
-                "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
-                "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n"
-            ).encode()
+            upgrade_request(server.port)
             + b"".join(Frame(Opcode.BINARY, p.encode(m)).serialize(mask=True) for m in messages)
         )
         data, got = b"", []
@@ -1452,13 +1445,7 @@ def test_an_upgrade_websockets_cannot_parse_is_answered_and_closed(tmp_path: Pat
             "".join(f"X-{i}: 1\r\n" for i in range(200)),
         ):
             sock = socket.create_connection(("127.0.0.1", server.port), timeout=10)
-            sock.sendall(
-                (
-                    f"GET /ws/view?token=nope HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\n"
-                    "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
-                    f"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n{extra}\r\n"
-                ).encode()
-            )
+            sock.sendall(upgrade_request(server.port, "?token=nope", extra))
             status, _, body = read_response(sock, 10)
             assert status == 431 and "Failed to open a WebSocket connection" in body, body
             sock.settimeout(10)
