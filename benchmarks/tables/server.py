@@ -1,7 +1,7 @@
 """Tables of the benchmarks that run the server or its pipeline: latency_bench.py,
 pipeline_bench.py, multi_session_bench.py, video_bench.py, batch_bench.py,
-cpu_interactive_bench.py, cpu_demo_chromium.py, ws_parse_bench.py, widget_bench.py,
-adapter_bench.py and trajectory_bench.py."""
+cpu_interactive_bench.py, cpu_demo_chromium.py, ws_parse_bench.py, flood_bench.py,
+widget_bench.py, adapter_bench.py and trajectory_bench.py."""
 
 from __future__ import annotations
 
@@ -271,6 +271,18 @@ def ws_parse(sources: list[Source]) -> str:
     header = ["host", "message bytes", "whole: loop ms / longest step"]
     header += ["fragments: loop ms / longest step", "ratio"]
     return block(sources, table(header, "lrrrr", rows))
+
+
+def flood(sources: list[Source]) -> str:
+    """A viewer's round trip while raw sockets flood the server; the no-flood row the control."""
+    rows = []
+    for name, res in sources:
+        for key, case in res["cases"].items():
+            row = [stem(name, "flood_"), key, f"{case['count']:,}"]
+            row += [num(case[k], 2) for k in ("p50_ms", "p90_ms", "max_ms")]
+            rows.append([*row, f"{case['p50_ratio']:.1f}x"])
+    header = ["host", "flood", "round trips", "p50 ms", "p90 ms", "max ms", "p50 / no flood"]
+    return block(sources, table(header, "llrrrrr", rows))
 
 
 def cpu_demo_chromium(sources: list[Source]) -> str:

@@ -28,6 +28,13 @@ log = logging.getLogger("scalesteer.clients")
 MAX_QUEUED_CONTROL = 1024
 MAX_QUEUED_VIDEO = 4
 """Video frames a client may have waiting to be sent; more and it starts over at a keyframe."""
+SEND_QUEUE_BYTES = 16384
+"""Bytes that may wait in front of a client's network link before an image is written behind
+them (or the image's own size, if larger): the rest wait in the slot, where a newer one replaces
+them. The kernel's send buffer holds up to 4 MB: images written behind that much reached a slow
+reader minutes old."""
+QUEUE_POLL_S = 0.01
+"""How often a sender looks whether its link has taken what waits in front of it."""
 
 
 class Transport(Protocol):
@@ -97,6 +104,9 @@ class Client:
     paced_images: bool = False
     """It acknowledges its JPEG images too (the dashboard does): they then go only while its
     link is ready, as video frames do, so a slow link shows fewer images instead of old ones."""
+    queued: Callable[[], int] | None = None
+    """Bytes written to its socket that have not gone out on the network yet (None: unknown,
+    as with transports other than the server's own)."""
     _control: deque[bytes] = field(default_factory=deque)
     _image: tuple[int, bytes] | None = None
     _video: deque[tuple[int, bytes]] = field(default_factory=deque)
@@ -219,6 +229,10 @@ class Client:
                     self._wake.set()
                     continue
                 if self._image is not None and self.state is ClientState.CONNECTED:
+                    if self._link_busy():
+                        await asyncio.sleep(QUEUE_POLL_S)
+                        self._wake.set()  # control first; a newer image may take the slot
+                        continue
                     (frame_id, data), self._image = self._image, None
                     if self.paced_images:  # only a client that acknowledges images is paced
                         self.link.on_sent(frame_id, len(data), time.monotonic())
@@ -233,6 +247,14 @@ class Client:
                 with contextlib.suppress(Exception):
                     await self.ws.close(code=1008, reason="client too slow")
             self.state = ClientState.CLOSED
+
+    def _link_busy(self) -> bool:
+        """Whether more than about an image waits in front of the link: the image in the slot
+        waits too (and is replaced by newer ones), so a slow reader gets fewer images, not
+        older ones. A client that acknowledges its images is paced by them as well."""
+        if self.queued is None or self._image is None:
+            return False
+        return self.queued() > max(SEND_QUEUE_BYTES, len(self._image[1]))
 
     def close(self) -> None:
         self.state = ClientState.CLOSED

@@ -16,10 +16,7 @@ refused from their header, before their payload is read (close code 1009).
 from __future__ import annotations
 
 import asyncio
-import fcntl
 import re
-import sys
-import termios
 from collections.abc import Callable, MutableMapping
 from typing import Any, cast
 
@@ -29,6 +26,7 @@ from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIO
 from websockets.protocol import State
 
 from server.web.fairfeed import FairFeed, Usage
+from server.web.sendqueue import SEND_QUEUE, Counted
 
 MAX_HEAD_BYTES = 64 * 1024
 """The most a request's line and headers may take: a long query string or many cookies fit."""
@@ -104,7 +102,7 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
             """Every quarter of `stall_s`: cut a connection that has been closing, or unable
             to write, for `stall_s` (its peer reads nothing)."""
             self._watch = None
-            taken = cast(_Counted, self.transport).delivered()
+            taken = cast(Counted, self.transport).delivered()
             reading = taken - self._seen_taken >= MIN_READ_BPS * stall_s / 4
             self._seen_taken = taken
             # a slow reader's buffer is refilled past its high-water mark as soon as it
@@ -202,18 +200,18 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
         # the server: while it is still queued and the peer keeps taking bytes, it waits.
 
         def connection_made(self, transport: Any) -> None:
-            counted = _Counted(transport)
+            counted = Counted(transport)
             super().connection_made(cast(asyncio.Transport, counted))
             self._watch = self.loop.call_later(stall_s / 4, self._check_stall)
 
         def send_keepalive_ping(self) -> None:
             super().send_keepalive_ping()
-            counted = cast(_Counted, self.transport)
+            counted = cast(Counted, self.transport)
             self._ping_at_byte = counted.written
             self._taken = counted.delivered()
 
         def keepalive_timeout(self) -> None:
-            counted = cast(_Counted, self.transport)
+            counted = cast(Counted, self.transport)
             taken = counted.delivered()
             queued = self._taken < self._ping_at_byte  # the ping had not left at the last look
             timeout = self.ping_timeout or 0.0
@@ -256,42 +254,13 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
             scope = getattr(self, "scope", None)
             if scope is not None:
                 scope["extensions"][MESSAGE_LIMIT] = {"set": self._set_limit}
+                scope["extensions"][SEND_QUEUE] = {"queued": cast(Counted, self.transport).queued}
 
         def _set_limit(self, size: int) -> None:
             self._raised = True  # its reads are parsed whole from now on
             self.conn.max_message_size = min(int(size), self.config.ws_max_size)
 
     return GuardedWebSocketProtocol
-
-
-class _Counted:
-    """A transport that counts the bytes written to it, so that what its peer has taken is
-    known: those written, less those still in the transport's buffer and, on Linux, in the
-    kernel's send queue (what the peer has not acknowledged)."""
-
-    def __init__(self, transport: asyncio.Transport) -> None:
-        self._transport = transport
-        self.written = 0
-        sock = transport.get_extra_info("socket")
-        self._fd: int | None = sock.fileno() if sock is not None else None
-
-    def write(self, data: bytes | bytearray | memoryview) -> None:
-        self.written += len(data)
-        self._transport.write(data)
-
-    def delivered(self) -> int:
-        unsent = self._transport.get_write_buffer_size()
-        if self._fd is not None and self._fd >= 0:
-            queue = bytearray(4)
-            try:
-                fcntl.ioctl(self._fd, termios.TIOCOUTQ, queue)
-                unsent += int.from_bytes(queue, sys.byteorder)
-            except OSError:
-                pass
-        return self.written - unsent
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._transport, name)
 
 
 def raise_limit(scope: MutableMapping[str, Any], size: int) -> None:

@@ -42,6 +42,7 @@ from server.web.hello import (
     read_hello,
     receive_message,
 )
+from server.web.sendqueue import send_queue
 from server.web.state import AppState
 from server.web.transport import raise_limit
 
@@ -171,6 +172,7 @@ async def handle(ws: WebSocket, state: AppState, endpoint: Endpoint) -> None:
             name=hello.client,
             ws=ws,
             instance=hello.instance,
+            queued=send_queue(ws.scope),
         )
         address = client_address(ws.client.host if ws.client is not None else None)
         budget = state.budgets.take(role, address, limits.max_steer_per_s)

@@ -2,8 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
+
 import protocol as p
-from server.session.clients import MAX_QUEUED_CONTROL, Client, ClientState, ImageOffer
+from server.session.clients import (
+    MAX_QUEUED_CONTROL,
+    QUEUE_POLL_S,
+    SEND_QUEUE_BYTES,
+    Client,
+    ClientState,
+    ImageOffer,
+)
 from tests.server.session.fakes import Loopback
 
 
@@ -58,3 +67,39 @@ def test_replaced_client_flushes_then_closes() -> None:
     assert client.state is ClientState.CLOSING and len(client._control) == 1
     client.offer_image(image(1))  # nothing new is taken once closing
     assert client._image is None
+
+
+def test_an_image_waits_while_its_link_holds_more_than_an_image_and_newer_ones_replace_it() -> None:
+    """A reader slower than its images had every one queued in the kernel behind the last
+    (they reached it minutes old): the slot's image goes only once what waits in front of the
+    link is at most about an image, and newer ones replace it meanwhile; control goes first."""
+    queued = [SEND_QUEUE_BYTES + 1]
+    ws = Loopback()
+    client = Client("c1", "viewer", "test", ws=ws, queued=lambda: queued[0])
+
+    async def main() -> None:
+        sender = asyncio.create_task(client.run_sender())
+        client.offer_image(image(1))
+        await asyncio.sleep(5 * QUEUE_POLL_S)
+        assert ws.sent == []  # the link is busy: the image waits
+        client.send(p.Pong(ref=7))
+        client.offer_image(image(2))
+        await asyncio.sleep(5 * QUEUE_POLL_S)
+        assert ws.messages() == [p.Pong(ref=7)]  # control still goes
+        queued[0] = SEND_QUEUE_BYTES
+        await asyncio.sleep(5 * QUEUE_POLL_S)
+        assert ws.messages() == [p.Pong(ref=7), image(2)]  # the newest, the older one dropped
+        assert client.frames_dropped == 1
+        client.close()
+        await sender
+
+    asyncio.run(main())
+
+
+def test_an_image_larger_than_the_queue_limit_goes_once_at_most_its_size_waits() -> None:
+    big = p.Image(frame_id=1, format="jpeg", data=b"x" * (2 * SEND_QUEUE_BYTES), width=1, height=1)
+    size = len(p.encode(big))
+    for waiting, goes in ((size, True), (size + 1, False)):
+        client = Client("c1", "viewer", "test", ws=Loopback(), queued=lambda w=waiting: w)
+        client.offer_image(big)
+        assert client._link_busy() is not goes
