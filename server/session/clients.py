@@ -33,8 +33,10 @@ SEND_QUEUE_BYTES = 16384
 them (or the image's own size, if larger): the rest wait in the slot, where a newer one replaces
 them. The kernel's send buffer holds up to 4 MB: images written behind that much reached a slow
 reader minutes old."""
-QUEUE_POLL_S = 0.01
-"""How often a sender looks whether its link has taken what waits in front of it."""
+QUEUE_POLL_S = (0.001, 0.02)
+"""How soon a sender looks again whether its link has taken what waits in front of it: first
+after a millisecond (a link busy for a moment), then twice as long each time, up to 20 ms (a
+slow reader costs at most 50 looks a second)."""
 
 
 class Transport(Protocol):
@@ -208,6 +210,7 @@ class Client:
 
     async def run_sender(self, on_image_sent: Callable[[], None] | None = None) -> None:
         """Drain the queues until the client closes; control first, then the latest image."""
+        poll = QUEUE_POLL_S[0]
         try:
             while not self._is(ClientState.CLOSED):
                 await self._wake.wait()
@@ -230,9 +233,11 @@ class Client:
                     continue
                 if self._image is not None and self.state is ClientState.CONNECTED:
                     if self._link_busy():
-                        await asyncio.sleep(QUEUE_POLL_S)
+                        await asyncio.sleep(poll)
+                        poll = min(2 * poll, QUEUE_POLL_S[1])
                         self._wake.set()  # control first; a newer image may take the slot
                         continue
+                    poll = QUEUE_POLL_S[0]
                     (frame_id, data), self._image = self._image, None
                     if self.paced_images:  # only a client that acknowledges images is paced
                         self.link.on_sent(frame_id, len(data), time.monotonic())

@@ -80,14 +80,14 @@ def test_an_image_waits_while_its_link_holds_more_than_an_image_and_newer_ones_r
     async def main() -> None:
         sender = asyncio.create_task(client.run_sender())
         client.offer_image(image(1))
-        await asyncio.sleep(5 * QUEUE_POLL_S)
+        await asyncio.sleep(5 * QUEUE_POLL_S[1])
         assert ws.sent == []  # the link is busy: the image waits
         client.send(p.Pong(ref=7))
         client.offer_image(image(2))
-        await asyncio.sleep(5 * QUEUE_POLL_S)
+        await asyncio.sleep(5 * QUEUE_POLL_S[1])
         assert ws.messages() == [p.Pong(ref=7)]  # control still goes
         queued[0] = SEND_QUEUE_BYTES
-        await asyncio.sleep(5 * QUEUE_POLL_S)
+        await asyncio.sleep(5 * QUEUE_POLL_S[1])
         assert ws.messages() == [p.Pong(ref=7), image(2)]  # the newest, the older one dropped
         assert client.frames_dropped == 1
         client.close()
