@@ -33,10 +33,13 @@ SEND_QUEUE_BYTES = 16384
 them (or the image's own size, if larger): the rest wait in the slot, where a newer one replaces
 them. The kernel's send buffer holds up to 4 MB: images written behind that much reached a slow
 reader minutes old."""
-QUEUE_POLL_S = (0.001, 0.02)
+QUEUE_POLL_S = (0.001, 0.25)
 """How soon a sender looks again whether its link has taken what waits in front of it: first
-after a millisecond (a link busy for a moment), then twice as long each time, up to 20 ms (a
-slow reader costs at most 50 looks a second)."""
+after a millisecond (a link busy for a moment), then twice as long each time, up to 0.25 s (up
+to 20 ms, 250 stalled viewers took a quarter of a core)."""
+SLOT_WAIT_S = 2.0
+"""The longest an image waits in the slot for its link: one too slow for the control messages
+alone (under about 1 KB/s) never had less waiting in front of it, and got no image at all."""
 
 
 class Transport(Protocol):
@@ -211,6 +214,7 @@ class Client:
     async def run_sender(self, on_image_sent: Callable[[], None] | None = None) -> None:
         """Drain the queues until the client closes; control first, then the latest image."""
         poll = QUEUE_POLL_S[0]
+        busy_since: float | None = None  # when the image in the slot began to wait for the link
         try:
             while not self._is(ClientState.CLOSED):
                 await self._wake.wait()
@@ -232,12 +236,15 @@ class Client:
                     self._wake.set()
                     continue
                 if self._image is not None and self.state is ClientState.CONNECTED:
-                    if self._link_busy():
-                        await asyncio.sleep(poll)
+                    now = time.monotonic()
+                    waited = now - (busy_since or now)
+                    if waited < SLOT_WAIT_S and self._link_busy():
+                        busy_since = busy_since or now
+                        await asyncio.sleep(min(poll, SLOT_WAIT_S - waited))
                         poll = min(2 * poll, QUEUE_POLL_S[1])
                         self._wake.set()  # control first; a newer image may take the slot
                         continue
-                    poll = QUEUE_POLL_S[0]
+                    poll, busy_since = QUEUE_POLL_S[0], None
                     (frame_id, data), self._image = self._image, None
                     if self.paced_images:  # only a client that acknowledges images is paced
                         self.link.on_sent(frame_id, len(data), time.monotonic())

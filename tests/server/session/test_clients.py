@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 import protocol as p
+from server.session import clients
 from server.session.clients import (
     MAX_QUEUED_CONTROL,
-    QUEUE_POLL_S,
     SEND_QUEUE_BYTES,
     Client,
     ClientState,
@@ -69,7 +71,17 @@ def test_replaced_client_flushes_then_closes() -> None:
     assert client._image is None
 
 
-def test_an_image_waits_while_its_link_holds_more_than_an_image_and_newer_ones_replace_it() -> None:
+@pytest.fixture
+def quick_polls(monkeypatch: pytest.MonkeyPatch) -> float:
+    """Looks 1-10 ms apart and a slot wait of at most 0.4 s; the time a check waits."""
+    monkeypatch.setattr(clients, "QUEUE_POLL_S", (0.001, 0.01))
+    monkeypatch.setattr(clients, "SLOT_WAIT_S", 0.4)
+    return 0.05
+
+
+def test_an_image_waits_while_its_link_holds_more_than_an_image_and_newer_ones_replace_it(
+    quick_polls: float,
+) -> None:
     """A reader slower than its images had every one queued in the kernel behind the last
     (they reached it minutes old): the slot's image goes only once what waits in front of the
     link is at most about an image, and newer ones replace it meanwhile; control goes first."""
@@ -80,16 +92,46 @@ def test_an_image_waits_while_its_link_holds_more_than_an_image_and_newer_ones_r
     async def main() -> None:
         sender = asyncio.create_task(client.run_sender())
         client.offer_image(image(1))
-        await asyncio.sleep(5 * QUEUE_POLL_S[1])
+        await asyncio.sleep(quick_polls)
         assert ws.sent == []  # the link is busy: the image waits
         client.send(p.Pong(ref=7))
         client.offer_image(image(2))
-        await asyncio.sleep(5 * QUEUE_POLL_S[1])
+        await asyncio.sleep(quick_polls)
         assert ws.messages() == [p.Pong(ref=7)]  # control still goes
         queued[0] = SEND_QUEUE_BYTES
-        await asyncio.sleep(5 * QUEUE_POLL_S[1])
+        await asyncio.sleep(quick_polls)
         assert ws.messages() == [p.Pong(ref=7), image(2)]  # the newest, the older one dropped
         assert client.frames_dropped == 1
+        client.close()
+        await sender
+
+    asyncio.run(main())
+
+
+def test_an_image_waits_for_its_link_no_longer_than_the_slot_allows(quick_polls: float) -> None:
+    """A link too slow for the control messages alone never had less than an image waiting in
+    front of it, and its viewer got no image at all: after `SLOT_WAIT_S` the image goes."""
+    ws = Loopback()
+    client = Client("c1", "viewer", "test", ws=ws, queued=lambda: 1 << 20)
+    wait_s = 0.4  # quick_polls' SLOT_WAIT_S
+
+    async def first_sent() -> None:
+        while not ws.sent:
+            await asyncio.sleep(0.005)
+
+    async def main() -> None:
+        sender = asyncio.create_task(client.run_sender())
+        loop = asyncio.get_running_loop()
+        started = loop.time()
+        client.offer_image(image(1))
+        await asyncio.sleep(wait_s / 2)
+        client.offer_image(image(2))  # replaces it; the wait goes on from the first
+        await asyncio.wait_for(first_sent(), 10 * wait_s)
+        assert loop.time() - started >= wait_s
+        assert ws.messages() == [image(2)]
+        client.offer_image(image(3))  # the next one waits afresh
+        await asyncio.sleep(wait_s / 2)
+        assert ws.messages() == [image(2)]
         client.close()
         await sender
 
