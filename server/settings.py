@@ -220,6 +220,11 @@ class ServerSettings:
     """How long a budget-reduced image must stay unchanged before it is refined."""
     final_after_s: float = 1.5
     """How long a refined image must stay unchanged before the full-size image follows."""
+    final_budget_ms: float = 5000.0
+    """Render time the full-size image may take: a larger one is shrunk to what renders in it
+    (the Screenshot button and REST renders still give the full size). Whatever it cost, a
+    final image of the geodesic density at crease rounding 2 held the render for 53 s on two
+    CPU cores, and every change waited behind it; 0 turns the budget off."""
     frame_wait_s: float = 0.25
     """Longest a simulation's next big frame (over 1 MiB) waits to be read until a render took
     the last one."""

@@ -12,9 +12,10 @@ A frame-time budget keeps slow devices interactive: the scheduler learns what a 
 this session's device and shrinks every image to what renders in `frame_budget_ms` (the browser
 scales it up). When what a reduced image shows stays unchanged for `refine_after_s`, a refined
 image follows, within the larger `refine_budget_ms`; when that one stays unchanged for
-`final_after_s`, the full-size image follows whatever it costs (progressive refinement: a
-paused simulation on a laptop ends at full quality). On a GPU the budget is far above a
-full-size frame and nothing shrinks.
+`final_after_s`, the full-size image follows, shrunk only if it would take longer than
+`final_budget_ms` (progressive refinement: a paused simulation on a laptop ends at full
+quality, and a density that costs a minute a frame does not hold every change that long). On
+a GPU the budget is far above a full-size frame and nothing shrinks.
 
 Video viewers see frames of a stream tuned for motion; when their view rests (what it shows
 unchanged for `rest_after_s`) a *rest* render follows, sent to them as a near-lossless JPEG
@@ -316,7 +317,9 @@ class RenderScheduler:
         if on_cpu:
             pixels = min(pixels, self.settings.cpu_max_live_pixels)
         budget = self.settings.refine_budget_ms if key.refine else self.settings.frame_budget_ms
-        affordable = None if key.refine >= FINAL else self.cost.pixels_within(budget)
+        if key.refine >= FINAL:
+            budget = self.settings.final_budget_ms
+        affordable = self.cost.pixels_within(budget)
         if affordable is not None:
             pixels = min(pixels, max(affordable, MIN_BUDGET_PIXELS))
         return self._limited(rw, rh, pixels)

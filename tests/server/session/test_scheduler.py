@@ -8,7 +8,7 @@ from dataclasses import replace
 import pytest
 
 import protocol as p
-from server.session.scheduler import MAGNIFIED_JPEG_QUALITY, RenderScheduler
+from server.session.scheduler import FINAL, MAGNIFIED_JPEG_QUALITY, RenderScheduler
 from server.settings import ServerSettings
 from tests.server.session.fakes import client
 
@@ -122,6 +122,23 @@ def test_the_histogram_comes_with_stills_at_most_once_a_second() -> None:
     assert not s.histogram_due(moving, 8.5)
 
 
+def test_a_final_image_is_shrunk_to_what_renders_within_its_budget() -> None:
+    """A final image of the geodesic density at crease rounding 2 took 53 s on two CPU cores,
+    and every change waited behind it; it now renders what fits in `final_budget_ms`."""
+    settings = replace(SETTINGS, default_size=(800, 600), final_budget_ms=5000.0)
+    s = RenderScheduler(settings)
+    a = viewer("a", p.Camera(distance=30.0), (800, 600))
+    ((key, _),) = s.plan([a], 10.0, 1, None).groups
+    final = replace(key, refine=FINAL)
+    s.note_render(key, 1, (400, 300), 30_000.0, now=10.0)  # 0.25 ms a pixel
+    w, h = s.image_size(final, 1.0)
+    assert 19_000 < w * h <= 20_000 and abs(w / h - 800 / 600) < 0.02
+    assert s.note_render(final, 1, (w, h), 5000.0, now=20.0) is False  # no level after it
+    off = RenderScheduler(replace(settings, final_budget_ms=0.0))
+    off.note_render(key, 1, (400, 300), 30_000.0, now=10.0)
+    assert off.image_size(final, 1.0) == (800, 600)  # the budget off: whatever it costs
+
+
 def test_the_frame_budget_shrinks_images_on_a_slow_device_and_refines_them_when_still() -> None:
     settings = replace(
         SETTINGS,
@@ -154,7 +171,7 @@ def test_the_frame_budget_shrinks_images_on_a_slow_device_and_refines_them_when_
     plan = s.plan([a], 11.5, 2, None)  # the final level waits for final_after_s
     assert plan.groups == [] and plan.come_back_in is not None
     ((final, _),) = s.plan([a], 12.4, 2, None).groups
-    assert final.refine == 2 and s.image_size(final, 1.0) == (800, 600)  # whatever it costs
+    assert final.refine == 2 and s.image_size(final, 1.0) == (800, 600)  # within 5 s
     assert s.note_render(final, 2, (800, 600), 960.0, now=13.4) is False
     s.rendered(final, 2)
     assert s.plan([a], 20.0, 2, None).groups == []  # at full size, then quiet
