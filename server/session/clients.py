@@ -214,7 +214,7 @@ class Client:
     async def run_sender(self, on_image_sent: Callable[[], None] | None = None) -> None:
         """Drain the queues until the client closes; control first, then the latest image."""
         poll = QUEUE_POLL_S[0]
-        busy_since: float | None = None  # when the image in the slot began to wait for the link
+        give_up_at: float | None = None  # when the image in the slot stops waiting for the link
         try:
             while not self._is(ClientState.CLOSED):
                 await self._wake.wait()
@@ -237,14 +237,14 @@ class Client:
                     continue
                 if self._image is not None and self.state is ClientState.CONNECTED:
                     now = time.monotonic()
-                    waited = now - (busy_since or now)
-                    if waited < SLOT_WAIT_S and self._link_busy():
-                        busy_since = busy_since or now
-                        await asyncio.sleep(min(poll, SLOT_WAIT_S - waited))
+                    if (give_up_at is None or now < give_up_at) and self._link_busy():
+                        if give_up_at is None:
+                            give_up_at = now + SLOT_WAIT_S
+                        await asyncio.sleep(min(poll, give_up_at - now))
                         poll = min(2 * poll, QUEUE_POLL_S[1])
                         self._wake.set()  # control first; a newer image may take the slot
                         continue
-                    poll, busy_since = QUEUE_POLL_S[0], None
+                    poll, give_up_at = QUEUE_POLL_S[0], None
                     (frame_id, data), self._image = self._image, None
                     if self.paced_images:  # only a client that acknowledges images is paced
                         self.link.on_sent(frame_id, len(data), time.monotonic())

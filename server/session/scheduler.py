@@ -316,10 +316,9 @@ class RenderScheduler:
         pixels = lim.max_image_pixels
         if on_cpu:
             pixels = min(pixels, self.settings.cpu_max_live_pixels)
-        budget = self.settings.refine_budget_ms if key.refine else self.settings.frame_budget_ms
-        if key.refine >= FINAL:
-            budget = self.settings.final_budget_ms
-        affordable = self.cost.pixels_within(budget)
+        settings = self.settings
+        budget = (settings.frame_budget_ms, settings.refine_budget_ms, settings.final_budget_ms)
+        affordable = self.cost.pixels_within(budget[min(key.refine, FINAL)])
         if affordable is not None:
             pixels = min(pixels, max(affordable, MIN_BUDGET_PIXELS))
         return self._limited(rw, rh, pixels)

@@ -60,8 +60,14 @@ class Counted:
         return getattr(self._transport, name)
 
 
+def scope_extension(scope: MutableMapping[str, Any], name: str, key: str) -> Any:
+    """`key` of the scope extension `name` that the server under the app provides (None on
+    other servers)."""
+    extension = scope.get("extensions", {}).get(name)
+    return extension.get(key) if extension else None
+
+
 def send_queue(scope: MutableMapping[str, Any]) -> Callable[[], int] | None:
     """The connection's `Counted.queued`, where the server under the app provides it."""
-    extension = scope.get("extensions", {}).get(SEND_QUEUE)
-    queued: Callable[[], int] | None = extension.get("queued") if extension else None
+    queued: Callable[[], int] | None = scope_extension(scope, SEND_QUEUE, "queued")
     return queued

@@ -26,7 +26,7 @@ from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIO
 from websockets.protocol import State
 
 from server.web.fairfeed import FairFeed, Usage
-from server.web.sendqueue import SEND_QUEUE, Counted
+from server.web.sendqueue import SEND_QUEUE, Counted, scope_extension
 
 MAX_HEAD_BYTES = 64 * 1024
 """The most a request's line and headers may take: a long query string or many cookies fit."""
@@ -266,8 +266,7 @@ def guarded_protocol(pre_hello_bytes: int, stall_s: float = 30.0) -> type[WebSoc
 def raise_limit(scope: MutableMapping[str, Any], size: int) -> None:
     """Let this connection send messages of up to `size` bytes, its reads parsed whole, not in
     `FEED_BYTES` pieces (a no-op on other servers): for a peer holding the server token."""
-    extension = scope.get("extensions", {}).get(MESSAGE_LIMIT)
-    setter: Callable[[int], None] | None = extension.get("set") if extension else None
+    setter: Callable[[int], None] | None = scope_extension(scope, MESSAGE_LIMIT, "set")
     if setter is not None:
         setter(size)
 
