@@ -8,6 +8,11 @@ control is the whole walk, every route of every atom within reach. Also counted:
 the classical density alone would gate (the gate's control), and per ray how many gated
 samples a ray that crosses takes and how many lattice steps lie between its first one and its
 crossing (the gate's lead: how far outside the surface the bound lets costly samples begin).
+And what a gated sample's routes share (`sharing`): the classical density's Gaussians there
+(its atoms within reach, the control), the (atom, bond) entries of their route tables that the
+route loop evaluates one by one, the distinct bonds and the distinct bond ends (nodes) among
+them, and the (atom, node) pairs: a bond's geometry at a sample is the same for every atom
+whose table holds it, so these bound what an evaluation that computed each bond once would do.
 
     python benchmarks/side_walk_work.py --out benchmarks/results/side_walk_work.json
 
@@ -27,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -65,6 +71,7 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
     per_hit: list[int] = []  # gated samples of each ray that crosses, up to its crossing
     per_miss: list[int] = []  # gated samples of each ray that never crosses
     lead: list[int] = []  # lattice steps from a ray's first gated sample to its crossing
+    shared: dict[str, list[int]] = {key: [] for key in SHARED}
     for x in xs:
         pts = np.stack(np.broadcast_arrays(x, ys[:, None], zs[None, :]), -1).reshape(-1, 3)
         cls = classical_density(pts, pos, ones, sigma, k).reshape(len(ys), len(zs))
@@ -91,6 +98,8 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
                 gt = taper(m * m / (2.0 * sigma * sigma), k)
                 c0 = ct.sum()
                 samples += 1
+                for key, value in _shared(geo, near).items():
+                    shared[key].append(value)
                 whole += int(routes[near].sum())
                 band = np.searchsorted(np.asarray(SIDE_BANDS), e, side="right")
                 keys = {
@@ -120,6 +129,37 @@ def study(sigma: float, rays: int, smoothing: float = 0.6) -> dict[str, Any]:
         "steps_from_gate_to_crossing": _spread(lead),
         "rays_gated_not_crossing": len(per_miss),
         "gated_samples_per_ray_not_crossing": _spread(per_miss),
+        "sharing": {key: _spread(values) for key, values in shared.items()},
+    }
+
+
+SHARED = ("atoms", "table_entries", "bonds", "nodes", "atom_nodes")
+
+
+def _shared(geo: Geodesic, near: npt.NDArray[np.int64]) -> dict[str, int]:
+    """At one sample: the atoms within reach, their route tables' (atom, bond) entries, the
+    distinct bonds and bond ends (nodes within the tables' reach) among them, and the
+    (atom, node) pairs."""
+    t = geo.routes
+    ends = geo.graph.ends
+    bonds: list[npt.NDArray[np.int32]] = []
+    nodes: list[npt.NDArray[np.int32]] = []
+    pairs = 0
+    for a in near:
+        b, gi, gj = t.of_atom(int(a))
+        bonds.append(b)
+        reached = np.unique(
+            np.concatenate([ends[b[np.isfinite(gi)], 0], ends[b[np.isfinite(gj)], 1]])
+        )
+        nodes.append(reached)
+        pairs += len(reached)
+    every = np.concatenate(bonds) if bonds else np.zeros(0, np.int32)
+    return {
+        "atoms": len(near),
+        "table_entries": len(every),
+        "bonds": len(np.unique(every)),
+        "nodes": len(np.unique(np.concatenate(nodes))) if nodes else 0,
+        "atom_nodes": pairs,
     }
 
 

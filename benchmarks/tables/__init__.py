@@ -36,6 +36,7 @@ from .render import (
     render_densities,
     render_passes,
     render_variants,
+    route_sharing,
     side_walk,
     sort_last,
     temporal,
@@ -84,6 +85,7 @@ TABLES: dict[str, Table] = {
         render_variants,
     ),
     "side-walk": Table(("side_walk_work.json",), side_walk),
+    "route-sharing": Table(("side_walk_work.json",), route_sharing),
     "part-trial": Table(
         (
             "render_h200_part_trial.json",

@@ -188,6 +188,37 @@ def side_walk(sources: list[Source]) -> str:
     return block(sources, table(header, "rrrrrrr", rows))
 
 
+def route_sharing(sources: list[Source]) -> str:
+    """Per gated sample: the classical density's Gaussians (the control) against the route
+    loop's table entries and what they share (distinct bonds, their ends, atom-node pairs)."""
+    ((_, res),) = sources
+    rows = []
+    for r in res["rows"]:
+        share = r["sharing"]
+        atoms = share["atoms"]["mean"]
+        rows.append(
+            [
+                f"{r['sigma_A']:g}",
+                f"{atoms:.0f}",
+                *(
+                    f"{share[k]['mean']:,.0f} ({share[k]['mean'] / atoms:.1f})"
+                    for k in ("table_entries", "bonds", "nodes", "atom_nodes")
+                ),
+                f"{share['table_entries']['mean'] / share['bonds']['mean']:.1f}",
+            ]
+        )
+    header = [
+        "sigma A",
+        "Gaussians (atoms within reach)",
+        "(atom, bond) entries walked",
+        "distinct bonds",
+        "distinct bond ends",
+        "(atom, bond end) pairs",
+        "entries per distinct bond",
+    ]
+    return block(sources, table(header, "rrrrrrr", rows))
+
+
 def _median_mean(spread: dict[str, float]) -> str:
     return f"{spread['median']:g} (mean {spread['mean']:.1f}, p90 {spread['p90']:g})"
 
