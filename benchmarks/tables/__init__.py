@@ -1,10 +1,11 @@
 """The numbers tables of benchmarks/README.md, made from the committed results files.
 
 Every table is a pure function from loaded results (the JSON a benchmark wrote) to markdown
-(`render.py`, `server.py`) and names the files it read and the GPU each one records
-(`markdown.py`), so no figure in the README is typed by hand. `TABLES` says which results files
-each table reads: the newest full run of its benchmark on each GPU it shows. The
-README holds each table between `<!-- bench-tables: NAME -->` and `<!-- /bench-tables -->`.
+(`render.py`, `geodesic.py`, `parts.py`, `server.py`) and names the files it read and the GPU
+each one records (`markdown.py`), so no figure in the README is typed by hand. `TABLES` says
+which results files each table reads: the newest full run of its benchmark on each GPU it
+shows. The README holds each table between `<!-- bench-tables: NAME -->` and
+`<!-- /bench-tables -->`.
 
     python -m benchmarks.tables            # rewrite the README's tables (make bench-tables)
     python -m benchmarks.tables --check    # exit 1, naming the tables, if the README differs
@@ -22,12 +23,16 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from .markdown import Results, Source, TableError
-from .parts import part_trial
-from .render import (
+from .geodesic import (
     geodesic_gate,
     geodesic_route_major,
     geodesic_route_once,
+    route_sharing,
+    side_walk,
+)
+from .markdown import Results, Source, TableError
+from .parts import part_trial
+from .render import (
     layers,
     multi_device,
     periodic,
@@ -36,8 +41,6 @@ from .render import (
     render_densities,
     render_passes,
     render_variants,
-    route_sharing,
-    side_walk,
     sort_last,
     temporal,
 )

@@ -1,0 +1,99 @@
+"""Tables of the geodesic density's own measures: side_walk_work.py (the routes a march walks,
+what a sample's routes share) and the geodesic frame against the code before a change."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from .markdown import Source, block, count, num, size, table
+from .render import params
+
+
+def side_walk(sources: list[Source]) -> str:
+    """The share of a whole walk's routes (the control) each order of the side walk takes."""
+    ((_, res),) = sources
+    rows = []
+    for r in res["rows"]:
+        share = r["fraction_walked"]
+        rows.append(
+            [
+                f"{r['sigma_A']:g}",
+                f"{count(r['gated_samples'])} ({count(r['classically_gated_samples'])})",
+                *(f"{100 * share[k]:.0f} %" for k in ("cells", "bands", "nearest")),
+                _median_mean(r["gated_samples_per_crossing_ray"]),
+                _median_mean(r["steps_from_gate_to_crossing"]),
+            ]
+        )
+    header = [
+        "sigma A",
+        "samples gated (classically)",
+        "cell rows",
+        "bands, nearest first",
+        "atom by atom, nearest",
+        "gated samples a crossing ray takes",
+        "steps from its first to the crossing",
+    ]
+    return block(sources, table(header, "rrrrrrr", rows))
+
+
+def route_sharing(sources: list[Source]) -> str:
+    """Per gated sample: the classical density's Gaussians (the control) against the route
+    loop's table entries and what they share (distinct bonds, their ends, atom-node pairs)."""
+    ((_, res),) = sources
+    rows = []
+    for r in res["rows"]:
+        share = r["sharing"]
+        atoms = share["atoms"]["mean"]
+        rows.append(
+            [
+                f"{r['sigma_A']:g}",
+                f"{atoms:.0f}",
+                *(
+                    f"{share[k]['mean']:,.0f} ({share[k]['mean'] / atoms:.1f})"
+                    for k in ("table_entries", "bonds", "nodes", "atom_nodes")
+                ),
+                f"{share['table_entries']['mean'] / share['bonds']['mean']:.1f}",
+            ]
+        )
+    header = [
+        "sigma A",
+        "Gaussians (atoms within reach)",
+        "(atom, bond) entries walked",
+        "distinct bonds",
+        "distinct bond ends",
+        "(atom, bond end) pairs",
+        "entries per distinct bond",
+    ]
+    return block(sources, table(header, "rrrrrrr", rows))
+
+
+def _median_mean(spread: dict[str, float]) -> str:
+    return f"{spread['median']:g} (mean {spread['mean']:.1f}, p90 {spread['p90']:g})"
+
+
+def _against_base(column: str, key: str) -> Callable[[list[Source]], str]:
+    """A table of a geodesic frame against the same code before a change (the control, its
+    own checkout in the same session), each the mean of two runs: `key`_ms and
+    `key`_over_base in each row."""
+
+    def make(sources: list[Source]) -> str:
+        ((_, res),) = sources
+        rows = [
+            [
+                count(r["n_atoms"]),
+                size(r["width"], r["height"]),
+                num(r["base_ms"], 2),
+                num(r[f"{key}_ms"], 2),
+                f"{r[f'{key}_over_base']:.2f}",
+            ]
+            for r in res["rows"]
+        ]
+        header = ["atoms", "image", "before ms", column, "ratio"]
+        return block(sources, table(header, "lrrrr", rows), params(res))
+
+    return make
+
+
+geodesic_gate = _against_base("with the gate ms", "gate")
+geodesic_route_major = _against_base("routes with their geometry ms", "new")
+geodesic_route_once = _against_base("each route read once a pass ms", "new")
