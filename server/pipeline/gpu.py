@@ -1,5 +1,6 @@
 """The GPU queue: a thread owns each device, and every render — live sessions and batch jobs —
-runs on its device's thread in submission order.
+runs on its device's thread: a live session's work first, one-off renders and jobs in turn
+(`server.pipeline.turns`), each slot's work in submission order.
 
 With several devices (`--gpus`) a lone session is drawn across all of them (sort-first,
 `MultiRenderer`, driven from the first device's thread, which then takes every other render too);
@@ -38,6 +39,7 @@ import numpy.typing as npt
 
 import protocol as p
 from server.pipeline.staging import FrameStager, Staging
+from server.pipeline.turns import TurnExecutor, rank_of
 from server.render.errors import CapacityError, RenderError
 from server.threads import name_thread
 
@@ -185,7 +187,7 @@ class _Lane:
     """A device and the one thread that drives it."""
 
     device: str
-    pool: ThreadPoolExecutor
+    pool: TurnExecutor
     slots: set[str] = field(default_factory=set)
     busy_since: float | None = None
     """When the work now on its thread began (monotonic; None: idle)."""
@@ -201,7 +203,7 @@ class _Lane:
             name_thread(name)
             threads.append(threading.current_thread())
 
-        return cls(device, ThreadPoolExecutor(max_workers=1, initializer=begin), threads=threads)
+        return cls(device, TurnExecutor(initializer=begin), threads=threads)
 
     def run(self, fn: Callable[..., T], *args: Any) -> T:
         """`fn` on this lane's thread, its start and end noted for `busy_s`."""
@@ -295,9 +297,12 @@ class GpuQueue:
         lane = self._lane_of.get(slot)
         return None if lane is None else self._lanes[lane].device
 
-    async def _run(self, lane: int, fn: Callable[..., T], *args: Any) -> T:
+    async def _run(self, lane: int, fn: Callable[..., T], *args: Any, slot: str | None = None) -> T:
+        """`fn(*args)` on the lane's thread, in the turn of `slot`'s rank (None: live)."""
         on = self._lanes[lane]
-        return await asyncio.get_running_loop().run_in_executor(on.pool, on.run, fn, *args)
+        future = on.pool.submit_ranked(rank_of(slot), on.run, fn, *args)
+        result: T = await asyncio.wrap_future(future)
+        return result
 
     def busy(self) -> list[dict[str, Any]]:
         """Each device and how long the work now on its thread has run (s; 0 when idle): a
@@ -361,7 +366,7 @@ class GpuQueue:
         renderer is dropped on its thread (after any render of it) and made again there."""
         spread = self._spread
         assert spread is not None
-        await self._run(0, self._drop_sync, spread)
+        await self._run(0, self._drop_sync, spread, slot=spread)
         self._spread = None
 
     async def _spread_again(self) -> None:
@@ -377,7 +382,7 @@ class GpuQueue:
         for i in range(len(self._lanes)):
             await self._run(i, lambda: None)
         lane = self._lane_of[last]
-        await self._run(lane, self._drop_sync, last)
+        await self._run(lane, self._drop_sync, last, slot=last)
         with self._lock:
             self._lanes[lane].slots.discard(last)
             del self._lane_of[last]
@@ -387,7 +392,7 @@ class GpuQueue:
     async def render(self, request: RenderRequest) -> RenderOutput:
         await self._room_for(request.slot, self._whole_atoms(request))
         lane = await self._lane(request.slot)
-        return await self._run(lane, self.render_sync, request)
+        return await self._run(lane, self.render_sync, request, slot=request.slot)
 
     @staticmethod
     def _whole_atoms(request: RenderRequest) -> int:
@@ -436,7 +441,7 @@ class GpuQueue:
     async def _move(self, key: str, lane: int, to: int | None) -> None:
         """Drop `key`'s renderer on its lane's thread (after its last render) and place it on
         lane `to` (None: `_lane` places it at its next request), where it is made again."""
-        await self._run(lane, self._drop_sync, key)
+        await self._run(lane, self._drop_sync, key, slot=key)
         with self._lock:
             self._lanes[lane].slots.discard(key)
             self._lane_of.pop(key, None)
@@ -463,7 +468,7 @@ class GpuQueue:
         """The atom, depth and layer name at pixel (x, y) of the image `request` draws."""
         await self._room_for(request.slot, self._whole_atoms(request))
         lane = await self._lane(request.slot)
-        return await self._run(lane, self.pick_sync, request, x, y)
+        return await self._run(lane, self.pick_sync, request, x, y, slot=request.slot)
 
     async def release(self, slot: str) -> None:
         lane = self._lane_of.get(slot)
@@ -473,6 +478,8 @@ class GpuQueue:
             self._placing = asyncio.Lock()
         async with self._placing:
             was_split = slot in self._whole
+            # in the live turn: its caller has awaited the slot's work, and a one-off render's
+            # answer waits for this, not for the renders queued after its own
             await self._run(lane, self.release_sync, slot)
             with self._lock:
                 self._lanes[lane].slots.discard(slot)
@@ -489,7 +496,7 @@ class GpuQueue:
         back."""
         await self._room_for(request.slot, request.topology.n_atoms)
         lane = await self._lane(request.slot)
-        return await self._run(lane, self.display_sync, request)
+        return await self._run(lane, self.display_sync, request, slot=request.slot)
 
     def stage(self, slot: str, positions_id: int, positions: npt.NDArray[np.float32]) -> None:
         """A new frame for `slot` arrived (called on the event loop): copy it into page-locked

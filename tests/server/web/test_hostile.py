@@ -682,6 +682,63 @@ def test_a_huge_view_on_the_cpu_device_gets_a_smaller_image_fast(live_server: Li
     viewer.close()
 
 
+def test_a_burst_of_rest_renders_does_not_hold_a_live_view(live_server: LiveServer) -> None:
+    """Three large volume renders through the viewer link (its burst allows five) had held a
+    live view of the same device until every one of them was drawn: the session's work now
+    goes first, and waits for at most the render under way. A one-off render's answer waits
+    for its own render, not for the renders queued after it."""
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "burst")
+    topo, pos = molecule(16)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "burst")
+    viewer.expect(p.Image, 60)
+    gpu = live_server.app_state.gpu
+    done: list[tuple[str, str]] = []  # (what, slot) the device finished, in order
+    render_sync, release_sync = gpu.render_sync, gpu.release_sync
+
+    def rendered(request: Any) -> Any:
+        out = render_sync(request)
+        done.append(("render", request.slot))
+        return out
+
+    def released(slot: str) -> None:
+        release_sync(slot)
+        done.append(("release", slot))
+
+    gpu.render_sync, gpu.release_sync = rendered, released
+    params = json.dumps({"mode": "volume", "quality": 2, "sigma_A": 4})
+
+    def render() -> None:
+        with httpx.Client(base_url=live_server.url, timeout=300) as c:
+            r = c.post(
+                "/api/render",
+                headers={"Authorization": f"Bearer {live_server.viewer_token}"},
+                data={"session": "burst", "width": "1280", "height": "720", "params": params},
+            )
+        assert r.status_code == 200, r.text
+
+    def one_offs() -> list[str]:
+        return [slot for what, slot in done if what == "render" and slot.startswith("rest:")]
+
+    burst = [threading.Thread(target=render) for _ in range(3)]
+    for t in burst:
+        t.start()
+    assert wait_for(lambda: gpu.busy()[0]["busy_s"] > 0.5)  # the first one is being drawn
+    sim.send(frame(pos + np.float32(0.05), 1))
+    viewer.expect(p.Image, 120, where=lambda m: m.step == 1)
+    drawn_before = len(one_offs())
+    for t in burst:
+        t.join(300)
+    # in submission order all three were drawn first (about 2.5 s each on two CPU cores)
+    assert drawn_before <= 1, done
+    for slot in one_offs():
+        between = done[done.index(("render", slot)) : done.index(("release", slot))]
+        assert sum(s.startswith("rest:") for what, s in between if what == "render") <= 2, done
+    sim.close()
+    viewer.close()
+
+
 # ---------------------------------------------------------------- the edge (round three)
 
 
