@@ -12,7 +12,7 @@ import msgpack
 from pydantic import TypeAdapter, ValidationError
 
 from protocol.errors import ErrorCode, ProtocolError
-from protocol.fields import unknown_keys
+from protocol.fields import error_location, unknown_keys
 from protocol.limits import DEFAULT_LIMITS, Limits
 from protocol.messages import MESSAGE_TYPES, PROTOCOL_VERSION, AnyMessage, Error, Message
 
@@ -139,8 +139,9 @@ def validate(
     except ValidationError as exc:
         err = exc.errors(include_url=False)[0]
         code = _CODE_BY_PYDANTIC_TYPE.get(err["type"], ErrorCode.INVALID_MESSAGE)
-        path = _path(tuple(err["loc"]), kind)
-        raise ProtocolError(code, f"{path}: {err['msg']}", path, ref) from None
+        loc, msg = error_location(err)
+        path = _path(tuple(loc), kind)
+        raise ProtocolError(code, f"{path}: {msg}", path, ref) from None
     except Exception as exc:  # a validator bug must not take the connection down
         raise ProtocolError(
             ErrorCode.INVALID_MESSAGE, f"{kind}: rejected ({type(exc).__name__})", kind, ref

@@ -25,7 +25,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
 import protocol as p
-from protocol.fields import unknown_keys
+from protocol.fields import error_location, unknown_keys
 from server.pipeline.gpu import DisplayRequest, RenderRequest, Snapshot
 from server.pipeline.jobs import FINAL, JobSpec, JobState
 from server.pipeline.livemovie import MovieFrame, MovieQueue
@@ -92,11 +92,9 @@ def _model(cls: type[BaseModel], raw: str | None, field: str) -> Any:
     try:
         return cls.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors(include_url=False)[0]
-        where = ".".join(str(x) for x in err["loc"])
-        raise HTTPException(
-            422, f"{field}.{where}: {err['msg']}" if where else f"{field}: {err['msg']}"
-        ) from None
+        loc, msg = error_location(exc.errors(include_url=False)[0])
+        where = ".".join([field, *loc])
+        raise HTTPException(422, f"{where}: {msg}") from None
 
 
 def _dataset(state: AppState, name: str) -> Path:

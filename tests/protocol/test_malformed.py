@@ -226,17 +226,17 @@ def test_a_request_names_a_key_its_message_has_no_field_for() -> None:
 def test_true_or_false_is_not_taken_for_a_number() -> None:
     """pydantic reads a bool as 1 or 0 where a number goes: `sigma_A: true` drew at 1 A."""
     for obj, where in (
-        ({"type": "render_params", "params": {"sigma_A": True}}, "render_params.params"),
+        ({"type": "render_params", "params": {"sigma_A": True}}, "render_params.params.sigma_A"),
         (
             {"type": "render_params", "params": {"lighting": {"ambient": False}}},
-            "render_params.params.lighting",
+            "render_params.params.lighting.ambient",
         ),
-        ({"type": "control", "action": "step", "n_steps": True}, "control"),
-        ({"type": "sim_params", "temperature_K": True}, "sim_params"),
+        ({"type": "control", "action": "step", "n_steps": True}, "control.n_steps"),
+        ({"type": "sim_params", "temperature_K": True}, "sim_params.temperature_K"),
     ):
         err = reject(obj)
         assert err.code == p.ErrorCode.INVALID_MESSAGE and err.path == where, err
-        assert "true or false is not a number" in err.message
+        assert err.message == f"{where}: true or false is not a number", err
     # booleans where booleans go, numbers where numbers go
     ok = {"type": "render_params", "params": {"sigma_A": 2, "lighting": {"key_light": True}}}
     message = p.decode(msgpack.packb(ok))
