@@ -108,6 +108,8 @@ async def run(args: argparse.Namespace) -> int:
         check_layers(params)
         check_periodic(params)
         camera = _camera(args.camera)
+        if args.stop is not None and args.stop <= args.start:  # as REST refuses it, unread
+            raise ValueError(f"--stop {args.stop} must be after --start {args.start}: no frame")
     except PeriodicError as exc:
         print(f"scalesteer batch: {periodic_refusal(exc.path, exc.reason, args)}", file=sys.stderr)
         return 2
@@ -226,7 +228,7 @@ def _camera(text: str | None) -> Any:
     from pydantic import ValidationError
 
     import protocol as p
-    from protocol.fields import unknown_keys
+    from protocol.fields import error_location, unknown_keys
 
     if not text:
         return None
@@ -240,9 +242,8 @@ def _camera(text: str | None) -> Any:
     try:
         return p.Camera.model_validate(raw)
     except ValidationError as exc:
-        err = exc.errors(include_url=False)[0]
-        where = ".".join(str(x) for x in err["loc"])
-        raise ValueError(f"--camera: {where or 'camera'}: {err['msg']}") from None
+        loc, msg = error_location(exc.errors(include_url=False)[0])
+        raise ValueError(f"--camera: {'.'.join(loc) or 'camera'}: {msg}") from None
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -200,10 +200,20 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.output)
     if out.suffix.lower() not in (".png", ".jpg", ".jpeg"):
         return _fail(f"output must end in .png or .jpg: {args.output}")
+    from server.render.renderer import MAX_PIXELS, MAX_SIDE
+
+    width, height = args.size
+    if max(width, height) > MAX_SIDE or width * height > MAX_PIXELS:
+        # before the file is read (100000x100000 had ended in a traceback from warp)
+        return _fail(
+            f"--size {width}x{height}: at most {MAX_SIDE} px a side and {MAX_PIXELS:,} px "
+            "(3840x2160)"
+        )
 
     from pydantic import ValidationError
 
     from protocol import Lighting, RenderParams
+    from protocol.fields import error_location
     from server.pipeline.periodic import PeriodicError, check_periodic
     from server.pipeline.selections import check_layers, opening_params
     from server.render.camera import fit_camera
@@ -230,9 +240,8 @@ def main(argv: list[str] | None = None) -> int:
             **periodic_fields(args),
         )
     except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(x) for x in first["loc"])
-        return _fail(f"invalid {where}: {first['msg']}")
+        loc, msg = error_location(exc.errors(include_url=False)[0])
+        return _fail(f"invalid {'.'.join(loc)}: {msg}")
     except ValueError as exc:
         return _fail(str(exc))
     try:
@@ -262,7 +271,6 @@ def main(argv: list[str] | None = None) -> int:
     from server.render.renderer import Renderer
     from structures.selection_pool import InProcess
 
-    width, height = args.size
     try:
         with warnings.catch_warnings():
             # re-reading a frame repeats the reader's format notes (e.g. placeholder CRYST1)

@@ -82,6 +82,8 @@ from server.render.tuning import (
 wp: Any = warp  # warp's host API is unannotated: calls through it are dynamic
 
 MAX_SIDE = 16384
+MAX_PIXELS = 3840 * 2160
+"""A renderer's default image limit (`max_pixels`)."""
 HISTOGRAM_SIDE = 64
 HISTOGRAM_X_MAX = 3.0
 AO_STEP_SIGMAS = 0.6
@@ -154,7 +156,7 @@ class Renderer(ImageOutputs):
         self,
         device: str = "auto",
         max_atoms: int = 4_000_000,
-        max_pixels: int = 3840 * 2160,
+        max_pixels: int = MAX_PIXELS,
         *,
         density: DensityModel = GAUSSIAN,
         tuning: Tuning | None = None,

@@ -33,6 +33,7 @@ import numpy.typing as npt
 from pydantic import ValidationError
 
 import protocol as p
+from protocol.fields import error_location
 from server import heap
 from server.pipeline.gpu import RenderRequest, Snapshot
 from server.pipeline.periodic import (
@@ -75,11 +76,11 @@ FrameSink = Callable[[int, float, "npt.NDArray[np.float32]", "npt.NDArray[Any] |
 
 
 def _invalid(exc: ValidationError, path: str, seq: int | None) -> p.ProtocolError:
-    err = exc.errors(include_url=False)[0]
-    where = ".".join(str(x) for x in err["loc"])
+    loc, msg = error_location(exc.errors(include_url=False)[0])
+    where = ".".join(loc)
     return p.ProtocolError(
         p.ErrorCode.INVALID_MESSAGE,
-        f"{where}: {err['msg']}" if where else err["msg"],
+        f"{where}: {msg}" if where else msg,
         f"{path}.{where}" if where else path,
         seq,
     )
@@ -885,18 +886,10 @@ class Session:
     # ------------------------------------------------------------------ views and rendering
 
     def set_view(self, client: Client, view: p.View) -> None:
-        lim = self.settings.limits
-        if (
-            max(view.width, view.height) > lim.max_image_side
-            or view.width * view.height > lim.max_image_pixels
-        ):
-            raise p.ProtocolError(
-                p.ErrorCode.TOO_LARGE,
-                f"view {view.width}x{view.height} exceeds the image limit "
-                f"({lim.max_image_side} px a side, {lim.max_image_pixels} px)",
-                "view.width",
-                view.seq,
-            )
+        """A client's view: its canvas, camera, codecs and tracked atoms. A canvas past the
+        image limits is kept as it is (its picks are in its pixels); its images are shrunk to
+        fit (`RenderScheduler.image_size`), as docs/server.md says: it had been refused, and
+        the Python client, which does not wait for an answer to a view, got no image."""
         if view.track and self.topology is not None:
             # before the simulation's topology the atoms cannot be checked: they are kept, and
             # those the topology lacks are left out of what is sent (`_send_tracked`)
