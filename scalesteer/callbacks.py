@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
 log = logging.getLogger("scalesteer.client")
+FAILURE_LOG_S = 10.0
+"""Least time between two log lines about a callback that keeps failing."""
 
 
 class Subscription:
@@ -21,6 +24,8 @@ class Subscription:
     callback and values replaced before it could take them."""
 
     def __init__(self, callback: Callable[[Any], None], on_close: Callable[[Subscription], None]):
+        if not callable(callback):
+            raise TypeError(f"a subscription's callback must be callable, not {callback!r}")
         self.callback = callback
         self._on_close = on_close
         self._lock = threading.Lock()
@@ -29,6 +34,12 @@ class Subscription:
         self._closed = False
         self.delivered = 0
         self.dropped = 0
+        self.failures = 0
+        """Calls of the callback that raised: the first is logged with its traceback, later
+        ones at most every `FAILURE_LOG_S` as a count (ten images a second had printed ten
+        tracebacks a second)."""
+        self._failures_logged = 0
+        self._failure_logged_at = float("-inf")
         self._thread = threading.Thread(target=self._run, name="scalesteer-callback", daemon=True)
         self._thread.start()
 
@@ -51,10 +62,27 @@ class Subscription:
                 value = self._waiting.pop()
             try:
                 self.callback(value)
-            except Exception:
-                log.exception("scalesteer: a subscribed callback failed")
+            except Exception as exc:
+                self._failed(exc)
             with self._lock:
                 self.delivered += 1
+
+    def _failed(self, exc: Exception) -> None:
+        self.failures += 1
+        now = time.monotonic()
+        if self.failures == 1:
+            log.exception("scalesteer: a subscribed callback failed")
+        elif now - self._failure_logged_at >= FAILURE_LOG_S:
+            log.error(
+                "scalesteer: a subscribed callback failed %d more times, the last with %s: %s",
+                self.failures - self._failures_logged,
+                type(exc).__name__,
+                exc,
+            )
+        else:
+            return
+        self._failures_logged = self.failures
+        self._failure_logged_at = now
 
     @property
     def closed(self) -> bool:

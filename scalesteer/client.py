@@ -35,12 +35,23 @@ sessions) before the server stops, so no replay is left reconnecting to it."""
 
 
 def default_server(device: str = "auto") -> LocalServer:
-    """The server of this process's own, started on first use and ended with the process."""
+    """The server of this process's own, started on first use and ended with the process; a
+    new one when it no longer answers. `device` other than `auto` must be the running one's:
+    a client does not get another device's server without a word."""
     global _default_server
     with _default_lock:
-        if _default_server is None or not _default_server.alive():
-            _default_server = LocalServer(device)
-        return _default_server
+        running = _default_server
+        if running is not None and not running.answers():
+            running.stop()  # whatever is left of it ends before another one starts
+            running = None
+        if running is None:
+            _default_server = running = LocalServer(device)
+        elif device not in ("auto", running.device):
+            raise ValueError(
+                f"this process's own server renders on {running.device!r}, not {device!r}: "
+                "scalesteer.shutdown() it first to start one on another device"
+            )
+        return running
 
 
 @dataclass(frozen=True)

@@ -232,6 +232,10 @@ class ViewLink:
 
     # ------------------------------------------------------------------ sending (on the loop)
 
+    def check_open(self) -> None:
+        """Raise `not_ready`, saying why, once the link has ended (any thread)."""
+        self._check_open()
+
     def _check_open(self) -> ClientConnection:
         if self.closed is not None or self._ws is None:
             raise ScalesteerError(

@@ -192,6 +192,17 @@ class LocalServer:
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None
 
+    def answers(self, timeout: float = 5.0) -> bool:
+        """Alive and answering its health check (its process can outlive a killed server for
+        as long as the supervisor ends what the server left)."""
+        if not self.alive():
+            return False
+        try:
+            with urllib.request.urlopen(f"{self.url}/healthz", timeout=timeout) as answer:
+                return bool(answer.status == 200)
+        except (urllib.error.URLError, OSError):
+            return False
+
     def stop(self, timeout: float | None = None) -> None:
         """End the server (and what it started) and wait for it (by default its grace and
         10 s more); idempotent."""

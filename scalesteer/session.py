@@ -10,6 +10,7 @@ query, and splitting the class would split the API docs/python.md describes."""
 
 from __future__ import annotations
 
+import numbers
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Literal, Protocol
@@ -36,7 +37,7 @@ from protocol import (
     SimStatus,
     View,
 )
-from protocol.fields import unknown_keys
+from protocol.fields import error_location, unknown_keys
 from scalesteer import background, images
 from scalesteer.callbacks import Subscription
 from scalesteer.errors import ScalesteerError
@@ -72,10 +73,9 @@ viewer, and a 1x1 render of the frame the other views draw costs next to nothing
 
 def invalid(exc: ValidationError, prefix: str) -> ScalesteerError:
     """A pydantic refusal as the error the server would have sent (code, dotted path)."""
-    err = exc.errors(include_url=False)[0]
-    loc = [str(p) for p in err["loc"] if not str(p).startswith("function-")]
+    loc, msg = error_location(exc.errors(include_url=False)[0])
     path = ".".join([prefix, *loc]) if loc else prefix
-    return ScalesteerError(ErrorCode.INVALID_MESSAGE, f"{path}: {err['msg']}", path)
+    return ScalesteerError(ErrorCode.INVALID_MESSAGE, f"{path}: {msg}", path)
 
 
 def checked_params(
@@ -105,8 +105,30 @@ def checked_params(
     return out
 
 
+def checked_size(width: Any, height: Any, prefix: str) -> tuple[int, int]:
+    """An image's size checked as the protocol checks it, before anything is sent or kept:
+    whole numbers of pixels, at least 1 (`next_image(0, 0)` had left its view on the session,
+    and every later subscription failed with it). Sizes past the server's limits are its to
+    shrink."""
+    for name, value in (("width", width), ("height", height)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+            path = f"{prefix}.{name}"
+            raise ScalesteerError(
+                ErrorCode.INVALID_MESSAGE,
+                f"{path}: a whole number of pixels, at least 1, not {value!r}",
+                path,
+            )
+    return int(width), int(height)
+
+
 def checked_camera(camera: Camera | Mapping[str, Any], prefix: str = "camera") -> dict[str, Any]:
     """A camera for a REST form, checked as the server checks it (unknown keys by name)."""
+    if not isinstance(camera, Camera | Mapping):
+        raise ScalesteerError(
+            ErrorCode.INVALID_MESSAGE,
+            f"{prefix}: a Camera or a mapping of its fields, not {type(camera).__name__}",
+            prefix,
+        )
     if not isinstance(camera, Camera):
         unknown = unknown_keys(Camera, dict(camera), prefix)
         if unknown is not None:
@@ -319,6 +341,7 @@ class Session:
         """The session's latest frame rendered now at full quality (REST `/api/render`), with
         the session's render parameters and camera unless `params` (changes to them) or
         `camera` are given."""
+        width, height = checked_size(width, height, "render")
         fields: dict[str, Any] = {"session": self.name, "width": width, "height": height,
                                   "format": format}  # fmt: skip
         if params:
@@ -350,9 +373,10 @@ class Session:
         come from the session's camera; on a CPU device the server shrinks live images to
         what it renders within its frame budget (`image.size` says what came), a still at
         full size follows when nothing changes. `close()` the subscription to stop them."""
+        size = checked_size(width, height, "view")
         sub = Subscription(callback, self._unsubscribe)
         with self._lock:
-            self._images.append((sub, (width, height)))
+            self._images.append((sub, size))
         self._update_view()
         return sub
 
@@ -360,7 +384,7 @@ class Session:
         self, width: int = 640, height: int = 480, timeout: float = 60.0
     ) -> StreamedImage:
         """Wait for the next image of the live stream at this size (as `on_image`), at most
-        `timeout` seconds."""
+        `timeout` seconds; a link that ends meanwhile raises at once (`not_ready`)."""
         got: list[StreamedImage] = []
         arrived = threading.Event()
 
@@ -368,10 +392,21 @@ class Session:
             got.append(image)
             arrived.set()
 
-        with self.on_image(take, width, height):
-            if not arrived.wait(timeout):
-                raise TimeoutError(f"no image within {timeout} s")
-        return got[0]
+        def ended(_reason: str) -> None:
+            arrived.set()
+
+        self.link.on_close.append(ended)
+        try:
+            if self.link.closed is None:
+                with self.on_image(take, width, height):
+                    arrived.wait(timeout)
+        finally:
+            self.link.on_close.remove(ended)
+        if got:
+            return got[0]
+        if self.link.closed is not None:
+            self.link.check_open()
+        raise TimeoutError(f"no image within {timeout} s")
 
     def on_observables(self, callback: Callable[[SimStatus], None]) -> Subscription:
         """Call `callback(status)` whenever the simulation reports (step, time, observables

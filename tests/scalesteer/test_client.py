@@ -317,3 +317,54 @@ def test_a_part_of_a_universe_keeps_the_bonds_among_its_atoms(small_universe: An
     assert np.array_equal(topology.bonds.to_numpy(), merged.bonds.to_numpy())
     assert topology.names == merged.names and topology.elements == merged.elements
     assert np.array_equal(topology.residue_ids.to_numpy(), merged.residue_ids.to_numpy())
+
+
+def test_careless_calls_are_named_and_leave_nothing_behind(
+    live_server: LiveServer, small_universe: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Found trying the client as a newcomer: `next_image(0, 0)` raised pydantic's own error
+    and left its view on the session, so every later image (and `close()`) failed with it; a
+    canvas past the image limits got no image at all; a camera given as a string, a bool for
+    a number and a callback that is not one were refused in words about something else, or
+    not at all; a failing callback printed a traceback an image; and `next_image` on a link
+    that had ended waited out its whole timeout."""
+    client = scalesteer.connect(live_server.url, live_server.token)
+    session = client.open(small_universe, fps=20, loop=True)
+    for width, height, path in ((0, 0, "view.width"), (64.5, 48, "view.width"),
+                                (64, True, "view.height")):  # fmt: skip
+        with pytest.raises(ScalesteerError) as refused:
+            session.next_image(width, height)
+        assert refused.value.code == ErrorCode.INVALID_MESSAGE and refused.value.path == path
+    with pytest.raises(ScalesteerError, match=r"render\.width"):
+        session.image(float("nan"), 48)
+    with pytest.raises(ScalesteerError, match="camera: a Camera or a mapping"):
+        session.image(64, 48, camera="abc")  # type: ignore[arg-type]
+    with pytest.raises(ScalesteerError) as refused:
+        session.set(sigma_A=True)
+    assert refused.value.path == "render_params.params.sigma_A"
+    with pytest.raises(TypeError, match="callable"):
+        session.on_image(42, 80, 60)  # type: ignore[arg-type]
+    assert session.next_image(64, 48).array().shape == (48, 64, 3), "nothing was left behind"
+    # past the limits (4096 px a side): shrunk to fit, as the server's limits say
+    big = session.next_image(5000, 3000)
+    assert max(big.size) <= 4096 and big.size[0] / big.size[1] == pytest.approx(5 / 3, rel=0.02)
+
+    def failing(_image: scalesteer.StreamedImage) -> None:
+        raise RuntimeError("the user's bug")
+
+    with caplog.at_level("ERROR", logger="scalesteer.client"):
+        with session.on_image(failing, 64, 48) as sub:
+            deadline = time.monotonic() + 60
+            while sub.failures < 5 and time.monotonic() < deadline:
+                time.sleep(0.05)
+        assert sub.failures >= 5
+        told = [r for r in caplog.records if r.name == "scalesteer.client"]
+        assert 1 <= len(told) <= 2 and told[0].exc_info is not None, told
+    session.close()
+    with pytest.raises(ScalesteerError) as refused:
+        session.next_image(64, 48, timeout=120)  # at once, not after the timeout
+    assert refused.value.code == ErrorCode.NOT_READY
+    client.close()
+    with pytest.raises(ScalesteerError, match="closed") as refused:
+        client.sessions()
+    assert refused.value.code == ErrorCode.NOT_READY

@@ -4,6 +4,7 @@ imports without the server's heavy packages."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -154,3 +155,35 @@ def test_a_server_that_cannot_start_says_why_and_leaves_no_file() -> None:
     text = str(caught.value)
     assert "exit code 2" in text and "no_such_setting" in text, text
     assert set(Path(tempfile.gettempdir()).glob("scalesteer-*")) <= before
+
+
+def test_a_device_that_does_not_exist_is_named_when_the_server_starts() -> None:
+    """`connect(device="gpu7")` had started a server that failed every render."""
+    from scalesteer.errors import ServerStartError
+    from scalesteer.local import LocalServer
+
+    with pytest.raises(ServerStartError, match="--device gpu7: unknown device"):
+        LocalServer(device="gpu7", timeout=60)
+
+
+def test_the_own_server_is_started_again_when_it_died_and_kept_to_its_device() -> None:
+    """`connect()` had handed back a server whose process had been killed, and the server of
+    another device than the one asked for, without a word."""
+    import scalesteer
+    from scalesteer.client import default_server
+
+    try:
+        first = default_server("cpu")
+        with pytest.raises(ValueError, match="renders on 'cpu', not 'cuda:0'"):
+            scalesteer.connect(device="cuda:0")
+        assert scalesteer.connect().local is first, "auto takes the running one"
+        assert first.process is not None
+        for pid in descendants(first.process.pid):  # the server dies, its supervisor lives on
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        client = scalesteer.connect(device="cpu")
+        assert client.local is not first
+        assert isinstance(client.sessions(), list), "the new one answers"
+        assert not first.alive()
+    finally:
+        scalesteer.shutdown()
