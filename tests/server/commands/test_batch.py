@@ -50,6 +50,8 @@ def test_batch_names_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture
         with pytest.raises(SystemExit) as stopped:
             main([PSF, DCD, "-o", zipped, *option])
         assert stopped.value.code == 2 and says in capsys.readouterr().err
+    assert main([PSF, DCD, "-o", zipped, "--start", "50", "--stop", "10"]) == 2
+    assert "--stop 10 must be after --start 50" in capsys.readouterr().err
     for camera, says in (
         ("front", "--camera is not valid JSON"),
         ('{"distance": -1}', "--camera: distance:"),

@@ -76,6 +76,10 @@ def test_bad_size_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
         main([PDB_HOLE, "-o", "x.png", "--size", "800by600"])
     assert exc.value.code == 2
     assert "800x600" in capsys.readouterr().err
+    # past the renderer's limits: named before the file is read (it had been a traceback)
+    for size in ("100000x100000", "20000x10", "5000x4000"):
+        assert main(["no-such-file.pdb", "-o", "x.png", "--size", size]) == 2
+        assert f"--size {size}: at most 16384 px a side" in capsys.readouterr().err
 
 
 def test_the_geodesic_and_carved_densities_render_and_differ(

@@ -86,6 +86,10 @@ def test_devices_that_do_not_exist_are_named_before_the_server_starts(
     assert serve.main([*argv, "--gpus", " , "]) == 2
     assert "name at least one device" in capsys.readouterr().err
     assert serve.main([*argv, "--gpus", "cpu,cpu"]) == 0 and len(started) == 1
+    # --device too: gpu7 had served, and failed every render
+    assert serve.main([*argv, "--device", "gpu7"]) == 2
+    assert "--device gpu7: unknown device 'gpu7'" in capsys.readouterr().err
+    assert len(started) == 1
 
 
 def test_ctrl_c_stops_the_server_without_a_traceback(tmp_path: Path) -> None:
