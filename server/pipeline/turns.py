@@ -8,11 +8,14 @@ volume renders on the CPU device, and a 64x48 render 193 s behind six. Now each 
 has a rank by its slot (`rank_of`: a live session's work 0, a one-off REST render 1, a batch
 job 2) and the thread takes the oldest of the lowest rank, so a live view waits for at most the
 render already under way. So that a session that keeps its device busy does not starve the
-rest, the oldest work, once it has waited `AGE_S`, takes the turn after each piece of work of
-a better rank: live and one-off renders alternate while both wait, and a live view then waits
-for at most one one-off render. Within a rank, and so within a slot (a slot's work has one
-rank), the order is submission order: a slot's renderer is dropped after its last render. A
-release (`GpuQueue.release`) is taken in the live turn: its caller has awaited the slot's work.
+rest, the oldest work takes the next turn once it has waited `AGE_S` and work of a better rank
+ran for `SHARE` of its wait: a device that live work leaves idle at times takes the rest then,
+and one that live work fills gives the rest a fifth of its time. (Taking turns piece by piece
+had let each live render be followed by a one-off one: on the CPU device, where those take
+seconds, a steerer's image that needed two live renders waited for two of them.) Within a rank,
+and so within a slot (a slot's work has one rank), the order is submission order: a slot's
+renderer is dropped after its last render. A release (`GpuQueue.release`) is taken in the live
+turn: its caller has awaited the slot's work.
 """
 
 from __future__ import annotations
@@ -26,7 +29,9 @@ from concurrent.futures import Executor, Future
 from typing import Any
 
 AGE_S = 0.5
-"""Work that has waited this long (s) takes every other turn, whatever its rank."""
+"""Least wait (s) after which work takes its turn ahead of better work (`SHARE`)."""
+SHARE = 0.8
+"""...once better work ran for this share of its wait."""
 LIVE, ONE_OFF, JOB = 0, 1, 2
 
 
@@ -40,12 +45,20 @@ def rank_of(slot: str | None) -> int:
 
 
 class _Item:
-    __slots__ = ("args", "fn", "future", "rank", "seq", "since")
+    __slots__ = ("args", "better_then", "fn", "future", "rank", "seq", "since")
 
     def __init__(
-        self, rank: int, seq: int, since: float, fn: Callable[..., Any], args: tuple[Any, ...]
+        self,
+        rank: int,
+        seq: int,
+        since: float,
+        better_then: float,
+        fn: Callable[..., Any],
+        args: tuple[Any, ...],
     ) -> None:
         self.rank, self.seq, self.since = rank, seq, since
+        self.better_then = better_then
+        """Seconds work of a better rank had run in all when this was queued."""
         self.fn, self.args = fn, args
         self.future: Future[Any] = Future()
 
@@ -58,17 +71,18 @@ class TurnExecutor(Executor):
         self,
         initializer: Callable[[], None] | None = None,
         age_s: float = AGE_S,
+        share: float = SHARE,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self._initializer = initializer
         self._age_s = age_s
+        self._share = share
         self._clock = clock
+        self._ran: dict[int, float] = {}  # seconds each rank's work has run in all
         self._lock = threading.Condition()
         self._heap: list[tuple[int, int, _Item]] = []
         self._waiting: dict[int, _Item] = {}  # seq -> item, for the oldest by submission
         self._seq = itertools.count()
-        self._last_rank = LIVE
-        """The rank of the work taken last: the oldest work, once aged, goes after better."""
         self._shutdown = False
         self._thread: threading.Thread | None = None
 
@@ -76,7 +90,7 @@ class TurnExecutor(Executor):
         with self._lock:
             if self._shutdown:
                 raise RuntimeError("cannot schedule new work after shutdown")
-            item = _Item(rank, next(self._seq), self._clock(), fn, args)
+            item = _Item(rank, next(self._seq), self._clock(), self._better(rank), fn, args)
             heapq.heappush(self._heap, (rank, item.seq, item))
             self._waiting[item.seq] = item
             if self._thread is None:
@@ -96,12 +110,13 @@ class TurnExecutor(Executor):
             heapq.heappop(self._heap)
         first = self._heap[0][2]
         oldest = self._waiting[min(self._waiting)]
+        waited = self._clock() - oldest.since
         aged = (
-            oldest.rank > max(first.rank, self._last_rank)
-            and self._clock() - oldest.since >= self._age_s
+            oldest.rank > first.rank
+            and waited >= self._age_s
+            and self._better(oldest.rank) - oldest.better_then >= self._share * waited
         )
         item = oldest if aged else first
-        self._last_rank = item.rank
         del self._waiting[item.seq]
         if item is first:
             heapq.heappop(self._heap)
@@ -118,12 +133,21 @@ class TurnExecutor(Executor):
                 item = self._next()
             if not item.future.set_running_or_notify_cancel():
                 continue
+            started = self._clock()
             try:
                 result = item.fn(*item.args)
             except BaseException as exc:
                 item.future.set_exception(exc)
             else:
                 item.future.set_result(result)
+            finally:
+                with self._lock:
+                    ran = self._clock() - started
+                    self._ran[item.rank] = self._ran.get(item.rank, 0.0) + ran
+
+    def _better(self, rank: int) -> float:
+        """Seconds work of a better rank than `rank` has run in all (the lock held)."""
+        return sum(t for r, t in self._ran.items() if r < rank)
 
     @property
     def queued(self) -> int:

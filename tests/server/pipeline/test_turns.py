@@ -63,15 +63,50 @@ def test_a_live_render_goes_before_one_off_renders_and_jobs_queued_earlier() -> 
         pool.shutdown()
 
 
-def test_work_that_waited_long_takes_every_other_turn() -> None:
+def test_a_live_render_waits_for_no_more_than_the_render_under_way() -> None:
+    """On the CPU device a one-off render takes seconds: a live image that needs two live
+    renders in a row must not wait for a second one-off render between them."""
     clock = Clock()
     pool = TurnExecutor(age_s=0.5, clock=clock)
+    order: list[str] = []
+
+    def work(label: str, seconds: float) -> None:
+        order.append(label)
+        clock.now += seconds
+
     try:
-        work = [(ONE_OFF, "rest 1"), (ONE_OFF, "rest 2"), (LIVE, "live 1"), (LIVE, "live 2")]
-        # all of it waited past the age: the oldest and the live work take turns
-        assert run_in_turns(pool, work, clock, age=1.0) == ["rest 1", "live 1", "rest 2", "live 2"]
-        # none of it did: by rank
-        assert run_in_turns(pool, work, clock, age=0.0) == ["live 1", "live 2", "rest 1", "rest 2"]
+        release, first = held(pool)
+        clock.now += 7.0  # the one-off render under way
+        queued = [pool.submit_ranked(ONE_OFF, work, f"rest {i}", 7.0) for i in (2, 3)]
+        queued += [pool.submit_ranked(LIVE, work, f"live {i}", 0.2) for i in (1, 2)]
+        release.set()
+        for f in [first, *queued]:
+            f.result(10)
+        assert order == ["live 1", "live 2", "rest 2", "rest 3"]
+    finally:
+        pool.shutdown()
+
+
+def test_work_that_waited_gets_a_share_of_a_device_that_live_work_fills() -> None:
+    clock = Clock()
+    pool = TurnExecutor(age_s=0.5, share=0.8, clock=clock)
+    order: list[str] = []
+
+    def work(label: str, seconds: float) -> None:
+        order.append(label)
+        clock.now += seconds
+
+    try:
+        release, first = held(pool)
+        queued = [pool.submit_ranked(ONE_OFF, work, "rest", 0.1) for _ in range(10)]
+        queued += [pool.submit_ranked(LIVE, work, "live", 0.1) for _ in range(100)]
+        release.set()
+        for f in [first, *queued]:
+            f.result(10)
+        # none before 0.5 s of live work; then about a fifth of the device's time
+        assert order[:5] == ["live"] * 5 and order[5] == "rest", order
+        last = len(order) - order[::-1].index("rest")
+        assert 0.15 <= order[:last].count("rest") / last <= 0.25, order
     finally:
         pool.shutdown()
 
