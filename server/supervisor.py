@@ -8,7 +8,7 @@ the kernel closes a dead process's files) or the supervisor is sent SIGTERM, it 
 tree: SIGTERM to the command, then to every process still under it, SIGKILL to what is left after
 the grace period; then it removes the command's folder, when it was given one. On Linux the
 supervisor is a child subreaper, so a process that leaves its parent (Ray's agents, daemons)
-still counts as under it.
+still counts as under it; and the command itself gets SIGTERM should the supervisor be killed.
 
 The supervisor runs in a session of its own: a Ctrl-C meant for the server reaches the server,
 which stops its children in order, and not the children themselves. When the command exits by
@@ -120,6 +120,24 @@ def _subreaper() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0)  # PR_SET_CHILD_SUBREAPER
 
 
+def _ending_with(parent: int) -> Callable[[], None]:
+    """For the command's process, before it runs (Linux): SIGTERM when the supervisor dies.
+    A supervisor killed with SIGKILL (its pid is the one a notebook's client knows) had left
+    the server running, orphaned, with nothing to end it."""
+
+    def arrange() -> None:
+        if not sys.platform.startswith("linux"):
+            return
+        import ctypes
+
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # PDEATHSIG
+        if os.getppid() != parent:  # it died before that was arranged
+            os._exit(1)
+
+    return arrange
+
+
 def descendants(root: int) -> list[int]:
     """The processes under `root` (from /proc; empty where there is none), parents first."""
     children: dict[int, list[int]] = {}
@@ -147,7 +165,9 @@ class _Tree:
     """The supervised command and what it starts."""
 
     def __init__(self, command: list[str]) -> None:
-        self.child = subprocess.Popen(command, stdin=subprocess.DEVNULL)
+        self.child = subprocess.Popen(
+            command, stdin=subprocess.DEVNULL, preexec_fn=_ending_with(os.getpid())
+        )
         self.status: int | None = None
 
     def reap(self) -> None:

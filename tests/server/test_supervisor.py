@@ -75,3 +75,19 @@ def test_stop_ends_the_tree_and_a_command_that_exits_leaves_nothing(tmp_path: Pa
     tree = pids_of(second)
     assert s.process.wait(10) == 3 and s.poll() == 3
     assert not wait_gone(tree, 5)  # its background children did not outlive it
+
+
+def test_the_command_ends_when_its_supervisor_is_killed(tmp_path: Path) -> None:
+    """A notebook's client knows the supervisor's pid: killing that one had left the server
+    running, orphaned. The command now gets SIGTERM when its supervisor dies."""
+    pids = tmp_path / "pids"
+    supervised = Supervised(["sh", "-c", f"echo $$ >> {pids}; sleep 300"], grace_s=1.0)
+    try:
+        (command,) = pids_of(pids, 1)
+        assert running([command]) == [command]
+        supervised.process.send_signal(signal.SIGKILL)
+        supervised.process.wait(10)
+        left = wait_gone([command], 10)
+        assert not left, [command_line(p) for p in left]
+    finally:
+        supervised.stop()
