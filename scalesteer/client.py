@@ -39,6 +39,8 @@ def default_server(device: str = "auto") -> LocalServer:
     new one when it no longer answers. `device` other than `auto` must be the running one's:
     a client does not get another device's server without a word."""
     global _default_server
+    if not isinstance(device, str):
+        raise TypeError(f"device: a name such as 'cpu' or 'cuda:0', not {device!r}")
     with _default_lock:
         running = _default_server
         if running is not None and not running.answers():
@@ -126,6 +128,7 @@ class Client:
 
     def session(self, name: str | None = None) -> Session:
         """Open (or join) the session `name` (default: the link's session, else `default`)."""
+        self.rest.check_open()  # a closed client opens nothing
         name = name or self.default_session or "default"
         link = self.open_link(name, self.role, CLIENT_NAME)
         session = Session(self, link, self.timeout)
@@ -166,6 +169,7 @@ class Client:
         `SteeringReporter`)."""
         from scalesteer import sources
 
+        self.rest.check_open()
         if self.role == "viewer":  # it would join as a viewer, who cannot make a session
             raise ScalesteerError(
                 ErrorCode.FORBIDDEN,

@@ -37,11 +37,11 @@ class Rest:
         self.closed = True
         self._http.close()
 
-    def _check_open(self) -> None:
-        if self.closed:  # httpx would say only that "the client has been closed"
-            raise ScalesteerError(
-                "not_ready", f"this client of {self.url} is closed (scalesteer.shutdown())", "url"
-            )
+    def check_open(self) -> None:
+        """Raise `not_ready` once closed (`Client.close()`, `scalesteer.shutdown()`): httpx
+        would say only that "the client has been closed"."""
+        if self.closed:
+            raise ScalesteerError("not_ready", f"this client of {self.url} is closed", "url")
 
     def request(
         self,
@@ -56,7 +56,7 @@ class Rest:
     ) -> httpx.Response:
         """One call; a 4xx/5xx answer raises `ScalesteerError` with the code its status
         stands for and the field its detail names."""
-        self._check_open()
+        self.check_open()
         with ExitStack() as stack:
             uploads = _open_files(stack, files or {})
             try:
@@ -82,7 +82,7 @@ class Rest:
     @contextmanager
     def stream(self, path: str) -> Iterator[httpx.Response]:
         """A GET whose body is read in pieces (downloads)."""
-        self._check_open()
+        self.check_open()
         with self._http.stream("GET", path) as answer:
             if answer.status_code >= 400:
                 answer.read()

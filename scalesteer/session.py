@@ -91,6 +91,13 @@ def checked_params(
     session's unless `params` name them. A `RenderParams` names the fields it was given."""
     if isinstance(params, RenderParams):
         params = params.model_dump(exclude_unset=True)
+    if not isinstance(params, Mapping):
+        raise ScalesteerError(
+            ErrorCode.INVALID_MESSAGE,
+            f"{prefix}: a mapping of render parameters or RenderParams, not "
+            f"{type(params).__name__}",
+            prefix,
+        )
     unknown = unknown_keys(RenderParams, dict(params), prefix)
     if unknown is not None:
         raise ScalesteerError(ErrorCode.INVALID_MESSAGE, f"{unknown}: unknown field", unknown)
@@ -105,17 +112,23 @@ def checked_params(
     return out
 
 
+MAX_SIDE_ASKED = 2**31 - 1
+"""The largest side a size may name (the server shrinks any past its own limits): 2**64 and
+more cannot be sent at all, and such a view had gone out of the client's loop unsent."""
+
+
 def checked_size(width: Any, height: Any, prefix: str) -> tuple[int, int]:
     """An image's size checked as the protocol checks it, before anything is sent or kept:
     whole numbers of pixels, at least 1 (`next_image(0, 0)` had left its view on the session,
     and every later subscription failed with it). Sizes past the server's limits are its to
     shrink."""
     for name, value in (("width", width), ("height", height)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        whole = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+        if not whole or not 1 <= value <= MAX_SIDE_ASKED:
             path = f"{prefix}.{name}"
             raise ScalesteerError(
                 ErrorCode.INVALID_MESSAGE,
-                f"{path}: a whole number of pixels, at least 1, not {value!r}",
+                f"{path}: a whole number of pixels from 1 to {MAX_SIDE_ASKED}, not {value!r}",
                 path,
             )
     return int(width), int(height)
@@ -374,7 +387,7 @@ class Session:
         what it renders within its frame budget (`image.size` says what came), a still at
         full size follows when nothing changes. `close()` the subscription to stop them."""
         size = checked_size(width, height, "view")
-        sub = Subscription(callback, self._unsubscribe)
+        sub = self._subscription(callback)
         with self._lock:
             self._images.append((sub, size))
         self._update_view()
@@ -411,14 +424,14 @@ class Session:
     def on_observables(self, callback: Callable[[SimStatus], None]) -> Subscription:
         """Call `callback(status)` whenever the simulation reports (step, time, observables
         such as `temperature_K`; the server sends them about ten times a second)."""
-        sub = Subscription(callback, self._unsubscribe)
+        sub = self._subscription(callback)
         with self._lock:
             self._observers.append(sub)
         return sub
 
     def on_state(self, callback: Callable[[SessionState], None]) -> Subscription:
         """Call `callback(state)` whenever the session's state changes."""
-        sub = Subscription(callback, self._unsubscribe)
+        sub = self._subscription(callback)
         with self._lock:
             self._states.append(sub)
         return sub
@@ -426,10 +439,17 @@ class Session:
     def on_event(self, callback: Callable[[Event], None]) -> Subscription:
         """Call `callback(event)` for the session's events (a guard that rolled a run back,
         a recording that skips frames, ...)."""
-        sub = Subscription(callback, self._unsubscribe)
+        sub = self._subscription(callback)
         with self._lock:
             self._events.append(sub)
         return sub
+
+    def _subscription(self, callback: Callable[[Any], None]) -> Subscription:
+        """A subscription of `callback`; `not_ready` once the link has ended (it would never
+        be called)."""
+        if self.link.closed is not None:
+            self.link.check_open()
+        return Subscription(callback, self._unsubscribe)
 
     def _unsubscribe(self, sub: Subscription) -> None:
         with self._lock:

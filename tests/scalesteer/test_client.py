@@ -331,7 +331,7 @@ def test_careless_calls_are_named_and_leave_nothing_behind(
     client = scalesteer.connect(live_server.url, live_server.token)
     session = client.open(small_universe, fps=20, loop=True)
     for width, height, path in ((0, 0, "view.width"), (64.5, 48, "view.width"),
-                                (64, True, "view.height")):  # fmt: skip
+                                (64, True, "view.height"), (2**64, 10, "view.width")):  # fmt: skip
         with pytest.raises(ScalesteerError) as refused:
             session.next_image(width, height)
         assert refused.value.code == ErrorCode.INVALID_MESSAGE and refused.value.path == path
@@ -339,6 +339,8 @@ def test_careless_calls_are_named_and_leave_nothing_behind(
         session.image(float("nan"), 48)
     with pytest.raises(ScalesteerError, match="camera: a Camera or a mapping"):
         session.image(64, 48, camera="abc")  # type: ignore[arg-type]
+    with pytest.raises(ScalesteerError, match="params: a mapping of render parameters"):
+        session.image(64, 48, params="abc")  # type: ignore[arg-type]
     with pytest.raises(ScalesteerError) as refused:
         session.set(sigma_A=True)
     assert refused.value.path == "render_params.params.sigma_A"
@@ -364,7 +366,11 @@ def test_careless_calls_are_named_and_leave_nothing_behind(
     with pytest.raises(ScalesteerError) as refused:
         session.next_image(64, 48, timeout=120)  # at once, not after the timeout
     assert refused.value.code == ErrorCode.NOT_READY
+    with pytest.raises(ScalesteerError, match="closed"):  # it would never be called
+        session.on_image(lambda _image: None, 64, 48)
     client.close()
+    with pytest.raises(ScalesteerError, match="closed"):
+        client.session("another")
     with pytest.raises(ScalesteerError, match="closed") as refused:
         client.sessions()
     assert refused.value.code == ErrorCode.NOT_READY
