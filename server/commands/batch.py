@@ -25,9 +25,11 @@ from server.commands.render import (
     _size,
     add_layer_options,
     add_periodic_options,
+    device_refusal,
     layer_option,
     periodic_fields,
     periodic_refusal,
+    size_refusal,
 )
 from server.settings import ray_cluster_address
 
@@ -110,6 +112,12 @@ async def run(args: argparse.Namespace) -> int:
         camera = _camera(args.camera)
         if args.stop is not None and args.stop <= args.start:  # as REST refuses it, unread
             raise ValueError(f"--stop {args.stop} must be after --start {args.start}: no frame")
+        if args.start < 0:
+            raise ValueError(f"--start {args.start}: frames count from 0")
+        # and what no frame could be drawn with, before the input is read
+        refusal = size_refusal(*args.size) or device_refusal(args.device)
+        if refusal is not None:
+            raise ValueError(refusal)
     except PeriodicError as exc:
         print(f"scalesteer batch: {periodic_refusal(exc.path, exc.reason, args)}", file=sys.stderr)
         return 2

@@ -31,6 +31,29 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def size_refusal(width: int, height: int) -> str | None:
+    """Why `--size` cannot be rendered (None: it can), said before anything is read: a size
+    past the renderer's limits had ended in a traceback from warp after reading the file."""
+    from server.render.renderer import MAX_PIXELS, MAX_SIDE
+
+    if max(width, height) <= MAX_SIDE and width * height <= MAX_PIXELS:
+        return None
+    limit = f"at most {MAX_SIDE} px a side and {MAX_PIXELS:,} px (3840x2160)"
+    return f"--size {width}x{height}: {limit}"
+
+
+def device_refusal(device: str) -> str | None:
+    """Why `--device` cannot render here (None: it can), said before anything is read."""
+    from server.render.device import resolve
+    from server.render.errors import RenderError
+
+    try:
+        resolve(device)
+    except RenderError as exc:
+        return f"--device {device}: {exc}"
+    return None
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="scalesteer render",
@@ -200,15 +223,9 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.output)
     if out.suffix.lower() not in (".png", ".jpg", ".jpeg"):
         return _fail(f"output must end in .png or .jpg: {args.output}")
-    from server.render.renderer import MAX_PIXELS, MAX_SIDE
-
     width, height = args.size
-    if max(width, height) > MAX_SIDE or width * height > MAX_PIXELS:
-        # before the file is read (100000x100000 had ended in a traceback from warp)
-        return _fail(
-            f"--size {width}x{height}: at most {MAX_SIDE} px a side and {MAX_PIXELS:,} px "
-            "(3840x2160)"
-        )
+    if (refusal := size_refusal(width, height) or device_refusal(args.device)) is not None:
+        return _fail(refusal)
 
     from pydantic import ValidationError
 

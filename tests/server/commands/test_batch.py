@@ -50,8 +50,16 @@ def test_batch_names_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture
         with pytest.raises(SystemExit) as stopped:
             main([PSF, DCD, "-o", zipped, *option])
         assert stopped.value.code == 2 and says in capsys.readouterr().err
-    assert main([PSF, DCD, "-o", zipped, "--start", "50", "--stop", "10"]) == 2
-    assert "--stop 10 must be after --start 50" in capsys.readouterr().err
+    # and what no frame could be drawn with, all before the input is read
+    missing = str(tmp_path / "missing.psf")
+    for option, says in (
+        (["--start", "50", "--stop", "10"], "--stop 10 must be after --start 50"),
+        (["--start", "-5"], "--start -5: frames count from 0"),
+        (["--size", "100000x100000"], "--size 100000x100000: at most 16384 px a side"),
+        (["--device", "gpu7"], "--device gpu7: unknown device"),
+    ):
+        assert main([missing, "-o", zipped, *option]) == 2, option
+        assert says in capsys.readouterr().err, option
     for camera, says in (
         ("front", "--camera is not valid JSON"),
         ('{"distance": -1}', "--camera: distance:"),

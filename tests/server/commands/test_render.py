@@ -80,6 +80,8 @@ def test_bad_size_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
     for size in ("100000x100000", "20000x10", "5000x4000"):
         assert main(["no-such-file.pdb", "-o", "x.png", "--size", size]) == 2
         assert f"--size {size}: at most 16384 px a side" in capsys.readouterr().err
+    assert main(["no-such-file.pdb", "-o", "x.png", "--device", "gpu7"]) == 2
+    assert "--device gpu7: unknown device" in capsys.readouterr().err
 
 
 def test_the_geodesic_and_carved_densities_render_and_differ(
