@@ -1,5 +1,5 @@
 """The order a device's thread takes its work in (`server.pipeline.turns`): live sessions
-first, one-off renders and jobs after, work that waited long every other turn."""
+first, one-off renders and jobs after, work that waited a share of a device live work fills."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ from server.pipeline.turns import JOB, LIVE, ONE_OFF, TurnExecutor, rank_of
 
 
 class Clock:
+    """The executor's clock, advanced by the work it runs (each piece takes its seconds)."""
+
     def __init__(self) -> None:
         self.now = 0.0
 
@@ -33,15 +35,19 @@ def held(pool: TurnExecutor) -> tuple[threading.Event, Future[None]]:
 
 
 def run_in_turns(
-    pool: TurnExecutor, work: list[tuple[int, str]], clock: Clock | None = None, age: float = 0
+    pool: TurnExecutor, clock: Clock, work: list[tuple[int, str, float]], busy_s: float = 0.0
 ) -> list[str]:
-    """Queue `work` (rank, label) behind a busy worker, advance the clock by `age`, let it go
-    and return the order the labels ran in."""
+    """Queue `work` (rank, label, seconds it takes) behind a worker busy for `busy_s`, let it
+    go and return the order the labels ran in."""
     order: list[str] = []
+
+    def run(label: str, seconds: float) -> None:
+        order.append(label)
+        clock.now += seconds
+
     release, first = held(pool)
-    futures = [pool.submit_ranked(rank, order.append, label) for rank, label in work]
-    if clock is not None:
-        clock.now += age
+    clock.now += busy_s
+    futures = [pool.submit_ranked(rank, run, label, s) for rank, label, s in work]
     release.set()
     for f in [first, *futures]:
         f.result(10)
@@ -55,10 +61,12 @@ def test_slots_have_ranks() -> None:
 
 
 def test_a_live_render_goes_before_one_off_renders_and_jobs_queued_earlier() -> None:
-    pool = TurnExecutor(age_s=60.0)
+    clock = Clock()
+    pool = TurnExecutor(age_s=60.0, clock=clock)
     try:
-        work = [(JOB, "job"), (ONE_OFF, "rest 1"), (ONE_OFF, "rest 2"), (LIVE, "live")]
-        assert run_in_turns(pool, work) == ["live", "rest 1", "rest 2", "job"]
+        work = [(JOB, "job", 0.0), (ONE_OFF, "rest 1", 0.0), (ONE_OFF, "rest 2", 0.0),
+                (LIVE, "live", 0.0)]  # fmt: skip
+        assert run_in_turns(pool, clock, work) == ["live", "rest 1", "rest 2", "job"]
     finally:
         pool.shutdown()
 
@@ -68,20 +76,10 @@ def test_a_live_render_waits_for_no_more_than_the_render_under_way() -> None:
     renders in a row must not wait for a second one-off render between them."""
     clock = Clock()
     pool = TurnExecutor(age_s=0.5, clock=clock)
-    order: list[str] = []
-
-    def work(label: str, seconds: float) -> None:
-        order.append(label)
-        clock.now += seconds
-
     try:
-        release, first = held(pool)
-        clock.now += 7.0  # the one-off render under way
-        queued = [pool.submit_ranked(ONE_OFF, work, f"rest {i}", 7.0) for i in (2, 3)]
-        queued += [pool.submit_ranked(LIVE, work, f"live {i}", 0.2) for i in (1, 2)]
-        release.set()
-        for f in [first, *queued]:
-            f.result(10)
+        work = [(ONE_OFF, "rest 2", 7.0), (ONE_OFF, "rest 3", 7.0), (LIVE, "live 1", 0.2),
+                (LIVE, "live 2", 0.2)]  # fmt: skip
+        order = run_in_turns(pool, clock, work, busy_s=7.0)  # the one-off render under way
         assert order == ["live 1", "live 2", "rest 2", "rest 3"]
     finally:
         pool.shutdown()
@@ -90,19 +88,9 @@ def test_a_live_render_waits_for_no_more_than_the_render_under_way() -> None:
 def test_work_that_waited_gets_a_share_of_a_device_that_live_work_fills() -> None:
     clock = Clock()
     pool = TurnExecutor(age_s=0.5, share=0.8, clock=clock)
-    order: list[str] = []
-
-    def work(label: str, seconds: float) -> None:
-        order.append(label)
-        clock.now += seconds
-
     try:
-        release, first = held(pool)
-        queued = [pool.submit_ranked(ONE_OFF, work, "rest", 0.1) for _ in range(10)]
-        queued += [pool.submit_ranked(LIVE, work, "live", 0.1) for _ in range(100)]
-        release.set()
-        for f in [first, *queued]:
-            f.result(10)
+        work = [(ONE_OFF, "rest", 0.1)] * 10 + [(LIVE, "live", 0.1)] * 100
+        order = run_in_turns(pool, clock, work)
         # none before 0.5 s of live work; then about a fifth of the device's time
         assert order[:5] == ["live"] * 5 and order[5] == "rest", order
         last = len(order) - order[::-1].index("rest")
