@@ -8,7 +8,6 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -338,21 +337,21 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"scalesteer serve: {exc}", file=sys.stderr)
         return 2
-    from server.render.device import resolve, resolve_many
-    from server.render.errors import RenderError
+    from server.commands.render import device_refusal
 
     # before the server starts: the reason alone, not under its start-up traceback (`--device
     # gpu7` had served, and failed every render)
-    checks: list[tuple[str, str, Callable[[str], object]]] = [
-        ("--device", settings.device, resolve)
-    ]
+    if (refusal := device_refusal(settings.device)) is not None:
+        print(f"scalesteer serve: {refusal}", file=sys.stderr)
+        return 2
     if settings.gpus:
-        checks.append(("--gpus", settings.gpus, resolve_many))
-    for option, value, check in checks:
+        from server.render.device import resolve_many
+        from server.render.errors import RenderError
+
         try:
-            check(value)
+            resolve_many(settings.gpus)
         except RenderError as exc:
-            print(f"scalesteer serve: {option} {value}: {exc}", file=sys.stderr)
+            print(f"scalesteer serve: --gpus {settings.gpus}: {exc}", file=sys.stderr)
             return 2
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s"
