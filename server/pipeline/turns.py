@@ -149,11 +149,6 @@ class TurnExecutor(Executor):
         """Seconds work of a better rank than `rank` has run in all (the lock held)."""
         return sum(t for r, t in self._ran.items() if r < rank)
 
-    @property
-    def queued(self) -> int:
-        with self._lock:
-            return len(self._waiting)
-
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         with self._lock:
             self._shutdown = True
