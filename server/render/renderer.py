@@ -29,6 +29,7 @@ from server.render import (
     carved,
     colors,
     geodesic_field,
+    geodesic_volume,
     raycast,
     segments,
     temporal,
@@ -116,6 +117,9 @@ class Derived:
     relative: bool
     warp: WarpScales | None
     geo: GeodesicScales | None = None
+    volume_h: float = 0.0
+    """The geodesic density's grid spacing when its rays read it from a grid
+    (`geodesic_volume`), 0 when they walk the routes per sample."""
 
 
 def _model_name(d: Derived) -> str:
@@ -304,6 +308,7 @@ class Renderer(ImageOutputs):
         self._geo: geodesic_field.GeodesicTables | None = None
         self._geo_work: tuple[float, float, float] | None = None
         """(tables' reach, atoms within the cutoff, routes an atom) of the last work check."""
+        self._gvol: geodesic_volume.GeodesicVolume | None = None
         self.geodesic_max_routes = geodesic_field.MAX_ROUTES_PER_SAMPLE
         """Most routes a geodesic sample may walk (`_check_geodesic_work`)."""
         self._ref_positions: npt.NDArray[np.float32] | None = None
@@ -357,7 +362,8 @@ class Renderer(ImageOutputs):
             "image": sum(int(a.capacity) for a in pix),
             "other": int(self._tf_table.capacity + self._hist.capacity + seg),
             "skeleton": self._skel.nbytes if self._skel is not None else 0,
-            "geodesic": self._geo.nbytes if self._geo is not None else 0,
+            "geodesic": (self._geo.nbytes if self._geo is not None else 0)
+            + (self._gvol.nbytes if self._gvol is not None else 0),
         }
 
     # ------------------------------------------------------------------ inputs
@@ -385,6 +391,7 @@ class Renderer(ImageOutputs):
         self._skel = None
         self._geo = None
         self._geo_work = None
+        self._gvol = None
         self._ref_positions = None
         self._temporal = None
         self._smoothed = False
@@ -733,11 +740,13 @@ class Renderer(ImageOutputs):
         seen = self._field_seen
         if seen is not None and seen[0] == d:
             return seen[1]
-        f = self._gaussian_field(d)
+        f: Any = self._gaussian_field(d)
         if d.warp is not None:
             f = self._carved_field(d, f)
         elif d.geo is not None:
             f = self._geodesic_field(d, f)
+            if d.volume_h > 0.0:
+                f = self._geodesic_volume().field(f)
         self._field_seen = (d, f)
         return f
 
@@ -848,7 +857,66 @@ class Renderer(ImageOutputs):
                 f"carved density (their samples walk the {near:,.0f} atoms alone)"
             )
 
+    def _geodesic_volume(self) -> geodesic_volume.GeodesicVolume:
+        if self._gvol is None:
+            self._gvol = geodesic_volume.GeodesicVolume(self.device, self._mean_lanes)
+        return self._gvol
+
+    def _plan_volume(self, d: Derived, pixels: int) -> Derived:
+        """`d` with the grid spacing of `geodesic_volume` when its rays should read the
+        geodesic density from a grid: when the grid has at most POINTS_PER_PIXEL points a pixel
+        (Tuning.geodesic_volume None), or whenever it fits (True). Sizes the grid's buffers from
+        what the last frame's grid needed (synchronises on that finished frame), or from the
+        atoms' box before the first."""
+        use = self.tuning.geodesic_volume
+        if d.geo is None or not self._n or use is False:
+            return d
+        sigma_min = d.sigma if d.per_atom == 0 else d.sigma_per_radius * self._r_min
+        h = geodesic_volume.spacing_of(sigma_min, d.geo.tau)
+        vol = self._geodesic_volume()
+        last = vol.last_need()
+        if last is not None and last[1] > 0:
+            scale = (last[0] / h) ** 3
+            points = int(last[1] * scale) + 1
+            listed = int((last[2] if last[2] > 0 else geodesic_volume.LISTED * last[1]) * scale)
+        else:
+            ext = self._atoms_extent()
+            if ext is None:
+                return d
+            points = int(np.prod(np.floor((ext + 2.0 * d.reach) / h) + 5.0))
+            listed = int(geodesic_volume.LISTED * points)
+        limit = geodesic_volume.MAX_POINTS
+        if use is None:
+            limit = min(limit, int(geodesic_volume.POINTS_PER_PIXEL * pixels))
+        if points > limit:
+            vol.built = None  # the next plan measures the atoms again: they may shrink back
+            return d
+        if not vol.fits(points, listed + 1):
+            # fields and graphs hold the buffers: let them go first; the grid fills the new
+            self._field_seen = None
+            self._drop_graphs()
+            self._grid_key = None
+            vol.reserve(points, listed + 1)
+        return dataclasses.replace(d, volume_h=h)
+
+    def _atoms_extent(self) -> npt.NDArray[np.float64] | None:
+        """The atoms' extent along x, y and z: from the last grid (its box less its reach on
+        every side; synchronises on that finished frame), or before any from the positions
+        (copied to the host once); None when not finite."""
+        g = self._grid.info.numpy()[0]
+        if int(g["valid"]):
+            box = np.asarray(g["box_hi"], dtype=np.float64) - np.asarray(g["origin"], np.float64)
+            ext: npt.NDArray[np.float64] = np.maximum(box - 2.0 * float(g["reach"]), 0.0)
+            return ext
+        pos = self._pos.numpy()[: self._n]
+        if not np.isfinite(pos).all():
+            return None
+        spread: npt.NDArray[np.float64] = np.ptp(pos, axis=0).astype(np.float64)
+        return spread
+
     def _model_of(self, d: Derived) -> DensityModel:
+        if d.geo is not None and d.volume_h > 0.0:
+            return geodesic_volume.GEODESIC_VOLUME
         if d.geo is not None:
             return geodesic_field.GEODESIC
         return self._density if d.warp is None else carved.CARVED
@@ -1089,6 +1157,8 @@ class Renderer(ImageOutputs):
         c.top = wp.vec4(*(float(v) for v in top))
         c.bottom = wp.vec4(*(float(v) for v in bottom))
         c.margin = float(d.reach * (1.0 + 1.0e-3) + 4.0 * AO_STEP_SIGMAS * d.sigma + 1.0e-3)
+        # a spline reads the grid 2 steps around it, and the prefilter spreads each value
+        c.margin += geodesic_volume.REACH_STEPS * d.volume_h
         return (camera_key, y0, rows), c
 
     def _view_of(self, d: Derived, mode: str, stop: float, view: View) -> View | None:
@@ -1163,10 +1233,11 @@ class Renderer(ImageOutputs):
         if d.warp is not None:
             self._skeleton_buffers().build(self._pos, d.warp.reach)
         if d.geo is not None:
+            geo = f.geo if d.volume_h > 0.0 else f
             self._geodesic_tables().refresh(self._pos, self._weights, GAIN)
             if d.relative:
                 lanes = self._mean_lanes
-                sampled = (f, self._pos, n // samples, lanes, self._density_samples)
+                sampled = (geo, self._pos, n // samples, lanes, self._density_samples)
                 wp.launch(
                     geodesic_field.sampled_values_kernel,
                     samples * lanes,
@@ -1179,6 +1250,9 @@ class Renderer(ImageOutputs):
                 wp.launch(total_kernel, 1, (self._density_partial, self._density_total), device=dev)
                 scale = (self._sorted, self._density_total, float(samples), n)
                 wp.launch(geodesic_field.rescale_kernel, n, scale, device=dev)
+            if d.volume_h > 0.0:
+                cut = geodesic_volume.CUT * stop if stop > 0.0 else 0.0
+                self._geodesic_volume().build(geo, self._grid.info, d.volume_h, cut)
         kernels = self._kernels_of(d, mode)
         parts = self._parts_for(d, mode)
         # the widest atom's 1 / (2 s^2): reach = k s_max and half_k2 = k^2 / 2
@@ -1369,6 +1443,8 @@ class Renderer(ImageOutputs):
             self._update_weights(d)
             self._update_geodesic(d)
         pw, ph = (tile[2], tile[3]) if tile is not None else (w, h)
+        # the whole image's pixels: a tile's device lays the grid over every atom all the same
+        d = self._plan_volume(d, w * h)
         self._alloc_pixels(pw * ph)
         stop = self._stop_level(params, d)
         f = self._field(d)
@@ -1443,6 +1519,12 @@ class Renderer(ImageOutputs):
         self._grid_key = key
         self._grid_parts = self._parts_for(d, mode)
         self._grid_rule = self._frame_rule
+
+    @property
+    def last_density(self) -> str | None:
+        """The density model the last frame drew (`geodesic_volume` when the geodesic density
+        was read from its grid; None before any)."""
+        return None if self._last is None else self._model_of(self._last[1]).name
 
     @property
     def last_parts(self) -> PartMode | None:

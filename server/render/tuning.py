@@ -96,10 +96,10 @@ VIEWS_KEPT = 64
 class Tuning:
     """The renderer's switches; None picks the rule above. None of them changes an image except
     `taper` (off: each Gaussian cut at the cutoff, a baseline for the taper's cost),
-    `fixed_cutoff` (the surface moves within the accuracy bound), `refine_passes` (an iso hit
-    moves within its bracket), `volume_steps` and `volume_ramps` (a volume image moves within
-    the accuracy `volume_accuracy.py` measures); `empty_space_skipping` off marches every
-    lattice sample, the same image slower."""
+    `fixed_cutoff` and `geodesic_volume` (the surface moves within the accuracy bound),
+    `refine_passes` (an iso hit moves within its bracket), `volume_steps` and `volume_ramps`
+    (a volume image moves within the accuracy `volume_accuracy.py` measures);
+    `empty_space_skipping` off marches every lattice sample, the same image slower."""
 
     cells_per_cutoff: float | None = None
     """Grid cell = cutoff / this (>= 1; the cell grows where memory caps the count)."""
@@ -149,6 +149,11 @@ class Tuning:
     volume_ramps: bool = True
     """Volume segments integrate the density's ramp between their samples (segments.py); off:
     each sample's density is held over its segment (the sum before, the baseline)."""
+    geodesic_volume: bool | None = None
+    """The geodesic density's rays read it from a grid evaluated once a frame
+    (`geodesic_volume`; the surface moves within max(0.05 A, 1 % sigma)): None when the grid
+    has at most POINTS_PER_PIXEL points a pixel, True whenever it fits, False never (the
+    routes walked per sample, the baseline)."""
     cell_list: bool = True
     """A grid with more cells than twice its atoms lists the cells its bound walks in a buffer
     of its own (off: in the atoms' spare buffer, the baseline: the cells it leaves out are

@@ -1,0 +1,155 @@
+"""The geodesic density read from its grid (`geodesic_volume`) against the same density with
+its routes walked at every sample (the control): where the surface lies, what a pixel picks,
+and what happens when the molecule outgrows the grid."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol import RenderParams
+from server.render.camera import camera_frame, fit_camera, image_rays, orbit
+from server.render.renderer import Renderer
+from tests.render.helpers import render
+from tests.render.molecules import villin
+
+W, H = 48, 36
+
+
+def _displacement(r: Renderer, direct: Renderer, cam: object, level: float) -> np.ndarray:
+    """How far each hit of `r` lies from the surface of the routes per sample: |S - level| /
+    |grad S| of `direct`'s density at the hit point (first order, along the normal)."""
+    depth = r.read_depth()
+    origins, dirs = image_rays(camera_frame(cam, W, H))  # type: ignore[arg-type]
+    hit = np.isfinite(depth)
+    pts = origins[hit] + depth[hit][:, None] * dirs[hit]
+    val, vg, _col, _ids = direct.evaluate(pts)
+    return np.abs(val.astype(np.float64) - level) / np.linalg.norm(vg[:, :3], axis=1)
+
+
+@pytest.mark.parametrize(
+    "sigma, smoothing, radii",
+    [
+        (0.6, 0.6, "uniform"),
+        (1.5, 0.6, "uniform"),
+        (3.0, 0.6, "uniform"),
+        (1.5, 0.2, "uniform"),
+        (1.5, 0.6, "vdw"),
+    ],
+)
+def test_the_grid_keeps_the_surface_within_the_accuracy_bound(
+    sigma: float, smoothing: float, radii: str
+) -> None:
+    """Hits drawn from the grid lie within max(0.05 A, 1 % sigma) of the routes' surface, past
+    what the routes' own hits do (their march's refinement, the control)."""
+    mol = villin()
+    params = RenderParams(
+        scale_space="geodesic", sigma_A=sigma, geodesic_smoothing=smoothing, radius_mode=radii
+    )
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    grid = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+    direct = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=False)
+    assert grid.last_density == "geodesic_volume" and direct.last_density == "geodesic"
+    d_grid = _displacement(grid, direct, cam, params.iso_level)
+    d_direct = _displacement(direct, direct, cam, params.iso_level)
+    assert len(d_grid) > 200
+    tol = max(0.05, 0.01 * sigma)
+    assert d_grid.max() <= d_direct.max() + tol, (d_grid.max(), d_direct.max())
+    hits, hits0 = np.isfinite(grid.read_depth()), np.isfinite(direct.read_depth())
+    assert (hits != hits0).sum() <= 0.01 * hits0.sum()
+
+
+def _three(r: Renderer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return r.read_rgba().copy(), r.read_depth().copy(), r.read_atom_ids().copy()
+
+
+def test_a_molecule_that_outgrows_its_grid_is_drawn_by_its_routes_until_the_grid_grows() -> None:
+    """The grid is sized from the frame before. A frame whose atoms spread past it is drawn
+    with the routes walked per sample (the same image as the control's, bit for bit), and the
+    next frame's grid makes room and reads it again."""
+    mol = villin()
+    params = RenderParams(scale_space="geodesic")
+    cam = orbit(fit_camera(mol.positions * 1.6, W, H), 30.0, 20.0)
+    spread = mol.positions.mean(axis=0) + (mol.positions - mol.positions.mean(axis=0)) * 1.6
+    r = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+    small = r.memory_bytes()["geodesic"]
+    r.set_positions(spread)
+    r.render(params, cam, W, H)
+    assert r.last_density == "geodesic_volume"
+    outgrown = _three(r)
+    # the control has the same history: route tables built at the first frame
+    direct = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=False)
+    direct.set_positions(spread)
+    direct.render(params, cam, W, H)
+    control = _three(direct)
+    assert np.isfinite(control[1]).sum() > 200
+    for a, b in zip(outgrown, control, strict=True):
+        np.testing.assert_array_equal(a, b)
+    r.render(params, cam, W, H)
+    assert r.memory_bytes()["geodesic"] > small
+    regrown = _three(r)
+    assert not np.array_equal(regrown[0], control[0])  # read from the grid again
+    hits = np.isfinite(regrown[1]) & np.isfinite(control[1])
+    assert hits.sum() > 0.99 * np.isfinite(control[1]).sum()
+
+
+def test_points_past_the_planned_count_are_walked_too(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A frame that walks more grid points than the plan made room for walks the rest one
+    thread each: the same coefficients, so the same image."""
+    mol = villin()
+    params = RenderParams(scale_space="geodesic")
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    r = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+    vol = r._gvol
+    assert vol is not None
+    need = vol.last_need()
+    assert need is not None and need[2] > 1000
+    points = need[1]
+    coef = vol.coef.numpy()[:points].copy()
+    whole = _three(r)
+    # room for 16 walked points, as a plan made before the molecule grew would leave
+    r._field_seen = None
+    r._drop_graphs()
+    vol._alloc(vol.capacity, 16)
+    monkeypatch.setattr(vol, "fits", lambda points, listed: True)
+    r.set_positions(mol.positions)
+    r.render(params, cam, W, H)
+    assert vol.listed_capacity == 16 and r.last_density == "geodesic_volume"
+    assert vol.last_need() == need
+    np.testing.assert_array_equal(vol.coef.numpy()[:points], coef)
+    for a, b in zip(_three(r), whole, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_pixel_picks_what_the_routes_pick() -> None:
+    """Colour and the picked atom come from the routes' terms at the hit the grid's rays
+    found: the same atom as the routes per sample at nearly every pixel (the hits differ by
+    the grid's error), and a colour within a few levels."""
+    mol = villin()
+    params = RenderParams(scale_space="geodesic", sigma_A=3.0)
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    grid = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+    direct = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=False)
+    ids, ids0 = grid.read_atom_ids(), direct.read_atom_ids()
+    hit = (ids >= 0) & (ids0 >= 0)
+    assert hit.sum() > 300
+    assert float((ids[hit] == ids0[hit]).mean()) > 0.98
+    diff = np.abs(grid.read_rgba()[hit].astype(int) - direct.read_rgba()[hit].astype(int))
+    assert np.quantile(diff, 0.99) <= 8
+
+
+def test_volume_mode_reads_the_grid_too() -> None:
+    """Volume mode integrates the spline along the rays: the image of the routes per sample
+    within a few levels (the grid's error, and the values below a fifth of the transfer
+    function's clear level that the grid holds at 0)."""
+    mol = villin()
+    params = RenderParams(scale_space="geodesic", mode="volume")
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    grid = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+    direct = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=False)
+    assert grid.last_density == "geodesic_volume"
+    a, b = grid.read_rgba().astype(int), direct.read_rgba().astype(int)
+    diff = np.abs(a - b)
+    lit = (b[..., :3].sum(axis=-1) > 3 * 40).sum()
+    assert lit > 200
+    assert diff.mean() < 0.5 and np.quantile(diff, 0.999) <= 6 and diff.max() <= 16
