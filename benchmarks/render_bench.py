@@ -556,18 +556,37 @@ class Bench:
             cam = fit_camera(frames[0], w, h)
             row: dict[str, Any] = {"n_atoms": n, "system": THESIS.get(n, "tiled 4AKE")}
             row.update(width=w, height=h)
-            for space in ("classical", "geodesic", "carved"):
+            # the geodesic density as the renderer chooses (`geodesic`), read from its grid
+            # wherever that fits (`geodesic_grid`), and its routes walked at every sample
+            # (`geodesic_routes`, the control of the grid)
+            r_grid = self.renderer(n, geodesic_volume=True)[0]
+            r_routes = self.renderer(n, geodesic_volume=False)[0]
+            runs = [("classical", r), ("geodesic", r), ("geodesic_grid", r_grid)]
+            runs += [("geodesic_routes", r_routes), ("carved", r)]
+            for label, rr in runs:
+                space = label.split("_")[0]
                 params = RenderParams(scale_space=space)  # type: ignore[arg-type]
-                row[space] = self.timed(
-                    self.frame_step(r, frames, params, cam, w, h), self.args.frames
+                row[label] = self.timed(
+                    self.frame_step(rr, frames, params, cam, w, h), self.args.frames
                 )
-                mem = r.memory_bytes()
+                mem = rr.memory_bytes()
                 extra = mem.get("skeleton", 0) if space == "carved" else 0
                 extra += mem.get("geodesic", 0) if space == "geodesic" else 0
-                row[f"{space}_bytes_per_atom"] = (
+                row[f"{label}_bytes_per_atom"] = (
                     mem["per_atom"] + mem["grid"] + mem["other"] + extra
                 ) / n
-            for space in ("geodesic", "carved"):
+                if space == "geodesic":
+                    row[f"{label}_drawn_as"] = rr.last_density
+                    need = rr._gvol.last_need() if rr._gvol is not None else None
+                    if need is not None:
+                        row[f"{label}_grid"] = {"spacing": need[0], "points": need[1]}
+                        row[f"{label}_grid"].update(walked=need[2], pixels=w * h)
+            del r_grid, r_routes
+            for label in ("geodesic", "geodesic_grid"):
+                row[f"{label}_over_routes_fps"] = (
+                    row["geodesic_routes"]["median_ms"] / row[label]["median_ms"]
+                )
+            for space in ("geodesic", "geodesic_grid", "geodesic_routes", "carved"):
                 row[f"{space}_over_classical_fps"] = (
                     row["classical"]["median_ms"] / row[space]["median_ms"]
                 )
@@ -576,7 +595,10 @@ class Bench:
             self.log(
                 f"N={n:>9,} {w}x{h} classical {row['classical']['median_ms']:.3f} ms, geodesic "
                 f"{row['geodesic']['median_ms']:.3f} ms ({row['geodesic_over_classical_fps']:.2f}x "
-                f"fps), carved {row['carved']['median_ms']:.3f} ms"
+                f"fps, {row['geodesic_drawn_as']}; grid {row['geodesic_grid']['median_ms']:.3f} "
+                f"ms as {row['geodesic_grid_drawn_as']}; routes per sample "
+                f"{row['geodesic_routes']['median_ms']:.3f} ms), carved "
+                f"{row['carved']['median_ms']:.3f} ms"
             )
 
     # ---- large systems: cell size, and the next upload overlapped with the last render

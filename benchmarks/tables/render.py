@@ -56,17 +56,24 @@ def render_variants(sources: list[Source]) -> str:
 
 def render_densities(sources: list[Source]) -> str:
     """The classical, geodesic and carved densities on the same frames; the classical one is the
-    control of the ratios."""
+    control of the ratios to it, and the geodesic density with its routes walked at every
+    sample (`geodesic_routes`) the control of its grid (`geodesic_grid`: wherever the grid
+    fits; `geodesic`: as the renderer chooses)."""
     ((_, res),) = sources
     rows = []
     for r in res["densities"]:
+        drawn = r.get("geodesic_drawn_as", "geodesic")
         rows.append(
             [
                 count(r["n_atoms"]),
                 size(r["width"], r["height"]),
                 num(r["classical"]["median_ms"], 3),
                 num(r["geodesic"]["median_ms"], 2),
+                "grid" if drawn == "geodesic_volume" else "routes",
                 num(r["geodesic_over_classical_fps"], 3),
+                num(r["geodesic_grid"]["median_ms"], 2) if "geodesic_grid" in r else "-",
+                num(r["geodesic_routes"]["median_ms"], 2) if "geodesic_routes" in r else "-",
+                num(r["geodesic_grid_over_routes_fps"], 2) if "geodesic_grid" in r else "-",
                 num(r["carved"]["median_ms"], 3),
                 num(r["carved_over_classical_fps"], 2),
                 " / ".join(
@@ -79,12 +86,16 @@ def render_densities(sources: list[Source]) -> str:
         "image",
         "classical ms",
         "geodesic ms",
+        "drawn from",
         "geodesic fps / classical",
+        "grid ms",
+        "routes ms",
+        "grid fps / routes",
         "carved ms",
         "carved fps / classical",
         "B/atom classical / geodesic / carved",
     ]
-    return block(sources, table(header, "rlrrrrrr", rows), params(res))
+    return block(sources, table(header, "rlrrlrrrrrrr", rows), params(res))
 
 
 def _graphs(res: Results) -> list[str]:
