@@ -50,6 +50,11 @@ wp.set_module_options({"enable_backward": False})
 NODES = 256
 """Most atoms of one atom's graph ball within the tables' reach (its Dijkstra table); beyond it
 the graph-farthest are dropped and the build reports how many atoms lost some."""
+MEAN_LANES_PER_SAMPLE = 32
+"""Threads that take one sampled atom's geodesic density together on a CUDA device (the scale
+of relative levels): a sample walks some forty times the classical one's work, and the few
+thousand samples of a frame leave the device idle with the classical density's eight
+(results/render_h200_geodesic_mean_lanes.json)."""
 MAX_ROUTES_PER_SAMPLE = 50_000
 """Most routes a sample of the geodesic density may walk (atoms within the cutoff times the
 routes of each, `geodesic.route_work`), checked before the route tables are built. At the

@@ -253,8 +253,12 @@ class Renderer(ImageOutputs):
         self._field_seen: tuple[Derived, Any] | None = None
         lanes = t.mean_lanes
         self._mean_lanes = lanes if lanes is not None else LANES_PER_SAMPLE if self._cuda else 1
+        geo_lanes = geodesic_field.MEAN_LANES_PER_SAMPLE if self._cuda else 1
+        self._geo_mean_lanes = lanes if lanes is not None else geo_lanes
         self._density_samples = wp.zeros(
-            MEAN_SAMPLES * self._mean_lanes, dtype=float, device=self.device
+            MEAN_SAMPLES * max(self._mean_lanes, self._geo_mean_lanes),
+            dtype=float,
+            device=self.device,
         )
         self._density_partial = wp.zeros(MEAN_LANES, dtype=float, device=self.device)
         self._density_total = wp.zeros(1, dtype=float, device=self.device)
@@ -1236,7 +1240,7 @@ class Renderer(ImageOutputs):
             geo = f.geo if d.volume_h > 0.0 else f
             self._geodesic_tables().refresh(self._pos, self._weights, GAIN)
             if d.relative:
-                lanes = self._mean_lanes
+                lanes = self._geo_mean_lanes
                 sampled = (geo, self._pos, n // samples, lanes, self._density_samples)
                 wp.launch(
                     geodesic_field.sampled_values_kernel,

@@ -132,7 +132,8 @@ class Tuning:
     baseline of the accuracy reach's gain."""
     mean_lanes: int | None = None
     """Threads per sampled atom of the mean density (None: density.LANES_PER_SAMPLE on CUDA,
-    1 on the CPU; 1 is the baseline)."""
+    geodesic_field.MEAN_LANES_PER_SAMPLE for the geodesic density's, 1 on the CPU; 1 is the
+    baseline); also the threads per point of the geodesic grid's fill."""
     decided_sides: bool | None = None
     """The marching kernels ask a density only for each sample's side of the level where it
     can tell it sooner than the value (`DensityModel.side4`: the geodesic density); off,
