@@ -638,6 +638,10 @@ class GeodesicVolume:
         """Whether the buffers hold `points` grid points and `listed` walked ones."""
         return points <= self.capacity and listed <= self.listed_capacity
 
+    def bytes_for(self, points: int, listed: int) -> int:
+        """Device bytes of buffers for `points` grid points and `listed` walked ones."""
+        return int(points * SLACK + 64) * 16 + int(listed * SLACK + 64) * 4 * self.lanes
+
     def reserve(self, points: int, listed: int) -> None:
         """Buffers for `points` grid points and `listed` walked ones, with SLACK (graphs and
         fields that hold the old ones must be let go first)."""

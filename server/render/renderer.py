@@ -869,7 +869,8 @@ class Renderer(ImageOutputs):
     def _plan_volume(self, d: Derived, pixels: int) -> Derived:
         """`d` with the grid spacing of `geodesic_volume` when its rays should read the
         geodesic density from a grid: when the grid has at most POINTS_PER_PIXEL points a pixel
-        (Tuning.geodesic_volume None), or whenever it fits (True). Sizes the grid's buffers from
+        (Tuning.geodesic_volume None), or whenever it fits (True), in half the device's free
+        memory at most (the routes per sample otherwise). Sizes the grid's buffers from
         what the last frame's grid needed (synchronises on that finished frame), or from the
         atoms' box before the first."""
         use = self.tuning.geodesic_volume
@@ -892,7 +893,9 @@ class Renderer(ImageOutputs):
         limit = geodesic_volume.MAX_POINTS
         if use is None:
             limit = min(limit, int(geodesic_volume.POINTS_PER_PIXEL * pixels))
-        if points > limit:
+        free = geodesic_field.free_bytes(self.device)
+        room = free is None or vol.bytes_for(points, listed + 1) < free // 2 + vol.nbytes
+        if points > limit or not room:
             vol.built = None  # the next plan measures the atoms again: they may shrink back
             return d
         if not vol.fits(points, listed + 1):
