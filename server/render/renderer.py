@@ -870,11 +870,14 @@ class Renderer(ImageOutputs):
         """`d` with the grid spacing of `geodesic_volume` when its rays should read the
         geodesic density from a grid: when the grid has at most POINTS_PER_PIXEL points a pixel
         (Tuning.geodesic_volume None), or whenever it fits (True), in half the device's free
-        memory at most (the routes per sample otherwise). Sizes the grid's buffers from
+        memory at most and at a smoothing of at most MAX_SMOOTHING (the routes per sample
+        otherwise). Sizes the grid's buffers from
         what the last frame's grid needed (synchronises on that finished frame), or from the
         atoms' box before the first."""
         use = self.tuning.geodesic_volume
         if d.geo is None or not self._n or use is False:
+            return d
+        if d.geo.tau > geodesic_volume.MAX_SMOOTHING * d.sigma * (1.0 + 1e-9):
             return d
         sigma_min = d.sigma if d.per_atom == 0 else d.sigma_per_radius * self._r_min
         h = geodesic_volume.spacing_of(sigma_min, d.geo.tau)

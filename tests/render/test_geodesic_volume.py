@@ -153,3 +153,16 @@ def test_volume_mode_reads_the_grid_too() -> None:
     lit = (b[..., :3].sum(axis=-1) > 3 * 40).sum()
     assert lit > 200
     assert diff.mean() < 0.5 and np.quantile(diff, 0.999) <= 6 and diff.max() <= 16
+
+
+def test_a_smoothing_past_the_grids_range_walks_the_routes() -> None:
+    """Past MAX_SMOOTHING the level falls to the Gaussians' tails, where the spline rings: the
+    routes are walked per sample, even when the grid is asked for."""
+    mol = villin()
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    drawn = []
+    for smoothing in (1.0, 2.0):
+        params = RenderParams(scale_space="geodesic", geodesic_smoothing=smoothing)
+        r = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+        drawn.append(r.last_density)
+    assert drawn == ["geodesic_volume", "geodesic"]
