@@ -612,6 +612,9 @@ class GeodesicVolume:
         self.listed_capacity = 0
         self.built: tuple[float, int] | None = None
         """(spacing, capacity) of the last build, so the next plan reads what it needed."""
+        self._need: tuple[float, int, int] | None = None
+        """`last_need` once read: frames that keep the grid (a camera turning over still
+        positions) plan from it without reading the device again."""
         self._alloc(0, 0)
 
     def _alloc(self, points: int, listed: int) -> None:
@@ -635,9 +638,12 @@ class GeodesicVolume:
         that build is done); listed 0 when its grid did not fit (it listed nothing)."""
         if self.built is None:
             return None
+        if self._need is not None:
+            return self._need
         v = self.vol.numpy()[0]
         listed = int(self.count.numpy()[0]) if int(v["valid"]) else 0
-        return self.built[0], int(v["points"]), listed
+        self._need = (self.built[0], int(v["points"]), listed)
+        return self._need
 
     def fits(self, points: int, listed: int) -> bool:
         """Whether the buffers hold `points` grid points and `listed` walked ones."""
@@ -658,6 +664,7 @@ class GeodesicVolume:
         dev = self.device
         cap = self.capacity
         self.built = (h, cap)
+        self._need = None
         _wp.launch(setup_kernel, 1, (info, float(h), cap, self.vol), device=dev)
         if cap == 0:
             return

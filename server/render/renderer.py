@@ -871,9 +871,8 @@ class Renderer(ImageOutputs):
         geodesic density from a grid: when the grid has at most POINTS_PER_PIXEL points a pixel
         (Tuning.geodesic_volume None), or whenever it fits (True), in half the device's free
         memory at most and at a smoothing of at most MAX_SMOOTHING (the routes per sample
-        otherwise). Sizes the grid's buffers from
-        what the last frame's grid needed (synchronises on that finished frame), or from the
-        atoms' box before the first."""
+        otherwise). Sizes the grid's buffers from what the last grid built needed (read once
+        from the device, after its frame), or from the atoms' box before the first."""
         use = self.tuning.geodesic_volume
         if d.geo is None or not self._n or use is False:
             return d
