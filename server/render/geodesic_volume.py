@@ -20,13 +20,18 @@ frame before, once it is done):
     CUT times the level hold 0 and walk no route: their value is below a fifth of the level,
     where the interpolant near the surface barely feels it;
   * the others are listed (a scan) and their routes walked by `lanes` threads each, as the mean
-    density is (`fill_kernel`, `sum_kernel`; points past the planned count one thread each);
+    density is, FILL_CHUNK points a launch (`fill_kernel`, `sum_kernel`; points past the planned
+    count one thread each): each point's value, colour and largest contributor;
   * `prefilter_kernel` along x, y and z turns values into B-spline coefficients (the causal and
     anticausal recursions of the cubic B-spline's pole, sqrt(3) - 2), so the spline interpolates
     the grid's values rather than blurring them.
 
-Colour and the picked atom come from the classical terms at the shaded point (its largest
-contributor and contribution-weighted colour); value and gradient from the spline.
+The fill also keeps, at every walked point, the routes' contribution-weighted colour and their
+largest contributor. A shaded point takes its colour from its cell's eight points
+(trilinear) and its atom from those points' largest contributors: their terms are evaluated
+there and the largest is picked, so a pixel picks what the routes per sample pick wherever
+the largest contributor at the point is one of its cell's (a walk of a few atoms' routes
+where the routes per sample walk some forty atoms'). Value and gradient come from the spline.
 """
 
 from __future__ import annotations
@@ -49,7 +54,6 @@ from server.render.density import (
 )
 from server.render.geodesic_field import (
     GeodesicField,
-    _walk_value_lane,
     geodesic_box_bound,
     geodesic_part_bounds,
     geodesic_sample,
@@ -79,17 +83,16 @@ tapered tails, where the spline rings (two thirds of villin's drawn pixels chang
 sigma 1.5 A); past it the routes are walked per sample."""
 CUT = 0.2
 """Points whose bound is below this fraction of the level hold 0 (their value is below it)."""
-POINTS_PER_PIXEL = 12.0
+POINTS_PER_PIXEL = 10.75
 """The grid is used when it has at most this many points a pixel of the image. A grid point
 costs about what a ray sample does; a pixel costs several samples, fewer where the molecule
 covers less of the image. One NVIDIA H200 (render_h200_densities.json, the routes per sample
-the control): the grid took 0.24-0.37 of the time at 0.6-10 points a pixel (villin to 10,000
-atoms at 500x500) and 1.09 of it at 10.8 (100,000 atoms at 1920x1080). Past the crossover the
-grid loses by a tenth, short of it the routes by up to four times: the rule errs on the grid's
-side."""
+the control): the grid took 0.07-0.34 of the routes' time at 0.6-10.5 points a pixel (villin
+to 10,000 atoms at 500x500) and 1.17 of it at 11.05 (100,000 atoms at 1920x1080): the rule
+sits between the two."""
 MAX_POINTS = 1 << 25
-"""Most grid points a plan takes: with SLACK, buffers of up to 50M points (16 bytes each) and
-the lanes' sums of their walked ones."""
+"""Most grid points a plan takes: with SLACK, buffers of up to 50M points (24 bytes each) and
+the lanes' sums of one FILL_CHUNK of their walked ones."""
 REACH_STEPS = 6.0
 """Grid steps past an atom's cutoff that its value reaches through the spline (two) and the
 prefilter (whose recursion decays by 0.27 a step): what a device that keeps only the atoms near
@@ -99,6 +102,13 @@ LISTED = 0.35
 adenylate kinase at sigma 1.5 A: 0.17-0.23)."""
 SLACK = 1.5
 """Points allocated per point the plan expects (the molecule moves between frames)."""
+FILL_CHUNK = 1 << 20
+"""Listed points one fill launch takes: the lanes' partial sums (value, colour, largest term;
+24 bytes a lane, 200 MB a chunk at eight lanes) are held for one chunk at a time, so they do
+not grow with the molecule. 2^17 cost 100,000 atoms at 1920x1080 8 % more (a launch's last
+wave; one NVIDIA H200); eight lanes a point were as fast as four, and 1.1-2.1x faster than 16
+or 32 (`render_h200_geodesic_grid_pick_sweep.json`)."""
+_Ints8 = wp.types.vector(length=8, dtype=wp.int32)
 
 _POLE = wp.constant(math.sqrt(3.0) - 2.0)  # type: ignore[no-untyped-call]
 
@@ -124,7 +134,9 @@ class VolumeInfo:
 class GeodesicVolumeField:
     """What the sampled geodesic density reads; `info` to `brick_bound` are the atom grid's
     (the caster walks them with the geodesic bounds), `geo` the routes (for the grid's fill
-    and the fallback), `coef` the spline's coefficients."""
+    and the fallback), `coef` the spline's coefficients, `tint` each point's colour (RGB,
+    alpha 255 where walked) and `atoms` its largest contributor (sorted index, -1 where not
+    walked)."""
 
     info: wp.array[GridInfo]
     cell_start: wp.array[wp.int32]
@@ -133,6 +145,8 @@ class GeodesicVolumeField:
     brick_bound: wp.array[float]
     geo: GeodesicField
     coef: wp.array[float]
+    tint: wp.array[wp.uint32]
+    atoms: wp.array[wp.int32]
     vol: wp.array[VolumeInfo]
 
 
@@ -264,42 +278,129 @@ def volume_value_grad(f: GeodesicVolumeField, p: wp.vec3) -> wp.vec4:
 
 @wp.func
 @no_type_check
-def row_pick(f: GeodesicField, p: wp.vec3, j0: int, j1: int, acc: Sample) -> Sample:
-    """The geodesic terms' sum, contribution-weighted colour and largest contributor (as
-    `geodesic_field.row_sample`, without the gradient: the spline gives it)."""
+def row_pick_lane(f: GeodesicField, q: LanePoint, j0: int, j1: int, acc: Sample) -> Sample:
+    """The lane's share of the routes' terms over sorted atoms [j0, j1) (every `lanes`-th, as
+    `row_value_lane`, so the values add up in the same order): their sum, contribution-weighted
+    colour and largest term, `atom` its sorted index (ties: the lower original index)."""
     s = acc
     g = f.gauss
-    for j in range(j0, j1):
-        t = term(f, j, p)
+    j = j0 + q.lane
+    while j < j1:
+        t = term(f, j, q.p)
         if t > 0.0:
             s.value = s.value + t
-            oj = int(g.order[j])
-            s.color = s.color + unpack_rgb(g.colors[oj]) * t
-            if t > s.weight or (t == s.weight and oj < s.atom):
+            s.color = s.color + unpack_rgb(g.colors[g.order[j]]) * t
+            if t > s.weight:
                 s.weight = t
-                s.atom = oj
+                s.atom = j
+            elif t == s.weight and g.order[j] < g.order[s.atom]:
+                s.atom = j
+        j += q.lanes
     return s
 
 
-_walk_pick = cell_rows("geodesic_pick", row_pick, wp.vec3, Sample, field=GeodesicField)
+_walk_pick_lane = cell_rows(
+    "geodesic_pick_lane", row_pick_lane, LanePoint, Sample, field=GeodesicField
+)
+
+
+@wp.func
+@no_type_check
+def pick_walk(f: GeodesicField, p: wp.vec3, lane: int, lanes: int) -> Sample:
+    """One lane's `row_pick_lane` over every row within reach of p."""
+    q = LanePoint()
+    q.p = p
+    q.lane = lane
+    q.lanes = lanes
+    s = Sample()
+    s.value = 0.0
+    s.grad = wp.vec3(0.0, 0.0, 0.0)
+    s.color = wp.vec3(0.0, 0.0, 0.0)
+    s.weight = -1.0
+    s.atom = -1
+    return _walk_pick_lane(f, p, p, q, s)
+
+
+@wp.func
+@no_type_check
+def pack_tint(c: wp.vec3) -> wp.uint32:
+    """A colour in [0, 1]^3 as RGB bytes, alpha 255 (a walked point)."""
+    r = wp.uint32(wp.clamp(c[0] * 255.0 + 0.5, 0.0, 255.0))
+    g = wp.uint32(wp.clamp(c[1] * 255.0 + 0.5, 0.0, 255.0))
+    b = wp.uint32(wp.clamp(c[2] * 255.0 + 0.5, 0.0, 255.0))
+    return r | (g << wp.uint32(8)) | (b << wp.uint32(16)) | (wp.uint32(255) << wp.uint32(24))
+
+
+@wp.func
+@no_type_check
+def grid_pick(f: GeodesicVolumeField, v: VolumeInfo, p: wp.vec3) -> Sample:
+    """Colour (trilinear over the walked points of p's cell, `weight` 1) and the picked atom
+    (original index): the largest of the cell's points' largest contributors, their terms
+    evaluated at p. `atom` -1 when the cell has no walked point."""
+    s = Sample()
+    s.value = 0.0
+    s.grad = wp.vec3(0.0, 0.0, 0.0)
+    s.color = wp.vec3(0.0, 0.0, 0.0)
+    s.weight = 0.0
+    s.atom = -1
+    c = corner(v, p)
+    if c[0] >= 0.0:
+        i = int(c[0]) + 1
+        j = int(c[1]) + 1
+        k = int(c[2]) + 1
+        u = (p - v.origin) * v.inv_h
+        fx = u[0] - float(i)
+        fy = u[1] - float(j)
+        fz = u[2] - float(k)
+        nx = v.dims[0]
+        ny = v.dims[1]
+        g = f.geo.gauss
+        seen = _Ints8()
+        best = float(-1.0)
+        for n in range(8):
+            dx = n & 1
+            dy = (n >> 1) & 1
+            dz = n >> 2
+            at = ((k + dz) * ny + j + dy) * nx + i + dx
+            w = wp.where(dx == 1, fx, 1.0 - fx) * wp.where(dy == 1, fy, 1.0 - fy)
+            w = w * wp.where(dz == 1, fz, 1.0 - fz)
+            t = f.tint[at]
+            if (t >> wp.uint32(24)) != wp.uint32(0):
+                s.color = s.color + unpack_rgb(t) * w
+                s.weight = s.weight + w
+            a = f.atoms[at]
+            fresh = a >= 0
+            for m in range(n):
+                if seen[m] == a + 1:
+                    fresh = False
+            seen[n] = a + 1
+            if fresh:
+                tv = term(f.geo, a, p)
+                oa = int(g.order[a])
+                if tv > best:
+                    best = tv
+                    s.atom = oa
+                elif tv == best and oa < s.atom:
+                    s.atom = oa
+        if s.weight > 0.0:
+            s.color = s.color / s.weight
+            s.weight = 1.0
+    return s
 
 
 @wp.func
 @no_type_check
 def volume_sample(f: GeodesicVolumeField, p: wp.vec3) -> Sample:
-    """At a shaded point: colour and the picked atom from the routes' terms there (one walk a
-    pixel, so a pixel picks what the routes per sample pick), value and gradient from the
-    spline (the surface and its normal the rays found)."""
+    """At a shaded point: value and gradient from the spline (the surface and its normal the
+    rays found), colour and the picked atom from the grid's points around it (`grid_pick`);
+    the routes per sample where the grid does not hold the frame or the cell was not walked."""
     v = f.vol[0]
     s = Sample()
+    s.atom = -1
+    s.weight = 0.0
     if v.valid != 0:
-        s.value = 0.0
-        s.grad = wp.vec3(0.0, 0.0, 0.0)
-        s.color = wp.vec3(0.0, 0.0, 0.0)
-        s.weight = -1.0
-        s.atom = -1
-        s = _walk_pick(f.geo, p, p, p, s)
-        s.weight = s.value
+        s = grid_pick(f, v, p)
+    if s.atom >= 0 and s.weight > 0.0:
         g = spline_value_grad(f.coef, v, p)
         s.value = g[3]
         s.grad = wp.vec3(g[0], g[1], g[2])
@@ -457,15 +558,19 @@ def gate_kernel(
     vol: wp.array[VolumeInfo],
     cut: float,
     coef: wp.array[float],
+    tint: wp.array[wp.uint32],
+    atoms: wp.array[wp.int32],
     flags: wp.array[wp.int32],
 ):
     """flags[i] = 1 where point i's bound reaches `cut` (its routes are walked), and every
-    point's value 0 until then."""
+    point's value 0 (no colour, no atom) until then."""
     i = wp.tid()
     v = vol[0]
     flag = 0
     if v.valid != 0 and i < v.points:
         coef[i] = 0.0
+        tint[i] = wp.uint32(0)
+        atoms[i] = -1
         b = gaussian_value(f.gauss, point_of(v, i)) * f.routes.gate
         if b > 0.0 and b >= cut:
             flag = 1
@@ -496,35 +601,77 @@ def fill_kernel(
     listed: wp.array[wp.int32],
     count: wp.array[wp.int32],
     lanes: int,
+    first: int,
     partial: wp.array[float],
+    partial_tint: wp.array[wp.vec4],
+    partial_atom: wp.array[wp.int32],
 ):
-    """Lane `t % lanes` of listed point `t // lanes`: its share of the point's atoms (every
-    `lanes`-th of each row, a fixed order)."""
+    """Lane `t % lanes` of listed point `first + t // lanes`: its share of the point's atoms
+    (every `lanes`-th of each row, a fixed order): value, colour sum and largest term."""
     t = wp.tid()
     k = t // lanes
-    if k < count[0]:
-        q = LanePoint()
-        q.p = point_of(vol[0], listed[k])
-        q.lane = t - k * lanes
-        q.lanes = lanes
-        partial[t] = _walk_value_lane(f, q.p, q.p, q, wp.float32(0.0))
+    if first + k < count[0]:
+        p = point_of(vol[0], listed[first + k])
+        s = pick_walk(f, p, t - k * lanes, lanes)
+        partial[t] = s.value
+        partial_tint[t] = wp.vec4(s.color[0], s.color[1], s.color[2], s.weight)
+        partial_atom[t] = s.atom
+
+
+@wp.func
+@no_type_check
+def keep_point(
+    i: int,
+    s: Sample,
+    coef: wp.array[float],
+    tint: wp.array[wp.uint32],
+    atoms: wp.array[wp.int32],
+):
+    """Point i's value, colour and largest contributor."""
+    coef[i] = s.value
+    if s.value > 0.0 and s.atom >= 0:
+        tint[i] = pack_tint(s.color / s.value)
+        atoms[i] = s.atom
 
 
 @wp.kernel
 @no_type_check
 def sum_kernel(
+    f: GeodesicField,
     partial: wp.array[float],
+    partial_tint: wp.array[wp.vec4],
+    partial_atom: wp.array[wp.int32],
     lanes: int,
+    first: int,
     listed: wp.array[wp.int32],
     count: wp.array[wp.int32],
     coef: wp.array[float],
+    tint: wp.array[wp.uint32],
+    atoms: wp.array[wp.int32],
 ):
+    """The lanes' shares of listed point `first + tid` added in lane order; the largest term
+    the largest of theirs (ties: the lower original index, as one thread's walk)."""
     k = wp.tid()
-    if k < count[0]:
-        s = float(0.0)
+    if first + k < count[0]:
+        s = Sample()
+        s.value = 0.0
+        s.color = wp.vec3(0.0, 0.0, 0.0)
+        s.weight = -1.0
+        s.atom = -1
+        order = f.gauss.order
         for q in range(lanes):
-            s += partial[k * lanes + q]
-        coef[listed[k]] = s
+            u = k * lanes + q
+            s.value += partial[u]
+            pt = partial_tint[u]
+            s.color = s.color + wp.vec3(pt[0], pt[1], pt[2])
+            a = partial_atom[u]
+            if a >= 0:
+                if pt[3] > s.weight:
+                    s.weight = pt[3]
+                    s.atom = a
+                elif pt[3] == s.weight and order[a] < order[s.atom]:
+                    s.atom = a
+        keep_point(listed[first + k], s, coef, tint, atoms)
 
 
 @wp.kernel
@@ -537,6 +684,8 @@ def rest_kernel(
     first: int,
     threads: int,
     coef: wp.array[float],
+    tint: wp.array[wp.uint32],
+    atoms: wp.array[wp.int32],
 ):
     """Listed points past the planned count (`first`), one thread each in turn: the molecule
     grew since the plan; the next frame's plan makes room."""
@@ -545,7 +694,7 @@ def rest_kernel(
     v = vol[0]
     while k < n:
         i = listed[k]
-        coef[i] = geodesic_value(f, point_of(v, i))
+        keep_point(i, pick_walk(f, point_of(v, i), 0, 1), coef, tint, atoms)
         k += threads
 
 
@@ -621,16 +770,31 @@ class GeodesicVolume:
         dev = self.device
         n = max(points, 1)
         self.coef = _wp.zeros(n, dtype=float, device=dev)
+        self.tint = _wp.zeros(n, dtype=_wp.uint32, device=dev)
+        self.atoms = _wp.zeros(n, dtype=_wp.int32, device=dev)
         self.flags = _wp.zeros(n, dtype=_wp.int32, device=dev)
         self.scan = _wp.zeros(n, dtype=_wp.int32, device=dev)
         self.listed = _wp.zeros(n, dtype=_wp.int32, device=dev)
-        self.partial = _wp.zeros(max(listed, 1) * self.lanes, dtype=float, device=dev)
+        lanes = max(min(listed, FILL_CHUNK), 1) * self.lanes
+        self.partial = _wp.zeros(lanes, dtype=float, device=dev)
+        self.partial_tint = _wp.zeros(lanes, dtype=_wp.vec4, device=dev)
+        self.partial_atom = _wp.zeros(lanes, dtype=_wp.int32, device=dev)
         self.capacity = points
         self.listed_capacity = listed
 
     @property
     def nbytes(self) -> int:
-        arrays = (self.coef, self.flags, self.scan, self.listed, self.partial)
+        arrays = (
+            self.coef,
+            self.tint,
+            self.atoms,
+            self.flags,
+            self.scan,
+            self.listed,
+            self.partial,
+            self.partial_tint,
+            self.partial_atom,
+        )
         return sum(int(a.capacity) for a in arrays)
 
     def last_need(self) -> tuple[float, int, int] | None:
@@ -651,7 +815,8 @@ class GeodesicVolume:
 
     def bytes_for(self, points: int, listed: int) -> int:
         """Device bytes of buffers for `points` grid points and `listed` walked ones."""
-        return int(points * SLACK + 64) * 16 + int(listed * SLACK + 64) * 4 * self.lanes
+        chunk = min(int(listed * SLACK + 64), FILL_CHUNK)
+        return int(points * SLACK + 64) * 24 + chunk * 24 * self.lanes
 
     def reserve(self, points: int, listed: int) -> None:
         """Buffers for `points` grid points and `listed` walked ones, with SLACK (graphs and
@@ -668,19 +833,22 @@ class GeodesicVolume:
         _wp.launch(setup_kernel, 1, (info, float(h), cap, self.vol), device=dev)
         if cap == 0:
             return
-        gate = (f, self.vol, float(cut), self.coef, self.flags)
+        gate = (f, self.vol, float(cut), self.coef, self.tint, self.atoms, self.flags)
         _wp.launch(gate_kernel, cap, gate, device=dev)
         _wp.utils.array_scan(self.flags, self.scan, inclusive=False)
         compact = (self.flags, self.scan, cap - 1, self.listed, self.count)
         _wp.launch(compact_kernel, cap, compact, device=dev)
         lanes, listed = self.lanes, self.listed_capacity
-        if listed:
-            fill = (f, self.vol, self.listed, self.count, lanes, self.partial)
-            _wp.launch(fill_kernel, listed * lanes, fill, device=dev)
-            total = (self.partial, lanes, self.listed, self.count, self.coef)
-            _wp.launch(sum_kernel, listed, total, device=dev)
+        keep = (self.coef, self.tint, self.atoms)
+        parts = (self.partial, self.partial_tint, self.partial_atom)
+        for first in range(0, listed, FILL_CHUNK):
+            n = min(FILL_CHUNK, listed - first)
+            fill = (f, self.vol, self.listed, self.count, lanes, first, *parts)
+            _wp.launch(fill_kernel, n * lanes, fill, device=dev)
+            total = (f, *parts, lanes, first, self.listed, self.count, *keep)
+            _wp.launch(sum_kernel, n, total, device=dev)
         rest_threads = 4096 if self.cuda else 1
-        rest = (f, self.vol, self.listed, self.count, listed, rest_threads, self.coef)
+        rest = (f, self.vol, self.listed, self.count, listed, rest_threads, *keep)
         _wp.launch(rest_kernel, rest_threads, rest, device=dev)
         lines = cap // 5 + 1
         for axis in range(3):
@@ -695,5 +863,7 @@ class GeodesicVolume:
         f.brick_bound = geo.brick_bound
         f.geo = geo
         f.coef = self.coef
+        f.tint = self.tint
+        f.atoms = self.atoms
         f.vol = self.vol
         return f

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from protocol import RenderParams
+from server.render import geodesic_volume
 from server.render.camera import camera_frame, fit_camera, image_rays, orbit
 from server.render.renderer import Renderer
 from tests.render.helpers import render
@@ -121,10 +122,66 @@ def test_points_past_the_planned_count_are_walked_too(monkeypatch: pytest.Monkey
         np.testing.assert_array_equal(a, b)
 
 
+def _walked(r: Renderer) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The points the last grid walked: positions, values, colours (RGBA bytes) and largest
+    contributors (original atom indices)."""
+    vol = r._gvol
+    assert vol is not None
+    v = vol.vol.numpy()[0]
+    n = int(vol.count.numpy()[0])
+    idx = vol.listed.numpy()[:n]
+    nx, ny, _nz = (int(x) for x in v["dims"])
+    xyz = np.stack([idx % nx, (idx // nx) % ny, idx // (nx * ny)], axis=1)
+    pts = np.asarray(v["origin"], np.float32) + xyz.astype(np.float32) * np.float32(v["h"])
+    tint = vol.tint.numpy()[idx]
+    rgba = np.stack([(tint >> s) & 255 for s in (0, 8, 16, 24)], axis=1)
+    order = r._grid.order.numpy()
+    sorted_ids = vol.atoms.numpy()[idx]
+    ids = np.where(sorted_ids >= 0, order[np.maximum(sorted_ids, 0)], -1)
+    return pts, vol.coef.numpy()[idx], rgba, ids
+
+
+def test_each_walked_point_keeps_the_routes_colour_and_largest_contributor(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The fill keeps, at every walked point, the routes' contribution-weighted colour (to
+    the byte) and their largest contributor: what a shaded point reads instead of walking the
+    routes. Taken in chunks of the walked points (the lanes' sums held for one chunk), the
+    grid is the same, bit for bit."""
+    mol = villin()
+    params = RenderParams(scale_space="geodesic")
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    r = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+    direct = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=False)
+    pts, _coef, rgba, ids = _walked(r)
+    assert len(pts) > 1000
+    _val, _vg, col, ids0 = direct.evaluate(pts)
+    held = col[:, 3] > 0.0
+    assert held.mean() > 0.5
+    assert (rgba[held, 3] == 255).all() and (rgba[~held, 3] == 0).all()
+    expect = np.clip(np.floor(col[held, :3].astype(np.float64) * 255.0 + 0.5), 0, 255)
+    assert np.abs(rgba[held, :3] - expect).max() <= 1
+    np.testing.assert_array_equal(ids[held], ids0[held])
+    assert (ids[~held] == -1).all()
+    whole = _walked(r)
+    monkeypatch.setattr(geodesic_volume, "FILL_CHUNK", 97)
+    vol = r._gvol
+    assert vol is not None
+    r._field_seen = None
+    r._drop_graphs()
+    vol._alloc(vol.capacity, vol.listed_capacity)
+    assert len(vol.partial) == 97 * vol.lanes
+    r.set_positions(mol.positions)
+    r.render(params, cam, W, H)
+    for a, b in zip(_walked(r), whole, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_a_pixel_picks_what_the_routes_pick() -> None:
-    """Colour and the picked atom come from the routes' terms at the hit the grid's rays
-    found: the same atom as the routes per sample at nearly every pixel (the hits differ by
-    the grid's error), and a colour within a few levels."""
+    """Colour and the picked atom come from the grid's points around the hit the grid's rays
+    found (trilinear colour; the largest of their largest contributors' terms there): the
+    same atom as the routes per sample at nearly every pixel (the hits differ by the grid's
+    error), and a colour within a few levels."""
     mol = villin()
     params = RenderParams(scale_space="geodesic", sigma_A=3.0)
     cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
