@@ -234,6 +234,9 @@ class ServerSettings:
     bigger canvases get a smaller image, scaled up by the browser."""
     cpu_max_rest_pixels: int = 1920 * 1080
     """Largest `/api/render` image on the CPU device."""
+    one_off_render_seconds: float = 60.0
+    """Most device seconds one `/api/render` image may take, judged from its first bands of
+    rows (`server.pipeline.bands`); past it the render is refused, naming the estimate."""
     encode_workers: int = field(default_factory=default_encode_workers)
     """Threads that encode images; also how many encodes the renderer keeps in flight."""
     render_defaults: RenderParams = field(default_factory=RenderParams)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import threading
 import time
@@ -38,6 +39,7 @@ import numpy as np
 import numpy.typing as npt
 
 import protocol as p
+from server.pipeline.bands import BandPlan
 from server.pipeline.staging import FrameStager, Staging
 from server.pipeline.turns import TurnExecutor, rank_of
 from server.render.errors import CapacityError, RenderError
@@ -64,6 +66,14 @@ CPU_KERNELS = threading.Lock()
 """Held by a lane on the CPU device while it works. Warp's CPU kernels keep state in statics of
 their JIT-compiled code (its JIT has no thread-local storage), and two threads running them at
 once crash the process: lanes on CPU devices (`--gpus cpu,cpu`) take turns."""
+
+
+def _tiles(renderer: Any) -> bool:
+    """Whether `renderer` draws a tile of an image (one device's; not one split across
+    several, which splits the image itself)."""
+    from server.render import Renderer
+
+    return isinstance(renderer, Renderer)
 
 
 def _serial(fn: Callable[..., T], *args: Any) -> T:
@@ -120,6 +130,9 @@ class RenderRequest:
     """JPEG viewers take this image at this quality: where the queue has an encoder for the
     render's device (`GpuQueue.jpeg`) the lane encodes it there and only the JPEG comes back
     (`RenderOutput.jpeg`; the RGBA image then is not read back for them)."""
+    tile: tuple[int, int, int, int] | None = None
+    """(x0, y0, w, h): draw only that rectangle of the image, where the slot's renderer can
+    (one device: `RenderOutput.tile` says what was drawn); None: all of it."""
 
 
 @dataclass(frozen=True)
@@ -152,6 +165,10 @@ class RenderOutput:
     """The image as JPEG at the request's `jpeg_quality`, encoded on its device."""
     jpeg_ms: float = 0.0
     """The time that encode took (packing the pixels included)."""
+    tile: tuple[int, int, int, int] | None = None
+    """The request's tile when only it was drawn (None: the whole image)."""
+    seconds: float = 0.0
+    """How long the render held its device's thread."""
 
     def image(self) -> npt.NDArray[np.uint8]:
         """The RGBA image, which every request has unless it said `rgba=False` or its JPEG
@@ -393,6 +410,28 @@ class GpuQueue:
         await self._room_for(request.slot, self._whole_atoms(request))
         lane = await self._lane(request.slot)
         return await self._run(lane, self.render_sync, request, slot=request.slot)
+
+    async def render_bands(self, request: RenderRequest, limit_s: float) -> RenderOutput:
+        """A one-off image drawn in bands of rows, each its own turn on the device's thread,
+        so live work goes between them; refused (`bands.TooCostlyError`) once its bands say the
+        whole would take more than `limit_s` seconds of the device (`bands`). A slot drawn
+        across several devices takes the whole image in one turn."""
+        await self._room_for(request.slot, self._whole_atoms(request))
+        plan = BandPlan(request.width, request.height, limit_s)
+        rows = plan.first()
+        image = np.empty((request.height, request.width, 4), dtype=np.uint8)
+        timings: dict[str, float] = {}
+        while rows:
+            lane = await self._lane(request.slot)
+            band = dataclasses.replace(request, tile=(0, plan.y, request.width, rows))
+            out = await self._run(lane, self.render_sync, band, slot=request.slot)
+            if out.tile is None:  # drawn whole
+                return out
+            image[plan.y : plan.y + rows] = out.image()
+            for key, ms in out.timings.items():
+                timings[key] = timings.get(key, 0.0) + ms
+            rows = plan.drawn(rows, out.seconds)
+        return RenderOutput(image, timings, seconds=plan.spent_s)
 
     @staticmethod
     def _whole_atoms(request: RenderRequest) -> int:
@@ -692,7 +731,14 @@ class GpuQueue:
             renderer.set_history(
                 snap.history, snap.history_epoch, request.params, live=snap.live, lag=snap.lag
             )
-        renderer.render(request.params, request.camera, request.width, request.height, wait=wait)
+        size = (request.params, request.camera, request.width, request.height)
+        if request.tile is not None and _tiles(renderer):
+            from server.render import Renderer
+
+            assert isinstance(renderer, Renderer)
+            renderer.render(*size, request.tile, wait=wait)
+        else:
+            renderer.render(*size, wait=wait)
         return renderer
 
     def _prefetch(self, slot: _Slot, request: RenderRequest) -> None:
@@ -764,10 +810,12 @@ class GpuQueue:
             live=snap.live,
             lag=snap.lag,
             background=request.params.background,
+            tile=request.tile,
         )
         return slot.layered
 
     def render_sync(self, request: RenderRequest) -> RenderOutput:
+        t0 = time.perf_counter()
         slot = self._slot(request.slot)
         before = slot.prefetched
         slot.prefetched = None
@@ -799,6 +847,9 @@ class GpuQueue:
             out = RenderOutput(rgba, dict(renderer.timings), hist, i420)
             if jpeg is not None:
                 out.jpeg, out.jpeg_ms = jpeg
+            if request.tile is not None and (request.layers is not None or _tiles(renderer)):
+                out.tile = request.tile
+            out.seconds = time.perf_counter() - t0
             return out
 
     def _jpeg_on_device(self, renderer: Any, quality: int) -> tuple[bytes, float] | None:

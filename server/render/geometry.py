@@ -441,12 +441,16 @@ class GeometryRenderer(ImageOutputs):
         width: int,
         height: int,
         radius: float | None = None,
+        tile: tuple[int, int, int, int] | None = None,
     ) -> None:
+        """Draw the shapes; `tile` (x0, y0, w, h): only that rectangle of the width x height
+        image, as the whole image has it (the outputs are then w x h)."""
         if self._topology is None or self._positions is None:
             raise RenderError("set_topology and set_positions come before render")
         t0 = time.perf_counter()
         w, h = int(width), int(height)
-        self._alloc_pixels(w * h)
+        pw, ph = (int(tile[2]), int(tile[3])) if tile is not None else (w, h)
+        self._alloc_pixels(pw * ph)
         r = self._radius(params, radius)
         dev = self.device
         frame = camera_frame(camera, w, h)
@@ -468,11 +472,11 @@ class GeometryRenderer(ImageOutputs):
         t_cast = time.perf_counter()
         sh = raycast.shading(params, frame, coverage=self.coverage)  # no occlusion on shapes
         near, far = self._fog_range(frame.eye, frame.forward, r * HELIX_SCALE)
-        cam = raycast.camera_data(frame)
+        cam = raycast.camera_data(frame, tile)
         if self._count:
             wp.launch(
                 capsule_kernel,
-                raycast.launch_size(w, h),
+                raycast.launch_size(pw, ph),
                 (
                     bvh_id, self._p0, self._p1, r, self._scale, self._colors, self._atom, cam,
                     sh, near, far,
@@ -493,7 +497,7 @@ class GeometryRenderer(ImageOutputs):
             "raycast": (t_end - t_cast) * 1e3,
             "total": (t_end - t0) * 1e3 + getattr(self, "_upload_ms", 0.0),
         }
-        self._image = (w, h)
+        self._image = (pw, ph)
 
     def _fog_range(
         self, eye: npt.NDArray[np.float64], forward: npt.NDArray[np.float64], r: float

@@ -256,15 +256,18 @@ class LayeredRenderer(ImageOutputs):
         live: bool = True,
         lag: int | None = None,
         background: tuple[float, float, float] | None = None,
+        tile: tuple[int, int, int, int] | None = None,
     ) -> None:
         """Render every layer of `plans` and composite them over `background` (default: the
-        first layer's); the image stays on the device."""
+        first layer's); the image stays on the device. `tile` (x0, y0, w, h): only that
+        rectangle of the width x height image, as the whole image has it (outputs w x h)."""
         if len(plans) > MAX_LAYERS:
             raise RenderError(f"{len(plans)} layers, at most {MAX_LAYERS} are drawn")
         t0 = time.perf_counter()
         totals = {"upload": 0.0, "grid": 0.0, "raycast": 0.0}
         self._child(0)  # the device, even with nothing to draw
-        pixels = int(width) * int(height)
+        size = (int(tile[2]), int(tile[3])) if tile is not None else (int(width), int(height))
+        pixels = size[0] * size[1]
         self._alloc(len(plans), pixels)
         self._limit.fill_(float("inf"))
         opaque = False
@@ -303,10 +306,10 @@ class LayeredRenderer(ImageOutputs):
                     child.positions_id = -1  # the spans change with the codes
                     r.set_positions(self._gather(child, plan, positions_id, positions))
                     child.positions_id = positions_id
-                r.render(plan.params, camera, width, height, plan.radius_A)
+                r.render(plan.params, camera, width, height, plan.radius_A, tile=tile)
             else:
                 r.depth_limit = self._limit if opaque and _is_cloud(plan) else None
-                r.render(plan.params, camera, width, height)
+                r.render(plan.params, camera, width, height, tile)
             for key in totals:
                 totals[key] += r.timings.get(key, 0.0)
             if not _is_cloud(plan) and plan.opacity >= 1.0:
@@ -346,7 +349,7 @@ class LayeredRenderer(ImageOutputs):
         totals["composite"] = (t_end - t_comp) * 1e3
         totals["total"] = (t_end - t0) * 1e3 + totals["upload"]
         self.timings = totals
-        self._image = (int(width), int(height))
+        self._image = size
         self._plans = tuple(plans)
         for child in self._children[len(plans) :]:
             child.atoms_key = None  # a layer position no longer drawn frees nothing but is redone

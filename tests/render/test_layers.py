@@ -379,3 +379,39 @@ def test_gathering_a_layer_by_runs_or_by_take() -> None:
         [4000, 4001],
     ]
     assert contiguous_runs(np.arange(0, 4 * MAX_RUNS, 2, dtype=np.int32)) is None
+
+
+def test_bands_of_a_layered_image_join_into_the_whole_image(device: str) -> None:
+    """A one-off image is drawn in bands of rows (`server.pipeline.bands`): each band of a
+    layered image (iso, a finer iso, a cloud, licorice and a tube) is that rectangle of the
+    whole image, bit for bit, in colour, depth, atom and layer."""
+    top, pos = gramicidin()
+    chains = np.asarray(top.chain_ids)
+    sets = {
+        "A": np.flatnonzero(chains == chains[0]).astype(np.int32),
+        "B": np.flatnonzero(chains != chains[0]).astype(np.int32),
+    }
+    params = RenderParams(
+        sigma_A=1.6,
+        layers=[
+            Layer(name="surface", selection="B"),
+            Layer(name="fine", selection="B", sigma_A=0.6),
+            Layer(name="cloud", selection="A", mode="volume", sigma_A=2.5, opacity=0.7),
+            Layer(name="sticks", selection="A", mode="licorice"),
+            Layer(name="tube", selection="B", mode="tube"),
+        ],
+    )
+    plans = _plans(params, top.n_atoms, sets)
+    cam = orbit(fit_camera(pos, W, H, margin=1.2), 35.0, 20.0)
+    whole = _layered(device, top, pos, plans, cam, W, H)
+    want = [whole.read_rgba(), whole.read_depth(), whole.read_atom_ids(), whole.read_layers()]
+    assert {0, 3} <= set(np.unique(want[3]).tolist())  # a density and a shape in front
+    lr = LayeredRenderer(lambda: Renderer(device))
+    y = 0
+    for rows in (1, 7, H - 8):
+        lr.render(plans, top, 1, pos, 1, cam, W, H, tile=(0, y, W, rows))
+        got = [lr.read_rgba(), lr.read_depth(), lr.read_atom_ids(), lr.read_layers()]
+        for a, b in zip(got, want, strict=True):
+            assert a.shape[:2] == (rows, W)
+            np.testing.assert_array_equal(a, b[y : y + rows])
+        y += rows

@@ -684,9 +684,10 @@ def test_a_huge_view_on_the_cpu_device_gets_a_smaller_image_fast(live_server: Li
 
 def test_a_burst_of_rest_renders_does_not_hold_a_live_view(live_server: LiveServer) -> None:
     """Three large volume renders through the viewer link (its burst allows five) had held a
-    live view of the same device until every one of them was drawn: the session's work now
-    goes first, and waits for at most the render under way. A one-off render's answer waits
-    for its own render, not for the renders queued after it."""
+    live view of the same device until every one of them was drawn, and a small image behind
+    them waited for all three. One-off renders are now drawn in bands of rows, each its own
+    turn on the device (`server.pipeline.bands`): the session's work goes first and waits for
+    at most the band under way, and a small image goes between the large ones' bands."""
     sim = Peer(live_server.ws_url, "simulation", live_server.token, "burst")
     topo, pos = molecule(16)
     sim.send(topo)
@@ -694,49 +695,100 @@ def test_a_burst_of_rest_renders_does_not_hold_a_live_view(live_server: LiveServ
     viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "burst")
     viewer.expect(p.Image, 60)
     gpu = live_server.app_state.gpu
-    done: list[tuple[str, str]] = []  # (what, slot) the device finished, in order
-    render_sync, release_sync = gpu.render_sync, gpu.release_sync
+    done: list[str] = []  # the slot of each render (a band, for a one-off) the device finished
+    render_sync = gpu.render_sync
 
     def rendered(request: Any) -> Any:
         out = render_sync(request)
-        done.append(("render", request.slot))
+        done.append(request.slot)
         return out
 
-    def released(slot: str) -> None:
-        release_sync(slot)
-        done.append(("release", slot))
-
-    gpu.render_sync, gpu.release_sync = rendered, released
+    gpu.render_sync = rendered
     params = json.dumps({"mode": "volume", "quality": 2, "sigma_A": 4})
+    finished: list[str] = []
 
-    def render() -> None:
+    def render(name: str, width: int, height: int) -> None:
         with httpx.Client(base_url=live_server.url, timeout=300) as c:
             r = c.post(
                 "/api/render",
                 headers={"Authorization": f"Bearer {live_server.viewer_token}"},
-                data={"session": "burst", "width": "1280", "height": "720", "params": params},
+                data={"session": "burst", "width": str(width), "height": str(height)}
+                | {"params": params},
             )
         assert r.status_code == 200, r.text
+        assert r.content.startswith(b"\x89PNG")
+        finished.append(name)
 
-    def one_offs() -> list[str]:
-        return [slot for what, slot in done if what == "render" and slot.startswith("rest:")]
+    def bands() -> int:
+        return sum(slot.startswith("rest:") for slot in done)
 
-    burst = [threading.Thread(target=render) for _ in range(3)]
+    burst = [threading.Thread(target=render, args=(f"large {i}", 1280, 720)) for i in range(3)]
     for t in burst:
         t.start()
-    assert wait_for(lambda: gpu.busy()[0]["busy_s"] > 0.5)  # the first one is being drawn
+    assert wait_for(lambda: bands() >= 6, 60)  # under way: two bands of each
+    mark = len(done)
     sim.send(frame(pos + np.float32(0.05), 1))
     viewer.expect(p.Image, 120, where=lambda m: m.step == 1)
-    drawn_before = len(one_offs())
+    live = next(i for i in range(mark, len(done)) if done[i].startswith("session:"))
+    # about 0.1 s of the device each; all three renders took about 2.5 s each on two CPU cores
+    assert sum(slot.startswith("rest:") for slot in done[mark:live]) <= 3, done[mark:]
+    small = threading.Thread(target=render, args=("small", 64, 48))
+    small.start()
+    small.join(120)
     for t in burst:
         t.join(300)
-    # in submission order all three were drawn first (about 2.5 s each on two CPU cores)
-    assert drawn_before <= 1, done
-    for slot in one_offs():
-        between = done[done.index(("render", slot)) : done.index(("release", slot))]
-        assert sum(s.startswith("rest:") for what, s in between if what == "render") <= 2, done
+    assert sorted(finished) == ["large 0", "large 1", "large 2", "small"]
+    assert finished.index("small") < 2, finished  # not behind the large ones
+    assert bands() > 30
     sim.close()
     viewer.close()
+
+
+def test_a_one_off_render_that_would_hold_the_device_past_the_limit_is_refused(
+    tmp_path: Path,
+) -> None:
+    """A one-off image is judged by its first bands: one whose rows would take the device past
+    `one_off_render_seconds` is refused, naming the estimate and the limit, with the rest
+    never drawn; a small image and the live session go on."""
+    server = start_server(make_settings(tmp_path, one_off_render_seconds=0.3))
+    try:
+        sim = Peer(server.ws_url, "simulation", server.token, "held")
+        topo, pos = molecule(16)
+        sim.send(topo)
+        sim.send(frame(pos, 0))
+        viewer = Peer(server.view_url, "viewer", server.viewer_token, "held")
+        viewer.expect(p.Image, 60)
+        gpu = server.app_state.gpu
+        rows: list[int] = []
+        render_sync = gpu.render_sync
+
+        def rendered(request: Any) -> Any:
+            out = render_sync(request)
+            if request.slot.startswith("rest:"):
+                rows.append(request.tile[3])
+            return out
+
+        gpu.render_sync = rendered
+        params = json.dumps({"mode": "volume", "quality": 2, "sigma_A": 4})
+        with httpx.Client(base_url=server.url, timeout=300) as c:
+            auth = {"Authorization": f"Bearer {server.viewer_token}"}
+            size = {"session": "held", "params": params}
+            big = c.post(
+                "/api/render", headers=auth, data=size | {"width": "1280", "height": "720"}
+            )
+            assert big.status_code == 422, big.text
+            detail = big.json()["detail"]
+            assert "1280x720 image would hold the device for about" in detail, detail
+            assert "limit of 0.3 s" in detail and "one_off_render_seconds" in detail, detail
+            assert 2 <= len(rows) <= 4 and sum(rows) < 720 / 8, rows  # its first bands only
+            small = c.post("/api/render", headers=auth, data=size | {"width": "64", "height": "48"})
+            assert small.status_code == 200, small.text
+        sim.send(frame(pos + np.float32(0.05), 1))
+        viewer.expect(p.Image, 60, where=lambda m: m.step == 1)
+        sim.close()
+        viewer.close()
+    finally:
+        server.stop()
 
 
 # ---------------------------------------------------------------- the edge (round three)
