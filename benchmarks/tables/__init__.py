@@ -54,6 +54,7 @@ from .server import (
     latency_stages,
     latency_steer,
     multi_session,
+    oneoff,
     pipeline,
     trajectory,
     video_live,
@@ -108,6 +109,7 @@ TABLES: dict[str, Table] = {
         ("latency_h200_live_1m.json", "latency_h200_round6_views.json"), latency_delivery
     ),
     "pipeline": Table(("pipeline_h200.json",), pipeline),
+    "oneoff": Table(("latency_h200_oneoff_bands.json",), oneoff),
     "multi-device": Table(
         (
             "multi_device_cpu_2core.json",

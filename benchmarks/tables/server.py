@@ -412,3 +412,19 @@ def trajectory(sources: list[Source]) -> str:
     header += ["seek to any frame ms", "in order ms (control)", "seek / in order"]
     header += ["isolated reader: open s / frame ms", "memory growth MB"]
     return block(sources, table(header, "lrrrrrrrrr", rows))
+
+
+def oneoff(sources: list[Source]) -> str:
+    """One-off renders drawn whole (the control) and in bands, and a live render's wait behind
+    each, in the same run."""
+    rows = []
+    for name, res in sources:
+        for c in res["cases"]:
+            row = [stem(name, "latency_"), count(c["n_atoms"]), size(*c["size"]), c["scale_space"]]
+            row += [num(c[k], 1) for k in ("whole_alone_ms", "bands_alone_ms")]
+            row += [f"{c['bands_over_whole_alone']:.2f}x"]
+            row += [num(c[k], 1) for k in ("whole_live_wait_ms", "bands_live_wait_ms")]
+            rows.append([*row, f"{c['live_wait_whole_over_bands']:.2f}x"])
+    header = ["run", "atoms", "image", "density", "whole ms", "bands ms", "bands / whole"]
+    header += ["live wait, whole ms", "live wait, bands ms", "wait whole / bands"]
+    return block(sources, table(header, "lrllrrrrrr", rows))
