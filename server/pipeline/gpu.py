@@ -30,7 +30,7 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -66,6 +66,10 @@ CPU_KERNELS = threading.Lock()
 """Held by a lane on the CPU device while it works. Warp's CPU kernels keep state in statics of
 their JIT-compiled code (its JIT has no thread-local storage), and two threads running them at
 once crash the process: lanes on CPU devices (`--gpus cpu,cpu`) take turns."""
+
+
+class RenderAbandonedError(RenderError):
+    """A one-off render given up between its bands: its client went away."""
 
 
 def _tiles(renderer: Any) -> bool:
@@ -411,17 +415,27 @@ class GpuQueue:
         lane = await self._lane(request.slot)
         return await self._run(lane, self.render_sync, request, slot=request.slot)
 
-    async def render_bands(self, request: RenderRequest, limit_s: float) -> RenderOutput:
+    async def render_bands(
+        self,
+        request: RenderRequest,
+        limit_s: float,
+        gone: Callable[[], Awaitable[bool]] | None = None,
+    ) -> RenderOutput:
         """A one-off image drawn in bands of rows, each its own turn on the device's thread,
         so live work goes between them; refused (`bands.TooCostlyError`) once its bands say the
-        whole would take more than `limit_s` seconds of the device (`bands`). A slot drawn
-        across several devices takes the whole image in one turn."""
+        whole would take more than `limit_s` seconds of the device (`bands`), and abandoned
+        (`RenderAbandonedError`) between bands once `gone()` says nobody waits for it. A slot
+        drawn across several devices takes the whole image in one turn."""
         await self._room_for(request.slot, self._whole_atoms(request))
         plan = BandPlan(request.width, request.height, limit_s)
         rows = plan.first()
         image = np.empty((request.height, request.width, 4), dtype=np.uint8)
         timings: dict[str, float] = {}
         while rows:
+            if plan.bands and gone is not None and await gone():
+                raise RenderAbandonedError(
+                    f"abandoned after {plan.y} of its {request.height} rows: nobody waits for it"
+                )
             lane = await self._lane(request.slot)
             band = dataclasses.replace(request, tile=(0, plan.y, request.width, rows))
             out = await self._run(lane, self.render_sync, band, slot=request.slot)

@@ -351,7 +351,8 @@ async def render_image(
         slot, Snapshot(topology, shown), render_params, cam, width, height, layers=plans
     )
     try:  # in bands of rows: live sessions take their turns between them
-        out = await state.gpu.render_bands(request, state.settings.one_off_render_seconds)
+        limit = state.settings.one_off_render_seconds
+        out = await state.gpu.render_bands(request, limit, gone=http.is_disconnected)
     except RenderError as exc:  # what was sent cannot be drawn on this server's devices
         raise HTTPException(422, f"cannot draw this: {exc}") from None
     finally:

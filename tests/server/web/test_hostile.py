@@ -744,6 +744,42 @@ def test_a_burst_of_rest_renders_does_not_hold_a_live_view(live_server: LiveServ
     viewer.close()
 
 
+def test_a_one_off_render_whose_client_left_is_abandoned(live_server: LiveServer) -> None:
+    """A client that gave up on a large image (a timeout, a closed tab) left its device drawing
+    it to the end. Between bands the server asks whether anybody still waits for it."""
+    sim = Peer(live_server.ws_url, "simulation", live_server.token, "gone")
+    topo, pos = molecule(16)
+    sim.send(topo)
+    sim.send(frame(pos, 0))
+    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "gone")
+    viewer.expect(p.Image, 60)
+    gpu = live_server.app_state.gpu
+    rows: list[int] = []
+    render_sync = gpu.render_sync
+
+    def rendered(request: Any) -> Any:
+        out = render_sync(request)
+        if request.slot.startswith("rest:"):
+            rows.append(request.tile[3])
+        return out
+
+    gpu.render_sync = rendered
+    params = json.dumps({"mode": "volume", "quality": 2, "sigma_A": 4})
+    data = {"session": "gone", "width": "1280", "height": "720", "params": params}
+    with (
+        pytest.raises(httpx.ReadTimeout),
+        httpx.Client(base_url=live_server.url, timeout=httpx.Timeout(120, read=1.0)) as c,
+    ):
+        c.post("/api/render", headers={"Authorization": f"Bearer {live_server.token}"}, data=data)
+    assert wait_for(lambda: len(rows) >= 2)
+    time.sleep(1.0)
+    drawn = sum(rows)
+    time.sleep(1.5)  # the whole image takes about 2.5 s of two CPU cores
+    assert sum(rows) == drawn < 720, rows
+    sim.close()
+    viewer.close()
+
+
 def test_a_one_off_render_that_would_hold_the_device_past_the_limit_is_refused(
     tmp_path: Path,
 ) -> None:
