@@ -1,4 +1,4 @@
-"""A one-off image drawn in bands of rows, each band its own turn on its device's thread.
+"""A one-off image drawn in bands, each band its own turn on its device's thread.
 
 A device's thread takes one piece of work at a time, and live sessions go first only between
 pieces (`server.pipeline.turns`). A one-off render drawn as one piece held every live view on
@@ -8,27 +8,48 @@ takes its turn between bands; and the bands drawn so far measure what the rest w
 render that would hold the device past the server's limit is refused after its first bands,
 naming the estimate, rather than drawn.
 
-The first band is a small share of the rows (FIRST_SHARE): it also builds the frame's grids and
-may compile kernels, so it is neither counted against the limit nor judged. Every later band is
-sized from the one before to about BAND_SECONDS of the device, and after each the device time of
-the bands after the first, plus the rows left at the last band's rate, must stay within the
-limit.
+A pixel's cost follows the molecule, not the row: an image whose top rows are empty and whose
+bottom rows are dense, sized by the rows before, went from bands of empty rows straight into one
+band of 170 s. So the image is weighed first (`footprint`: how many atoms' reach covers each
+block of BLOCK x BLOCK pixels, projected through the camera), and a band's time is taken as `a`
+a pixel plus `b` a unit of cover: `a` from the bands no atom covers (their fixed costs, mostly),
+`b` from the others. A band is the run of pixels, in row order, expected to take BAND_SECONDS
+(and at most GROWTH times the band before): whole rows, or part of one row when a row takes
+longer (a band is a rectangle, `(x0, y0, w, h)`).
+
+The first band is whole rows holding FIRST_SHARE of the cover: it also builds the frame's grids
+and may compile kernels, so its time is not counted, and its rate (too high) only sizes the next
+band. After each later band, the time the bands after the first took, plus the pixels and cover
+left at their rates (`b` the mean over the covered bands), must stay within the limit once they
+have taken JUDGED_AFTER_S (a rate from a few bands of little work is mostly their fixed costs);
+past the limit in time alone, the render is refused whatever is left.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
 
 from server.render.errors import CapacityError
 
 FIRST_SHARE = 1.0 / 128.0
-"""The first band's share of the image's rows (one row at least): it is not judged, so it is
-what a render past every limit still costs (about 4 s of two CPU cores for the image above)."""
+"""The first band's share of the image's weight."""
 BAND_SECONDS = 0.1
 """Device time each later band is sized to: about what a live view waits behind one."""
-GROWTH = 8.0
-"""Most a band grows over the one before (a band of few rows times mostly its fixed costs)."""
+GROWTH = 4.0
+"""Most a band's weight grows over the one before (the weights are an estimate)."""
+JUDGED_AFTER_S = 0.5
+"""Device seconds of bands after the first before their rate may refuse the rest."""
+BLOCK = 8
+"""Pixels a side of the blocks the weights are kept in."""
+MIN_SEGMENT = 16
+"""Fewest pixels of a band that is part of a row (a row of the last few pixels excepted)."""
+
+Tile = tuple[int, int, int, int]
 
 
 class TooCostlyError(CapacityError):
@@ -36,45 +57,195 @@ class TooCostlyError(CapacityError):
     server's limit."""
 
 
+def footprint(
+    positions: npt.NDArray[np.float32], frame: Any, reach: float
+) -> npt.NDArray[np.float64]:
+    """(ceil(h / BLOCK), ceil(w / BLOCK)) weights of the image's blocks: how many atoms' reach
+    (in A) covers each, projected through `frame` (a `camera.CameraFrame`; the atoms' depth
+    sets their reach in pixels, taken at the median)."""
+    w, h = int(frame.width), int(frame.height)
+    bw, bh = -(-w // BLOCK), -(-h // BLOCK)
+    d = np.asarray(positions, dtype=np.float64).reshape(-1, 3) - frame.eye
+    z = d @ frame.forward
+    u, v = d @ frame.right, d @ frame.up
+    if not frame.ortho:
+        ahead = z > 1e-6
+        u, v, z = u[ahead] / z[ahead], v[ahead] / z[ahead], z[ahead]
+    x = (u / (frame.aspect * frame.scale) + 1.0) * (0.5 * w)
+    y = (1.0 - v / frame.scale) * (0.5 * h)
+    if len(z) == 0:
+        return np.zeros((bh, bw))
+    per_a = 0.5 * h / frame.scale / (1.0 if frame.ortho else float(np.median(z)))
+    r = max(0, math.ceil(reach * per_a / BLOCK))
+    counts, _, _ = np.histogram2d(
+        y / BLOCK, x / BLOCK, bins=(bh + 2 * r, bw + 2 * r), range=((-r, bh + r), (-r, bw + r))
+    )
+    # a box of (2r + 1)^2 blocks around each atom's block, by summed-area table
+    table = np.zeros((counts.shape[0] + 1, counts.shape[1] + 1))
+    table[1:, 1:] = counts.cumsum(axis=0).cumsum(axis=1)
+    k = 2 * r + 1
+    box = table[k:, k:] - table[:-k, k:] - table[k:, :-k] + table[:-k, :-k]
+    return np.asarray(box[:bh, :bw], dtype=np.float64)
+
+
 @dataclass
 class BandPlan:
-    """Where a one-off image's bands start and how many rows each takes. `limit_s`: the most
-    device seconds the bands after the first may take in all."""
+    """Where a one-off image's bands lie. `blocks`: how many atoms cover each BLOCK x BLOCK
+    block of the image (`footprint`); `limit_s`: the most device seconds the bands after the
+    first may take in all; `advice`: what a refusal suggests.
+
+    A band's cost is taken as `a` a pixel plus `b` a unit of cover (an atom over a pixel):
+    `a` from the bands that no atom covers (mostly their fixed costs), `b` from the others, the
+    newest first; the first band (the grids' build in it) gives `b` until another has."""
 
     width: int
     height: int
     limit_s: float
+    blocks: npt.NDArray[np.float64] | None = None
+    advice: str = "ask for a smaller image"
+    x: int = 0
     y: int = 0
-    """The first row not drawn yet."""
+    """The first pixel not drawn yet (row y, column x)."""
     spent_s: float = 0.0
     """Device seconds of the bands after the first."""
     bands: int = 0
+    a: float = 0.0
+    """Seconds a pixel no atom covers."""
+    b: float = 0.0
+    """Seconds a unit of cover (for sizing bands)."""
+    _cover_s: float = 0.0
+    _cover_w: float = 0.0
+    """Seconds (less `a` a pixel) and cover of the covered bands after the first."""
+    _cols: npt.NDArray[np.float64] = field(init=False, repr=False)
+    """A pixel's cover in each block row, by column."""
+    _row_cum: npt.NDArray[np.float64] = field(init=False, repr=False)
+    """The cover of rows [0, y), by y."""
 
-    def first(self) -> int:
-        """The first band's rows."""
-        return max(1, min(self.height, math.ceil(self.height * FIRST_SHARE)))
+    def __post_init__(self) -> None:
+        bw, bh = -(-self.width // BLOCK), -(-self.height // BLOCK)
+        blocks = np.zeros((bh, bw)) if self.blocks is None else np.asarray(self.blocks)
+        self._cols = np.repeat(blocks.astype(np.float64), BLOCK, axis=1)[:, : self.width]
+        rows = np.repeat(self._cols.sum(axis=1), BLOCK)[: self.height]
+        self._row_cum = np.concatenate([[0.0], np.cumsum(rows)])
+        self.cover = float(self._row_cum[-1])
 
-    def drawn(self, rows: int, seconds: float) -> int:
-        """Note a band of `rows` rows just drawn at row `y` in `seconds` of the device; the next
-        band's rows, 0 once the image is whole. Raises TooCostlyError when the rest at this band's
-        rate would take the bands after the first past `limit_s`."""
-        self.y += rows
-        if self.bands:
-            self.spent_s += seconds
+    @property
+    def done(self) -> bool:
+        return self.y >= self.height
+
+    def _cover(self, tile: Tile) -> float:
+        x0, y0, w, h = tile
+        if x0 == 0 and w == self.width:
+            return float(self._row_cum[y0 + h] - self._row_cum[y0])
+        return float(self._cols[y0 // BLOCK][x0 : x0 + w].sum())
+
+    def _left(self) -> tuple[int, float]:
+        """(pixels, cover) not drawn yet."""
+        if self.done:
+            return 0, 0.0
+        drawn = self._cols[self.y // BLOCK][: self.x].sum()
+        pixels = (self.height - self.y) * self.width - self.x
+        return pixels, float(self.cover - self._row_cum[self.y] - drawn)
+
+    def estimate(self, tile: Tile) -> float:
+        """Seconds `tile` is expected to take."""
+        return self.a * tile[2] * tile[3] + self.b * self._cover(tile)
+
+    def first(self) -> Tile:
+        """The first band: the rows from the top holding FIRST_SHARE of the cover (of the
+        pixels, where no atom covers the image); part of the first row when it holds more."""
+        if self.cover > 0.0:
+            want = self.cover * FIRST_SHARE
+            rows = int(np.searchsorted(self._row_cum, want, side="left"))
+            if rows <= 1 and self._row_cum[1] > want:
+                n = int(np.searchsorted(np.cumsum(self._cols[0]), want, side="left")) + 1
+                return self._segment(0, n)
+        else:
+            rows = math.ceil(self.height * FIRST_SHARE)
+            if self.height * FIRST_SHARE < 1.0:
+                return self._segment(0, math.ceil(self.width * self.height * FIRST_SHARE))
+        return (0, 0, self.width, max(1, min(self.height, rows)))
+
+    def _segment(self, x: int, n: int) -> Tile:
+        """Part of row y from column x: n pixels, at least MIN_SEGMENT, and the rest of the
+        row when fewer than MIN_SEGMENT would be left."""
+        n = min(max(n, MIN_SEGMENT), self.width - x)
+        if self.width - x - n < MIN_SEGMENT:
+            n = self.width - x
+        return (x, self.y, n, 1)
+
+    def drawn(self, tile: Tile, seconds: float) -> Tile | None:
+        """Note `tile` (the band `first` or the last `drawn` gave) drawn in `seconds` of the
+        device; the next band, None once the image is whole. Raises TooCostlyError when the
+        rest, at the rates measured, would take the bands after the first past `limit_s`."""
+        x0, y0, w, h = tile
+        cover = self._cover(tile)
+        if x0 == 0 and w == self.width:
+            self.x, self.y = 0, y0 + h
+        else:
+            self.x, self.y = (x0 + w, y0) if x0 + w < self.width else (0, y0 + 1)
         self.bands += 1
-        left = self.height - self.y
-        if left <= 0:
-            return 0
-        rate = max(seconds, 1e-6) / rows
-        if self.bands > 1:
-            projected = self.spent_s + rate * left
-            if projected > self.limit_s:
-                raise TooCostlyError(
-                    f"this {self.width}x{self.height} image would hold the device for about "
-                    f"{projected:,.0f} s ({rate * 1000:,.1f} ms a row, measured on its rows "
-                    f"{self.y - rows}-{self.y - 1}), over this server's limit of "
-                    f"{self.limit_s:g} s for one image (one_off_render_seconds); ask for a "
-                    "smaller image, a smaller sigma or the classical density"
-                )
-        grown = max(1, math.floor(rows * GROWTH))
-        return max(1, min(left, grown, math.floor(BAND_SECONDS / rate)))
+        if self.bands == 1:  # the grids' build is in it: rates for sizing, not for judging
+            if cover > 0.0:
+                self.b = seconds / cover
+            else:
+                self.a = seconds / (w * h)
+            return None if self.done else self._band(GROWTH * max(seconds, 1e-3))
+        self.spent_s += seconds
+        if cover > 0.0:
+            share = max(seconds - self.a * w * h, 0.0)
+            self._cover_s += share
+            self._cover_w += cover
+            # sized by the dearer of the newest band's rate and the mean (the molecule may
+            # begin here); the mean judges the rest
+            self.b = max(share / cover, self._cover_s / self._cover_w)
+        else:
+            self.a = max(self.a if self.bands > 2 else 0.0, seconds / (w * h))
+        if self.done:
+            return None
+        pixels, left = self._left()
+        mean_b = self._cover_s / self._cover_w if self._cover_w > 0.0 else None
+        projected = self.spent_s + self.a * pixels + (mean_b or 0.0) * left
+        judged = mean_b is not None or left == 0.0
+        if self.spent_s > self.limit_s or (
+            judged and self.spent_s >= JUDGED_AFTER_S and projected > self.limit_s
+        ):
+            raise TooCostlyError(
+                f"this {self.width}x{self.height} image would hold the device for about "
+                f"{max(projected, self.spent_s):,.0f} s (measured on {self.bands - 1} bands "
+                f"after the first, {self.spent_s:.1f} s, the rest weighed by how many atoms "
+                f"cover each pixel), over this server's limit of {self.limit_s:g} s for one "
+                f"image (one_off_render_seconds); {self.advice}"
+            )
+        return self._band(GROWTH * max(seconds, 1e-3))
+
+    def _band(self, most: float) -> Tile:
+        """The run of pixels from (x, y) expected to take at most BAND_SECONDS (and `most`):
+        the rest of a started row, whole rows, or (a row dearer than that) part of a row."""
+        limit = min(BAND_SECONDS, most)
+        y = self.y
+        if self.x == 0:
+            cost = self.a * self.width * np.arange(self.height - y + 1)
+            cost = cost + self.b * (self._row_cum[y:] - self._row_cum[y])
+            rows = int(np.searchsorted(cost, limit, side="right")) - 1
+            if rows >= 1:
+                return (0, y, self.width, rows)
+        row = self._cols[y // BLOCK][self.x :]
+        cost = np.cumsum(self.a + self.b * row)
+        return self._segment(self.x, int(np.searchsorted(cost, limit, side="right")))
+
+
+def reach_of(params: Any) -> float:
+    """How far (A) an atom's density reaches under `params` (a `RenderParams`), its layers'
+    widest sigma included: the footprint's radius."""
+    sigmas = [params.sigma_A] + [layer.sigma_A for layer in params.layers if layer.sigma_A]
+    return float(max(sigmas) * params.cutoff_sigmas)
+
+
+def advice_for(params: Any) -> str:
+    """What a refusal of a render with `params` suggests."""
+    if params.scale_space != "classical":
+        return "ask for a smaller image, a smaller sigma or the classical density"
+    if params.mode == "volume":
+        return "ask for a smaller image, a lower quality or a larger step"
+    return "ask for a smaller image or a smaller sigma"

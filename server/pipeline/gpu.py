@@ -39,7 +39,7 @@ import numpy as np
 import numpy.typing as npt
 
 import protocol as p
-from server.pipeline.bands import BandPlan
+from server.pipeline.bands import BandPlan, advice_for, footprint, reach_of
 from server.pipeline.staging import FrameStager, Staging
 from server.pipeline.turns import TurnExecutor, rank_of
 from server.render.errors import CapacityError, RenderError
@@ -427,24 +427,30 @@ class GpuQueue:
         (`RenderAbandonedError`) between bands once `gone()` says nobody waits for it. A slot
         drawn across several devices takes the whole image in one turn."""
         await self._room_for(request.slot, self._whole_atoms(request))
-        plan = BandPlan(request.width, request.height, limit_s)
-        rows = plan.first()
+        from server.render.camera import camera_frame
+
+        frame = camera_frame(request.camera, request.width, request.height)
+        positions = request.snapshot.positions
+        blocks = await asyncio.to_thread(footprint, positions, frame, reach_of(request.params))
+        plan = BandPlan(request.width, request.height, limit_s, blocks, advice_for(request.params))
+        tile: tuple[int, int, int, int] | None = plan.first()
         image = np.empty((request.height, request.width, 4), dtype=np.uint8)
         timings: dict[str, float] = {}
-        while rows:
+        while tile is not None:
             if plan.bands and gone is not None and await gone():
                 raise RenderAbandonedError(
                     f"abandoned after {plan.y} of its {request.height} rows: nobody waits for it"
                 )
             lane = await self._lane(request.slot)
-            band = dataclasses.replace(request, tile=(0, plan.y, request.width, rows))
+            band = dataclasses.replace(request, tile=tile)
             out = await self._run(lane, self.render_sync, band, slot=request.slot)
             if out.tile is None:  # drawn whole
                 return out
-            image[plan.y : plan.y + rows] = out.image()
+            x0, y0, w, h = tile
+            image[y0 : y0 + h, x0 : x0 + w] = out.image()
             for key, ms in out.timings.items():
                 timings[key] = timings.get(key, 0.0) + ms
-            rows = plan.drawn(rows, out.seconds)
+            tile = plan.drawn(tile, out.seconds)
         return RenderOutput(image, timings, seconds=plan.spent_s)
 
     @staticmethod

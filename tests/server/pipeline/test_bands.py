@@ -1,73 +1,158 @@
-"""How a one-off image is cut into bands of rows, and when its bands refuse the rest
-(`server.pipeline.bands`): pure arithmetic on the times the bands report."""
+"""How a one-off image is cut into bands, and when its bands refuse the rest
+(`server.pipeline.bands`): the weights the molecule's footprint gives each pixel, and the
+arithmetic on the times the bands report (a cost per pixel stands in for the device)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+import numpy as np
 import pytest
 
+from protocol import Camera, Layer, RenderParams
 from server.pipeline import bands
-from server.pipeline.bands import BandPlan, TooCostlyError
+from server.pipeline.bands import (
+    BLOCK,
+    BandPlan,
+    TooCostlyError,
+    advice_for,
+    footprint,
+    reach_of,
+)
+from server.render.camera import camera_frame, image_rays
 from server.render.errors import CapacityError
 
+Cost = Callable[[int, int, int, int], float]
 
-def draw(plan: BandPlan, seconds_a_row: float, first_s: float = 0.0) -> list[int]:
-    """Every band's rows, each taking `seconds_a_row` a row (the first `first_s` more)."""
-    rows, out = plan.first(), []
-    while rows:
-        out.append(rows)
-        extra = first_s if len(out) == 1 else 0.0
-        rows = plan.drawn(rows, rows * seconds_a_row + extra)
+
+def per_pixel(costs: np.ndarray) -> Cost:
+    """A device whose pixel (x, y) takes costs[y, x] seconds."""
+    table = np.zeros((costs.shape[0] + 1, costs.shape[1] + 1))
+    table[1:, 1:] = costs.cumsum(axis=0).cumsum(axis=1)
+
+    def cost(x0: int, y0: int, w: int, h: int) -> float:
+        return float(table[y0 + h, x0 + w] - table[y0, x0 + w] - table[y0 + h, x0] + table[y0, x0])
+
+    return cost
+
+
+def draw(plan: BandPlan, cost: Cost, first_extra: float = 0.0) -> list[tuple[tuple, float]]:
+    """Every band drawn, with its seconds; checks that each pixel is drawn once."""
+    seen = np.zeros((plan.height, plan.width), dtype=np.int32)
+    tile: tuple[int, int, int, int] | None = plan.first()
+    out = []
+    while tile is not None:
+        x0, y0, w, h = tile
+        seen[y0 : y0 + h, x0 : x0 + w] += 1
+        seconds = cost(*tile) + (first_extra if not out else 0.0)
+        out.append((tile, seconds))
+        tile = plan.drawn(tile, seconds)
+    assert (seen == 1).all()
     return out
 
 
-def test_the_bands_cover_the_image_once_each_sized_to_a_tenth_of_a_second() -> None:
-    plan = BandPlan(1920, 1080, limit_s=60.0)
-    got = draw(plan, seconds_a_row=0.001)  # 1.08 s in all
-    assert sum(got) == 1080 and plan.y == 1080
-    assert got[0] == 9  # 1/128 of the rows
-    assert got[1] == 72 and all(r == 100 for r in got[2:-1])  # 8x, then 0.1 s / 1 ms a row
-    assert plan.spent_s == pytest.approx((1080 - 9) * 0.001)
+def blocks_for(costs: np.ndarray) -> np.ndarray:
+    """Block weights that follow `costs` exactly."""
+    h, w = costs.shape
+    padded = np.zeros((-(-h // BLOCK) * BLOCK, -(-w // BLOCK) * BLOCK))
+    padded[:h, :w] = costs
+    return padded.reshape(padded.shape[0] // BLOCK, BLOCK, -1, BLOCK).sum(axis=(1, 3))
 
 
-def test_a_cheap_image_takes_few_bands_growing_at_most_eightfold() -> None:
-    got = draw(BandPlan(500, 500, limit_s=60.0), seconds_a_row=1e-6)
-    assert got == [4, 32, 256, 208]
+def test_the_footprint_puts_each_atom_where_its_ray_is() -> None:
+    """An atom on the ray of pixel (x, y) weighs on that pixel's block and its reach around."""
+    cam = Camera(target=(0.0, 0.0, 0.0), distance=60.0)
+    frame = camera_frame(cam, 320, 240)
+    origins, dirs = image_rays(frame)
+    atoms = np.array([origins[200, 40] + 55.0 * dirs[200, 40]], dtype=np.float32)
+    blocks = footprint(atoms, frame, reach=0.0)
+    assert blocks.shape == (30, 40) and blocks.sum() == 1.0
+    assert blocks[200 // BLOCK, 40 // BLOCK] == 1.0
+    wide = footprint(atoms, frame, reach=6.0)  # 5 blocks around it at 55 A, cut at the edge
+    assert wide[200 // BLOCK, 40 // BLOCK] == 1.0 and wide.sum() == 10 * 11
+    behind = np.array([frame.eye - 10.0 * frame.forward], dtype=np.float32)
+    assert footprint(behind, frame, reach=6.0).sum() == 0.0
 
 
-def test_a_band_slowed_by_compiling_is_not_judged_and_only_shrinks_the_next() -> None:
-    """The first band builds the grids and may compile kernels for seconds."""
-    plan = BandPlan(640, 480, limit_s=5.0)
-    got = draw(plan, seconds_a_row=0.001, first_s=30.0)
-    assert sum(got) == 480 and got[1] == 1  # 30 s over 4 rows: a band of one row next
-    assert plan.spent_s == pytest.approx((480 - 4) * 0.001)
+def test_bands_of_an_even_image_take_a_tenth_of_a_second_each() -> None:
+    costs = np.full((1080, 1920), 1e-6)  # 2.07 s in all
+    plan = BandPlan(1920, 1080, limit_s=60.0, blocks=blocks_for(costs))
+    got = draw(plan, per_pixel(costs))
+    assert got[0][0] == (0, 0, 1920, 9)  # 1/128 of the cover (8.4 rows)
+    later = [s for _tile, s in got[1:-1]]
+    assert max(later) <= 0.1 + 2e-3 and np.median(later) >= 0.09
+    assert plan.spent_s == pytest.approx(2.0736 - 9 * 1920 * 1e-6)
 
 
-def test_an_image_past_the_limit_is_refused_after_its_second_band() -> None:
-    plan = BandPlan(1920, 1080, limit_s=60.0)
-    rows = plan.first()
-    rows = plan.drawn(rows, rows * 0.25)  # 0.25 s a row: about 270 s in all
-    assert rows == 1
+def test_empty_rows_above_the_molecule_do_not_lead_into_one_long_band() -> None:
+    """Sized by rows, a band of empty rows was followed by one of 170 s: the molecule's rows
+    weigh more before they are drawn."""
+    costs = np.full((1080, 1920), 1e-8)
+    costs[600:] = 2e-4  # the molecule in the bottom rows: 186 s
+    plan = BandPlan(1920, 1080, limit_s=1000.0, blocks=blocks_for(costs))
+    got = draw(plan, per_pixel(costs))
+    assert max(s for _tile, s in got[1:]) <= 0.13  # an empty pixel weighs 1e-3 of the densest
+    assert any(w < 1920 for (_x, _y, w, _h), _s in got)  # a row weighs more than a band
+
+
+def test_a_cheap_image_takes_few_bands() -> None:
+    costs = np.full((500, 500), 1e-9)
+    got = draw(BandPlan(500, 500, limit_s=60.0, blocks=blocks_for(costs)), per_pixel(costs))
+    assert len(got) <= 6
+
+
+def test_a_band_slowed_by_compiling_is_not_counted_and_only_shrinks_the_next() -> None:
+    costs = np.full((480, 640), 1e-6)
+    plan = BandPlan(640, 480, limit_s=1.0, blocks=blocks_for(costs))
+    got = draw(plan, per_pixel(costs), first_extra=30.0)
+    assert got[1][0][3] == 1 and got[1][0][2] < 640  # part of a row after 30 s
+    assert plan.spent_s == pytest.approx((480 - got[0][0][3]) * 640 * 1e-6)
+
+
+def test_an_image_past_the_limit_is_refused_once_its_bands_took_half_a_second() -> None:
+    costs = np.full((1080, 1920), 1.3e-4)  # about 270 s
+    plan = BandPlan(1920, 1080, 60.0, blocks_for(costs), advice_for(RenderParams()))
     with pytest.raises(TooCostlyError) as err:
-        plan.drawn(rows, 0.25)
+        draw(plan, per_pixel(costs))
     assert isinstance(err.value, CapacityError)
+    assert 0.5 <= plan.spent_s < 0.7
     text = str(err.value)
-    assert "1920x1080" in text and "about 268 s" in text and "limit of 60 s" in text
-    assert "one_off_render_seconds" in text and "250.0 ms a row" in text
-    assert plan.y == 10  # nothing more is drawn
+    assert "1920x1080" in text and "about 267 s" in text and "limit of 60 s" in text
+    assert "one_off_render_seconds" in text and "a smaller sigma" in text
 
 
-def test_one_that_slows_down_part_way_is_refused_when_it_does() -> None:
-    plan = BandPlan(1000, 1000, limit_s=2.0)
-    rows = plan.drawn(plan.first(), 0.01)
-    while plan.y < 500:  # empty rows at half a millisecond each
-        rows = plan.drawn(rows, rows * 0.0005)
+def test_a_molecule_in_the_top_third_is_drawn_within_the_limit() -> None:
+    """Measured on its first (dense) rows, the rest at that rate made a 29 s image look like
+    69 s: the rows left are weighed by what covers them."""
+    costs = np.full((1080, 1920), 1e-9)
+    costs[:360] = 4e-5  # 27.6 s
+    plan = BandPlan(1920, 1080, limit_s=60.0, blocks=blocks_for(costs))
+    got = draw(plan, per_pixel(costs))
+    assert sum(s for _t, s in got) == pytest.approx(costs.sum())
+
+
+def test_weights_that_miss_a_costly_part_still_refuse_it_in_time() -> None:
+    """Past the limit in time alone it is refused, whatever the weights say is left."""
+    costs = np.full((400, 400), 1e-3)  # 160 s, where the weights see an even, empty image
+    plan = BandPlan(400, 400, limit_s=5.0)
     with pytest.raises(TooCostlyError):
-        plan.drawn(rows, rows * 0.01)  # the molecule's rows: 20x dearer
+        draw(plan, per_pixel(costs))
+    assert plan.spent_s <= 5.0 + 0.5
 
 
-def test_a_one_row_image_is_one_band() -> None:
-    plan = BandPlan(4096, 1, limit_s=0.001)
-    assert plan.first() == 1 and plan.drawn(1, 100.0) == 0
+def test_one_costly_row_is_drawn_in_parts_of_it() -> None:
+    costs = np.full((1, 4096), 0.03)  # 123 s in one row
+    plan = BandPlan(4096, 1, limit_s=1000.0, blocks=blocks_for(costs))
+    got = draw(plan, per_pixel(costs))
+    assert max(s for _t, s in got[1:]) <= 0.5  # 16 pixels at least a band
+
+
+def test_what_a_refusal_suggests_and_how_far_a_layer_reaches() -> None:
+    assert "classical density" in advice_for(RenderParams(scale_space="geodesic"))
+    assert "lower quality" in advice_for(RenderParams(mode="volume"))
+    assert "classical" not in advice_for(RenderParams())
+    params = RenderParams(sigma_A=1.5, layers=[Layer(name="a", selection="all", sigma_A=3.0)])
+    assert reach_of(params) == 3.0 * params.cutoff_sigmas
 
 
 def test_the_constants_say_what_the_docs_say() -> None:

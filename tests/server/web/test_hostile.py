@@ -754,13 +754,13 @@ def test_a_one_off_render_whose_client_left_is_abandoned(live_server: LiveServer
     viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "gone")
     viewer.expect(p.Image, 60)
     gpu = live_server.app_state.gpu
-    rows: list[int] = []
+    pixels: list[int] = []
     render_sync = gpu.render_sync
 
     def rendered(request: Any) -> Any:
         out = render_sync(request)
         if request.slot.startswith("rest:"):
-            rows.append(request.tile[3])
+            pixels.append(request.tile[2] * request.tile[3])
         return out
 
     gpu.render_sync = rendered
@@ -771,11 +771,11 @@ def test_a_one_off_render_whose_client_left_is_abandoned(live_server: LiveServer
         httpx.Client(base_url=live_server.url, timeout=httpx.Timeout(120, read=1.0)) as c,
     ):
         c.post("/api/render", headers={"Authorization": f"Bearer {live_server.token}"}, data=data)
-    assert wait_for(lambda: len(rows) >= 2)
+    assert wait_for(lambda: len(pixels) >= 2)
     time.sleep(1.0)
-    drawn = sum(rows)
+    drawn = sum(pixels)
     time.sleep(1.5)  # the whole image takes about 2.5 s of two CPU cores
-    assert sum(rows) == drawn < 720, rows
+    assert sum(pixels) == drawn < 1280 * 720, pixels
     sim.close()
     viewer.close()
 
@@ -795,13 +795,13 @@ def test_a_one_off_render_that_would_hold_the_device_past_the_limit_is_refused(
         viewer = Peer(server.view_url, "viewer", server.viewer_token, "held")
         viewer.expect(p.Image, 60)
         gpu = server.app_state.gpu
-        rows: list[int] = []
+        pixels: list[int] = []
         render_sync = gpu.render_sync
 
         def rendered(request: Any) -> Any:
             out = render_sync(request)
             if request.slot.startswith("rest:"):
-                rows.append(request.tile[3])
+                pixels.append(request.tile[2] * request.tile[3])
             return out
 
         gpu.render_sync = rendered
@@ -816,7 +816,7 @@ def test_a_one_off_render_that_would_hold_the_device_past_the_limit_is_refused(
             detail = big.json()["detail"]
             assert "1280x720 image would hold the device for about" in detail, detail
             assert "limit of 0.3 s" in detail and "one_off_render_seconds" in detail, detail
-            assert 2 <= len(rows) <= 4 and sum(rows) < 720 / 8, rows  # its first bands only
+            assert len(pixels) >= 2 and sum(pixels) < 1280 * 720 / 4, pixels  # its first bands
             small = c.post("/api/render", headers=auth, data=size | {"width": "64", "height": "48"})
             assert small.status_code == 200, small.text
         sim.send(frame(pos + np.float32(0.05), 1))
