@@ -109,7 +109,9 @@ TABLES: dict[str, Table] = {
         ("latency_h200_live_1m.json", "latency_h200_round6_views.json"), latency_delivery
     ),
     "pipeline": Table(("pipeline_h200.json",), pipeline),
-    "oneoff": Table(("latency_h200_oneoff_bands.json",), oneoff),
+    "oneoff": Table(
+        ("latency_h200_oneoff_bands.json", "latency_cpu_2core_oneoff_bands.json"), oneoff
+    ),
     "multi-device": Table(
         (
             "multi_device_cpu_2core.json",

@@ -41,7 +41,12 @@ FIRST_SHARE = 1.0 / 128.0
 BAND_SECONDS = 0.1
 """Device time each later band is sized to: about what a live view waits behind one."""
 GROWTH = 4.0
-"""Most a band's weight grows over the one before (the weights are an estimate)."""
+"""Most a band's expected time grows over the time of the one before (the cover is an estimate
+of where the time goes)."""
+GROWN_FROM = 0.025
+"""Bands shorter than this grow as if they took this long: on a GPU a band's fixed costs are a
+millisecond or so, and growing from there took villin at 1920x1080 2.2 times as long as drawn
+whole (`results/latency_h200_oneoff_bands.json`)."""
 JUDGED_AFTER_S = 0.5
 """Device seconds of bands after the first before their rate may refuse the rest."""
 BLOCK = 8
@@ -190,7 +195,7 @@ class BandPlan:
                 self.b = seconds / cover
             else:
                 self.a = seconds / (w * h)
-            return None if self.done else self._band(GROWTH * max(seconds, 1e-3))
+            return None if self.done else self._band(GROWTH * max(seconds, GROWN_FROM))
         self.spent_s += seconds
         if cover > 0.0:
             share = max(seconds - self.a * w * h, 0.0)
@@ -217,7 +222,7 @@ class BandPlan:
                 f"cover each pixel), over this server's limit of {self.limit_s:g} s for one "
                 f"image (one_off_render_seconds); {self.advice}"
             )
-        return self._band(GROWTH * max(seconds, 1e-3))
+        return self._band(GROWTH * max(seconds, GROWN_FROM))
 
     def _band(self, most: float) -> Tile:
         """The run of pixels from (x, y) expected to take at most BAND_SECONDS (and `most`):
