@@ -157,3 +157,14 @@ def test_what_a_refusal_suggests_and_how_far_a_layer_reaches() -> None:
 
 def test_the_constants_say_what_the_docs_say() -> None:
     assert bands.FIRST_SHARE == 1 / 128 and bands.BAND_SECONDS == 0.1
+
+
+def test_a_large_system_is_weighed_from_every_kth_atom(monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(3)
+    atoms = (rng.normal(size=(200_000, 3)) * [30.0, 10.0, 10.0]).astype(np.float32)
+    frame = camera_frame(Camera(target=(0.0, 0.0, 0.0), distance=150.0), 640, 360)
+    some = footprint(atoms, frame, reach=4.0)
+    monkeypatch.setattr(bands, "WEIGHED_ATOMS", 1 << 30)
+    every = footprint(atoms, frame, reach=4.0)
+    assert some.sum() == pytest.approx(every.sum(), rel=0.01)
+    assert np.corrcoef(some.ravel(), every.ravel())[0, 1] > 0.99
