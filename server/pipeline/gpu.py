@@ -428,10 +428,14 @@ class GpuQueue:
         drawn across several devices takes the whole image in one turn."""
         await self._room_for(request.slot, self._whole_atoms(request))
         from server.render.camera import camera_frame
+        from server.render.layerplan import visible_atoms
 
         frame = camera_frame(request.camera, request.width, request.height)
         positions = request.snapshot.positions
-        blocks = await asyncio.to_thread(footprint, positions, frame, reach_of(request.params))
+        if request.layers is not None:  # hidden atoms (solvent, ions) cost nothing
+            positions = positions[visible_atoms(request.layers, len(positions))]
+        reach = reach_of(request.params, request.layers)
+        blocks = await asyncio.to_thread(footprint, positions, frame, reach)
         plan = BandPlan(request.width, request.height, limit_s, blocks, advice_for(request.params))
         tile: tuple[int, int, int, int] | None = plan.first()
         image = np.empty((request.height, request.width, 4), dtype=np.uint8)

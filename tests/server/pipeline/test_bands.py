@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from protocol import Camera, Layer, RenderParams
+from protocol import Camera, RenderParams
 from server.pipeline import bands
 from server.pipeline.bands import (
     BLOCK,
@@ -21,6 +21,7 @@ from server.pipeline.bands import (
 )
 from server.render.camera import camera_frame, image_rays
 from server.render.errors import CapacityError
+from server.render.layerplan import LayerPlan
 
 Cost = Callable[[int, int, int, int], float]
 
@@ -78,10 +79,10 @@ def test_bands_of_an_even_image_take_a_tenth_of_a_second_each() -> None:
     costs = np.full((1080, 1920), 1e-6)  # 2.07 s in all
     plan = BandPlan(1920, 1080, limit_s=60.0, blocks=blocks_for(costs))
     got = draw(plan, per_pixel(costs))
-    assert got[0][0] == (0, 0, 1920, 9)  # 1/128 of the cover (8.4 rows)
+    assert got[0][0] == (0, 0, 507, 1)  # 1/4096 of the cover: part of the first row
     later = [s for _tile, s in got[1:-1]]
     assert max(later) <= 0.1 + 2e-3 and np.median(later) >= 0.09
-    assert plan.spent_s == pytest.approx(2.0736 - 9 * 1920 * 1e-6)
+    assert plan.spent_s == pytest.approx(2.0736 - 507 * 1e-6)
 
 
 def test_empty_rows_above_the_molecule_do_not_lead_into_one_long_band() -> None:
@@ -105,8 +106,9 @@ def test_a_band_slowed_by_compiling_is_not_counted_and_only_shrinks_the_next() -
     costs = np.full((480, 640), 1e-6)
     plan = BandPlan(640, 480, limit_s=1.0, blocks=blocks_for(costs))
     got = draw(plan, per_pixel(costs), first_extra=30.0)
-    assert got[1][0][3] == 1 and got[1][0][2] < 640  # part of a row after 30 s
-    assert plan.spent_s == pytest.approx((480 - got[0][0][3]) * 640 * 1e-6)
+    first = got[0][0]
+    assert first[3] == 1 and got[1][0][3] == 1 and got[1][0][2] < 640  # parts of the row
+    assert plan.spent_s == pytest.approx((480 * 640 - first[2]) * 1e-6)
 
 
 def test_an_image_past_the_limit_is_refused_once_its_bands_took_half_a_second() -> None:
@@ -117,7 +119,7 @@ def test_an_image_past_the_limit_is_refused_once_its_bands_took_half_a_second() 
     assert isinstance(err.value, CapacityError)
     assert 0.5 <= plan.spent_s < 0.7
     text = str(err.value)
-    assert "1920x1080" in text and "about 267 s" in text and "limit of 60 s" in text
+    assert "1920x1080" in text and "about 270 s" in text and "limit of 60 s" in text
     assert "one_off_render_seconds" in text and "a smaller sigma" in text
 
 
@@ -151,12 +153,15 @@ def test_what_a_refusal_suggests_and_how_far_a_layer_reaches() -> None:
     assert "classical density" in advice_for(RenderParams(scale_space="geodesic"))
     assert "lower quality" in advice_for(RenderParams(mode="volume"))
     assert "classical" not in advice_for(RenderParams())
-    params = RenderParams(sigma_A=1.5, layers=[Layer(name="a", selection="all", sigma_A=3.0)])
-    assert reach_of(params) == 3.0 * params.cutoff_sigmas
+    params = RenderParams(sigma_A=1.5)
+    assert reach_of(params) == 1.5 * params.cutoff_sigmas
+    wide = RenderParams(sigma_A=3.0, cutoff_sigmas=3.0)
+    plans = [LayerPlan("a", None, params), LayerPlan("b", None, wide)]
+    assert reach_of(params, plans) == 9.0  # the widest layer drawn
 
 
 def test_the_constants_say_what_the_docs_say() -> None:
-    assert bands.FIRST_SHARE == 1 / 128 and bands.BAND_SECONDS == 0.1
+    assert bands.FIRST_SHARE == 1 / 4096 and bands.BAND_SECONDS == 0.1
 
 
 def test_a_large_system_is_weighed_from_every_kth_atom(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -168,3 +173,44 @@ def test_a_large_system_is_weighed_from_every_kth_atom(monkeypatch: pytest.Monke
     every = footprint(atoms, frame, reach=4.0)
     assert some.sum() == pytest.approx(every.sum(), rel=0.01)
     assert np.corrcoef(some.ravel(), every.ravel())[0, 1] > 0.99
+
+
+def test_a_camera_that_magnifies_an_atom_past_the_image_weighs_no_more_than_the_image() -> None:
+    """A tiny ortho_height asked `footprint` for a box of 110 GiB."""
+    frame = camera_frame(
+        Camera(projection="orthographic", ortho_height=0.01, distance=100.0), 1920, 1080
+    )
+    atoms = np.zeros((3000, 3), dtype=np.float32)
+    blocks = footprint(atoms, frame, reach=4.5)
+    assert blocks.shape == (135, 240) and (blocks == 3000).all()
+
+
+def test_only_the_atoms_a_visible_layer_draws_are_weighed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Hidden solvent's even cover set the rate while the bands crossed it, and a band over
+    the protein then took 8.4 s: hidden atoms weigh nothing."""
+    import asyncio
+
+    from server.pipeline import gpu as gpu_module
+    from server.pipeline.gpu import GpuQueue, RenderRequest, Snapshot
+    from server.render.camera import fit_camera
+    from tests.render.conftest import blob, make_topology
+
+    weighed: list[int] = []
+    real = gpu_module.footprint
+
+    def spy(positions: np.ndarray, frame: object, reach: float) -> np.ndarray:
+        weighed.append(len(positions))
+        return real(positions, frame, reach)
+
+    monkeypatch.setattr(gpu_module, "footprint", spy)
+    top, pos = make_topology(200), blob(200, seed=2)
+    protein = RenderParams(sigma_A=1.2)
+    plans = (LayerPlan("protein", np.arange(10, dtype=np.int32), protein),)
+    cam = fit_camera(pos, 32, 24)
+    request = RenderRequest("rest:weighed", Snapshot(top, pos), protein, cam, 32, 24, layers=plans)
+    queue = GpuQueue(device="cpu")
+    try:
+        out = asyncio.run(queue.render_bands(request, 60.0))
+    finally:
+        queue.close()
+    assert weighed == [10] and out.image().shape == (24, 32, 4)
