@@ -688,12 +688,7 @@ def test_a_burst_of_rest_renders_does_not_hold_a_live_view(live_server: LiveServ
     them waited for all three. One-off renders are now drawn in bands of rows, each its own
     turn on the device (`server.pipeline.bands`): the session's work goes first and waits for
     at most the band under way, and a small image goes between the large ones' bands."""
-    sim = Peer(live_server.ws_url, "simulation", live_server.token, "burst")
-    topo, pos = molecule(16)
-    sim.send(topo)
-    sim.send(frame(pos, 0))
-    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "burst")
-    viewer.expect(p.Image, 60)
+    sim, viewer, pos = watched_session(live_server.ws_url, live_server.view_url, "burst")
     gpu = live_server.app_state.gpu
     done: list[str] = []  # the slot of each render (a band, for a one-off) the device finished
     render_sync = gpu.render_sync
@@ -744,16 +739,9 @@ def test_a_burst_of_rest_renders_does_not_hold_a_live_view(live_server: LiveServ
     viewer.close()
 
 
-def test_a_one_off_render_whose_client_left_is_abandoned(live_server: LiveServer) -> None:
-    """A client that gave up on a large image (a timeout, a closed tab) left its device drawing
-    it to the end. Between bands the server asks whether anybody still waits for it."""
-    sim = Peer(live_server.ws_url, "simulation", live_server.token, "gone")
-    topo, pos = molecule(16)
-    sim.send(topo)
-    sim.send(frame(pos, 0))
-    viewer = Peer(live_server.view_url, "viewer", live_server.viewer_token, "gone")
-    viewer.expect(p.Image, 60)
-    gpu = live_server.app_state.gpu
+def band_pixels(server: LiveServer) -> list[int]:
+    """The pixels of each band of a one-off render the server's device draws from now on."""
+    gpu = server.app_state.gpu
     pixels: list[int] = []
     render_sync = gpu.render_sync
 
@@ -764,6 +752,14 @@ def test_a_one_off_render_whose_client_left_is_abandoned(live_server: LiveServer
         return out
 
     gpu.render_sync = rendered
+    return pixels
+
+
+def test_a_one_off_render_whose_client_left_is_abandoned(live_server: LiveServer) -> None:
+    """A client that gave up on a large image (a timeout, a closed tab) left its device drawing
+    it to the end. Between bands the server asks whether anybody still waits for it."""
+    sim, viewer, _pos = watched_session(live_server.ws_url, live_server.view_url, "gone")
+    pixels = band_pixels(live_server)
     params = json.dumps({"mode": "volume", "quality": 2, "sigma_A": 4})
     data = {"session": "gone", "width": "1280", "height": "720", "params": params}
     with (
@@ -788,23 +784,8 @@ def test_a_one_off_render_that_would_hold_the_device_past_the_limit_is_refused(
     never drawn; a small image and the live session go on."""
     server = start_server(make_settings(tmp_path, one_off_render_seconds=0.3))
     try:
-        sim = Peer(server.ws_url, "simulation", server.token, "held")
-        topo, pos = molecule(16)
-        sim.send(topo)
-        sim.send(frame(pos, 0))
-        viewer = Peer(server.view_url, "viewer", server.viewer_token, "held")
-        viewer.expect(p.Image, 60)
-        gpu = server.app_state.gpu
-        pixels: list[int] = []
-        render_sync = gpu.render_sync
-
-        def rendered(request: Any) -> Any:
-            out = render_sync(request)
-            if request.slot.startswith("rest:"):
-                pixels.append(request.tile[2] * request.tile[3])
-            return out
-
-        gpu.render_sync = rendered
+        sim, viewer, pos = watched_session(server.ws_url, server.view_url, "held")
+        pixels = band_pixels(server)
         params = json.dumps({"mode": "volume", "quality": 2, "sigma_A": 4})
         with httpx.Client(base_url=server.url, timeout=300) as c:
             auth = {"Authorization": f"Bearer {server.viewer_token}"}
