@@ -33,7 +33,7 @@ import time
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeGuard, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -72,7 +72,7 @@ class RenderAbandonedError(RenderError):
     """A one-off render given up between its bands: its client went away."""
 
 
-def _tiles(renderer: Any) -> bool:
+def _tiles(renderer: Any) -> TypeGuard[Renderer]:
     """Whether `renderer` draws a tile of an image (one device's; not one split across
     several, which splits the image itself)."""
     from server.render import Renderer
@@ -757,9 +757,6 @@ class GpuQueue:
             )
         size = (request.params, request.camera, request.width, request.height)
         if request.tile is not None and _tiles(renderer):
-            from server.render import Renderer
-
-            assert isinstance(renderer, Renderer)
             renderer.render(*size, request.tile, wait=wait)
         else:
             renderer.render(*size, wait=wait)
