@@ -580,7 +580,7 @@ class Bench:
                     need = rr._gvol.last_need() if rr._gvol is not None else None
                     if need is not None:
                         row[f"{label}_grid"] = {"spacing": need[0], "points": need[1]}
-                        row[f"{label}_grid"].update(walked=need[2], pixels=w * h)
+                        row[f"{label}_grid"].update(bricks_walked=need[2], pixels=w * h)
             del r_grid, r_routes
             for label in ("geodesic", "geodesic_grid"):
                 row[f"{label}_over_routes_fps"] = (

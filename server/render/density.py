@@ -68,6 +68,19 @@ class Sample:
 
 @wp.func
 @no_type_check
+def empty_sample() -> Sample:
+    """A sample before any term: nothing summed, no contributor (weight -1, atom -1)."""
+    s = Sample()
+    s.value = 0.0
+    s.grad = wp.vec3(0.0, 0.0, 0.0)
+    s.color = wp.vec3(0.0, 0.0, 0.0)
+    s.weight = -1.0
+    s.atom = -1
+    return s
+
+
+@wp.func
+@no_type_check
 def unpack_rgb(c: wp.uint32) -> wp.vec3:
     r = float(c & wp.uint32(255))
     g = float((c >> wp.uint32(8)) & wp.uint32(255))
@@ -564,13 +577,7 @@ def gaussian_sample(f: GaussianField, p: wp.vec3) -> Sample:
 
     Ties between equal contributions go to the lower original atom index, so the atom id is
     deterministic even for coincident atoms."""
-    start = Sample()
-    start.value = 0.0
-    start.grad = wp.vec3(0.0, 0.0, 0.0)
-    start.color = wp.vec3(0.0, 0.0, 0.0)
-    start.weight = -1.0
-    start.atom = -1
-    s = _walk_sample(f, p, p, p, start)
+    s = _walk_sample(f, p, p, p, empty_sample())
     s.weight = s.value
     return s
 

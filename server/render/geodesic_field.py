@@ -35,6 +35,7 @@ from server.render.density import (
     Sample,
     cell_rows,
     dist2,
+    empty_sample,
     gaussian_box_bound,
     gaussian_part_bounds,
     gaussian_value4,
@@ -472,13 +473,7 @@ def geodesic_value_grad(f: GeodesicField, p: wp.vec3) -> wp.vec4:
 @wp.func
 @no_type_check
 def geodesic_sample(f: GeodesicField, p: wp.vec3) -> Sample:
-    start = Sample()
-    start.value = 0.0
-    start.grad = wp.vec3(0.0, 0.0, 0.0)
-    start.color = wp.vec3(0.0, 0.0, 0.0)
-    start.weight = -1.0
-    start.atom = -1
-    s = _walk_sample(f, p, p, p, start)
+    s = _walk_sample(f, p, p, p, empty_sample())
     s.weight = s.value
     return s
 

@@ -19,9 +19,11 @@ frame before, once it is done):
   * `gate_kernel`: points whose bound (the classical density times `Routes.gate`) is below
     CUT times the level hold 0 and walk no route: their value is below a fifth of the level,
     where the interpolant near the surface barely feels it;
-  * the others are listed (a scan) and their routes walked by `lanes` threads each, as the mean
-    density is, FILL_CHUNK points a launch (`fill_kernel`, `sum_kernel`; points past the planned
-    count one thread each): each point's value, colour and largest contributor;
+  * the bricks of 4 x 4 x 2 points that hold such a point are listed (a scan), and each
+    brick's points are taken by one warp's 32 threads (`fill_kernel`): every thread walks the
+    routes of the atoms within reach of the whole brick, so the warp reads the same routes
+    together, and keeps its point's value, colour and largest contributor (the atoms beyond
+    its own reach add exact zeros: the values are those of a walk around the point alone);
   * `prefilter_kernel` along x, y and z turns values into B-spline coefficients (the causal and
     anticausal recursions of the cubic B-spline's pole, sqrt(3) - 2), so the spline interpolates
     the grid's values rather than blurring them.
@@ -49,6 +51,7 @@ from server.render.density import (
     PartBounds,
     Sample,
     cell_rows,
+    empty_sample,
     gaussian_value,
     unpack_rgb,
 )
@@ -83,31 +86,46 @@ tapered tails, where the spline rings (two thirds of villin's drawn pixels chang
 sigma 1.5 A); past it the routes are walked per sample."""
 CUT = 0.2
 """Points whose bound is below this fraction of the level hold 0 (their value is below it)."""
-POINTS_PER_PIXEL = 10.75
+POINTS_PER_PIXEL = 24.0
 """The grid is used when it has at most this many points a pixel of the image. A grid point
 costs about what a ray sample does; a pixel costs several samples, fewer where the molecule
-covers less of the image. One NVIDIA H200 (render_h200_densities.json, the routes per sample
-the control): the grid took 0.07-0.34 of the routes' time at 0.6-10.5 points a pixel (villin
-to 10,000 atoms at 500x500) and 1.17 of it at 11.05 (100,000 atoms at 1920x1080): the rule
-sits between the two."""
+covers less of the image. One NVIDIA H200, the routes per sample the control in the same run:
+the grid took 0.07-0.34 of the routes' time at 0.6-10.5 points a pixel (villin to 10,000
+atoms at 500x500, render_h200_densities.json), and 0.88, 0.99 and 0.93 of it at 11.05, 15.9
+and 24.9 points a pixel (100,000 atoms at 1920x1080, 1600x900 and 1280x720,
+render_h200_geodesic_grid_or_routes.json): the rule stops short of the last."""
 MAX_POINTS = 1 << 25
-"""Most grid points a plan takes: with SLACK, buffers of up to 50M points (24 bytes each) and
-the lanes' sums of one FILL_CHUNK of their walked ones."""
+"""Most grid points a plan takes: with SLACK, buffers of up to 50M points (16 bytes each, and
+about one more for the bricks)."""
 REACH_STEPS = 6.0
 """Grid steps past an atom's cutoff that its value reaches through the spline (two) and the
 prefilter (whose recursion decays by 0.27 a step): what a device that keeps only the atoms near
 its part of the image (`grid.Cull`) must keep beyond them."""
-LISTED = 0.35
-"""Walked points per grid point the plan expects before a frame has counted them (villin and
-adenylate kinase at sigma 1.5 A: 0.17-0.23)."""
 SLACK = 1.5
 """Points allocated per point the plan expects (the molecule moves between frames)."""
-FILL_CHUNK = 1 << 20
-"""Listed points one fill launch takes: the lanes' partial sums (value, colour, largest term;
-24 bytes a lane, 200 MB a chunk at eight lanes) are held for one chunk at a time, so they do
-not grow with the molecule. 2^17 cost 100,000 atoms at 1920x1080 8 % more (a launch's last
-wave; one NVIDIA H200); eight lanes a point were as fast as four, and 1.1-2.1x faster than 16
-or 32 (`render_h200_geodesic_grid_pick_sweep.json`)."""
+BRICK_X = 4
+BRICK_Y = 4
+BRICK_Z = 2
+"""The fill takes the grid in bricks of 4 x 4 x 2 points, one warp's 32 threads (`fill_kernel`)."""
+BRICK_POINTS = BRICK_X * BRICK_Y * BRICK_Z
+BRICKS_PER_POINT = 3.1 / BRICK_POINTS
+"""Bricks allocated per grid point: a grid at least 5 points wide on every axis has at most
+(nx + 3)(ny + 3)(nz + 1) / 32 <= 3.07 / 32 bricks a point (`setup_kernel` checks the count)."""
+WARPS_PER_SM = 64
+"""Groups of 32 threads the fill launches per multiprocessor on CUDA (each takes listed bricks
+in turn): a full device's worth, whatever the count of bricks listed this frame."""
+LISTED_BRICKS = 0.25
+"""Listed bricks per brick of the grid the plan expects (villin to 100,000 atoms at sigma
+1.5 A: 0.19-0.25)."""
+MAX_LANES = 8
+"""Most groups of 32 threads one brick's points take together (each a share of every row's
+atoms): a small molecule lists too few bricks to fill the device, one group a brick."""
+FILL_TARGET = 3.0
+"""Groups a brick double while twice the groups would stay within this many launches' worth
+(`GeodesicVolume.lanes_for`). One NVIDIA H200, 1, 2, 4 and 8 groups a brick in the same run
+(`render_h200_geodesic_fill_lanes.json`): the fastest took 8 at villin (1,096 bricks listed),
+4 at 1,049 and 2,500 atoms (1,929 and 3,876), 2 at 5,684 (9,138), 1 at 10,000 (15,479); the
+rule's choice was within 1 % of the fastest at each but 1,049 atoms (8 groups, 1.01x)."""
 _Ints8 = wp.types.vector(length=8, dtype=wp.int32)
 
 _POLE = wp.constant(math.sqrt(3.0) - 2.0)  # type: ignore[no-untyped-call]
@@ -127,6 +145,7 @@ class VolumeInfo:
     inv_h: float
     dims: wp.vec3i
     points: int
+    bricks: int
     valid: int
 
 
@@ -278,10 +297,10 @@ def volume_value_grad(f: GeodesicVolumeField, p: wp.vec3) -> wp.vec4:
 
 @wp.func
 @no_type_check
-def row_pick_lane(f: GeodesicField, q: LanePoint, j0: int, j1: int, acc: Sample) -> Sample:
-    """The lane's share of the routes' terms over sorted atoms [j0, j1) (every `lanes`-th, as
-    `row_value_lane`, so the values add up in the same order): their sum, contribution-weighted
-    colour and largest term, `atom` its sorted index (ties: the lower original index)."""
+def row_pick(f: GeodesicField, q: LanePoint, j0: int, j1: int, acc: Sample) -> Sample:
+    """The lane's share of the routes' terms at q.p over sorted atoms [j0, j1) (every
+    `lanes`-th): their sum, contribution-weighted colour and largest term, `atom` its sorted
+    index (ties: the lower original index)."""
     s = acc
     g = f.gauss
     j = j0 + q.lane
@@ -299,26 +318,7 @@ def row_pick_lane(f: GeodesicField, q: LanePoint, j0: int, j1: int, acc: Sample)
     return s
 
 
-_walk_pick_lane = cell_rows(
-    "geodesic_pick_lane", row_pick_lane, LanePoint, Sample, field=GeodesicField
-)
-
-
-@wp.func
-@no_type_check
-def pick_walk(f: GeodesicField, p: wp.vec3, lane: int, lanes: int) -> Sample:
-    """One lane's `row_pick_lane` over every row within reach of p."""
-    q = LanePoint()
-    q.p = p
-    q.lane = lane
-    q.lanes = lanes
-    s = Sample()
-    s.value = 0.0
-    s.grad = wp.vec3(0.0, 0.0, 0.0)
-    s.color = wp.vec3(0.0, 0.0, 0.0)
-    s.weight = -1.0
-    s.atom = -1
-    return _walk_pick_lane(f, p, p, q, s)
+_walk_pick = cell_rows("geodesic_pick", row_pick, LanePoint, Sample, field=GeodesicField)
 
 
 @wp.func
@@ -337,12 +337,8 @@ def grid_pick(f: GeodesicVolumeField, v: VolumeInfo, p: wp.vec3) -> Sample:
     """Colour (trilinear over the walked points of p's cell, `weight` 1) and the picked atom
     (original index): the largest of the cell's points' largest contributors, their terms
     evaluated at p. `atom` -1 when the cell has no walked point."""
-    s = Sample()
-    s.value = 0.0
-    s.grad = wp.vec3(0.0, 0.0, 0.0)
-    s.color = wp.vec3(0.0, 0.0, 0.0)
+    s = empty_sample()
     s.weight = 0.0
-    s.atom = -1
     c = corner(v, p)
     if c[0] >= 0.0:
         i = int(c[0]) + 1
@@ -526,7 +522,13 @@ def point_of(v: VolumeInfo, i: int) -> wp.vec3:
 
 @wp.kernel
 @no_type_check
-def setup_kernel(info: wp.array[GridInfo], h: float, capacity: int, vol: wp.array[VolumeInfo]):
+def setup_kernel(
+    info: wp.array[GridInfo],
+    h: float,
+    capacity: int,
+    brick_capacity: int,
+    vol: wp.array[VolumeInfo],
+):
     """Lay the grid over the atom grid's box with two zero points more on every side."""
     g = info[0]
     v = VolumeInfo()
@@ -539,12 +541,23 @@ def setup_kernel(info: wp.array[GridInfo], h: float, capacity: int, vol: wp.arra
     fz = wp.floor(ext[2] / h) + 5.0
     v.valid = 0
     v.points = 0
+    v.bricks = 0
     v.dims = wp.vec3i(1, 1, 1)
     size = wp.float64(fx) * wp.float64(fy) * wp.float64(fz)
     if g.valid != 0 and size <= wp.float64(capacity):
-        v.dims = wp.vec3i(int(fx), int(fy), int(fz))
-        v.points = int(fx) * int(fy) * int(fz)
-        v.valid = 1
+        nx = int(fx)
+        ny = int(fy)
+        nz = int(fz)
+        bricks = (
+            ((nx + BRICK_X - 1) // BRICK_X)
+            * ((ny + BRICK_Y - 1) // BRICK_Y)
+            * ((nz + BRICK_Z - 1) // BRICK_Z)
+        )
+        v.points = nx * ny * nz
+        if bricks <= brick_capacity:
+            v.dims = wp.vec3i(nx, ny, nz)
+            v.bricks = bricks
+            v.valid = 1
     elif g.valid != 0:
         # what the plan must make room for (capped: only compared on the host)
         v.points = int(wp.min(size, wp.float64(2.0e9)))
@@ -577,6 +590,38 @@ def gate_kernel(
     flags[i] = flag
 
 
+@wp.func
+@no_type_check
+def brick_point(v: VolumeInfo, b: int, k: int) -> wp.vec4i:
+    """Point k (0-31, x fastest) of brick b: its (x, y, z) and grid index (-1 outside)."""
+    nx = v.dims[0]
+    ny = v.dims[1]
+    bx_count = (nx + BRICK_X - 1) // BRICK_X
+    by_count = (ny + BRICK_Y - 1) // BRICK_Y
+    x = (b % bx_count) * BRICK_X + k % BRICK_X
+    y = ((b // bx_count) % by_count) * BRICK_Y + (k // BRICK_X) % BRICK_Y
+    z = (b // (bx_count * by_count)) * BRICK_Z + k // (BRICK_X * BRICK_Y)
+    i = -1
+    if x < nx and y < ny and z < v.dims[2]:
+        i = (z * ny + y) * nx + x
+    return wp.vec4i(x, y, z, i)
+
+
+@wp.kernel
+@no_type_check
+def brick_kernel(vol: wp.array[VolumeInfo], flags: wp.array[wp.int32], out: wp.array[wp.int32]):
+    """out[b] = 1 where brick b holds a point whose routes are walked."""
+    b = wp.tid()
+    v = vol[0]
+    flag = int(0)  # noqa: RUF046  (a warp variable the loop may change)
+    if v.valid != 0 and b < v.bricks:
+        for k in range(BRICK_POINTS):
+            i = brick_point(v, b, k)[3]
+            if i >= 0:
+                flag = wp.max(flag, flags[i])
+    out[b] = flag
+
+
 @wp.kernel
 @no_type_check
 def compact_kernel(
@@ -591,31 +636,6 @@ def compact_kernel(
         listed[scan[i]] = i
     if i == last:
         count[0] = scan[i] + flags[i]
-
-
-@wp.kernel
-@no_type_check
-def fill_kernel(
-    f: GeodesicField,
-    vol: wp.array[VolumeInfo],
-    listed: wp.array[wp.int32],
-    count: wp.array[wp.int32],
-    lanes: int,
-    first: int,
-    partial: wp.array[float],
-    partial_tint: wp.array[wp.vec4],
-    partial_atom: wp.array[wp.int32],
-):
-    """Lane `t % lanes` of listed point `first + t // lanes`: its share of the point's atoms
-    (every `lanes`-th of each row, a fixed order): value, colour sum and largest term."""
-    t = wp.tid()
-    k = t // lanes
-    if first + k < count[0]:
-        p = point_of(vol[0], listed[first + k])
-        s = pick_walk(f, p, t - k * lanes, lanes)
-        partial[t] = s.value
-        partial_tint[t] = wp.vec4(s.color[0], s.color[1], s.color[2], s.weight)
-        partial_atom[t] = s.atom
 
 
 @wp.func
@@ -634,68 +654,120 @@ def keep_point(
         atoms[i] = s.atom
 
 
+@wp.struct
+class Fill:
+    """How one fill launch takes the listed bricks: `lanes` groups of 32 threads a brick (each
+    its share of every row's atoms), bricks [first, min(count, last)), `warps` groups in all
+    taking (brick, lane) pairs in turn; `together` walks the atoms within reach of the whole
+    brick, not of each point alone."""
+
+    warps: int
+    together: int
+    lanes: int
+    first: int
+    last: int
+
+
+@wp.kernel
+@no_type_check
+def fill_kernel(
+    f: GeodesicField,
+    vol: wp.array[VolumeInfo],
+    flags: wp.array[wp.int32],
+    listed: wp.array[wp.int32],
+    count: wp.array[wp.int32],
+    how: Fill,
+    partial: wp.array[float],
+    partial_tint: wp.array[wp.vec4],
+    partial_atom: wp.array[wp.int32],
+    coef: wp.array[float],
+    tint: wp.array[wp.uint32],
+    atoms: wp.array[wp.int32],
+):
+    """Thread `t % 32` of group `t // 32` takes point `t % 32` of (brick, lane) pairs
+    `t // 32`, `t // 32 + warps`, ...: a walked point's value, colour and largest term over
+    the atoms within reach of its brick (`together`: a group's threads read the same atoms'
+    routes in the same order) or of itself (the same terms in the same order, so the same
+    values bit for bit). One lane keeps the point; several leave their shares in `partial`
+    for `sum_kernel`."""
+    t = wp.tid()
+    group = t // BRICK_POINTS
+    k = t - group * BRICK_POINTS
+    v = vol[0]
+    span = wp.vec3(float(BRICK_X - 1), float(BRICK_Y - 1), float(BRICK_Z - 1)) * v.h
+    n = wp.min(count[0], how.last)
+    q = LanePoint()
+    q.lanes = how.lanes
+    u = group
+    while how.first + u // how.lanes < n:
+        b = listed[how.first + u // how.lanes]
+        at = brick_point(v, b, k)
+        i = at[3]
+        # nested: warp evaluates both operands of `and`, and i < 0 is no index
+        if i >= 0:  # noqa: SIM102
+            if flags[i] != 0:
+                q.p = point_of(v, i)
+                q.lane = u % how.lanes
+                lo = q.p
+                hi = q.p
+                if how.together != 0:
+                    x0 = float(at[0] - k % BRICK_X)
+                    y0 = float(at[1] - (k // BRICK_X) % BRICK_Y)
+                    z0 = float(at[2] - k // (BRICK_X * BRICK_Y))
+                    lo = v.origin + wp.vec3(x0, y0, z0) * v.h
+                    hi = lo + span
+                s = _walk_pick(f, lo, hi, q, empty_sample())
+                if how.lanes == 1:
+                    keep_point(i, s, coef, tint, atoms)
+                else:
+                    w = u * BRICK_POINTS + k
+                    partial[w] = s.value
+                    partial_tint[w] = wp.vec4(s.color[0], s.color[1], s.color[2], s.weight)
+                    partial_atom[w] = s.atom
+        u += how.warps
+
+
 @wp.kernel
 @no_type_check
 def sum_kernel(
     f: GeodesicField,
+    vol: wp.array[VolumeInfo],
+    flags: wp.array[wp.int32],
+    listed: wp.array[wp.int32],
+    count: wp.array[wp.int32],
+    how: Fill,
     partial: wp.array[float],
     partial_tint: wp.array[wp.vec4],
     partial_atom: wp.array[wp.int32],
-    lanes: int,
-    first: int,
-    listed: wp.array[wp.int32],
-    count: wp.array[wp.int32],
     coef: wp.array[float],
     tint: wp.array[wp.uint32],
     atoms: wp.array[wp.int32],
 ):
-    """The lanes' shares of listed point `first + tid` added in lane order; the largest term
-    the largest of theirs (ties: the lower original index, as one thread's walk)."""
-    k = wp.tid()
-    if first + k < count[0]:
-        s = Sample()
-        s.value = 0.0
-        s.color = wp.vec3(0.0, 0.0, 0.0)
-        s.weight = -1.0
-        s.atom = -1
-        order = f.gauss.order
-        for q in range(lanes):
-            u = k * lanes + q
-            s.value += partial[u]
-            pt = partial_tint[u]
-            s.color = s.color + wp.vec3(pt[0], pt[1], pt[2])
-            a = partial_atom[u]
-            if a >= 0:
-                if pt[3] > s.weight:
-                    s.weight = pt[3]
-                    s.atom = a
-                elif pt[3] == s.weight and order[a] < order[s.atom]:
-                    s.atom = a
-        keep_point(listed[first + k], s, coef, tint, atoms)
-
-
-@wp.kernel
-@no_type_check
-def rest_kernel(
-    f: GeodesicField,
-    vol: wp.array[VolumeInfo],
-    listed: wp.array[wp.int32],
-    count: wp.array[wp.int32],
-    first: int,
-    threads: int,
-    coef: wp.array[float],
-    tint: wp.array[wp.uint32],
-    atoms: wp.array[wp.int32],
-):
-    """Listed points past the planned count (`first`), one thread each in turn: the molecule
-    grew since the plan; the next frame's plan makes room."""
-    k = first + wp.tid()
-    n = count[0]
-    v = vol[0]
-    while k < n:
-        i = listed[k]
-        keep_point(i, pick_walk(f, point_of(v, i), 0, 1), coef, tint, atoms)
-        k += threads
+    """Point `t % 32` of listed brick `t // 32`: its lanes' shares added in lane order; the
+    largest term the largest of theirs (ties: the lower original index, as one lane's
+    walk)."""
+    t = wp.tid()
+    c = t // BRICK_POINTS
+    k = t - c * BRICK_POINTS
+    if c < wp.min(count[0], how.last):
+        i = brick_point(vol[0], listed[c], k)[3]
+        if i >= 0:  # noqa: SIM102  (as in fill_kernel)
+            if flags[i] != 0:
+                s = empty_sample()
+                order = f.gauss.order
+                for q in range(how.lanes):
+                    w = (c * how.lanes + q) * BRICK_POINTS + k
+                    s.value += partial[w]
+                    pt = partial_tint[w]
+                    s.color = s.color + wp.vec3(pt[0], pt[1], pt[2])
+                    a = partial_atom[w]
+                    if a >= 0:
+                        if pt[3] > s.weight:
+                            s.weight = pt[3]
+                            s.atom = a
+                        elif pt[3] == s.weight and order[a] < order[s.atom]:
+                            s.atom = a
+                keep_point(i, s, coef, tint, atoms)
 
 
 @wp.kernel
@@ -748,39 +820,83 @@ def prefilter_kernel(coef: wp.array[float], vol: wp.array[VolumeInfo], axis: int
 _wp: Any = wp  # warp's host API is unannotated
 
 
+_ALL = 2**31 - 1
+
+
+def _fill(warps: int, together: bool, lanes: int, first: int, last: int) -> Fill:
+    how = Fill()
+    how.warps = warps
+    how.together = int(together)
+    how.lanes = lanes
+    how.first = first
+    how.last = last
+    return how
+
+
 class GeodesicVolume:
     """The grid's buffers on one device and the plan of their size."""
 
-    def __init__(self, device: str, lanes: int) -> None:
+    def __init__(self, device: str, together: bool, lanes: int | None = None) -> None:
         self.device = device
-        self.lanes = max(int(lanes), 1)
-        self.cuda = bool(_wp.get_device(device).is_cuda)
+        self.together = bool(together)
+        """A brick's threads walk the atoms within reach of the brick, not each its own
+        point's (the same values; on CUDA a group of 32 then reads the same routes together)."""
+        self.fixed_lanes = lanes
+        """Groups a brick (None: `lanes_for` the grid's size)."""
+        dev = _wp.get_device(device)
+        self.cuda = bool(dev.is_cuda)
+        self.warps = int(dev.sm_count) * WARPS_PER_SM if self.cuda else 1
         self.vol = _wp.zeros(1, dtype=VolumeInfo, device=device)
         self.count = _wp.zeros(1, dtype=_wp.int32, device=device)
         self.capacity = 0
-        self.listed_capacity = 0
+        self.brick_capacity = 0
+        self.lanes = 1
+        self.planned = 0
+        """Listed bricks the lanes' shares have room for; the rest one group each."""
         self.built: tuple[float, int] | None = None
         """(spacing, capacity) of the last build, so the next plan reads what it needed."""
         self._need: tuple[float, int, int] | None = None
         """`last_need` once read: frames that keep the grid (a camera turning over still
         positions) plan from it without reading the device again."""
-        self._alloc(0, 0)
+        self._alloc(0)
 
-    def _alloc(self, points: int, listed: int) -> None:
+    def lanes_for(self, points: int) -> int:
+        """Groups of 32 threads a brick for a grid of `points`, from the bricks the plan
+        expects (FILL_TARGET; 1 on the CPU)."""
+        if self.fixed_lanes is not None:
+            return max(int(self.fixed_lanes), 1)
+        if not self.cuda:
+            return 1
+        bricks = max(LISTED_BRICKS * points / BRICK_POINTS, 1.0)
+        lanes = 1
+        while lanes < MAX_LANES and 2 * lanes * bricks <= FILL_TARGET * self.warps:
+            lanes *= 2
+        return lanes
+
+    def _planned_for(self, points: int, lanes: int) -> int:
+        if lanes == 1:
+            return 0
+        return int(LISTED_BRICKS * points / BRICK_POINTS * SLACK) + 64
+
+    def _alloc(self, points: int) -> None:
         dev = self.device
         n = max(points, 1)
+        bricks = int(points * BRICKS_PER_POINT) + 1
+        self.lanes = self.lanes_for(points)
+        self.planned = self._planned_for(points, self.lanes)
+        shares = max(self.planned * self.lanes * BRICK_POINTS, 1)
         self.coef = _wp.zeros(n, dtype=float, device=dev)
         self.tint = _wp.zeros(n, dtype=_wp.uint32, device=dev)
         self.atoms = _wp.zeros(n, dtype=_wp.int32, device=dev)
         self.flags = _wp.zeros(n, dtype=_wp.int32, device=dev)
-        self.scan = _wp.zeros(n, dtype=_wp.int32, device=dev)
-        self.listed = _wp.zeros(n, dtype=_wp.int32, device=dev)
-        lanes = max(min(listed, FILL_CHUNK), 1) * self.lanes
-        self.partial = _wp.zeros(lanes, dtype=float, device=dev)
-        self.partial_tint = _wp.zeros(lanes, dtype=_wp.vec4, device=dev)
-        self.partial_atom = _wp.zeros(lanes, dtype=_wp.int32, device=dev)
+        self.brick_flags = _wp.zeros(bricks, dtype=_wp.int32, device=dev)
+        self.brick_scan = _wp.zeros(bricks, dtype=_wp.int32, device=dev)
+        self.listed = _wp.zeros(bricks, dtype=_wp.int32, device=dev)
+        self.partial = _wp.zeros(shares, dtype=float, device=dev)
+        self.partial_tint = _wp.zeros(shares, dtype=_wp.vec4, device=dev)
+        self.partial_atom = _wp.zeros(shares, dtype=_wp.int32, device=dev)
         self.capacity = points
-        self.listed_capacity = listed
+        self.brick_capacity = bricks
 
     @property
     def nbytes(self) -> int:
@@ -789,7 +905,8 @@ class GeodesicVolume:
             self.tint,
             self.atoms,
             self.flags,
-            self.scan,
+            self.brick_flags,
+            self.brick_scan,
             self.listed,
             self.partial,
             self.partial_tint,
@@ -798,8 +915,8 @@ class GeodesicVolume:
         return sum(int(a.capacity) for a in arrays)
 
     def last_need(self) -> tuple[float, int, int] | None:
-        """(spacing, points, listed points) the last build needed (synchronises; call once
-        that build is done); listed 0 when its grid did not fit (it listed nothing)."""
+        """(spacing, points, listed bricks) the last build needed (synchronises; call once
+        that build is done); bricks 0 when its grid did not fit (it listed nothing)."""
         if self.built is None:
             return None
         if self._need is not None:
@@ -809,47 +926,51 @@ class GeodesicVolume:
         self._need = (self.built[0], int(v["points"]), listed)
         return self._need
 
-    def fits(self, points: int, listed: int) -> bool:
-        """Whether the buffers hold `points` grid points and `listed` walked ones."""
-        return points <= self.capacity and listed <= self.listed_capacity
+    def fits(self, points: int) -> bool:
+        """Whether the buffers hold `points` grid points."""
+        return points <= self.capacity
 
-    def bytes_for(self, points: int, listed: int) -> int:
-        """Device bytes of buffers for `points` grid points and `listed` walked ones."""
-        chunk = min(int(listed * SLACK + 64), FILL_CHUNK)
-        return int(points * SLACK + 64) * 24 + chunk * 24 * self.lanes
+    def bytes_for(self, points: int) -> int:
+        """Device bytes of buffers for `points` grid points."""
+        n = int(points * SLACK + 64)
+        lanes = self.lanes_for(n)
+        shares = self._planned_for(n, lanes) * lanes * BRICK_POINTS
+        return n * 16 + (int(n * BRICKS_PER_POINT) + 1) * 12 + shares * 24
 
-    def reserve(self, points: int, listed: int) -> None:
-        """Buffers for `points` grid points and `listed` walked ones, with SLACK (graphs and
-        fields that hold the old ones must be let go first)."""
-        self._alloc(0, 0)  # the old buffers go before the new ones are made
-        self._alloc(int(points * SLACK) + 64, int(listed * SLACK) + 64)
+    def reserve(self, points: int) -> None:
+        """Buffers for `points` grid points, with SLACK (graphs and fields that hold the old
+        ones must be let go first)."""
+        self._alloc(0)  # the old buffers go before the new ones are made
+        self._alloc(int(points * SLACK) + 64)
 
     def build(self, f: GeodesicField, info: Any, h: float, cut: float) -> None:
         """This frame's coefficients from the routes in `f` (launches only)."""
         dev = self.device
-        cap = self.capacity
+        cap, bricks = self.capacity, self.brick_capacity
         self.built = (h, cap)
         self._need = None
-        _wp.launch(setup_kernel, 1, (info, float(h), cap, self.vol), device=dev)
+        setup = (info, float(h), cap, bricks, self.vol)
+        _wp.launch(setup_kernel, 1, setup, device=dev)
         if cap == 0:
             return
         gate = (f, self.vol, float(cut), self.coef, self.tint, self.atoms, self.flags)
         _wp.launch(gate_kernel, cap, gate, device=dev)
-        _wp.utils.array_scan(self.flags, self.scan, inclusive=False)
-        compact = (self.flags, self.scan, cap - 1, self.listed, self.count)
-        _wp.launch(compact_kernel, cap, compact, device=dev)
-        lanes, listed = self.lanes, self.listed_capacity
-        keep = (self.coef, self.tint, self.atoms)
+        _wp.launch(brick_kernel, bricks, (self.vol, self.flags, self.brick_flags), device=dev)
+        _wp.utils.array_scan(self.brick_flags, self.brick_scan, inclusive=False)
+        compact = (self.brick_flags, self.brick_scan, bricks - 1, self.listed, self.count)
+        _wp.launch(compact_kernel, bricks, compact, device=dev)
+        where = (f, self.vol, self.flags, self.listed, self.count)
         parts = (self.partial, self.partial_tint, self.partial_atom)
-        for first in range(0, listed, FILL_CHUNK):
-            n = min(FILL_CHUNK, listed - first)
-            fill = (f, self.vol, self.listed, self.count, lanes, first, *parts)
-            _wp.launch(fill_kernel, n * lanes, fill, device=dev)
-            total = (f, *parts, lanes, first, self.listed, self.count, *keep)
-            _wp.launch(sum_kernel, n, total, device=dev)
-        rest_threads = 4096 if self.cuda else 1
-        rest = (f, self.vol, self.listed, self.count, listed, rest_threads, *keep)
-        _wp.launch(rest_kernel, rest_threads, rest, device=dev)
+        keep = (self.coef, self.tint, self.atoms)
+        threads = self.warps * BRICK_POINTS
+        last = self.planned if self.lanes > 1 else _ALL
+        how = _fill(self.warps, self.together, self.lanes, 0, last)
+        _wp.launch(fill_kernel, threads, (*where, how, *parts, *keep), device=dev)
+        if self.lanes > 1:
+            _wp.launch(sum_kernel, last * BRICK_POINTS, (*where, how, *parts, *keep), device=dev)
+            # bricks past the plan (the molecule grew since): one group each
+            rest = _fill(self.warps, self.together, 1, last, _ALL)
+            _wp.launch(fill_kernel, threads, (*where, rest, *parts, *keep), device=dev)
         lines = cap // 5 + 1
         for axis in range(3):
             _wp.launch(prefilter_kernel, lines, (self.coef, self.vol, axis), device=dev)

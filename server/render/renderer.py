@@ -863,7 +863,11 @@ class Renderer(ImageOutputs):
 
     def _geodesic_volume(self) -> geodesic_volume.GeodesicVolume:
         if self._gvol is None:
-            self._gvol = geodesic_volume.GeodesicVolume(self.device, self._mean_lanes)
+            t = self.tuning
+            together = self._cuda if t.geodesic_bricks is None else t.geodesic_bricks
+            self._gvol = geodesic_volume.GeodesicVolume(
+                self.device, together, t.geodesic_fill_lanes
+            )
         return self._gvol
 
     def _plan_volume(self, d: Derived, pixels: int) -> Derived:
@@ -883,29 +887,26 @@ class Renderer(ImageOutputs):
         vol = self._geodesic_volume()
         last = vol.last_need()
         if last is not None and last[1] > 0:
-            scale = (last[0] / h) ** 3
-            points = int(last[1] * scale) + 1
-            listed = int((last[2] if last[2] > 0 else geodesic_volume.LISTED * last[1]) * scale)
+            points = int(last[1] * (last[0] / h) ** 3) + 1
         else:
             ext = self._atoms_extent()
             if ext is None:
                 return d
             points = int(np.prod(np.floor((ext + 2.0 * d.reach) / h) + 5.0))
-            listed = int(geodesic_volume.LISTED * points)
         limit = geodesic_volume.MAX_POINTS
         if use is None:
             limit = min(limit, int(geodesic_volume.POINTS_PER_PIXEL * pixels))
         free = geodesic_field.free_bytes(self.device)
-        room = free is None or vol.bytes_for(points, listed + 1) < free // 2 + vol.nbytes
+        room = free is None or vol.bytes_for(points) < free // 2 + vol.nbytes
         if points > limit or not room:
             vol.built = None  # the next plan measures the atoms again: they may shrink back
             return d
-        if not vol.fits(points, listed + 1):
+        if not vol.fits(points):
             # fields and graphs hold the buffers: let them go first; the grid fills the new
             self._field_seen = None
             self._drop_graphs()
             self._grid_key = None
-            vol.reserve(points, listed + 1)
+            vol.reserve(points)
         return dataclasses.replace(d, volume_h=h)
 
     def _atoms_extent(self) -> npt.NDArray[np.float64] | None:

@@ -133,7 +133,7 @@ class Tuning:
     mean_lanes: int | None = None
     """Threads per sampled atom of the mean density (None: density.LANES_PER_SAMPLE on CUDA,
     geodesic_field.MEAN_LANES_PER_SAMPLE for the geodesic density's, 1 on the CPU; 1 is the
-    baseline); also the threads per point of the geodesic grid's fill."""
+    baseline)."""
     decided_sides: bool | None = None
     """The marching kernels ask a density only for each sample's side of the level where it
     can tell it sooner than the value (`DensityModel.side4`: the geodesic density); off,
@@ -155,6 +155,15 @@ class Tuning:
     (`geodesic_volume`; the surface moves within max(0.05 A, 1 % sigma)): None when the grid
     has at most POINTS_PER_PIXEL points a pixel, True whenever it fits, False never (the
     routes walked per sample, the baseline)."""
+    geodesic_bricks: bool | None = None
+    """The geodesic grid's fill walks, for each point of a brick of 32 (one warp), the atoms
+    within reach of the whole brick, so its threads read the same routes together; off, each
+    point walks the atoms within reach of itself (the same values bit for bit, the baseline).
+    None: on CUDA only."""
+    geodesic_fill_lanes: int | None = None
+    """Groups of 32 threads that take one brick of the geodesic grid's fill together, each a
+    share of every row's atoms (None: `GeodesicVolume.lanes_for` the grid's size; 1 on the
+    CPU)."""
     cell_list: bool = True
     """A grid with more cells than twice its atoms lists the cells its bound walks in a buffer
     of its own (off: in the atoms' spare buffer, the baseline: the cells it leaves out are
@@ -175,6 +184,8 @@ class Tuning:
             raise RenderError(
                 f"part_bounds must be one of {', '.join(PART_MODES)}, got {self.part_bounds!r}"
             )
+        if self.geodesic_fill_lanes is not None and self.geodesic_fill_lanes < 1:
+            raise RenderError(f"geodesic_fill_lanes must be >= 1, got {self.geodesic_fill_lanes}")
         if self.mean_lanes is not None and self.mean_lanes < 1:
             raise RenderError(f"mean_lanes must be >= 1, got {self.mean_lanes}")
         if self.refine_passes is not None and self.refine_passes < 0:

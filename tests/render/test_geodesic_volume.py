@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import warp as wp
 
 from protocol import RenderParams
 from server.render import geodesic_volume
@@ -94,44 +95,21 @@ def test_a_molecule_that_outgrows_its_grid_is_drawn_by_its_routes_until_the_grid
     assert hits.sum() > 0.99 * np.isfinite(control[1]).sum()
 
 
-def test_points_past_the_planned_count_are_walked_too(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A frame that walks more grid points than the plan made room for walks the rest one
-    thread each: the same coefficients, so the same image."""
-    mol = villin()
-    params = RenderParams(scale_space="geodesic")
-    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
-    r = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
-    vol = r._gvol
-    assert vol is not None
-    need = vol.last_need()
-    assert need is not None and need[2] > 1000
-    points = need[1]
-    coef = vol.coef.numpy()[:points].copy()
-    whole = _three(r)
-    # room for 16 walked points, as a plan made before the molecule grew would leave
-    r._field_seen = None
-    r._drop_graphs()
-    vol._alloc(vol.capacity, 16)
-    monkeypatch.setattr(vol, "fits", lambda points, listed: True)
-    r.set_positions(mol.positions)
-    r.render(params, cam, W, H)
-    assert vol.listed_capacity == 16 and r.last_density == "geodesic_volume"
-    assert vol.last_need() == need
-    np.testing.assert_array_equal(vol.coef.numpy()[:points], coef)
-    for a, b in zip(_three(r), whole, strict=True):
-        np.testing.assert_array_equal(a, b)
-
-
 def _walked(r: Renderer) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The points the last grid walked: positions, values, colours (RGBA bytes) and largest
-    contributors (original atom indices)."""
+    contributors (original atom indices); checks that the listed bricks are exactly those
+    that hold a walked point."""
     vol = r._gvol
     assert vol is not None
     v = vol.vol.numpy()[0]
-    n = int(vol.count.numpy()[0])
-    idx = vol.listed.numpy()[:n]
-    nx, ny, _nz = (int(x) for x in v["dims"])
+    nx, ny, nz = (int(x) for x in v["dims"])
+    idx = np.nonzero(vol.flags.numpy()[: nx * ny * nz])[0]
     xyz = np.stack([idx % nx, (idx // nx) % ny, idx // (nx * ny)], axis=1)
+    bx, by = -(-nx // geodesic_volume.BRICK_X), -(-ny // geodesic_volume.BRICK_Y)
+    brick = xyz // [geodesic_volume.BRICK_X, geodesic_volume.BRICK_Y, geodesic_volume.BRICK_Z]
+    bricks = np.unique((brick[:, 2] * by + brick[:, 1]) * bx + brick[:, 0])
+    listed = vol.listed.numpy()[: int(vol.count.numpy()[0])]
+    np.testing.assert_array_equal(listed, bricks)
     pts = np.asarray(v["origin"], np.float32) + xyz.astype(np.float32) * np.float32(v["h"])
     tint = vol.tint.numpy()[idx]
     rgba = np.stack([(tint >> s) & 255 for s in (0, 8, 16, 24)], axis=1)
@@ -141,13 +119,10 @@ def _walked(r: Renderer) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
     return pts, vol.coef.numpy()[idx], rgba, ids
 
 
-def test_each_walked_point_keeps_the_routes_colour_and_largest_contributor(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def test_each_walked_point_keeps_the_routes_colour_and_largest_contributor() -> None:
     """The fill keeps, at every walked point, the routes' contribution-weighted colour (to
     the byte) and their largest contributor: what a shaded point reads instead of walking the
-    routes. Taken in chunks of the walked points (the lanes' sums held for one chunk), the
-    grid is the same, bit for bit."""
+    routes."""
     mol = villin()
     params = RenderParams(scale_space="geodesic")
     cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
@@ -163,18 +138,106 @@ def test_each_walked_point_keeps_the_routes_colour_and_largest_contributor(
     assert np.abs(rgba[held, :3] - expect).max() <= 1
     np.testing.assert_array_equal(ids[held], ids0[held])
     assert (ids[~held] == -1).all()
-    whole = _walked(r)
-    monkeypatch.setattr(geodesic_volume, "FILL_CHUNK", 97)
+
+
+@pytest.mark.parametrize("sigma, radii", [(1.5, "uniform"), (0.8, "vdw")])
+def test_a_brick_walked_together_fills_the_grid_of_each_point_alone(
+    sigma: float, radii: str
+) -> None:
+    """A brick's 32 points walk the atoms within reach of the whole brick (on CUDA one warp
+    reads the same routes together); the atoms beyond a point's own reach add exact zeros, so
+    the grid and the image are those of each point walking its own, bit for bit."""
+    mol = villin()
+    params = RenderParams(scale_space="geodesic", sigma_A=sigma, radius_mode=radii)
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    runs = []
+    for together in (True, False):
+        r = render(
+            "cpu", mol.topology, mol.positions, params, cam, W, H,
+            geodesic_volume=True, geodesic_bricks=together,
+        )  # fmt: skip
+        assert r._gvol is not None and r._gvol.together is together
+        assert r.last_density == "geodesic_volume"
+        runs.append((*_walked(r), *_three(r)))
+    assert len(runs[0][0]) > 1000
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def _brick_points(r: Renderer) -> list[np.ndarray]:
+    """The walked grid points of each listed brick, in listed order."""
     vol = r._gvol
     assert vol is not None
-    r._field_seen = None
-    r._drop_graphs()
-    vol._alloc(vol.capacity, vol.listed_capacity)
-    assert len(vol.partial) == 97 * vol.lanes
-    r.set_positions(mol.positions)
-    r.render(params, cam, W, H)
-    for a, b in zip(_walked(r), whole, strict=True):
-        np.testing.assert_array_equal(a, b)
+    v = vol.vol.numpy()[0]
+    nx, ny, nz = (int(x) for x in v["dims"])
+    bx, by = -(-nx // geodesic_volume.BRICK_X), -(-ny // geodesic_volume.BRICK_Y)
+    flags = vol.flags.numpy()
+    out = []
+    for b in vol.listed.numpy()[: int(vol.count.numpy()[0])]:
+        x0 = (b % bx) * geodesic_volume.BRICK_X
+        y0 = ((b // bx) % by) * geodesic_volume.BRICK_Y
+        z0 = (b // (bx * by)) * geodesic_volume.BRICK_Z
+        xs, ys, zs = np.meshgrid(
+            np.arange(x0, x0 + geodesic_volume.BRICK_X),
+            np.arange(y0, y0 + geodesic_volume.BRICK_Y),
+            np.arange(z0, z0 + geodesic_volume.BRICK_Z),
+            indexing="ij",
+        )
+        inside = (xs < nx) & (ys < ny) & (zs < nz)
+        idx = ((zs * ny + ys) * nx + xs)[inside]
+        out.append(idx[flags[idx] != 0])
+    return out
+
+
+def _kept(r: Renderer, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    vol = r._gvol
+    assert vol is not None
+    return vol.coef.numpy()[idx], vol.tint.numpy()[idx], vol.atoms.numpy()[idx]
+
+
+@wp.kernel
+def _no_prefilter(
+    coef: wp.array(dtype=float),  # type: ignore[valid-type]
+    vol: wp.array(dtype=geodesic_volume.VolumeInfo),  # type: ignore[valid-type]
+    axis: int,
+) -> None:
+    pass
+
+
+def test_bricks_taken_by_several_groups_add_their_shares_and_the_rest_one_group_each(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Several groups a brick (a small molecule's few bricks fill the device) each walk a share
+    of every row's atoms and their sums are added in lane order: the values of one group to
+    rounding, the same colours and contributors. Bricks past the plan's room for those shares
+    are walked one group each: exactly what one group a brick gives them. (The grids hold the
+    values themselves here: the prefilter, which mixes neighbouring points, is left out.)"""
+    monkeypatch.setattr(geodesic_volume, "prefilter_kernel", _no_prefilter)
+    mol = villin()
+    params = RenderParams(scale_space="geodesic")
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    args = (mol.topology, mol.positions, params, cam, W, H)
+    one = render("cpu", *args, geodesic_volume=True, geodesic_fill_lanes=1)
+    four = render("cpu", *args, geodesic_volume=True, geodesic_fill_lanes=4)
+    assert four._gvol is not None and four._gvol.lanes == 4
+    bricks = _brick_points(one)
+    assert len(bricks) > 200 and four._gvol.planned >= len(bricks)
+    walked = np.concatenate(bricks)
+    c1, t1, a1 = _kept(one, walked)
+    c4, t4, a4 = _kept(four, walked)
+    np.testing.assert_allclose(c4, c1, rtol=1e-5, atol=1e-7)
+    assert not np.array_equal(c4, c1)  # the shares really were added apart
+    assert np.abs(t4.view(np.uint8).astype(int) - t1.view(np.uint8).astype(int)).max() <= 1
+    assert (a4 == a1).mean() > 0.999
+    monkeypatch.setattr(geodesic_volume, "LISTED_BRICKS", 0.0)
+    short = render("cpu", *args, geodesic_volume=True, geodesic_fill_lanes=4)
+    vol = short._gvol
+    assert vol is not None and vol.lanes == 4 and vol.planned == 64 < len(bricks)
+    planned, rest = np.concatenate(bricks[:64]), np.concatenate(bricks[64:])
+    for got, want in zip(_kept(short, planned), _kept(four, planned), strict=True):
+        np.testing.assert_array_equal(got, want)
+    for got, want in zip(_kept(short, rest), _kept(one, rest), strict=True):
+        np.testing.assert_array_equal(got, want)
 
 
 def test_a_pixel_picks_what_the_routes_pick() -> None:
