@@ -434,22 +434,58 @@ def row_values4(f: GeodesicField, q: Points4, j0: int, j1: int, total: wp.vec4) 
     return v
 
 
+QUEUE = 8
+"""Atoms a lane of the mean density holds before it walks their routes (`LaneQueue`)."""
+_Queue = wp.types.vector(length=QUEUE, dtype=wp.int32)
+
+
+@wp.struct
+class LaneQueue:
+    """One lane's share of a sample of the mean density: the atoms within reach it has met
+    and not yet walked, and the sum of those it has. A lane takes the atoms whose sorted
+    index is its own modulo the lanes, meeting them row by row, and walks their routes only
+    once it holds QUEUE of them or the rows are done: the lanes then walk their routes side
+    by side, where walking each row's one or two atoms at once would leave the other lanes
+    waiting row after row."""
+
+    total: float
+    count: int
+    atoms: _Queue  # type: ignore[valid-type]
+
+
 @wp.func
 @no_type_check
-def row_value_lane(f: GeodesicField, q: LanePoint, j0: int, j1: int, total: float) -> float:
-    """The lane's share of `row_value` over sorted atoms [j0, j1): every `lanes`-th atom, so
-    the lanes' sums add up to the density in a fixed order."""
-    s = total
-    j = j0 + q.lane
+def queue_walk(f: GeodesicField, p: wp.vec3, acc: LaneQueue) -> LaneQueue:
+    """The held atoms' terms at p added in the order they were met; the queue emptied."""
+    s = acc
+    for i in range(QUEUE):
+        if i < s.count:
+            s.total = s.total + term(f, s.atoms[i], p)
+    s.count = 0
+    return s
+
+
+@wp.func
+@no_type_check
+def row_queue_lane(f: GeodesicField, q: LanePoint, j0: int, j1: int, acc: LaneQueue) -> LaneQueue:
+    """The lane's atoms of sorted atoms [j0, j1) (index = lane modulo lanes) within the
+    cutoff of q.p, held for `queue_walk`."""
+    s = acc
+    g = f.gauss
+    j = j0 + (q.lane - j0 % q.lanes + q.lanes) % q.lanes
     while j < j1:
-        s += term(f, j, q.p)
+        if dist2(g.atoms[j], q.p) * inv2s2_at(g, j) < g.half_k2:
+            if s.count == QUEUE:
+                s = queue_walk(f, q.p, s)
+            s.atoms[s.count] = j
+            s.count = s.count + 1
         j += q.lanes
     return s
 
 
 _walk_value = cell_rows("geodesic_value", row_value, wp.vec3, float, field=GeodesicField)
-_walk_value_lane = cell_rows(
-    "geodesic_value_lane", row_value_lane, LanePoint, float, field=GeodesicField
+_walk_queue_lane = cell_rows(
+    "geodesic_queue_lane", row_queue_lane, LanePoint, LaneQueue, field=GeodesicField
 )
 _walk_values4 = cell_rows("geodesic_values4", row_values4, Points4, wp.vec4, field=GeodesicField)
 _walk_value_grad = cell_rows(
@@ -943,14 +979,18 @@ def sampled_values_kernel(
 ):
     """The geodesic density at every `stride`-th atom (the scale of relative levels), taken by
     `lanes` threads each (`values` holds the lanes' sums, sample by sample): one thread alone
-    walks every route of some forty atoms while a few hundred samples leave the device idle."""
+    walks every route of some forty atoms while a few hundred samples leave the device idle.
+    Each lane holds its atoms until it has several (`LaneQueue`)."""
     t = wp.tid()
     k = t // lanes
     q = LanePoint()
     q.p = positions[k * stride]
     q.lane = t - k * lanes
     q.lanes = lanes
-    values[t] = _walk_value_lane(f, q.p, q.p, q, wp.float32(0.0))
+    held = LaneQueue()
+    held.total = 0.0
+    held.count = 0
+    values[t] = queue_walk(f, q.p, _walk_queue_lane(f, q.p, q.p, q, held)).total
 
 
 @wp.kernel

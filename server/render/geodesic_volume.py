@@ -298,12 +298,13 @@ def volume_value_grad(f: GeodesicVolumeField, p: wp.vec3) -> wp.vec4:
 @wp.func
 @no_type_check
 def row_pick(f: GeodesicField, q: LanePoint, j0: int, j1: int, acc: Sample) -> Sample:
-    """The lane's share of the routes' terms at q.p over sorted atoms [j0, j1) (every
-    `lanes`-th): their sum, contribution-weighted colour and largest term, `atom` its sorted
-    index (ties: the lower original index)."""
+    """The lane's share of the routes' terms at q.p over sorted atoms [j0, j1) (those whose
+    index is the lane modulo the lanes, so a row of one or two atoms does not always fall to
+    the first lanes): their sum, contribution-weighted colour and largest term, `atom` its
+    sorted index (ties: the lower original index)."""
     s = acc
     g = f.gauss
-    j = j0 + q.lane
+    j = j0 + (q.lane - j0 % q.lanes + q.lanes) % q.lanes
     while j < j1:
         t = term(f, j, q.p)
         if t > 0.0:

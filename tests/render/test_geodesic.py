@@ -375,18 +375,26 @@ def test_a_geodesic_surface_lies_inside_the_classical_one(device: str) -> None:
 
 
 def test_the_relative_level_is_taken_by_several_lanes_a_sample(device: str) -> None:
-    """The geodesic density's own scale (the mean at the sampled atoms) summed by four threads
-    a sample equals one thread's up to the order of its float sums, and draws the same image."""
+    """The geodesic density's own scale (the mean at the sampled atoms: every atom of villin)
+    summed by 4 or 32 threads a sample, each holding up to QUEUE atoms before it walks their
+    routes, equals one thread's (which holds and walks many times a sample) up to the order of
+    its float sums, and draws the same image; the density it scales averages 1 at the atoms."""
     mol = villin()
     cam = fit_camera(mol.positions, 40, 30)
     out = {}
-    for lanes in (1, 4):
-        r = render(device, mol.topology, mol.positions, GEODESIC, cam, 40, 30, mean_lanes=lanes)
+    for lanes in (1, 4, 32):
+        r = render(
+            device, mol.topology, mol.positions, GEODESIC, cam, 40, 30,
+            mean_lanes=lanes, geodesic_volume=False,
+        )  # fmt: skip
         out[lanes] = (r.density_scale(), r.read_rgba())
-    assert out[4][0] == pytest.approx(out[1][0], rel=1e-5)
-    assert out[4][0] > 0.0
-    differ = np.any(out[4][1] != out[1][1], axis=-1).mean()
-    assert differ < 0.005  # a pixel whose ray grazes the level may flip
+        at_atoms = r.evaluate(mol.positions)[0].astype(np.float64)
+        assert at_atoms.mean() == pytest.approx(1.0, rel=1e-5)
+    for lanes in (4, 32):
+        assert out[lanes][0] == pytest.approx(out[1][0], rel=1e-5)
+        differ = np.any(out[lanes][1] != out[1][1], axis=-1).mean()
+        assert differ < 0.005  # a pixel whose ray grazes the level may flip
+    assert out[1][0] > 0.0
 
 
 def test_route_tables_follow_the_reach_and_report_their_bytes(device: str) -> None:
