@@ -44,7 +44,7 @@ from typing import Any, no_type_check
 import warp as wp
 
 from server.render import device as _device  # noqa: F401  (initialises warp)
-from server.render.cells import GridInfo
+from server.render.cells import GridInfo, cell_at
 from server.render.density import (
     DensityModel,
     LanePoint,
@@ -103,6 +103,9 @@ prefilter (whose recursion decays by 0.27 a step): what a device that keeps only
 its part of the image (`grid.Cull`) must keep beyond them."""
 SLACK = 1.5
 """Points allocated per point the plan expects (the molecule moves between frames)."""
+CELL_GATE = 1
+"""The gate reads each point's atom-grid cell bound first (1), and evaluates the classical
+density only where that reaches the cut (0: at every point, the same flags)."""
 BRICK_X = 4
 BRICK_Y = 4
 BRICK_Z = 2
@@ -575,9 +578,11 @@ def gate_kernel(
     tint: wp.array[wp.uint32],
     atoms: wp.array[wp.int32],
     flags: wp.array[wp.int32],
+    cells: int,
 ):
     """flags[i] = 1 where point i's bound reaches `cut` (its routes are walked), and every
-    point's value 0 (no colour, no atom) until then."""
+    point's value 0 (no colour, no atom) until then. With `cells`, a point whose atom-grid
+    cell's bound (over the whole cell) is below the cut is not evaluated: its own is too."""
     i = wp.tid()
     v = vol[0]
     flag = 0
@@ -585,9 +590,12 @@ def gate_kernel(
         coef[i] = 0.0
         tint[i] = wp.uint32(0)
         atoms[i] = -1
-        b = gaussian_value(f.gauss, point_of(v, i)) * f.routes.gate
-        if b > 0.0 and b >= cut:
-            flag = 1
+        p = point_of(v, i)
+        # a point beyond the atom grid lies beyond every cutoff: its clamped cell is as good
+        if cells == 0 or f.bound[cell_at(f.info[0], p)] >= cut:
+            b = gaussian_value(f.gauss, p) * f.routes.gate
+            if b > 0.0 and b >= cut:
+                flag = 1
     flags[i] = flag
 
 
@@ -875,9 +883,11 @@ class GeodesicVolume:
         return lanes
 
     def _planned_for(self, points: int, lanes: int) -> int:
+        """Listed bricks the lanes' shares make room for in a grid of `points` (with its
+        SLACK already): none for one group a brick."""
         if lanes == 1:
             return 0
-        return int(LISTED_BRICKS * points / BRICK_POINTS * SLACK) + 64
+        return int(LISTED_BRICKS * points / BRICK_POINTS) + 64
 
     def _alloc(self, points: int) -> None:
         dev = self.device
@@ -954,7 +964,7 @@ class GeodesicVolume:
         _wp.launch(setup_kernel, 1, setup, device=dev)
         if cap == 0:
             return
-        gate = (f, self.vol, float(cut), self.coef, self.tint, self.atoms, self.flags)
+        gate = (f, self.vol, float(cut), self.coef, self.tint, self.atoms, self.flags, CELL_GATE)
         _wp.launch(gate_kernel, cap, gate, device=dev)
         _wp.launch(brick_kernel, bricks, (self.vol, self.flags, self.brick_flags), device=dev)
         _wp.utils.array_scan(self.brick_flags, self.brick_scan, inclusive=False)

@@ -1260,9 +1260,6 @@ class Renderer(ImageOutputs):
                 wp.launch(total_kernel, 1, (self._density_partial, self._density_total), device=dev)
                 scale = (self._sorted, self._density_total, float(samples), n)
                 wp.launch(geodesic_field.rescale_kernel, n, scale, device=dev)
-            if d.volume_h > 0.0:
-                cut = geodesic_volume.CUT * stop if stop > 0.0 else 0.0
-                self._geodesic_volume().build(geo, self._grid.info, d.volume_h, cut)
         kernels = self._kernels_of(d, mode)
         parts = self._parts_for(d, mode)
         # the widest atom's 1 / (2 s^2): reach = k s_max and half_k2 = k^2 / 2
@@ -1281,6 +1278,10 @@ class Renderer(ImageOutputs):
         )
         walk = (f, stop, threads, grid.work, grid.work_count, f.bound, grid.parts)
         wp.launch(kernels.whole_bound if whole else kernels.bound, threads, walk, device=dev)
+        if d.geo is not None and d.volume_h > 0.0:
+            # after the cell bounds, which the grid's gate reads first
+            cut = geodesic_volume.CUT * stop if stop > 0.0 else 0.0
+            self._geodesic_volume().build(f.geo, self._grid.info, d.volume_h, cut)
         if view is not None:
             self._walk_view(kernels, f, stop, view)
         self._grid.build_bricks()

@@ -240,6 +240,31 @@ def test_bricks_taken_by_several_groups_add_their_shares_and_the_rest_one_group_
         np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.parametrize("mode", ["iso", "volume"])
+def test_the_gate_reads_the_cell_bounds_first_and_lists_the_same_points(
+    monkeypatch: pytest.MonkeyPatch, mode: str
+) -> None:
+    """The grid's gate skips the points whose atom-grid cell bound is below the cut (their own
+    bound is too): the same points are walked, so the same grid and image bit for bit as a
+    gate that evaluates every point, over two frames whose atoms move."""
+    mol = villin()
+    params = RenderParams(scale_space="geodesic", mode=mode)
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    moved = mol.positions + np.random.default_rng(3).normal(0.0, 0.3, mol.positions.shape)
+    runs = []
+    for cells in (1, 0):
+        monkeypatch.setattr(geodesic_volume, "CELL_GATE", cells)
+        r = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+        first = (*_walked(r), *_three(r))
+        r.set_positions(moved)
+        r.render(params, cam, W, H)
+        assert r.last_density == "geodesic_volume"
+        runs.append((*first, *_walked(r), *_three(r)))
+    assert len(runs[0][0]) > 1000
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_a_pixel_picks_what_the_routes_pick() -> None:
     """Colour and the picked atom come from the grid's points around the hit the grid's rays
     found (trilinear colour; the largest of their largest contributors' terms there): the
