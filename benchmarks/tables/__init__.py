@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .geodesic import (
+    geodesic_fill,
     geodesic_gate,
     geodesic_route_major,
     geodesic_route_once,
@@ -98,6 +99,19 @@ TABLES: dict[str, Table] = {
             "render_h200_part_trial_again.json",
         ),
         part_trial,
+    ),
+    "geodesic-fill": Table(
+        (
+            "render_h200_densities.json",
+            "render_h200_densities_before_bricks.json",
+            "render_h200_densities_bricks_only.json",
+        ),
+        geodesic_fill,
+    ),
+    "geodesic-fill-groups": Table(("render_h200_geodesic_fill_lanes.json",), render_variants),
+    "geodesic-mean-queue": Table(("render_h200_geodesic_mean_queue_lanes.json",), render_variants),
+    "geodesic-grid-or-routes": Table(
+        ("render_h200_geodesic_grid_or_routes.json",), render_variants
     ),
     "geodesic-gate": Table(("render_h200_geodesic_gate.json",), geodesic_gate),
     "geodesic-route-major": Table(("render_h200_geodesic_route_major.json",), geodesic_route_major),

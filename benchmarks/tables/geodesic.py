@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from .markdown import Source, block, count, num, size, table
+from .markdown import Results, Source, block, count, num, size, table
 from .render import params
 
 
@@ -97,3 +97,47 @@ def _against_base(column: str, key: str) -> Callable[[list[Source]], str]:
 geodesic_gate = _against_base("with the gate ms", "gate")
 geodesic_route_major = _against_base("routes with their geometry ms", "new")
 geodesic_route_once = _against_base("each route read once a pass ms", "new")
+
+
+def _drawn(row: Results) -> str:
+    return "grid" if row["geodesic_drawn_as"] == "geodesic_volume" else "routes"
+
+
+def geodesic_fill(sources: list[Source]) -> str:
+    """The geodesic density as the renderer draws it, today and in the code before two changes
+    (each its own checkout, the same device session, the same frames): the first file today's
+    run, the second the code before the fill took bricks, the third the bricks without the
+    mean's queues. Ratios are frame rates against the code before (the control) and against
+    today's classical frame of the same run."""
+    (_, today), (_, before), (_, bricks) = sources
+
+    def by_case(res: Results) -> dict[tuple[int, int, int], Results]:
+        return {(r["n_atoms"], r["width"], r["height"]): r for r in res["densities"]}
+
+    was, mid = by_case(before), by_case(bricks)
+    rows = []
+    for r in today["densities"]:
+        key = (r["n_atoms"], r["width"], r["height"])
+        b, m = was[key], mid[key]
+        ms = r["geodesic"]["median_ms"]
+        rows.append(
+            [
+                count(r["n_atoms"]),
+                size(r["width"], r["height"]),
+                f"{num(b['geodesic']['median_ms'], 2)} ({_drawn(b)})",
+                num(m["geodesic"]["median_ms"], 2),
+                f"{num(ms, 2)} ({_drawn(r)})",
+                f"{b['geodesic']['median_ms'] / ms:.2f}",
+                f"{r['classical']['median_ms'] / ms:.2f}",
+            ]
+        )
+    header = [
+        "atoms",
+        "image",
+        "before ms (drawn from)",
+        "bricks ms",
+        "bricks and queues ms (drawn from)",
+        "frame rate / before",
+        "geodesic / classical frame rate",
+    ]
+    return block(sources, table(header, "rlrrrrr", rows), params(today))

@@ -90,7 +90,7 @@ POINTS_PER_PIXEL = 24.0
 """The grid is used when it has at most this many points a pixel of the image. A grid point
 costs about what a ray sample does; a pixel costs several samples, fewer where the molecule
 covers less of the image. One NVIDIA H200, the routes per sample the control in the same run:
-the grid took 0.07-0.34 of the routes' time at 0.6-10.5 points a pixel (villin to 10,000
+the grid took 0.14-0.29 of the routes' time at 0.56-10.5 points a pixel (villin to 10,000
 atoms at 500x500, render_h200_densities.json), and 0.88, 0.99 and 0.93 of it at 11.05, 15.9
 and 24.9 points a pixel (100,000 atoms at 1920x1080, 1600x900 and 1280x720,
 render_h200_geodesic_grid_or_routes.json): the rule stops short of the last."""
@@ -125,10 +125,12 @@ MAX_LANES = 8
 atoms): a small molecule lists too few bricks to fill the device, one group a brick."""
 FILL_TARGET = 3.0
 """Groups a brick double while twice the groups would stay within this many launches' worth
-(`GeodesicVolume.lanes_for`). One NVIDIA H200, 1, 2, 4 and 8 groups a brick in the same run
-(`render_h200_geodesic_fill_lanes.json`): the fastest took 8 at villin (1,096 bricks listed),
-4 at 1,049 and 2,500 atoms (1,929 and 3,876), 2 at 5,684 (9,138), 1 at 10,000 (15,479); the
-rule's choice was within 1 % of the fastest at each but 1,049 atoms (8 groups, 1.01x)."""
+(`GeodesicVolume.lanes_for`): 8, 8, 4, 2, 1 and 1 for villin, 1,049, 2,500, 5,684, 10,000
+atoms at 500x500 and 100,000 at 1920x1080. One NVIDIA H200, 1, 2, 4 and 8 groups in the same
+run (`render_h200_geodesic_fill_lanes.json`): 8 were fastest at villin (1,096 bricks listed),
+4 from 1,049 atoms on; the rule's choice took 1.00-1.04x the fastest's time. More groups keep
+more lanes' shares (24 bytes a point and group: 4 groups would hold 450 MB at 100,000 atoms
+to save 4 %)."""
 _Ints8 = wp.types.vector(length=8, dtype=wp.int32)
 
 _POLE = wp.constant(math.sqrt(3.0) - 2.0)  # type: ignore[no-untyped-call]
