@@ -30,6 +30,7 @@ from .geodesic import (
     geodesic_route_once,
     route_sharing,
     side_walk,
+    visible_bricks,
 )
 from .markdown import Results, Source, TableError
 from .parts import part_trial
@@ -113,6 +114,7 @@ TABLES: dict[str, Table] = {
     "geodesic-grid-or-routes": Table(
         ("render_h200_geodesic_grid_or_routes.json",), render_variants
     ),
+    "visible-bricks": Table(("visible_bricks_cpu.json",), visible_bricks),
     "geodesic-gate": Table(("render_h200_geodesic_gate.json",), geodesic_gate),
     "geodesic-route-major": Table(("render_h200_geodesic_route_major.json",), geodesic_route_major),
     "geodesic-route-once": Table(("render_h200_geodesic_route_once.json",), geodesic_route_once),

@@ -141,3 +141,23 @@ def geodesic_fill(sources: list[Source]) -> str:
         "geodesic / classical frame rate",
     ]
     return block(sources, table(header, "rlrrrrr", rows), params(today))
+
+
+def visible_bricks(sources: list[Source]) -> str:
+    """The grid's walked bricks (the control: every one the fill walks) and those within the
+    spline's and the prefilter's reach of an iso image's hits."""
+    ((_, res),) = sources
+    rows = [
+        [
+            count(r["n_atoms"]),
+            size(r["width"], r["height"]),
+            count(r["bricks_walked"]),
+            count(r["bricks_reached"]),
+            f"{100.0 * r['reached_share']:.0f} %",
+        ]
+        for r in res["rows"]
+    ]
+    header = ["atoms", "image", "bricks walked", "within reach of a hit", "share"]
+    reach = res["rows"][0]["reach_A"]
+    note = f"sigma {res['rows'][0]['sigma_A']:g} A, reach {reach:.2f} A"
+    return block(sources, table(header, "rlrrr", rows), note)

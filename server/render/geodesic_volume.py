@@ -113,7 +113,9 @@ BRICK_Z = 2
 BRICK_POINTS = BRICK_X * BRICK_Y * BRICK_Z
 BRICKS_PER_POINT = 3.1 / BRICK_POINTS
 """Bricks allocated per grid point: a grid at least 5 points wide on every axis has at most
-(nx + 3)(ny + 3)(nz + 1) / 32 <= 3.07 / 32 bricks a point (`setup_kernel` checks the count)."""
+3.072 / 32 bricks a point, at 5 x 5 x 5 (12 bricks of 125 points), fewer as it grows (a test
+counts them). `setup_kernel` still checks the count: a grid past it is not valid, and its
+frames walk the routes."""
 WARPS_PER_SM = 64
 """Groups of 32 threads the fill launches per multiprocessor on CUDA (each takes listed bricks
 in turn): a full device's worth, whatever the count of bricks listed this frame."""

@@ -95,6 +95,22 @@ def test_a_molecule_that_outgrows_its_grid_is_drawn_by_its_routes_until_the_grid
     assert hits.sum() > 0.99 * np.isfinite(control[1]).sum()
 
 
+def test_the_bricks_allocated_a_point_cover_every_grid_the_setup_can_lay() -> None:
+    """`setup_kernel` lays grids at least 5 points wide on every axis; their bricks of 4 x 4 x 2
+    never outnumber BRICKS_PER_POINT a point (else the grid would not be valid, and its frames
+    would fall back to the routes), and the ratio only falls as the grid grows."""
+    d = np.arange(5, 72)
+    nx, ny, nz = np.meshgrid(d, d, d, indexing="ij")
+    bricks = (
+        -(-nx // geodesic_volume.BRICK_X)
+        * -(-ny // geodesic_volume.BRICK_Y)
+        * -(-nz // geodesic_volume.BRICK_Z)
+    )
+    ratio = bricks / (nx * ny * nz)
+    assert ratio.max() <= geodesic_volume.BRICKS_PER_POINT
+    assert ratio.max() == ratio[0, 0, 0]  # 5 x 5 x 5: 12 bricks for 125 points
+
+
 def _walked(r: Renderer) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The points the last grid walked: positions, values, colours (RGBA bytes) and largest
     contributors (original atom indices); checks that the listed bricks are exactly those
