@@ -889,7 +889,7 @@ class Renderer(ImageOutputs):
         if last is not None and last[1] > 0:
             points = int(last[1] * (last[0] / h) ** 3) + 1
         else:
-            ext = self._atoms_extent()
+            ext = self._atoms_extent(d.reach / self._cells_for(d))
             if ext is None:
                 return d
             points = int(np.prod(np.floor((ext + 2.0 * d.reach) / h) + 5.0))
@@ -909,10 +909,11 @@ class Renderer(ImageOutputs):
             vol.reserve(points)
         return dataclasses.replace(d, volume_h=h)
 
-    def _atoms_extent(self) -> npt.NDArray[np.float64] | None:
-        """The atoms' extent along x, y and z: from the last grid (its box less its reach on
-        every side; synchronises on that finished frame), or before any from the positions
-        (copied to the host once); None when not finite."""
+    def _atoms_extent(self, cell: float) -> npt.NDArray[np.float64] | None:
+        """The atoms' extent along x, y and z as the atom grid's box holds it: from the last
+        grid (its box less its reach on every side; synchronises on that finished frame), or
+        before any from the positions (copied to the host once) and a `cell` more, as the grid
+        rounds its box up to whole cells; None when not finite."""
         g = self._grid.info.numpy()[0]
         if int(g["valid"]):
             box = np.asarray(g["box_hi"], dtype=np.float64) - np.asarray(g["origin"], np.float64)
@@ -921,7 +922,7 @@ class Renderer(ImageOutputs):
         pos = self._pos.numpy()[: self._n]
         if not np.isfinite(pos).all():
             return None
-        spread: npt.NDArray[np.float64] = np.ptp(pos, axis=0).astype(np.float64)
+        spread: npt.NDArray[np.float64] = np.ptp(pos, axis=0).astype(np.float64) + cell
         return spread
 
     def _model_of(self, d: Derived) -> DensityModel:

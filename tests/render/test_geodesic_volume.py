@@ -13,7 +13,7 @@ from server.render import geodesic_volume
 from server.render.camera import camera_frame, fit_camera, image_rays, orbit
 from server.render.renderer import Renderer
 from tests.render.helpers import render
-from tests.render.molecules import villin
+from tests.render.molecules import Mol, three_atoms, topology, villin
 
 W, H = 48, 36
 
@@ -314,6 +314,18 @@ def test_volume_mode_reads_the_grid_too() -> None:
     lit = (b[..., :3].sum(axis=-1) > 3 * 40).sum()
     assert lit > 200
     assert diff.mean() < 0.5 and np.quantile(diff, 0.999) <= 6 and diff.max() <= 16
+
+
+@pytest.mark.parametrize("sigma", [0.6, 3.0])
+def test_the_first_frame_of_a_tiny_molecule_reads_its_grid(sigma: float) -> None:
+    """Before any grid, the plan sizes the first from the positions and the whole cell the
+    atom grid may round its box up by: one atom, and three, are read from the grid at once."""
+    cam = fit_camera(np.array([[-4.0, -4.0, -4.0], [4.0, 4.0, 4.0]], np.float32), W, H)
+    for mol in (Mol(topology(["C"], []), np.zeros((1, 3), np.float32)), three_atoms()):
+        params = RenderParams(scale_space="geodesic", sigma_A=sigma)
+        r = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+        assert r.last_density == "geodesic_volume" and r._gvol is not None
+        assert int(r._gvol.vol.numpy()[0]["valid"]) == 1  # not the routes' fallback
 
 
 def test_a_smoothing_past_the_grids_range_walks_the_routes() -> None:
