@@ -659,6 +659,15 @@ class LanePoint:
 
 @wp.func
 @no_type_check
+def first_of_lane(q: LanePoint, j0: int) -> int:
+    """The first index from j0 that is lane `q.lane` modulo `q.lanes`: a lane takes the atoms
+    whose sorted index is its own, so a row of one or two atoms does not always fall to the
+    first lanes."""
+    return j0 + (q.lane - j0 % q.lanes + q.lanes) % q.lanes
+
+
+@wp.func
+@no_type_check
 def row_value_lane(f: UnsortedAtoms, q: LanePoint, j0: int, j1: int, total: float) -> float:
     """The lane's share of `row_value` over sorted slots [j0, j1), each atom read through
     `order`: the lanes' sums add up to the density, in a fixed order."""

@@ -36,6 +36,7 @@ from server.render.density import (
     cell_rows,
     dist2,
     empty_sample,
+    first_of_lane,
     gaussian_box_bound,
     gaussian_part_bounds,
     gaussian_value4,
@@ -472,7 +473,7 @@ def row_queue_lane(f: GeodesicField, q: LanePoint, j0: int, j1: int, acc: LaneQu
     cutoff of q.p, held for `queue_walk`."""
     s = acc
     g = f.gauss
-    j = j0 + (q.lane - j0 % q.lanes + q.lanes) % q.lanes
+    j = first_of_lane(q, j0)
     while j < j1:
         if dist2(g.atoms[j], q.p) * inv2s2_at(g, j) < g.half_k2:
             if s.count == QUEUE:

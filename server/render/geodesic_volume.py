@@ -52,6 +52,7 @@ from server.render.density import (
     Sample,
     cell_rows,
     empty_sample,
+    first_of_lane,
     gaussian_value,
     unpack_rgb,
 )
@@ -304,24 +305,33 @@ def volume_value_grad(f: GeodesicVolumeField, p: wp.vec3) -> wp.vec4:
 
 @wp.func
 @no_type_check
+def keep_largest(s: Sample, t: float, a: int, order: wp.array[wp.int32]) -> Sample:
+    """`s` with sorted atom a's term t taken as its largest contributor where t is larger
+    than the one it holds (ties: the lower original index, whatever the order they come in)."""
+    out = s
+    if t > s.weight:
+        out.weight = t
+        out.atom = a
+    elif t == s.weight and order[a] < order[s.atom]:
+        out.atom = a
+    return out
+
+
+@wp.func
+@no_type_check
 def row_pick(f: GeodesicField, q: LanePoint, j0: int, j1: int, acc: Sample) -> Sample:
     """The lane's share of the routes' terms at q.p over sorted atoms [j0, j1) (those whose
-    index is the lane modulo the lanes, so a row of one or two atoms does not always fall to
-    the first lanes): their sum, contribution-weighted colour and largest term, `atom` its
-    sorted index (ties: the lower original index)."""
+    index is the lane's, `first_of_lane`): their sum, contribution-weighted colour and largest
+    term, `atom` its sorted index (`keep_largest`)."""
     s = acc
     g = f.gauss
-    j = j0 + (q.lane - j0 % q.lanes + q.lanes) % q.lanes
+    j = first_of_lane(q, j0)
     while j < j1:
         t = term(f, j, q.p)
         if t > 0.0:
             s.value = s.value + t
             s.color = s.color + unpack_rgb(g.colors[g.order[j]]) * t
-            if t > s.weight:
-                s.weight = t
-                s.atom = j
-            elif t == s.weight and g.order[j] < g.order[s.atom]:
-                s.atom = j
+            s = keep_largest(s, t, j, g.order)
         j += q.lanes
     return s
 
@@ -605,19 +615,31 @@ def gate_kernel(
 
 @wp.func
 @no_type_check
-def brick_point(v: VolumeInfo, b: int, k: int) -> wp.vec4i:
-    """Point k (0-31, x fastest) of brick b: its (x, y, z) and grid index (-1 outside)."""
+def brick_corner(v: VolumeInfo, b: int) -> wp.vec3i:
+    """The grid point (x, y, z) at brick b's lowest corner (bricks x fastest)."""
+    bx_count = (v.dims[0] + BRICK_X - 1) // BRICK_X
+    by_count = (v.dims[1] + BRICK_Y - 1) // BRICK_Y
+    return wp.vec3i(
+        (b % bx_count) * BRICK_X,
+        ((b // bx_count) % by_count) * BRICK_Y,
+        (b // (bx_count * by_count)) * BRICK_Z,
+    )
+
+
+@wp.func
+@no_type_check
+def brick_point(v: VolumeInfo, c: wp.vec3i, k: int) -> int:
+    """The grid index of point k (0-31, x fastest) of the brick whose corner is c (-1 outside
+    the grid)."""
     nx = v.dims[0]
     ny = v.dims[1]
-    bx_count = (nx + BRICK_X - 1) // BRICK_X
-    by_count = (ny + BRICK_Y - 1) // BRICK_Y
-    x = (b % bx_count) * BRICK_X + k % BRICK_X
-    y = ((b // bx_count) % by_count) * BRICK_Y + (k // BRICK_X) % BRICK_Y
-    z = (b // (bx_count * by_count)) * BRICK_Z + k // (BRICK_X * BRICK_Y)
+    x = c[0] + k % BRICK_X
+    y = c[1] + (k // BRICK_X) % BRICK_Y
+    z = c[2] + k // (BRICK_X * BRICK_Y)
     i = -1
     if x < nx and y < ny and z < v.dims[2]:
         i = (z * ny + y) * nx + x
-    return wp.vec4i(x, y, z, i)
+    return i
 
 
 @wp.kernel
@@ -628,8 +650,9 @@ def brick_kernel(vol: wp.array[VolumeInfo], flags: wp.array[wp.int32], out: wp.a
     v = vol[0]
     flag = int(0)  # noqa: RUF046  (a warp variable the loop may change)
     if v.valid != 0 and b < v.bricks:
+        c = brick_corner(v, b)
         for k in range(BRICK_POINTS):
-            i = brick_point(v, b, k)[3]
+            i = brick_point(v, c, k)
             if i >= 0:
                 flag = wp.max(flag, flags[i])
     out[b] = flag
@@ -713,9 +736,8 @@ def fill_kernel(
     q.lanes = how.lanes
     u = group
     while how.first + u // how.lanes < n:
-        b = listed[how.first + u // how.lanes]
-        at = brick_point(v, b, k)
-        i = at[3]
+        c = brick_corner(v, listed[how.first + u // how.lanes])
+        i = brick_point(v, c, k)
         # nested: warp evaluates both operands of `and`, and i < 0 is no index
         if i >= 0:  # noqa: SIM102
             if flags[i] != 0:
@@ -724,10 +746,7 @@ def fill_kernel(
                 lo = q.p
                 hi = q.p
                 if how.together != 0:
-                    x0 = float(at[0] - k % BRICK_X)
-                    y0 = float(at[1] - (k // BRICK_X) % BRICK_Y)
-                    z0 = float(at[2] - k // (BRICK_X * BRICK_Y))
-                    lo = v.origin + wp.vec3(x0, y0, z0) * v.h
+                    lo = v.origin + wp.vec3(float(c[0]), float(c[1]), float(c[2])) * v.h
                     hi = lo + span
                 s = _walk_pick(f, lo, hi, q, empty_sample())
                 if how.lanes == 1:
@@ -763,7 +782,8 @@ def sum_kernel(
     c = t // BRICK_POINTS
     k = t - c * BRICK_POINTS
     if c < wp.min(count[0], how.last):
-        i = brick_point(vol[0], listed[c], k)[3]
+        v = vol[0]
+        i = brick_point(v, brick_corner(v, listed[c]), k)
         if i >= 0:  # noqa: SIM102  (as in fill_kernel)
             if flags[i] != 0:
                 s = empty_sample()
@@ -775,11 +795,7 @@ def sum_kernel(
                     s.color = s.color + wp.vec3(pt[0], pt[1], pt[2])
                     a = partial_atom[w]
                     if a >= 0:
-                        if pt[3] > s.weight:
-                            s.weight = pt[3]
-                            s.atom = a
-                        elif pt[3] == s.weight and order[a] < order[s.atom]:
-                            s.atom = a
+                        s = keep_largest(s, pt[3], a, order)
                 keep_point(i, s, coef, tint, atoms)
 
 
