@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import warp as wp
 
 from server.render.errors import RenderError
@@ -57,6 +60,29 @@ def resolve_many(spec: str) -> tuple[str, ...]:
             raise RenderError(f"--gpus: {device} does not exist ({cuda_count()} CUDA devices)")
         out.append(resolve(device))
     return tuple(out)
+
+
+_KERNELS: dict[tuple[Callable[..., None], bool, int], Any] = {}
+
+
+def compiled(fn: Callable[..., None], fast_math: bool, registers: int = 0) -> Any:
+    """`fn` as a kernel compiled with CUDA's approximate transcendentals or not and a register
+    cap (0: the compiler's), made once per process for each choice. For the kernels whose cost
+    is square roots, divisions and exponentials: each precise form is a sequence of
+    instructions where the approximate one is a single instruction."""
+    key = (fn, bool(fast_math), max(int(registers), 0))
+    kernel = _KERNELS.get(key)
+    if kernel is None:
+        make: Any = wp.kernel  # warp's decorator is unannotated
+        kernel = make(
+            fn,
+            enable_backward=False,
+            module="unique",
+            module_options={"fast_math": key[1]},
+            cuda_max_registers=key[2] or None,
+        )
+        _KERNELS[key] = kernel
+    return kernel
 
 
 init()

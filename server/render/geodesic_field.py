@@ -973,9 +973,8 @@ def build_kernel(
             wp.atomic_add(overflow, 0, 1)
 
 
-@wp.kernel
 @no_type_check
-def sampled_values_kernel(
+def sampled_values(
     f: GeodesicField, positions: wp.array[wp.vec3], stride: int, lanes: int, values: wp.array[float]
 ):
     """The geodesic density at every `stride`-th atom (the scale of relative levels), taken by

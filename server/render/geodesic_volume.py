@@ -16,11 +16,11 @@ frame before, once it is done):
     Gaussian ends) and two zero points more on every side; if it has more points than were
     allocated, `valid` is 0 and every function below falls back to the routes per sample, so
     the image is the same, only slower (the host plans the size from the last frame, `plan`).
-  * `gate_kernel`: points whose bound (the classical density times `Routes.gate`) is below
-    CUT times the level hold 0 and walk no route: their value is below a fifth of the level,
-    where the interpolant near the surface barely feels it;
+  * the gate (`_gate_points`): points whose bound (the classical density times `Routes.gate`)
+    is below CUT times the level hold 0 and walk no route: their value is below a fifth of the
+    level, where the interpolant near the surface barely feels it;
   * the bricks of 4 x 4 x 2 points that hold such a point are listed (a scan), and each
-    brick's points are taken by one warp's 32 threads (`fill_kernel`): every thread walks the
+    brick's points are taken by one warp's 32 threads (`_fill_points`): every thread walks the
     routes of the atoms within reach of the whole brick, so the warp reads the same routes
     together, and keeps its point's value, colour and largest contributor (the atoms beyond
     its own reach add exact zeros: the values are those of a walk around the point alone);
@@ -43,7 +43,7 @@ from typing import Any, no_type_check
 
 import warp as wp
 
-from server.render import device as _device  # noqa: F401  (initialises warp)
+from server.render import device as _device
 from server.render.cells import GridInfo, cell_at
 from server.render.density import (
     DensityModel,
@@ -110,7 +110,7 @@ density only where that reaches the cut (0: at every point, the same flags)."""
 BRICK_X = 4
 BRICK_Y = 4
 BRICK_Z = 2
-"""The fill takes the grid in bricks of 4 x 4 x 2 points, one warp's 32 threads (`fill_kernel`)."""
+"""The fill takes the grid in bricks of 4 x 4 x 2 points, one warp's 32 threads (`_fill_points`)."""
 BRICK_POINTS = BRICK_X * BRICK_Y * BRICK_Z
 BRICKS_PER_POINT = 3.1 / BRICK_POINTS
 """Bricks allocated per grid point: a grid at least 5 points wide on every axis has at most
@@ -126,6 +126,8 @@ LISTED_BRICKS = 0.25
 MAX_LANES = 8
 """Most groups of 32 threads one brick's points take together (each a share of every row's
 atoms): a small molecule lists too few bricks to fill the device, one group a brick."""
+FILL_REGISTERS = 64
+"""Register cap of the fill's kernel on CUDA (0: the compiler's)."""
 FILL_TARGET = 3.0
 """Groups a brick double while twice the groups would stay within this many launches' worth
 (`GeodesicVolume.lanes_for`): 8, 8, 4, 2, 1 and 1 for villin, 1,049, 2,500, 5,684, 10,000
@@ -582,9 +584,8 @@ def setup_kernel(
     vol[0] = v
 
 
-@wp.kernel
 @no_type_check
-def gate_kernel(
+def _gate_points(
     f: GeodesicField,
     vol: wp.array[VolumeInfo],
     cut: float,
@@ -704,9 +705,8 @@ class Fill:
     last: int
 
 
-@wp.kernel
 @no_type_check
-def fill_kernel(
+def _fill_points(
     f: GeodesicField,
     vol: wp.array[VolumeInfo],
     flags: wp.array[wp.int32],
@@ -784,7 +784,7 @@ def sum_kernel(
     if c < wp.min(count[0], how.last):
         v = vol[0]
         i = brick_point(v, brick_corner(v, listed[c]), k)
-        if i >= 0:  # noqa: SIM102  (as in fill_kernel)
+        if i >= 0:  # noqa: SIM102  (as in _fill_points)
             if flags[i] != 0:
                 s = empty_sample()
                 order = f.gauss.order
@@ -865,8 +865,17 @@ def _fill(warps: int, together: bool, lanes: int, first: int, last: int) -> Fill
 class GeodesicVolume:
     """The grid's buffers on one device and the plan of their size."""
 
-    def __init__(self, device: str, together: bool, lanes: int | None = None) -> None:
+    def __init__(
+        self,
+        device: str,
+        together: bool,
+        lanes: int | None = None,
+        fast_math: bool = True,
+        registers: int = FILL_REGISTERS,
+    ) -> None:
         self.device = device
+        self.fill = _device.compiled(_fill_points, fast_math, registers)
+        self.gate = _device.compiled(_gate_points, fast_math)
         self.together = bool(together)
         """A brick's threads walk the atoms within reach of the brick, not each its own
         point's (the same values; on CUDA a group of 32 then reads the same routes together)."""
@@ -985,7 +994,7 @@ class GeodesicVolume:
         if cap == 0:
             return
         gate = (f, self.vol, float(cut), self.coef, self.tint, self.atoms, self.flags, CELL_GATE)
-        _wp.launch(gate_kernel, cap, gate, device=dev)
+        _wp.launch(self.gate, cap, gate, device=dev)
         _wp.launch(brick_kernel, bricks, (self.vol, self.flags, self.brick_flags), device=dev)
         _wp.utils.array_scan(self.brick_flags, self.brick_scan, inclusive=False)
         compact = (self.brick_flags, self.brick_scan, bricks - 1, self.listed, self.count)
@@ -996,12 +1005,12 @@ class GeodesicVolume:
         threads = self.warps * BRICK_POINTS
         last = self.planned if self.lanes > 1 else _ALL
         how = _fill(self.warps, self.together, self.lanes, 0, last)
-        _wp.launch(fill_kernel, threads, (*where, how, *parts, *keep), device=dev)
+        _wp.launch(self.fill, threads, (*where, how, *parts, *keep), device=dev)
         if self.lanes > 1:
             _wp.launch(sum_kernel, last * BRICK_POINTS, (*where, how, *parts, *keep), device=dev)
             # bricks past the plan (the molecule grew since): one group each
             rest = _fill(self.warps, self.together, 1, last, _ALL)
-            _wp.launch(fill_kernel, threads, (*where, rest, *parts, *keep), device=dev)
+            _wp.launch(self.fill, threads, (*where, rest, *parts, *keep), device=dev)
         lines = cap // 5 + 1
         for axis in range(3):
             _wp.launch(prefilter_kernel, lines, (self.coef, self.vol, axis), device=dev)

@@ -865,8 +865,13 @@ class Renderer(ImageOutputs):
         if self._gvol is None:
             t = self.tuning
             together = self._cuda if t.geodesic_bricks is None else t.geodesic_bricks
+            regs = t.geodesic_fill_registers
             self._gvol = geodesic_volume.GeodesicVolume(
-                self.device, together, t.geodesic_fill_lanes
+                self.device,
+                together,
+                t.geodesic_fill_lanes,
+                t.fast_math,
+                geodesic_volume.FILL_REGISTERS if regs is None else regs,
             )
         return self._gvol
 
@@ -1250,7 +1255,7 @@ class Renderer(ImageOutputs):
                 lanes = self._geo_mean_lanes
                 sampled = (geo, self._pos, n // samples, lanes, self._density_samples)
                 wp.launch(
-                    geodesic_field.sampled_values_kernel,
+                    devmod.compiled(geodesic_field.sampled_values, self.tuning.fast_math),
                     samples * lanes,
                     sampled,
                     device=dev,

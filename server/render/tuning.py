@@ -164,6 +164,10 @@ class Tuning:
     """Groups of 32 threads that take one brick of the geodesic grid's fill together, each a
     share of every row's atoms (None: `GeodesicVolume.lanes_for` the grid's size; 1 on the
     CPU)."""
+    geodesic_fill_registers: int | None = None
+    """Register cap of the geodesic grid's fill kernel on CUDA (None:
+    `geodesic_volume.FILL_REGISTERS`; 0: the compiler's). Its transcendentals follow
+    `fast_math`."""
     cell_list: bool = True
     """A grid with more cells than twice its atoms lists the cells its bound walks in a buffer
     of its own (off: in the atoms' spare buffer, the baseline: the cells it leaves out are
@@ -186,6 +190,10 @@ class Tuning:
             )
         if self.geodesic_fill_lanes is not None and self.geodesic_fill_lanes < 1:
             raise RenderError(f"geodesic_fill_lanes must be >= 1, got {self.geodesic_fill_lanes}")
+        if self.geodesic_fill_registers is not None and self.geodesic_fill_registers < 0:
+            raise RenderError(
+                f"geodesic_fill_registers must be >= 0, got {self.geodesic_fill_registers}"
+            )
         if self.mean_lanes is not None and self.mean_lanes < 1:
             raise RenderError(f"mean_lanes must be >= 1, got {self.mean_lanes}")
         if self.refine_passes is not None and self.refine_passes < 0:

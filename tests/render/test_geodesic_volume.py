@@ -11,7 +11,9 @@ import warp as wp
 from protocol import RenderParams
 from server.render import geodesic_volume
 from server.render.camera import camera_frame, fit_camera, image_rays, orbit
+from server.render.errors import RenderError
 from server.render.renderer import Renderer
+from server.render.tuning import Tuning
 from tests.render.helpers import render
 from tests.render.molecules import Mol, three_atoms, topology, villin
 
@@ -339,3 +341,23 @@ def test_a_smoothing_past_the_grids_range_walks_the_routes() -> None:
         r = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
         drawn.append(r.last_density)
     assert drawn == ["geodesic_volume", "geodesic"]
+
+
+def test_the_grids_kernels_follow_fast_math_and_compile_once_per_choice() -> None:
+    """The fill and the gate take CUDA's approximate transcendentals with the rest of the
+    renderer (`Tuning.fast_math`), the fill its register cap (`geodesic_fill_registers`); a
+    second renderer with the same choices reuses the compiled kernels."""
+    fast = Renderer("cpu", tuning=Tuning())._geodesic_volume()
+    precise = Renderer(
+        "cpu", tuning=Tuning(fast_math=False, geodesic_fill_registers=0)
+    )._geodesic_volume()
+    for vol, want in ((fast, True), (precise, False)):
+        assert vol.fill.module.options["fast_math"] is want
+        assert vol.gate.module.options["fast_math"] is want
+    assert fast.fill.options["cuda_max_registers"] == geodesic_volume.FILL_REGISTERS > 0
+    assert precise.fill.options.get("cuda_max_registers") is None
+    again = Renderer("cpu", tuning=Tuning())._geodesic_volume()
+    assert again.fill is fast.fill and again.gate is fast.gate
+    assert fast.fill is not precise.fill
+    with pytest.raises(RenderError, match="geodesic_fill_registers"):
+        Tuning(geodesic_fill_registers=-1)
