@@ -87,14 +87,20 @@ tapered tails, where the spline rings (two thirds of villin's drawn pixels chang
 sigma 1.5 A); past it the routes are walked per sample."""
 CUT = 0.2
 """Points whose bound is below this fraction of the level hold 0 (their value is below it)."""
-POINTS_PER_PIXEL = 24.0
+POINTS_PER_PIXEL = 160.0
 """The grid is used when it has at most this many points a pixel of the image. A grid point
 costs about what a ray sample does; a pixel costs several samples, fewer where the molecule
-covers less of the image. One NVIDIA H200, the routes per sample the control in the same run:
-the grid took 0.14-0.29 of the routes' time at 0.56-10.5 points a pixel (villin to 10,000
-atoms at 500x500, render_h200_densities.json), and 0.88, 0.99 and 0.93 of it at 11.05, 15.9
-and 24.9 points a pixel (100,000 atoms at 1920x1080, 1600x900 and 1280x720,
-render_h200_geodesic_grid_or_routes.json): the rule stops short of the last."""
+covers less of the image. One NVIDIA H200, the routes per sample the control in the same run
+(render_h200_geodesic_grid_or_routes.json): 100,000 atoms (a grid of some 23M points) at
+1280x720, 800x450, 480x270 and 320x180, 25, 64, 177 and 398 points a pixel, took 0.55, 0.81,
+0.98 and 1.02 of the routes' time from the grid; 10,000 atoms at 160x120 (137 points a pixel)
+0.19. The rule stops between the last two."""
+CPU_POINTS_PER_PIXEL = 6.0
+"""The same rule on the CPU device, whose threads walk each grid point alone: two CPU cores,
+villin, the routes per sample the control in the same run
+(render_cpu_2core_geodesic_grid_or_routes.json): from the grid 0.25, 0.94, 2.5 and 5.0 times
+the routes' time at 1.8, 7.3, 20 and 46 points a pixel (320x240, 160x120, 96x72, 64x48), and
+2,500 atoms at 96x72 (65 points a pixel) 6.3."""
 MAX_POINTS = 1 << 25
 """Most grid points a plan takes: with SLACK, buffers of up to 50M points (16 bytes each, and
 about one more for the bricks)."""
@@ -139,6 +145,11 @@ to save 4 %)."""
 _Ints8 = wp.types.vector(length=8, dtype=wp.int32)
 
 _POLE = wp.constant(math.sqrt(3.0) - 2.0)  # type: ignore[no-untyped-call]
+
+
+def points_per_pixel(cuda: bool) -> float:
+    """Most grid points a pixel at which the rays read the grid rather than walk the routes."""
+    return POINTS_PER_PIXEL if cuda else CPU_POINTS_PER_PIXEL
 
 
 def spacing_of(sigma_min: float, tau: float) -> float:

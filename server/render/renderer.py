@@ -877,7 +877,7 @@ class Renderer(ImageOutputs):
 
     def _plan_volume(self, d: Derived, pixels: int) -> Derived:
         """`d` with the grid spacing of `geodesic_volume` when its rays should read the
-        geodesic density from a grid: when the grid has at most POINTS_PER_PIXEL points a pixel
+        geodesic density from a grid: when the grid has at most `points_per_pixel` points a pixel
         (Tuning.geodesic_volume None), or whenever it fits (True), in half the device's free
         memory at most and at a smoothing of at most MAX_SMOOTHING (the routes per sample
         otherwise). Sizes the grid's buffers from what the last grid built needed (read once
@@ -900,7 +900,7 @@ class Renderer(ImageOutputs):
             points = int(np.prod(np.floor((ext + 2.0 * d.reach) / h) + 5.0))
         limit = geodesic_volume.MAX_POINTS
         if use is None:
-            limit = min(limit, int(geodesic_volume.POINTS_PER_PIXEL * pixels))
+            limit = min(limit, int(geodesic_volume.points_per_pixel(self._cuda) * pixels))
         free = geodesic_field.free_bytes(self.device)
         room = free is None or vol.bytes_for(points) < free // 2 + vol.nbytes
         if points > limit or not room:

@@ -153,8 +153,8 @@ class Tuning:
     geodesic_volume: bool | None = None
     """The geodesic density's rays read it from a grid evaluated once a frame
     (`geodesic_volume`; the surface moves within max(0.05 A, 1 % sigma)): None when the grid
-    has at most POINTS_PER_PIXEL points a pixel, True whenever it fits, False never (the
-    routes walked per sample, the baseline)."""
+    has at most `geodesic_volume.points_per_pixel` points a pixel (160 on CUDA, 6 on the CPU),
+    True whenever it fits, False never (the routes walked per sample, the baseline)."""
     geodesic_bricks: bool | None = None
     """The geodesic grid's fill walks, for each point of a brick of 32 (one warp), the atoms
     within reach of the whole brick, so its threads read the same routes together; off, each
