@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .geodesic import (
+    geodesic_fast_fill,
     geodesic_fill,
     geodesic_gate,
     geodesic_route_major,
@@ -101,9 +102,16 @@ TABLES: dict[str, Table] = {
         ),
         part_trial,
     ),
+    "geodesic-fast-fill": Table(
+        ("render_h200_densities.json", "render_h200_densities_precise_fill.json"),
+        geodesic_fast_fill,
+    ),
+    "geodesic-fill-registers": Table(
+        ("render_h200_geodesic_fill_registers.json",), render_variants
+    ),
     "geodesic-fill": Table(
         (
-            "render_h200_densities.json",
+            "render_h200_densities_bricks_and_queues.json",
             "render_h200_densities_before_bricks.json",
             "render_h200_densities_bricks_only.json",
         ),
@@ -112,7 +120,11 @@ TABLES: dict[str, Table] = {
     "geodesic-fill-groups": Table(("render_h200_geodesic_fill_lanes.json",), render_variants),
     "geodesic-mean-queue": Table(("render_h200_geodesic_mean_queue_lanes.json",), render_variants),
     "geodesic-grid-or-routes": Table(
-        ("render_h200_geodesic_grid_or_routes.json",), render_variants
+        (
+            "render_h200_geodesic_grid_or_routes.json",
+            "render_cpu_2core_geodesic_grid_or_routes.json",
+        ),
+        render_variants,
     ),
     "visible-bricks": Table(("visible_bricks_cpu.json",), visible_bricks),
     "geodesic-gate": Table(("render_h200_geodesic_gate.json",), geodesic_gate),

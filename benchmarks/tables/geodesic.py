@@ -103,6 +103,43 @@ def _drawn(row: Results) -> str:
     return "grid" if row["geodesic_drawn_as"] == "geodesic_volume" else "routes"
 
 
+def _by_case(res: Results) -> dict[tuple[int, int, int], Results]:
+    return {(r["n_atoms"], r["width"], r["height"]): r for r in res["densities"]}
+
+
+def geodesic_fast_fill(sources: list[Source]) -> str:
+    """The geodesic frame today and with its grid's kernels compiled with precise square
+    roots, divisions and exponentials (the code before, its own checkout in the same device
+    session, the same frames: the control), each with its own run's classical frame."""
+    (_, today), (_, before) = sources
+    was = _by_case(before)
+    rows = []
+    for r in today["densities"]:
+        b = was[(r["n_atoms"], r["width"], r["height"])]
+        ms, base = r["geodesic"]["median_ms"], b["geodesic"]["median_ms"]
+        rows.append(
+            [
+                count(r["n_atoms"]),
+                size(r["width"], r["height"]),
+                f"{num(base, 2)} ({_drawn(b)})",
+                f"{num(ms, 2)} ({_drawn(r)})",
+                f"{base / ms:.2f}",
+                f"{b['classical']['median_ms'] / base:.2f}",
+                f"{r['classical']['median_ms'] / ms:.2f}",
+            ]
+        )
+    header = [
+        "atoms",
+        "image",
+        "precise ms (drawn from)",
+        "today ms (drawn from)",
+        "frame rate / precise",
+        "geodesic / classical frame rate, precise",
+        "today",
+    ]
+    return block(sources, table(header, "rlrrrrr", rows), params(today))
+
+
 def geodesic_fill(sources: list[Source]) -> str:
     """The geodesic density as the renderer draws it, today and in the code before two changes
     (each its own checkout, the same device session, the same frames): the first file today's
@@ -110,11 +147,7 @@ def geodesic_fill(sources: list[Source]) -> str:
     mean's queues. Ratios are frame rates against the code before (the control) and against
     today's classical frame of the same run."""
     (_, today), (_, before), (_, bricks) = sources
-
-    def by_case(res: Results) -> dict[tuple[int, int, int], Results]:
-        return {(r["n_atoms"], r["width"], r["height"]): r for r in res["densities"]}
-
-    was, mid = by_case(before), by_case(bricks)
+    was, mid = _by_case(before), _by_case(bricks)
     rows = []
     for r in today["densities"]:
         key = (r["n_atoms"], r["width"], r["height"])
