@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from protocol import Control, Event, Forces, SimParams, WireArray
+from protocol import Control, Event, Forces, ParamsAck, SimParams, WireArray
 from simulation_adapters.imd import BridgeError, IMDBridge
 from tests.adapters.lammps_helpers import (
     BLOW_UP,
@@ -28,6 +28,23 @@ from tests.adapters.sim_peer import SimPeer
 
 WHY_NOT = lammps_usable()
 pytestmark = pytest.mark.skipif(WHY_NOT is not None, reason=str(WHY_NOT))
+
+
+def ack_or_why(peer: SimPeer, seq: int, bridge: IMDBridge, run: Lammps) -> ParamsAck:
+    """The ack of steering message `seq`; failing that, a failure that says where the pull
+    stopped: the bridge's error and thread, its connection's state and counts, LAMMPS's exit
+    code and the end of its log (a pull unacknowledged for 60 s was seen once in a full run and
+    never alone)."""
+    try:
+        return peer.wait_ack(seq, timeout=60)
+    except TimeoutError:
+        alive = bridge._thread is not None and bridge._thread.is_alive()
+        pytest.fail(
+            f"no ack of the pull in 60 s: bridge error {bridge.error!r}, thread alive {alive}, "
+            f"engine connected {bridge.imd is not None}; connection {bridge.connection.state} "
+            f"{bridge.connection.stats}; LAMMPS exit {run.proc.poll()}, log tail:\n"
+            f"{run.log()[-3000:]}"
+        )
 
 
 @pytest.fixture
@@ -111,7 +128,7 @@ def test_lammps_pull_moves_the_pulled_atom(
         bridge.start()
         try:
             if seq is not None:
-                ack = peer.wait_ack(seq, timeout=60)
+                ack = ack_or_why(peer, seq, bridge, run)
                 assert ack.ok and ack.applied == {"atoms": 1, "capped": 0, "unit": "kcal/mol/A"}
             assert run.wait() == 0, run.log()
             assert bridge.wait(30) and bridge.error is None
