@@ -133,7 +133,10 @@ MAX_LANES = 8
 """Most groups of 32 threads one brick's points take together (each a share of every row's
 atoms): a small molecule lists too few bricks to fill the device, one group a brick."""
 FILL_REGISTERS = 64
-"""Register cap of the fill's kernel on CUDA (0: the compiler's)."""
+"""Register cap of the fill's kernel on CUDA (0: the compiler's, 89 with fast math). One NVIDIA
+H200, the same run (render_h200_geodesic_fill_registers.json): 64 took the grid stage 0.92x at
+100,000 atoms and 0.96x at 10,000, within 3 % of the compiler's below; 72, 80 and 96 were no
+faster anywhere."""
 FILL_TARGET = 3.0
 """Groups a brick double while twice the groups would stay within this many launches' worth
 (`GeodesicVolume.lanes_for`): 8, 8, 4, 2, 1 and 1 for villin, 1,049, 2,500, 5,684, 10,000
