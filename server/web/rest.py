@@ -209,19 +209,32 @@ async def _displayed(
 
 
 def check_size(state: AppState, width: int, height: int) -> None:
+    """Refuse an image size past the limits with a 422 whose detail starts with the field to
+    change (`width: ...`, the longer side for a count of pixels), which clients read as the
+    error's path."""
     lim = state.settings.limits
-    if width < 1 or height < 1:
-        raise HTTPException(422, f"image size {width}x{height}: width and height must be >= 1")
+    size = f"image size {width}x{height}"
+    longer = "width" if width >= height else "height"
+    for name, value in (("width", width), ("height", height)):
+        if value < 1:
+            raise HTTPException(422, f"{name}: {size}: width and height must be >= 1")
     device = state.gpu.actual_device or state.settings.device
     if device.startswith("cpu") and width * height > state.settings.cpu_max_rest_pixels:
         raise HTTPException(
             422,
-            f"image size {width}x{height}: this server renders on its CPU, where at most "
-            f"{state.settings.cpu_max_rest_pixels} pixels are rendered per image",
+            f"{longer}: {size} is {width * height:,} pixels; this server renders on its CPU, "
+            f"where at most {state.settings.cpu_max_rest_pixels:,} pixels are rendered per image",
         )
-    if max(width, height) > lim.max_image_side or width * height > lim.max_image_pixels:
+    for name, value in (("width", width), ("height", height)):
+        if value > lim.max_image_side:
+            raise HTTPException(
+                422, f"{name}: {size} exceeds the limit of {lim.max_image_side} px a side"
+            )
+    if width * height > lim.max_image_pixels:
         raise HTTPException(
-            422, f"image size {width}x{height} exceeds the limit ({lim.max_image_side} px a side)"
+            422,
+            f"{longer}: {size} is {width * height:,} pixels, over the limit of "
+            f"{lim.max_image_pixels:,} pixels an image",
         )
 
 

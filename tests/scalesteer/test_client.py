@@ -221,6 +221,20 @@ def test_params_send_only_what_they_name_so_a_file_still_opens_on_its_molecule(
     assert camera.value.path == "camera.distanse"
 
 
+def test_a_size_past_the_limits_names_the_side_to_change(client: scalesteer.Client) -> None:
+    """A refused image size is a 422 whose path is the field to change: the side past the
+    limit, or the longer side of an image of too many pixels."""
+    from MDAnalysisTests.datafiles import GRO
+
+    cases = (((5000, 36), "width"), ((36, 5000), "height"), ((3000, 4000), "height"))
+    for (w, h), field in cases:
+        with pytest.raises(ScalesteerError) as refused:
+            client.render(GRO, w, h)
+        err = refused.value
+        assert err.status == 422 and err.code is ErrorCode.INVALID_MESSAGE, err
+        assert err.path == field and f"{w}x{h}" in err.message, err
+
+
 def test_the_dashboard_link_names_a_session_by_name_and_encodes_it(
     client: scalesteer.Client, small_universe: Any
 ) -> None:
