@@ -141,11 +141,11 @@ def geodesic_fast_fill(sources: list[Source]) -> str:
 
 
 def geodesic_fill(sources: list[Source]) -> str:
-    """The geodesic density as the renderer draws it, today and in the code before two changes
-    (each its own checkout, the same device session, the same frames): the first file today's
-    run, the second the code before the fill took bricks, the third the bricks without the
-    mean's queues. Ratios are frame rates against the code before (the control) and against
-    today's classical frame of the same run."""
+    """The geodesic density as the renderer drew it after the twelfth round and in the code
+    before two changes (each its own checkout, the same device session, the same frames): the
+    first file that round's run, the second the code before the fill took bricks, the third the
+    bricks without the mean's queues. Ratios are frame rates against the code before (the
+    control) and against that round's classical frame of the same run."""
     (_, today), (_, before), (_, bricks) = sources
     was, mid = _by_case(before), _by_case(bricks)
     rows = []

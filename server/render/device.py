@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -63,25 +64,28 @@ def resolve_many(spec: str) -> tuple[str, ...]:
 
 
 _KERNELS: dict[tuple[Callable[..., None], bool, int], Any] = {}
+_KERNELS_LOCK = threading.Lock()  # each device's thread may make its first renderer at once
 
 
 def compiled(fn: Callable[..., None], fast_math: bool, registers: int = 0) -> Any:
     """`fn` as a kernel compiled with CUDA's approximate transcendentals or not and a register
     cap (0: the compiler's), made once per process for each choice. For the kernels whose cost
     is square roots, divisions and exponentials: each precise form is a sequence of
-    instructions where the approximate one is a single instruction."""
+    instructions where the approximate one is a single instruction. (warp's CPU build takes
+    neither option: on the CPU device both choices compile the same code.)"""
     key = (fn, bool(fast_math), max(int(registers), 0))
-    kernel = _KERNELS.get(key)
-    if kernel is None:
-        make: Any = wp.kernel  # warp's decorator is unannotated
-        kernel = make(
-            fn,
-            enable_backward=False,
-            module="unique",
-            module_options={"fast_math": key[1]},
-            cuda_max_registers=key[2] or None,
-        )
-        _KERNELS[key] = kernel
+    with _KERNELS_LOCK:
+        kernel = _KERNELS.get(key)
+        if kernel is None:
+            make: Any = wp.kernel  # warp's decorator is unannotated
+            kernel = make(
+                fn,
+                enable_backward=False,
+                module="unique",
+                module_options={"fast_math": key[1]},
+                cuda_max_registers=key[2] or None,
+            )
+            _KERNELS[key] = kernel
     return kernel
 
 

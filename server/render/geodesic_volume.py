@@ -88,13 +88,13 @@ sigma 1.5 A); past it the routes are walked per sample."""
 CUT = 0.2
 """Points whose bound is below this fraction of the level hold 0 (their value is below it)."""
 POINTS_PER_PIXEL = 160.0
-"""The grid is used when it has at most this many points a pixel of the image. A grid point
-costs about what a ray sample does; a pixel costs several samples, fewer where the molecule
-covers less of the image. One NVIDIA H200, the routes per sample the control in the same run
+"""The grid is used when it has at most this many points a pixel of the image (on CUDA): a
+grid point is filled once a frame, where the routes per sample walk again for every sample a
+ray takes near the surface. One NVIDIA H200, the routes per sample the control in the same run
 (render_h200_geodesic_grid_or_routes.json): 100,000 atoms (a grid of some 23M points) at
 1280x720, 800x450, 480x270 and 320x180, 25, 64, 177 and 398 points a pixel, took 0.55, 0.81,
 0.98 and 1.02 of the routes' time from the grid; 10,000 atoms at 160x120 (137 points a pixel)
-0.19. The rule stops between the last two."""
+0.19. The rule stops below 177, where the grid still took 0.98 of the routes' time."""
 CPU_POINTS_PER_PIXEL = 6.0
 """The same rule on the CPU device, whose threads walk each grid point alone: two CPU cores,
 villin, the routes per sample the control in the same run
@@ -141,10 +141,10 @@ FILL_TARGET = 3.0
 """Groups a brick double while twice the groups would stay within this many launches' worth
 (`GeodesicVolume.lanes_for`): 8, 8, 4, 2, 1 and 1 for villin, 1,049, 2,500, 5,684, 10,000
 atoms at 500x500 and 100,000 at 1920x1080. One NVIDIA H200, 1, 2, 4 and 8 groups in the same
-run (`render_h200_geodesic_fill_lanes.json`): 8 were fastest at villin (1,096 bricks listed),
-4 from 1,049 atoms on; the rule's choice took 1.00-1.04x the fastest's time. More groups keep
-more lanes' shares (24 bytes a point and group: 4 groups would hold 450 MB at 100,000 atoms
-to save 4 %)."""
+run (render_h200_geodesic_fill_lanes.json, the fill with fast math): the rule's choice took
+1.00-1.025x the fastest setting's time at every size (8 groups at villin and 1,049 atoms, 4 at
+2,500 and 10,000, 2 at 5,684 and 100,000). More groups keep more lanes' shares (24 bytes a
+point and group: 2 groups would hold about 225 MB at 100,000 atoms to save 2.4 %)."""
 _Ints8 = wp.types.vector(length=8, dtype=wp.int32)
 
 _POLE = wp.constant(math.sqrt(3.0) - 2.0)  # type: ignore[no-untyped-call]

@@ -190,10 +190,9 @@ class Tuning:
             )
         if self.geodesic_fill_lanes is not None and self.geodesic_fill_lanes < 1:
             raise RenderError(f"geodesic_fill_lanes must be >= 1, got {self.geodesic_fill_lanes}")
-        if self.geodesic_fill_registers is not None and self.geodesic_fill_registers < 0:
-            raise RenderError(
-                f"geodesic_fill_registers must be >= 0, got {self.geodesic_fill_registers}"
-            )
+        regs = self.geodesic_fill_registers
+        if regs is not None and (isinstance(regs, bool) or not 0 <= regs <= 255):
+            raise RenderError(f"geodesic_fill_registers must be 0-255, got {regs!r}")
         if self.mean_lanes is not None and self.mean_lanes < 1:
             raise RenderError(f"mean_lanes must be >= 1, got {self.mean_lanes}")
         if self.refine_passes is not None and self.refine_passes < 0:

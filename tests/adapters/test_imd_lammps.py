@@ -39,10 +39,12 @@ def ack_or_why(peer: SimPeer, seq: int, bridge: IMDBridge, run: Lammps) -> Param
         return peer.wait_ack(seq, timeout=60)
     except TimeoutError:
         alive = bridge._thread is not None and bridge._thread.is_alive()
+        acked = [a.ref for a in peer.of_type(ParamsAck)]
         pytest.fail(
             f"no ack of the pull in 60 s: bridge error {bridge.error!r}, thread alive {alive}, "
             f"engine connected {bridge.imd is not None}; connection {bridge.connection.state} "
-            f"{bridge.connection.stats}; LAMMPS exit {run.proc.poll()}, log tail:\n"
+            f"{bridge.connection.stats}; acks the peer holds {acked}; LAMMPS exit "
+            f"{run.proc.poll()}, log tail:\n"
             f"{run.log()[-3000:]}"
         )
 

@@ -9,8 +9,9 @@ import pytest
 import warp as wp
 
 from protocol import RenderParams
-from server.render import geodesic_volume
+from server.render import geodesic_field, geodesic_volume
 from server.render.camera import camera_frame, fit_camera, image_rays, orbit
+from server.render.device import compiled
 from server.render.errors import RenderError
 from server.render.renderer import Renderer
 from server.render.tuning import Tuning
@@ -42,7 +43,7 @@ def _displacement(r: Renderer, direct: Renderer, cam: object, level: float) -> n
     ],
 )
 def test_the_grid_keeps_the_surface_within_the_accuracy_bound(
-    sigma: float, smoothing: float, radii: str
+    device: str, sigma: float, smoothing: float, radii: str
 ) -> None:
     """Hits drawn from the grid lie within max(0.05 A, 1 % sigma) of the routes' surface, past
     what the routes' own hits do (their march's refinement, the control)."""
@@ -51,8 +52,8 @@ def test_the_grid_keeps_the_surface_within_the_accuracy_bound(
         scale_space="geodesic", sigma_A=sigma, geodesic_smoothing=smoothing, radius_mode=radii
     )
     cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
-    grid = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
-    direct = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=False)
+    grid = render(device, mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+    direct = render(device, mol.topology, mol.positions, params, cam, W, H, geodesic_volume=False)
     assert grid.last_density == "geodesic_volume" and direct.last_density == "geodesic"
     d_grid = _displacement(grid, direct, cam, params.iso_level)
     d_direct = _displacement(direct, direct, cam, params.iso_level)
@@ -160,7 +161,7 @@ def test_each_walked_point_keeps_the_routes_colour_and_largest_contributor() -> 
 
 @pytest.mark.parametrize("sigma, radii", [(1.5, "uniform"), (0.8, "vdw")])
 def test_a_brick_walked_together_fills_the_grid_of_each_point_alone(
-    sigma: float, radii: str
+    device: str, sigma: float, radii: str
 ) -> None:
     """A brick's 32 points walk the atoms within reach of the whole brick (on CUDA one warp
     reads the same routes together); the atoms beyond a point's own reach add exact zeros, so
@@ -171,7 +172,7 @@ def test_a_brick_walked_together_fills_the_grid_of_each_point_alone(
     runs = []
     for together in (True, False):
         r = render(
-            "cpu", mol.topology, mol.positions, params, cam, W, H,
+            device, mol.topology, mol.positions, params, cam, W, H,
             geodesic_volume=True, geodesic_bricks=together,
         )  # fmt: skip
         assert r._gvol is not None and r._gvol.together is together
@@ -283,7 +284,7 @@ def test_the_gate_reads_the_cell_bounds_first_and_lists_the_same_points(
         np.testing.assert_array_equal(a, b)
 
 
-def test_a_pixel_picks_what_the_routes_pick() -> None:
+def test_a_pixel_picks_what_the_routes_pick(device: str) -> None:
     """Colour and the picked atom come from the grid's points around the hit the grid's rays
     found (trilinear colour; the largest of their largest contributors' terms there): the
     same atom as the routes per sample at nearly every pixel (the hits differ by the grid's
@@ -291,8 +292,8 @@ def test_a_pixel_picks_what_the_routes_pick() -> None:
     mol = villin()
     params = RenderParams(scale_space="geodesic", sigma_A=3.0)
     cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
-    grid = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
-    direct = render("cpu", mol.topology, mol.positions, params, cam, W, H, geodesic_volume=False)
+    grid = render(device, mol.topology, mol.positions, params, cam, W, H, geodesic_volume=True)
+    direct = render(device, mol.topology, mol.positions, params, cam, W, H, geodesic_volume=False)
     ids, ids0 = grid.read_atom_ids(), direct.read_atom_ids()
     hit = (ids >= 0) & (ids0 >= 0)
     assert hit.sum() > 300
@@ -372,8 +373,14 @@ def test_the_grids_kernels_follow_fast_math_and_compile_once_per_choice() -> Non
         assert vol.gate.module.options["fast_math"] is want
     assert fast.fill.options["cuda_max_registers"] == geodesic_volume.FILL_REGISTERS > 0
     assert precise.fill.options.get("cuda_max_registers") is None
+    uncapped = Renderer("cpu", tuning=Tuning(geodesic_fill_registers=0))._geodesic_volume()
+    assert uncapped.fill is not fast.fill and uncapped.gate is fast.gate
+    mean = compiled(geodesic_field.sampled_values, True)
+    assert mean.module.options["fast_math"] is True
+    assert compiled(geodesic_field.sampled_values, False).module.options["fast_math"] is False
     again = Renderer("cpu", tuning=Tuning())._geodesic_volume()
     assert again.fill is fast.fill and again.gate is fast.gate
     assert fast.fill is not precise.fill
-    with pytest.raises(RenderError, match="geodesic_fill_registers"):
-        Tuning(geodesic_fill_registers=-1)
+    for bad in (-1, 256, True):
+        with pytest.raises(RenderError, match="geodesic_fill_registers"):
+            Tuning(geodesic_fill_registers=bad)
