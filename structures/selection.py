@@ -200,6 +200,11 @@ _PARSE_LOCK = threading.Lock()
 def parse(text: str) -> Any:
     """MDAnalysis's parse tree of `text` (nothing evaluated); raises SelectionError naming
     where the text goes wrong."""
+    # the whole package first: keywords such as `index`, `name` and `resid` are registered by
+    # its topology attributes, after the selection module loads. While another thread is
+    # still importing MDAnalysis this waits for it; the selection module alone would be there
+    # already, and a valid selection was refused ("Unknown selection token: 'index'").
+    import MDAnalysis  # noqa: F401
     from MDAnalysis.core import selection as mda_selection
     from MDAnalysis.exceptions import SelectionError as MDASelectionError
 

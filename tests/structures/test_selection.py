@@ -3,7 +3,11 @@ selections name their position; the default layers hide solvent and single out l
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -198,3 +202,65 @@ def test_a_number_that_is_not_finite_is_refused_by_name(text: str, at: int) -> N
     assert info.value.reason == "a distance or coordinate is not a finite number"
     assert info.value.position == at
     parse("around 5 name CA")  # the control
+
+
+HELD_IMPORT = """
+'''A thread imports MDAnalysis, held just after its selection module has loaded (before the
+topology attributes that register keywords such as `index`); the main thread parses then.'''
+import importlib.abc
+import importlib.util
+import sys
+import threading
+import time
+
+HOLD_S = 1.5
+
+
+class Hold(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name != "MDAnalysis.core.selection":
+            return None
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(name)
+        sys.meta_path.insert(0, self)
+        run = spec.loader.exec_module
+
+        def exec_module(module):
+            run(module)
+            time.sleep(HOLD_S)  # the rest of MDAnalysis has not registered its keywords yet
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+sys.meta_path.insert(0, Hold())
+importer = threading.Thread(target=lambda: __import__("MDAnalysis"))
+importer.start()
+deadline = time.monotonic() + 60
+while not hasattr(sys.modules.get("MDAnalysis.core.selection"), "Parser"):
+    assert time.monotonic() < deadline
+    time.sleep(0.01)
+from structures.selection import parse  # noqa: E402
+
+parse("around 3 index 0:9")
+importer.join()
+print("parsed")
+"""
+
+
+def test_a_selection_parsed_while_another_thread_imports_mdanalysis_waits_for_it() -> None:
+    """A fresh server's first selection check could run while another thread was importing
+    MDAnalysis: its selection module was loaded but not yet the topology attributes that
+    register `index`, `name`, `resid`, ... and a valid layer was refused ("Unknown selection
+    token: 'index'"). In a fresh interpreter a thread's import is held just there while the
+    main thread parses."""
+    root = Path(__file__).resolve().parents[2]
+    run = subprocess.run(
+        [sys.executable, "-c", HELD_IMPORT],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(root)},
+    )
+    assert run.returncode == 0 and "parsed" in run.stdout, run.stderr[-2000:]
