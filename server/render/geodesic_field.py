@@ -74,15 +74,18 @@ _Floats = wp.types.vector(length=NODES, dtype=float)
 class Routes:
     """Every atom's routes (CSR by original atom index) and the bonds they go through.
 
-    Route k this frame: `seg_a[k]` = (a_i, g_i), `seg_v[k]` = (a_j - a_i, g_j) of its bond
-    (i, j), g the graph distance from that end to the route's atom (inf beyond the tables'
-    reach); a_j - a_i = 0 for an atom without bonds (a bond of length 0). Each route has its
-    own copy of its bond's geometry: two independent loads, not a bond index and then the
-    bond (`route_bond`)."""
+    Route k this frame: `seg_a[k]` = (a_i, g_i), `seg_v[k]` = (a_j - a_i, g_j) and
+    `seg_l[k]` = (|a_j - a_i|, 1 / |a_j - a_i|^2) of its bond (i, j), g the graph distance
+    from that end to the route's atom (inf beyond the tables' reach); a_j - a_i = 0 for an
+    atom without bonds (a bond of length 0, 1 / length^2 taken as 0). Each route has its own
+    copy of its bond's geometry: independent loads, not a bond index and then the bond
+    (`route_bond`), and the length and its inverse made once a frame, not at every point
+    that takes the route."""
 
     start: wp.array[wp.int32]
     seg_a: wp.array[wp.vec4]
     seg_v: wp.array[wp.vec4]
+    seg_l: wp.array[wp.vec2]
     tau: float
     inv_tau: float
     tau2: float
@@ -110,27 +113,28 @@ class GeodesicField:
 
 @wp.func
 @no_type_check
-def ramp(x: float, w: float) -> float:
-    return 0.5 * (x + wp.sqrt(x * x + w * w))
+def ramp(x: float, w2: float) -> float:
+    """The smooth clamp's half, (x + sqrt(x^2 + w^2)) / 2, from w^2."""
+    return 0.5 * (x + wp.sqrt(x * x + w2))
 
 
 @wp.func
 @no_type_check
-def ramp_slope(x: float, w: float) -> float:
-    return 0.5 * (1.0 + x / wp.sqrt(x * x + w * w))
+def ramp_slope(x: float, w2: float) -> float:
+    return 0.5 * (1.0 + x / wp.sqrt(x * x + w2))
 
 
 @wp.struct
 class RouteBond:
     """Route k's bond, read once for every point that takes it: its start a_i, vector v,
-    length and 1 / length (0 for an atom without bonds), tau / length, and the graph
+    length and 1 / length^2 (0 for an atom without bonds), (tau / length)^2, and the graph
     distances of its two ends."""
 
     ai: wp.vec3
     v: wp.vec3
     length: float
-    inv_l: float
-    w: float
+    inv_l2: float
+    w2: float
     g: wp.vec2
 
 
@@ -139,15 +143,14 @@ class RouteBond:
 def route_bond(r: Routes, k: int) -> RouteBond:
     sa = r.seg_a[k]
     sv = r.seg_v[k]
+    sl = r.seg_l[k]
     b = RouteBond()
     b.ai = wp.vec3(sa[0], sa[1], sa[2])
     b.v = wp.vec3(sv[0], sv[1], sv[2])
     b.g = wp.vec2(sa[3], sv[3])
-    b.length = wp.length(b.v)
-    b.inv_l = 0.0
-    if b.length > 0.0:
-        b.inv_l = 1.0 / b.length
-    b.w = r.tau * b.inv_l
+    b.length = sl[0]
+    b.inv_l2 = sl[1]
+    b.w2 = r.tau2 * sl[1]
     return b
 
 
@@ -156,9 +159,9 @@ def route_bond(r: Routes, k: int) -> RouteBond:
 def pair_at(b: RouteBond, p: wp.vec3, tau2: float) -> wp.vec2:
     """The two routes from p through bond b (via its end i, via its end j)."""
     u = float(0.0)
-    if b.inv_l > 0.0:
-        t = wp.dot(p - b.ai, b.v) * b.inv_l * b.inv_l
-        u = ramp(t, b.w) - ramp(t - 1.0, b.w)
+    if b.inv_l2 > 0.0:
+        t = wp.dot(p - b.ai, b.v) * b.inv_l2
+        u = ramp(t, b.w2) - ramp(t - 1.0, b.w2)
     q = p - (b.ai + b.v * u)
     across = wp.sqrt(wp.dot(q, q) + tau2)
     return wp.vec2(across + u * b.length + b.g[0], across + (1.0 - u) * b.length + b.g[1])
@@ -198,6 +201,53 @@ def atom_distance(r: Routes, a: int, p: wp.vec3) -> float:
     return acc[2] / acc[1]
 
 
+FLOOR = 1.0e-26
+"""Least sum of the weights `atom_distance_near` trusts (about e^-60): below it the routes'
+weights relative to the straight line may have lost some to underflow, and the atom's mean is
+taken by `atom_distance` instead."""
+_FLOOR = wp.constant(FLOOR)  # type: ignore[no-untyped-call]
+_FAR = wp.constant(1.0e30)  # type: ignore[no-untyped-call]
+
+
+@wp.func
+@no_type_check
+def weigh(acc: wp.vec2, c: wp.vec2, ref: float, inv_tau: float) -> wp.vec2:
+    """(sum of weights, sum of weighted routes) with a bond's two routes c added, each
+    weighed exp((ref - c) / tau); a route beyond the tables' reach (inf) weighs 0."""
+    c0 = wp.min(c[0], _FAR)
+    c1 = wp.min(c[1], _FAR)
+    e0 = wp.exp((ref - c0) * inv_tau)
+    e1 = wp.exp((ref - c1) * inv_tau)
+    return wp.vec2(acc[0] + e0 + e1, acc[1] + c0 * e0 + c1 * e1)
+
+
+@wp.func
+@no_type_check
+def mean_or_least(acc: wp.vec2, r: Routes, a: int, p: wp.vec3) -> float:
+    """The mean from `weigh`'s sums, or `atom_distance` where they fell below `FLOOR`."""
+    m = float(0.0)
+    if acc[0] > _FLOOR:  # noqa: SIM108  (a ternary would walk the routes again every time)
+        m = acc[1] / acc[0]
+    else:
+        m = atom_distance(r, a, p)
+    return m
+
+
+@wp.func
+@no_type_check
+def atom_distance_near(r: Routes, a: int, p: wp.vec3, r2: float) -> float:
+    """`atom_distance` with every route weighed against sqrt(r2 + tau^2), r2 = |p - a|^2: a
+    bound below every route (a route is a path, at least the straight line, and its first leg
+    is at least tau), so each weight is one exponential and no branch, where the running
+    least rescales at every shorter route (and a warp takes both branches). Where the weights
+    sum below `FLOOR` (routes far longer than the line) the running least takes the atom."""
+    ref = wp.sqrt(r2 + r.tau2)
+    acc = wp.vec2(0.0, 0.0)
+    for k in range(r.start[a], r.start[a + 1]):
+        acc = weigh(acc, route_pair(r, k, p), ref, r.inv_tau)
+    return mean_or_least(acc, r, a, p)
+
+
 @wp.struct
 class Points4:
     """Four points and which of them to evaluate (`live` > 0)."""
@@ -211,38 +261,37 @@ class Points4:
 
 @wp.func
 @no_type_check
-def atom_distance4(r: Routes, a: int, q: Points4, live: wp.vec4) -> wp.vec4:
-    """`atom_distance` at the four points of q where `live` is positive (0 elsewhere): each
-    route's bond is read once for all four."""
-    a0 = wp.vec3(wp.inf, 0.0, 0.0)
-    a1 = wp.vec3(wp.inf, 0.0, 0.0)
-    a2 = wp.vec3(wp.inf, 0.0, 0.0)
-    a3 = wp.vec3(wp.inf, 0.0, 0.0)
+def atom_distance4_near(r: Routes, a: int, q: Points4, live: wp.vec4, r2: wp.vec4) -> wp.vec4:
+    """`atom_distance_near` at the four points of q where `live` is positive (0 elsewhere),
+    r2 their |p - a|^2: each route's bond is read once for all four."""
+    a0 = wp.vec2(0.0, 0.0)
+    a1 = wp.vec2(0.0, 0.0)
+    a2 = wp.vec2(0.0, 0.0)
+    a3 = wp.vec2(0.0, 0.0)
     it = r.inv_tau
     t2 = r.tau2
+    ref = wp.vec4(
+        wp.sqrt(r2[0] + t2), wp.sqrt(r2[1] + t2), wp.sqrt(r2[2] + t2), wp.sqrt(r2[3] + t2)
+    )
     for k in range(r.start[a], r.start[a + 1]):
         b = route_bond(r, k)
         if live[0] > 0.0:
-            c = pair_at(b, q.p0, t2)
-            a0 = boltzmann(boltzmann(a0, c[0], it), c[1], it)
+            a0 = weigh(a0, pair_at(b, q.p0, t2), ref[0], it)
         if live[1] > 0.0:
-            c = pair_at(b, q.p1, t2)
-            a1 = boltzmann(boltzmann(a1, c[0], it), c[1], it)
+            a1 = weigh(a1, pair_at(b, q.p1, t2), ref[1], it)
         if live[2] > 0.0:
-            c = pair_at(b, q.p2, t2)
-            a2 = boltzmann(boltzmann(a2, c[0], it), c[1], it)
+            a2 = weigh(a2, pair_at(b, q.p2, t2), ref[2], it)
         if live[3] > 0.0:
-            c = pair_at(b, q.p3, t2)
-            a3 = boltzmann(boltzmann(a3, c[0], it), c[1], it)
+            a3 = weigh(a3, pair_at(b, q.p3, t2), ref[3], it)
     out = wp.vec4(0.0, 0.0, 0.0, 0.0)
     if live[0] > 0.0:
-        out[0] = a0[2] / a0[1]
+        out[0] = mean_or_least(a0, r, a, q.p0)
     if live[1] > 0.0:
-        out[1] = a1[2] / a1[1]
+        out[1] = mean_or_least(a1, r, a, q.p1)
     if live[2] > 0.0:
-        out[2] = a2[2] / a2[1]
+        out[2] = mean_or_least(a2, r, a, q.p2)
     if live[3] > 0.0:
-        out[3] = a3[2] / a3[1]
+        out[3] = mean_or_least(a3, r, a, q.p3)
     return out
 
 
@@ -292,10 +341,10 @@ def atom_distance_grad(r: Routes, a: int, p: wp.vec3) -> wp.vec4:
         b = route_bond(r, k)
         u = float(0.0)
         du = wp.vec3(0.0, 0.0, 0.0)
-        if b.inv_l > 0.0:
-            t = wp.dot(p - b.ai, b.v) * b.inv_l * b.inv_l
-            u = ramp(t, b.w) - ramp(t - 1.0, b.w)
-            du = b.v * ((ramp_slope(t, b.w) - ramp_slope(t - 1.0, b.w)) * b.inv_l * b.inv_l)
+        if b.inv_l2 > 0.0:
+            t = wp.dot(p - b.ai, b.v) * b.inv_l2
+            u = ramp(t, b.w2) - ramp(t - 1.0, b.w2)
+            du = b.v * ((ramp_slope(t, b.w2) - ramp_slope(t - 1.0, b.w2)) * b.inv_l2)
         q = p - (b.ai + b.v * u)
         across = wp.sqrt(wp.dot(q, q) + r.tau2)
         dacross = (q - du * wp.dot(b.v, q)) / across
@@ -331,15 +380,16 @@ def blended_term(g: GaussianField, w: float, r2: float, m: float, c: float, lam:
 @wp.func
 @no_type_check
 def term(f: GeodesicField, j: int, p: wp.vec3) -> float:
-    """Sorted atom j's term of the geodesic density at p (zero beyond the cutoff)."""
+    """Sorted atom j's term of the geodesic density at p: zero, its routes not walked, where
+    even the shortest a route can be, sqrt(r^2 + tau^2), puts it past the cutoff."""
     g = f.gauss
     lam = f.routes.strength
     a4 = g.atoms[j]
     c = inv2s2_at(g, j)
     r2 = dist2(a4, p)
     out = float(0.0)
-    if r2 * c < g.half_k2:
-        m = atom_distance(f.routes, g.order[j], p)
+    if (r2 + lam * f.routes.tau2) * c < g.half_k2:
+        m = atom_distance_near(f.routes, g.order[j], p, r2)
         out = blended_term(g, a4[3], r2, m, c, lam)
     return out
 
@@ -419,16 +469,17 @@ def row_values4(f: GeodesicField, q: Points4, j0: int, j1: int, total: wp.vec4) 
     v = total
     g = f.gauss
     lam = f.routes.strength
+    least = lam * f.routes.tau2
     for j in range(j0, j1):
         a4 = g.atoms[j]
         c = inv2s2_at(g, j)
         r2 = wp.vec4(dist2(a4, q.p0), dist2(a4, q.p1), dist2(a4, q.p2), dist2(a4, q.p3))
         near = wp.vec4(0.0, 0.0, 0.0, 0.0)
         for t in range(4):
-            if q.live[t] > 0.0 and r2[t] * c < g.half_k2:
+            if q.live[t] > 0.0 and (r2[t] + least) * c < g.half_k2:  # as in `term`
                 near[t] = 1.0
         if near[0] + near[1] + near[2] + near[3] > 0.0:
-            m = atom_distance4(f.routes, g.order[j], q, near)
+            m = atom_distance4_near(f.routes, g.order[j], q, near, r2)
             for t in range(4):
                 if near[t] > 0.0:
                     v[t] = v[t] + blended_term(g, a4[3], r2[t], m[t], c, lam)
@@ -473,9 +524,10 @@ def row_queue_lane(f: GeodesicField, q: LanePoint, j0: int, j1: int, acc: LaneQu
     cutoff of q.p, held for `queue_walk`."""
     s = acc
     g = f.gauss
+    least = f.routes.strength * f.routes.tau2
     j = first_of_lane(q, j0)
     while j < j1:
-        if dist2(g.atoms[j], q.p) * inv2s2_at(g, j) < g.half_k2:
+        if (dist2(g.atoms[j], q.p) + least) * inv2s2_at(g, j) < g.half_k2:  # as in `term`
             if s.count == QUEUE:
                 s = queue_walk(f, q.p, s)
             s.atoms[s.count] = j
@@ -629,7 +681,7 @@ def row_side4(f: GeodesicField, s: SideQuery, j0: int, j1: int, acc: Tally4) -> 
             if open[t] > 0.0 and e4[t] < g.half_k2 and e4[t] >= s.e_lo and e4[t] < s.e_hi:
                 walk[t] = 1.0
         if walk[0] + walk[1] + walk[2] + walk[3] > 0.0:
-            m = atom_distance4(f.routes, g.order[j], s.q, walk)
+            m = atom_distance4_near(f.routes, g.order[j], s.q, walk, r2)
             for t in range(4):
                 if walk[t] > 0.0:
                     geo[t] = geo[t] + blended_term(g, a4[3], r2[t], m[t], c, lam)
@@ -834,6 +886,7 @@ def geometry_kernel(
     route_g: wp.array[wp.vec2],
     route_a: wp.array[wp.vec4],
     route_v: wp.array[wp.vec4],
+    route_l: wp.array[wp.vec2],
 ):
     """Each route's copy of its bond's geometry this frame, with its ends' graph distances
     (a thread a route: the writes of one atom's routes in a loop of one thread took 6 ms at
@@ -844,6 +897,7 @@ def geometry_kernel(
     g = route_g[r]
     route_a[r] = wp.vec4(sa[0], sa[1], sa[2], g[0])
     route_v[r] = wp.vec4(sv[0], sv[1], sv[2], g[1])
+    route_l[r] = wp.vec2(sa[3], sv[3] * sv[3])
 
 
 @wp.kernel
@@ -1010,7 +1064,7 @@ _wp: Any = wp  # warp's host API is unannotated: the table buffers are handled t
 NODE_BYTES = 4 + 4 + 4
 """A node of an atom's shortest-path tree: its parent, its edge and its distance (the node
 arrays of `GeodesicTables._alloc`)."""
-ROUTE_BYTES = 4 + 8 + 8 + 16 + 16
+ROUTE_BYTES = 4 + 8 + 8 + 16 + 16 + 8
 """A route: its bond, its ends' nodes and distances, and its copy of the bond's geometry (the
 route arrays of `GeodesicTables._alloc`)."""
 
@@ -1083,11 +1137,13 @@ class GeodesicTables:
         self.route_g = _wp.zeros(max(routes, 1), dtype=_wp.vec2, device=d)
         self.route_a = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
         self.route_v = _wp.zeros(max(routes, 1), dtype=_wp.vec4, device=d)
+        self.route_l = _wp.zeros(max(routes, 1), dtype=_wp.vec2, device=d)
 
     def _tables(self) -> tuple[Any, ...]:
         """The arrays `_alloc` sizes to the nodes and routes (NODE_BYTES, ROUTE_BYTES)."""
         nodes = (self.node_parent, self.node_edge, self.node_g)
-        return (*nodes, self.route_bond, self.route_nodes, self.route_g, self.route_a, self.route_v)
+        geometry = (self.route_a, self.route_v, self.route_l)
+        return (*nodes, self.route_bond, self.route_nodes, self.route_g, *geometry)
 
     def _check_room(self, nodes: int, routes: int, reach: float) -> None:
         """Refuse tables the device cannot hold (they replace the ones it holds now), naming
@@ -1189,6 +1245,7 @@ class GeodesicTables:
                 self.route_g,
                 self.route_a,
                 self.route_v,
+                self.route_l,
             )
             _wp.launch(geometry_kernel, self.route_total, copy, device=self.device)
 
@@ -1198,6 +1255,7 @@ class GeodesicTables:
         r.start = self.route_start
         r.seg_a = self.route_a
         r.seg_v = self.route_v
+        r.seg_l = self.route_l
         r.tau = float(tau)
         r.inv_tau = 1.0 / float(tau)
         r.tau2 = float(tau) * float(tau)
