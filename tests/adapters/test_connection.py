@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import queue
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -17,6 +15,7 @@ from protocol import Control, Forces, Limits, ParamsAck, Ping, Pong, SimParams, 
 from simulation_adapters.connection import ConnectionState, SimulationConnection
 from tests.adapters.conftest import small_frame, small_topology
 from tests.adapters.sim_peer import SimPeer
+from tests.fresh import python_c
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -241,14 +240,7 @@ from simulation_adapters.connection import SimulationConnection
 c = SimulationConnection("ws://127.0.0.1:9/ws/sim")
 print("ok", sorted(m for m in sys.modules if m.split(".")[0] in HEAVY))
 """
-    out = subprocess.run(
-        [sys.executable, "-c", code],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
-    )
+    out = python_c(code, timeout=60, bare=True)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok []"
 

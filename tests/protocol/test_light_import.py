@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
+
+from tests.fresh import python_c
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -30,26 +30,12 @@ print("light-ok")
 
 
 def test_light_import_without_heavy_packages() -> None:
-    out = subprocess.run(
-        [sys.executable, "-c", BLOCKER],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
-    )
+    out = python_c(BLOCKER, timeout=120, bare=True)
     assert out.returncode == 0, out.stderr
     assert "light-ok" in out.stdout
 
 
 def test_blocker_really_blocks() -> None:
     code = BLOCKER.replace("import protocol, simulation_adapters", "import fastapi")
-    out = subprocess.run(
-        [sys.executable, "-c", code],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
-    )
+    out = python_c(code, timeout=120, bare=True)
     assert out.returncode != 0 and "blocked heavy import" in out.stderr

@@ -19,6 +19,7 @@ import pytest
 
 from scalesteer.local import STOP_GRACE_S, stop_grace_s
 from server.supervisor import descendants
+from tests.fresh import python_c
 from tests.server.processes import command_line, wait_gone
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -103,14 +104,7 @@ def test_the_supervisors_grace_covers_a_longer_wait_for_the_devices() -> None:
 
 
 def test_the_client_imports_without_the_servers_packages() -> None:
-    out = subprocess.run(
-        [sys.executable, "-c", BLOCKER],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
-    )
+    out = python_c(BLOCKER, timeout=120, bare=True)
     assert out.returncode == 0, out.stderr
     assert "light-ok" in out.stdout
 
@@ -128,15 +122,7 @@ def test_a_script_that_replays_a_universe_ends_with_its_last_line() -> None:
     """A plain script (no notebook) that opened a looping replay on its own server had stayed
     alive for good (the replay's thread kept it), and after `scalesteer.shutdown()` the replay
     retried its connection for ever; now it ends, and nothing is left reconnecting."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    done = subprocess.run(
-        [sys.executable, "-W", "ignore", "-c", SCRIPT],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=240,
-    )
+    done = python_c(SCRIPT, timeout=240, flags=("-W", "ignore"))
     assert done.returncode == 0, done.stderr[-2000:]
     assert "last line" in done.stdout
     assert "retry" not in done.stderr, done.stderr[-2000:]

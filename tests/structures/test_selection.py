@@ -3,11 +3,7 @@ selections name their position; the default layers hide solvent and single out l
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,6 +25,8 @@ mda = pytest.importorskip("MDAnalysis")
 pytest.importorskip("MDAnalysisTests")
 from MDAnalysis.lib.mdamath import triclinic_vectors  # noqa: E402
 from MDAnalysisTests.datafiles import DCD, GRO, PSF, XTC  # noqa: E402
+
+from tests.fresh import python_c  # noqa: E402
 
 STATIC = [
     "protein",
@@ -254,13 +252,5 @@ def test_a_selection_parsed_while_another_thread_imports_mdanalysis_waits_for_it
     register `index`, `name`, `resid`, ... and a valid layer was refused ("Unknown selection
     token: 'index'"). In a fresh interpreter a thread's import is held just there while the
     main thread parses."""
-    root = Path(__file__).resolve().parents[2]
-    run = subprocess.run(
-        [sys.executable, "-c", HELD_IMPORT],
-        cwd=root,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={**os.environ, "PYTHONPATH": str(root)},
-    )
+    run = python_c(HELD_IMPORT, timeout=120)
     assert run.returncode == 0 and "parsed" in run.stdout, run.stderr[-2000:]

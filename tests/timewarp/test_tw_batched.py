@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from tests.fresh import python_c
 from timewarp import arclength_warp, gaussian_filter, warped_convolve
 
 wp = pytest.importorskip("warp")
@@ -110,10 +106,5 @@ def test_package_import_needs_no_optional_dependency() -> None:
         "bad = [m for m in ('warp', 'matplotlib', 'skimage', 'scipy') if m in sys.modules]; "
         "sys.exit(1 if bad else 0)"
     )
-    root = Path(__file__).resolve().parents[2]
-    env = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]),
-    }
-    proc = subprocess.run([sys.executable, "-c", code], check=False, cwd=root, env=env)
-    assert proc.returncode == 0
+    proc = python_c(code, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
