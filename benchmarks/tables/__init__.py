@@ -27,6 +27,7 @@ from .geodesic import (
     geodesic_fast_fill,
     geodesic_fill,
     geodesic_gate,
+    geodesic_line_weights,
     geodesic_route_major,
     geodesic_route_once,
     route_sharing,
@@ -103,8 +104,17 @@ TABLES: dict[str, Table] = {
         part_trial,
     ),
     "geodesic-fast-fill": Table(
-        ("render_h200_densities.json", "render_h200_densities_precise_fill.json"),
+        ("render_h200_densities_fast_fill.json", "render_h200_densities_precise_fill.json"),
         geodesic_fast_fill,
+    ),
+    "geodesic-line-weights": Table(
+        (
+            "render_h200_densities.json",
+            "render_h200_densities_running_least.json",
+            "render_h200_densities_line_weights_again.json",
+            "render_h200_densities_running_least_again.json",
+        ),
+        geodesic_line_weights,
     ),
     "geodesic-fill-registers": Table(
         ("render_h200_geodesic_fill_registers.json",), render_variants

@@ -140,6 +140,49 @@ def geodesic_fast_fill(sources: list[Source]) -> str:
     return block(sources, table(header, "rlrrrrr", rows), params(today))
 
 
+def geodesic_line_weights(sources: list[Source]) -> str:
+    """The geodesic frame with the routes weighed against the straight line and each bond's
+    length made once a frame, against the code before (the running least, lengths at every
+    point: its own checkout, the same device session, the same frames), in two sessions (the
+    first pair of files, then the second); ratios are frame rates, each against its own
+    session's control, and against its own run's classical frame."""
+    (_, today), (_, before), (_, again), (_, before_again) = sources
+    was, now2, was2 = _by_case(before), _by_case(again), _by_case(before_again)
+    rows = []
+    for r in today["densities"]:
+        key = (r["n_atoms"], r["width"], r["height"])
+        b = was[key]
+        ms, base = r["geodesic"]["median_ms"], b["geodesic"]["median_ms"]
+        second = "-"
+        if key in now2 and key in was2:
+            pair = was2[key]["geodesic"]["median_ms"], now2[key]["geodesic"]["median_ms"]
+            second = f"{pair[0] / pair[1]:.2f}"
+        routes = r["geodesic_routes"]["median_ms"], b["geodesic_routes"]["median_ms"]
+        rows.append(
+            [
+                count(r["n_atoms"]),
+                size(r["width"], r["height"]),
+                f"{num(base, 2)} ({_drawn(b)})",
+                f"{num(ms, 2)} ({_drawn(r)})",
+                f"{base / ms:.2f}",
+                second,
+                f"{routes[1] / routes[0]:.2f}",
+                f"{r['classical']['median_ms'] / ms:.2f}",
+            ]
+        )
+    header = [
+        "atoms",
+        "image",
+        "before ms (drawn from)",
+        "today ms (drawn from)",
+        "frame rate / before",
+        "again",
+        "routes per sample: frame rate / before",
+        "geodesic / classical frame rate",
+    ]
+    return block(sources, table(header, "rlrrrrrr", rows), params(today))
+
+
 def geodesic_fill(sources: list[Source]) -> str:
     """The geodesic density as the renderer drew it after the twelfth round and in the code
     before two changes (each its own checkout, the same device session, the same frames): the
