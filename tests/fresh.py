@@ -17,12 +17,14 @@ def python_c(
     code: str, *, timeout: float, bare: bool = False, flags: Sequence[str] = ()
 ) -> subprocess.CompletedProcess[str]:
     """`python [flags] -c code` in the checkout, its output captured. `bare`: an environment
-    of the checkout and the system's PATH alone, none of this process's variables."""
-    env = (
-        {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}
-        if bare
-        else {**os.environ, "PYTHONPATH": str(ROOT)}
-    )
+    of the checkout and the system's PATH alone, none of this process's variables; otherwise
+    this process's, with the checkout first on its PYTHONPATH (where the GPU machine keeps
+    warp)."""
+    if bare:
+        env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}
+    else:
+        path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+        env = {**os.environ, "PYTHONPATH": path}
     return subprocess.run(
         [sys.executable, *flags, "-c", code],
         cwd=ROOT,

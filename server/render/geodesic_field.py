@@ -428,11 +428,12 @@ def term_grad(
 def row_value_grad(f: GeodesicField, p: wp.vec3, j0: int, j1: int, acc: wp.vec4) -> wp.vec4:
     out = acc
     g = f.gauss
+    reach = f.routes.strength * f.routes.tau2
     for j in range(j0, j1):
         a4 = g.atoms[j]
         c = inv2s2_at(g, j)
         r2 = dist2(a4, p)
-        if r2 * c < g.half_k2:
+        if (r2 + reach) * c < g.half_k2:  # as in `term`
             out += term_grad(g, j, a4, p, f.routes, c, r2)
     return out
 
@@ -444,11 +445,12 @@ def row_sample(f: GeodesicField, p: wp.vec3, j0: int, j1: int, acc: Sample) -> S
     `row_sample`, with the geodesic terms)."""
     s = acc
     g = f.gauss
+    reach = f.routes.strength * f.routes.tau2
     for j in range(j0, j1):
         a4 = g.atoms[j]
         c = inv2s2_at(g, j)
         r2 = dist2(a4, p)
-        if r2 * c < g.half_k2:
+        if (r2 + reach) * c < g.half_k2:  # as in `term`
             t = term_grad(g, j, a4, p, f.routes, c, r2)
             term = t[3]
             if term > 0.0:
@@ -667,6 +669,7 @@ def row_side4(f: GeodesicField, s: SideQuery, j0: int, j1: int, acc: Tally4) -> 
     `Routes.gate`, bound the rest)."""
     g = f.gauss
     lam = f.routes.strength
+    reach = lam * f.routes.tau2
     geo = acc.geo
     rest = acc.rest
     open = acc.open
@@ -679,7 +682,14 @@ def row_side4(f: GeodesicField, s: SideQuery, j0: int, j1: int, acc: Tally4) -> 
         walk = wp.vec4(0.0, 0.0, 0.0, 0.0)
         for t in range(4):
             if open[t] > 0.0 and e4[t] < g.half_k2 and e4[t] >= s.e_lo and e4[t] < s.e_hi:
-                walk[t] = 1.0
+                if (r2[t] + reach) * c < g.half_k2:  # as in `term`
+                    walk[t] = 1.0
+                else:
+                    # no route reaches the cutoff: its geodesic term is zero, its classical
+                    # one leaves the bound unwalked
+                    rest[t] = rest[t] - a4[3] * kernel(e4[t], g.inv_half_k2)
+                    if geo[t] + (rest[t] + acc.slack[t]) * f.routes.gate < s.level:
+                        open[t] = 0.0
         if walk[0] + walk[1] + walk[2] + walk[3] > 0.0:
             m = atom_distance4_near(f.routes, g.order[j], s.q, walk, r2)
             for t in range(4):

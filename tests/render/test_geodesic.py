@@ -602,6 +602,12 @@ def test_every_route_carries_its_bonds_geometry_of_this_frame(device: str) -> No
         np.testing.assert_allclose(ra[:, :3], moved[ends[:, 0]], atol=1e-5)
         np.testing.assert_array_equal(rv[:, :3], t.seg_v.numpy()[bond][:, :3])
         np.testing.assert_array_equal(np.stack([ra[:, 3], rv[:, 3]], axis=1), g)
+        # each route's length and 1 / length^2 of its bond, made once this frame
+        sv = t.seg_v.numpy()[bond]
+        rl = t.route_l.numpy()[: t.route_total]
+        np.testing.assert_array_equal(rl, np.stack([seg[:, 3], sv[:, 3] * sv[:, 3]], axis=1))
+        length = np.linalg.norm(moved[ends[:, 1]] - moved[ends[:, 0]], axis=1)
+        np.testing.assert_allclose(rl[:, 0], length, rtol=1e-5)
     # the sizes the memory check counts are those of the tables
     nodes = int(t.node_start.numpy()[-1])
     need = nodes * geodesic_field.NODE_BYTES + t.route_total * geodesic_field.ROUTE_BYTES
