@@ -470,33 +470,68 @@ def part_exponents(a: float, lo: float, w: float, c: float) -> wp.vec3:
 
 @wp.func
 @no_type_check
+def add_part_terms(f: GaussianField, j: int, lo: wp.vec3, w: wp.vec3, total: PartBounds):
+    """Sorted atom j counted at its smallest distance to each part of the box from `lo` with
+    parts `w` wide: the squared distance is a sum over the axes, so an atom's 27 terms are
+    products of three exponentials per axis."""
+    out = total
+    hk = f.half_k2
+    a = f.atoms[j]
+    c = f.inv2s2_uniform
+    if f.per_atom != 0:
+        c = f.inv2s2[j]
+    ux = part_exponents(a[0], lo[0], w[0], c)
+    uy = part_exponents(a[1], lo[1], w[1], c)
+    uz = part_exponents(a[2], lo[2], w[2], c)
+    if wp.min(ux) + wp.min(uy) + wp.min(uz) < hk:
+        ex = wp.vec3(wp.exp(-ux[0]), wp.exp(-ux[1]), wp.exp(-ux[2])) * a[3]
+        ey = wp.vec3(wp.exp(-uy[0]), wp.exp(-uy[1]), wp.exp(-uy[2]))
+        ez = wp.vec3(wp.exp(-uz[0]), wp.exp(-uz[1]), wp.exp(-uz[2]))
+        for iz in range(3):
+            for iy in range(3):
+                for ix in range(3):
+                    if ux[ix] + uy[iy] + uz[iz] < hk:
+                        s = ix + 3 * (iy + 3 * iz)
+                        out[s] = out[s] + ex[ix] * ey[iy] * ez[iz]
+    return out
+
+
+@wp.func
+@no_type_check
 def row_part_bounds(
     f: GaussianField, q: BoxQuery, j0: int, j1: int, total: PartBounds
 ) -> PartBounds:
-    """Every atom of [j0, j1) counted at its smallest distance to each part of the box: the
-    squared distance is a sum over the axes, so an atom's 27 terms are products of three
-    exponentials per axis."""
+    """Every atom of [j0, j1) counted in each part of the box (`add_part_terms`)."""
     out = total
     w = (q.hi - q.lo) * (1.0 / 3.0)
-    hk = f.half_k2
     for j in range(j0, j1):
-        a = f.atoms[j]
-        c = f.inv2s2_uniform
-        if f.per_atom != 0:
-            c = f.inv2s2[j]
-        ux = part_exponents(a[0], q.lo[0], w[0], c)
-        uy = part_exponents(a[1], q.lo[1], w[1], c)
-        uz = part_exponents(a[2], q.lo[2], w[2], c)
-        if wp.min(ux) + wp.min(uy) + wp.min(uz) < hk:
-            ex = wp.vec3(wp.exp(-ux[0]), wp.exp(-ux[1]), wp.exp(-ux[2])) * a[3]
-            ey = wp.vec3(wp.exp(-uy[0]), wp.exp(-uy[1]), wp.exp(-uy[2]))
-            ez = wp.vec3(wp.exp(-uz[0]), wp.exp(-uz[1]), wp.exp(-uz[2]))
-            for iz in range(3):
-                for iy in range(3):
-                    for ix in range(3):
-                        if ux[ix] + uy[iy] + uz[iz] < hk:
-                            s = ix + 3 * (iy + 3 * iz)
-                            out[s] = out[s] + ex[ix] * ey[iy] * ez[iz]
+        out = add_part_terms(f, j, q.lo, w, out)
+    return out
+
+
+@wp.struct
+class LaneBox:
+    """A box whose part bounds `lanes` threads take together: lane `lane` counts every
+    `lanes`-th atom of each row (as `LanePoint`)."""
+
+    lo: wp.vec3
+    hi: wp.vec3
+    lane: int
+    lanes: int
+
+
+@wp.func
+@no_type_check
+def row_part_bounds_lane(
+    f: GaussianField, q: LaneBox, j0: int, j1: int, total: PartBounds
+) -> PartBounds:
+    """The lane's share of `row_part_bounds`: the lanes' bounds add up to the box's."""
+    out = total
+    w = (q.hi - q.lo) * (1.0 / 3.0)
+    j = j0 + q.lane
+    while j < j1:
+        out = add_part_terms(f, j, q.lo, w, out)
+        j += q.lanes
     return out
 
 
@@ -513,6 +548,7 @@ _walk_value_grad4 = cell_rows("value_grad4", row_value_grad4, Span4, wp.mat44)
 _walk_sample = cell_rows("sample", row_sample, wp.vec3, Sample)
 _walk_bound = cell_rows("bound", row_bound, BoxQuery, float, bound_reached)
 _walk_part_bounds = cell_rows("part_bounds", row_part_bounds, BoxQuery, PartBounds, parts_reached)
+_walk_part_bounds_lane = cell_rows("part_bounds_lane", row_part_bounds_lane, LaneBox, PartBounds)
 
 
 @wp.func
@@ -609,6 +645,22 @@ def gaussian_part_bounds(
     q.stop_above = stop_above
     s = (hi - lo) * (PART_SLACK / 3.0)
     return _walk_part_bounds(f, lo - s, hi + s, q, PartBounds())
+
+
+@wp.func
+@no_type_check
+def gaussian_part_bounds_lane(
+    f: GaussianField, lo: wp.vec3, hi: wp.vec3, lane: int, lanes: int
+) -> PartBounds:
+    """Lane `lane` of `lanes`' share of `gaussian_part_bounds` (the whole sum, no early
+    return: no lane knows the others' sums); the lanes' shares add up to the bounds."""
+    q = LaneBox()
+    q.lo = lo
+    q.hi = hi
+    q.lane = lane
+    q.lanes = lanes
+    s = (hi - lo) * (PART_SLACK / 3.0)
+    return _walk_part_bounds_lane(f, lo - s, hi + s, q, PartBounds())
 
 
 @wp.struct
@@ -788,7 +840,9 @@ class DensityModel:
     parts of a cell that are below the level; without it only whole cells are skipped. And
     `side4(f, o, d, ts, level)`, for the marching kernels, which need only each sample's side
     of the level: the value, or -1 for "below, value unknown", or +inf for "at or above,
-    value unknown" (default: `value4_level`).
+    value unknown" (default: `value4_level`). And `part_bounds_lane(f, lo, hi, lane, lanes)
+    -> PartBounds`, lane `lane` of `lanes`' share of the part bounds, the shares adding up to
+    them: a small molecule's few cells are then walked by several threads each.
     """
 
     name: str
@@ -803,6 +857,7 @@ class DensityModel:
     value_grad4_level: Any = None
     part_bounds: Any = None
     side4: Any = None
+    part_bounds_lane: Any = None
 
 
 GAUSSIAN = DensityModel(
@@ -815,4 +870,5 @@ GAUSSIAN = DensityModel(
     value4=gaussian_value4,
     value_grad4=gaussian_value_grad4,
     part_bounds=gaussian_part_bounds,
+    part_bounds_lane=gaussian_part_bounds_lane,
 )

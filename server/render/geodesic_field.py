@@ -39,6 +39,7 @@ from server.render.density import (
     first_of_lane,
     gaussian_box_bound,
     gaussian_part_bounds,
+    gaussian_part_bounds_lane,
     gaussian_value4,
     kernel,
     kernel_slope,
@@ -811,6 +812,14 @@ def geodesic_part_bounds(
     return gaussian_part_bounds(f.gauss, lo, hi, stop_above / gate * (1.0 + GATE_SLACK)) * gate
 
 
+@wp.func
+@no_type_check
+def geodesic_part_bounds_lane(
+    f: GeodesicField, lo: wp.vec3, hi: wp.vec3, lane: int, lanes: int
+) -> PartBounds:
+    return gaussian_part_bounds_lane(f.gauss, lo, hi, lane, lanes) * f.routes.gate
+
+
 GEODESIC = DensityModel(
     name="geodesic",
     field=GeodesicField,
@@ -824,6 +833,7 @@ GEODESIC = DensityModel(
     value_grad4_level=geodesic_value_grad4_level,
     part_bounds=geodesic_part_bounds,
     side4=geodesic_side4,
+    part_bounds_lane=geodesic_part_bounds_lane,
 )
 
 

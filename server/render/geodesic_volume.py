@@ -60,6 +60,7 @@ from server.render.geodesic_field import (
     GeodesicField,
     geodesic_box_bound,
     geodesic_part_bounds,
+    geodesic_part_bounds_lane,
     geodesic_sample,
     geodesic_side4,
     geodesic_value,
@@ -524,6 +525,14 @@ def volume_part_bounds(
     return geodesic_part_bounds(f.geo, lo, hi, stop_above)
 
 
+@wp.func
+@no_type_check
+def volume_part_bounds_lane(
+    f: GeodesicVolumeField, lo: wp.vec3, hi: wp.vec3, lane: int, lanes: int
+) -> PartBounds:
+    return geodesic_part_bounds_lane(f.geo, lo, hi, lane, lanes)
+
+
 GEODESIC_VOLUME = DensityModel(
     name="geodesic_volume",
     field=GeodesicVolumeField,
@@ -537,6 +546,7 @@ GEODESIC_VOLUME = DensityModel(
     value_grad4_level=volume_value_grad4_level,
     part_bounds=volume_part_bounds,
     side4=volume_side4,
+    part_bounds_lane=volume_part_bounds_lane,
 )
 
 

@@ -589,6 +589,12 @@ class CellGrid:
         ordered = (self.keys, self.cell_start, self.work, self.capacity, self.order)
         wp.launch(order_cells_kernel, n, ordered, device=dev)
 
+    @property
+    def lists_own_cells(self) -> bool:
+        """The cells the bound walks are listed in a buffer of the grid's own (a small
+        molecule's grid: more cells than twice its atoms)."""
+        return self._own_work is not None
+
     def build_coarse(self, atoms: wp.array, inv2s2: float) -> None:
         """`coarse`: per cell, an upper bound of the Gaussian density of the sorted `atoms`
         anywhere in it, from the summed weights of the cells within reach, each counted at the

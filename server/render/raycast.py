@@ -44,7 +44,7 @@ from protocol import RenderParams
 from server.render import device as _device  # noqa: F401  (initialises warp)
 from server.render.camera import CameraFrame
 from server.render.cells import BRICK, PART_BITS, WALKED, GridInfo, cell_box, part_at
-from server.render.density import GAUSSIAN, DensityModel
+from server.render.density import GAUSSIAN, DensityModel, PartBounds
 from server.render.segments import part, ramp
 
 wp.set_module_options({"enable_backward": False})
@@ -711,6 +711,20 @@ def side_change(v4: wp.vec4, iso: float, inside: int, q_from: int) -> int:
     return hit
 
 
+@wp.func
+@no_type_check
+def parts_below(bounds: PartBounds, stop_above: float):
+    """A walked cell's bound and part bits from its parts' bounds: the largest bound, and
+    the bits of the parts below `stop_above` (each bound raised by PART_MARGIN for float
+    rounding) with WALKED."""
+    v = bounds * _PART_MARGIN
+    mask = wp.int32(0)
+    for s in range(27):
+        if v[s] < stop_above:
+            mask = mask | (1 << s)
+    return wp.max(v), mask | _WALKED
+
+
 def _make(
     model: DensityModel,
     fast_math: bool,
@@ -854,6 +868,7 @@ def _make(
         return box_bound(f, lo, hi, stop_above), wp.int32(0)
 
     walked = walked_whole
+    bound_lanes_kernel = None
     if split != 0:
 
         @wp.func
@@ -863,17 +878,41 @@ def _make(
             largest of its parts' bounds, and the bits of the parts below `stop_above`
             (with a relative margin of PART_MARGIN for float rounding) with WALKED."""
             lo, hi = cell_box(f.info[0], c)
-            v = part_bounds(f, lo, hi, stop_above) * _PART_MARGIN
-            mask = wp.int32(0)
-            for iz in range(3):
-                for iy in range(3):
-                    for ix in range(3):
-                        s = ix + 3 * (iy + 3 * iz)
-                        if v[s] < stop_above:
-                            mask = mask | (1 << s)
-            return wp.max(v), mask | _WALKED
+            return parts_below(part_bounds(f, lo, hi, stop_above), stop_above)
 
         walked = walked_parts
+        part_bounds_lane = model.part_bounds_lane
+        if part_bounds_lane is not None:
+
+            @wp.kernel(enable_backward=False, module="unique", module_options=options)
+            @no_type_check
+            def bound_lanes_kernel(
+                f: Field,
+                stop_above: float,
+                blocks: int,
+                lanes: int,
+                work: wp.array[wp.int32],
+                work_count: wp.array[wp.int32],
+                out: wp.array[float],
+                parts: wp.array[wp.int32],
+            ):
+                """`bound_kernel`'s part walk with `lanes` threads a listed cell: a tiled
+                launch of `blocks` blocks of `lanes` threads, each block striding over the
+                list, each lane taking its share of the cell's atoms and the block adding
+                the shares (in the same order every launch: a frame's bounds do not vary)."""
+                b, lane = wp.tid()
+                n = wp.min(work_count[0], work.shape[0])
+                i = b
+                while i < n:
+                    c = work[i]
+                    lo, hi = cell_box(f.info[0], c)
+                    share = part_bounds_lane(f, lo, hi, lane, lanes)
+                    total = wp.tile_reduce(wp.add, wp.tile(share, preserve_type=True))[0]
+                    if lane == 0:
+                        bound, mask = parts_below(total, stop_above)
+                        out[c] = bound
+                        parts[c] = mask
+                    i += blocks
 
     bound_settle_kernel, bound_kernel = _bound_kernels(Field, walked, options)
     whole_settle_kernel, whole_bound_kernel = bound_settle_kernel, bound_kernel
@@ -1401,6 +1440,7 @@ def _make(
         counts=count,
         bound_settle=bound_settle_kernel,
         bound=bound_kernel,
+        bound_lanes=bound_lanes_kernel,
         whole_settle=whole_settle_kernel,
         whole_bound=whole_bound_kernel,
         evaluate=evaluate_kernel,
@@ -1423,6 +1463,9 @@ class RaycastKernels:
     """The marching kernels write each ray's density passes to their `counts` argument."""
     bound_settle: Any
     bound: Any
+    bound_lanes: Any
+    """`bound`'s part walk with several threads a listed cell (`launch_bound_walk`); None
+    where the model has no `part_bounds_lane` or the kernels no parts."""
     whole_settle: Any
     whole_bound: Any
     """The cell-bound kernels without parts (the same as the two above when `parts` is

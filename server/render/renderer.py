@@ -91,6 +91,12 @@ AO_STEP_SIGMAS = 0.6
 STAGES = ("upload", "grid", "raycast", "total")
 MEAN_SAMPLES = 4096
 """Atoms whose density sets the scale of relative levels (every n // 4096-th atom)."""
+BOUND_LANES = 8
+"""Threads that walk one listed cell's part bounds together on CUDA where the grid lists its
+cells in a buffer of its own: a small molecule lists a few hundred to a few thousand cells,
+and one thread a cell leaves most of the device idle while each waits on its own chain of
+loads (the walk was villin's second kernel after the march, 0.11 of 0.76 ms on one NVIDIA
+H200, `benchmarks/results/render_h200_profile_classical.json`)."""
 SEGMENT_SLACK = 1.5
 """The segment grid assumes no bond grows beyond this times its length in the first frame."""
 
@@ -1282,8 +1288,11 @@ class Renderer(ImageOutputs):
         wp.launch(
             kernels.whole_settle if whole else kernels.bound_settle, threads, settle, device=dev
         )
-        walk = (f, stop, threads, grid.work, grid.work_count, f.bound, grid.parts)
-        wp.launch(kernels.whole_bound if whole else kernels.bound, threads, walk, device=dev)
+        if whole:
+            walk = (f, stop, threads, grid.work, grid.work_count, f.bound, grid.parts)
+            wp.launch(kernels.whole_bound, threads, walk, device=dev)
+        else:
+            self._walk_listed_parts(kernels, f, stop, threads)
         if d.geo is not None and d.volume_h > 0.0:
             # after the cell bounds, which the grid's gate reads first
             cut = geodesic_volume.CUT * stop if stop > 0.0 else 0.0
@@ -1306,8 +1315,36 @@ class Renderer(ImageOutputs):
         args = (*marks, f.bound, grid.parts, grid.work, grid.work_count)
         wp.launch(visibility.mark_kernel, cols * rows, args, device=dev)
         threads = min(cell_threads(grid.capacity), int(grid.work.shape[0]))
-        walk = (f, stop, threads, grid.work, grid.work_count, f.bound, grid.parts)
-        wp.launch(kernels.bound, threads, walk, device=dev)
+        self._walk_listed_parts(kernels, f, stop, threads)
+
+    def _bound_lanes(self, kernels: raycast.RaycastKernels) -> int:
+        """Threads a listed cell's part walk takes (`Tuning.bound_lanes`; one on the CPU,
+        whose tiles are one thread wide: there a block's other lanes would be lost)."""
+        if kernels.bound_lanes is None or not self._cuda:
+            return 1
+        if self.tuning.bound_lanes is not None:
+            return self.tuning.bound_lanes
+        return BOUND_LANES if self._cuda and self._grid.lists_own_cells else 1
+
+    def _walk_listed_parts(
+        self, kernels: raycast.RaycastKernels, f: Any, stop: float, threads: int
+    ) -> None:
+        """Walk the parts of the cells the grid lists, `threads` threads in all: one a cell,
+        or `_bound_lanes` a cell in blocks of that many."""
+        grid = self._grid
+        listed = (grid.work, grid.work_count, f.bound, grid.parts)
+        lanes = self._bound_lanes(kernels)
+        if lanes == 1:
+            wp.launch(kernels.bound, threads, (f, stop, threads, *listed), device=self.device)
+            return
+        blocks = max(threads // lanes, 1)
+        wp.launch_tiled(
+            kernels.bound_lanes,
+            dim=[blocks],
+            inputs=[f, stop, blocks, lanes, *listed],
+            block_dim=lanes,
+            device=self.device,
+        )
 
     def _shading(self, p: RenderParams, d: Derived, frame: CameraFrame) -> raycast.Shading:
         step = AO_STEP_SIGMAS * d.sigma

@@ -168,6 +168,12 @@ class Tuning:
     """Register cap of the geodesic grid's fill kernel on CUDA (None:
     `geodesic_volume.FILL_REGISTERS`; 0: the compiler's). Its transcendentals follow
     `fast_math`."""
+    bound_lanes: int | None = None
+    """Threads that walk one listed cell's part bounds together, each a share of every row's
+    atoms (None: `renderer.BOUND_LANES` on CUDA for a grid that lists its cells in a buffer of
+    its own, a small molecule's few hundred to few thousand cells; 1 on the CPU and for
+    larger grids, whose lists fill the device; 1 is the baseline; always 1 on the CPU,
+    whose tiles are one thread wide)."""
     cell_list: bool = True
     """A grid with more cells than twice its atoms lists the cells its bound walks in a buffer
     of its own (off: in the atoms' spare buffer, the baseline: the cells it leaves out are
@@ -195,6 +201,8 @@ class Tuning:
             raise RenderError(f"geodesic_fill_registers must be 0-255, got {regs!r}")
         if self.mean_lanes is not None and self.mean_lanes < 1:
             raise RenderError(f"mean_lanes must be >= 1, got {self.mean_lanes}")
+        if self.bound_lanes is not None and not 1 <= self.bound_lanes <= 1024:
+            raise RenderError(f"bound_lanes must be in [1, 1024], got {self.bound_lanes}")
         if self.refine_passes is not None and self.refine_passes < 0:
             raise RenderError(f"refine_passes must be >= 0, got {self.refine_passes}")
         if self.volume_steps < 1:

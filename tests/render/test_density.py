@@ -16,11 +16,11 @@ from server.render import colors, density, visibility
 from server.render import grid as grid_module
 from server.render import renderer as renderer_module
 from server.render.camera import fit_camera, orbit, quat_to_matrix
-from server.render.cells import PART_BITS, WALKED
+from server.render.cells import PART_BITS, WALKED, cell_box
 from server.render.density import GaussianField, UnsortedAtoms
 from server.render.errors import RenderError
 from server.render.grid import SORTED_IN_CELL, CellGrid, order_cells_kernel
-from server.render.raycast import kernels_for
+from server.render.raycast import PART_MARGIN, kernels_for
 from server.render.reach import reach_sigmas
 from server.render.renderer import Renderer
 from server.render.tuning import Tuning
@@ -331,9 +331,11 @@ def _one_at_a_time_kernel(f: UnsortedAtoms, stride: int, values: wp.array[float]
 @pytest.mark.parametrize("radius_mode", ["uniform", "vdw"])
 def test_the_mean_density_two_atoms_a_step_keeps_the_bits(device: str, radius_mode: str) -> None:
     """The mean density at the sampled atoms reads two atoms a step; each sample is the sum
-    one atom at a time would give, bit for bit (rows of odd and even lengths)."""
+    one atom at a time would give, bit for bit (rows of odd and even lengths; one thread a
+    sample, as on the CPU: several lanes add their shares in another order)."""
     top, pos = _two_lumps()
-    r = render(device, top, pos, RenderParams(radius_mode=radius_mode), fit_camera(pos, 8, 6), 8, 6)
+    params = RenderParams(radius_mode=radius_mode)  # type: ignore[arg-type]
+    r = render(device, top, pos, params, fit_camera(pos, 8, 6), 8, 6, mean_lanes=1)
     assert r._last is not None
     n = len(pos)
     samples = min(n, 4096)
@@ -350,7 +352,8 @@ def test_the_scale_of_relative_levels_is_the_mean_density_at_the_sampled_atoms(
     device: str, radius_mode: str
 ) -> None:
     """Relative levels divide by the mean density at every (n // 4096)-th atom, each summed
-    through the grid over the unsorted atoms: every sample matches the reference density."""
+    through the grid over the unsorted atoms by the renderer's lanes (several on CUDA, each
+    a share of every row): every sample's shares add up to the reference density."""
     top, pos = _two_lumps()
     params = RenderParams(radius_mode=radius_mode)  # type: ignore[arg-type]
     r = render(device, top, pos, params, fit_camera(pos, 16, 12), 16, 12)
@@ -359,7 +362,10 @@ def test_the_scale_of_relative_levels_is_the_mean_density_at_the_sampled_atoms(
     n = len(pos)
     samples = min(n, 4096)
     ref = oracle.density(mol, pos[np.arange(samples) * (n // samples)].astype(np.float64))[0]
-    np.testing.assert_allclose(r._density_samples.numpy()[:samples], ref, rtol=1e-5)
+    lanes = r._mean_lanes
+    assert lanes == (1 if device == "cpu" else density.LANES_PER_SAMPLE)
+    shares = r._density_samples.numpy()[: samples * lanes].reshape(samples, lanes)
+    np.testing.assert_allclose(shares.astype(np.float64).sum(axis=1), ref, rtol=1e-5)
     assert r.density_scale() == pytest.approx(float(ref.mean()), rel=1e-5)
 
 
@@ -571,6 +577,91 @@ def test_part_bounds_skip_samples_and_keep_the_image(device: str, mode: str) -> 
         for split in ("all", "visible"):
             for a, b in zip(runs[split][1:], runs["none"][1:], strict=True):
                 np.testing.assert_array_equal(a, b)
+
+
+@wp.kernel
+@no_type_check
+def _lane_shares_kernel(
+    f: GaussianField,
+    cells: wp.array[wp.int32],
+    lanes: int,
+    shares: wp.array[density.PartBounds],
+    whole: wp.array[density.PartBounds],
+):
+    t = wp.tid()
+    i = t // lanes
+    lo, hi = cell_box(f.info[0], cells[i])
+    shares[t] = density.gaussian_part_bounds_lane(f, lo, hi, t - i * lanes, lanes)
+    if t - i * lanes == 0:
+        whole[i] = density.gaussian_part_bounds(f, lo, hi, wp.inf)
+
+
+def test_the_lanes_shares_of_a_cells_part_bounds_add_up_to_them(device: str) -> None:
+    """Each lane of a cell's part walk counts every lanes-th atom of each row: the shares of
+    1, 3 and 8 lanes add up to the bounds one walk gives, and to those the frame's own walk
+    wrote for the cells it listed (the largest, raised by PART_MARGIN; where every part
+    passed the level, the walk stopped there, short of the whole sum)."""
+    top, pos = _two_lumps()
+    params = RenderParams()
+    r = render(device, top, pos, params, fit_camera(pos, 32, 24), 32, 24, part_bounds="all")
+    f = r._gaussian_field(r._last[1])
+    stop = r._stop_level(params, r._last[1])
+    n = int(r._grid.work_count.numpy()[0])
+    assert n > 100, "the grid must list cells to walk"
+    cells = wp.array(r._grid.work.numpy()[:n], dtype=wp.int32, device=device)
+    written = r._grid.cell_values.numpy()[cells.numpy()]
+    for lanes in (1, 3, 8):
+        shares = wp.zeros(n * lanes, dtype=density.PartBounds, device=device)
+        whole = wp.zeros(n, dtype=density.PartBounds, device=device)
+        args = (f, cells, lanes, shares, whole)
+        wp.launch(_lane_shares_kernel, n * lanes, args, device=device)
+        total = shares.numpy().astype(np.float64).reshape(n, lanes, 27).sum(axis=1)
+        np.testing.assert_allclose(total, whole.numpy(), rtol=1e-5, atol=1e-30)
+        raised = total.max(axis=1) * PART_MARGIN
+        whole_sum = total.min(axis=1) * PART_MARGIN <= stop
+        assert whole_sum.sum() > 100
+        np.testing.assert_allclose(raised[whole_sum], written[whole_sum], rtol=1e-5)
+        short = written[~whole_sum]
+        assert (short > stop).all() and (short <= raised[~whole_sum] * (1 + 1e-5)).all()
+    assert (total > 0).sum() > 1000, "the parts must hold density"
+
+
+def test_a_small_molecules_listed_cells_walked_by_lanes_keep_every_bound_and_the_image(
+    device: str,
+) -> None:
+    """On CUDA a small molecule's listed cells are walked by BOUND_LANES threads each: the
+    same cells walked, the same parts below the level, bounds equal up to the order of their
+    sums, and the same image as one thread a cell. On the CPU, whose tiles are one thread
+    wide, any number asked for walks with one."""
+    top, pos = _two_lumps()
+    cam = fit_camera(pos, 64, 48)
+    params = RenderParams()
+    runs = {}
+    stop = 0.0
+    for lanes in (1, None, 8):
+        r = render(device, top, pos, params, cam, 64, 48, part_bounds="all", bound_lanes=lanes)
+        kernels = r._kernels_of(r._last[1], "iso")
+        stop = r._stop_level(params, r._last[1])
+        expect = 1 if device == "cpu" or lanes == 1 else renderer_module.BOUND_LANES
+        assert r._bound_lanes(kernels) == (expect if lanes is None else min(lanes, expect))
+        cells = int(np.prod(r.grid_info()["dims"]))
+        runs[lanes] = (  # copies: on the CPU `numpy()` views memory the next renderer reuses
+            r._grid.cell_values.numpy()[:cells].copy(),
+            r._grid.parts.numpy()[:cells].copy(),
+            r.read_rgba(),
+            r.read_depth(),
+            r.read_atom_ids(),
+        )
+    one = runs[1]
+    assert ((one[1] & WALKED) != 0).sum() > 100
+    # one thread stops its walk once every part passes the level; the lanes sum them all
+    stopped = one[0] > stop
+    assert (~stopped).sum() > 1000
+    for lanes in (None, 8):
+        np.testing.assert_allclose(runs[lanes][0][~stopped], one[0][~stopped], rtol=1e-5)
+        assert (runs[lanes][0][stopped] > stop).all()
+        for a, b in zip(runs[lanes][1:], one[1:], strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 def _walked_parts(r: Renderer) -> set[tuple[int, int, int]]:
