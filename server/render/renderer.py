@@ -1324,7 +1324,7 @@ class Renderer(ImageOutputs):
             return 1
         if self.tuning.bound_lanes is not None:
             return self.tuning.bound_lanes
-        return BOUND_LANES if self._cuda and self._grid.lists_own_cells else 1
+        return BOUND_LANES if self._grid.lists_own_cells else 1
 
     def _walk_listed_parts(
         self, kernels: raycast.RaycastKernels, f: Any, stop: float, threads: int

@@ -624,6 +624,10 @@ def test_the_lanes_shares_of_a_cells_part_bounds_add_up_to_them(device: str) -> 
         short = written[~whole_sum]
         assert (short > stop).all() and (short <= raised[~whole_sum] * (1 + 1e-5)).all()
     assert (total > 0).sum() > 1000, "the parts must hold density"
+    assert (~whole_sum).sum() >= 5, "some cells must pass the level in every part"
+    if r._bound_lanes(r._kernels_of(r._last[1], "iso")) > 1:
+        # the frame's lanes never stop early: every listed cell holds its whole sum
+        np.testing.assert_allclose(raised, written, rtol=1e-5)
 
 
 def test_a_small_molecules_listed_cells_walked_by_lanes_keep_every_bound_and_the_image(
@@ -660,6 +664,9 @@ def test_a_small_molecules_listed_cells_walked_by_lanes_keep_every_bound_and_the
     for lanes in (None, 8):
         np.testing.assert_allclose(runs[lanes][0][~stopped], one[0][~stopped], rtol=1e-5)
         assert (runs[lanes][0][stopped] > stop).all()
+        # the lanes' whole sums pass where one thread stopped (the lanes' kernel ran)
+        grew = (runs[lanes][0] > one[0] * (1 + 1e-4)).sum()
+        assert grew > 0 if device != "cpu" else grew == 0
         for a, b in zip(runs[lanes][1:], one[1:], strict=True):
             np.testing.assert_array_equal(a, b)
 
