@@ -1464,8 +1464,8 @@ class RaycastKernels:
     bound_settle: Any
     bound: Any
     bound_lanes: Any
-    """`bound`'s part walk with several threads a listed cell (`launch_bound_walk`); None
-    where the model has no `part_bounds_lane` or the kernels no parts."""
+    """`bound`'s part walk with several threads a listed cell (`Renderer._walk_listed_parts`
+    chooses); None where the model has no `part_bounds_lane` or the kernels no parts."""
     whole_settle: Any
     whole_bound: Any
     """The cell-bound kernels without parts (the same as the two above when `parts` is

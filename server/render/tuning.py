@@ -169,11 +169,11 @@ class Tuning:
     `geodesic_volume.FILL_REGISTERS`; 0: the compiler's). Its transcendentals follow
     `fast_math`."""
     bound_lanes: int | None = None
-    """Threads that walk one listed cell's part bounds together, each a share of every row's
-    atoms (None: `renderer.BOUND_LANES` on CUDA for a grid that lists its cells in a buffer of
-    its own, a small molecule's few hundred to few thousand cells; 1 on the CPU and for
-    larger grids, whose lists fill the device; 1 is the baseline; always 1 on the CPU,
-    whose tiles are one thread wide)."""
+    """Threads that walk one listed cell's part bounds together on CUDA, each a share of every
+    row's atoms (None: `renderer.BOUND_LANES` for a grid that lists its cells in a buffer of
+    its own, a small molecule's few hundred to few thousand cells, 1 for larger grids, whose
+    lists fill the device; 1 is the baseline). Always 1 on the CPU, whose tiles are one
+    thread wide."""
     cell_list: bool = True
     """A grid with more cells than twice its atoms lists the cells its bound walks in a buffer
     of its own (off: in the atoms' spare buffer, the baseline: the cells it leaves out are
