@@ -11,18 +11,22 @@ naming the estimate, rather than drawn.
 A pixel's cost follows the molecule, not the row: an image whose top rows are empty and whose
 bottom rows are dense, sized by the rows before, went from bands of empty rows straight into one
 band of 170 s. So the image is weighed first (`footprint`: how many atoms' reach covers each
-block of BLOCK x BLOCK pixels, projected through the camera), and a band's time is taken as `a`
-a pixel plus `b` a unit of cover: `a` from the bands no atom covers (their fixed costs, mostly),
-`b` from the others. A band is the run of pixels, in row order, expected to take BAND_SECONDS
-(and at most GROWTH times the band before): whole rows, or part of one row when a row takes
-longer (a band is a rectangle, `(x0, y0, w, h)`).
+block of BLOCK x BLOCK pixels, projected through the camera), and a band's work (its ray cast,
+as the renderer times its stages) is taken as `a` a pixel plus `b` a unit of cover: `a` from the
+bands no atom covers, `b` from the others. The rest of a band's time (its dispatch, uploads,
+compositing, reading back) is `c`, the same whatever it draws: on two busy CPU cores some 45 ms
+a band of a small image, and taken for work, the first bands' few rows said that a 320x240
+image of a second or so would take 139 s. A band is the run of pixels, in row order, whose work
+is expected to take BAND_SECONDS (and at most GROWTH times the band before's): whole rows, or
+part of one row when a row takes longer (a band is a rectangle, `(x0, y0, w, h)`).
 
 The first band is whole rows holding FIRST_SHARE of the cover: it also builds the frame's grids
 and may compile kernels, so its time is not counted, and its rate (too high) only sizes the next
 band. After each later band, the time the bands after the first took, plus the pixels and cover
-left at their rates (`b` the mean over the covered bands), must stay within the limit once they
-have taken JUDGED_AFTER_S (a rate from a few bands of little work is mostly their fixed costs);
-past the limit in time alone, the render is refused whatever is left.
+left at their rates (`b` the mean over the covered bands) and `c` (their mean) for each band
+left, must stay within the limit once they have taken JUDGED_AFTER_S (a rate from a few bands
+of little work is mostly noise); past the limit in time alone, the render is refused whatever
+is left.
 """
 
 from __future__ import annotations
@@ -108,9 +112,10 @@ class BandPlan:
     block of the image (`footprint`); `limit_s`: the most device seconds the bands after the
     first may take in all; `advice`: what a refusal suggests.
 
-    A band's cost is taken as `a` a pixel plus `b` a unit of cover (an atom over a pixel):
-    `a` from the bands that no atom covers (mostly their fixed costs), `b` from the others, the
-    newest first; the first band (the grids' build in it) gives `b` until another has."""
+    A band's work is taken as `a` a pixel plus `b` a unit of cover (an atom over a pixel): `a`
+    from the bands that no atom covers, `b` from the others, the newest first; the first band
+    (the grids' build in it) gives `b` until another has. The rest of its time, `c`, is the
+    same for every band."""
 
     width: int
     height: int
@@ -127,6 +132,8 @@ class BandPlan:
     """Seconds a pixel no atom covers."""
     b: float = 0.0
     """Seconds a unit of cover (for sizing bands)."""
+    c: float = 0.0
+    """Seconds a band takes beside its work (the mean over the bands after the first)."""
     _cover_s: float = 0.0
     _cover_w: float = 0.0
     """Seconds (less `a` a pixel) and cover of the covered bands after the first."""
@@ -188,10 +195,12 @@ class BandPlan:
             n = self.width - x
         return (x, self.y, n, 1)
 
-    def drawn(self, tile: Tile, seconds: float) -> Tile | None:
+    def drawn(self, tile: Tile, seconds: float, work: float | None = None) -> Tile | None:
         """Note `tile` (the band `first` or the last `drawn` gave) drawn in `seconds` of the
-        device; the next band, None once the image is whole. Raises TooCostlyError when the
-        rest, at the rates measured, would take the bands after the first past `limit_s`."""
+        device, `work` of them its ray cast (None: all of them); the next band, None once the
+        image is whole. Raises TooCostlyError when the rest, at the rates measured, would take
+        the bands after the first past `limit_s`."""
+        work = seconds if work is None else min(max(work, 0.0), seconds)
         x0, y0, w, h = tile
         cover = self._cover(tile)
         if x0 == 0 and w == self.width:
@@ -201,25 +210,28 @@ class BandPlan:
         self.bands += 1
         if self.bands == 1:  # the grids' build is in it: rates for sizing, not for judging
             if cover > 0.0:
-                self.b = seconds / cover
+                self.b = work / cover
             else:
-                self.a = seconds / (w * h)
-            return None if self.done else self._band(GROWTH * max(seconds, GROWN_FROM))
+                self.a = work / (w * h)
+            return None if self.done else self._band(GROWTH * max(work, GROWN_FROM))
         self.spent_s += seconds
+        self.c += (seconds - work - self.c) / (self.bands - 1)
         if cover > 0.0:
-            share = max(seconds - self.a * w * h, 0.0)
+            share = max(work - self.a * w * h, 0.0)
             self._cover_s += share
             self._cover_w += cover
             # sized by the dearer of the newest band's rate and the mean (the molecule may
             # begin here); the mean judges the rest
             self.b = max(share / cover, self._cover_s / self._cover_w)
         else:
-            self.a = max(self.a if self.bands > 2 else 0.0, seconds / (w * h))
+            self.a = max(self.a if self.bands > 2 else 0.0, work / (w * h))
         if self.done:
             return None
         pixels, left = self._left()
         mean_b = self._cover_s / self._cover_w if self._cover_w > 0.0 else None
-        projected = self.spent_s + self.a * pixels + (mean_b or 0.0) * left
+        # the bands left are as many as their work at the rate that sizes them takes
+        bands_left = math.ceil((self.a * pixels + self.b * left) / BAND_SECONDS)
+        projected = self.spent_s + self.a * pixels + (mean_b or 0.0) * left + self.c * bands_left
         judged = mean_b is not None or left == 0.0
         if self.spent_s > self.limit_s or (
             judged and self.spent_s >= JUDGED_AFTER_S and projected > self.limit_s
@@ -231,11 +243,12 @@ class BandPlan:
                 f"cover each pixel), over this server's limit of {self.limit_s:g} s for one "
                 f"image (one_off_render_seconds); {self.advice}"
             )
-        return self._band(GROWTH * max(seconds, GROWN_FROM))
+        return self._band(GROWTH * max(work, GROWN_FROM))
 
     def _band(self, most: float) -> Tile:
-        """The run of pixels from (x, y) expected to take at most BAND_SECONDS (and `most`):
-        the rest of a started row, whole rows, or (a row dearer than that) part of a row."""
+        """The run of pixels from (x, y) whose work is expected to take at most BAND_SECONDS
+        (and `most`): the rest of a started row, whole rows, or (a row dearer than that) part
+        of a row."""
         limit = min(BAND_SECONDS, most)
         y = self.y
         if self.x == 0:

@@ -454,7 +454,8 @@ class GpuQueue:
             image[y0 : y0 + h, x0 : x0 + w] = out.image()
             for key, ms in out.timings.items():
                 timings[key] = timings.get(key, 0.0) + ms
-            tile = plan.drawn(tile, out.seconds)
+            cast = out.timings.get("raycast")
+            tile = plan.drawn(tile, out.seconds, None if cast is None else cast / 1000.0)
         return RenderOutput(image, timings, seconds=plan.spent_s)
 
     @staticmethod

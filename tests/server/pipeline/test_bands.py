@@ -37,17 +37,24 @@ def per_pixel(costs: np.ndarray) -> Cost:
     return cost
 
 
-def draw(plan: BandPlan, cost: Cost, first_extra: float = 0.0) -> list[tuple[tuple, float]]:
-    """Every band drawn, with its seconds; checks that each pixel is drawn once."""
+def draw(
+    plan: BandPlan,
+    cost: Cost,
+    first_extra: float = 0.0,
+    per_band: float = 0.0,
+    apart: bool = True,
+) -> list[tuple[tuple, float]]:
+    """Every band drawn, with its seconds: its work (the ray cast, `cost`, told apart when
+    `apart`) and `per_band` more whatever it draws; checks that each pixel is drawn once."""
     seen = np.zeros((plan.height, plan.width), dtype=np.int32)
     tile: tuple[int, int, int, int] | None = plan.first()
     out = []
     while tile is not None:
         x0, y0, w, h = tile
         seen[y0 : y0 + h, x0 : x0 + w] += 1
-        seconds = cost(*tile) + (first_extra if not out else 0.0)
-        out.append((tile, seconds))
-        tile = plan.drawn(tile, seconds)
+        work = cost(*tile) + (first_extra if not out else 0.0)
+        out.append((tile, work + per_band))
+        tile = plan.drawn(tile, work + per_band, work if apart else None)
     assert (seen == 1).all()
     return out
 
@@ -140,6 +147,47 @@ def test_weights_that_miss_a_costly_part_still_refuse_it_in_time() -> None:
     with pytest.raises(TooCostlyError):
         draw(plan, per_pixel(costs))
     assert plan.spent_s <= 5.0 + 0.5
+
+
+def molecule_costs(width: int, height: int, seconds: float) -> np.ndarray:
+    """An image whose pixels cost like a molecule's: a bump of cover in its middle, empty
+    corners, `seconds` in all."""
+    y, x = np.mgrid[0:height, 0:width]
+    r2 = ((x - width / 2) / (0.3 * width)) ** 2 + ((y - height / 2) / (0.3 * height)) ** 2
+    costs = np.exp(-r2)
+    return costs * (seconds / costs.sum())
+
+
+def test_a_bands_fixed_cost_is_not_taken_for_work() -> None:
+    """On two busy CPU cores each band of a small image took some 45 ms whatever it drew; taken
+    for work, the first bands' few rows made a 320x240 image of a second or so look like 139 s,
+    and it was refused. With the work told apart, it is drawn in a few bands, and judged
+    against a limit just above its whole time it still passes."""
+    costs = molecule_costs(320, 240, 0.6)
+    for limit in (60.0, 1.5):
+        plan = BandPlan(320, 240, limit_s=limit, blocks=blocks_for(costs))
+        got = draw(plan, per_pixel(costs), first_extra=0.5, per_band=0.045)
+        assert len(got) <= 12 and plan.spent_s < 1.2
+        assert plan.c == pytest.approx(0.045)
+    taken_for_work = BandPlan(320, 240, limit_s=60.0, blocks=blocks_for(costs))
+    with pytest.raises(TooCostlyError):  # the control: every second taken for work
+        draw(taken_for_work, per_pixel(costs), 0.5, 0.045, apart=False)
+
+
+def test_an_image_past_the_limit_with_fixed_costs_is_still_refused() -> None:
+    """The fixed cost taken out of the rates is counted again for each band left."""
+    costs = molecule_costs(1920, 1080, 270.0)
+    plan = BandPlan(1920, 1080, 60.0, blocks_for(costs), advice_for(RenderParams()))
+    with pytest.raises(TooCostlyError) as err:
+        draw(plan, per_pixel(costs), per_band=0.045)
+    assert plan.spent_s < 1.0
+    estimate = float(str(err.value).split("about ")[1].split(" s")[0].replace(",", ""))
+    assert 270.0 <= estimate <= 270.0 * 1.6  # its work, and 0.045 s a band of 0.1 s of it
+    even = np.full((400, 400), 2.0 / 400**2)  # 2 s of work in bands of 0.1 s, 1 s more each
+    fixed = BandPlan(400, 400, limit_s=5.0, blocks=blocks_for(even))
+    with pytest.raises(TooCostlyError):
+        draw(fixed, per_pixel(even), per_band=1.0)
+    assert fixed.spent_s < 2.5
 
 
 def test_one_costly_row_is_drawn_in_parts_of_it() -> None:
