@@ -322,7 +322,9 @@ def pixel_jitter(x: int, y: int) -> float:
     transfer-function features into fine noise that does not flicker."""
     h = wp.uint32(x) * wp.uint32(1973) + wp.uint32(y) * wp.uint32(9277) + wp.uint32(26699)
     h = (h ^ (h >> wp.uint32(16))) * wp.uint32(0x7FEB352D)
-    h = (h ^ (h >> wp.uint32(15))) * wp.uint32(0x846CA68B)
+    # 0x846CA68B in two halves: warp writes an integer literal as an int32, and the C++
+    # compiler warns of one past its range (the bits are the same)
+    h = (h ^ (h >> wp.uint32(15))) * (wp.uint32(0x846C) * wp.uint32(65536) + wp.uint32(0xA68B))
     h = h ^ (h >> wp.uint32(16))
     return float(h >> wp.uint32(8)) * (1.0 / 16777216.0)
 
