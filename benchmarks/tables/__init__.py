@@ -136,6 +136,9 @@ TABLES: dict[str, Table] = {
         ),
         render_variants,
     ),
+    "geodesic-fill-threads": Table(
+        ("render_cpu_2core_geodesic_fill_threads.json",), render_variants
+    ),
     "visible-bricks": Table(("visible_bricks_cpu.json",), visible_bricks),
     "geodesic-gate": Table(("render_h200_geodesic_gate.json",), geodesic_gate),
     "geodesic-route-major": Table(("render_h200_geodesic_route_major.json",), geodesic_route_major),

@@ -878,6 +878,7 @@ class Renderer(ImageOutputs):
                 t.geodesic_fill_lanes,
                 t.fast_math,
                 geodesic_volume.FILL_REGISTERS if regs is None else regs,
+                t.geodesic_fill_threads,
             )
         return self._gvol
 

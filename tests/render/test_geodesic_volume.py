@@ -183,6 +183,43 @@ def test_a_brick_walked_together_fills_the_grid_of_each_point_alone(
         np.testing.assert_array_equal(a, b)
 
 
+def test_the_cpu_fill_split_across_host_threads_is_the_fill_of_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The CPU device runs a launch on the thread that makes it, and the fill is most of a
+    geodesic frame there: after the first frame's (which compiles it on the renderer's own
+    thread), the fill runs as runs of the listed bricks on several host threads. A brick's
+    points are its own, so the grid and the image are those of one thread, bit for bit."""
+    mol = villin()
+    params = RenderParams(scale_space="geodesic")
+    cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
+    moved = mol.positions + np.float32(0.3)
+    split: list[int] = []
+    fill_on_threads = geodesic_volume.GeodesicVolume._fill_on_threads
+
+    def counted(self: geodesic_volume.GeodesicVolume, *args: object) -> None:
+        split.append(self.threads)
+        fill_on_threads(self, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(geodesic_volume.GeodesicVolume, "_fill_on_threads", counted)
+    runs = []
+    for threads in (1, 3):
+        options = {"geodesic_volume": True, "geodesic_fill_threads": threads}
+        r = Renderer("cpu", tuning=Tuning.of(options))
+        r.set_topology(mol.topology)
+        for positions in (mol.positions, moved):
+            r.set_positions(positions)
+            r.render(params, cam, W, H)
+        assert r.last_density == "geodesic_volume"
+        runs.append((*_walked(r), *_three(r)))
+    assert split == [3]  # the second frame of three threads, and no frame of one
+    assert len(runs[0][0]) > 1000
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(RenderError, match="geodesic_fill_threads"):
+        Tuning.of({"geodesic_fill_threads": 0})
+
+
 def _brick_points(r: Renderer) -> list[np.ndarray]:
     """The walked grid points of each listed brick, in listed order."""
     vol = r._gvol
