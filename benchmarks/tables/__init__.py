@@ -139,6 +139,8 @@ TABLES: dict[str, Table] = {
     "geodesic-fill-threads": Table(
         ("render_cpu_2core_geodesic_fill_threads.json",), render_variants
     ),
+    "ray-threads": Table(("render_cpu_2core_ray_threads.json",), render_variants),
+    "ray-threads-volume": Table(("render_cpu_2core_ray_threads_volume.json",), render_variants),
     "visible-bricks": Table(("visible_bricks_cpu.json",), visible_bricks),
     "geodesic-gate": Table(("render_h200_geodesic_gate.json",), geodesic_gate),
     "geodesic-route-major": Table(("render_h200_geodesic_route_major.json",), geodesic_route_major),

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import warp as wp
@@ -20,6 +22,36 @@ def init() -> None:
         wp.config.log_level = wp.LOG_WARNING
         wp.init()  # type: ignore[no-untyped-call]
         _initialised = True
+
+
+def host_threads() -> int:
+    """The cores this process may run on: the host threads the CPU device's heaviest launches
+    are split across (warp's CPU device runs a launch on the thread that makes it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+RUNS_PER_HOST_THREAD = 4
+"""Runs a split launch is cut into per host thread: the work is uneven (rays through the
+molecule against rays past it, bricks at its core against its edge), and a thread that is done
+takes the next run."""
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def on_host_threads(threads: int, runs: Iterable[Callable[[], None]]) -> None:
+    """Each of `runs` (launches on the CPU device that write apart) on a pool of `threads` host
+    threads, made once per process; returns when all are done, raising the first error."""
+    with _POOLS_LOCK:
+        pool = _POOLS.get(threads)
+        if pool is None:
+            pool = ThreadPoolExecutor(threads, thread_name_prefix="cpu-launch")
+            _POOLS[threads] = pool
+    for future in [pool.submit(run) for run in runs]:
+        future.result()
 
 
 def cuda_count() -> int:

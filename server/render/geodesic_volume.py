@@ -39,9 +39,7 @@ where the routes per sample walk some forty atoms'). Value and gradient come fro
 from __future__ import annotations
 
 import math
-import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
 from typing import Any, no_type_check
 
 import warp as wp
@@ -105,10 +103,6 @@ villin, the routes per sample the control in the same run
 (render_cpu_2core_geodesic_grid_or_routes.json): from the grid 0.25, 0.94, 2.5 and 5.0 times
 the routes' time at 1.8, 7.3, 20 and 46 points a pixel (320x240, 160x120, 96x72, 64x48), and
 2,500 atoms at 96x72 (65 points a pixel) 6.3."""
-CPU_FILL_RUNS = 4
-"""Runs of the listed bricks per host thread of the CPU device's fill: bricks near the
-molecule's core walk more atoms than those at its edge, and a thread that is done takes the
-next run."""
 MAX_POINTS = 1 << 25
 """Most grid points a plan takes: with SLACK, buffers of up to 50M points (16 bytes each, and
 about one more for the bricks)."""
@@ -893,28 +887,6 @@ def _fill(warps: int, together: bool, lanes: int, first: int, last: int) -> Fill
     return how
 
 
-def cpu_threads() -> int:
-    """The cores this process may run on: the host threads of the CPU device's fill."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-_POOLS_LOCK = threading.Lock()
-
-
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """A pool of `threads` host threads, made once per process (the CPU device's fill)."""
-    with _POOLS_LOCK:
-        pool = _POOLS.get(threads)
-        if pool is None:
-            pool = ThreadPoolExecutor(threads, thread_name_prefix="geodesic-fill")
-            _POOLS[threads] = pool
-    return pool
-
-
 class GeodesicVolume:
     """The grid's buffers on one device and the plan of their size."""
 
@@ -938,7 +910,7 @@ class GeodesicVolume:
         dev = _wp.get_device(device)
         self.cuda = bool(dev.is_cuda)
         self.warps = int(dev.sm_count) * WARPS_PER_SM if self.cuda else 1
-        self.threads = 1 if self.cuda else max(int(threads or cpu_threads()), 1)
+        self.threads = 1 if self.cuda else max(int(threads or _device.host_threads()), 1)
         """Host threads the fill is split across (the CPU device; 1 on CUDA)."""
         self._filled = False
         """Whether a fill has run (compiled and loaded its kernel) on the calling thread."""
@@ -1080,21 +1052,22 @@ class GeodesicVolume:
     def _fill_on_threads(
         self, where: tuple[Any, ...], parts: tuple[Any, ...], keep: tuple[Any, ...]
     ) -> None:
-        """The fill on the CPU device as runs of the listed bricks, CPU_FILL_RUNS a thread,
+        """The fill on the CPU device as runs of the listed bricks (`device.RUNS_PER_HOST_THREAD`
+        a thread),
         each its own launch on a thread of the pool: a brick's points are its own, so the runs
         write apart, and the values are those of one launch bit for bit (the CPU device runs a
         launch on the thread that makes it; the fill is most of a geodesic frame there)."""
         listed = int(self.count.numpy()[0])  # the CPU device has run the scan already
-        runs = min(self.threads * CPU_FILL_RUNS, max(listed, 1))
+        runs = min(self.threads * _device.RUNS_PER_HOST_THREAD, max(listed, 1))
         cuts = [listed * j // runs for j in range(runs + 1)]
         threads = self.warps * BRICK_POINTS
 
-        def run(j: int) -> None:
+        def run(j: int) -> Callable[[], None]:
             how = _fill(self.warps, self.together, 1, cuts[j], cuts[j + 1])
-            _wp.launch(self.fill, threads, (*where, how, *parts, *keep), device=self.device)
+            args = (*where, how, *parts, *keep)
+            return lambda: _wp.launch(self.fill, threads, args, device=self.device)
 
-        for _ in _pool(self.threads).map(run, range(runs)):
-            pass
+        _device.on_host_threads(self.threads, [run(j) for j in range(runs)])
 
     def field(self, geo: GeodesicField) -> GeodesicVolumeField:
         f = GeodesicVolumeField()

@@ -110,6 +110,9 @@ class CameraData:
     this grid's box, which holds only a part of it."""
     scene_lo: wp.vec3
     scene_hi: wp.vec3
+    first_tile: int
+    """The 8x4 tile of the image thread 0 of a launch takes (0 but in a run of the CPU
+    device's launches split across host threads, `Renderer._ray_runs`)."""
 
 
 @wp.struct
@@ -167,7 +170,7 @@ class Volume:
 @no_type_check
 def pixel_of(cam: CameraData, tid: int):
     """Thread -> pixel in 8x4 tiles, so a 32-thread warp casts neighbouring rays."""
-    tile = tid // _TILE
+    tile = tid // _TILE + cam.first_tile
     local = tid % _TILE
     x = (tile % cam.tiles_x) * _TILE_W + local % _TILE_W
     y = (tile // cam.tiles_x) * (_TILE // _TILE_W) + local // _TILE_W
@@ -1616,6 +1619,7 @@ def camera_data(
     c.full_height = int(frame.height)
     c.part_axis = -1
     c.part_open = 1
+    c.first_tile = 0
     if region is not None:
         c.part_axis = int(region[0])
         c.part_lo = float(region[1])

@@ -208,6 +208,13 @@ class Renderer(ImageOutputs):
         self._graphs = GraphCache(
             self.device, GRAPH_CACHE, bool(t.graphs or (t.graphs is None and self._cuda)), "render"
         )
+        split = not self._cuda and not self._graphs.enabled  # a capture takes its thread's alone
+        self._host_threads = max(t.cpu_threads or devmod.host_threads(), 1) if split else 1
+        """Host threads the CPU device's ray passes and geodesic fill are split across
+        (`_ray_runs`, `GeodesicVolume`)."""
+        self._launched: set[int] = set()
+        """Kernels launched once whole on this renderer's thread (compiled and loaded there,
+        before runs of them go to several threads at once)."""
         trial = t.part_trial if t.part_trial is not None else self._cuda
         self._part_trial = PartTrial() if trial and t.part_bounds is None else None
         self._frame_parts: tuple[Derived, str, PartMode] | None = None
@@ -878,7 +885,7 @@ class Renderer(ImageOutputs):
                 t.geodesic_fill_lanes,
                 t.fast_math,
                 geodesic_volume.FILL_REGISTERS if regs is None else regs,
-                t.geodesic_fill_threads,
+                self._host_threads,
             )
         return self._gvol
 
@@ -1389,13 +1396,20 @@ class Renderer(ImageOutputs):
         m.budget = self._budget_for(w * h)
         sh = self._shading(params, d, frame)
         threads = raycast.launch_size(w, h)
+
+        def cam_run() -> raycast.CameraData:
+            return raycast.camera_data(frame, tile, self.region, self.scene_box)
+
+        runs = self._ray_runs(threads, cam, m.budget, cam_run)
         if params.mode == "iso":
             hits = (self._hit_k, self._hit_v)
             queued = (*hits, self._queue, self._queue_v, self._queue_len, self._found)
             if m.budget > 0:
                 self._queue_len.zero_()
             march = (f, cam, m, *queued, self._counts)
-            wp.launch(k.iso_march, threads, (*march, 0), device=dev, block_dim=MARCH_BLOCK)
+            self._launch_rays(
+                k.iso_march, runs, lambda c: (f, c, m, *queued, self._counts, 0), MARCH_BLOCK
+            )
             if m.budget > 0 and self.tuning.split_lanes > 1:
                 lanes = self.tuning.split_lanes
                 rays = min(w * h, SPLIT_RAYS)
@@ -1403,11 +1417,10 @@ class Renderer(ImageOutputs):
                 wp.launch(k.iso_split, lanes * rays, args, device=dev, block_dim=MARCH_BLOCK)
             elif m.budget > 0:
                 wp.launch(k.iso_march, threads, (*march, 1), device=dev, block_dim=MARCH_BLOCK)
-            wp.launch(
+            self._launch_rays(
                 k.iso_shade,
-                threads,
-                (f, cam, m, sh, *hits, self._rgba, self._depth, self._ids),
-                device=dev,
+                runs,
+                lambda c: (f, c, m, sh, *hits, self._rgba, self._depth, self._ids),
             )
         else:
             assert self._seg_table is not None  # made by _update_tf
@@ -1423,14 +1436,55 @@ class Renderer(ImageOutputs):
             vol.shade = int(lt.diffuse > 0 or lt.specular > 0)
             vol.clip = int(self.depth_limit is not None)
             vol.limit = self._no_limit if self.depth_limit is None else self.depth_limit
-            wp.launch(
-                k.volume,
-                threads,
-                (f, cam, m, vol, sh, self._rgba, self._depth, self._ids, self._counts),
-                device=dev,
-                block_dim=MARCH_BLOCK,
-            )
+            out = (self._rgba, self._depth, self._ids, self._counts)
+            self._launch_rays(k.volume, runs, lambda c: (f, c, m, vol, sh, *out), MARCH_BLOCK)
         return t_cast
+
+    def _ray_runs(
+        self,
+        threads: int,
+        cam: raycast.CameraData,
+        budget: int,
+        cam_run: Callable[[], raycast.CameraData],
+    ) -> list[tuple[int, raycast.CameraData]]:
+        """(threads, camera) of each launch of a pass over the image's rays: one launch on
+        CUDA, or where the march queues rays for a second kernel (the queue holds a launch's
+        own thread numbers); on the CPU device, which runs a launch on the thread that makes
+        it, runs of whole 8x4 tiles (`device.RUNS_PER_HOST_THREAD` a host thread), each with
+        a camera (`cam_run`) that says its first tile: each pixel is its run's alone."""
+        n = self._host_threads
+        tiles = threads // raycast.TILE
+        if self._cuda or n <= 1 or budget > 0 or tiles < 2 * n:
+            return [(threads, cam)]
+        count = min(n * devmod.RUNS_PER_HOST_THREAD, tiles)
+        cuts = [tiles * j // count for j in range(count + 1)]
+        runs = []
+        for j in range(count):
+            c = cam_run()
+            c.first_tile = cuts[j]
+            runs.append(((cuts[j + 1] - cuts[j]) * raycast.TILE, c))
+        return runs
+
+    def _launch_rays(
+        self,
+        kernel: Any,
+        runs: list[tuple[int, raycast.CameraData]],
+        args_of: Callable[[raycast.CameraData], tuple[Any, ...]],
+        block_dim: int | None = None,
+    ) -> None:
+        """`kernel` over the image's rays as `runs` (`_ray_runs`) gives them: one launch, or
+        runs on the host threads once the kernel has been launched whole on this thread."""
+        dev = self.device
+        if len(runs) == 1 or id(kernel) not in self._launched:
+            for threads, c in runs:  # one after the other: the first compiles and loads it
+                wp.launch(kernel, threads, args_of(c), device=dev, block_dim=block_dim)
+            self._launched.add(id(kernel))
+            return
+        launches = [
+            functools.partial(wp.launch, kernel, t, args_of(c), device=dev, block_dim=block_dim)
+            for t, c in runs
+        ]
+        devmod.on_host_threads(self._host_threads, launches)
 
     def _budget_for(self, pixels: int) -> int:
         """Passes before an iso ray is queued for the split second kernel (0: one kernel)."""

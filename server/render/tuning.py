@@ -164,10 +164,11 @@ class Tuning:
     """Groups of 32 threads that take one brick of the geodesic grid's fill together, each a
     share of every row's atoms (None: `GeodesicVolume.lanes_for` the grid's size; 1 on the
     CPU)."""
-    geodesic_fill_threads: int | None = None
-    """Host threads the geodesic grid's fill is split across on the CPU device, each a run of
-    the listed bricks (None: `geodesic_volume.cpu_threads`, the cores this process may use;
-    1: the one thread that runs every other kernel, the baseline). CUDA devices take none."""
+    cpu_threads: int | None = None
+    """Host threads the CPU device's heaviest launches are split across: the march, the
+    shading and the volume cast as runs of the image's tiles, the geodesic grid's fill as runs
+    of its listed bricks (None: `device.host_threads`, the cores this process may use; 1: the
+    renderer's own thread alone, the baseline). CUDA devices take none."""
     geodesic_fill_registers: int | None = None
     """Register cap of the geodesic grid's fill kernel on CUDA (None:
     `geodesic_volume.FILL_REGISTERS`; 0: the compiler's). Its transcendentals follow
@@ -200,10 +201,8 @@ class Tuning:
             )
         if self.geodesic_fill_lanes is not None and self.geodesic_fill_lanes < 1:
             raise RenderError(f"geodesic_fill_lanes must be >= 1, got {self.geodesic_fill_lanes}")
-        if self.geodesic_fill_threads is not None and self.geodesic_fill_threads < 1:
-            raise RenderError(
-                f"geodesic_fill_threads must be >= 1, got {self.geodesic_fill_threads}"
-            )
+        if self.cpu_threads is not None and self.cpu_threads < 1:
+            raise RenderError(f"cpu_threads must be >= 1, got {self.cpu_threads}")
         regs = self.geodesic_fill_registers
         if regs is not None and (isinstance(regs, bool) or not 0 <= regs <= 255):
             raise RenderError(f"geodesic_fill_registers must be 0-255, got {regs!r}")

@@ -204,7 +204,7 @@ def test_the_cpu_fill_split_across_host_threads_is_the_fill_of_one(
     monkeypatch.setattr(geodesic_volume.GeodesicVolume, "_fill_on_threads", counted)
     runs = []
     for threads in (1, 3):
-        options = {"geodesic_volume": True, "geodesic_fill_threads": threads}
+        options = {"geodesic_volume": True, "cpu_threads": threads}
         r = Renderer("cpu", tuning=Tuning.of(options))
         r.set_topology(mol.topology)
         for positions in (mol.positions, moved):
@@ -216,8 +216,8 @@ def test_the_cpu_fill_split_across_host_threads_is_the_fill_of_one(
     assert len(runs[0][0]) > 1000
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)
-    with pytest.raises(RenderError, match="geodesic_fill_threads"):
-        Tuning.of({"geodesic_fill_threads": 0})
+    with pytest.raises(RenderError, match="cpu_threads"):
+        Tuning.of({"cpu_threads": 0})
 
 
 def _brick_points(r: Renderer) -> list[np.ndarray]:

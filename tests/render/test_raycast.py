@@ -287,6 +287,45 @@ def test_split_rays_draw_the_same_image(device: str, scene: str, budget: int, la
     np.testing.assert_array_equal(split.read_atom_ids(), one.read_atom_ids())
 
 
+@pytest.mark.parametrize("mode", ["iso", "volume"])
+def test_the_cpu_devices_rays_split_across_host_threads_draw_the_same_image(
+    mode: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """warp's CPU device runs a launch on the thread that makes it; from a kernel's second
+    launch the march, the shading and the volume cast run as runs of whole 8x4 tiles on several
+    host threads. Each pixel is its run's alone, so the image, its depths, atoms and pass counts
+    are one launch's bit for bit, whole or a band of it."""
+    from server.render import device
+
+    spread: list[int] = []
+    on_host_threads = device.on_host_threads
+
+    def counted(threads: int, runs: list) -> None:  # type: ignore[type-arg]
+        spread.append(len(runs))
+        on_host_threads(threads, runs)
+
+    monkeypatch.setattr(device, "on_host_threads", counted)
+    n = 120
+    top = make_topology(n)
+    pos = blob(n, seed=5, spread=8.0)
+    cam = fit_camera(pos, W, H)
+    params = RenderParams(sigma_A=1.2, iso_level=0.4, mode=mode)  # type: ignore[arg-type]
+    outs = []
+    for threads in (1, 3):
+        r = Renderer("cpu", tuning=Tuning(cpu_threads=threads, count_passes=True))
+        r.set_topology(top)
+        r.set_positions(pos)
+        for tile in (None, None, (5, 3, W - 9, H - 7)):  # the first whole frame compiles
+            r.render(params, cam, W, H, tile)
+            got = (r.read_rgba(), r.read_depth(), r.read_atom_ids(), r.read_pass_counts())
+            outs.append(tuple(np.array(x, copy=True) for x in got))
+    assert spread and all(runs > 3 for runs in spread)  # the threads' runs, not the one's
+    assert len(spread) == (2 if mode == "iso" else 1) * 2  # the second frame and the band
+    for a, b in zip(outs[:3], outs[3:], strict=True):
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(x, y)
+
+
 def test_split_policy_and_its_arguments() -> None:
     auto = Renderer("cpu")
     assert auto._budget_for(W * H) == 0  # never automatic on the CPU
