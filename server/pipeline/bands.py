@@ -45,7 +45,8 @@ FIRST_SHARE = 1.0 / 4096.0
 share of the whole image's, which nothing bounds before it is drawn (1/128 of an image that
 would take 7,300 s took 61 s)."""
 BAND_SECONDS = 0.1
-"""Device time each later band is sized to: about what a live view waits behind one."""
+"""Ray-cast time each later band is sized to (a band's fixed time, `BandPlan.c`, comes on
+top): about what a live view waits behind one."""
 GROWTH = 4.0
 """Most a band's expected time grows over the time of the one before (the cover is an estimate
 of where the time goes)."""
@@ -229,9 +230,8 @@ class BandPlan:
             return None
         pixels, left = self._left()
         mean_b = self._cover_s / self._cover_w if self._cover_w > 0.0 else None
-        # the bands left are as many as their work at the rate that sizes them takes
-        bands_left = math.ceil((self.a * pixels + self.b * left) / BAND_SECONDS)
-        projected = self.spent_s + self.a * pixels + (mean_b or 0.0) * left + self.c * bands_left
+        projected = self.spent_s + self.a * pixels + (mean_b or 0.0) * left
+        projected += self.c * self._bands_left()
         judged = mean_b is not None or left == 0.0
         if self.spent_s > self.limit_s or (
             judged and self.spent_s >= JUDGED_AFTER_S and projected > self.limit_s
@@ -244,6 +244,19 @@ class BandPlan:
                 f"image (one_off_render_seconds); {self.advice}"
             )
         return self._band(GROWTH * max(work, GROWN_FROM))
+
+    def _bands_left(self) -> int:
+        """About how many bands `_band` will cut the rows left into at the rates that size
+        them: a band takes whole rows, so a row of work w (seconds) is 1 / floor(BAND_SECONDS
+        / w) of a band, or ceil(w / BAND_SECONDS) parts of a row past BAND_SECONDS."""
+        if self.done:
+            return 0
+        cover = np.diff(self._row_cum[self.y :])
+        work = self.a * self.width + self.b * cover
+        work = work[work > 0.0]
+        whole = work <= BAND_SECONDS
+        rows = float(np.sum(1.0 / np.floor(BAND_SECONDS / work[whole])))
+        return math.ceil(rows + float(np.sum(np.ceil(work[~whole] / BAND_SECONDS))))
 
     def _band(self, most: float) -> Tile:
         """The run of pixels from (x, y) whose work is expected to take at most BAND_SECONDS

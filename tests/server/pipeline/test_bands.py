@@ -183,6 +183,12 @@ def test_an_image_past_the_limit_with_fixed_costs_is_still_refused() -> None:
     assert plan.spent_s < 1.0
     estimate = float(str(err.value).split("about ")[1].split(" s")[0].replace(",", ""))
     assert 270.0 <= estimate <= 270.0 * 1.6  # its work, and 0.045 s a band of 0.1 s of it
+    # rows of 0.06 s of work go one to a band, not 0.6: 1,080 bands of 0.105 s are 113 s
+    rows = np.full((1080, 1920), 0.06 / 1920)
+    by_rows = BandPlan(1920, 1080, limit_s=100.0, blocks=blocks_for(rows))
+    with pytest.raises(TooCostlyError):
+        draw(by_rows, per_pixel(rows), per_band=0.045)
+    assert by_rows.spent_s < 2.0
     even = np.full((400, 400), 2.0 / 400**2)  # 2 s of work in bands of 0.1 s, 1 s more each
     fixed = BandPlan(400, 400, limit_s=5.0, blocks=blocks_for(even))
     with pytest.raises(TooCostlyError):

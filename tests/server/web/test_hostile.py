@@ -761,7 +761,7 @@ def test_a_one_off_render_whose_client_left_is_abandoned(live_server: LiveServer
     sim, viewer, _pos = watched_session(live_server.ws_url, live_server.view_url, "gone")
     pixels = band_pixels(live_server)
     params = json.dumps({"mode": "volume", "quality": 2, "sigma_A": 4})
-    data = {"session": "gone", "width": "1280", "height": "720", "params": params}
+    data = {"session": "gone", "width": "1920", "height": "1080", "params": params}
     with (
         pytest.raises(httpx.ReadTimeout),
         httpx.Client(base_url=live_server.url, timeout=httpx.Timeout(120, read=1.0)) as c,
@@ -769,13 +769,13 @@ def test_a_one_off_render_whose_client_left_is_abandoned(live_server: LiveServer
         c.post("/api/render", headers={"Authorization": f"Bearer {live_server.token}"}, data=data)
     assert wait_for(lambda: len(pixels) >= 2)
     # the band in flight when the client left ends; nothing is drawn after it (the whole
-    # image takes about 2.5 s of two CPU cores, a band some 0.1 s)
+    # image takes about 3 s of two CPU cores, a band some 0.1 s)
     drawn, quiet_since = sum(pixels), time.monotonic()
     while time.monotonic() - quiet_since < 1.5:
         time.sleep(0.1)
         if sum(pixels) != drawn:
             drawn, quiet_since = sum(pixels), time.monotonic()
-    assert drawn < 1280 * 720, pixels
+    assert drawn < 1920 * 1080, pixels
     sim.close()
     viewer.close()
 
