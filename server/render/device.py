@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 import os
 import threading
-from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor, wait
+from pathlib import Path
 from typing import Any
 
 import warp as wp
@@ -26,11 +28,19 @@ def init() -> None:
 
 def host_threads() -> int:
     """The cores this process may run on: the host threads the CPU device's heaviest launches
-    are split across (warp's CPU device runs a launch on the thread that makes it)."""
+    are split across (warp's CPU device runs a launch on the thread that makes it). A cgroup's
+    CPU quota (a container's `--cpus`) bounds the cores the affinity mask lists."""
     try:
-        return len(os.sched_getaffinity(0))
+        cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
+        cores = os.cpu_count() or 1
+    try:
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+        if quota != "max":
+            cores = min(cores, max(1, math.ceil(int(quota) / int(period))))
+    except (OSError, ValueError):
+        pass  # no cgroup v2 quota here
+    return cores
 
 
 RUNS_PER_HOST_THREAD = 4
@@ -39,18 +49,43 @@ molecule against rays past it, bricks at its core against its edge), and a threa
 takes the next run."""
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
+_LOADED: dict[tuple[int, str, int | None], Any] = {}
+"""Kernels launched on a device with a block size (compiled and loaded there), held so that
+their ids stay theirs."""
 _POOLS_LOCK = threading.Lock()
 
 
-def on_host_threads(threads: int, runs: Iterable[Callable[[], None]]) -> None:
-    """Each of `runs` (launches on the CPU device that write apart) on a pool of `threads` host
-    threads, made once per process; returns when all are done, raising the first error."""
+def split_launch(
+    kernel: Any,
+    runs: Sequence[tuple[int, Sequence[Any]]],
+    device: str,
+    threads: int,
+    block_dim: int | None = None,
+) -> None:
+    """`kernel` launched for each (threads, inputs) of `runs`, launches on the CPU device that
+    write apart: on a pool of `threads` host threads (made once per process) once the kernel
+    has been loaded on `device` with this block size, else one after the other on this thread
+    (the first compiles and loads it: two threads must not). Returns once every run has ended,
+    raising the first error."""
+    key = (id(kernel), str(device), block_dim)
     with _POOLS_LOCK:
+        loaded = key in _LOADED
         pool = _POOLS.get(threads)
-        if pool is None:
+        if pool is None and threads > 1 and loaded:
             pool = ThreadPoolExecutor(threads, thread_name_prefix="cpu-launch")
             _POOLS[threads] = pool
-    for future in [pool.submit(run) for run in runs]:
+    if pool is None or len(runs) < 2:
+        for dim, inputs in runs:
+            wp.launch(kernel, dim, inputs, device=device, block_dim=block_dim)
+        with _POOLS_LOCK:
+            _LOADED[key] = kernel
+        return
+    futures = [
+        pool.submit(wp.launch, kernel, dim, inputs, device=device, block_dim=block_dim)
+        for dim, inputs in runs
+    ]
+    wait(futures)  # every run ends before an error is raised: they write the caller's buffers
+    for future in futures:
         future.result()
 
 

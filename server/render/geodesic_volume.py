@@ -39,7 +39,6 @@ where the routes per sample walk some forty atoms'). Value and gradient come fro
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import Any, no_type_check
 
 import warp as wp
@@ -912,8 +911,6 @@ class GeodesicVolume:
         self.warps = int(dev.sm_count) * WARPS_PER_SM if self.cuda else 1
         self.threads = 1 if self.cuda else max(int(threads or _device.host_threads()), 1)
         """Host threads the fill is split across (the CPU device; 1 on CUDA)."""
-        self._filled = False
-        """Whether a fill has run (compiled and loaded its kernel) on the calling thread."""
         self.vol = _wp.zeros(1, dtype=VolumeInfo, device=device)
         self.count = _wp.zeros(1, dtype=_wp.int32, device=device)
         self.capacity = 0
@@ -1035,11 +1032,10 @@ class GeodesicVolume:
         threads = self.warps * BRICK_POINTS
         last = self.planned if self.lanes > 1 else _ALL
         how = _fill(self.warps, self.together, self.lanes, 0, last)
-        if self.threads > 1 and self.lanes == 1 and self._filled:
+        if self.threads > 1 and self.lanes == 1:
             self._fill_on_threads(where, parts, keep)
         else:
             _wp.launch(self.fill, threads, (*where, how, *parts, *keep), device=dev)
-            self._filled = True
         if self.lanes > 1:
             _wp.launch(sum_kernel, last * BRICK_POINTS, (*where, how, *parts, *keep), device=dev)
             # bricks past the plan (the molecule grew since): one group each
@@ -1062,12 +1058,14 @@ class GeodesicVolume:
         cuts = [listed * j // runs for j in range(runs + 1)]
         threads = self.warps * BRICK_POINTS
 
-        def run(j: int) -> Callable[[], None]:
-            how = _fill(self.warps, self.together, 1, cuts[j], cuts[j + 1])
-            args = (*where, how, *parts, *keep)
-            return lambda: _wp.launch(self.fill, threads, args, device=self.device)
-
-        _device.on_host_threads(self.threads, [run(j) for j in range(runs)])
+        launches = [
+            (
+                threads,
+                (*where, _fill(self.warps, self.together, 1, cuts[j], cuts[j + 1]), *parts, *keep),
+            )
+            for j in range(runs)
+        ]
+        _device.split_launch(self.fill, launches, self.device, self.threads)
 
     def field(self, geo: GeodesicField) -> GeodesicVolumeField:
         f = GeodesicVolumeField()

@@ -212,9 +212,6 @@ class Renderer(ImageOutputs):
         self._host_threads = max(t.cpu_threads or devmod.host_threads(), 1) if split else 1
         """Host threads the CPU device's ray passes and geodesic fill are split across
         (`_ray_runs`, `GeodesicVolume`)."""
-        self._launched: set[int] = set()
-        """Kernels launched once whole on this renderer's thread (compiled and loaded there,
-        before runs of them go to several threads at once)."""
         trial = t.part_trial if t.part_trial is not None else self._cuda
         self._part_trial = PartTrial() if trial and t.part_bounds is None else None
         self._frame_parts: tuple[Derived, str, PartMode] | None = None
@@ -1473,18 +1470,9 @@ class Renderer(ImageOutputs):
         block_dim: int | None = None,
     ) -> None:
         """`kernel` over the image's rays as `runs` (`_ray_runs`) gives them: one launch, or
-        runs on the host threads once the kernel has been launched whole on this thread."""
-        dev = self.device
-        if len(runs) == 1 or id(kernel) not in self._launched:
-            for threads, c in runs:  # one after the other: the first compiles and loads it
-                wp.launch(kernel, threads, args_of(c), device=dev, block_dim=block_dim)
-            self._launched.add(id(kernel))
-            return
-        launches = [
-            functools.partial(wp.launch, kernel, t, args_of(c), device=dev, block_dim=block_dim)
-            for t, c in runs
-        ]
-        devmod.on_host_threads(self._host_threads, launches)
+        runs on the host threads (`device.split_launch`)."""
+        launches = [(threads, args_of(c)) for threads, c in runs]
+        devmod.split_launch(kernel, launches, self.device, self._host_threads, block_dim)
 
     def _budget_for(self, pixels: int) -> int:
         """Passes before an iso ray is queued for the split second kernel (0: one kernel)."""

@@ -187,9 +187,9 @@ def test_the_cpu_fill_split_across_host_threads_is_the_fill_of_one(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The CPU device runs a launch on the thread that makes it, and the fill is most of a
-    geodesic frame there: after the first frame's (which compiles it on the renderer's own
-    thread), the fill runs as runs of the listed bricks on several host threads. A brick's
-    points are its own, so the grid and the image are those of one thread, bit for bit."""
+    geodesic frame there: once its kernel is loaded (by one thread), the fill runs as runs of
+    the listed bricks on several host threads. A brick's points are its own, so the grid and
+    the image are those of one thread, bit for bit."""
     mol = villin()
     params = RenderParams(scale_space="geodesic")
     cam = orbit(fit_camera(mol.positions, W, H), 30.0, 20.0)
@@ -212,7 +212,7 @@ def test_the_cpu_fill_split_across_host_threads_is_the_fill_of_one(
             r.render(params, cam, W, H)
         assert r.last_density == "geodesic_volume"
         runs.append((*_walked(r), *_three(r)))
-    assert split == [3]  # the second frame of three threads, and no frame of one
+    assert split == [3, 3]  # both frames of three threads, and no frame of one
     assert len(runs[0][0]) > 1000
     for a, b in zip(*runs, strict=True):
         np.testing.assert_array_equal(a, b)

@@ -291,20 +291,21 @@ def test_split_rays_draw_the_same_image(device: str, scene: str, budget: int, la
 def test_the_cpu_devices_rays_split_across_host_threads_draw_the_same_image(
     mode: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """warp's CPU device runs a launch on the thread that makes it; from a kernel's second
-    launch the march, the shading and the volume cast run as runs of whole 8x4 tiles on several
-    host threads. Each pixel is its run's alone, so the image, its depths, atoms and pass counts
-    are one launch's bit for bit, whole or a band of it."""
+    """warp's CPU device runs a launch on the thread that makes it; once a kernel is loaded the
+    march, the shading and the volume cast run as runs of whole 8x4 tiles on several host
+    threads. Each pixel is its run's alone, so the image, its depths, atoms and pass counts are
+    one launch's bit for bit, whole or a band of it."""
     from server.render import device
 
     spread: list[int] = []
-    on_host_threads = device.on_host_threads
+    split_launch = device.split_launch
 
-    def counted(threads: int, runs: list) -> None:  # type: ignore[type-arg]
-        spread.append(len(runs))
-        on_host_threads(threads, runs)
+    def counted(kernel: object, runs: list, dev: str, threads: int, *rest: object) -> None:  # type: ignore[type-arg]
+        if threads > 1:
+            spread.append(len(runs))
+        split_launch(kernel, runs, dev, threads, *rest)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(device, "on_host_threads", counted)
+    monkeypatch.setattr(device, "split_launch", counted)
     n = 120
     top = make_topology(n)
     pos = blob(n, seed=5, spread=8.0)
@@ -319,8 +320,8 @@ def test_the_cpu_devices_rays_split_across_host_threads_draw_the_same_image(
             r.render(params, cam, W, H, tile)
             got = (r.read_rgba(), r.read_depth(), r.read_atom_ids(), r.read_pass_counts())
             outs.append(tuple(np.array(x, copy=True) for x in got))
-    assert spread and all(runs > 3 for runs in spread)  # the threads' runs, not the one's
-    assert len(spread) == (2 if mode == "iso" else 1) * 2  # the second frame and the band
+    assert all(runs > 3 for runs in spread)  # the threads' runs
+    assert len(spread) == (2 if mode == "iso" else 1) * 3  # each kernel of each frame
     for a, b in zip(outs[:3], outs[3:], strict=True):
         for x, y in zip(a, b, strict=True):
             np.testing.assert_array_equal(x, y)
