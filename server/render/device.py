@@ -48,6 +48,9 @@ RUNS_PER_HOST_THREAD = 4
 molecule against rays past it, bricks at its core against its edge), and a thread that is done
 takes the next run."""
 
+LAUNCH_POOL = "cpu-launch"
+"""The name its threads' names begin with: the pool lives with the process (its idle threads
+end with it)."""
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _LOADED: dict[tuple[int, str, int | None], Any] = {}
 """Kernels launched on a device with a block size (compiled and loaded there), held so that
@@ -72,7 +75,7 @@ def split_launch(
         loaded = key in _LOADED
         pool = _POOLS.get(threads)
         if pool is None and threads > 1 and loaded:
-            pool = ThreadPoolExecutor(threads, thread_name_prefix="cpu-launch")
+            pool = ThreadPoolExecutor(threads, thread_name_prefix=LAUNCH_POOL)
             _POOLS[threads] = pool
     if pool is None or len(runs) < 2:
         for dim, inputs in runs:
