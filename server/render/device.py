@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import threading
@@ -51,6 +52,16 @@ takes the next run."""
 LAUNCH_POOL = "cpu-launch"
 """The name its threads' names begin with: the pool lives with the process (its idle threads
 end with it)."""
+
+
+def run_cuts(count: int, threads: int) -> list[tuple[int, int]]:
+    """[first, last) of each run `count` items are cut into for `threads` host threads
+    (RUNS_PER_HOST_THREAD a thread, at most one an item, one at least)."""
+    runs = max(min(threads * RUNS_PER_HOST_THREAD, count), 1)
+    cuts = [count * j // runs for j in range(runs + 1)]
+    return list(itertools.pairwise(cuts))
+
+
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _LOADED: dict[tuple[int, str, int | None], Any] = {}
 """Kernels launched on a device with a block size (compiled and loaded there), held so that

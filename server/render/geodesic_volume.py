@@ -1048,22 +1048,15 @@ class GeodesicVolume:
     def _fill_on_threads(
         self, where: tuple[Any, ...], parts: tuple[Any, ...], keep: tuple[Any, ...]
     ) -> None:
-        """The fill on the CPU device as runs of the listed bricks (`device.RUNS_PER_HOST_THREAD`
-        a thread),
-        each its own launch on a thread of the pool: a brick's points are its own, so the runs
-        write apart, and the values are those of one launch bit for bit (the CPU device runs a
-        launch on the thread that makes it; the fill is most of a geodesic frame there)."""
+        """The fill on the CPU device as runs of the listed bricks (`device.run_cuts`), each its
+        own launch on a thread of the pool: a brick's points are its own, so the runs write
+        apart, and the values are those of one launch bit for bit (the CPU device runs a launch
+        on the thread that makes it; the fill is most of a geodesic frame there)."""
         listed = int(self.count.numpy()[0])  # the CPU device has run the scan already
-        runs = min(self.threads * _device.RUNS_PER_HOST_THREAD, max(listed, 1))
-        cuts = [listed * j // runs for j in range(runs + 1)]
         threads = self.warps * BRICK_POINTS
-
         launches = [
-            (
-                threads,
-                (*where, _fill(self.warps, self.together, 1, cuts[j], cuts[j + 1]), *parts, *keep),
-            )
-            for j in range(runs)
+            (threads, (*where, _fill(self.warps, self.together, 1, lo, hi), *parts, *keep))
+            for lo, hi in _device.run_cuts(listed, self.threads)
         ]
         _device.split_launch(self.fill, launches, self.device, self.threads)
 

@@ -1453,13 +1453,11 @@ class Renderer(ImageOutputs):
         tiles = threads // raycast.TILE
         if self._cuda or n <= 1 or budget > 0 or tiles < 2 * n:
             return [(threads, cam)]
-        count = min(n * devmod.RUNS_PER_HOST_THREAD, tiles)
-        cuts = [tiles * j // count for j in range(count + 1)]
         runs = []
-        for j in range(count):
+        for lo, hi in devmod.run_cuts(tiles, n):
             c = cam_run()
-            c.first_tile = cuts[j]
-            runs.append(((cuts[j + 1] - cuts[j]) * raycast.TILE, c))
+            c.first_tile = lo
+            runs.append(((hi - lo) * raycast.TILE, c))
         return runs
 
     def _launch_rays(
