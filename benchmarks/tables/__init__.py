@@ -29,6 +29,7 @@ from .geodesic import (
     geodesic_gate,
     geodesic_line_weights,
     geodesic_route_major,
+    geodesic_route_math,
     geodesic_route_once,
     route_sharing,
     side_walk,
@@ -115,6 +116,18 @@ TABLES: dict[str, Table] = {
             "render_h200_densities_running_least_again.json",
         ),
         geodesic_line_weights,
+    ),
+    "geodesic-route-math": Table(
+        (
+            "render_h200_geodesic_route_math.json",
+            "render_h200_geodesic_route_math_before.json",
+            "render_h200_geodesic_route_math_across.json",
+            "render_h200_geodesic_route_math_again.json",
+            "render_h200_geodesic_route_math_before_again.json",
+            "render_h200_geodesic_route_math_classical.json",
+            "render_h200_geodesic_route_math_classical_1m.json",
+        ),
+        geodesic_route_math,
     ),
     "geodesic-fill-registers": Table(
         ("render_h200_geodesic_fill_registers.json",), render_variants

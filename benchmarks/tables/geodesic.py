@@ -237,3 +237,52 @@ def visible_bricks(sources: list[Source]) -> str:
     reach = res["rows"][0]["reach_A"]
     note = f"sigma {res['rows'][0]['sigma_A']:g} A, reach {reach:.2f} A"
     return block(sources, table(header, "rlrrr", rows), note)
+
+
+def geodesic_route_math(sources: list[Source]) -> str:
+    """The geodesic frame with each route's distance across taken from |p - a_i|^2 and the
+    projection (no vector to the bond) and its smooth clamp's two halves' t taken out ("today"),
+    against the code before (its own checkout, the same device session, the same frames), with
+    the distance across alone between them; both pairs again at the end of the session. Ratios
+    are frame rates and grid-stage rates against the control; the classical frames come from
+    the files after the fifth (earlier sessions of the same day, one H200; the first that holds
+    the case)."""
+    (_, today), (_, before), (_, across), (_, again), (_, before_again) = sources[:5]
+    was, mid, now2, was2 = (_by_variant(r) for r in (before, across, again, before_again))
+    flat: dict[tuple[int, int, int], Results] = {}
+    for _, res in sources[5:]:
+        for key, v in _by_variant(res).items():
+            flat.setdefault(key, v)
+    rows = []
+    for v in today["variants"]:
+        key = (v["n_atoms"], v["width"], v["height"])
+        b, ms = was[key], v["median_ms"]
+        rows.append(
+            [
+                count(v["n_atoms"]),
+                size(v["width"], v["height"]),
+                num(b["median_ms"], 2),
+                num(ms, 2),
+                f"{b['median_ms'] / ms:.2f}",
+                f"{was2[key]['median_ms'] / now2[key]['median_ms']:.2f}",
+                f"{b['stages_ms']['grid'] / v['stages_ms']['grid']:.2f}",
+                f"{b['median_ms'] / mid[key]['median_ms']:.2f}",
+                f"{flat[key]['median_ms'] / ms:.2f}",
+            ]
+        )
+    header = [
+        "atoms",
+        "image",
+        "before ms",
+        "today ms",
+        "frame rate / before",
+        "again",
+        "grid stage / before",
+        "distance across alone / before",
+        "geodesic / classical frame rate",
+    ]
+    return block(sources, table(header, "rlrrrrrrr", rows), params(today))
+
+
+def _by_variant(res: Results) -> dict[tuple[int, int, int], Results]:
+    return {(v["n_atoms"], v["width"], v["height"]): v for v in res["variants"]}
