@@ -77,7 +77,7 @@ class Routes:
 
     Route k this frame: `seg_a[k]` = (a_i, g_i), `seg_v[k]` = (a_j - a_i, g_j) and
     `seg_l[k]` = (|a_j - a_i|, 1 / |a_j - a_i|^2) of its bond (i, j), g the graph distance
-    from that end to the route's atom (inf beyond the tables' reach); a_j - a_i = 0 for an
+    from that end to the route's atom (FAR beyond the tables' reach); a_j - a_i = 0 for an
     atom without bonds (a bond of length 0, 1 / length^2 taken as 0). Each route has its own
     copy of its bond's geometry: independent loads, not a bond index and then the bond
     (`route_bond`), and the length and its inverse made once a frame, not at every point
@@ -211,19 +211,21 @@ FLOOR = 1.0e-26
 weights relative to the straight line may have lost some to underflow, and the atom's mean is
 taken by `atom_distance` instead."""
 _FLOOR = wp.constant(FLOOR)  # type: ignore[no-untyped-call]
-_FAR = wp.constant(1.0e30)  # type: ignore[no-untyped-call]
+FAR = 1.0e30
+"""The graph distance this frame's tables give an end beyond their reach: finite, so a route
+through it weighs exactly 0 in `weigh` with no test (inf would make 0 x inf of its weighted
+length), and longer than any route the running least (`boltzmann`) keeps."""
+_FAR = wp.constant(FAR)  # type: ignore[no-untyped-call]
 
 
 @wp.func
 @no_type_check
 def weigh(acc: wp.vec2, c: wp.vec2, ref: float, inv_tau: float) -> wp.vec2:
     """(sum of weights, sum of weighted routes) with a bond's two routes c added, each
-    weighed exp((ref - c) / tau); a route beyond the tables' reach (inf) weighs 0."""
-    c0 = wp.min(c[0], _FAR)
-    c1 = wp.min(c[1], _FAR)
-    e0 = wp.exp((ref - c0) * inv_tau)
-    e1 = wp.exp((ref - c1) * inv_tau)
-    return wp.vec2(acc[0] + e0 + e1, acc[1] + c0 * e0 + c1 * e1)
+    weighed exp((ref - c) / tau); a route beyond the tables' reach (FAR) weighs 0."""
+    e0 = wp.exp((ref - c[0]) * inv_tau)
+    e1 = wp.exp((ref - c[1]) * inv_tau)
+    return wp.vec2(acc[0] + e0 + e1, acc[1] + c[0] * e0 + c[1] * e1)
 
 
 @wp.func
@@ -884,7 +886,8 @@ def distances_kernel(
     route_g: wp.array[wp.vec2],
 ):
     """An atom's graph distances this frame: the current bond weights summed along its
-    shortest-path tree (nodes in the order the build settled them), then each route's ends."""
+    shortest-path tree (nodes in the order the build settled them), then each route's ends
+    (FAR for an end beyond the tables' reach)."""
     a = wp.tid()
     n0 = node_start[a]
     node_g[n0] = 0.0
@@ -892,8 +895,8 @@ def distances_kernel(
         node_g[k] = node_g[n0 + node_parent[k]] + weight[node_edge[k]]
     for r in range(route_start[a], route_start[a + 1]):
         kk = route_nodes[r]
-        gi = wp.inf
-        gj = wp.inf
+        gi = _FAR
+        gj = _FAR
         if kk[0] >= 0:
             gi = node_g[n0 + kk[0]]
         if kk[1] >= 0:
