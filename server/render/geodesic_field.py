@@ -159,16 +159,17 @@ def route_bond(r: Routes, k: int) -> RouteBond:
 @no_type_check
 def pair_at(b: RouteBond, p: wp.vec3, tau2: float) -> wp.vec2:
     """The two routes from p through bond b (via its end i, via its end j). The distance
-    across, |p - (a_i + u v)|^2 = |e|^2 + u (u l^2 - 2 e.v) with e = p - a_i, takes no vector
-    to the bond; an atom without bonds (v = 0, 1 / length^2 taken as 0) has t = 0 and w = 0,
-    where u = 0.5 + 0.5 (0 - 1) = 0 and the route is its straight line, with no branch."""
+    across is that of q = e - u v with e = p - a_i (the projection's own difference), not
+    |e|^2 + u (u l^2 - 2 e.v): that expansion cancels terms of the bond's length squared near
+    an end, an error of some eps l^2 / (2 tau) on the route, 6e-5 A at tau = 0.01 A. An atom
+    without bonds (v = 0, 1 / length^2 taken as 0) has t = 0 and w = 0, where
+    u = 0.5 + 0.5 (0 - 1) = 0 and the route is its straight line, with no branch."""
     e = p - b.ai
-    ev = wp.dot(e, b.v)
-    t = ev * b.inv_l2
+    t = wp.dot(e, b.v) * b.inv_l2
     # ramp(t) - ramp(t - 1), its two halves' t taken out
     u = 0.5 + 0.5 * (wp.sqrt(t * t + b.w2) - wp.sqrt((t - 1.0) * (t - 1.0) + b.w2))
-    q2 = wp.max(wp.dot(e, e) + u * (u * b.length * b.length - 2.0 * ev), 0.0)
-    across = wp.sqrt(q2 + tau2)
+    q = e - b.v * u
+    across = wp.sqrt(wp.dot(q, q) + tau2)
     return wp.vec2(across + u * b.length + b.g[0], across + (1.0 - u) * b.length + b.g[1])
 
 
