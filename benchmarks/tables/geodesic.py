@@ -241,7 +241,8 @@ def visible_bricks(sources: list[Source]) -> str:
 
 def geodesic_route_math(sources: list[Source]) -> str:
     """The geodesic frame with each route's distance across taken from |p - a_i|^2 and the
-    projection (no vector to the bond) and its smooth clamp's two halves' t taken out ("today"),
+    projection (the expansion timed on 2026-12-02; the code now takes |e - u v|^2, as many
+    operations) and its smooth clamp's two halves' t taken out ("today"),
     against the code before (its own checkout, the same device session, the same frames), with
     the distance across alone between them; both pairs again at the end of the session. Ratios
     are frame rates and grid-stage rates against the control; the classical frames come from
