@@ -114,9 +114,11 @@ class GeodesicField:
 
 @wp.func
 @no_type_check
-def ramp(x: float, w2: float) -> float:
-    """The smooth clamp's half, (x + sqrt(x^2 + w^2)) / 2, from w^2."""
-    return 0.5 * (x + wp.sqrt(x * x + w2))
+def smooth_clamp(t: float, w2: float) -> float:
+    """ramp(t) - ramp(t - 1) with ramp(x) = (x + sqrt(x^2 + w^2)) / 2, from w^2
+    (`geodesic.smooth_clamp`), its two halves' t taken out. With w = 0 and t = 0 (an atom
+    without bonds) it is 0.5 + 0.5 (0 - 1) = 0."""
+    return 0.5 + 0.5 * (wp.sqrt(t * t + w2) - wp.sqrt((t - 1.0) * (t - 1.0) + w2))
 
 
 @wp.func
@@ -162,12 +164,10 @@ def pair_at(b: RouteBond, p: wp.vec3, tau2: float) -> wp.vec2:
     across is that of q = e - u v with e = p - a_i (the projection's own difference), not
     |e|^2 + u (u l^2 - 2 e.v): that expansion cancels terms of the bond's length squared near
     an end, an error of some eps l^2 / (2 tau) on the route, 6e-5 A at tau = 0.01 A. An atom
-    without bonds (v = 0, 1 / length^2 taken as 0) has t = 0 and w = 0, where
-    u = 0.5 + 0.5 (0 - 1) = 0 and the route is its straight line, with no branch."""
+    without bonds (v = 0, 1 / length^2 taken as 0) has t = 0 and w = 0, where u = 0 and the
+    route is its straight line, with no branch."""
     e = p - b.ai
-    t = wp.dot(e, b.v) * b.inv_l2
-    # ramp(t) - ramp(t - 1), its two halves' t taken out
-    u = 0.5 + 0.5 * (wp.sqrt(t * t + b.w2) - wp.sqrt((t - 1.0) * (t - 1.0) + b.w2))
+    u = smooth_clamp(wp.dot(e, b.v) * b.inv_l2, b.w2)
     q = e - b.v * u
     across = wp.sqrt(wp.dot(q, q) + tau2)
     return wp.vec2(across + u * b.length + b.g[0], across + (1.0 - u) * b.length + b.g[1])
@@ -351,7 +351,7 @@ def atom_distance_grad(r: Routes, a: int, p: wp.vec3) -> wp.vec4:
         du = wp.vec3(0.0, 0.0, 0.0)
         if b.inv_l2 > 0.0:
             t = wp.dot(p - b.ai, b.v) * b.inv_l2
-            u = ramp(t, b.w2) - ramp(t - 1.0, b.w2)
+            u = smooth_clamp(t, b.w2)
             du = b.v * ((ramp_slope(t, b.w2) - ramp_slope(t - 1.0, b.w2)) * b.inv_l2)
         q = p - (b.ai + b.v * u)
         across = wp.sqrt(wp.dot(q, q) + r.tau2)

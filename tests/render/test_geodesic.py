@@ -658,8 +658,7 @@ def test_a_routes_distance_across_keeps_its_precision_near_a_bonds_ends() -> Non
     a, b, q = (x.astype(np.float64) for x in (ai32, v32, p32))
     length = np.linalg.norm(b, axis=1)
     t = np.einsum("ij,ij->i", q - a, b) / length**2
-    w2 = tau2 / length**2
-    u = 0.5 * (t + np.sqrt(t * t + w2)) - 0.5 * (t - 1.0 + np.sqrt((t - 1.0) ** 2 + w2))
+    u = geodesic.smooth_clamp(t, np.sqrt(tau2) / length)
     across = np.sqrt(np.sum((q - (a + b * u[:, None])) ** 2, axis=1) + tau2)
     want = np.stack([across + u * length, across + (1.0 - u) * length], axis=1)
     got = out.numpy().astype(np.float64)
