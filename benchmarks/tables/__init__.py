@@ -119,6 +119,10 @@ TABLES: dict[str, Table] = {
     ),
     "geodesic-route-math": Table(
         (
+            "render_h200_geodesic_route_math_qform.json",
+            "render_h200_geodesic_route_math_qform_before.json",
+            "render_h200_geodesic_route_math_qform_again.json",
+            "render_h200_geodesic_route_math_qform_before_again.json",
             "render_h200_geodesic_route_math.json",
             "render_h200_geodesic_route_math_before.json",
             "render_h200_geodesic_route_math_across.json",

@@ -240,18 +240,20 @@ def visible_bricks(sources: list[Source]) -> str:
 
 
 def geodesic_route_math(sources: list[Source]) -> str:
-    """The geodesic frame with each route's distance across taken from |p - a_i|^2 and the
-    projection (the expansion timed on 2026-12-02; the code now takes |e - u v|^2, as many
-    operations) and its smooth clamp's two halves' t taken out ("today"),
-    against the code before (its own checkout, the same device session, the same frames), with
-    the distance across alone between them; both pairs again at the end of the session. Ratios
-    are frame rates and grid-stage rates against the control; the classical frames come from
-    the files after the fifth (earlier sessions of the same day, one H200; the first that holds
-    the case)."""
-    (_, today), (_, before), (_, across), (_, again), (_, before_again) = sources[:5]
-    was, mid, now2, was2 = (_by_variant(r) for r in (before, across, again, before_again))
+    """The geodesic frame with each route's distance across as |e - u v|^2 and its smooth
+    clamp's two halves' t taken out (the code shipped, "today"), against the code before (its
+    own checkout, the same device session, the same frames, both again at the session's end).
+    An earlier session of the same day timed the expansion |e|^2 + u (u l^2 - 2 e.v) (the
+    next five files: itself, its control, the distance across alone, both again), given as its
+    frame rate against its own control. Ratios are frame rates and grid-stage rates against
+    the control; the classical frames come from the files after those (one H200; the first
+    that holds the case)."""
+    (_, today), (_, before), (_, again), (_, before_again) = sources[:4]
+    (_, exp), (_, exp_before), (_, across) = sources[4:7]
+    was, now2, was2 = (_by_variant(r) for r in (before, again, before_again))
+    e_now, e_was, mid = (_by_variant(r) for r in (exp, exp_before, across))
     flat: dict[tuple[int, int, int], Results] = {}
-    for _, res in sources[5:]:
+    for _, res in sources[9:]:
         for key, v in _by_variant(res).items():
             flat.setdefault(key, v)
     rows = []
@@ -267,7 +269,8 @@ def geodesic_route_math(sources: list[Source]) -> str:
                 f"{b['median_ms'] / ms:.2f}",
                 f"{was2[key]['median_ms'] / now2[key]['median_ms']:.2f}",
                 f"{b['stages_ms']['grid'] / v['stages_ms']['grid']:.2f}",
-                f"{b['median_ms'] / mid[key]['median_ms']:.2f}",
+                f"{e_was[key]['median_ms'] / e_now[key]['median_ms']:.2f}",
+                f"{e_was[key]['median_ms'] / mid[key]['median_ms']:.2f}",
                 f"{flat[key]['median_ms'] / ms:.2f}",
             ]
         )
@@ -279,10 +282,11 @@ def geodesic_route_math(sources: list[Source]) -> str:
         "frame rate / before",
         "again",
         "grid stage / before",
-        "distance across alone / before",
+        "the expansion / before (earlier run)",
+        "distance across alone / before (earlier run)",
         "geodesic / classical frame rate",
     ]
-    return block(sources, table(header, "rlrrrrrrr", rows), params(today))
+    return block(sources, table(header, "rlrrrrrrrr", rows), params(today))
 
 
 def _by_variant(res: Results) -> dict[tuple[int, int, int], Results]:
