@@ -1606,9 +1606,10 @@ def test_video_encoders_are_bounded_and_given_back_when_their_viewers_leave(
         # the others leave: every stream closes with its last viewer, no render needed
         for v in viewers[1:]:
             v.close()
-        assert wait_for(lambda: streams()["open"] == 0)
+        # (60 s: under a loaded host the closes and the trim queue behind the CPU's renders)
+        assert wait_for(lambda: streams()["open"] == 0, 60)
         # the encoders' memory goes back to the system (most of it: the heap keeps some)
-        assert wait_for(lambda: server.rss_bytes() - before < (peak - before) / 2), (
+        assert wait_for(lambda: server.rss_bytes() - before < (peak - before) / 2, 60), (
             before >> 20,
             peak >> 20,
             server.rss_bytes() >> 20,
