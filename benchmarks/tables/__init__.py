@@ -44,6 +44,7 @@ from .render import (
     periodic_live,
     reach,
     render_densities,
+    render_kernels,
     render_passes,
     render_variants,
     sort_last,
@@ -117,6 +118,7 @@ TABLES: dict[str, Table] = {
         ),
         geodesic_line_weights,
     ),
+    "render-kernels": Table(("render_h200_profile_today.json",), render_kernels),
     "geodesic-route-math": Table(
         (
             "render_h200_geodesic_route_math_qform.json",

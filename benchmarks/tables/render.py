@@ -5,6 +5,8 @@ periodic_bench.py."""
 
 from __future__ import annotations
 
+import re
+
 from .markdown import Results, Source, block, count, num, size, stem, table
 
 
@@ -381,3 +383,44 @@ def sort_last(sources: list[Source]) -> str:
         "image vs one device, max / mean levels",
     ]
     return block(sources, table(header, "llrllrrllrl", rows))
+
+
+def _kernel_name(activity: str) -> str:
+    """`forward kernel _make__locals__iso_march_kernel_31bd5b71` -> `iso_march`."""
+    name = activity.removeprefix("forward kernel ")
+    for local in ("_make__locals__", "_bound_kernels__locals__"):
+        name = name.removeprefix(local)
+    name = re.sub(r"_[0-9a-f]{6,8}$", "", name)
+    return name.removesuffix("_kernel").lstrip("_")
+
+
+def render_kernels(sources: list[Source]) -> str:
+    """Where a frame's device time goes: each profiled case's kernels timed one launch at a
+    time (`render_bench.py --sections profile`), the largest five and the rest, each with its
+    share of their sum; the frame's wall time from the same run's variants where it has the
+    case (the classical density)."""
+    (_, res) = sources[0]
+    frames = {(v["n_atoms"], v["width"], v["height"]): v for v in res.get("variants", [])}
+    rows = []
+    for prof in res["profile"]:
+        acts = sorted(prof["activities_ms"].items(), key=lambda kv: -kv[1])
+        total = prof["sum_ms"]
+        top = [f"{_kernel_name(k)} {v:.3f} ({100 * v / total:.0f} %)" for k, v in acts[:5]]
+        rest = sum(v for _, v in acts[5:])
+        top.append(f"{len(acts) - 5} more {rest:.3f} ({100 * rest / total:.0f} %)")
+        frame = frames.get((prof["n_atoms"], prof["width"], prof["height"]))
+        wall = num(frame["median_ms"], 3) if frame and prof["scale_space"] == "classical" else ""
+        if prof["variant"] != "iso":
+            wall = ""
+        case = (
+            f"{count(prof['n_atoms'])} atoms {size(prof['width'], prof['height'])} "
+            f"{prof['scale_space']} {prof['variant']}"
+        )
+        rows.append([case, wall, num(total, 3), "; ".join(top)])
+    header = [
+        "case",
+        "frame ms (wall)",
+        "kernels' sum ms",
+        "largest kernels, ms (share of the sum)",
+    ]
+    return block(sources, table(header, "lrrl", rows), params(res))
