@@ -158,6 +158,14 @@ class Lammps:
                     continue
         return out
 
+    def minimized_steps(self) -> int:
+        """The steps the script's minimisation took (LAMMPS's step counter where the first
+        run begins), from its "Iterations, force evaluations = I F" line."""
+        for line in self.log().splitlines():
+            if "Iterations, force evaluations" in line:
+                return int(line.split("=")[1].split()[0])
+        raise AssertionError(f"no minimisation in {self.workdir / 'lammps.out'}")
+
     def final_positions(self) -> np.ndarray:
         rows = (self.workdir / "final.dump").read_text().splitlines()[9:]
         return np.array([[float(v) for v in r.split()[1:4]] for r in rows])
