@@ -94,7 +94,8 @@ class Dashboard {
     this.shownRate = new RateMeter(2000);
     this.acks = new AckTracker();
     this.plots = new Plots({ windowS: Number($("plot-window").value) });
-    this.renderPanel = new RenderPanel({ onChange: (patch, final) => this.steerRender(patch, final) });
+    const onInvalid = (text) => this.notices.notify({ level: "warning", code: "input", message: text });
+    this.renderPanel = new RenderPanel({ onChange: (patch, final) => this.steerRender(patch, final), onInvalid });
     this.layersPanel = new LayersPanel({
       onChange: (layers) => this.steerRender({ layers }, true),
       select: (text) => this.connection.request({ type: "select", text }),
@@ -116,7 +117,7 @@ class Dashboard {
     this.simPanel = new SimPanel({
       onControl: (action, extra, label) => this.control(action, extra, label),
       onParam: (key, value) => this.simParam(key, value),
-      onInvalid: (text) => this.notices.notify({ level: "warning", code: "input", message: text }),
+      onInvalid,
     });
     this.timeline = new Timeline({
       onControl: (action, extra, label) => this.control(action, extra, label),

@@ -4,8 +4,6 @@
 import { $, isBusy, markEdited } from "./dom.js";
 import {
   RENDER_DEFAULTS,
-  SIGMA_SLIDER,
-  clamp,
   clampParam,
   sessionColourApplies,
   shownSpace,
@@ -18,9 +16,11 @@ import { sig } from "./format.js";
 const SLIDER_STEPS = 1000;
 
 export class RenderPanel {
-  /** onChange(patch, final): final is false while a slider is being dragged. */
-  constructor({ onChange }) {
+  /** onChange(patch, final): final is false while a slider is being dragged; onInvalid(text):
+   * a typed value was not sent (outside its field's range). */
+  constructor({ onChange, onInvalid = () => {} }) {
     this.onChange = onChange;
+    this.onInvalid = onInvalid;
     this.render = JSON.parse(JSON.stringify(RENDER_DEFAULTS));
     this.sigmaSlider = $("sigma-slider");
     this.sigmaNumber = $("sigma-number");
@@ -49,6 +49,25 @@ export class RenderPanel {
     $("panel-render").addEventListener("focusout", () => setTimeout(() => this.update(this.render), 0));
   }
 
+  /** The number typed into `input` when it lies within the field's own min and max; otherwise
+   * null: the page says it was not sent (a value out of range is not quietly moved to the
+   * nearest end) and the field shows `current`, the value in effect, again. */
+  typedNumber(input, label, unit, current) {
+    const text = input.value.trim();
+    const v = text === "" ? NaN : Number(text);
+    const lo = Number(input.min);
+    const hi = Number(input.max);
+    if (Number.isFinite(v) && v >= lo && v <= hi) return v;
+    // a number input holds "" for what it cannot read as a finite number (1e400, "abc")
+    this.onInvalid(
+      Number.isFinite(v)
+        ? `${label} ${text} is outside ${lo}–${hi}${unit}; not sent`
+        : `${label} must be a number from ${lo} to ${hi}${unit}; not sent`,
+    );
+    input.value = String(sig(current, 3));
+    return null;
+  }
+
   emit(patch, final, source) {
     if (source) markEdited(source);
     Object.assign(this.render, patch);
@@ -71,17 +90,14 @@ export class RenderPanel {
       });
     }
     this.sigmaNumber.addEventListener("change", () => {
-      const v = Number(this.sigmaNumber.value);
-      if (!Number.isFinite(v) || v <= 0) return this.update(this.render);
-      const sigma = clamp(v, SIGMA_SLIDER.min, SIGMA_SLIDER.max);
-      this.sigmaNumber.value = String(sigma);
+      const sigma = this.typedNumber(this.sigmaNumber, "σ", " Å", this.render.sigma_A);
+      if (sigma === null) return;
       this.sigmaSlider.value = String(Math.round(sliderFromSigma(sigma) * SLIDER_STEPS));
       this.emit({ sigma_A: sigma }, true, this.sigmaNumber);
     });
     this.isoNumber.addEventListener("change", () => {
-      const iso = clampParam("iso_level", this.isoNumber.value);
-      if (iso === null) return this.update(this.render);
-      this.isoNumber.value = String(iso);
+      const iso = this.typedNumber(this.isoNumber, "iso level", "", this.render.iso_level);
+      if (iso === null) return;
       this.isoSlider.value = String(iso);
       this.emit({ iso_level: iso }, true, this.isoNumber);
     });

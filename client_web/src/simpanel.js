@@ -4,6 +4,7 @@
 import { $, el, isBusy, setText } from "./dom.js";
 import { integer, nanoseconds, observableLabel, sig } from "./format.js";
 import { clampParam } from "./params.js";
+import { FAILED, PENDING } from "./steering.js";
 
 export const SIM_FIELDS = ["temperature_K", "timestep_fs", "friction_per_ps", "frame_interval"];
 
@@ -19,6 +20,9 @@ export class SimPanel {
     this.disabled = false;
     this.engine = null;
     this.params = {}; // the session's simulation parameters (updateParams)
+    // key -> {value, seq} of the value sent last and not yet answered: a field restored while
+    // it is in flight shows it, not the session's older value
+    this.inFlight = new Map();
     this.bind();
     this.updateStatus(this.sim);
   }
@@ -47,6 +51,7 @@ export class SimPanel {
           if (value === null) return;
           input.value = String(value);
         }
+        this.inFlight.set(key, { value, seq: undefined });
         this.onParam(key, value);
       });
     }
@@ -152,12 +157,24 @@ export class SimPanel {
   restoreParam(key) {
     const input = this.inputs.get(key);
     if (!input) return;
-    const v = this.params?.[key];
+    const sent = this.inFlight.get(key);
+    const v = sent ? sent.value : this.params?.[key];
     input.value = v === undefined || v === null ? "" : String(v);
+  }
+
+  /** The value just given for `key` could not be sent (`why`): nothing is in flight for it. */
+  notSent(key, why) {
+    this.inFlight.delete(key);
+    this.showAck(key, { state: FAILED, text: why });
   }
 
   /** Show a status {state, text} for a parameter key or "control". */
   showAck(key, status, label = "") {
+    const sent = this.inFlight.get(key);
+    if (sent && status.seq !== undefined) {
+      if (status.state === PENDING && sent.seq === undefined) sent.seq = status.seq;
+      else if (status.state !== PENDING && status.seq === sent.seq) this.inFlight.delete(key);
+    }
     const node = document.getElementById(`ack-${key}`);
     if (!node) return;
     node.dataset.state = status.state;

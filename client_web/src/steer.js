@@ -51,7 +51,7 @@ export class DashboardSteering {
   simParam(key, value) {
     const seq = this.connection.send({ type: "sim_params", [key]: value });
     if (seq === null) {
-      this.simPanel.showAck(key, { state: "failed", text: "not connected" });
+      this.simPanel.notSent(key, "not connected");
       return;
     }
     this.simPanel.showAck(key, this.acks.sent(seq, key, key));

@@ -194,6 +194,23 @@ def test_sigma_slider_changes_the_received_image(
     dash.page.press("#sigma-number", "Enter")
     wait_until(lambda: session(live_server).render_params.sigma_A == 0.8, "sigma 0.8 arrived")
     wait_until(lambda: "sigma=0.8" in dash.evaluate("() => location.hash"), "the URL names it")
+    # a number outside the field's range is not sent (it was quietly moved to the nearest end,
+    # 1e400 to 12 A, or left in the field unsent): the page says so and shows the value in effect
+    for typed, said in (
+        ("-3", "σ -3 is outside 0.3–12 Å; not sent"),
+        ("0", "σ 0 is outside 0.3–12 Å; not sent"),
+        ("1e400", "σ must be a number from 0.3 to 12 Å; not sent"),  # the input reads no number
+    ):
+        dash.page.fill("#sigma-number", typed)
+        dash.page.press("#sigma-number", "Enter")
+        expect(dash.page.locator("#notices")).to_contain_text(said)
+        expect(dash.page.locator("#sigma-number")).to_have_value("0.8")
+    dash.page.fill("#iso-number", "0")
+    dash.page.press("#iso-number", "Enter")
+    expect(dash.page.locator("#notices")).to_contain_text("iso level 0 is outside 0.01–100")
+    expect(dash.page.locator("#iso-number")).to_have_value("0.25")
+    assert session(live_server).render_params.sigma_A == 0.8
+    assert session(live_server).render_params.iso_level == 0.25
 
 
 def test_a_field_with_the_focus_shows_another_steerers_change_when_the_focus_leaves(
@@ -379,6 +396,15 @@ def test_temperature_change_is_pending_until_acknowledged_with_its_step(
     expect(page.locator("#ack-temperature_K")).to_have_text("5000 not sent: outside the range")
     expect(page.locator("#sim-temperature")).to_have_value("350")
     expect(page.locator("#notices")).to_contain_text("outside")
+    # refused while another value is on its way: the field shows that value, not the older one
+    # the session still holds
+    page.fill("#sim-temperature", "300")
+    page.press("#sim-temperature", "Enter")
+    page.fill("#sim-temperature", "5000")
+    page.press("#sim-temperature", "Enter")
+    expect(page.locator("#sim-temperature")).to_have_value("300")
+    expect(page.locator("#ack-temperature_K")).to_have_text(re.compile(r"^applied at step [\d,]+"))
+    expect(page.locator("#sim-temperature")).to_have_value("300")
     # run control: pause, then resume, each acknowledged
     record_text(dash, "#ack-control")
     page.click("#sim-play")
