@@ -79,6 +79,10 @@ class RenderHost(Protocol):
 
     def broadcast(self, message: p.Message) -> None: ...
 
+    def take_back_render_params(self, params: p.RenderParams, why: str) -> bool:
+        """Go back to `params`, the last the session drew, because its present ones are too
+        large to draw here (`why`); False when nothing changed."""
+
 
 class RenderLoop:
     """Renders a session's due view groups each time it is marked dirty."""
@@ -107,6 +111,10 @@ class RenderLoop:
         self._render_times: list[float] = []
         self._image_ids = itertools.count(1)
         self._dirty = asyncio.Event()
+        self._drawn_params: p.RenderParams | None = None
+        """The render parameters of the last image drawn."""
+        self._refused_params: p.RenderParams | None = None
+        """Those of the last render refused as too large for this server."""
         self._refused: tuple[str, float] = ("", -math.inf)
         """The reason of the last refusal told to the clients (its numbers left out: they change
         frame by frame) and when; the same reason is told again only after `REFUSAL_REPEAT_S`."""
@@ -141,7 +149,8 @@ class RenderLoop:
                 now = time.monotonic()
                 said, when = self._refused
                 reason = re.sub(r"[0-9.]+", "#", str(exc))  # frame by frame, counts change
-                if reason != said or now - when >= REFUSAL_REPEAT_S:
+                took_back = self._take_back(exc)
+                if took_back or reason != said or now - when >= REFUSAL_REPEAT_S:
                     log.warning("render refused in session %s: %s", self.session_id, exc)
                     # too large for this server (valid input), or parameters it cannot draw
                     code = (
@@ -149,8 +158,13 @@ class RenderLoop:
                         if isinstance(exc, CapacityError)
                         else p.ErrorCode.INVALID_MESSAGE
                     )
-                    self.host.broadcast(p.Error(code=code, message=f"render refused: {exc}"))
+                    text = f"render refused: {exc}"
+                    if took_back:
+                        text += "; the session went back to the parameters it last drew"
+                    self.host.broadcast(p.Error(code=code, message=text))
                     self._refused = (reason, now)
+                if took_back:  # what it went back to is drawn again, for every view
+                    self.mark_dirty()
                 await asyncio.sleep(FAILED_RENDER_PAUSE_S)
             except Exception:
                 log.exception("render failed in session %s", self.session_id)
@@ -158,6 +172,18 @@ class RenderLoop:
                     p.Error(code=p.ErrorCode.INTERNAL, message="render failed; see the server log")
                 )
                 await asyncio.sleep(FAILED_RENDER_PAUSE_S)
+
+    def _take_back(self, exc: RenderError) -> bool:
+        """A steer made the session's parameters too large to draw here (a refusal of the
+        parameters in effect, which differ from those of the last image): the session goes
+        back to those, so its controls show what its images show. A molecule that grew too
+        large for unchanged parameters is only refused."""
+        refused, drawn = self._refused_params, self._drawn_params
+        if not isinstance(exc, CapacityError) or refused is None or drawn is None:
+            return False
+        if refused != self.host.render_params or refused == drawn:
+            return False
+        return self.host.take_back_render_params(drawn, str(exc))
 
     async def render_pending(self) -> None:
         """One pass: every view group the scheduler finds due, each rendered once."""
@@ -276,7 +302,12 @@ class RenderLoop:
             rgba=not video_only,
             jpeg_quality=None if video_only else quality,
         )
-        out: RenderOutput = await self.services.backend.render(request)
+        try:
+            out: RenderOutput = await self.services.backend.render(request)
+        except CapacityError:
+            self._refused_params = params
+            raise
+        self._drawn_params = params
         reduced = self.scheduler.note_render(
             key,
             snap.version,

@@ -703,6 +703,32 @@ class Session:
         self.scheduler.interacting(time.monotonic())
         self.mark_dirty()
 
+    def take_back_render_params(self, params: p.RenderParams, why: str) -> bool:
+        """Go back to `params` (the render loop's last drawn) because the present ones are too
+        large to draw on this server: logged as the server's change, with why, and told to every
+        client as the session's state."""
+        try:
+            merged, changes = merge_patch(self.render_params, params.model_dump())
+        except ValidationError:
+            return False
+        if not changes:
+            return False
+        try:
+            entry = {"event": "render_params", "client": "server", "changes": changes, "why": why}
+            self._log(entry)
+        except Exception:  # unrecorded, it is not made: the refusal alone is told
+            log.exception("session %s: taking back render parameters failed", self.id)
+            return False
+        self.render_params = merged
+        self.broadcast(p.State(render_params=merged))
+        if "color_by" in changes or "uniform_color" in changes:
+            self._legend_changed()
+        if any(f in changes for f in PERIODIC_FIELDS):
+            self._redisplay()
+        self.version += 1
+        self.mark_dirty()
+        return True
+
     def _redisplay(self) -> None:
         """The periodic options changed: the last frame is displayed again with them (also
         while the simulation is paused)."""

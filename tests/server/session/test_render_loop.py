@@ -16,7 +16,7 @@ import pytest
 
 import protocol as p
 from server.pipeline.gpu import GpuQueue, RenderOutput, RenderRequest, Snapshot
-from server.render.errors import RenderError
+from server.render.errors import CapacityError, RenderError
 from server.session.clients import Client
 from server.session.delivery import Delivery
 from server.session.render_loop import RenderLoop, Scene
@@ -62,6 +62,13 @@ class Host:
     def broadcast(self, message: p.Message) -> None:
         self.broadcasts.append(message)
 
+    def take_back_render_params(self, params: p.RenderParams, why: str) -> bool:
+        if params == self.render_params:
+            return False
+        self.render_params = params
+        self.version += 1
+        return True
+
 
 @dataclass
 class FailingOnce(PaintBackend):
@@ -84,6 +91,17 @@ class Refusing(PaintBackend):
     async def render(self, request: RenderRequest) -> RenderOutput:
         self.requests.append(request)
         raise RenderError(f"a slab holds {3000 + len(self.requests)} atoms; a device holds 2000")
+
+
+class TooLargeGeodesic(PaintBackend):
+    """Paints the classical density and refuses the geodesic one as too large (a sigma whose
+    samples would walk more routes than the server allows)."""
+
+    async def render(self, request: RenderRequest) -> RenderOutput:
+        if request.params.scale_space == "geodesic":
+            self.requests.append(request)
+            raise CapacityError("the geodesic density would walk about 66,396 routes a sample")
+        return await super().render(request)
 
 
 Body = Callable[[RenderLoop, Host, PaintBackend], Coroutine[Any, Any, None]]
@@ -237,6 +255,52 @@ def test_a_refusal_is_told_with_its_reason_once_while_it_repeats(
         assert error.message.startswith("render refused: a slab holds 300")
 
     run(body, tmp_path, Refusing())
+
+
+def test_a_steer_too_large_to_draw_is_taken_back_to_what_the_session_last_drew(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Geodesic at sigma 6 A was refused as too large, yet the session kept it: the dashboard
+    showed Geodesic over the last classical image, at 0 fps, until something else changed."""
+    monkeypatch.setattr("server.session.render_loop.FAILED_RENDER_PAUSE_S", 0.01)
+
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        a = client("a", "viewer")
+        host.clients["a"] = a
+        loop.mark_dirty()
+        await settle(lambda: len(images(a)) == 1)
+        drawn = host.render_params
+        host.render_params = drawn.model_copy(update={"scale_space": "geodesic", "sigma_A": 6.0})
+        host.version = 2
+        loop.mark_dirty()
+        await settle(lambda: len(backend.requests) == 3)  # the parameters it drew, drawn again
+        assert host.render_params == drawn
+        (error,) = host.broadcasts
+        assert isinstance(error, p.Error) and error.code == p.ErrorCode.TOO_LARGE
+        assert "routes a sample" in error.message and "went back" in error.message
+        assert backend.requests[-1].params == drawn
+
+    run(body, tmp_path, TooLargeGeodesic())
+
+
+def test_parameters_refused_before_anything_was_drawn_are_only_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With no image drawn yet there is nothing to go back to: the refusal is told, the
+    parameters stay."""
+    monkeypatch.setattr("server.session.render_loop.FAILED_RENDER_PAUSE_S", 0.01)
+
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        host.clients["a"] = client("a", "viewer")
+        host.render_params = host.render_params.model_copy(update={"scale_space": "geodesic"})
+        loop.mark_dirty()
+        await settle(lambda: bool(host.broadcasts))
+        (error,) = host.broadcasts
+        assert isinstance(error, p.Error) and error.code == p.ErrorCode.TOO_LARGE
+        assert "went back" not in error.message
+        assert host.render_params.scale_space == "geodesic"
+
+    run(body, tmp_path, TooLargeGeodesic())
 
 
 def test_a_snapshot_the_host_cannot_draw_yet_renders_nothing_and_frees_its_slot(

@@ -2179,6 +2179,49 @@ def test_a_geodesic_sigma_that_would_hold_the_device_for_minutes_is_refused_at_o
         server.stop()
 
 
+def test_a_geodesic_steer_too_large_to_draw_is_taken_back_in_a_live_session(
+    tmp_path: Path,
+) -> None:
+    """The same sigma steered in a live session was refused at every frame while the session
+    kept it: the dashboard's control said Geodesic over the last classical image, at 0 fps.
+    The session now goes back to the parameters it last drew and says so."""
+    server = ServerProcess(tmp_path / "state")
+    steerer: Peer | None = None
+    try:
+        with httpx.Client(base_url=server.url, timeout=120) as c, open(PDB_small, "rb") as f:
+            r = c.post(
+                "/api/replays",
+                headers={"Authorization": f"Bearer {TOKEN}"},
+                files={"topology": ("adk.pdb", f)},
+                data={"session": "adk"},
+            )
+            assert r.status_code == 201, r.text
+        steerer = Peer(server.view_url, "steerer", TOKEN, session="adk")
+        steerer.expect(p.Image, 120)
+        seq = steerer.send(p.SetRenderParams(params={"scale_space": "geodesic", "sigma_A": 50}))
+        refused: p.Error | None = None
+        back: p.State | None = None
+        deadline = time.monotonic() + 120
+        while refused is None or back is None:  # the session's state and its reason
+            m = steerer.recv(max(0.1, deadline - time.monotonic()))
+            if isinstance(m, p.Error) and "render refused" in m.message:
+                refused = m
+            elif isinstance(m, p.State) and m.render_params is not None and m.ref != seq:
+                back = m
+        assert refused.code == "too_large" and "routes a sample" in refused.message
+        assert "went back to the parameters it last drew" in refused.message
+        assert back.render_params is not None
+        assert back.render_params.scale_space == "classical" and back.render_params.sigma_A == 1.5
+        steerer.expect(p.Image, 120)  # drawn again, as it was
+        with httpx.Client(base_url=server.url, timeout=30) as c:
+            state = c.get("/api/sessions/adk", headers={"Authorization": f"Bearer {TOKEN}"})
+            assert state.json()["render_params"]["scale_space"] == "classical", state.text[:300]
+    finally:
+        if steerer is not None:
+            steerer.close()
+        server.stop()
+
+
 def test_a_form_field_an_endpoint_does_not_take_or_takes_twice_is_refused_by_name(
     tmp_path: Path,
 ) -> None:
