@@ -100,6 +100,13 @@ async def open_replay(
             )
     else:
         name = _fresh_name(state, "replay-" + _SAFE.sub("-", Path(filename).stem).strip("-.")[:40])
+    if state.sessions.full(name):  # its child would be refused, and retry for 30 s first
+        raise HTTPException(
+            503,
+            f"the server holds its limit of {state.sessions.limit} sessions (max_sessions); "
+            f"open {filename} in a session that exists, or wait for one to close",
+            headers={"Retry-After": "30"},
+        )
     folder = _library(state) / f"{name}-{int(time.time())}"
     folder.mkdir(parents=True, exist_ok=True)
     try:

@@ -74,6 +74,11 @@ class SessionRegistry:
     def get(self, name: str) -> Session | None:
         return self._sessions.get(name)
 
+    def full(self, name: str) -> bool:
+        """Whether session `name` could not be made now (it does not exist and the server
+        holds its limit of sessions)."""
+        return name not in self._sessions and len(self._sessions) >= self.limit
+
     async def reap(self, idle_s: float, keep: str = "default") -> None:
         """Close sessions nobody has used for `idle_s` (their GPU scenes go with them)."""
         now = time.monotonic()

@@ -2222,6 +2222,37 @@ def test_a_geodesic_steer_too_large_to_draw_is_taken_back_in_a_live_session(
         server.stop()
 
 
+def test_a_replay_into_a_full_server_is_refused_at_once_naming_the_limit(
+    tmp_path: Path,
+) -> None:
+    """With the server at its limit of sessions, `POST /api/replays` answered 201 "running",
+    and its child retried for 30 s before it gave up with "could not reach" the server."""
+    server = ServerProcess(tmp_path / "state", "--set", "max_sessions=3")  # "default" and two
+    peers = [Peer(server.view_url, "steerer", TOKEN, session=f"s{i}") for i in range(2)]
+    try:
+        auth = {"Authorization": f"Bearer {TOKEN}"}
+        with httpx.Client(base_url=server.url, timeout=120) as c:
+            for session, status in (("third", 503), (None, 503), ("s1", 201)):
+                t0 = time.monotonic()
+                with open(PDB_small, "rb") as f:
+                    data = {"session": session} if session else {}
+                    r = c.post(
+                        "/api/replays", headers=auth, files={"topology": ("adk.pdb", f)}, data=data
+                    )
+                assert r.status_code == status, r.text[:300]
+                if status == 503:
+                    assert time.monotonic() - t0 < 10
+                    detail = r.json()["detail"]
+                    assert "limit of 3 sessions (max_sessions)" in detail, detail
+                    assert r.headers["retry-after"] == "30"
+            peers[1].expect(p.Image, 120)  # a session that exists takes the replay
+            assert c.get("/healthz").json()["status"] == "ok"
+    finally:
+        for peer in peers:
+            peer.close()
+        server.stop()
+
+
 def test_a_form_field_an_endpoint_does_not_take_or_takes_twice_is_refused_by_name(
     tmp_path: Path,
 ) -> None:
