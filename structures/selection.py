@@ -64,6 +64,15 @@ SECONDARY_CODES = {"H": 1, "E": 2}
 """DSSP's helix and strand as per-atom codes (0: coil or not protein)."""
 
 
+TOO_DEEP_FOR_THE_PARSER = (
+    "the selection nests its operators deeper than the parser can follow (each `not`, "
+    "`byres`, `same ... as` or `around` holds what follows it one level down, as a "
+    "parenthesis does); write fewer of them one inside another"
+)
+"""Said when the selection parser runs out of recursion: operators nested without
+parentheses, which `selection_max_depth` (a count of parentheses) does not see."""
+
+
 def _backbone(names: set[str]) -> bool:
     """N, CA, C and an oxygen as DSSP reads them (O, or OC1 / OT1 at a C terminus)."""
     return {"N", "CA", "C"} <= names and bool(names & {"O", "OC1", "OT1"})
@@ -223,7 +232,7 @@ def parse(text: str) -> Any:
     except MDASelectionError as exc:
         raise _named(text, str(exc)) from None
     except RecursionError:
-        raise SelectionError(text, "the selection is nested too deeply", 0) from None
+        raise SelectionError(text, TOO_DEEP_FOR_THE_PARSER, 0) from None
     except MemoryError:
         raise
     except Exception as exc:
@@ -397,7 +406,7 @@ class Selector:
                 warnings.simplefilter("ignore")
                 group = item.tree.apply(self.universe.atoms)
         except RecursionError:
-            raise SelectionError(text, "the selection is nested too deeply", 0) from None
+            raise SelectionError(text, TOO_DEEP_FOR_THE_PARSER, 0) from None
         except MemoryError:
             raise
         except Exception as exc:  # e.g. ImportError: `smarts` without RDKit

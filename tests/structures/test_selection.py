@@ -123,8 +123,10 @@ def test_a_bad_selection_names_its_position(text: str, where: int, says: str) ->
 def test_syntax_check_without_a_topology() -> None:
     for text in [*STATIC, "around 5 resname LIG", "byres (around 3 name CA)"]:
         check_syntax(text)
-    with pytest.raises(SelectionError, match="nested too deeply"):
-        check_syntax("(" * 600 + "name CA" + ")" * 600)
+    for deep in ("(" * 600 + "name CA" + ")" * 600, "not " * 500 + "all"):
+        with pytest.raises(SelectionError, match="deeper than the parser can follow") as info:
+            check_syntax(deep)
+        assert "`not`" in str(info.value) and "fewer of them" in str(info.value)
     with pytest.raises(SelectionError, match="or around D sel"):
         check_syntax("within 3 of resname LIG")  # VMD's form: the error says how to write it
 
