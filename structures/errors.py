@@ -26,6 +26,9 @@ def reason(exc: BaseException, paths: Sequence[str]) -> str:
     text = " ".join(lines[:2]) if lines else type(inner).__name__
     if isinstance(inner, IndexError) and "size 0" in text:  # a table of atoms with no rows
         return "it has no atom records the reader could use"
+    if isinstance(inner, UnicodeDecodeError):  # a stray byte in mostly text (binary is sniffed)
+        byte = inner.object[inner.start : inner.start + 1].hex()
+        return f"it holds a byte that is not UTF-8 text (0x{byte}); save the file as UTF-8"
     if re.search(r"\\x[0-9a-f]{2}|[\x00-\x08\x0e-\x1f\x7f]", text):  # quoting binary bytes
         return "its contents are not text in the format its name says (binary data?)"
     for path in paths:

@@ -21,7 +21,7 @@ from protocol import Topology, WireArray
 from structures.binarycif import to_mmcif
 from structures.cells import CRYSTAL_FORMATS, cell_of, deposited
 from structures.errors import StructureError, reason
-from structures.textcheck import CHECKS
+from structures.textcheck import CHECKS, refuse_binary
 from structures.truncation import cut_short
 
 STRUCTURE_FORMATS = (
@@ -194,6 +194,7 @@ def load(
                 f"use one of {', '.join(TRAJECTORY_FORMATS)}"
             )
     for path in (topology, *trajectories):
+        refuse_binary(path, _fmt(path))
         check = CHECKS.get(_fmt(path))
         if check is not None:
             check(path)

@@ -36,6 +36,42 @@ def _lines(path: str) -> Iterator[tuple[int, str]]:
             yield number, line.rstrip("\r\n")
 
 
+BINARY_FORMATS = frozenset({"bcif", "tpr", "dcd", "xtc", "trr", "nc", "ncdf"})
+"""The formats read here that are not text; every other one is."""
+SNIFF_BYTES = 4096
+"""How much of a text format's file is looked at for binary data before it is read."""
+
+
+def refuse_binary(path: str, fmt: str) -> None:
+    """Refuse a file of a text format (`fmt`, any but BINARY_FORMATS) whose first bytes are
+    not text: a NUL, or more than 1 % control characters or bytes that are not UTF-8. Readers
+    otherwise answer with the bytes they tripped over ("'utf-8' codec can't decode byte
+    0xbd", or a prmtop check quoting forty of them)."""
+    if fmt in BINARY_FORMATS:
+        return
+    suffix = os.path.splitext(path)[1].lower()
+    try:
+        if suffix in (".gz", ".bz2"):
+            packed = gzip.open if suffix == ".gz" else bz2.open
+            with packed(path, "rb") as fh:
+                head = fh.read(SNIFF_BYTES)
+        else:
+            with open(path, "rb") as fh:
+                head = fh.read(SNIFF_BYTES)
+    except (OSError, EOFError):  # a damaged archive: its reader says what is wrong
+        return
+    if not head:
+        return
+    text = head.decode("utf-8", errors="replace")
+    if len(head) == SNIFF_BYTES:  # a character cut at the end is not the file's fault
+        text = text[:-1]
+    odd = sum(1 for c in text if c == "\ufffd" or (ord(c) < 32 and c not in "\t\r\n\f"))
+    if "\0" in text or odd > 0.01 * max(len(text), 1):
+        raise StructureError(
+            f"{os.path.basename(path)}: found binary data, not text (a .{fmt} file is text)"
+        )
+
+
 def _fail(path: str, number: int, line: str, why: str) -> StructureError:
     quoted = line if len(line) <= MAX_QUOTED else line[:MAX_QUOTED] + "..."
     return StructureError(f"{os.path.basename(path)}, line {number}: {why}: {quoted!r}")

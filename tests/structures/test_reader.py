@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import gzip
 import os
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
-from MDAnalysisTests.datafiles import DCD, GRO, MMCIF, PDBX, PSF, XTC, PDB_multiframe
+from MDAnalysisTests.datafiles import DCD, GRO, MMCIF, PDBX, PSF, XTC, PDB_multiframe, PDB_small
 
 from structures.errors import StructureError
 from structures.reader import lammps_atom_style, load
@@ -181,6 +182,33 @@ def test_unreadable_files_are_told_in_words_not_in_the_readers_internals(tmp_pat
         assert "\\x" not in str(err.value) and "crashed" not in str(err.value)
     with pytest.raises(StructureError, match="found binary data, not text"):
         IsolatedStructure(PSF, [str(tmp_path / "dcd.xyz")], ReadLimits(max_atoms=100_000))
+
+
+def test_binary_bytes_in_a_text_format_are_named_as_such(tmp_path: Path) -> None:
+    """Random bytes named .prmtop were refused quoting forty of them, named .mol2 with
+    "'utf-8' codec can't decode byte 0xbd in position 0"; every text format now says what it
+    found, and a text file with a stray byte that is not UTF-8 is told so by that byte."""
+    from structures.isolated import IsolatedStructure, ReadLimits
+
+    noise = np.random.default_rng(7).integers(0, 256, 20_000, dtype=np.uint8).tobytes()
+    for name in ("x.prmtop", "x.mol2", "x.psf", "x.crd", "x.pqr", "x.data"):
+        (tmp_path / name).write_bytes(noise)
+        with pytest.raises(StructureError) as err:
+            IsolatedStructure(str(tmp_path / name), [], ReadLimits(max_atoms=100_000))
+        suffix = name.split(".")[1]
+        assert f"{name}: found binary data, not text (a .{suffix} file is text)" in str(err.value)
+    (tmp_path / "x.pdb.gz").write_bytes(gzip.compress(noise))
+    with pytest.raises(StructureError, match=re.escape("x.pdb: found binary data, not text")):
+        IsolatedStructure(str(tmp_path / "x.pdb.gz"), [], ReadLimits(max_atoms=100_000))
+    with pytest.raises(StructureError, match=re.escape("x.mdcrd: found binary data, not text")):
+        (tmp_path / "x.mdcrd").write_bytes(noise)
+        IsolatedStructure(PSF, [str(tmp_path / "x.mdcrd")], ReadLimits(max_atoms=100_000))
+    stray = Path(PDB_small).read_bytes().replace(b"REMARK", b"REMARK \xe9", 1)
+    (tmp_path / "stray.pdb").write_bytes(stray)  # text with one latin-1 byte: named, not sniffed
+    with pytest.raises(StructureError) as err:
+        IsolatedStructure(str(tmp_path / "stray.pdb"), [], ReadLimits(max_atoms=100_000))
+    assert "stray.pdb" in str(err.value) and "binary" not in str(err.value)
+    assert "a byte that is not UTF-8 text (0xe9); save the file as UTF-8" in str(err.value)
 
 
 def test_a_dcd_cut_inside_a_frame_is_noted(tmp_path: Path) -> None:
