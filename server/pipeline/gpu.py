@@ -309,6 +309,20 @@ class GpuQueue:
         self._lanes = [_Lane.start(d, f"gpu_{i}") for i, d in enumerate(names)]
 
     @property
+    def device_name(self) -> str:
+        """The device renders run on: the one the first renderer took, or before any render
+        what `device` resolves to ("auto": the first CUDA device, else the CPU); `device` as
+        given where it does not resolve (the first render then says why)."""
+        if self.actual_device:
+            return self.actual_device
+        from server.render.device import resolve
+
+        try:
+            return resolve(self.device)
+        except RenderError:
+            return self.device
+
+    @property
     def spread(self) -> str | None:
         """The session drawn across every device now, if one is."""
         return self._spread

@@ -274,7 +274,7 @@ class RenderLoop:
         if scene is None:
             return None
         params = self.host.render_params
-        device = self.services.backend.actual_device or self.settings.device
+        device = self.services.backend.device_name
         on_cpu = device.startswith("cpu")
         width, height = self.scheduler.image_size(key, params.quality, on_cpu)
         stream_size = self.scheduler.stream_size(key, params.quality, on_cpu, steering)

@@ -27,6 +27,10 @@ class RenderBackend(Protocol):
     @property
     def actual_device(self) -> str: ...
 
+    @property
+    def device_name(self) -> str:
+        """The device renders run on, named before the first render too."""
+
     async def render(self, request: RenderRequest) -> RenderOutput: ...
 
     async def pick(

@@ -1048,7 +1048,7 @@ class Session:
                         frames_sent=client.frames_sent,
                         frames_dropped=client.frames_dropped,
                         sim_frames=self.positions_id,
-                        device=self.services.backend.actual_device,
+                        device=self.services.backend.device_name,
                         device_ms={
                             k.removeprefix("device:"): v
                             for k, v in t.items()

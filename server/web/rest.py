@@ -218,7 +218,7 @@ def check_size(state: AppState, width: int, height: int) -> None:
     for name, value in (("width", width), ("height", height)):
         if value < 1:
             raise HTTPException(422, f"{name}: {size}: width and height must be >= 1")
-    device = state.gpu.actual_device or state.settings.device
+    device = state.gpu.device_name
     if device.startswith("cpu") and width * height > state.settings.cpu_max_rest_pixels:
         raise HTTPException(
             422,
@@ -576,9 +576,9 @@ async def get_session_log(
 async def healthz(state: State) -> dict[str, Any]:
     return {
         "status": "ok",
-        "device": state.gpu.actual_device or state.settings.device,
+        "device": state.gpu.device_name,
         # every device a session may be drawn across (--gpus), each with a thread of its own
-        "devices": list(state.gpu.devices) or [state.gpu.actual_device or state.settings.device],
+        "devices": list(state.gpu.devices) or [state.gpu.device_name],
         "encoder": state.encoder.describe(),
         # live sessions' JPEG made where they render (None: read back and encoded as above)
         "encoder_on_device": None if state.gpu.jpeg is None else state.gpu.jpeg.name,

@@ -55,6 +55,10 @@ class PaintBackend:
     gate: asyncio.Event | None = None
     """When set, renders wait for it (to hold a render in flight)."""
 
+    @property
+    def device_name(self) -> str:
+        return self.actual_device
+
     async def render(self, request: RenderRequest) -> RenderOutput:
         self.requests.append(request)
         if self.gate is not None:

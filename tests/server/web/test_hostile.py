@@ -2253,6 +2253,33 @@ def test_a_replay_into_a_full_server_is_refused_at_once_naming_the_limit(
         server.stop()
 
 
+def test_an_auto_device_is_named_and_its_cpu_limits_hold_before_the_first_render(
+    tmp_path: Path,
+) -> None:
+    """A server started with device "auto" (as `scalesteer.connect()` starts one) said
+    "device": "auto" in /healthz until something rendered, and its first /api/render skipped
+    the CPU's image-size limit, which reads the device's name."""
+    from server.render.device import cuda_count
+
+    expected = "cuda:0" if cuda_count() > 0 else "cpu"
+    server = start_server(make_settings(tmp_path, device="auto"))
+    try:
+        with httpx.Client(base_url=server.url, timeout=120) as c:
+            health = c.get("/healthz").json()
+            assert health["device"] == expected and health["devices"] == [expected], health
+            if expected == "cpu":
+                r = c.post(
+                    "/api/render",
+                    headers={"Authorization": f"Bearer {server.token}"},
+                    data={"width": "4000", "height": "3000"},
+                    files={"file": ("adk.pdb", Path(PDB_small).read_bytes())},
+                )
+                assert r.status_code == 422, r.text[:300]
+                assert "this server renders on its CPU" in r.json()["detail"]
+    finally:
+        server.stop()
+
+
 def test_a_form_field_an_endpoint_does_not_take_or_takes_twice_is_refused_by_name(
     tmp_path: Path,
 ) -> None:
