@@ -12,6 +12,7 @@ import { decodableCodecs, describeStream } from "./video.js";
 
 export class DashboardView {
   resized(size) {
+    this.viewSize = [size.viewW, size.viewH];
     setText($("hud-size"), `${size.viewW}×${size.viewH}`);
     this.probeVideo(size.viewW, size.viewH);
     this.sendViewSoon();
@@ -137,6 +138,7 @@ export class DashboardView {
     vp.dataset.still = String(msg.still !== false);
     vp.dataset.ref = String(msg.ref ?? "");
     vp.dataset.imageSize = `${msg.width}x${msg.height}`;
+    setText($("hud-size"), imageSizeText(msg, this.viewSize));
     setText($("hud-step"), `step ${integer(msg.step)}`);
     setText($("hud-fps"), `${sig(this.shownRate.rate(t), 3)} fps`);
     setText($("hud-stream"), describeStream(msg, this.meter.rate(t)));
@@ -153,4 +155,12 @@ export class DashboardView {
     const rect = $("view").getBoundingClientRect();
     return { x: rect.left + (px / viewW) * cssW, y: rect.top + (py / viewH) * cssH, depth };
   }
+}
+
+/** The HUD's size: the view's, or "520×313 of 1040×627" for an image drawn smaller than the
+ * view (a live image shrunk to its time budget, scaled up until the full-size one comes). */
+export function imageSizeText(msg, view) {
+  if (!view) return `${msg.width}×${msg.height}`;
+  const [w, h] = view;
+  return msg.width === w && msg.height === h ? `${w}×${h}` : `${msg.width}×${msg.height} of ${w}×${h}`;
 }
