@@ -276,6 +276,9 @@ def _probe(codec: str, encoder: str) -> str | None:
         enc.encode(img)
         enc.close()
     except Exception as exc:
+        strerror = getattr(exc, "strerror", None)
+        if isinstance(strerror, str) and strerror:  # FFmpeg's words, not its options dict
+            return f"{type(exc).__name__}: {strerror} (opening {encoder})"
         return f"{type(exc).__name__}: {exc}".splitlines()[0][:120]
     return None
 

@@ -48,6 +48,9 @@ def test_without_nvenc_h264_falls_back_to_libx264_and_says_why(
     assert encoders.chosen() == {"h264": "libx264", "vp9": "libvpx-vp9"}
     why = encoders.describe()["unavailable"]
     assert "h264/h264_nvenc" in why
+    # FFmpeg's reason, whole, not its message cut inside the options the encoder was opened with
+    assert why["h264/h264_nvenc"].endswith("(opening h264_nvenc)"), why
+    assert "{" not in why["h264/h264_nvenc"], why
     assert any("h264_nvenc unavailable" in r.message for r in caplog.records)
 
 
