@@ -58,7 +58,6 @@ export class Plots {
   constructor({ windowS = 300 } = {}) {
     this.windowS = windowS;
     this.plots = PLOTS.map((spec) => this.create(spec));
-    this.dirty = new Set();
     this.timer = null;
     this.lastStep = null;
   }
@@ -132,7 +131,6 @@ export class Plots {
   push(id, t, values) {
     const plot = this.byId(id);
     plot.table.push(t, values);
-    this.dirty.add(plot);
     this.schedule();
   }
 
@@ -167,31 +165,26 @@ export class Plots {
 
   redraw() {
     const now = Date.now() / 1000;
-    for (const plot of this.dirty) {
+    // every plot, not only those with new points: their time axes end now together (the
+    // latency plot, which gains a point only when a steer is shown, lagged the others)
+    for (const plot of this.plots) {
       plot.table.prune(now);
       plot.chart.setData(plot.table.data());
       plot.figure.dataset.points = String(plot.table.length);
       const v = plot.table.last(plot.spec.columns[0]);
       setText(plot.last, v === null ? "–" : `${sig(v, 4)} ${plot.spec.unit}`);
     }
-    this.dirty.clear();
   }
 
   setWindow(windowS) {
     this.windowS = windowS;
     const now = Date.now() / 1000;
-    for (const plot of this.plots) {
-      plot.table.setWindow(windowS, now);
-      this.dirty.add(plot);
-    }
+    for (const plot of this.plots) plot.table.setWindow(windowS, now);
     this.redraw();
   }
 
   clear() {
-    for (const plot of this.plots) {
-      plot.table.clear();
-      this.dirty.add(plot);
-    }
+    for (const plot of this.plots) plot.table.clear();
     this.lastStep = null;
     this.redraw();
   }
