@@ -111,11 +111,11 @@ class RenderLoop:
         self._render_times: list[float] = []
         self._image_ids = itertools.count(1)
         self._dirty = asyncio.Event()
-        self._drawn_params: p.RenderParams | None = None
-        """The render parameters of the last image drawn."""
-        self._refused_params: p.RenderParams | None = None
+        self._drawn: tuple[p.RenderParams, p.Topology] | None = None
+        """The render parameters and the molecule of the last image drawn."""
+        self._refused: tuple[p.RenderParams, p.Topology] | None = None
         """Those of the last render refused as too large for this server."""
-        self._refused: tuple[str, float] = ("", -math.inf)
+        self._told: tuple[str, float] = ("", -math.inf)
         """The reason of the last refusal told to the clients (its numbers left out: they change
         frame by frame) and when; the same reason is told again only after `REFUSAL_REPEAT_S`."""
 
@@ -147,7 +147,7 @@ class RenderLoop:
                 raise
             except RenderError as exc:  # what was sent cannot be drawn here: say what
                 now = time.monotonic()
-                said, when = self._refused
+                said, when = self._told
                 reason = re.sub(r"[0-9.]+", "#", str(exc))  # frame by frame, counts change
                 took_back = self._take_back(exc)
                 if took_back or reason != said or now - when >= REFUSAL_REPEAT_S:
@@ -162,7 +162,7 @@ class RenderLoop:
                     if took_back:
                         text += "; the session went back to the parameters it last drew"
                     self.host.broadcast(p.Error(code=code, message=text))
-                    self._refused = (reason, now)
+                    self._told = (reason, now)
                 if took_back:  # what it went back to is drawn again, for every view
                     self.mark_dirty()
                 await asyncio.sleep(FAILED_RENDER_PAUSE_S)
@@ -178,12 +178,15 @@ class RenderLoop:
         parameters in effect, which differ from those of the last image): the session goes
         back to those, so its controls show what its images show. A molecule that grew too
         large for unchanged parameters is only refused."""
-        refused, drawn = self._refused_params, self._drawn_params
+        refused, drawn = self._refused, self._drawn
         if not isinstance(exc, CapacityError) or refused is None or drawn is None:
             return False
-        if refused != self.host.render_params or refused == drawn:
+        (params, molecule), (drawn_params, drawn_molecule) = refused, drawn
+        if molecule is not drawn_molecule:  # a new molecule: the size may be its own
             return False
-        return self.host.take_back_render_params(drawn, str(exc))
+        if params != self.host.render_params or params == drawn_params:
+            return False
+        return self.host.take_back_render_params(drawn_params, str(exc))
 
     async def render_pending(self) -> None:
         """One pass: every view group the scheduler finds due, each rendered once."""
@@ -305,9 +308,9 @@ class RenderLoop:
         try:
             out: RenderOutput = await self.services.backend.render(request)
         except CapacityError:
-            self._refused_params = params
+            self._refused = (params, snap.topology)
             raise
-        self._drawn_params = params
+        self._drawn = (params, snap.topology)
         reduced = self.scheduler.note_render(
             key,
             snap.version,

@@ -303,6 +303,30 @@ def test_parameters_refused_before_anything_was_drawn_are_only_refused(
     run(body, tmp_path, TooLargeGeodesic())
 
 
+def test_a_new_molecule_too_large_for_the_parameters_does_not_take_them_back(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Refused with a molecule other than the last image's, the size may be the molecule's
+    own: a steer made with it is not undone (it is only refused)."""
+    monkeypatch.setattr("server.session.render_loop.FAILED_RENDER_PAUSE_S", 0.01)
+
+    async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
+        a = client("a", "viewer")
+        host.clients["a"] = a
+        loop.mark_dirty()
+        await settle(lambda: len(images(a)) == 1)
+        host.topology = host.topology.model_copy()  # a new topology arrived
+        host.render_params = host.render_params.model_copy(update={"scale_space": "geodesic"})
+        host.version = 2
+        loop.mark_dirty()
+        await settle(lambda: bool(host.broadcasts))
+        (error,) = host.broadcasts
+        assert isinstance(error, p.Error) and "went back" not in error.message
+        assert host.render_params.scale_space == "geodesic"
+
+    run(body, tmp_path, TooLargeGeodesic())
+
+
 def test_a_snapshot_the_host_cannot_draw_yet_renders_nothing_and_frees_its_slot(
     tmp_path: Path,
 ) -> None:
