@@ -1381,9 +1381,11 @@ def until_closed(sock: socket.socket, timeout: float = 10) -> tuple[int, str]:
 
 
 class SlowReader:
-    """A raw viewer that reads `chunk` bytes a turn and answers the server's pings."""
+    """A raw viewer that reads `chunk` bytes a turn, or with `per_s` that many bytes a second
+    however often its turns come (a loaded host delays turns; the reader then catches up, up
+    to two seconds' worth), and answers the server's pings."""
 
-    def __init__(self, server: ServerProcess, chunk: int) -> None:
+    def __init__(self, server: ServerProcess, chunk: int, per_s: float | None = None) -> None:
         self.sock, status = upgrade(server, rcvbuf=4096)
         assert status == 101
         for message in (p.Hello(role="viewer", token=VIEWER_TOKEN), p.View(width=960, height=540)):
@@ -1393,6 +1395,7 @@ class SlowReader:
         self.ages: list[float] = []
         self.taken, self.since = 0, time.monotonic()
         """Each image's age when it was read: from the server's packing to here (one clock)."""
+        self.per_s, self.allowance, self.at = per_s, 0.0, time.monotonic()
 
     @property
     def closed(self) -> bool:
@@ -1401,8 +1404,16 @@ class SlowReader:
     def read(self) -> None:
         if self.closed:
             return
+        size = self.chunk
+        if self.per_s is not None:
+            now = time.monotonic()
+            self.allowance = min(self.allowance + self.per_s * (now - self.at), 2 * self.per_s)
+            self.at, size = now, int(self.allowance)
+            if size < 1:
+                return
         try:
-            data = self.sock.recv(self.chunk)
+            data = self.sock.recv(size)
+            self.allowance -= len(data)
             self.pending += data
             self.taken += len(data)
         except (TimeoutError, BlockingIOError):
@@ -1432,7 +1443,9 @@ def test_a_slow_reader_without_acks_keeps_its_connection(tmp_path: Path) -> None
         sim = Peer(server.ws_url, "simulation", TOKEN)
         topo, pos = crowded(2000)  # images of 7-14 KB at 960x540
         sim.send(topo)
-        slow, trickle = SlowReader(server, 1500), SlowReader(server, 100)
+        # read by the second, not by the turn: under a loaded host the turns came late and a
+        # reader meant to take 3.7 KB/s took less than its keep-alive needs
+        slow, trickle = SlowReader(server, 0, per_s=3700), SlowReader(server, 0, per_s=250)
         until = time.monotonic() + 14
         step = 0
         while time.monotonic() < until and not slow.closed:
