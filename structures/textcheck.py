@@ -14,8 +14,9 @@ import math
 import os
 import re
 import shlex
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from itertools import islice
+from typing import IO, Any
 
 from protocol.limits import MAX_COORDINATE_A
 from structures.errors import StructureError
@@ -23,15 +24,19 @@ from structures.errors import StructureError
 MAX_QUOTED = 60
 
 
-def _lines(path: str) -> Iterator[tuple[int, str]]:
+def _open(path: str, text: bool) -> IO[Any]:
+    """The file, unpacked where its name ends .gz or .bz2; as text, stray bytes replaced."""
     suffix = os.path.splitext(path)[1].lower()
+    opener: Callable[..., IO[Any]] = open
     if suffix in (".gz", ".bz2"):
-        packed = gzip.open if suffix == ".gz" else bz2.open
-        with packed(path, "rt", encoding="utf-8", errors="replace") as fh:
-            for number, line in enumerate(fh, 1):
-                yield number, line.rstrip("\r\n")
-        return
-    with open(path, encoding="utf-8", errors="replace") as fh:
+        opener = gzip.open if suffix == ".gz" else bz2.open
+    if text:
+        return opener(path, "rt", encoding="utf-8", errors="replace")
+    return opener(path, "rb")
+
+
+def _lines(path: str) -> Iterator[tuple[int, str]]:
+    with _open(path, text=True) as fh:
         for number, line in enumerate(fh, 1):
             yield number, line.rstrip("\r\n")
 
@@ -49,15 +54,9 @@ def refuse_binary(path: str, fmt: str) -> None:
     0xbd", or a prmtop check quoting forty of them)."""
     if fmt in BINARY_FORMATS:
         return
-    suffix = os.path.splitext(path)[1].lower()
     try:
-        if suffix in (".gz", ".bz2"):
-            packed = gzip.open if suffix == ".gz" else bz2.open
-            with packed(path, "rb") as fh:
-                head = fh.read(SNIFF_BYTES)
-        else:
-            with open(path, "rb") as fh:
-                head = fh.read(SNIFF_BYTES)
+        with _open(path, text=False) as fh:
+            head = fh.read(SNIFF_BYTES)
     except (OSError, EOFError):  # a damaged archive: its reader says what is wrong
         return
     if not head:
