@@ -693,15 +693,22 @@ class Session:
         # logged first: a change the log cannot record is refused (an error naming the
         # message) rather than drawn without a state telling the viewers of it
         self._log({"event": "render_params", **who, "changes": changes})
+        self._new_render_params(merged, changes, message.seq, client.client_id)
+        self.scheduler.interacting(time.monotonic())
+        self.mark_dirty()
+
+    def _new_render_params(
+        self, merged: p.RenderParams, changes: dict[str, Any], ref: int | None, by: str | None
+    ) -> None:
+        """The session draws `merged` from now on (logged already): every client is told, and
+        what the changed fields touch besides the image follows (the legend, the display)."""
         self.render_params = merged
-        self.broadcast(p.State(render_params=merged, ref=message.seq, by=client.client_id))
+        self.broadcast(p.State(render_params=merged, ref=ref, by=by))
         if "color_by" in changes or "uniform_color" in changes:
             self._legend_changed()
         if any(f in changes for f in PERIODIC_FIELDS):
             self._redisplay()
         self.version += 1
-        self.scheduler.interacting(time.monotonic())
-        self.mark_dirty()
 
     def take_back_render_params(self, params: p.RenderParams, why: str) -> bool:
         """Go back to `params` (the render loop's last drawn) because the present ones are too
@@ -719,13 +726,7 @@ class Session:
         except Exception:  # unrecorded, it is not made: the refusal alone is told
             log.exception("session %s: taking back render parameters failed", self.id)
             return False
-        self.render_params = merged
-        self.broadcast(p.State(render_params=merged))
-        if "color_by" in changes or "uniform_color" in changes:
-            self._legend_changed()
-        if any(f in changes for f in PERIODIC_FIELDS):
-            self._redisplay()
-        self.version += 1
+        self._new_render_params(merged, changes, None, None)
         self.mark_dirty()
         return True
 
