@@ -257,6 +257,24 @@ def test_a_refusal_is_told_with_its_reason_once_while_it_repeats(
     run(body, tmp_path, Refusing())
 
 
+async def drawn_then_geodesic(
+    loop: RenderLoop, host: Host, new_molecule: bool = False, **update: Any
+) -> p.RenderParams:
+    """One image drawn for a viewer, then the session steered to the geodesic density (with
+    `update` too, and a new topology with `new_molecule`); returns the parameters drawn."""
+    a = client("a", "viewer")
+    host.clients["a"] = a
+    loop.mark_dirty()
+    await settle(lambda: len(images(a)) == 1)
+    drawn = host.render_params
+    if new_molecule:
+        host.topology = host.topology.model_copy()  # a new topology arrived
+    host.render_params = drawn.model_copy(update={"scale_space": "geodesic", **update})
+    host.version = 2
+    loop.mark_dirty()
+    return drawn
+
+
 def test_a_steer_too_large_to_draw_is_taken_back_to_what_the_session_last_drew(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -265,14 +283,7 @@ def test_a_steer_too_large_to_draw_is_taken_back_to_what_the_session_last_drew(
     monkeypatch.setattr("server.session.render_loop.FAILED_RENDER_PAUSE_S", 0.01)
 
     async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
-        a = client("a", "viewer")
-        host.clients["a"] = a
-        loop.mark_dirty()
-        await settle(lambda: len(images(a)) == 1)
-        drawn = host.render_params
-        host.render_params = drawn.model_copy(update={"scale_space": "geodesic", "sigma_A": 6.0})
-        host.version = 2
-        loop.mark_dirty()
+        drawn = await drawn_then_geodesic(loop, host, sigma_A=6.0)
         await settle(lambda: len(backend.requests) == 3)  # the parameters it drew, drawn again
         assert host.render_params == drawn
         (error,) = host.broadcasts
@@ -311,14 +322,7 @@ def test_a_new_molecule_too_large_for_the_parameters_does_not_take_them_back(
     monkeypatch.setattr("server.session.render_loop.FAILED_RENDER_PAUSE_S", 0.01)
 
     async def body(loop: RenderLoop, host: Host, backend: PaintBackend) -> None:
-        a = client("a", "viewer")
-        host.clients["a"] = a
-        loop.mark_dirty()
-        await settle(lambda: len(images(a)) == 1)
-        host.topology = host.topology.model_copy()  # a new topology arrived
-        host.render_params = host.render_params.model_copy(update={"scale_space": "geodesic"})
-        host.version = 2
-        loop.mark_dirty()
+        await drawn_then_geodesic(loop, host, new_molecule=True)
         await settle(lambda: bool(host.broadcasts))
         (error,) = host.broadcasts
         assert isinstance(error, p.Error) and "went back" not in error.message
